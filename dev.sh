@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# The project's two commands (see README):
+#   ./dev.sh demo          the main job on the simulated stage
+#   ./dev.sh test [ARGS]   the whole test suite (pytest ARGS)
+# and, for convenience, ./dev.sh <piezo-stage args>.
+# Each creates or reuses the virtual environment .venv at the repository root and
+# (re)installs the package when its install files changed.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+py=${PYTHON:-}
+if [ -z "$py" ]; then
+  for c in python3.11 python3; do command -v "$c" >/dev/null 2>&1 && { py=$c; break; }; done
+fi
+[ -n "$py" ] || { echo "dev.sh: error: python3.11 not found" >&2; exit 2; }
+
+if [ ! -x .venv/bin/python ]; then
+  "$py" -m venv .venv
+fi
+stamp=.venv/.piezo_stage_install_stamp
+want=$(cat setup.py setup.cfg package.xml | sha256sum | cut -d' ' -f1)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check --upgrade pip
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[ros,bags,test]"
+  echo "$want" > "$stamp"
+fi
+
+cmd=${1:-demo}
+[ $# -gt 0 ] && shift
+case "$cmd" in
+  test) exec .venv/bin/python -m pytest "$@" ;;
+  demo) exec .venv/bin/piezo-stage demo "$@" ;;
+  *)    exec .venv/bin/piezo-stage "$cmd" "$@" ;;
+esac

@@ -1,0 +1,192 @@
+"""The ``piezo-stage`` command: thin argument parsing over the core and io.
+
+Every command turns bad input into one line on stderr and exit code 2; outputs are
+written to a temporary file and renamed, so they are complete or absent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from piezo_stage.core.errors import DataError, PiezoStageError
+
+EXIT_USAGE = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit 2 (argparse prints usage as well)
+        sys.stderr.write(f"{self.prog}: error: {message}\n")
+        sys.exit(EXIT_USAGE)
+
+
+def _die(msg: str, code: int = EXIT_USAGE):
+    sys.stderr.write(f"piezo-stage: error: {msg}\n")
+    sys.exit(code)
+
+
+# -- simulate ---------------------------------------------------------------------------
+
+def _load_plant(args, rate_hz):
+    from piezo_stage.core.plant import PlantConfig
+    from piezo_stage.io.model_file import load_model
+    from piezo_stage.io.plant_file import (default_plant_config_path, enabled_effects,
+                                           load_plant_config)
+    if args.model:
+        model, effects = load_model(args.model)
+        cfg = PlantConfig.exact(model, rate_hz)
+        cfg.effects = enabled_effects(effects)
+    else:
+        cfg = load_plant_config(args.config or default_plant_config_path())
+    if getattr(args, "no_noise", False):
+        cfg.noise_rms_um = 0.0
+        cfg.quantization_um = 0.0
+    if getattr(args, "seed", None) is not None:
+        cfg.seed = args.seed
+    return cfg
+
+
+def _check_voltages(rec, limits, source):
+    lo, hi = limits
+    for a, v in rec.v.items():
+        bad = np.flatnonzero((v < lo) | (v > hi))
+        if bad.size:
+            i = int(bad[0])
+            raise DataError(f"{source}: v{a} = {v[i]:g} V at line {i + 2} is outside "
+                                  f"the voltage limits [{lo:g}, {hi:g}] V")
+
+
+def cmd_simulate(args):
+    from piezo_stage.core.plant import Plant
+    from piezo_stage.io.csv_table import read_table, write_table
+    from piezo_stage.core.record import Record
+    cols = read_table(args.inp, ["t", "vx", "vy"])
+    rec = Record(cols["t"], {"x": cols["vx"], "y": cols["vy"]}, source=args.inp)
+    cfg = _load_plant(args, rec.fs_hz)
+    _check_voltages(rec, cfg.model.voltage_limits, args.inp)
+    plant = Plant(cfg, rec.fs_hz)
+    w = plant.run(rec.v["x"], rec.v["y"])
+    write_table(args.out, {"t": rec.t, "vx": rec.v["x"], "vy": rec.v["y"],
+                           "wx": w["x"], "wy": w["y"]})
+    return 0
+
+
+# -- invert -----------------------------------------------------------------------------
+
+def cmd_invert(args):
+    from piezo_stage.core.inverse import invert_seed_eq12, invert_stage
+    from piezo_stage.core.record import Record
+    from piezo_stage.io.csv_table import read_table, write_table
+    from piezo_stage.io.model_file import load_model
+    model, _ = load_model(args.model)
+    cols = read_table(args.inp, ["t", "wx", "wy"])
+    rec = Record(cols["t"], w={"x": cols["wx"], "y": cols["wy"]}, source=args.inp)
+    if args.method == "exact":
+        res = invert_stage(model, rec.w["x"], rec.w["y"])
+    else:
+        res = {a: invert_seed_eq12(m, rec.w[a], model.voltage_limits)
+               for a, m in model.axes.items()}
+    lo = model.voltage_limits[0]
+    v = {a: res[a].v if a in res else np.full(len(rec), lo) for a in ("x", "y")}
+    write_table(args.out, {"t": rec.t, "vx": v["x"], "vy": v["y"]})
+    for a, r in res.items():
+        if r.n_saturated:
+            i = int(np.flatnonzero(r.saturated)[0])
+            sys.stderr.write(
+                f"piezo-stage: warning: axis {a}: {r.n_saturated} of {len(rec)} targets "
+                f"unreachable within [{model.voltage_limits[0]:g}, "
+                f"{model.voltage_limits[1]:g}] V, saturated (first at t = {rec.t[i]:g} s, "
+                f"w = {rec.w[a][i]:g} um)\n")
+    return 0
+
+
+# -- loop (the first demo: a real run of the simulated stage) -------------------------------
+
+def cmd_loop(args):
+    from piezo_stage.core.metrics import loop_figures
+    from piezo_stage.core.plant import Plant
+    fs = args.rate
+    cfg = _load_plant(args, fs)
+    lo, hi = cfg.model.voltage_limits
+    amp = min(args.amplitude, hi - lo)
+    t = np.arange(int(round(args.cycles * fs / args.freq))) / fs
+    v = lo + amp / 2 * (1 - np.cos(2 * np.pi * args.freq * t))
+    plant = Plant(cfg, fs)
+    per = int(round(fs / args.freq))
+    print(f"simulated stage: {args.freq:g} Hz, 0-{amp:g} V sine, {args.cycles} cycles at "
+          f"{fs:g} Hz, noise {cfg.noise_rms_um:g} um RMS")
+    print(f"{'driven':>6} {'axis':>4} {'range_um':>9} {'width_um':>9} {'width_pct':>9} "
+          f"{'mid_width_um':>12} {'closure_um':>10} {'coupling_pp_um':>14}")
+    for drive in ("x", "y"):
+        plant.reset()
+        other = "y" if drive == "x" else "x"
+        vx, vy = (v, np.full_like(v, lo)) if drive == "x" else (np.full_like(v, lo), v)
+        plant.run(vx, vy)
+        true = plant.last_true
+        last, prev = slice(-per, None), slice(-2 * per, -per)
+        fig = loop_figures(v[last], true[drive][last])
+        closure = float(np.max(np.abs(true[drive][last] - true[drive][prev])))
+        coupling = float(np.ptp(true[other][last]))
+        print(f"{drive:>6} {drive:>4} {fig['range_um']:9.3f} {fig['max_width_um']:9.3f} "
+              f"{fig['max_width_pct']:9.2f} {fig['mid_width_um']:12.3f} {closure:10.2e} "
+              f"{coupling:14.3f}")
+    return 0
+
+
+def cmd_bench(args):
+    from piezo_stage import bench
+    return bench.main(args)
+
+
+def build_parser():
+    p = _Parser(prog="piezo-stage", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
+
+    s = sub.add_parser("simulate", help="run a voltage record through the simulated stage")
+    s.add_argument("--in", dest="inp", required=True, help="CSV with t,vx,vy (s, V)")
+    s.add_argument("--out", required=True, help="output CSV t,vx,vy,wx,wy (wx, wy in um)")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--config", help="plant config YAML (default config/sim_stage.yaml)")
+    g.add_argument("--model", help="model file: the plant is exactly this model, nothing else")
+    s.add_argument("--no-noise", action="store_true", help="no sensor noise or quantisation")
+    s.add_argument("--seed", type=int, help="noise seed (overrides the config)")
+    s.set_defaults(fn=cmd_simulate)
+
+    s = sub.add_parser("invert", help="voltages that make a model follow a target")
+    s.add_argument("--model", required=True, help="model file (YAML)")
+    s.add_argument("--in", dest="inp", required=True, help="CSV with t,wx,wy (s, um)")
+    s.add_argument("--out", required=True, help="output CSV t,vx,vy (V)")
+    s.add_argument("--method", choices=("exact", "seed-eq12"), default="exact")
+    s.set_defaults(fn=cmd_invert)
+
+    for name, hlp in (("loop", "hysteresis loop figures of the simulated stage"),
+                      ("demo", "the main job on the simulated stage")):
+        s = sub.add_parser(name, help=hlp)
+        s.add_argument("--config", help="plant config YAML")
+        s.add_argument("--freq", type=float, default=1.0, help="sine frequency [Hz]")
+        s.add_argument("--amplitude", type=float, default=150.0, help="peak-peak [V]")
+        s.add_argument("--cycles", type=int, default=3)
+        s.add_argument("--rate", type=float, default=10_000.0, help="sample rate [Hz]")
+        s.set_defaults(fn=cmd_loop, model=None, no_noise=False, seed=None)
+
+    s = sub.add_parser("bench", help="performance benchmarks (figures as ratios)")
+    s.add_argument("what", choices=("plant",))
+    s.add_argument("--samples", type=int, default=2_000_000)
+    s.set_defaults(fn=cmd_bench)
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    try:
+        return args.fn(args) or 0
+    except PiezoStageError as e:
+        _die(str(e))
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,221 @@
+"""Compiled loops for the sequential recursions (Duhem, slew limiter, inverse).
+
+The Duhem recursion is sequential in time, so numpy cannot vectorise it; numba compiles
+these loops to machine code. Each kernel keeps its plain-Python original as
+``kernel.py_func`` (numba's attribute), which the benchmark uses as its baseline and
+which runs unchanged when numba is missing.
+"""
+
+import numpy as np
+
+try:  # numba is a declared dependency; the fallback keeps the core importable without it
+    from numba import njit as _njit
+
+    def njit(fn):
+        return _njit(cache=True, nogil=True)(fn)
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - exercised only on installs without numba
+    def njit(fn):
+        fn.py_func = fn
+        return fn
+
+    HAVE_NUMBA = False
+
+
+@njit
+def horner(c, x):
+    """Evaluate sum_i c[i] x**i."""
+    acc = 0.0
+    for i in range(c.shape[0] - 1, -1, -1):
+        acc = acc * x + c[i]
+    return acc
+
+
+@njit
+def duhem_run(v, v_prev, w_prev, alpha, H, out):
+    """Run the discrete Duhem recursion (seed eq. 6) over ``v``.
+
+    w_k = (w_{k-1} + dv_k * H_b(v_k)) / (1 + alpha_b |dv_k|),  dv_k = v_k - v_{k-1},
+    with branch b = 0 (ascending, dv >= 0) or 1 (descending). ``H[0] = f + g`` and
+    ``H[1] = g - f`` (see duhem.py). Writes ``out`` and returns the final (v, w).
+    """
+    for k in range(v.shape[0]):
+        vk = v[k]
+        dv = vk - v_prev
+        b = 0 if dv >= 0.0 else 1
+        h = 0.0
+        for i in range(H.shape[1] - 1, -1, -1):
+            h = h * vk + H[b, i]
+        w_prev = (w_prev + dv * h) / (1.0 + alpha[b] * abs(dv))
+        out[k] = w_prev
+        v_prev = vk
+    return v_prev, w_prev
+
+
+@njit
+def slew_clamp_run(v, v_prev, v_min, v_max, max_step, out):
+    """Amplifier: clamp to [v_min, v_max], then limit |v_k - v_{k-1}| to max_step.
+
+    Returns (final voltage, number of samples that hit a limit).
+    """
+    hits = 0
+    for k in range(v.shape[0]):
+        x = v[k]
+        hit = False
+        if x > v_max:
+            x = v_max
+            hit = True
+        elif x < v_min:
+            x = v_min
+            hit = True
+        d = x - v_prev
+        if d > max_step:
+            x = v_prev + max_step
+            hit = True
+        elif d < -max_step:
+            x = v_prev - max_step
+            hit = True
+        if hit:
+            hits += 1
+        out[k] = x
+        v_prev = x
+    return v_prev, hits
+
+
+@njit
+def _branch_residual(dv, vp, wp, wt, alpha, H):
+    # r(dv) = (w_prev + dv H(v_prev+dv)) - (1 + alpha |dv|) w_target: zero where the
+    # forward step from (v_prev, w_prev) lands exactly on w_target.
+    v = vp + dv
+    h = 0.0
+    for i in range(H.shape[0] - 1, -1, -1):
+        h = h * v + H[i]
+    return wp + dv * h - (1.0 + alpha * abs(dv)) * wt
+
+
+@njit
+def _first_root(vp, wp, wt, alpha, H, span, n_scan):
+    # Smallest |dv| in (0, span] (span signed) where the residual changes sign: scan,
+    # then bisect-polish the first bracket to machine precision. Returns (dv, found).
+    r0 = _branch_residual(0.0, vp, wp, wt, alpha, H)
+    lo = 0.0
+    rlo = r0
+    for j in range(1, n_scan + 1):
+        hi = span * j / n_scan
+        rhi = _branch_residual(hi, vp, wp, wt, alpha, H)
+        if rlo == 0.0:
+            return lo, True
+        if (rlo < 0.0) != (rhi < 0.0) or rhi == 0.0:
+            # Illinois-modified regula falsi: superlinear, always bracketed
+            a, fa, b, fb = lo, rlo, hi, rhi
+            side = 0
+            for _ in range(200):
+                c = (a * fb - b * fa) / (fb - fa)
+                fc = _branch_residual(c, vp, wp, wt, alpha, H)
+                if fc == 0.0 or abs(b - a) < 1e-13 * (1.0 + abs(c)):
+                    return c, True
+                if (fc < 0.0) == (fb < 0.0):
+                    b, fb = c, fc
+                    if side == -1:
+                        fa *= 0.5
+                    side = -1
+                else:
+                    a, fa = c, fc
+                    if side == 1:
+                        fb *= 0.5
+                    side = 1
+            return c, True
+        lo, rlo = hi, rhi
+    return span, False
+
+
+@njit
+def duhem_inverse_run(w_target, v_prev, w_prev, alpha, H, v_min, v_max, n_scan,
+                      out_v, out_w, out_sat):
+    """Exact per-sample inverse of :func:`duhem_run`.
+
+    For each target, pick the branch by the sign of the requested change, find the
+    voltage nearest to v_prev that makes the forward step hit the target, and advance
+    the model state with that voltage. If no voltage within [v_min, v_max] reaches the
+    target the voltage saturates at the limit, out_sat[k] = 1, and the state follows
+    what the model really does at that limit (never a silently wrong state).
+    """
+    for k in range(w_target.shape[0]):
+        wt = w_target[k]
+        if wt == w_prev:
+            dv = 0.0
+            ok = True
+        elif wt > w_prev:
+            span = v_max - v_prev
+            if span <= 0.0:
+                dv, ok = 0.0, False
+            else:
+                dv, ok = _first_root(v_prev, w_prev, wt, alpha[0], H[0], span, n_scan)
+        else:
+            span = v_min - v_prev
+            if span >= 0.0:
+                dv, ok = 0.0, False
+            else:
+                dv, ok = _first_root(v_prev, w_prev, wt, alpha[1], H[1], span, n_scan)
+        vk = v_prev + dv
+        if vk > v_max:
+            vk = v_max
+        elif vk < v_min:
+            vk = v_min
+        d = vk - v_prev
+        b = 0 if d >= 0.0 else 1
+        h = 0.0
+        for i in range(H.shape[1] - 1, -1, -1):
+            h = h * vk + H[b, i]
+        w_prev = (w_prev + d * h) / (1.0 + alpha[b] * abs(d))
+        v_prev = vk
+        out_v[k] = vk
+        out_w[k] = w_prev
+        out_sat[k] = 0 if ok else 1
+    return v_prev, w_prev
+
+
+@njit
+def duhem_regressors(v, v_prev, alpha, basis_asc, basis_desc, out):
+    """Columns of the output-error regression for fixed alphas.
+
+    For fixed alpha_b the recursion w_k = a_k w_{k-1} + a_k dv_k H_b(v_k), with
+    a_k = 1/(1 + alpha_b |dv_k|), is linear in the coefficients of H_b: w = X theta.
+    Column j of X is that recursion driven by one basis input alone (zero initial
+    state); the last column is the free response to w_0 = 1. ``basis_asc[k, i]`` and
+    ``basis_desc[k, i]`` are the basis functions evaluated at v_k (for example
+    (v_k/s)**i); columns 0..pa-1 belong to the ascending branch, pa..pa+pd-1 to the
+    descending one. With the same basis in both slots and equal alphas this also
+    serves the whole-curve model.
+    """
+    n = v.shape[0]
+    pa = basis_asc.shape[1]
+    pd = basis_desc.shape[1]
+    p = pa + pd
+    state = np.zeros(p + 1)
+    state[p] = 1.0
+    for k in range(n):
+        vk = v[k]
+        dv = vk - v_prev
+        if dv >= 0.0:
+            a = 1.0 / (1.0 + alpha[0] * dv)
+            for j in range(p + 1):
+                state[j] *= a
+            for j in range(pa):
+                state[j] += a * dv * basis_asc[k, j]
+        else:
+            a = 1.0 / (1.0 - alpha[1] * dv)
+            for j in range(p + 1):
+                state[j] *= a
+            for j in range(pd):
+                state[pa + j] += a * dv * basis_desc[k, j]
+        for j in range(p + 1):
+            out[k, j] = state[j]
+        v_prev = vk
+    return out
+
+
+def as_f64(x):
+    """Contiguous float64 view/copy for the kernels."""
+    return np.ascontiguousarray(x, dtype=np.float64)

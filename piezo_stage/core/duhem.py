@@ -1,0 +1,237 @@
+"""Duhem hysteresis: forward model, whole-curve and segmented, batch and per sample.
+
+Continuous law (seed eq. 1), input voltage v [V], output displacement w [um]::
+
+    dw/dt = alpha |dv/dt| (f(v) - w) + dv/dt g(v)
+
+Implicit Euler on the voltage increment dv_k = v_k - v_{k-1} (seed eq. 6) gives::
+
+    w_k (1 + alpha |dv_k|) = w_{k-1} + |dv_k| F(v_k) + dv_k G(v_k)
+
+where, following the seed's eq. 6 literally, the polynomials F = sum f_i v**i and
+G = sum g_j v**j already carry the factor alpha of eq. 1 (F = alpha f_eq1); f_i and
+g_j are in um/V per V**i. On an ascending step (dv >= 0) only H_asc = F + G enters,
+on a descending step only H_desc = G - F::
+
+    w_k = (w_{k-1} + dv_k H_b(v_k)) / (1 + alpha_b |dv_k|)
+
+so within one branch f_i and g_i of the same power are not separately identifiable.
+The *segmented* model (seed eqs. 2-3) has its own (alpha, f, g) per branch; the
+*whole-curve* model shares one set. The state (v_{k-1}, w_{k-1}) is carried across
+reversals, so the output is continuous whatever the branch. The recursion only sees
+the sequence of voltages, never time: the law is rate independent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from piezo_stage.core._jit import as_f64, duhem_run
+from piezo_stage.core.errors import ModelError
+
+
+def _coeffs(x, name):
+    a = np.atleast_1d(np.asarray(x, dtype=float))
+    if a.ndim != 1 or a.size == 0:
+        raise ModelError(f"{name} must be a non-empty list of numbers")
+    if not np.all(np.isfinite(a)):
+        raise ModelError(f"{name} has a non-finite coefficient")
+    return a
+
+
+@dataclass(frozen=True)
+class DuhemBranch:
+    """One parameter set (alpha, f, g) in the seed's eq. 6 convention.
+
+    Parameters
+    ----------
+    alpha : float
+        Weight coefficient [1/V], > 0.
+    f, g : array_like
+        Polynomial coefficients, lowest power first [um/V per V**i].
+    reduced : bool
+        True when only the identifiable combination is known (then f = 0, g = h with
+        h = f + g on an ascending branch, h = g - f on a descending one).
+    """
+
+    alpha: float
+    f: np.ndarray
+    g: np.ndarray
+    reduced: bool = False
+
+    def __post_init__(self):
+        if not np.isfinite(self.alpha) or self.alpha <= 0:
+            raise ModelError(f"alpha must be finite and > 0, got {self.alpha}")
+        object.__setattr__(self, "alpha", float(self.alpha))
+        object.__setattr__(self, "f", _coeffs(self.f, "f"))
+        object.__setattr__(self, "g", _coeffs(self.g, "g"))
+
+    @classmethod
+    def from_h(cls, alpha, h):
+        """A branch known only by its identifiable polynomial h (f = 0, g = h)."""
+        h = _coeffs(h, "h")
+        return cls(alpha, np.zeros(1), h, reduced=True)
+
+    def h(self, ascending: bool) -> np.ndarray:
+        """The polynomial this branch applies: f + g ascending, g - f descending."""
+        d = max(self.f.size, self.g.size)
+        f = np.pad(self.f, (0, d - self.f.size))
+        g = np.pad(self.g, (0, d - self.g.size))
+        return g + f if ascending else g - f
+
+    def __eq__(self, other):
+        return (isinstance(other, DuhemBranch) and self.alpha == other.alpha
+                and np.array_equal(self.f, other.f) and np.array_equal(self.g, other.g))
+
+    __hash__ = None
+
+
+@dataclass(frozen=True)
+class DuhemState:
+    """Explicit state of the recursion: the previous voltage [V] and output [um]."""
+
+    v: float = 0.0
+    w: float = 0.0
+
+
+@dataclass(frozen=True)
+class DuhemModel:
+    """A Duhem hysteresis, whole-curve (ascending is descending) or segmented.
+
+    Parameters
+    ----------
+    ascending, descending : DuhemBranch
+        Parameter sets used on rising (dv >= 0) and falling voltage steps.
+    initial : DuhemState
+        State the model starts from and returns to on reset.
+    """
+
+    ascending: DuhemBranch
+    descending: DuhemBranch
+    initial: DuhemState = field(default_factory=DuhemState)
+
+    @classmethod
+    def whole(cls, alpha, f, g, initial=None):
+        b = DuhemBranch(alpha, f, g)
+        return cls(b, b, initial or DuhemState())
+
+    @property
+    def structure(self) -> str:
+        return "whole" if self.ascending == self.descending else "segmented"
+
+    def kernel_params(self):
+        """(alpha[2], H[2, D]) as the compiled loops take them."""
+        ha = self.ascending.h(True)
+        hd = self.descending.h(False)
+        d = max(ha.size, hd.size)
+        H = np.zeros((2, d))
+        H[0, :ha.size] = ha
+        H[1, :hd.size] = hd
+        alpha = np.array([self.ascending.alpha, self.descending.alpha])
+        return alpha, H
+
+    def simulate(self, v, state: DuhemState | None = None):
+        """Batch response to the voltage sequence ``v`` [V].
+
+        Returns
+        -------
+        w : ndarray, shape (N,)
+            Displacement [um] after each sample.
+        final : DuhemState
+            State after the last sample (feed it back in to continue).
+        """
+        st = state or self.initial
+        v = as_f64(v)
+        out = np.empty_like(v)
+        alpha, H = self.kernel_params()
+        vp, wp = duhem_run(v, float(st.v), float(st.w), alpha, H, out)
+        return out, DuhemState(float(vp), float(wp))
+
+    def with_initial(self, state: DuhemState) -> "DuhemModel":
+        return DuhemModel(self.ascending, self.descending, state)
+
+
+class DuhemHysteresis:
+    """Stateful per-sample Duhem operator (explicit state, ``reset``, ``step``).
+
+    One step costs a few microseconds in plain Python, which is what a real-time node
+    needs; ``run`` hands a whole array to the compiled loop and keeps the state.
+    """
+
+    def __init__(self, model: DuhemModel):
+        self.model = model
+        self._alpha, self._H = model.kernel_params()
+        self._ha = [float(c) for c in self._H[0]][::-1]
+        self._hd = [float(c) for c in self._H[1]][::-1]
+        self.reset()
+
+    def reset(self, state: DuhemState | None = None):
+        st = state or self.model.initial
+        self.v, self.w = float(st.v), float(st.w)
+
+    @property
+    def state(self) -> DuhemState:
+        return DuhemState(self.v, self.w)
+
+    def step(self, v: float) -> float:
+        dv = v - self.v
+        if dv >= 0.0:
+            coeffs, alpha = self._ha, self._alpha[0]
+        else:
+            coeffs, alpha = self._hd, self._alpha[1]
+        h = 0.0
+        for c in coeffs:
+            h = h * v + c
+        self.w = (self.w + dv * h) / (1.0 + alpha * abs(dv))
+        self.v = v
+        return self.w
+
+    def run(self, v) -> np.ndarray:
+        w, st = self.model.simulate(v, self.state)
+        self.v, self.w = st.v, st.w
+        return w
+
+
+AXES = ("x", "y")
+OTHER = {"x": "y", "y": "x"}
+
+
+@dataclass(frozen=True)
+class StageModel:
+    """Hysteresis of a 2-axis stage: one Duhem model per axis, optional coupling.
+
+    ``coupling['x']`` is the displacement on x caused by the y voltage (seed's H_xy),
+    itself a Duhem model driven by v_y; the axis output is the sum
+    w_x = H_xx(v_x) + H_xy(v_y). Axes absent from ``axes`` are not modelled.
+    """
+
+    axes: dict
+    coupling: dict = field(default_factory=dict)
+    voltage_limits: tuple = (0.0, 150.0)
+
+    def __post_init__(self):
+        for a in list(self.axes) + list(self.coupling):
+            if a not in AXES:
+                raise ModelError(f"unknown axis {a!r} (axes are x and y)")
+        lo, hi = self.voltage_limits
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ModelError(f"voltage limits must be finite with min < max, got {lo}, {hi}")
+
+    def simulate(self, vx, vy, states=None):
+        """Noise-free response [um] of each modelled axis to voltages [V].
+
+        ``states`` maps 'x', 'y', 'cx', 'cy' to DuhemState; returns (w dict, states).
+        """
+        v = {"x": vx, "y": vy}
+        states = dict(states or {})
+        out = {}
+        for a, m in self.axes.items():
+            w, states[a] = m.simulate(v[a], states.get(a))
+            c = self.coupling.get(a)
+            if c is not None:
+                wc, states["c" + a] = c.simulate(v[OTHER[a]], states.get("c" + a))
+                w = w + wc
+            out[a] = w
+        return out, states

@@ -1,0 +1,183 @@
+"""Unmodelled effects: small physical operators shared by the plant and the gap diagnosis.
+
+Each effect acts on one axis's displacement signal [um] sampled at a fixed rate
+``fs_hz``. The stateful classes process a signal in consecutive chunks, so a batch run
+and a sample-by-sample run give identical results; ``reset`` returns to rest.
+
+* creep     -- after a step the displacement keeps moving towards its final value,
+               logarithmically in time (a bank of first-order relaxations, one per
+               decade of time constant, each weighted equally).
+* dynamics  -- linear mechanical dynamics after the hysteresis: a lightly damped
+               resonance (fn_hz, zeta) or a first-order lag (tau_s); unit DC gain.
+* delay     -- pure transport delay (sensor and acquisition latency), linear
+               interpolation between samples for a fractional delay.
+* drift     -- slow thermal trend that ignores the input: a ramp plus a first-order
+               settling term.
+Coupling (displacement caused by the other axis) is part of the hysteresis model
+(:class:`piezo_stage.core.duhem.StageModel`) since it has its own hysteresis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import signal
+
+from piezo_stage.core.errors import ConfigError
+
+EFFECTS = ("creep", "dynamics", "delay", "drift")
+
+
+def _positive(name, x):
+    x = float(x)
+    if not np.isfinite(x) or x <= 0:
+        raise ConfigError(f"{name} must be > 0, got {x}")
+    return x
+
+
+class _LinearFilter:
+    """An IIR filter y = (b/a) x with carried state (scipy lfilter with zi)."""
+
+    def __init__(self, b, a):
+        self.b = np.asarray(b, float)
+        self.a = np.asarray(a, float)
+        self.reset()
+
+    def reset(self, x0: float = 0.0):
+        # start at rest with input and output at x0 (steady state of a unit-DC filter)
+        self.zi = signal.lfilter_zi(self.b, self.a) * x0
+
+    def process(self, x):
+        y, self.zi = signal.lfilter(self.b, self.a, x, zi=self.zi)
+        return y
+
+
+class Creep:
+    """Logarithmic creep: y = x - gamma * sum_i (x - LP_tau_i(x)) / n_tau.
+
+    After a step of size d the output jumps by d (1 - gamma) and then creeps towards d,
+    covering an equal share in each decade of time between min(tau) and max(tau):
+    the log(t) signature of piezo creep. gamma is the creep fraction (0.01 .. 0.1).
+    """
+
+    def __init__(self, fs_hz, gamma=0.03, tau_s=(0.05, 0.5, 5.0, 50.0)):
+        self.gamma = float(gamma)
+        if not 0 <= self.gamma < 1:
+            raise ConfigError(f"creep gamma must be in [0, 1), got {gamma}")
+        self.tau_s = tuple(_positive("creep tau_s", t) for t in np.atleast_1d(tau_s))
+        dt = 1.0 / fs_hz
+        self._lps = []
+        for tau in self.tau_s:
+            p = np.exp(-dt / tau)
+            self._lps.append(_LinearFilter([1 - p], [1, -p]))
+
+    def reset(self, x0=0.0):
+        for lp in self._lps:
+            lp.reset(x0)
+
+    def process(self, x):
+        x = np.asarray(x, float)
+        slow = sum(lp.process(x) for lp in self._lps) / len(self._lps)
+        return x - self.gamma * (x - slow)
+
+
+class Dynamics:
+    """Linear dynamics with unit DC gain, discretised with a zero-order hold.
+
+    kind='resonance': wn^2 / (s^2 + 2 zeta wn s + wn^2), wn = 2 pi fn_hz.
+    kind='lag':       1 / (tau_s s + 1).
+    """
+
+    def __init__(self, fs_hz, kind="resonance", fn_hz=800.0, zeta=0.05, tau_s=0.5e-3):
+        self.kind = kind
+        dt = 1.0 / fs_hz
+        if kind == "resonance":
+            self.fn_hz = _positive("dynamics fn_hz", fn_hz)
+            self.zeta = _positive("dynamics zeta", zeta)
+            if self.fn_hz >= fs_hz / 2:
+                raise ConfigError(f"resonance {fn_hz} Hz is above Nyquist of {fs_hz} Hz")
+            wn = 2 * np.pi * self.fn_hz
+            num, den = [wn ** 2], [1, 2 * self.zeta * wn, wn ** 2]
+        elif kind == "lag":
+            self.tau_s = _positive("dynamics tau_s", tau_s)
+            num, den = [1.0], [self.tau_s, 1.0]
+        else:
+            raise ConfigError(f"dynamics kind must be 'resonance' or 'lag', got {kind!r}")
+        bd, ad, _ = signal.cont2discrete((num, den), dt, method="zoh")
+        self._f = _LinearFilter(np.ravel(bd), ad)
+
+    def reset(self, x0=0.0):
+        self._f.reset(x0)
+
+    def process(self, x):
+        return self._f.process(np.asarray(x, float))
+
+
+class Delay:
+    """Pure delay of ``delay_s`` seconds (fractional samples by linear interpolation)."""
+
+    def __init__(self, fs_hz, delay_s=0.5e-3):
+        self.delay_s = float(delay_s)
+        if not np.isfinite(self.delay_s) or self.delay_s < 0:
+            raise ConfigError(f"delay_s must be >= 0, got {delay_s}")
+        d = self.delay_s * fs_hz
+        self._n = int(np.floor(d))
+        self._frac = d - self._n
+        self.reset()
+
+    def reset(self, x0=0.0):
+        self._buf = np.full(self._n + 1, float(x0))
+
+    def process(self, x):
+        x = np.asarray(x, float)
+        ext = np.concatenate([self._buf, x])
+        m = x.size
+        # y_k = (1-fr) x_{k-n} + fr x_{k-n-1}; ext index of x_k is k + n + 1
+        k = np.arange(m) + 1
+        y = (1 - self._frac) * ext[k] + self._frac * ext[k - 1]
+        self._buf = ext[-(self._n + 1):].copy()
+        return y
+
+
+class Drift:
+    """Thermal drift independent of the input: rate * t + amplitude * (1 - exp(-t/tau))."""
+
+    def __init__(self, fs_hz, rate_um_per_s=0.01, amplitude_um=0.5, tau_s=60.0):
+        self.dt = 1.0 / fs_hz
+        self.rate = float(rate_um_per_s)
+        self.amplitude = float(amplitude_um)
+        self.tau_s = _positive("drift tau_s", tau_s)
+        self.reset()
+
+    def reset(self, x0=0.0):
+        self._k = 0
+
+    def process(self, x):
+        x = np.asarray(x, float)
+        t = (self._k + np.arange(x.size)) * self.dt
+        self._k += x.size
+        return x + self.rate * t + self.amplitude * (1 - np.exp(-t / self.tau_s))
+
+
+_CLASSES = {"creep": Creep, "dynamics": Dynamics, "delay": Delay, "drift": Drift}
+_PARAMS = {
+    "creep": ("gamma", "tau_s"),
+    "dynamics": ("kind", "fn_hz", "zeta", "tau_s"),
+    "delay": ("delay_s",),
+    "drift": ("rate_um_per_s", "amplitude_um", "tau_s"),
+}
+
+
+def make_effect(name: str, fs_hz: float, params: dict):
+    """Build effect ``name`` from a parameter dict (unknown keys are an error)."""
+    if name not in _CLASSES:
+        raise ConfigError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+    params = dict(params or {})
+    unknown = set(params) - set(_PARAMS[name])
+    if unknown:
+        raise ConfigError(f"effect {name}: unknown parameter(s) {sorted(unknown)}")
+    try:
+        return _CLASSES[name](fs_hz, **params)
+    except (TypeError, ValueError) as e:
+        if isinstance(e, ConfigError):
+            raise
+        raise ConfigError(f"effect {name}: {e}") from None

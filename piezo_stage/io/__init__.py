@@ -1,0 +1,1 @@
+"""Records and files: CSV tables, model and plant YAML, bags (rosbag2 layout, MCAP)."""

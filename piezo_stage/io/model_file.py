@@ -1,0 +1,190 @@
+"""The model file: one YAML schema used by the simulator, the inverse and identification.
+
+Schema (version 1)::
+
+    piezo_stage_model: 1
+    convention: seed-eq6        # w_k (1 + alpha|dv|) = w_{k-1} + |dv| f(v_k) + dv g(v_k)
+    units: {voltage: V, displacement: um, alpha: 1/V, f: um/V, g: um/V}
+    voltage_limits_V: [0.0, 150.0]
+    axes:
+      x:
+        structure: whole | segmented
+        initial_state: {v_V: 0.0, w_um: 0.0}
+        # whole:      alpha, f, g at this level
+        # segmented:  ascending: {alpha, f, g} and descending: {alpha, f, g}
+        #             or, when only the identifiable combination is known,
+        #             ascending: {alpha, h} (h = f + g), descending: {alpha, h} (h = g - f)
+        coupling:               # optional: displacement on x caused by the y voltage
+          structure: whole
+          alpha: ...
+          f: [...]
+          g: [...]
+      y: ...
+    effects: {}                 # optional unmodelled effects (see core/effects.py)
+
+Coefficients are lowest power first. Unknown keys are rejected so a typo is not
+silently ignored.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import yaml
+
+from piezo_stage.core.duhem import AXES, DuhemBranch, DuhemModel, DuhemState, StageModel
+from piezo_stage.core.errors import ModelError
+from piezo_stage.io.files import atomic_write
+
+SCHEMA_KEY = "piezo_stage_model"
+SCHEMA_VERSION = 1
+
+
+def load_yaml(path, what="file"):
+    try:
+        with open(path) as fh:
+            return yaml.safe_load(fh)
+    except FileNotFoundError:
+        raise ModelError(f"{what} not found: {path}") from None
+    except IsADirectoryError:
+        raise ModelError(f"{what} is a directory: {path}") from None
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        raise ModelError(f"malformed YAML in {path}{where}") from None
+
+
+def _check_keys(d, allowed, where):
+    if not isinstance(d, dict):
+        raise ModelError(f"{where}: expected a mapping")
+    extra = set(d) - set(allowed)
+    if extra:
+        raise ModelError(f"{where}: unknown key(s) {sorted(extra)}")
+
+
+def _branch(d, where):
+    _check_keys(d, ("alpha", "f", "g", "h"), where)
+    if "alpha" not in d:
+        raise ModelError(f"{where}: missing alpha")
+    if "h" in d and ("f" in d or "g" in d):
+        raise ModelError(f"{where}: give either h or f and g, not both")
+    if "h" not in d and ("f" not in d or "g" not in d):
+        raise ModelError(f"{where}: needs f and g (or h)")
+    try:
+        if "h" in d:
+            return DuhemBranch.from_h(float(d["alpha"]), d["h"])
+        return DuhemBranch(float(d["alpha"]), d["f"], d["g"])
+    except (TypeError, ValueError) as e:  # ModelError is a ValueError
+        raise ModelError(f"{where}: {e}") from None
+
+
+def _duhem(d, where) -> DuhemModel:
+    if not isinstance(d, dict):
+        raise ModelError(f"{where}: expected a mapping")
+    structure = d.get("structure", "whole")
+    init = d.get("initial_state", {}) or {}
+    _check_keys(init, ("v_V", "w_um"), f"{where}.initial_state")
+    try:
+        state = DuhemState(float(init.get("v_V", 0.0)), float(init.get("w_um", 0.0)))
+    except (TypeError, ValueError):
+        raise ModelError(f"{where}.initial_state: not a number") from None
+    if structure == "whole":
+        _check_keys(d, ("structure", "initial_state", "alpha", "f", "g", "h", "coupling",
+                        "note"), where)
+        b = _branch({k: d[k] for k in ("alpha", "f", "g", "h") if k in d}, where)
+        return DuhemModel(b, b, state)
+    if structure == "segmented":
+        _check_keys(d, ("structure", "initial_state", "ascending", "descending",
+                        "coupling", "note"), where)
+        for k in ("ascending", "descending"):
+            if k not in d:
+                raise ModelError(f"{where}: segmented model needs '{k}'")
+        return DuhemModel(_branch(d["ascending"], f"{where}.ascending"),
+                          _branch(d["descending"], f"{where}.descending"), state)
+    raise ModelError(f"{where}: structure must be 'whole' or 'segmented', got {structure!r}")
+
+
+def model_from_dict(doc, source="model") -> tuple[StageModel, dict]:
+    """Parse a model document; returns (StageModel, effects dict)."""
+    if not isinstance(doc, dict) or SCHEMA_KEY not in doc:
+        raise ModelError(f"{source}: not a piezo_stage model file (no '{SCHEMA_KEY}' key)")
+    if doc[SCHEMA_KEY] != SCHEMA_VERSION:
+        raise ModelError(f"{source}: unsupported model version {doc[SCHEMA_KEY]!r}")
+    _check_keys(doc, (SCHEMA_KEY, "convention", "units", "voltage_limits_V", "axes",
+                      "effects", "identification", "note"), source)
+    if doc.get("convention", "seed-eq6") != "seed-eq6":
+        raise ModelError(f"{source}: unknown convention {doc['convention']!r}")
+    axes_doc = doc.get("axes")
+    if not isinstance(axes_doc, dict) or not axes_doc:
+        raise ModelError(f"{source}: 'axes' must map x and/or y to a model")
+    axes, coupling = {}, {}
+    for a, d in axes_doc.items():
+        if a not in AXES:
+            raise ModelError(f"{source}: unknown axis {a!r}")
+        axes[a] = _duhem(d, f"{source}: axes.{a}")
+        if isinstance(d, dict) and d.get("coupling") is not None:
+            coupling[a] = _duhem(d["coupling"], f"{source}: axes.{a}.coupling")
+    lim = doc.get("voltage_limits_V", [0.0, 150.0])
+    try:
+        lim = (float(lim[0]), float(lim[1]))
+    except (TypeError, ValueError, IndexError):
+        raise ModelError(f"{source}: voltage_limits_V must be [min, max]") from None
+    effects = doc.get("effects") or {}
+    if not isinstance(effects, dict):
+        raise ModelError(f"{source}: effects must be a mapping")
+    return StageModel(axes, coupling, lim), effects
+
+
+def load_model(path) -> tuple[StageModel, dict]:
+    """Read a model file; returns (StageModel, effects)."""
+    return model_from_dict(load_yaml(path, "model file"), str(path))
+
+
+def _floats(a):
+    return [float(x) for x in np.asarray(a, float)]
+
+
+def _branch_doc(b: DuhemBranch, ascending: bool):
+    if b.reduced:
+        return {"alpha": b.alpha, "h": _floats(b.h(ascending))}
+    return {"alpha": b.alpha, "f": _floats(b.f), "g": _floats(b.g)}
+
+
+def _duhem_doc(m: DuhemModel):
+    d = {"structure": m.structure,
+         "initial_state": {"v_V": float(m.initial.v), "w_um": float(m.initial.w)}}
+    if m.structure == "whole":
+        d.update(_branch_doc(m.ascending, True))
+    else:
+        d["ascending"] = _branch_doc(m.ascending, True)
+        d["descending"] = _branch_doc(m.descending, False)
+        if m.ascending.reduced or m.descending.reduced:
+            d["note"] = ("within one branch only h = f + g (ascending) and h = g - f "
+                         "(descending) are identifiable; f and g are not given separately")
+    return d
+
+
+def model_to_dict(model: StageModel, effects=None, extra=None) -> dict:
+    doc = {
+        SCHEMA_KEY: SCHEMA_VERSION,
+        "convention": "seed-eq6",
+        "units": {"voltage": "V", "displacement": "um", "alpha": "1/V",
+                  "f": "um/V per V^i", "g": "um/V per V^i"},
+        "voltage_limits_V": [float(x) for x in model.voltage_limits],
+        "axes": {},
+    }
+    for a, m in model.axes.items():
+        d = _duhem_doc(m)
+        if a in model.coupling:
+            d["coupling"] = _duhem_doc(model.coupling[a])
+        doc["axes"][a] = d
+    if effects:
+        doc["effects"] = effects
+    if extra:
+        doc.update(extra)
+    return doc
+
+
+def save_model(path, model: StageModel, effects=None, extra=None):
+    doc = model_to_dict(model, effects, extra)
+    with atomic_write(path) as fh:
+        yaml.safe_dump(doc, fh, sort_keys=False, default_flow_style=None)

@@ -1,0 +1,105 @@
+"""The simulated stage's configuration file (config/sim_stage.yaml).
+
+Schema (version 1)::
+
+    piezo_stage_plant: 1
+    model: stage_model.yaml          # model file, relative to this file
+    internal_rate_hz: 10000
+    amplifier: {slew_V_per_s: 1.0e5} # voltage limits come from the model file
+    sensor: {noise_rms_um: 0.1, quantization_um: 0.005}
+    seed: 0
+    effects:                         # each off unless enabled: true
+      creep: {enabled: false, gamma: 0.03, tau_s: [0.05, 0.5, 5, 50]}
+      dynamics: {enabled: false, kind: resonance, fn_hz: 800, zeta: 0.05}
+      delay: {enabled: false, delay_s: 0.0005}
+      drift: {enabled: false, rate_um_per_s: 0.01, amplitude_um: 0.5, tau_s: 60}
+"""
+
+from __future__ import annotations
+
+import os
+
+from piezo_stage.core.errors import ConfigError, ModelError
+from piezo_stage.core.plant import PlantConfig
+from piezo_stage.io.model_file import load_model, load_yaml
+
+SCHEMA_KEY = "piezo_stage_plant"
+_TOP = (SCHEMA_KEY, "model", "internal_rate_hz", "amplifier", "sensor", "seed", "effects",
+        "note")
+
+
+def _num(d, key, default, where):
+    try:
+        return float(d.get(key, default))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}.{key} must be a number") from None
+
+
+def enabled_effects(effects: dict, where="effects") -> dict:
+    """Keep the effects with enabled: true (default true when the key is absent)."""
+    if not isinstance(effects, dict):
+        raise ConfigError(f"{where} must be a mapping")
+    out = {}
+    for name, p in effects.items():
+        p = dict(p or {})
+        if p.pop("enabled", True):
+            out[name] = p
+    return out
+
+
+def plant_config_from_dict(doc, base_dir=".", source="plant config") -> PlantConfig:
+    if not isinstance(doc, dict) or SCHEMA_KEY not in doc:
+        raise ConfigError(f"{source}: not a plant config (no '{SCHEMA_KEY}' key)")
+    extra = set(doc) - set(_TOP)
+    if extra:
+        raise ConfigError(f"{source}: unknown key(s) {sorted(extra)}")
+    if "model" not in doc:
+        raise ConfigError(f"{source}: 'model' (path to the model file) is required")
+    mpath = doc["model"]
+    if not os.path.isabs(mpath):
+        mpath = os.path.join(base_dir, mpath)
+    try:
+        model, model_effects = load_model(mpath)
+    except ModelError as e:
+        raise ConfigError(str(e)) from None
+    amp = doc.get("amplifier") or {}
+    sensor = doc.get("sensor") or {}
+    if not isinstance(amp, dict) or not isinstance(sensor, dict):
+        raise ConfigError(f"{source}: amplifier and sensor must be mappings")
+    effects = enabled_effects(model_effects, "model effects")
+    effects.update(enabled_effects(doc.get("effects") or {}, f"{source}: effects"))
+    try:
+        seed = int(doc.get("seed", 0))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: seed must be an integer") from None
+    return PlantConfig(
+        model=model,
+        internal_rate_hz=_num(doc, "internal_rate_hz", 10_000.0, source),
+        slew_V_per_s=_num(amp, "slew_V_per_s", 1.0e5, "amplifier"),
+        noise_rms_um=_num(sensor, "noise_rms_um", 0.1, "sensor"),
+        quantization_um=_num(sensor, "quantization_um", 0.005, "sensor"),
+        effects=effects,
+        seed=seed,
+    )
+
+
+def load_plant_config(path) -> PlantConfig:
+    try:
+        doc = load_yaml(path, "plant config")
+    except ModelError as e:
+        raise ConfigError(str(e)) from None
+    return plant_config_from_dict(doc, os.path.dirname(os.path.abspath(path)), str(path))
+
+
+def default_config_dir() -> str:
+    """config/ of this package: the source tree, or share/piezo_stage/config when installed."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    src = os.path.normpath(os.path.join(here, "..", "..", "config"))
+    if os.path.isdir(src):
+        return src
+    import sys
+    return os.path.join(sys.prefix, "share", "piezo_stage", "config")
+
+
+def default_plant_config_path() -> str:
+    return os.path.join(default_config_dir(), "sim_stage.yaml")

@@ -1,0 +1,53 @@
+"""ament_python package that also installs with plain pip.
+
+colcon (``setup.py develop/install``) honours setup.cfg and puts the console scripts
+under lib/piezo_stage for ``ros2 run``; pip builds a wheel, whose scripts go to the
+environment's bin/ (where ``piezo-stage`` is found on PATH).
+"""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "piezo_stage"
+
+NODES = []  # filled as the node set lands (issue 4)
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(include=["piezo_stage", "piezo_stage.*",
+                                    "piezo_stage_msgs_adapters",
+                                    "piezo_stage_msgs_adapters.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "pyyaml>=6",
+        "numba>=0.58",
+        "mcap>=1.1",
+        "matplotlib>=3.7",
+    ],
+    extras_require={
+        # rclpy and the messages come from the ros-jazzy-* wheels; a full ROS install
+        # provides them instead, so they are an extra rather than a hard requirement.
+        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
+        "bags": ["rosbags>=0.10"],
+        "daq": ["nidaqmx>=0.9"],
+        "test": ["pytest>=7"],
+    },
+    zip_safe=True,
+    maintainer="piezo_stage developers",
+    maintainer_email="dev@piezo-stage.local",
+    description="Duhem hysteresis identification and control of 2-axis piezo stages",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": ["piezo-stage = piezo_stage.cli:main"]
+        + [f"{n} = piezo_stage.nodes.{n}_node:main" for n in NODES],
+    },
+)
