@@ -127,7 +127,9 @@ def _first_root(vp, wp, wt, alpha, H, span, n_scan):
                     side = 1
             return c, True
         lo, rlo = hi, rhi
-    return span, False
+    # no sign change: the target is beyond the limit, unless it sits on the limit
+    # itself within rounding (residual at the end ~ 1e-12 of the displacement scale)
+    return span, abs(rlo) <= 1e-9 * (1.0 + abs(wt))
 
 
 @njit
@@ -172,7 +174,10 @@ def duhem_inverse_run(w_target, v_prev, w_prev, alpha, H, v_min, v_max, n_scan,
         v_prev = vk
         out_v[k] = vk
         out_w[k] = w_prev
-        out_sat[k] = 0 if ok else 1
+        # saturated means exactly: the target was not met (the root search may fail
+        # on rounding right at a limit, where the target is in fact reached)
+        met = abs(w_prev - wt) <= 1e-9 * (1.0 + abs(wt))
+        out_sat[k] = 0 if met else 1
     return v_prev, w_prev
 
 

@@ -93,6 +93,10 @@ class Plant:
         self.v_limits = (float(lo), float(hi))
         self._max_step = config.slew_V_per_s / self.fs_hz
         self._effects = {a: [] for a in AXES}
+        unknown = set(config.effects) - set(EFFECT_ORDER)
+        if unknown:
+            raise ConfigError(f"unknown effect(s) {sorted(unknown)}; known: "
+                              f"{', '.join(EFFECTS)}")
         for name in EFFECT_ORDER:
             if name not in config.effects:
                 continue

@@ -1,0 +1,136 @@
+"""The offline commands, run as a user would (a subprocess of the console script)."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import CONFIG, ROOT, sine_v
+from piezo_stage.io.csv_table import read_table, write_table
+
+MODEL = os.path.join(CONFIG, "stage_model.yaml")
+
+
+def run(*args, check=True):
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, args)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300,
+                       env=dict(os.environ, PYTHONPATH=ROOT))
+    if check:
+        assert r.returncode == 0, r.stderr
+    return r
+
+
+@pytest.fixture
+def volts(tmp_path):
+    t, v = sine_v(1.0, 2000, 2)
+    p = tmp_path / "volts.csv"
+    write_table(p, {"t": t, "vx": v, "vy": v[::-1]})
+    return p
+
+
+def test_simulate_writes_displacements(tmp_path, volts):
+    out = tmp_path / "out.csv"
+    run("simulate", "--in", volts, "--out", out, "--seed", 4)
+    c = read_table(out, ["t", "vx", "vy", "wx", "wy"])
+    assert 70 < np.ptp(c["wx"]) < 95
+    again = tmp_path / "again.csv"
+    run("simulate", "--in", volts, "--out", again, "--seed", 4)
+    assert open(out).read() == open(again).read()  # deterministic for a seed
+
+
+def test_invert_then_simulate_model_round_trip(tmp_path):
+    t = np.arange(4000) / 4000
+    wx = 30 + 20 * np.sin(2 * np.pi * 2 * t)
+    wy = 30 + 10 * np.sin(2 * np.pi * 3 * t)
+    target = tmp_path / "target.csv"
+    write_table(target, {"t": t, "wx": wx, "wy": wy}, fmt="%.17g")
+    volts = tmp_path / "v.csv"
+    r = run("invert", "--model", MODEL, "--in", target, "--out", volts)
+    assert "unreachable" not in r.stderr
+    out = tmp_path / "w.csv"
+    # round trip through the CSV (written with 10 significant digits)
+    run("simulate", "--in", volts, "--out", out, "--model", MODEL)
+    c = read_table(out, ["wx", "wy"])
+    np.testing.assert_allclose(c["wx"], wx, atol=1e-5)
+    np.testing.assert_allclose(c["wy"], wy, atol=1e-5)
+
+
+def test_invert_reports_unreachable(tmp_path):
+    t = np.arange(100) / 100
+    target = tmp_path / "target.csv"
+    write_table(target, {"t": t, "wx": np.linspace(0, 300, 100), "wy": np.zeros(100)})
+    r = run("invert", "--model", MODEL, "--in", target, "--out", tmp_path / "v.csv")
+    assert "axis x" in r.stderr and "unreachable" in r.stderr
+    v = read_table(tmp_path / "v.csv", ["vx"])["vx"]
+    assert v.max() == 150.0
+
+
+def _bad(tmp_path, text, *extra):
+    p = tmp_path / "bad.csv"
+    p.write_text(text)
+    out = tmp_path / "out.csv"
+    r = run("simulate", "--in", p, "--out", out, *extra, check=False)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert not out.exists()
+    assert not [f for f in os.listdir(tmp_path) if f.endswith(".tmp")]
+    return lines[0]
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("t,vx,vz\n0,1,2\n0.1,1,2\n", "missing column"),
+    ("t,vx,vy\n0,1,nan\n0.1,1,2\n", "NaN"),
+    ("t,vx,vy\n0,1,inf\n0.1,1,2\n", "NaN or inf"),
+    ("t,vx,vy\n0,1,2\n0,1,2\n", "not increasing"),
+    ("t,vx,vy\n0,1,2\n0.1,1,2\n0.3,1,2\n", "not uniformly"),
+    ("t,vx,vy\n0,1,2\n0.1,1,200\n", "outside the voltage limits"),
+    ("t,vx,vy\n0,1,2\n0.1,x,2\n", "non-numeric"),
+    ("t,vx,vy\n0,1,2\n0.1,1\n", "fields"),
+    ("", "empty"),
+])
+def test_simulate_bad_input(tmp_path, text, needle):
+    assert needle in _bad(tmp_path, text)
+
+
+def test_malformed_yaml_config(tmp_path, volts):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("piezo_stage_plant: 1\nmodel: [unclosed\n")
+    r = run("simulate", "--in", volts, "--out", tmp_path / "o.csv", "--config", cfg,
+            check=False)
+    assert r.returncode == 2 and "malformed YAML" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    model = tmp_path / "m.yaml"
+    model.write_text("piezo_stage_model: 1\naxes:\n  x: {structure: whole, alpha: -1, "
+                     "f: [0], g: [1]}\n")
+    r = run("simulate", "--in", volts, "--out", tmp_path / "o.csv", "--model", model,
+            check=False)
+    assert r.returncode == 2 and "alpha" in r.stderr
+
+
+def test_existing_output_untouched_on_error(tmp_path):
+    out = tmp_path / "out.csv"
+    out.write_text("precious\n")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,vx,vy\n0,1,nan\n0.1,1,1\n")
+    r = run("simulate", "--in", bad, "--out", out, check=False)
+    assert r.returncode == 2
+    assert out.read_text() == "precious\n"
+
+
+def test_usage_error_is_one_line():
+    r = run("simulate", "--bogus", check=False)
+    assert r.returncode == 2
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_loop_prints_figures():
+    r = run("loop", "--cycles", 2, "--rate", 2000)
+    assert "width_um" in r.stdout
+    rows = [line.split() for line in r.stdout.splitlines() if line.split()[:1] in (["x"], ["y"])]
+    assert len(rows) == 2
+    for row in rows:
+        assert 60 < float(row[2]) < 100   # stroke [um]
+        assert 5 < float(row[4]) < 25     # loop width [% of stroke]

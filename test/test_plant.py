@@ -1,0 +1,146 @@
+"""The simulated 2-axis stage and the signatures of its unmodelled effects."""
+
+import copy
+
+import numpy as np
+import pytest
+
+from conftest import sine_v
+from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.plant import Plant
+from piezo_stage.io.plant_file import load_plant_config
+
+
+@pytest.fixture
+def cfg(plant_config_path):
+    return load_plant_config(plant_config_path)
+
+
+def with_effect(cfg, name, **params):
+    c = copy.deepcopy(cfg)
+    c.effects = {name: params}
+    return c
+
+
+def test_defaults_effects_off_and_noise(cfg):
+    assert cfg.effects == {}
+    assert cfg.noise_rms_um == 0.1
+    assert cfg.internal_rate_hz == 10_000
+    p = Plant(cfg, 1000.0)
+    w = p.run(np.full(5000, 50.0), np.zeros(5000))
+    noise = w["x"][1000:] - p.last_true["x"][1000:]
+    assert 0.09 < np.std(noise) < 0.11
+    assert p.substeps == 10
+
+
+def test_deterministic_for_seed_and_chunking(cfg):
+    _, v = sine_v(2.0, 1000, 2)
+    a = Plant(cfg, 1000).run(v, v[::-1])
+    b = Plant(cfg, 1000).run(v, v[::-1])
+    np.testing.assert_array_equal(a["x"], b["x"])
+    p = Plant(cfg, 1000)
+    steps = np.array([p.step(x, y) for x, y in zip(v, v[::-1])])
+    np.testing.assert_array_equal(steps[:, 0], a["x"])
+    np.testing.assert_array_equal(steps[:, 1], a["y"])
+    c = copy.deepcopy(cfg)
+    c.seed = 7
+    d = Plant(c, 1000).run(v, v[::-1])
+    assert not np.array_equal(d["x"], a["x"])
+
+
+def test_coupling_moves_the_other_axis_with_hysteresis(cfg):
+    _, v = sine_v(1.0, 2000, 3)
+    p = Plant(cfg, 2000)
+    p.run(np.zeros_like(v), v)
+    wx = p.last_true["x"][-2000:]
+    vy = v[-2000:]
+    assert 0.5 < np.ptp(wx) < 3.0
+    up = np.diff(vy, prepend=vy[0]) > 0
+    mid = np.abs(vy - 75) < 2
+    assert abs(wx[mid & ~up].mean() - wx[mid & up].mean()) > 0.05  # a loop, not a line
+
+
+def test_amplifier_clamp_and_slew(cfg):
+    c = copy.deepcopy(cfg)
+    c.slew_V_per_s = 1000.0  # 0.1 V per internal sample
+    p = Plant(c, 1000)
+    p.run(np.full(10, 200.0), np.full(10, -20.0))
+    assert p.limit_hits > 0
+    assert p.last_applied["x"][0] == pytest.approx(1.0)  # 10 substeps x 0.1 V
+    assert np.all(p.last_applied["y"] == 0.0)
+    p.run(np.full(200, 200.0), np.zeros(200))
+    assert p.last_applied["x"][-1] == 150.0
+
+
+def test_creep_keeps_moving_during_a_held_voltage(cfg):
+    def held(c):
+        c = copy.deepcopy(c)
+        c.noise_rms_um = 0.0
+        p = Plant(c, 1000)
+        p.run(np.full(8000, 100.0), np.zeros(8000))
+        w = p.last_true["x"]
+        return w[100] , w[1000], w[7999]
+    a0, a1, a2 = held(cfg)
+    assert abs(a2 - a0) < 1e-9  # without creep a held voltage holds
+    b0, b1, b2 = held(with_effect(cfg, "creep", gamma=0.05))
+    assert b1 - b0 > 0.2 and b2 - b1 > 0.2  # still creeping, in the step's direction
+    # log-like: similar movement per decade of time
+    c = with_effect(cfg, "creep", gamma=0.05)
+    c.noise_rms_um = 0
+    p = Plant(c, 1000)
+    p.run(np.full(20000, 100.0), np.zeros(20000))
+    w = p.last_true["x"]
+    d1, d2 = w[2000] - w[200], w[19999] - w[2000]
+    assert 0.4 < d1 / d2 < 2.5
+
+
+def test_resonance_amplifies_near_its_frequency(cfg):
+    c = with_effect(cfg, "dynamics", kind="resonance", fn_hz=500.0, zeta=0.05)
+    c.noise_rms_um = 0
+
+    def gain(f):
+        fs = 10_000
+        t = np.arange(int(0.4 * fs)) / fs
+        v = 75 + 2 * np.sin(2 * np.pi * f * t)
+        base = copy.deepcopy(c)
+        base.effects = {}
+        ref = Plant(base, fs)  # same stage without the effect
+        ref.run(v, np.zeros_like(v))
+        p = Plant(c, fs)
+        p.run(v, np.zeros_like(v))
+        half = t.size // 2
+        return np.ptp(p.last_true["x"][half:]) / np.ptp(ref.last_true["x"][half:])
+
+    assert gain(20.0) == pytest.approx(1.0, abs=0.02)
+    assert gain(500.0) > 5.0  # Q = 1/(2 zeta) = 10
+    assert gain(2000.0) < 0.2
+
+
+def test_delay_shifts_without_changing_amplitude(cfg):
+    fs = 10_000
+    c = with_effect(cfg, "delay", delay_s=0.002)
+    c.noise_rms_um = 0
+    _, v = sine_v(5.0, fs, 2)
+    a, b = Plant(cfg, fs), Plant(c, fs)
+    a.config.noise_rms_um = 0
+    a.run(v, np.zeros_like(v))
+    b.run(v, np.zeros_like(v))
+    wa, wb = a.last_true["x"], b.last_true["x"]
+    np.testing.assert_allclose(wb[20:], wa[:-20], atol=1e-9)
+    assert np.ptp(wb[-2000:]) == pytest.approx(np.ptp(wa[-2000:]), rel=1e-3)
+
+
+def test_drift_moves_without_input(cfg):
+    c = with_effect(cfg, "drift", rate_um_per_s=0.05, amplitude_um=0.0, tau_s=10)
+    c.noise_rms_um = 0
+    p = Plant(c, 100)
+    p.run(np.zeros(1000), np.zeros(1000))
+    np.testing.assert_allclose(p.last_true["x"][-1] - p.last_true["x"][0], 0.05 * 9.99,
+                               rtol=1e-6)
+
+
+def test_unknown_effect_rejected(cfg):
+    with pytest.raises(ConfigError):
+        Plant(with_effect(cfg, "magic"), 1000)
+    with pytest.raises(ConfigError):
+        Plant(with_effect(cfg, "creep", gama=0.1), 1000)
