@@ -224,3 +224,62 @@ def duhem_regressors(v, v_prev, alpha, basis_asc, basis_desc, out):
 def as_f64(x):
     """Contiguous float64 view/copy for the kernels."""
     return np.ascontiguousarray(x, dtype=np.float64)
+
+
+@njit
+def duhem_rms_batch(v, w_meas, v0, w0, alpha, H, out):
+    """RMS output error [um] of K candidate models over one record (seed eq. 9 without
+    its 1/sqrt(N) factor, which does not change the minimiser).
+
+    alpha: (K, 2), H: (K, 2, D); each candidate starts from (v0, w0).
+    """
+    n = v.shape[0]
+    D = H.shape[2]
+    for c in range(alpha.shape[0]):
+        vp = v0
+        wp = w0
+        acc = 0.0
+        for k in range(n):
+            vk = v[k]
+            dv = vk - vp
+            b = 0 if dv >= 0.0 else 1
+            h = 0.0
+            for i in range(D - 1, -1, -1):
+                h = h * vk + H[c, b, i]
+            wp = (wp + dv * h) / (1.0 + alpha[c, b] * abs(dv))
+            e = wp - w_meas[k]
+            acc += e * e
+            vp = vk
+        out[c] = np.sqrt(acc / n) if np.isfinite(acc) else 1e300
+    return out
+
+
+@njit
+def branch_rms_batch(v, w_meas, starts, stops, v_init, w_init, alpha, H, out):
+    """RMS error of K single-branch candidates over that branch's segments only.
+
+    Segment j runs over samples starts[j]..stops[j]-1 from the state
+    (v_init[j], w_init[j]) (the turning point before it, taken from the data), so
+    each branch can be identified on its own (seed section 3.2).
+    alpha: (K,), H: (K, D).
+    """
+    D = H.shape[1]
+    for c in range(alpha.shape[0]):
+        acc = 0.0
+        cnt = 0
+        for j in range(starts.shape[0]):
+            vp = v_init[j]
+            wp = w_init[j]
+            for k in range(starts[j], stops[j]):
+                vk = v[k]
+                dv = vk - vp
+                h = 0.0
+                for i in range(D - 1, -1, -1):
+                    h = h * vk + H[c, i]
+                wp = (wp + dv * h) / (1.0 + alpha[c] * abs(dv))
+                e = wp - w_meas[k]
+                acc += e * e
+                cnt += 1
+                vp = vk
+        out[c] = np.sqrt(acc / max(cnt, 1)) if np.isfinite(acc) else 1e300
+    return out

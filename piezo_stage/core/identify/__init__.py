@@ -1,0 +1,9 @@
+"""Duhem identification: segmentation, output-error objective (seed eq. 9), solvers.
+
+Solvers: ``fast`` (variable projection: exact least squares in the polynomial
+coefficients for fixed alpha, a search over alpha only; the default), ``afsa`` (the
+standard artificial fish swarm) and ``afsa-bat`` (the seed's bat-improved swarm).
+"""
+
+from piezo_stage.core.identify.api import (  # noqa: F401
+    IdentifyOptions, AxisResult, identify_axis, validate_axis, METHODS)

@@ -1,0 +1,183 @@
+"""One entry point for identification of one axis, whatever the solver."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from piezo_stage.core.duhem import OTHER, DuhemModel, DuhemState
+from piezo_stage.core.errors import DataError, SolverError
+from piezo_stage.core.metrics import error_figures, noise_floor
+from piezo_stage.core.record import Record
+from piezo_stage.core.identify.regress import DuhemRegression
+from piezo_stage.core.identify.segmentation import segment
+
+METHODS = ("fast", "afsa", "afsa-bat")
+MIN_BRANCH_SAMPLES = 20
+
+
+@dataclass
+class IdentifyOptions:
+    """method: fast | afsa | afsa-bat; structure: whole | segmented; n, m: degrees of f
+    and g; coupling: 'auto' (fit a coupling term when the other axis's voltage moves
+    and the method is fast), 'on' or 'off'; budget: objective evaluations (None for
+    the method's default); seed for the swarms; afsa: swarm settings."""
+
+    method: str = "fast"
+    structure: str = "segmented"
+    n: int = 3
+    m: int = 2
+    coupling: str = "auto"
+    budget: int | None = None
+    seed: int = 0
+    afsa: dict = field(default_factory=dict)
+
+
+@dataclass
+class AxisResult:
+    axis: str
+    method: str
+    structure: str
+    model: DuhemModel
+    coupling: DuhemModel | None
+    fit: dict
+    noise_floor_um: float
+    evaluations: int
+    seconds: float
+    history: dict
+    notes: list = field(default_factory=list)
+    branch_rms_um: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        m = self.model
+        params = {"structure": m.structure, "initial_state": {"v_V": m.initial.v,
+                                                              "w_um": m.initial.w}}
+        for name, b, asc in (("ascending", m.ascending, True), ("descending", m.descending, False)):
+            if m.structure == "whole":
+                params.update(alpha=b.alpha, f=b.f.tolist(), g=b.g.tolist())
+                break
+            params[name] = {"alpha": b.alpha, "h": b.h(asc).tolist()}
+        if self.coupling is not None:
+            c = self.coupling.ascending
+            params["coupling"] = {"alpha": c.alpha, "f": c.f.tolist(), "g": c.g.tolist()}
+        return {
+            "method": self.method, "structure": self.structure, "parameters": params,
+            "fit_rms_um": self.fit["rms_um"], "fit_rms_pct": self.fit["rms_pct"],
+            "max_err_um": self.fit["max_err_um"], "noise_floor_um": self.noise_floor_um,
+            "branch_rms_um": self.branch_rms_um,
+            "evaluations": self.evaluations, "seconds": self.seconds,
+            "history": self.history, "notes": self.notes,
+        }
+
+
+def _axis_data(rec: Record, axis: str):
+    if axis not in rec.v or axis not in rec.w:
+        raise DataError(f"{rec.source}: no v{axis}/w{axis} columns for axis {axis}")
+    return rec.v[axis], rec.w[axis]
+
+
+def check_identifiable(v, source="record"):
+    """Segment the voltage and refuse records that cannot support a fit."""
+    seg = segment(v)
+    if len(seg.turning_points) == 0:
+        raise DataError(f"{source}: the voltage has no reversal; a hysteresis loop needs "
+                        "rising and falling branches")
+    for asc in (True, False):
+        if seg.count(asc) < MIN_BRANCH_SAMPLES:
+            raise DataError(f"{source}: too few samples on the "
+                            f"{'ascending' if asc else 'descending'} branch "
+                            f"({seg.count(asc)} < {MIN_BRANCH_SAMPLES})")
+    return seg
+
+
+def simulate_axis(model, coupling, v, v_other, w_meas=None):
+    """Model output over a record; with w_meas, the initial output is re-estimated
+    (the Duhem state is the output itself: one least-squares scalar)."""
+    if w_meas is not None:
+        st = DuhemState(float(v[0]), 0.0)
+        base, _ = model.simulate(v, st)
+        # free response to w0 = 1: the product of 1/(1 + alpha |dv|)
+        alpha, _ = model.kernel_params()
+        dv = np.diff(v, prepend=v[0])
+        a = np.where(dv >= 0, alpha[0], alpha[1])
+        free = np.cumprod(1.0 / (1.0 + a * np.abs(dv)))
+        wc = 0.0
+        if coupling is not None:
+            wc, _ = coupling.simulate(v_other)
+        r = w_meas - base - wc
+        w0 = float(free @ r / (free @ free))
+        return base + w0 * free + wc
+    w, _ = model.simulate(v)
+    if coupling is not None:
+        w = w + coupling.simulate(v_other)[0]
+    return w
+
+
+def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
+                  progress=None) -> AxisResult:
+    """Identify one axis of a record. Raises DataError on unusable data and
+    SolverError when the solver does not improve on its starting point."""
+    opts = opts or IdentifyOptions()
+    if opts.method not in METHODS:
+        raise DataError(f"unknown method {opts.method!r}; use one of {', '.join(METHODS)}")
+    if opts.structure not in ("whole", "segmented"):
+        raise DataError("structure must be whole or segmented")
+    v, w = _axis_data(rec, axis)
+    seg = check_identifiable(v, rec.source)
+    other = OTHER[axis]
+    v_other = rec.v.get(other)
+    use_c = (opts.coupling == "on" or (opts.coupling == "auto" and opts.method == "fast"
+             and v_other is not None and np.ptp(v_other) > 0.05 * np.ptp(v)))
+    if use_c and v_other is None:
+        raise DataError(f"coupling requested but the record has no v{other}")
+    if use_c and opts.method != "fast":
+        raise DataError("a coupling term is fitted by the fast method only")
+    notes = []
+    if opts.structure == "segmented":
+        notes.append("segmented: within one branch only h = f + g (ascending) and "
+                     "h = g - f (descending) are identifiable; reported as h")
+    t0 = time.perf_counter()
+    if opts.method == "fast":
+        from piezo_stage.core.identify.fast import fit_fast
+        reg = DuhemRegression(v, w, opts.structure, opts.n, opts.m,
+                              v_other if use_c else None)
+        alphas, fit, hist = fit_fast(reg, opts.budget, progress)
+        model, coupling = reg.models(alphas, fit.theta)
+        evaluations = reg.evaluations
+        history = {"best_rms_um": hist}
+    else:
+        from piezo_stage.core.identify.afsa import fit_swarm
+        model, evaluations, history = fit_swarm(v, w, seg, opts, progress)
+        coupling = None
+    seconds = time.perf_counter() - t0
+    pred = simulate_axis(model, coupling, v, v_other)
+    fig = error_figures(w, pred)
+    if not np.isfinite(fig["rms_um"]):
+        raise SolverError(f"axis {axis}: {opts.method} produced a non-finite model")
+    # the trivial model: a constant at the mean; a solver that cannot beat it failed
+    trivial = float(np.std(w))
+    if fig["rms_um"] >= trivial:
+        raise SolverError(f"axis {axis}: {opts.method} did not improve on a constant "
+                          f"(rms {fig['rms_um']:.4g} um >= {trivial:.4g} um); no model written")
+    e = pred - w
+    branch = {name: float(np.sqrt(np.mean(e[seg.mask(asc)] ** 2)))
+              for name, asc in (("ascending", True), ("descending", False))}
+    return AxisResult(axis, opts.method, opts.structure, model, coupling,
+                      {"rms_um": fig["rms_um"], "rms_pct": fig["rms_pct"],
+                       "max_err_um": fig["max_err_um"], "range_um": fig["range_um"]},
+                      noise_floor(w), evaluations, seconds, history, notes, branch)
+
+
+def validate_axis(res: AxisResult, rec: Record) -> dict:
+    """Error of an identified axis on another record (initial output re-estimated)."""
+    v, w = _axis_data(rec, res.axis)
+    v_other = rec.v.get(OTHER[res.axis])
+    if res.coupling is not None and v_other is None:
+        raise DataError(f"{rec.source}: the model has coupling but the record has no "
+                        f"v{OTHER[res.axis]}")
+    pred = simulate_axis(res.model, res.coupling, v, v_other, w_meas=w)
+    fig = error_figures(w, pred)
+    return {"validate_rms_um": fig["rms_um"], "validate_rms_pct": fig["rms_pct"],
+            "validate_max_err_um": fig["max_err_um"], "validate_noise_floor_um": noise_floor(w)}
