@@ -11,9 +11,10 @@ import sys
 
 import numpy as np
 
-from piezo_stage.core.errors import DataError, PiezoStageError
+from piezo_stage.core.errors import DataError, PiezoStageError, SolverError
 
 EXIT_USAGE = 2
+EXIT_SOLVER = 3
 
 
 class _Parser(argparse.ArgumentParser):
@@ -198,8 +199,11 @@ def cmd_identify(args):
     for note in {n for r in results.values() for n in r.notes}:
         print(f"note: {note}")
     if args.out:
+        v_all = np.concatenate([rec.v[a] for a in rec.v])
+        limits = (float(np.floor(min(0.0, v_all.min()))), float(np.ceil(max(v_all.max(), 1.0))))
         model = StageModel({a: r.model for a, r in results.items()},
-                           {a: r.coupling for a, r in results.items() if r.coupling})
+                           {a: r.coupling for a, r in results.items() if r.coupling},
+                           limits)
         meta = {"identification": {a: {k: report[a][k] for k in report[a]
                                         if k not in ("history", "parameters")}
                                    for a in report}}
@@ -208,6 +212,15 @@ def cmd_identify(args):
     if args.json:
         with atomic_write(args.json) as fh:
             json.dump(report, fh, indent=1)
+    return 0
+
+
+def cmd_study(args):
+    from piezo_stage.studies import identification
+    rep = identification.run(args.out, seeds=args.seeds, budget=args.budget,
+                             progress=lambda m: sys.stderr.write(m + "\n"))
+    identification.print_report(rep)
+    print(f"plots and study.json in {args.out}")
     return 0
 
 
@@ -265,8 +278,15 @@ def build_parser():
     s.add_argument("--json", metavar="FILE", help="write the full report as JSON")
     s.set_defaults(fn=cmd_identify)
 
+    s = sub.add_parser("study", help="reproduce the seed's identification study")
+    s.add_argument("what", choices=("identification",))
+    s.add_argument("--out", default="out/identification_study", help="output folder")
+    s.add_argument("--seeds", type=int, default=5)
+    s.add_argument("--budget", type=int, default=60_000, help="evaluations per swarm run")
+    s.set_defaults(fn=cmd_study)
+
     s = sub.add_parser("bench", help="performance benchmarks (figures as ratios)")
-    s.add_argument("what", choices=("plant",))
+    s.add_argument("what", choices=("plant", "identify"))
     s.add_argument("--samples", type=int, default=2_000_000)
     s.set_defaults(fn=cmd_bench)
     return p
@@ -276,6 +296,8 @@ def main(argv=None):
     args = build_parser().parse_args(argv)
     try:
         return args.fn(args) or 0
+    except SolverError as e:  # the data were fine; the solver did not deliver
+        _die(str(e), EXIT_SOLVER)
     except PiezoStageError as e:
         _die(str(e))
     except KeyboardInterrupt:

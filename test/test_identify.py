@@ -1,0 +1,185 @@
+"""Identification: segmentation, the fast solver, the swarms, the identify command."""
+
+import copy
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import ROOT
+from piezo_stage.core.duhem import DuhemModel, DuhemState
+from piezo_stage.core.errors import DataError
+from piezo_stage.core.identify import IdentifyOptions, identify_axis, validate_axis
+from piezo_stage.core.identify.segmentation import segment
+from piezo_stage.core.plant import Plant
+from piezo_stage.core.record import Record
+from piezo_stage.io.csv_table import write_table
+from piezo_stage.io.plant_file import load_plant_config
+
+
+@pytest.fixture(scope="module")
+def cfg(plant_config_path):
+    return load_plant_config(plant_config_path)
+
+
+def record(cfg, freq=1.0, fs=1000.0, cycles=2, seed=1, vy=None, noise=None):
+    c = copy.deepcopy(cfg)
+    c.seed = seed
+    if noise is not None:
+        c.noise_rms_um = noise
+    t = np.arange(int(cycles * fs / freq)) / fs
+    v = 75 - 75 * np.cos(2 * np.pi * freq * t)
+    vy = np.zeros_like(v) if vy is None else vy(t)
+    w = Plant(c, fs).run(v, vy)
+    return Record(t, {"x": v, "y": vy}, {"x": w["x"], "y": w["y"]})
+
+
+def test_segmentation_robust_to_noise_holds_and_tiny_reversals():
+    rng = np.random.default_rng(0)
+    t = np.arange(6000) / 1000
+    v = 75 - 75 * np.cos(2 * np.pi * 0.5 * t)      # 3 cycles: 5 turning points
+    v[1200:1500] = v[1200]                          # a hold
+    v[2600:2603] += [0.3, -0.2, 0.1]                # a tiny reversal
+    v = v + rng.normal(0, 0.05, v.size)             # measurement noise
+    seg = segment(v)
+    assert len(seg.turning_points) == 5
+    true_tp = [1000, 2000, 3000, 4000, 5000]
+    assert np.all(np.abs(seg.turning_points - true_tp) < 30)
+    assert [s for *_, s in seg.segments] == [1, -1, 1, -1, 1, -1]
+
+
+@pytest.mark.parametrize("structure", ["segmented", "whole"])
+def test_fast_reaches_noise_floor_on_explainable_data(cfg, structure):
+    c = copy.deepcopy(cfg)
+    if structure == "whole":  # a whole-curve plant for the whole-curve fit
+        m = c.model.axes["x"]
+        c.model.axes["x"] = DuhemModel(m.ascending, m.ascending)
+    rec = record(c, fs=10_000, cycles=1, seed=3)
+    res = identify_axis(rec, "x", IdentifyOptions(structure=structure))
+    assert res.fit["rms_um"] <= 1.05 * c.noise_rms_um
+    assert res.noise_floor_um == pytest.approx(0.1, rel=0.1)
+    true = c.model.axes["x"]
+    assert res.model.ascending.alpha == pytest.approx(true.ascending.alpha, rel=0.03)
+    assert res.model.descending.alpha == pytest.approx(true.descending.alpha, rel=0.03)
+    if structure == "whole":
+        # in the whole-curve model f and g are separately identifiable
+        np.testing.assert_allclose(res.model.ascending.f[:2], true.ascending.f[:2], rtol=0.05)
+        np.testing.assert_allclose(res.model.ascending.g[:1], true.ascending.g[:1], rtol=0.05)
+    else:
+        assert any("identifiable" in n for n in res.notes)
+        np.testing.assert_allclose(res.model.ascending.h(True)[:2], true.ascending.h(True)[:2],
+                                   rtol=0.05)
+    hist = res.history["best_rms_um"]
+    assert np.all(np.diff(hist) <= 0) and len(hist) == res.evaluations
+
+
+def test_fast_fits_coupling_when_both_axes_move(cfg):
+    rec = record(cfg, fs=2000, cycles=2, vy=lambda t: 75 - 75 * np.cos(2 * np.pi * 1.7 * t))
+    with_c = identify_axis(rec, "x", IdentifyOptions(coupling="on"))
+    without = identify_axis(rec, "x", IdentifyOptions(coupling="off"))
+    assert with_c.coupling is not None and without.coupling is None
+    assert with_c.fit["rms_um"] <= 1.05 * 0.1
+    assert without.fit["rms_um"] > 1.5 * with_c.fit["rms_um"]
+
+
+def test_validation_on_other_frequency(cfg):
+    fit = record(cfg, freq=1.0, seed=1)
+    res = identify_axis(fit, "x")
+    val = validate_axis(res, record(cfg, freq=5.0, cycles=4, seed=9))
+    assert val["validate_rms_um"] < 0.13
+    assert val["validate_rms_pct"] < 0.2
+
+
+@pytest.mark.parametrize("method", ["afsa", "afsa-bat"])
+def test_swarms_are_reproducible_and_improve(cfg, method):
+    rec = record(cfg, seed=2)
+    opts = IdentifyOptions(method=method, seed=5, afsa={"fish": 10, "iterations": 30})
+    a = identify_axis(rec, "x", opts)
+    b = identify_axis(rec, "x", opts)
+    assert a.fit["rms_um"] == b.fit["rms_um"]  # seeded
+    for branch in ("ascending", "descending"):
+        h = np.array(a.history[branch])
+        assert np.all(np.diff(h) <= 0)
+        assert h[-1] < h[0]
+        assert len(h) == 31
+    assert a.fit["rms_um"] < 0.5 * np.std(rec.w["x"])
+    c = identify_axis(rec, "x", IdentifyOptions(method=method, seed=6,
+                                                 afsa={"fish": 10, "iterations": 30}))
+    assert c.fit["rms_um"] != a.fit["rms_um"]
+
+
+def test_swarm_budget_is_respected(cfg):
+    rec = record(cfg, seed=2)
+    r = identify_axis(rec, "x", IdentifyOptions(method="afsa-bat", structure="whole",
+                                                 budget=3000))
+    assert r.evaluations <= 3000 + 30 * 20  # at most one iteration over
+
+
+@pytest.mark.parametrize("v,msg", [
+    (np.linspace(0, 150, 500), "no reversal"),
+    (np.full(500, 20.0), "constant"),
+    (np.concatenate([np.linspace(0, 150, 490), np.linspace(150, 140, 10)]), "too few"),
+])
+def test_bad_records(v, msg):
+    rec = Record(np.arange(v.size) / 1000, {"x": v}, {"x": v * 0.5})
+    with pytest.raises(DataError, match=msg):
+        identify_axis(rec, "x")
+
+
+def test_mismatched_lengths():
+    with pytest.raises(DataError, match="samples"):
+        Record(np.arange(10.0), {"x": np.zeros(9)}, {"x": np.zeros(10)})
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=600,
+                          env=dict(os.environ, PYTHONPATH=ROOT))
+
+
+def test_identify_command_writes_model_and_json(cfg, tmp_path):
+    fit, val = record(cfg, seed=1), record(cfg, freq=2.0, cycles=3, seed=2)
+    for name, r in (("fit", fit), ("val", val)):
+        write_table(tmp_path / f"{name}.csv", {"t": r.t, "vx": r.v["x"], "wx": r.w["x"]})
+    out, js = tmp_path / "m.yaml", tmp_path / "r.json"
+    r = _cli("identify", tmp_path / "fit.csv", "--axis", "x", "--validate",
+             tmp_path / "val.csv", "--out", out, "--json", js)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr == ""  # no progress output when not on a terminal
+    rep = json.loads(js.read_text())["x"]
+    for k in ("method", "structure", "parameters", "fit_rms_um", "fit_rms_pct",
+              "max_err_um", "validate_rms_um", "validate_rms_pct", "noise_floor_um",
+              "evaluations", "seconds", "history"):
+        assert k in rep
+    assert rep["validate_rms_um"] < 0.13
+    doc = yaml.safe_load(out.read_text())
+    assert doc["axes"]["x"]["structure"] == "segmented"
+    assert "h" in doc["axes"]["x"]["ascending"]
+    # the written model is what the simulator and the inverse read
+    sim = tmp_path / "sim.csv"
+    write_table(tmp_path / "v.csv", {"t": val.t, "vx": val.v["x"], "vy": val.v["y"]})
+    r = _cli("simulate", "--in", tmp_path / "v.csv", "--out", sim, "--model", out)
+    assert r.returncode == 0, r.stderr
+
+
+def test_identify_bad_input_and_failed_solver(cfg, tmp_path):
+    p = tmp_path / "ramp.csv"
+    t = np.arange(300) / 1000
+    write_table(p, {"t": t, "vx": np.linspace(0, 100, 300), "wx": np.linspace(0, 50, 300)})
+    r = _cli("identify", p, "--axis", "x")
+    assert r.returncode == 2 and "no reversal" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    r = _cli("identify", tmp_path / "missing.csv")
+    assert r.returncode == 2
+    # a swarm given only its initial population cannot beat a constant
+    fit = record(cfg, seed=1)
+    write_table(tmp_path / "fit.csv", {"t": fit.t, "vx": fit.v["x"], "wx": fit.w["x"]})
+    out = tmp_path / "m.yaml"
+    r = _cli("identify", tmp_path / "fit.csv", "--method", "afsa", "--budget", "2",
+             "--out", out)
+    assert r.returncode == 3 and "did not improve" in r.stderr
+    assert not out.exists()
