@@ -21,7 +21,7 @@ stamp=.venv/.piezo_stage_install_stamp
 want=$(cat setup.py setup.cfg package.xml | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   .venv/bin/python -m pip install --quiet --disable-pip-version-check --upgrade pip
-  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[ros,bags,test]"
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[ros,test]"
   echo "$want" > "$stamp"
 fi
 

@@ -32,12 +32,12 @@ setup(
         "numba>=0.58",
         "mcap>=1.1",
         "matplotlib>=3.7",
+        "rosbags>=0.10",
     ],
     extras_require={
         # rclpy and the messages come from the ros-jazzy-* wheels; a full ROS install
         # provides them instead, so they are an extra rather than a hard requirement.
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
-        "bags": ["rosbags>=0.10"],
         "daq": ["nidaqmx>=0.9"],
         "test": ["pytest>=7"],
     },

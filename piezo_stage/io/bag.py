@@ -1,0 +1,292 @@
+"""Bags: rosbag2 layout with MCAP storage (writer and reader), no rosbag2_py needed.
+
+A bag is a directory ``<name>/`` holding ``<name>_0.mcap`` and ``metadata.yaml``
+(rosbag2 format version 9: storage mcap, serialization cdr). The MCAP file has the
+``ros2`` profile, one ``ros2msg`` schema per message type (the full definition text,
+dependencies appended as rosbag2 does), raw CDR messages, chunk CRCs and data CRCs,
+and the run's configuration and model as MCAP metadata records. Independent tools
+(the ``rosbags`` library, the ``mcap`` reader) read it.
+
+Writers are context managers whose ``finish()`` is safe to call twice. Chunks are
+small and flushed on request, so after a SIGKILL everything up to the last flushed
+chunk is still readable (:func:`iter_messages` tolerates a truncated file).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import time
+from functools import lru_cache
+
+import yaml
+
+from piezo_stage.core.errors import DataError
+from piezo_stage.io.files import atomic_write
+
+RELIABLE_QOS = ("- history: 3\n  depth: 0\n  reliability: 1\n  durability: 2\n"
+                "  deadline: {sec: 2147483647, nsec: 4294967295}\n"
+                "  lifespan: {sec: 2147483647, nsec: 4294967295}\n  liveliness: 1\n"
+                "  liveliness_lease_duration: {sec: 2147483647, nsec: 4294967295}\n"
+                "  avoid_ros_namespace_conventions: false\n")
+
+
+@lru_cache(maxsize=None)
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def msgdef(msgtype: str) -> str:
+    """ros2msg definition text of ``pkg/msg/Type`` with its dependencies appended."""
+    text, _ = _typestore().generate_msgdef(msgtype, ros_version=2)
+    return text
+
+
+def serialize(msg, msgtype: str) -> bytes:
+    return bytes(_typestore().serialize_cdr(msg, msgtype))
+
+
+def deserialize(data: bytes, msgtype: str):
+    return _typestore().deserialize_cdr(data, msgtype)
+
+
+def new_bag_dir(root="bags") -> str:
+    """bags/<UTC timestamp>/, never an existing folder (a suffix is added instead)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    path = os.path.join(root, stamp)
+    k = 1
+    while os.path.exists(path):
+        path = os.path.join(root, f"{stamp}-{k}")
+        k += 1
+    return path
+
+
+class BagWriter:
+    """Write raw serialized messages into a rosbag2-layout MCAP bag.
+
+    >>> with BagWriter("bags/run1") as bag:
+    ...     ch = bag.add_topic("/stage/joint_states", "sensor_msgs/msg/JointState")
+    ...     bag.write(ch, cdr_bytes, stamp_ns)
+    """
+
+    def __init__(self, path, chunk_size=64 * 1024, compression="zstd", metadata=None):
+        from mcap.writer import CompressionType, Writer
+        self.path = os.fspath(path)
+        if os.path.exists(self.path):
+            raise DataError(f"{self.path}: bag already exists (bags are never overwritten)")
+        os.makedirs(self.path)
+        self.name = os.path.basename(os.path.normpath(self.path))
+        self.file_name = f"{self.name}_0.mcap"
+        self._fh = open(os.path.join(self.path, self.file_name), "wb")
+        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+                "none": CompressionType.NONE}[compression]
+        self._w = Writer(self._fh, chunk_size=chunk_size, compression=comp,
+                         enable_crcs=True, enable_data_crcs=True)
+        self._w.start(profile="ros2", library="piezo_stage")
+        self._schemas, self.topics, self.counts = {}, {}, {}
+        self._first = self._last = None
+        self._finished = False
+        for name, data in (metadata or {}).items():
+            self.add_metadata(name, data)
+        self._write_metadata_yaml()  # a bag killed before finish() still has one
+
+    def add_topic(self, topic: str, msgtype: str, qos: str = RELIABLE_QOS) -> int:
+        if topic in self.topics:
+            return self.topics[topic][0]
+        if msgtype not in self._schemas:
+            self._schemas[msgtype] = self._w.register_schema(
+                name=msgtype, encoding="ros2msg", data=msgdef(msgtype).encode())
+        cid = self._w.register_channel(topic=topic, message_encoding="cdr",
+                                       schema_id=self._schemas[msgtype],
+                                       metadata={"offered_qos_profiles": qos})
+        self.topics[topic] = (cid, msgtype)
+        self.counts[topic] = 0
+        return cid
+
+    def add_metadata(self, name: str, data: dict):
+        self._w.add_metadata(name, {str(k): str(v) for k, v in data.items()})
+
+    def write(self, topic: str, data: bytes, log_time_ns: int, publish_time_ns=None):
+        cid, _ = self.topics[topic]
+        self._w.add_message(channel_id=cid, log_time=int(log_time_ns), data=data,
+                            publish_time=int(publish_time_ns or log_time_ns),
+                            sequence=self.counts[topic])
+        self.counts[topic] += 1
+        self._first = log_time_ns if self._first is None else min(self._first, log_time_ns)
+        self._last = log_time_ns if self._last is None else max(self._last, log_time_ns)
+
+    def flush(self):
+        """Close the current chunk and push it to disk (survives a SIGKILL after this)."""
+        if self._finished:
+            return
+        self._w.flush()  # finishes the chunk in progress and flushes the stream
+        os.fsync(self._fh.fileno())
+
+    def _write_metadata_yaml(self):
+        first = self._first or 0
+        dur = (self._last - first) if self._last is not None else 0
+        total = sum(self.counts.values())
+        info = {
+            "version": 9,
+            "storage_identifier": "mcap",
+            "duration": {"nanoseconds": int(dur)},
+            "starting_time": {"nanoseconds_since_epoch": int(first)},
+            "message_count": int(total),
+            "topics_with_message_count": [
+                {"topic_metadata": {"name": t, "type": mt, "serialization_format": "cdr",
+                                    "offered_qos_profiles": RELIABLE_QOS,
+                                    "type_description_hash": ""},
+                 "message_count": int(self.counts[t])}
+                for t, (_, mt) in self.topics.items()],
+            "compression_format": "",
+            "compression_mode": "",
+            "relative_file_paths": [self.file_name],
+            "files": [{"path": self.file_name,
+                       "starting_time": {"nanoseconds_since_epoch": int(first)},
+                       "duration": {"nanoseconds": int(dur)},
+                       "message_count": int(total)}],
+            "custom_data": {},
+            "ros_distro": "jazzy",
+        }
+        with atomic_write(os.path.join(self.path, "metadata.yaml")) as fh:
+            yaml.safe_dump({"rosbag2_bagfile_information": info}, fh, sort_keys=False)
+
+    def finish(self):
+        if self._finished:
+            return
+        self._finished = True
+        self._w.finish()
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        self._fh.close()
+        self._write_metadata_yaml()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.finish()
+        return False
+
+
+def mcap_path(path) -> str:
+    p = os.fspath(path)
+    if os.path.isdir(p):
+        files = sorted(glob.glob(os.path.join(p, "*.mcap")))
+        if not files:
+            raise DataError(f"{p}: no .mcap file in the bag directory")
+        return files[0]
+    if not os.path.isfile(p):
+        raise DataError(f"{p}: no such bag")
+    return p
+
+
+def iter_messages(path, topics=None):
+    """Yield (topic, msgtype, log_time_ns, raw CDR bytes) in file order.
+
+    Reads the stream front to back, so a bag whose writer was killed yields every
+    message of its complete chunks and stops quietly at the truncation.
+    """
+    from mcap.exceptions import McapError
+    from mcap.reader import NonSeekingReader
+    p = mcap_path(path)
+    try:
+        with open(p, "rb") as fh:
+            reader = NonSeekingReader(fh, validate_crcs=True)
+            try:
+                for schema, channel, message in reader.iter_messages(
+                        topics=topics, log_time_order=False):
+                    yield channel.topic, schema.name, message.log_time, message.data
+            except (McapError, EOFError, ValueError) as e:
+                if "magic" in str(e).lower() and "start" in str(e).lower():
+                    raise
+                return  # truncated tail (writer killed): stop at the last good chunk
+    except McapError as e:
+        raise DataError(f"{p}: not a readable MCAP file ({e})") from None
+    except OSError as e:
+        raise DataError(f"{p}: cannot read ({e.strerror})") from None
+
+
+def read_metadata(path) -> dict:
+    """MCAP metadata records: name -> dict."""
+    from mcap.reader import make_reader
+    with open(mcap_path(path), "rb") as fh:
+        return {m.name: dict(m.metadata) for m in make_reader(fh).iter_metadata()}
+
+
+def read_bag_record(path, namespace=None):
+    """A Record (t [s], v [V], w [um]) from a bag's joint_states and voltage topics.
+
+    Measured positions come from ``<ns>/joint_states`` (sensor_msgs/JointState, metres)
+    and applied voltages from ``<ns>/voltage`` (geometry_msgs/Vector3Stamped, volts);
+    samples are paired by header stamp.
+    """
+    import numpy as np
+    from piezo_stage.core.record import Record
+    pos, volt = {}, {}
+    seen = set()
+    try:
+        for topic, msgtype, _, data in iter_messages(path):
+            seen.add(topic)
+            if topic.endswith("/joint_states") and msgtype == "sensor_msgs/msg/JointState":
+                if namespace and not topic.startswith(namespace):
+                    continue
+                m = deserialize(data, msgtype)
+                st = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+                names = list(m.name)
+                pos[st] = {n: float(m.position[i]) * 1e6 for i, n in enumerate(names)
+                           if n in ("x", "y") and i < len(m.position)}
+            elif topic.endswith("/voltage") and msgtype == "geometry_msgs/msg/Vector3Stamped":
+                if namespace and not topic.startswith(namespace):
+                    continue
+                m = deserialize(data, msgtype)
+                st = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+                volt[st] = {"x": float(m.vector.x), "y": float(m.vector.y)}
+    except DataError:
+        raise
+    except Exception as e:  # a corrupt message body: one line, not a traceback
+        raise DataError(f"{path}: unreadable bag ({type(e).__name__}: {e})") from None
+    if not pos or not volt:
+        raise DataError(f"{path}: bag lacks the needed topics (<ns>/joint_states "
+                        f"sensor_msgs/JointState and <ns>/voltage geometry_msgs/"
+                        f"Vector3Stamped); it has {', '.join(sorted(seen)) or 'no messages'}")
+    stamps = sorted(set(pos) & set(volt))
+    if len(stamps) < 3:
+        raise DataError(f"{path}: fewer than 3 samples with both position and voltage")
+    t = np.array(stamps, dtype=np.int64)
+    t = (t - t[0]) / 1e9
+    axes = [a for a in ("x", "y") if all(a in pos[s] for s in stamps)]
+    return Record(t, {a: np.array([volt[s][a] for s in stamps]) for a in axes},
+                  {a: np.array([pos[s][a] for s in stamps]) for a in axes},
+                  source=os.fspath(path))
+
+
+def write_record_bag(path, rec, namespace="/stage", metadata=None):
+    """Write a Record as the driver would publish it (joint_states in metres, voltage in
+    volts, one pair per sample, header stamps = record time). For fixtures and for
+    converting CSV records into bags."""
+    ts = _typestore()
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    Header = ts.types["std_msgs/msg/Header"]
+    JointState = ts.types["sensor_msgs/msg/JointState"]
+    Vector3 = ts.types["geometry_msgs/msg/Vector3"]
+    Vector3Stamped = ts.types["geometry_msgs/msg/Vector3Stamped"]
+    import numpy as np
+    axes = [a for a in ("x", "y") if a in rec.w]
+    js_t, v_t = f"{namespace}/joint_states", f"{namespace}/voltage"
+    with BagWriter(path, metadata=metadata) as bag:
+        bag.add_topic(js_t, "sensor_msgs/msg/JointState")
+        bag.add_topic(v_t, "geometry_msgs/msg/Vector3Stamped")
+        for k in range(len(rec)):
+            ns = int(round(rec.t[k] * 1e9))
+            h = Header(stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000),
+                       frame_id="stage")
+            js = JointState(header=h, name=axes,
+                            position=np.array([rec.w[a][k] * 1e-6 for a in axes]),
+                            velocity=np.zeros(0), effort=np.zeros(0))
+            vs = Vector3Stamped(header=h, vector=Vector3(
+                x=float(rec.v.get("x", [0.0] * len(rec))[k]),
+                y=float(rec.v.get("y", [0.0] * len(rec))[k]), z=0.0))
+            bag.write(js_t, serialize(js, "sensor_msgs/msg/JointState"), ns)
+            bag.write(v_t, serialize(vs, "geometry_msgs/msg/Vector3Stamped"), ns)

@@ -1,0 +1,128 @@
+"""Bags: rosbag2 layout with MCAP storage, read back by independent readers."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from piezo_stage.core.errors import DataError
+from piezo_stage.core.record import Record
+from piezo_stage.io.bag import (BagWriter, iter_messages, read_bag_record, read_metadata,
+                                new_bag_dir, write_record_bag)
+
+
+def _rec(n=3000, fs=1000.0):
+    t = np.arange(n) / fs
+    v = 75 - 75 * np.cos(2 * np.pi * t)
+    return Record(t, {"x": v, "y": v[::-1].copy()}, {"x": 0.5 * v, "y": 0.4 * v[::-1]})
+
+
+def test_round_trip_and_independent_readers(tmp_path):
+    rec = _rec()
+    path = tmp_path / "b1"
+    write_record_bag(path, rec, metadata={"piezo_stage_config": {"yaml": "a: 1"}})
+    assert (path / "metadata.yaml").exists() and (path / "b1_0.mcap").exists()
+    back = read_bag_record(path)
+    np.testing.assert_allclose(back.t, rec.t, atol=1e-9)
+    np.testing.assert_allclose(back.v["x"], rec.v["x"])
+    np.testing.assert_allclose(back.w["y"], rec.w["y"], atol=1e-9)
+    assert read_metadata(path)["piezo_stage_config"] == {"yaml": "a: 1"}
+    # the mcap library's seeking reader, with CRC validation of chunks
+    from mcap.reader import make_reader
+    with open(path / "b1_0.mcap", "rb") as fh:
+        r = make_reader(fh, validate_crcs=True)
+        summary = r.get_summary()
+        assert summary.statistics.message_count == 2 * len(rec)
+        assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+        assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+        assert sum(1 for _ in r.iter_messages()) == 2 * len(rec)
+    # the rosbags library reads the rosbag2 directory
+    from rosbags.highlevel import AnyReader
+    with AnyReader([path]) as reader:
+        assert reader.message_count == 2 * len(rec)
+        conns = [c for c in reader.connections if c.topic == "/stage/joint_states"]
+        msgs = [reader.deserialize(raw, c.msgtype)
+                for c, _, raw in reader.messages(connections=conns)]
+        assert len(msgs) == len(rec)
+        np.testing.assert_allclose(msgs[10].position[0], rec.w["x"][10] * 1e-6)
+
+
+def test_never_overwritten(tmp_path):
+    p = tmp_path / "b"
+    write_record_bag(p, _rec(50))
+    with pytest.raises(DataError, match="already exists"):
+        BagWriter(p)
+    d1 = new_bag_dir(tmp_path)
+    os.makedirs(d1)
+    assert new_bag_dir(tmp_path) != d1
+
+
+def test_finish_twice_is_safe(tmp_path):
+    b = BagWriter(tmp_path / "b")
+    b.finish()
+    b.finish()
+
+
+def test_truncated_bag_readable_up_to_last_flushed_chunk(tmp_path):
+    rec = _rec(2000)
+    path = tmp_path / "kill"
+    code = f"""
+import os, signal, numpy as np
+from piezo_stage.io.bag import BagWriter, serialize, _typestore
+ts = _typestore()
+S = ts.types['std_msgs/msg/String']
+b = BagWriter({str(path)!r})
+b.add_topic('/t', 'std_msgs/msg/String')
+for k in range(1000):
+    b.write('/t', serialize(S(data='m%d' % k), 'std_msgs/msg/String'), k * 1000)
+    if k == 599:
+        b.flush()
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT,
+                       env=dict(os.environ, PYTHONPATH=ROOT))
+    assert r.returncode == -9
+    n = sum(1 for _ in iter_messages(path))
+    assert n == 600  # everything up to the flush, nothing after
+
+
+@pytest.mark.parametrize("content", [b"", b"garbage" * 10])
+def test_unreadable_bag(tmp_path, content):
+    p = tmp_path / "x.mcap"
+    p.write_bytes(content)
+    with pytest.raises(DataError):
+        read_bag_record(p)
+
+
+def test_bag_without_needed_topics(tmp_path):
+    from piezo_stage.io.bag import serialize, _typestore
+    S = _typestore().types["std_msgs/msg/String"]
+    with BagWriter(tmp_path / "b") as b:
+        b.add_topic("/chatter", "std_msgs/msg/String")
+        b.write("/chatter", serialize(S(data="hi"), "std_msgs/msg/String"), 1)
+    with pytest.raises(DataError, match="lacks the needed topics"):
+        read_bag_record(tmp_path / "b")
+
+
+def test_identify_on_a_bag(tmp_path, plant_config_path):
+    from piezo_stage.core.plant import Plant
+    from piezo_stage.io.plant_file import load_plant_config
+    cfg = load_plant_config(plant_config_path)
+    t = np.arange(2000) / 1000
+    v = 75 - 75 * np.cos(2 * np.pi * t)
+    w = Plant(cfg, 1000).run(v, np.zeros_like(v))
+    write_record_bag(tmp_path / "run", Record(t, {"x": v, "y": 0 * v}, w))
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "identify",
+                        str(tmp_path / "run"), "--axis", "x", "--coupling", "off"],
+                       capture_output=True, text=True, cwd=ROOT,
+                       env=dict(os.environ, PYTHONPATH=ROOT))
+    assert r.returncode == 0, r.stderr
+    row = [line.split() for line in r.stdout.splitlines() if line.split()[:1] == ["x"]][0]
+    assert float(row[3]) < 0.105
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "identify",
+                        str(tmp_path / "nothing")], capture_output=True, text=True,
+                       cwd=ROOT, env=dict(os.environ, PYTHONPATH=ROOT))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
