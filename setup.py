@@ -11,7 +11,8 @@ from setuptools import find_packages, setup
 
 package_name = "piezo_stage"
 
-NODES = []  # filled as the node set lands (issue 4)
+NODES = ["stage_driver", "identifier", "feedforward", "controller", "trajectory",
+         "recorder"]
 
 setup(
     name=package_name,

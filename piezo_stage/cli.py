@@ -224,6 +224,36 @@ def cmd_study(args):
     return 0
 
 
+def _default_stage_yaml():
+    import os
+    from piezo_stage.io.plant_file import default_config_dir
+    return os.path.join(default_config_dir(), "stage.yaml")
+
+
+def cmd_launch(args):
+    from piezo_stage.io.bag import new_bag_dir
+    from piezo_stage.launch.launcher import Launch
+    record = args.record
+    if record == "auto":
+        record = new_bag_dir("bags")
+    launch = Launch(args.config or _default_stage_yaml(), record=record,
+                    namespace=args.namespace)
+    rc = launch.run(args.duration)
+    if record:
+        print(f"bag: {record}")
+    return rc
+
+
+def cmd_demo(args):
+    from piezo_stage.demo import run_demo
+    return run_demo(args)
+
+
+def cmd_replay(args):
+    from piezo_stage.replay import replay
+    return replay(args.bag, args.rate, args.namespace)
+
+
 def cmd_bench(args):
     from piezo_stage import bench
     return bench.main(args)
@@ -250,8 +280,29 @@ def build_parser():
     s.add_argument("--method", choices=("exact", "seed-eq12"), default="exact")
     s.set_defaults(fn=cmd_invert)
 
-    for name, hlp in (("loop", "hysteresis loop figures of the simulated stage"),
-                      ("demo", "the main job on the simulated stage")):
+    s = sub.add_parser("launch", help="start the ROS 2 node set")
+    s.add_argument("config", nargs="?", help="node parameters YAML (default config/stage.yaml)")
+    s.add_argument("--record", metavar="DIR", help="record a bag to DIR ('auto': bags/<time>)")
+    s.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    s.add_argument("--namespace", default="/stage")
+    s.set_defaults(fn=cmd_launch)
+
+    s = sub.add_parser("demo", help="the main job: node set on the simulated stage")
+    s.add_argument("--out", help="bag directory (default bags/<timestamp>)")
+    s.add_argument("--excite", type=float, default=3.0, help="excitation before tracking [s]")
+    s.add_argument("--track", type=float, default=1.0, help="tracking of the seed's 10 Hz "
+                   "trajectory [s]")
+    s.add_argument("--namespace", default="/stage")
+    s.set_defaults(fn=cmd_demo)
+
+    s = sub.add_parser("replay", help="republish a recorded bag on its topics")
+    s.add_argument("bag")
+    s.add_argument("--rate", type=float, default=1.0,
+                   help="playback speed (1: original timing; 0: as fast as possible)")
+    s.add_argument("--namespace", default=None, help="replace the recorded namespace")
+    s.set_defaults(fn=cmd_replay)
+
+    for name, hlp in (("loop", "hysteresis loop figures of the simulated stage"),):
         s = sub.add_parser(name, help=hlp)
         s.add_argument("--config", help="plant config YAML")
         s.add_argument("--freq", type=float, default=1.0, help="sine frequency [Hz]")
@@ -286,7 +337,7 @@ def build_parser():
     s.set_defaults(fn=cmd_study)
 
     s = sub.add_parser("bench", help="performance benchmarks (figures as ratios)")
-    s.add_argument("what", choices=("plant", "identify"))
+    s.add_argument("what", choices=("plant", "identify", "loop"))
     s.add_argument("--samples", type=int, default=2_000_000)
     s.set_defaults(fn=cmd_bench)
     return p

@@ -125,3 +125,76 @@ def invert_stage(model: StageModel, wx, wy, states=None, tol_V=1e-10, max_iter=5
     for a in res:
         res[a].w = w[a]
     return res
+
+
+class StageInverse:
+    """Stateful per-sample exact inverse of a 2-axis model (the feedforward's core).
+
+    ``step(wx, wy)`` returns the voltages [V] that make the model reach the targets
+    [um] from its current state, coupling included (a few Gauss-Seidel sweeps per
+    sample), and advances the model state. ``saturated`` counts unreachable targets.
+    """
+
+    def __init__(self, model: StageModel, use_coupling=True, sweeps=4):
+        self.model = model
+        self.use_coupling = use_coupling and bool(model.coupling)
+        self.sweeps = sweeps if self.use_coupling else 1
+        self._k = {a: m.kernel_params() for a, m in model.axes.items()}
+        self._kc = {a: c.kernel_params() for a, c in model.coupling.items()}
+        self.saturated = 0
+        self.reset()
+
+    def reset(self, v=None, w=None):
+        """Back to the model's initial states, or to voltages v / outputs w (dicts)."""
+        self.state = {a: m.initial for a, m in self.model.axes.items()}
+        self.cstate = {a: c.initial for a, c in self.model.coupling.items()}
+        if v:
+            for a in self.state:
+                self.state[a] = DuhemState(float(v.get(a, 0.0)), float((w or {}).get(a, 0.0)))
+            for a in self.cstate:
+                self.cstate[a] = DuhemState(float(v.get(OTHER[a], 0.0)), 0.0)
+        self.v = {a: self.state[a].v if a in self.state else self.model.voltage_limits[0]
+                  for a in AXES}
+
+    def _coupling_out(self, a, v_other):
+        c = self.model.coupling[a]
+        w, st = c.simulate([v_other], self.cstate[a])
+        return float(w[0]), st
+
+    def sync(self, vx: float, vy: float):
+        """Advance the model with the voltages really applied (feedforward plus
+        feedback, after the driver's limits), so the next inverse starts from the
+        state the stage is actually in rather than from the feedforward's own output."""
+        v = {"x": vx, "y": vy}
+        for a in self.state:
+            self.state[a] = self.model.axes[a].simulate([v[a]], self.state[a])[1]
+        for a in self.cstate:
+            self.cstate[a] = self.model.coupling[a].simulate([v[OTHER[a]]], self.cstate[a])[1]
+        self.v = v
+
+    def step(self, wx: float, wy: float, commit: bool = True):
+        """Voltages for the targets; ``commit=False`` leaves the state for ``sync``."""
+        target = {"x": wx, "y": wy}
+        lo, hi = self.model.voltage_limits
+        v = dict(self.v)
+        new_state, new_c, sat = {}, {}, {}
+        for _ in range(self.sweeps):
+            for a in self.state:
+                wc = 0.0
+                if self.use_coupling and a in self.cstate:
+                    wc, new_c[a] = self._coupling_out(a, v[OTHER[a]])
+                r = invert(self.model.axes[a], [target[a] - wc], (lo, hi), self.state[a])
+                v[a] = float(r.v[0])
+                new_state[a] = r.final
+                sat[a] = bool(r.saturated[0])
+        for a in self.cstate:
+            if self.use_coupling:
+                _, new_c[a] = self._coupling_out(a, v[OTHER[a]])
+            else:
+                new_c[a] = self.cstate[a]
+        self.saturated += sum(sat.values())
+        if commit:
+            self.state.update(new_state)
+            self.cstate.update(new_c)
+            self.v = v
+        return v["x"], v["y"], sat

@@ -1,0 +1,46 @@
+"""Desired trajectories [um] as sampled (t, wx, wy) arrays.
+
+Kinds: sine, variable-amplitude sine (the seed's 60/40/20 um cycles), steps, triangle,
+from CSV (t,wx,wy), and the seed's preset y(t) = 21 + 24 sin(2 pi f t - pi/2) um on
+both axes (seed section 4.3, f = 10 Hz by default).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from piezo_stage.core.errors import ConfigError
+
+KINDS = ("sine", "variable_sine", "steps", "triangle", "seed", "csv")
+
+
+def generate(kind="seed", duration_s=1.0, dt_s=1e-3, frequency_hz=10.0, center_um=21.0,
+             amplitude_um=24.0, axes=("x", "y"), step_levels_um=(10.0, 40.0, 25.0, 55.0),
+             csv_path=None):
+    """Returns (t [s], {axis: w [um]}) sampled every dt_s over duration_s."""
+    if kind not in KINDS:
+        raise ConfigError(f"unknown trajectory kind {kind!r}; use one of {', '.join(KINDS)}")
+    if kind == "csv":
+        from piezo_stage.io.csv_table import read_table
+        cols = read_table(csv_path, ["t", "wx", "wy"])
+        return cols["t"] - cols["t"][0], {"x": cols["wx"], "y": cols["wy"]}
+    if not (duration_s > 0 and dt_s > 0 and frequency_hz > 0):
+        raise ConfigError("duration_s, dt_s and frequency_hz must be > 0")
+    t = np.arange(int(round(duration_s / dt_s)) + 1) * dt_s
+    ph = 2 * np.pi * frequency_hz * t
+    if kind == "seed":
+        w = 21.0 + 24.0 * np.sin(ph - np.pi / 2)
+    elif kind == "sine":
+        w = center_um + amplitude_um * np.sin(ph - np.pi / 2)
+    elif kind == "variable_sine":
+        # seed section 4.3: cycles peaking at 60, 40, 20 um (from 0), repeating
+        peaks = np.array([60.0, 40.0, 20.0]) * amplitude_um / 24.0 * 0.5
+        cyc = np.floor(frequency_hz * t).astype(int) % 3
+        w = peaks[cyc] * (1 - np.cos(ph))
+    elif kind == "triangle":
+        frac = (frequency_hz * t) % 1.0
+        w = center_um - amplitude_um + 2 * amplitude_um * (1 - np.abs(2 * frac - 1))
+    else:  # steps, one level per period
+        lv = np.asarray(step_levels_um, float)
+        w = lv[np.floor(frequency_hz * t).astype(int) % lv.size]
+    return t, {a: w.copy() for a in axes}

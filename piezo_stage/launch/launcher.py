@@ -1,0 +1,152 @@
+"""Start the node set as separate processes from one parameter file, stop it cleanly.
+
+Each node runs as ``python -m piezo_stage.nodes.<node>_node --ros-args -r
+__ns:=<namespace> --params-file CONFIG [-p name:=value ...]``, exactly what
+``ros2 run`` would pass. In lockstep the launcher tells each publisher how many
+subscribers to wait for (the set it started, recorder included), so no sample is
+published before everyone listens. Ctrl-C (SIGINT) is forwarded: producers first,
+the recorder last, so the bag holds everything. A node that exits 0 by itself (the
+driver after max_steps) ends the run cleanly; one that dies ends it with exit 1.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import yaml
+
+from piezo_stage.core.errors import ConfigError
+
+ORDER = ("recorder", "identifier", "controller", "feedforward", "trajectory", "stage_driver")
+
+
+def _params(config_path):
+    try:
+        doc = yaml.safe_load(open(config_path)) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"{config_path}: no such config file") from None
+    except yaml.YAMLError:
+        raise ConfigError(f"{config_path}: malformed YAML") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{config_path}: expected '<node>: ros__parameters:' sections")
+    out = {}
+    for node, sec in doc.items():
+        if node not in ORDER:
+            raise ConfigError(f"{config_path}: unknown node {node!r}; known: {', '.join(ORDER)}")
+        out[node] = (sec or {}).get("ros__parameters", {}) or {}
+    return out
+
+
+def _fmt(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ",".join(_fmt(x) for x in v) + "]"
+    return str(v)
+
+
+class Launch:
+    def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
+                 nodes=None, env=None):
+        self.config_path = os.path.abspath(config_path)
+        params = _params(self.config_path)
+        self.nodes = [n for n in ORDER if n in (nodes or params) and n != "recorder"]
+        if record:
+            self.nodes.insert(0, "recorder")
+        self.ns = namespace
+        self.record = record
+        drv = params.get("stage_driver", {})
+        self.lockstep = drv.get("mode", "lockstep") == "lockstep"
+        self.backend = drv.get("backend", "sim")
+        self.overrides = {n: dict(o) for n, o in (overrides or {}).items()}
+        self.env = dict(os.environ if env is None else env)
+        if self.backend == "sim":  # keep a simulated run's discovery on this host
+            self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        self.procs = {}
+        self.failed = []
+
+    def _gates(self):
+        has = set(self.nodes)
+        rec = int("recorder" in has)
+        g = {"stage_driver": {"min_subscribers": rec + sum(n in has for n in
+                                                           ("feedforward", "controller",
+                                                            "identifier")),
+                              "min_voltage_subscribers": rec + int("identifier" in has),
+                              "min_record_subscribers": rec},
+             "feedforward": {"min_subscribers": rec + int("controller" in has)},
+             "controller": {"min_subscribers": rec + int("stage_driver" in has)},
+             "trajectory": {"min_subscribers": rec + int("feedforward" in has)}}
+        return g if self.lockstep else {"trajectory": g["trajectory"]}
+
+    def command(self, node):
+        cmd = [sys.executable, "-m", f"piezo_stage.nodes.{node}_node", "--ros-args",
+               "-r", f"__ns:={self.ns}", "--params-file", self.config_path]
+        extra = dict(self._gates().get(node, {}))
+        if node == "recorder":
+            extra.update(output=os.path.abspath(self.record), config_file=self.config_path)
+        extra.update(self.overrides.get(node, {}))
+        for k, v in extra.items():
+            cmd += ["-p", f"{k}:={_fmt(v)}"]
+        return cmd
+
+    def start(self):
+        for n in self.nodes:
+            self.procs[n] = subprocess.Popen(self.command(n), env=self.env,
+                                             start_new_session=True)
+
+    def stop(self, timeout=15.0):
+        """SIGINT to producers first, then the recorder; escalate if a node hangs."""
+        order = [n for n in reversed(self.nodes) if n != "recorder"] + \
+            [n for n in self.nodes if n == "recorder"]
+        for group in ([n for n in order if n != "recorder"], ["recorder"]):
+            for n in group:
+                p = self.procs.get(n)
+                if p and p.poll() is None:
+                    p.send_signal(signal.SIGINT)
+            deadline = time.monotonic() + timeout
+            for n in group:
+                p = self.procs.get(n)
+                if not p:
+                    continue
+                try:
+                    p.wait(max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+                    self.failed.append(f"{n} did not stop on SIGINT (killed)")
+
+    def wait(self, duration=None):
+        """Run until duration [s] passes, Ctrl-C, a node exits 0 (done) or one dies."""
+        t_end = None if duration is None else time.monotonic() + duration
+        try:
+            while True:
+                for n, p in self.procs.items():
+                    rc = p.poll()
+                    if rc is not None:
+                        if rc != 0:
+                            self.failed.append(f"{n} died with exit code {rc}")
+                        return
+                if t_end is not None and time.monotonic() >= t_end:
+                    return
+                time.sleep(0.05)
+        except KeyboardInterrupt:
+            return
+
+    def run(self, duration=None) -> int:
+        old = signal.signal(signal.SIGINT, signal.default_int_handler)
+        try:
+            self.start()
+            self.wait(duration)
+        finally:
+            self.stop()
+            signal.signal(signal.SIGINT, old)
+        for n, p in self.procs.items():
+            if p.returncode not in (0, None) and not any(f.startswith(n) for f in self.failed):
+                self.failed.append(f"{n} exited with code {p.returncode}")
+        for f in self.failed:
+            sys.stderr.write(f"piezo-stage launch: {f}\n")
+        return 1 if self.failed else 0

@@ -1,0 +1,120 @@
+"""What every node shares: QoS profiles, the Jazzy main(), parameters, diagnostics."""
+
+from __future__ import annotations
+
+import time
+
+import rclpy
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.executors import ExternalShutdownException
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from piezo_stage_msgs_adapters import diagnostic_array
+
+# Loop and record topics: reliable with a deep queue, so a briefly slow subscriber (the
+# recorder) catches up instead of losing samples.
+QOS_DATA = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+# Model and whole trajectories: the last one is kept for late joiners.
+QOS_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+QOS_DIAG = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def run(node_factory, args=None):
+    """Jazzy form: init; try spin; except interrupt/external shutdown; finally clean up."""
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = node_factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        import sys
+        sys.stderr.write(f"{getattr(node, 'get_name', lambda: 'node')()}: fatal: {e}\n")
+        code = 1
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if close:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+def declare(node, name, default, description, read_only=False, lo=None, hi=None,
+            choices=None):
+    """Declare a parameter with a descriptor (units in the description, ranges)."""
+    d = ParameterDescriptor(description=description, read_only=read_only)
+    if lo is not None and isinstance(default, float):
+        d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi))]
+    elif lo is not None and isinstance(default, int):
+        d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+    if choices:
+        d.additional_constraints = "one of: " + ", ".join(choices)
+        node._choices = {**getattr(node, "_choices", {}), name: tuple(choices)}
+    return node.declare_parameter(name, default, d).value
+
+
+def validate_choices(node):
+    """On-set callback: reject values outside a parameter's declared choices."""
+    def cb(params):
+        for p in params:
+            ch = getattr(node, "_choices", {}).get(p.name)
+            if ch and p.value not in ch:
+                return SetParametersResult(successful=False,
+                                           reason=f"{p.name} must be one of {ch}")
+        return SetParametersResult(successful=True)
+    node.add_on_set_parameters_callback(cb)
+
+
+class Gate:
+    """Holds outgoing messages until every listed publisher has its number of matched
+    subscriptions, then sends them in order. In lockstep nothing is published before
+    every consumer (the recorder included) listens, so a run loses nothing and is
+    reproducible. ``needs``: list of (publisher, n)."""
+
+    def __init__(self, node, needs):
+        self.needs = [(p, int(n)) for p, n in needs]
+        self.queue = []
+        self.open = all(n <= 0 for _, n in self.needs)
+        if not self.open:
+            self._timer = node.create_timer(0.01, self._poll)
+
+    def _poll(self):
+        if not self.open and all(p.get_subscription_count() >= n for p, n in self.needs):
+            self.open = True
+            self._timer.cancel()
+            for pub, m in self.queue:
+                pub.publish(m)
+            self.queue.clear()
+
+    def publish(self, pub, msg):
+        if self.open:
+            pub.publish(msg)
+        else:
+            self.queue.append((pub, msg))
+            self._poll()
+
+
+class Diagnostics:
+    """Publishes /diagnostics at 1 Hz from ``status()`` -> (level, message, values)."""
+
+    def __init__(self, node, status, hardware_id=""):
+        self.node, self.status, self.hw = node, status, hardware_id
+        self.pub = node.create_publisher(__import__("diagnostic_msgs.msg", fromlist=["x"])
+                                          .DiagnosticArray, "/diagnostics", QOS_DIAG)
+        self.t0 = time.monotonic()
+        node.create_timer(1.0, self.publish)
+
+    def publish(self):
+        level, message, values = self.status()
+        ns = self.node.get_clock().now().nanoseconds
+        self.pub.publish(diagnostic_array(ns, f"piezo_stage: {self.node.get_name()}", level,
+                                          message, values, self.hw))

@@ -1,0 +1,114 @@
+"""identifier: buffers live voltage and displacement, identifies the Duhem model.
+
+Identifies on request (~/identify, std_srvs/Trigger) or by itself after ``auto_cycles``
+complete voltage cycles, and hands the model to the feedforward on ``model``
+(std_msgs/String holding the model file's YAML, transient local: late joiners get it).
+"""
+
+import numpy as np
+import yaml
+from geometry_msgs.msg import Vector3Stamped
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from piezo_stage.core.duhem import StageModel
+from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.identify import IdentifyOptions, identify_axis
+from piezo_stage.core.identify.segmentation import segment
+from piezo_stage.core.record import Record
+from piezo_stage.io.model_file import model_to_dict
+from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, Diagnostics, declare, run
+from piezo_stage_msgs_adapters import joint_state_to_um, model_msg, voltage_from_msg
+from rclpy.node import Node
+
+
+class Identifier(Node):
+    def __init__(self):
+        super().__init__("identifier")
+        self.method = declare(self, "method", "fast", "fast | afsa | afsa-bat",
+                              choices=("fast", "afsa", "afsa-bat"))
+        self.structure = declare(self, "structure", "segmented", "segmented | whole",
+                                 choices=("segmented", "whole"))
+        self.auto_cycles = declare(self, "auto_cycles", 0, "identify after this many "
+                                   "complete cycles (0: on request only)", lo=0, hi=1000)
+        self.max_samples = declare(self, "max_samples", 200_000, "buffer length", lo=100,
+                                   hi=10_000_000)
+        self.w, self.v, self.done_auto = {}, {}, False
+        self.stats = {"samples": 0, "identifications": 0, "last_fit_rms_um": float("nan"),
+                      "last_error": ""}
+        self.pub = self.create_publisher(String, "model", QOS_LATCHED)
+        self.create_subscription(JointState, "joint_states", self.on_state, QOS_DATA)
+        self.create_subscription(Vector3Stamped, "voltage", self.on_voltage, QOS_DATA)
+        self.create_service(Trigger, "~/identify", self.on_identify)
+        self.create_timer(0.5, self.on_timer)
+        Diagnostics(self, lambda: (0 if not self.stats["last_error"] else 1, "ok", self.stats))
+
+    def on_state(self, msg):
+        ns, w = joint_state_to_um(msg)
+        self.w[ns] = w
+
+    def on_voltage(self, msg):
+        ns, v = voltage_from_msg(msg)
+        self.v[ns] = v
+        if len(self.v) > self.max_samples:  # drop the oldest
+            for k in sorted(self.v)[: len(self.v) - self.max_samples]:
+                self.v.pop(k, None)
+                self.w.pop(k, None)
+
+    def record(self) -> Record:
+        stamps = sorted(set(self.w) & set(self.v))
+        t = (np.array(stamps, dtype=np.int64) - stamps[0]) * 1e-9 if stamps else np.zeros(0)
+        return Record(t, {a: np.array([self.v[s][a] for s in stamps]) for a in ("x", "y")},
+                      {a: np.array([self.w[s][a] for s in stamps]) for a in ("x", "y")},
+                      source="live buffer")
+
+    def identify(self) -> str:
+        rec = self.record()
+        self.stats["samples"] = len(rec)
+        opts = IdentifyOptions(method=self.method, structure=self.structure)
+        res, skipped = {}, []
+        for a in ("x", "y"):
+            try:
+                res[a] = identify_axis(rec, a, opts)
+            except PiezoStageError as e:  # an axis that was not excited
+                skipped.append(f"{a}: {e}")
+        if not res:
+            raise PiezoStageError("; ".join(skipped))
+        model = StageModel({a: r.model for a, r in res.items()},
+                           {a: r.coupling for a, r in res.items() if r.coupling})
+        self.pub.publish(model_msg(yaml.safe_dump(model_to_dict(model), sort_keys=False)))
+        self.stats["identifications"] += 1
+        self.stats["last_fit_rms_um"] = max(r.fit["rms_um"] for r in res.values())
+        return (f"identified on {len(rec)} samples: fit rms " +
+                ", ".join(f"{a} {r.fit['rms_um']:.4f} um" for a, r in res.items()))
+
+    def on_timer(self):
+        if self.auto_cycles <= 0 or self.done_auto or len(self.v) < 100:
+            return
+        vx = np.array([self.v[k]["x"] for k in sorted(self.v)])
+        try:
+            cycles = len(segment(vx).turning_points) // 2
+        except PiezoStageError:
+            return
+        if cycles >= self.auto_cycles:
+            self.done_auto = True
+            self.on_identify(None, Trigger.Response())
+
+    def on_identify(self, request, response):
+        try:
+            response.message, response.success = self.identify(), True
+            self.stats["last_error"] = ""
+        except (PiezoStageError, IndexError) as e:
+            response.message, response.success = f"identification failed: {e}", False
+            self.stats["last_error"] = str(e)
+        self.get_logger().info(response.message)
+        return response
+
+
+def main(args=None):
+    return run(Identifier, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,103 @@
+"""recorder: every topic, as raw serialized messages, into a rosbag2-layout MCAP bag.
+
+Subscribes to the topic contract at start (so nothing of a lockstep run is missed)
+and to any other topic it discovers. Messages are written as the CDR bytes received
+(no deserialize/serialize round trip); stamped messages are logged at their header
+stamp, others at receive time. Chunks are flushed every ``flush_period_s`` so a
+SIGKILL loses at most that much; SIGINT finalises a complete bag. The run's config and
+model files go in as MCAP metadata.
+"""
+
+import importlib
+import sys
+import os
+import struct
+
+from piezo_stage.io.bag import BagWriter, new_bag_dir
+from piezo_stage.nodes._common import QOS_DATA, QOS_DIAG, QOS_LATCHED, Diagnostics, declare, run
+from rclpy.node import Node
+
+CONTRACT = {  # relative name: (type, latched)
+    "joint_states": ("sensor_msgs/msg/JointState", False),
+    "voltage": ("geometry_msgs/msg/Vector3Stamped", False),
+    "sim/true_position": ("geometry_msgs/msg/PointStamped", False),
+    "reference": ("sensor_msgs/msg/JointState", False),
+    "command": ("geometry_msgs/msg/Vector3Stamped", False),
+    "setpoint": ("geometry_msgs/msg/PointStamped", False),
+    "trajectory": ("trajectory_msgs/msg/JointTrajectory", True),
+    "model": ("std_msgs/msg/String", True),
+    "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", False),
+}
+STAMPED = {t for t, _ in CONTRACT.values()} - {"std_msgs/msg/String",
+                                               "trajectory_msgs/msg/JointTrajectory"}
+
+
+def msg_class(msgtype: str):
+    pkg, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+class Recorder(Node):
+    def __init__(self):
+        super().__init__("recorder")
+        out = declare(self, "output", "", "bag directory ('' = bags/<timestamp>)",
+                      read_only=True) or new_bag_dir("bags")
+        meta = {}
+        for key in ("config_file", "model_file"):
+            path = declare(self, key, "", f"{key.split('_')[0]} to store as metadata",
+                           read_only=True)
+            if path and os.path.isfile(path):
+                meta["piezo_stage_" + key.split("_")[0]] = {"path": path,
+                                                            "yaml": open(path).read()}
+        self.bag = BagWriter(out, metadata=meta)
+        self.get_logger().info(f"recording to {out}")
+        self.subs = {}
+        for rel, (msgtype, latched) in CONTRACT.items():
+            self.subscribe(self.resolve_topic_name(rel), msgtype, latched)
+        self.create_timer(1.0, self.discover)
+        self.create_timer(declare(self, "flush_period_s", 0.5, "chunk flush period [s]",
+                                  lo=0.01, hi=60.0), self.bag.flush)
+        Diagnostics(self, lambda: (0, "ok", {"bag": out, **self.bag.counts}))
+
+    def resolve_topic_name(self, rel):
+        return rel if rel.startswith("/") else f"{self.get_namespace().rstrip('/')}/{rel}"
+
+    def subscribe(self, topic, msgtype, latched=False):
+        if topic in self.subs:
+            return
+        self.bag.add_topic(topic, msgtype)
+        stamped = msgtype in STAMPED
+        qos = QOS_LATCHED if latched else (QOS_DIAG if topic == "/diagnostics" else QOS_DATA)
+        self.subs[topic] = self.create_subscription(
+            msg_class(msgtype), topic, lambda data: self.write(topic, data, stamped), qos,
+            raw=True)
+
+    def discover(self):
+        for topic, types in self.get_topic_names_and_types():
+            if topic not in self.subs and not topic.startswith("/rosout") \
+                    and not topic.startswith("/parameter_events"):
+                try:
+                    self.subscribe(topic, types[0])
+                except (ImportError, AttributeError, KeyError):
+                    self.get_logger().warning(f"cannot record {topic}: unknown type {types[0]}")
+
+    def write(self, topic, data, stamped):
+        if stamped:  # CDR: 4-byte encapsulation, then header.stamp (int32 sec, uint32 ns)
+            sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
+            t = sec * 1_000_000_000 + nsec
+        else:
+            t = self.get_clock().now().nanoseconds
+        self.bag.write(topic, data, t)
+
+    def close(self):
+        self.bag.finish()
+        # the ROS context may already be shut down here: plain stderr, not the logger
+        sys.stderr.write(f"[recorder] bag complete: {dict(self.bag.counts)}\n")
+
+
+def main(args=None):
+    return run(Recorder, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,80 @@
+"""trajectory: publishes a whole desired trajectory (trajectory_msgs/JointTrajectory).
+
+Kinds: sine, variable_sine, steps, triangle, csv, and the seed's preset
+y(t) = 21 + 24 sin(2 pi f t - pi/2) um (``seed``). ``excite_s`` > 0 prepends a 1 Hz
+full-stroke sine of that length, so the identifier has a loop to learn from before
+the tracking starts. Published once its consumers listen, again on a parameter change.
+"""
+
+import numpy as np
+from rcl_interfaces.msg import SetParametersResult
+from trajectory_msgs.msg import JointTrajectory
+
+from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.trajectory import KINDS, generate
+from piezo_stage.nodes._common import QOS_LATCHED, Diagnostics, Gate, declare, run
+from piezo_stage_msgs_adapters import trajectory_msg
+from rclpy.node import Node
+
+PARAMS = {  # name: (default, description)
+    "kind": ("seed", "one of: " + ", ".join(KINDS)),
+    "frequency_hz": (10.0, "frequency [Hz]"),
+    "duration_s": (1.0, "length [s]"),
+    "center_um": (21.0, "centre [um]"),
+    "amplitude_um": (24.0, "amplitude [um]"),
+    "dt_s": (0.001, "point spacing [s]"),
+    "csv_path": ("", "CSV t,wx,wy for kind csv"),
+    "excite_s": (0.0, "prepended 1 Hz excitation [s] (0: none)"),
+    "excite_center_um": (35.0, "excitation centre [um]"),
+    "excite_amplitude_um": (34.0, "excitation amplitude [um]"),
+}
+
+
+class Trajectory(Node):
+    def __init__(self):
+        super().__init__("trajectory")
+        self.p = {k: declare(self, k, d, desc) for k, (d, desc) in PARAMS.items()}
+        self.pub = self.create_publisher(JointTrajectory, "trajectory", QOS_LATCHED)
+        self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 1,
+                                                   "trajectory subscribers to wait for"))])
+        self.published = 0
+        self.add_on_set_parameters_callback(self.on_set)
+        self.publish(self.build(self.p))
+        Diagnostics(self, lambda: (0, "ok", {"published": self.published, **self.p}))
+
+    def build(self, p):
+        t, w = generate(p["kind"], p["duration_s"], p["dt_s"], p["frequency_hz"],
+                        p["center_um"], p["amplitude_um"], csv_path=p["csv_path"])
+        if p["excite_s"] > 0:
+            te, we = generate("sine", p["excite_s"], p["dt_s"], 1.0, p["excite_center_um"],
+                              p["excite_amplitude_um"])
+            # blend into the tracking start over 0.2 s so no step is asked for
+            tb = np.arange(1, int(0.2 / p["dt_s"]) + 1) * p["dt_s"]
+            wb = {a: we[a][-1] + (w[a][0] - we[a][-1]) * (1 - np.cos(np.pi * tb / 0.2)) / 2
+                  for a in w}
+            t = np.concatenate([te, te[-1] + tb, te[-1] + tb[-1] + p["dt_s"] + t])
+            w = {a: np.concatenate([we[a], wb[a], w[a]]) for a in w}
+        return trajectory_msg(t, w)
+
+    def publish(self, msg):
+        self.gate.publish(self.pub, msg)
+        self.published += 1
+
+    def on_set(self, params):
+        p = dict(self.p)
+        p.update({x.name: x.value for x in params if x.name in PARAMS})
+        try:
+            msg = self.build(p)
+        except PiezoStageError as e:
+            return SetParametersResult(successful=False, reason=str(e))
+        self.p = p
+        self.publish(msg)
+        return SetParametersResult(successful=True)
+
+
+def main(args=None):
+    return run(Trajectory, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,52 @@
+"""`piezo-stage replay BAG`: republish a recorded bag's messages on their topics.
+
+Raw CDR bytes are published as recorded (no deserialisation), at the original pace
+scaled by ``rate`` (0: as fast as the subscribers take them). Diagnostics and the
+model hand-over are not replayed, so a live identifier re-identifies from the data.
+"""
+
+from __future__ import annotations
+
+import time
+
+from piezo_stage.io.bag import iter_messages
+
+SKIP = ("/diagnostics", "/model", "/rosout", "/parameter_events")
+
+
+def replay(bag, rate=1.0, namespace=None) -> int:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from piezo_stage.nodes._common import QOS_DATA
+    from piezo_stage.nodes.recorder_node import msg_class
+    rclpy.init()
+    node = rclpy.create_node("replay")
+    pubs, n = {}, 0
+    try:
+        msgs = [m for m in iter_messages(bag) if not m[0].endswith(SKIP)]
+        for topic, msgtype, _, _ in msgs:
+            if topic not in pubs:
+                name = topic if not namespace else namespace.rstrip("/") + "/" + \
+                    topic.rsplit("/", 1)[-1]
+                pubs[topic] = node.create_publisher(msg_class(msgtype), name, QOS_DATA)
+        deadline = time.monotonic() + 5.0  # let subscribers match before the first sample
+        while time.monotonic() < deadline and not all(p.get_subscription_count() for p in
+                                                       pubs.values()):
+            rclpy.spin_once(node, timeout_sec=0.05)
+        t0_log, t0_wall = (msgs[0][2] if msgs else 0), time.monotonic()
+        for topic, _, log_ns, data in msgs:
+            if rate > 0:
+                due = t0_wall + (log_ns - t0_log) * 1e-9 / rate
+                while time.monotonic() < due:
+                    time.sleep(min(0.001, due - time.monotonic()))
+            pubs[topic].publish(data)
+            n += 1
+        for p in pubs.values():
+            p.wait_for_all_acked()
+        print(f"replayed {n} messages on {len(pubs)} topics")
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,177 @@
+"""Message <-> core conversions. Every function is pure (no node, no I/O)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from builtin_interfaces.msg import Duration, Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PointStamped, Vector3Stamped
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Header, String
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from piezo_stage.core.errors import DataError
+
+__all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
+           "joint_state_to_um", "voltage_msg", "voltage_from_msg", "reference_msg",
+           "reference_from_msg", "point_msg", "setpoint_from_msg", "trajectory_msg",
+           "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array"]
+
+JOINTS = ("x", "y")
+UM = 1e-6  # metres per micrometre
+
+
+def ns_to_time(ns: int) -> Time:
+    ns = int(ns)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def time_to_ns(t: Time) -> int:
+    return int(t.sec) * 1_000_000_000 + int(t.nanosec)
+
+
+def header(ns: int, frame_id: str = "stage") -> Header:
+    return Header(stamp=ns_to_time(ns), frame_id=frame_id)
+
+
+def _finite(vals, what):
+    if not all(math.isfinite(v) for v in vals):
+        raise DataError(f"{what}: NaN or inf")
+
+
+def joint_state(ns: int, w_um: dict, v_applied=None) -> JointState:
+    """Measured position [um] -> sensor_msgs/JointState (names x, y; metres). The
+    voltage applied during that sample [V], when given, goes in ``effort`` (the
+    actuator's drive effort), so position and drive arrive in one message."""
+    return JointState(header=header(ns), name=list(JOINTS),
+                      position=[float(w_um[a]) * UM for a in JOINTS],
+                      effort=[float(v_applied[a]) for a in JOINTS] if v_applied else [])
+
+
+def joint_state_to_um(msg: JointState, with_effort=False):
+    """-> (stamp ns, {axis: um}) or, with_effort, (ns, um dict, V dict or None)."""
+    names = list(msg.name)
+    if len(msg.position) != len(names) or not set(JOINTS) <= set(names):
+        raise DataError(f"joint_states: expected joints x, y with positions, got {names}")
+    w = {n: float(msg.position[i]) / UM for i, n in enumerate(names) if n in JOINTS}
+    _finite(w.values(), "joint_states")
+    if not with_effort:
+        return time_to_ns(msg.header.stamp), w
+    v = None
+    if len(msg.effort) == len(names):
+        v = {n: float(msg.effort[i]) for i, n in enumerate(names) if n in JOINTS}
+    return time_to_ns(msg.header.stamp), w, v
+
+
+def voltage_msg(ns: int, v: dict) -> Vector3Stamped:
+    """Voltages [V] per axis -> geometry_msgs/Vector3Stamped (x, y in volts; z unused)."""
+    m = Vector3Stamped(header=header(ns))
+    m.vector.x, m.vector.y = float(v["x"]), float(v["y"])
+    return m
+
+
+def voltage_from_msg(msg: Vector3Stamped) -> tuple[int, dict]:
+    """Raises DataError on NaN/inf (the driver rejects such commands)."""
+    v = {"x": float(msg.vector.x), "y": float(msg.vector.y)}
+    _finite(v.values(), "voltage command")
+    return time_to_ns(msg.header.stamp), v
+
+
+def reference_msg(ns: int, desired_um: dict, ff_V: dict) -> JointState:
+    """Internal /reference: position = desired position [m], effort = feedforward [V]."""
+    return JointState(header=header(ns), name=list(JOINTS),
+                      position=[float(desired_um[a]) * UM for a in JOINTS],
+                      effort=[float(ff_V[a]) for a in JOINTS])
+
+
+def reference_from_msg(msg: JointState) -> tuple[int, dict, dict]:
+    names = list(msg.name)
+    if names != list(JOINTS) or len(msg.position) != 2 or len(msg.effort) != 2:
+        raise DataError("reference: expected joints [x, y] with position and effort")
+    d = {a: float(msg.position[i]) / UM for i, a in enumerate(JOINTS)}
+    f = {a: float(msg.effort[i]) for i, a in enumerate(JOINTS)}
+    _finite(list(d.values()) + list(f.values()), "reference")
+    return time_to_ns(msg.header.stamp), d, f
+
+
+def point_msg(ns: int, w_um: dict) -> PointStamped:
+    m = PointStamped(header=header(ns))
+    m.point.x, m.point.y = float(w_um["x"]) * UM, float(w_um["y"]) * UM
+    return m
+
+
+def setpoint_from_msg(msg: PointStamped, range_um=None) -> dict:
+    w = {"x": msg.point.x / UM, "y": msg.point.y / UM}
+    _finite(w.values(), "setpoint")
+    if range_um is not None:
+        lo, hi = range_um
+        for a, x in w.items():
+            if not lo <= x <= hi:
+                raise DataError(f"setpoint {a} = {x:.3f} um outside the stage range "
+                                f"[{lo:g}, {hi:g}] um")
+    return w
+
+
+def trajectory_msg(t_s, w_um: dict) -> JointTrajectory:
+    """(t [s], {axis: um}) -> JointTrajectory (joint_names x, y; metres)."""
+    msg = JointTrajectory(joint_names=list(JOINTS))
+    for k, t in enumerate(t_s):
+        ns = int(round(float(t) * 1e9))
+        msg.points.append(JointTrajectoryPoint(
+            positions=[float(w_um[a][k]) * UM for a in JOINTS],
+            time_from_start=Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)))
+    return msg
+
+
+def trajectory_from_msg(msg: JointTrajectory, range_um=None):
+    """JointTrajectory -> (t [s], {axis: um}); DataError with the reason if the message
+    names unknown joints, has non-increasing times, NaN, or leaves the stage range."""
+    names = list(msg.joint_names)
+    unknown = [n for n in names if n not in JOINTS]
+    if unknown or not names:
+        raise DataError(f"trajectory: unknown joint name(s) {unknown or names}; use x, y")
+    if not msg.points:
+        raise DataError("trajectory: no points")
+    t = np.array([p.time_from_start.sec + p.time_from_start.nanosec * 1e-9
+                  for p in msg.points])
+    if np.any(np.diff(t) <= 0):
+        raise DataError("trajectory: time_from_start is not strictly increasing")
+    pos = np.array([list(p.positions) for p in msg.points], dtype=float)
+    if pos.shape != (len(msg.points), len(names)):
+        raise DataError("trajectory: every point needs one position per joint")
+    pos = pos / UM
+    if not np.all(np.isfinite(pos)):
+        raise DataError("trajectory: NaN or inf position")
+    if range_um is not None:
+        lo, hi = range_um
+        if pos.min() < lo or pos.max() > hi:
+            raise DataError(f"trajectory: positions {pos.min():.2f}..{pos.max():.2f} um "
+                            f"outside the stage range [{lo:g}, {hi:g}] um")
+    w = {n: pos[:, i] for i, n in enumerate(names)}
+    return t, w
+
+
+def model_msg(yaml_text: str) -> String:
+    return String(data=yaml_text)
+
+
+def model_from_msg(msg: String):
+    """std_msgs/String with a model file's YAML -> (StageModel, effects)."""
+    import yaml
+    from piezo_stage.io.model_file import model_from_dict
+    try:
+        doc = yaml.safe_load(msg.data)
+    except yaml.YAMLError:
+        raise DataError("model message: malformed YAML") from None
+    return model_from_dict(doc, "model message")
+
+
+def diagnostic_array(ns: int, name: str, level: int, message: str, values: dict,
+                     hardware_id: str = "") -> DiagnosticArray:
+    """One DiagnosticStatus (level: 0 OK, 1 WARN, 2 ERROR, 3 STALE) in an array."""
+    st = DiagnosticStatus(level=bytes([int(level)]), name=name, message=message,
+                          hardware_id=hardware_id,
+                          values=[KeyValue(key=str(k), value=str(v)) for k, v in values.items()])
+    return DiagnosticArray(header=header(ns), status=[st])
