@@ -141,9 +141,106 @@ def bench_identify():
     return 0
 
 
+PING = r"""
+import sys, time, rclpy
+from rclpy.node import Node
+from std_msgs.msg import Header
+from piezo_stage.nodes._common import QOS_DATA
+rclpy.init()
+n = Node(sys.argv[1])
+if sys.argv[1] == 'pong':
+    pub = n.create_publisher(Header, '/bench/pong', QOS_DATA)
+    n.create_subscription(Header, '/bench/ping', pub.publish, QOS_DATA)
+    try:
+        rclpy.spin(n)
+    except Exception:
+        pass
+else:
+    import numpy as np
+    pub = n.create_publisher(Header, '/bench/ping', QOS_DATA)
+    got = []
+    n.create_subscription(Header, '/bench/pong', lambda m: got.append(time.perf_counter()), QOS_DATA)
+    while pub.get_subscription_count() < 1 or n.count_publishers('/bench/pong') < 1:
+        rclpy.spin_once(n, timeout_sec=0.05)
+    time.sleep(0.5)
+    t = []
+    for k in range(int(sys.argv[2])):
+        t0 = time.perf_counter(); pub.publish(Header(frame_id=str(k)))
+        while len(got) <= k:
+            rclpy.spin_once(n, timeout_sec=1.0)
+        t.append(got[k] - t0)
+    print(np.median(t), np.percentile(t, 99))
+n.destroy_node(); rclpy.try_shutdown()
+"""
+
+
+def bench_loop(steps=3000):
+    import os
+    import random
+    import re
+    import subprocess
+    import sys
+    import tempfile
+    from piezo_stage.io.bag import iter_messages
+    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.cli import _default_stage_yaml
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    pong = subprocess.Popen([sys.executable, "-c", PING, "pong"], env=env)
+    try:
+        r = subprocess.run([sys.executable, "-c", PING, "ping", "2000"], env=env,
+                           capture_output=True, text=True, timeout=300)
+    finally:
+        pong.terminate()
+        pong.wait()
+    rt_med, rt_p99 = map(float, r.stdout.split())
+    bag = os.path.join(tempfile.mkdtemp(), "bench")
+    o = {"stage_driver": {"max_steps": steps, "exit_after_max_steps": True},
+         "feedforward": {"model_file": os.path.join(os.path.dirname(_default_stage_yaml()),
+                                                    "stage_model.yaml")}}
+    log = tempfile.TemporaryFile("w+")
+    launch = Launch(_default_stage_yaml(), record=bag, overrides=o, env=env,
+                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+    import contextlib
+    with contextlib.redirect_stderr(log):
+        old = os.dup(2)
+        os.dup2(log.fileno(), 2)
+        try:
+            rc = launch.run(duration=600)
+        finally:
+            os.dup2(old, 2)
+    log.seek(0)
+    text = log.read()
+    m = re.search(r"done after (\d+) samples: (\d+) steps/s, step period median ([\d.]+) ms, "
+                  r"p99 ([\d.]+) ms", text)
+    counts = {}
+    for topic, *_ in iter_messages(bag):
+        counts[topic] = counts.get(topic, 0) + 1
+    published = steps + 1
+    lost = {t: published - counts.get(t, 0) for t in
+            ("/stage/joint_states", "/stage/voltage", "/stage/sim/true_position",
+             "/stage/reference", "/stage/command")}
+    print("bench loop: lockstep closed loop, driver + feedforward + controller + trajectory "
+          "+ recorder as separate processes (Fast DDS, this host)")
+    print(f"  baseline ping-pong (2 processes): round trip median {rt_med * 1e3:.3f} ms, "
+          f"p99 {rt_p99 * 1e3:.3f} ms")
+    if not m or rc != 0:
+        print("  the loop run failed:\n" + text[-2000:])
+        return 1
+    med, p99 = float(m.group(3)), float(m.group(4))
+    print(f"  closed loop: {m.group(2)} steps/s, step period median {med:.3f} ms, p99 "
+          f"{p99:.3f} ms = {med / (rt_med * 1e3):.2f} x the ping-pong round trip")
+    print(f"  recorder: messages lost per loop topic {lost} (0 = every published message "
+          f"is in the bag)")
+    print(f"  target >= 1000 steps/s: {'met' if int(m.group(2)) >= 1000 else 'NOT met'}")
+    return 0
+
+
 def main(args):
     if args.what == "plant":
         return bench_plant(args.samples)
     if args.what == "identify":
         return bench_identify()
+    if args.what == "loop":
+        return bench_loop()
     raise SystemExit(f"unknown benchmark {args.what}")

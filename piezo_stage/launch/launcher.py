@@ -34,7 +34,8 @@ def _params(config_path):
     if not isinstance(doc, dict):
         raise ConfigError(f"{config_path}: expected '<node>: ros__parameters:' sections")
     out = {}
-    for node, sec in doc.items():
+    for key, sec in doc.items():
+        node = str(key).rsplit("/", 1)[-1]  # '/**/stage_driver' or 'stage_driver'
         if node not in ORDER:
             raise ConfigError(f"{config_path}: unknown node {node!r}; known: {', '.join(ORDER)}")
         out[node] = (sec or {}).get("ros__parameters", {}) or {}

@@ -80,6 +80,7 @@ class StageDriver(Node):
         self.create_service(Trigger, "estop", self.on_estop)
         Diagnostics(self, self.status, hardware_id=p["backend"])
         self._last_tick = time.monotonic()
+        self.step_times = []
         if p["mode"] == "realtime":
             self.create_timer(self.dt, self.on_tick)
         self.advance(self.v)  # sample 0: the stage at rest
@@ -107,6 +108,7 @@ class StageDriver(Node):
             self.gate.publish(self.tpub, point_msg(ns, true))
         self.k += 1
         self.stats["steps"] = self.k
+        self.step_times.append(time.perf_counter())
 
     def on_command(self, msg):
         try:
@@ -141,7 +143,12 @@ class StageDriver(Node):
         """All steps done: make sure every subscriber has them, then exit cleanly."""
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
                                   for pub in (self.jpub, self.vpub, self.tpub)):
-            self.get_logger().info(f"done after {self.k} samples")
+            import numpy as np
+            d = np.diff(self.step_times[1:])  # from the first command on
+            if d.size:
+                self.get_logger().info(
+                    f"done after {self.k} samples: {1 / d.mean():.0f} steps/s, step period "
+                    f"median {1e3 * np.median(d):.3f} ms, p99 {1e3 * np.percentile(d, 99):.3f} ms")
             rclpy.try_shutdown()
 
     def on_estop(self, request, response):
