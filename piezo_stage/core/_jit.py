@@ -33,6 +33,17 @@ def horner(c, x):
 
 
 @njit
+def duhem_step(v_prev, w_prev, vk, alpha, H):
+    """One step of seed eq. 6 from (v_prev, w_prev) to voltage vk; H is (2, D)."""
+    dv = vk - v_prev
+    b = 0 if dv >= 0.0 else 1
+    h = 0.0
+    for i in range(H.shape[1] - 1, -1, -1):
+        h = h * vk + H[b, i]
+    return (w_prev + dv * h) / (1.0 + alpha[b] * abs(dv))
+
+
+@njit
 def duhem_run(v, v_prev, w_prev, alpha, H, out):
     """Run the discrete Duhem recursion (seed eq. 6) over ``v``.
 
@@ -41,15 +52,9 @@ def duhem_run(v, v_prev, w_prev, alpha, H, out):
     ``H[1] = g - f`` (see duhem.py). Writes ``out`` and returns the final (v, w).
     """
     for k in range(v.shape[0]):
-        vk = v[k]
-        dv = vk - v_prev
-        b = 0 if dv >= 0.0 else 1
-        h = 0.0
-        for i in range(H.shape[1] - 1, -1, -1):
-            h = h * vk + H[b, i]
-        w_prev = (w_prev + dv * h) / (1.0 + alpha[b] * abs(dv))
+        w_prev = duhem_step(v_prev, w_prev, v[k], alpha, H)
         out[k] = w_prev
-        v_prev = vk
+        v_prev = v[k]
     return v_prev, w_prev
 
 
@@ -165,12 +170,7 @@ def duhem_inverse_run(w_target, v_prev, w_prev, alpha, H, v_min, v_max, n_scan,
             vk = v_max
         elif vk < v_min:
             vk = v_min
-        d = vk - v_prev
-        b = 0 if d >= 0.0 else 1
-        h = 0.0
-        for i in range(H.shape[1] - 1, -1, -1):
-            h = h * vk + H[b, i]
-        w_prev = (w_prev + d * h) / (1.0 + alpha[b] * abs(d))
+        w_prev = duhem_step(v_prev, w_prev, vk, alpha, H)
         v_prev = vk
         out_v[k] = vk
         out_w[k] = w_prev
@@ -234,19 +234,13 @@ def duhem_rms_batch(v, w_meas, v0, w0, alpha, H, out):
     alpha: (K, 2), H: (K, 2, D); each candidate starts from (v0, w0).
     """
     n = v.shape[0]
-    D = H.shape[2]
     for c in range(alpha.shape[0]):
         vp = v0
         wp = w0
         acc = 0.0
         for k in range(n):
+            wp = duhem_step(vp, wp, v[k], alpha[c], H[c])
             vk = v[k]
-            dv = vk - vp
-            b = 0 if dv >= 0.0 else 1
-            h = 0.0
-            for i in range(D - 1, -1, -1):
-                h = h * vk + H[c, b, i]
-            wp = (wp + dv * h) / (1.0 + alpha[c, b] * abs(dv))
             e = wp - w_meas[k]
             acc += e * e
             vp = vk
