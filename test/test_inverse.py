@@ -84,3 +84,25 @@ def test_joint_inverse_with_coupling(stage_model):
     ry = invert(stage_model.axes["y"], wy)
     w2, _ = stage_model.simulate(rx.v, ry.v)
     assert np.max(np.abs(w2["x"] - wx)) > 0.3
+
+
+def test_stage_inverse_per_sample_matches_the_model(stage_model):
+    from piezo_stage.core.inverse import StageInverse
+    t = np.arange(2000) / 2000
+    wx = 30 + 20 * np.sin(2 * np.pi * 2 * t)
+    wy = 25 + 15 * np.cos(2 * np.pi * 3 * t)
+    inv = StageInverse(stage_model)
+    v = np.array([inv.step(a, b)[:2] for a, b in zip(wx, wy)])
+    w, _ = stage_model.simulate(v[:, 0], v[:, 1])
+    np.testing.assert_allclose(w["x"], wx, atol=1e-6)
+    np.testing.assert_allclose(w["y"], wy, atol=1e-6)
+    # sync with other voltages: the next step starts from the state they produced
+    inv2 = StageInverse(stage_model)
+    applied = v + 0.5
+    for k in range(len(t)):
+        inv2.sync(*applied[k])
+    w2, st = stage_model.simulate(applied[:, 0], applied[:, 1])
+    vx, vy, _ = inv2.step(40.0, 30.0, commit=False)
+    nxt, _ = stage_model.simulate([*applied[:, 0], vx], [*applied[:, 1], vy])
+    assert nxt["x"][-1] == pytest.approx(40.0, abs=1e-6)
+    assert nxt["y"][-1] == pytest.approx(30.0, abs=1e-6)

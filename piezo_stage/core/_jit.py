@@ -138,47 +138,66 @@ def _first_root(vp, wp, wt, alpha, H, span, n_scan):
 
 
 @njit
+def inverse_one(wt, v_prev, w_prev, alpha, H, v_min, v_max, n_scan):
+    """Exact inverse for one sample: (v, w after v, saturated) from (v_prev, w_prev).
+
+    Picks the branch by the sign of the requested change, finds the voltage nearest to
+    v_prev that makes the forward step hit ``wt``, clamps to [v_min, v_max] and
+    advances the model with that voltage. Saturated means exactly: the target was not
+    met (the root search can fail on rounding right at a limit, where the target is
+    in fact reached, which is why the flag is decided on the result).
+    """
+    if wt > w_prev and v_max > v_prev:
+        dv = _first_root(v_prev, w_prev, wt, alpha[0], H[0], v_max - v_prev, n_scan)[0]
+    elif wt < w_prev and v_min < v_prev:
+        dv = _first_root(v_prev, w_prev, wt, alpha[1], H[1], v_min - v_prev, n_scan)[0]
+    else:
+        dv = 0.0
+    vk = min(max(v_prev + dv, v_min), v_max)
+    w = duhem_step(v_prev, w_prev, vk, alpha, H)
+    return vk, w, abs(w - wt) > 1e-9 * (1.0 + abs(wt))
+
+
+@njit
 def duhem_inverse_run(w_target, v_prev, w_prev, alpha, H, v_min, v_max, n_scan,
                       out_v, out_w, out_sat):
-    """Exact per-sample inverse of :func:`duhem_run`.
-
-    For each target, pick the branch by the sign of the requested change, find the
-    voltage nearest to v_prev that makes the forward step hit the target, and advance
-    the model state with that voltage. If no voltage within [v_min, v_max] reaches the
-    target the voltage saturates at the limit, out_sat[k] = 1, and the state follows
-    what the model really does at that limit (never a silently wrong state).
-    """
+    """Exact per-sample inverse of :func:`duhem_run` over a target sequence; the state
+    follows what the model really does at the chosen (possibly saturated) voltage."""
     for k in range(w_target.shape[0]):
-        wt = w_target[k]
-        if wt == w_prev:
-            dv = 0.0
-            ok = True
-        elif wt > w_prev:
-            span = v_max - v_prev
-            if span <= 0.0:
-                dv, ok = 0.0, False
-            else:
-                dv, ok = _first_root(v_prev, w_prev, wt, alpha[0], H[0], span, n_scan)
-        else:
-            span = v_min - v_prev
-            if span >= 0.0:
-                dv, ok = 0.0, False
-            else:
-                dv, ok = _first_root(v_prev, w_prev, wt, alpha[1], H[1], span, n_scan)
-        vk = v_prev + dv
-        if vk > v_max:
-            vk = v_max
-        elif vk < v_min:
-            vk = v_min
-        w_prev = duhem_step(v_prev, w_prev, vk, alpha, H)
-        v_prev = vk
-        out_v[k] = vk
+        v_prev, w_prev, sat = inverse_one(w_target[k], v_prev, w_prev, alpha, H, v_min,
+                                          v_max, n_scan)
+        out_v[k] = v_prev
         out_w[k] = w_prev
-        # saturated means exactly: the target was not met (the root search may fail
-        # on rounding right at a limit, where the target is in fact reached)
-        met = abs(w_prev - wt) <= 1e-9 * (1.0 + abs(wt))
-        out_sat[k] = 0 if met else 1
+        out_sat[k] = 1 if sat else 0
     return v_prev, w_prev
+
+
+@njit
+def stage_inverse_step(target, vp, wp, alpha, H, cvp, cwp, calpha, cH, use_c, v_min,
+                       v_max, sweeps, n_scan, out):
+    """Joint inverse of a 2-axis model with coupling for one sample (axis 0 = x, 1 = y).
+
+    w_a = H_aa(v_a) + H_ab(v_b): Gauss-Seidel sweeps, each solving one axis exactly for
+    its target minus the coupling produced by the other axis's current voltage.
+    ``out`` rows: v, w (direct part), coupling output, saturated flag (per axis).
+    """
+    v0 = vp[0]
+    v1 = vp[1]
+    for _ in range(sweeps):
+        for a in range(2):
+            vo = v1 if a == 0 else v0
+            wc = duhem_step(cvp[a], cwp[a], vo, calpha[a], cH[a]) if use_c else 0.0
+            va, wa, sat = inverse_one(target[a] - wc, vp[a], wp[a], alpha[a], H[a],
+                                      v_min, v_max, n_scan)
+            if a == 0:
+                v0 = va
+            else:
+                v1 = va
+            out[0, a] = va
+            out[1, a] = wa
+            out[2, a] = wc
+            out[3, a] = 1.0 if sat else 0.0
+    return out
 
 
 @njit

@@ -122,7 +122,10 @@ class DuhemModel:
         return "whole" if self.ascending == self.descending else "segmented"
 
     def kernel_params(self):
-        """(alpha[2], H[2, D]) as the compiled loops take them."""
+        """(alpha[2], H[2, D]) as the compiled loops take them (computed once)."""
+        cached = self.__dict__.get("_kp")
+        if cached is not None:
+            return cached
         ha = self.ascending.h(True)
         hd = self.descending.h(False)
         d = max(ha.size, hd.size)
@@ -130,6 +133,7 @@ class DuhemModel:
         H[0, :ha.size] = ha
         H[1, :hd.size] = hd
         alpha = np.array([self.ascending.alpha, self.descending.alpha])
+        object.__setattr__(self, "_kp", (alpha, H))  # frozen: cache through the back door
         return alpha, H
 
     def simulate(self, v, state: DuhemState | None = None):

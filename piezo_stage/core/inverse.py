@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from piezo_stage.core._jit import as_f64, duhem_inverse_run
+from piezo_stage.core._jit import as_f64, duhem_inverse_run, duhem_step, stage_inverse_step
 from piezo_stage.core.duhem import AXES, OTHER, DuhemModel, DuhemState, StageModel
 from piezo_stage.core.errors import DataError
 
@@ -131,70 +131,78 @@ class StageInverse:
     """Stateful per-sample exact inverse of a 2-axis model (the feedforward's core).
 
     ``step(wx, wy)`` returns the voltages [V] that make the model reach the targets
-    [um] from its current state, coupling included (a few Gauss-Seidel sweeps per
-    sample), and advances the model state. ``saturated`` counts unreachable targets.
+    [um] from its current state, coupling included (Gauss-Seidel sweeps per sample,
+    one compiled call), and advances the model state. ``sync(vx, vy)`` advances the
+    state with the voltages really applied instead. ``saturated`` counts unreachable
+    targets. An axis absent from the model is held at the lower voltage limit.
     """
 
     def __init__(self, model: StageModel, use_coupling=True, sweeps=4):
         self.model = model
-        self.use_coupling = use_coupling and bool(model.coupling)
+        self.use_coupling = bool(use_coupling and model.coupling)
         self.sweeps = sweeps if self.use_coupling else 1
-        self._k = {a: m.kernel_params() for a, m in model.axes.items()}
-        self._kc = {a: c.kernel_params() for a, c in model.coupling.items()}
+        lo, hi = model.voltage_limits
+        self.limits = (float(lo), float(hi))
+        none = DuhemModel.whole(1.0, [0.0], [0.0])  # no model: output stays at 0
+        axes = [model.axes.get(a) for a in AXES]
+        self.present = np.array([m is not None for m in axes])
+        kp = [(m or none).kernel_params() for m in axes]
+        ckp = [model.coupling.get(a, none).kernel_params() for a in AXES]
+        D = max(k[1].shape[1] for k in kp)
+        Dc = max(k[1].shape[1] for k in ckp)
+        self._alpha = np.array([k[0] for k in kp])
+        self._H = np.zeros((2, 2, D))
+        for i, k in enumerate(kp):
+            self._H[i, :, :k[1].shape[1]] = k[1]
+        self._calpha = np.array([k[0] for k in ckp])
+        self._cH = np.zeros((2, 2, Dc))
+        for i, k in enumerate(ckp):
+            self._cH[i, :, :k[1].shape[1]] = k[1]
+        self._out = np.zeros((4, 2))
         self.saturated = 0
         self.reset()
 
     def reset(self, v=None, w=None):
         """Back to the model's initial states, or to voltages v / outputs w (dicts)."""
-        self.state = {a: m.initial for a, m in self.model.axes.items()}
-        self.cstate = {a: c.initial for a, c in self.model.coupling.items()}
+        init = [self.model.axes[a].initial if a in self.model.axes else DuhemState(
+            self.limits[0], 0.0) for a in AXES]
+        self.vp = np.array([s.v for s in init], float)
+        self.wp = np.array([s.w for s in init], float)
+        cinit = [self.model.coupling[a].initial if a in self.model.coupling else DuhemState()
+                 for a in AXES]
+        self.cvp = np.array([s.v for s in cinit], float)
+        self.cwp = np.array([s.w for s in cinit], float)
         if v:
-            for a in self.state:
-                self.state[a] = DuhemState(float(v.get(a, 0.0)), float((w or {}).get(a, 0.0)))
-            for a in self.cstate:
-                self.cstate[a] = DuhemState(float(v.get(OTHER[a], 0.0)), 0.0)
-        self.v = {a: self.state[a].v if a in self.state else self.model.voltage_limits[0]
-                  for a in AXES}
+            self.vp = np.array([float(v.get(a, 0.0)) for a in AXES])
+            self.wp = np.array([float((w or {}).get(a, 0.0)) for a in AXES])
+            self.cvp = self.vp[::-1].copy()
+            self.cwp = np.zeros(2)
 
-    def _coupling_out(self, a, v_other):
-        c = self.model.coupling[a]
-        w, st = c.simulate([v_other], self.cstate[a])
-        return float(w[0]), st
+    @property
+    def v(self):
+        return {"x": float(self.vp[0]), "y": float(self.vp[1])}
 
     def sync(self, vx: float, vy: float):
         """Advance the model with the voltages really applied (feedforward plus
         feedback, after the driver's limits), so the next inverse starts from the
         state the stage is actually in rather than from the feedforward's own output."""
-        v = {"x": vx, "y": vy}
-        for a in self.state:
-            self.state[a] = self.model.axes[a].simulate([v[a]], self.state[a])[1]
-        for a in self.cstate:
-            self.cstate[a] = self.model.coupling[a].simulate([v[OTHER[a]]], self.cstate[a])[1]
-        self.v = v
+        v = (float(vx), float(vy))
+        for a in range(2):
+            self.wp[a] = duhem_step(self.vp[a], self.wp[a], v[a], self._alpha[a], self._H[a])
+            self.cwp[a] = duhem_step(self.cvp[a], self.cwp[a], v[1 - a], self._calpha[a],
+                                     self._cH[a])
+        self.vp[:] = v
+        self.cvp[:] = v[::-1]
 
     def step(self, wx: float, wy: float, commit: bool = True):
         """Voltages for the targets; ``commit=False`` leaves the state for ``sync``."""
-        target = {"x": wx, "y": wy}
-        lo, hi = self.model.voltage_limits
-        v = dict(self.v)
-        new_state, new_c, sat = {}, {}, {}
-        for _ in range(self.sweeps):
-            for a in self.state:
-                wc = 0.0
-                if self.use_coupling and a in self.cstate:
-                    wc, new_c[a] = self._coupling_out(a, v[OTHER[a]])
-                r = invert(self.model.axes[a], [target[a] - wc], (lo, hi), self.state[a])
-                v[a] = float(r.v[0])
-                new_state[a] = r.final
-                sat[a] = bool(r.saturated[0])
-        for a in self.cstate:
-            if self.use_coupling:
-                _, new_c[a] = self._coupling_out(a, v[OTHER[a]])
-            else:
-                new_c[a] = self.cstate[a]
+        o = stage_inverse_step(np.array([wx, wy], float), self.vp, self.wp, self._alpha,
+                               self._H, self.cvp, self.cwp, self._calpha, self._cH,
+                               self.use_coupling, self.limits[0], self.limits[1],
+                               self.sweeps, N_SCAN, self._out)
+        v = np.where(self.present, o[0], self.limits[0])
+        sat = {a: bool(o[3, i]) and bool(self.present[i]) for i, a in enumerate(AXES)}
         self.saturated += sum(sat.values())
         if commit:
-            self.state.update(new_state)
-            self.cstate.update(new_c)
-            self.v = v
-        return v["x"], v["y"], sat
+            self.sync(v[0], v[1])
+        return float(v[0]), float(v[1]), sat
