@@ -174,6 +174,56 @@ n.destroy_node(); rclpy.try_shutdown()
 """
 
 
+RING = r"""
+import sys, time, rclpy
+from rclpy.node import Node
+from std_msgs.msg import Header
+from piezo_stage.nodes._common import QOS_DATA
+me, nxt, n_steps = sys.argv[1], sys.argv[2], int(sys.argv[3])
+rclpy.init()
+n = Node('ring_' + me)
+pub = n.create_publisher(Header, '/bench/ring_' + nxt, QOS_DATA)
+cnt = [0, 0.0]
+def cb(m):
+    cnt[0] += 1
+    if me == 'a':
+        if cnt[0] == 1:
+            cnt[1] = time.perf_counter()
+        if cnt[0] == n_steps:
+            print((n_steps - 1) / (time.perf_counter() - cnt[1]), flush=True)
+            rclpy.try_shutdown()
+            return
+    pub.publish(m)
+n.create_subscription(Header, '/bench/ring_' + me, cb, QOS_DATA)
+if me == 'a':
+    while n.count_subscribers('/bench/ring_b') < 1 or n.count_publishers('/bench/ring_a') < 1:
+        rclpy.spin_once(n, timeout_sec=0.05)
+    time.sleep(1.0)
+    pub.publish(Header())
+try:
+    rclpy.spin(n)
+except Exception:
+    pass
+"""
+
+
+def _ring_rate(env, steps=3000):
+    """Steps/s of a bare 3-process ring with empty callbacks: the floor of any
+    three-hop lockstep loop in rclpy on this machine."""
+    import subprocess
+    import sys
+    others = [subprocess.Popen([sys.executable, "-c", RING, a, b, str(steps)], env=env)
+              for a, b in (("b", "c"), ("c", "a"))]
+    try:
+        r = subprocess.run([sys.executable, "-c", RING, "a", "b", str(steps)], env=env,
+                           capture_output=True, text=True, timeout=300)
+        return float(r.stdout.split()[0])
+    finally:
+        for p in others:
+            p.kill()
+            p.wait()
+
+
 def bench_loop(steps=3000):
     import os
     import random
@@ -194,6 +244,7 @@ def bench_loop(steps=3000):
         pong.terminate()
         pong.wait()
     rt_med, rt_p99 = map(float, r.stdout.split())
+    ring = _ring_rate(env)
     bag = os.path.join(tempfile.mkdtemp(), "bench")
     o = {"stage_driver": {"max_steps": steps, "exit_after_max_steps": True},
          "feedforward": {"model_file": os.path.join(os.path.dirname(_default_stage_yaml()),
@@ -224,12 +275,14 @@ def bench_loop(steps=3000):
           "+ recorder as separate processes (Fast DDS, this host)")
     print(f"  baseline ping-pong (2 processes): round trip median {rt_med * 1e3:.3f} ms, "
           f"p99 {rt_p99 * 1e3:.3f} ms")
+    print(f"  baseline ring (3 processes, empty callbacks, no recorder): {ring:.0f} steps/s")
     if not m or rc != 0:
         print("  the loop run failed:\n" + text[-2000:])
         return 1
     med, p99 = float(m.group(3)), float(m.group(4))
     print(f"  closed loop: {m.group(2)} steps/s, step period median {med:.3f} ms, p99 "
-          f"{p99:.3f} ms = {med / (rt_med * 1e3):.2f} x the ping-pong round trip")
+          f"{p99:.3f} ms = {med / (rt_med * 1e3):.2f} x the ping-pong round trip, "
+          f"{int(m.group(2)) / ring:.2f} x the ring's rate")
     print(f"  recorder: messages lost per loop topic {lost} (0 = every published message "
           f"is in the bag)")
     print(f"  target >= 1000 steps/s: {'met' if int(m.group(2)) >= 1000 else 'NOT met'}")

@@ -81,6 +81,7 @@ class Gate:
     reproducible. ``needs``: list of (publisher, n)."""
 
     def __init__(self, node, needs):
+        self._node = node
         self.needs = [(p, int(n)) for p, n in needs]
         self.queue = []
         self.open = all(n <= 0 for _, n in self.needs)
@@ -91,6 +92,7 @@ class Gate:
         if not self.open and all(p.get_subscription_count() >= n for p, n in self.needs):
             self.open = True
             self._timer.cancel()
+            self._node.destroy_timer(self._timer)  # out of the executor's wait set
             for pub, m in self.queue:
                 pub.publish(m)
             self.queue.clear()
