@@ -47,11 +47,11 @@ def lockstep(tmp_path, env, name, steps=400, nodes=None, overrides=None):
 
 def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env):
     nodes = ["stage_driver", "feedforward", "controller", "trajectory"]
-    a = lockstep(tmp_path, env, "a", nodes=nodes)
+    a = lockstep(tmp_path, env, "a", nodes=nodes, steps=1500)  # > 1 s: diagnostics at 1 Hz
     # 0 messages lost: every loop sample of the run is in the bag
     for suffix in ("/joint_states", "/voltage", "/sim/true_position", "/reference",
                    "/command"):
-        assert len(topic_data(a, suffix)) == 401, suffix
+        assert len(topic_data(a, suffix)) == 1501, suffix
     rec = read_bag_record(a)
     ref = {}
     for _, data in topic_data(a, "/reference"):
@@ -62,8 +62,17 @@ def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env):
     meas = {int(round(t * 1e9)): (rec.w["x"][i], rec.w["y"][i]) for i, t in enumerate(rec.t)}
     e = np.array([np.array(meas[s]) - ref[s] for s in stamps])
     assert np.sqrt(np.mean(e ** 2)) < 0.3  # um: feedforward + PID at 10 Hz
+    # every node reports on /diagnostics (rates, limit hits, model in use)
+    names, keys = set(), {}
+    for _, data in topic_data(a, "/diagnostics"):
+        for st in deserialize(data, "diagnostic_msgs/msg/DiagnosticArray").status:
+            names.add(st.name)
+            keys.setdefault(st.name, set()).update(kv.key for kv in st.values)
+    assert {f"piezo_stage: {n}" for n in nodes} <= names
+    assert {"steps", "rejected", "limit_hits", "deadline_misses"} <= keys["piezo_stage: stage_driver"]
+    assert "model" in keys["piezo_stage: feedforward"]
     # same seed, same data: two runs give byte-identical loop topics
-    b = lockstep(tmp_path, env, "b", nodes=nodes)
+    b = lockstep(tmp_path, env, "b", nodes=nodes, steps=1500)
     for suffix in ("/joint_states", "/voltage", "/reference", "/command"):
         assert topic_data(a, suffix) == topic_data(b, suffix), suffix
 
@@ -218,3 +227,48 @@ def test_demo_identifier_hands_model_to_feedforward_and_tracks(tmp_path, env):
     for a in ("x", "y"):
         assert float(rows[a][1]) < 0.3  # rms um
     assert (tmp_path / "demo" / "metadata.yaml").exists()
+
+
+def test_realtime_stale_command_ramps_to_safe_voltage(env):
+    code = r"""
+import rclpy, time
+from rclpy.node import Node
+from geometry_msgs.msg import Vector3Stamped
+from sensor_msgs.msg import JointState
+rclpy.init()
+n = Node('probe')
+got = []
+n.create_subscription(JointState, '/stage/joint_states', lambda m: got.append(
+    (time.monotonic(), m.effort[0])), 1000)
+pub = n.create_publisher(Vector3Stamped, '/stage/command', 100)
+t0 = time.time()
+while (not got or pub.get_subscription_count() < 1) and time.time() - t0 < 30:
+    rclpy.spin_once(n, timeout_sec=0.01)
+t0 = time.time()
+while time.time() - t0 < 1.0:
+    m = Vector3Stamped(); m.vector.x = 100.0; pub.publish(m)
+    rclpy.spin_once(n, timeout_sec=0.001)
+t_stop = time.monotonic()
+while time.monotonic() - t_stop < 1.0:
+    rclpy.spin_once(n, timeout_sec=0.01)
+after = [(t - t_stop, v) for t, v in got if t > t_stop]
+held = [v for t, v in after if t < 0.03]
+mid = [v for t, v in after if 0.15 < t < 0.2]
+print(min(held), max(mid), after[-1][1])
+n.destroy_node(); rclpy.try_shutdown()
+"""
+    drv = subprocess.Popen([sys.executable, "-m", "piezo_stage.nodes.stage_driver_node",
+                            "--ros-args", "-r", "__ns:=/stage", "-p", "mode:=realtime",
+                            "-p", "stale_timeout_s:=0.05", "-p", "safe_ramp_V_per_s:=500.0"],
+                           env=env)
+    try:
+        r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                           text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        held, mid, last = map(float, r.stdout.split())
+        assert held == 100.0             # zero-order hold until the command is stale
+        assert 10.0 < mid < 95.0         # then a ramp (500 V/s), not a jump
+        assert last == 0.0               # ending at the safe voltage
+    finally:
+        drv.send_signal(signal.SIGINT)
+        assert drv.wait(30) == 0

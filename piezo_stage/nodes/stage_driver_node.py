@@ -43,6 +43,8 @@ class StageDriver(Node):
                              "counts as stale [s]", lo=0.001, hi=10.0),
             "safe": declare(self, "safe_voltage_V", 0.0, "output after a stale command [V]",
                             lo=-200.0, hi=200.0),
+            "ramp": declare(self, "safe_ramp_V_per_s", 500.0, "ramp rate to the safe "
+                            "voltage [V/s]", lo=1.0, hi=1e6),
             "max_steps": declare(self, "max_steps", 0, "stop after this many steps (0: never)"),
             "min_subs": declare(self, "min_subscribers", 0, "lockstep: joint_states "
                                 "subscribers to wait for before the first sample"),
@@ -136,7 +138,8 @@ class StageDriver(Node):
         target = self.cmd
         if now - self.cmd_time > self.p["stale"]:
             self.stats["stale"] += 1
-            target = {a: self.p["safe"] for a in ("x", "y")}
+            step = self.p["ramp"] * self.dt
+            target = {a: min(max(self.p["safe"], x - step), x + step) for a, x in self.v.items()}
         self.advance(target)
 
     def finish(self):
