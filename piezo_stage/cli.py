@@ -224,6 +224,71 @@ def cmd_study(args):
     return 0
 
 
+def cmd_excite(args):
+    from piezo_stage.core.excitation import gap_protocol
+    from piezo_stage.io.csv_table import write_table
+    t, vx, vy = gap_protocol(args.rate, args.v_min, args.v_max, seed=args.seed)
+    write_table(args.out, {"t": t, "vx": vx, "vy": vy})
+    print(f"{args.out}: {len(t)} samples, {t[-1]:.1f} s at {args.rate:g} Hz "
+          f"(protocol {args.protocol}, seed {args.seed})")
+    return 0
+
+
+def cmd_gap(args):
+    import json
+    from piezo_stage.core.gap import diagnose
+    from piezo_stage.io.files import atomic_write
+    from piezo_stage.io.records import load_record
+    fit = load_record(args.fit)
+    hold = load_record(args.holdout) if args.holdout else None
+    base = None
+    if args.model:
+        from piezo_stage.io.model_file import load_model
+        base = load_model(args.model)[0]
+    if hold is not None and set(fit.w) != set(hold.w):
+        raise DataError(f"FIT has axes {sorted(fit.w)} but HOLDOUT has {sorted(hold.w)}")
+    res = diagnose(fit, hold, base_model=base,
+                   axes=None if args.axis == "both" else [args.axis])
+    per = res.pop("_diagnoses")
+    print(f"verdict: {res['verdict']} ({res['reason']})")
+    print(f"{'axis':>4} {'effect':>9} {'rms_before':>10} {'rms_after':>9} {'gap_before':>10} "
+          f"{'gap_after':>9} {'shrink_pct':>10}")
+    for a, d in per.items():
+        for r in d.ranking:
+            print(f"{a:>4} {r['effect']:>9} {r['rms_before_um']:10.4f} {r['rms_after_um']:9.4f} "
+                  f"{r['gap_before_um']:10.4f} {r['gap_after_um']:9.4f} {r['shrink_pct']:10.1f}")
+    print(f"where: axis {res['where']['axis']}, band {res['where']['band_hz'][0]:g}-"
+          f"{res['where']['band_hz'][1]:g} Hz, segment {res['where']['segment']}; noise floor "
+          f"{res['noise_floor_um']:.4f} um; {res['seconds']:.1f} s")
+    if args.json:
+        with atomic_write(args.json) as fh:
+            json.dump(res, fh, indent=1, default=float)
+    if args.report:
+        from piezo_stage.io.gap_report import write_report
+        res["_diagnoses"] = per
+        print(f"report: {write_report(args.report, res, hold or fit)}")
+    if args.out_model:
+        from piezo_stage.core.duhem import StageModel
+        from piezo_stage.io.model_file import save_model
+        axes, coupling, effects = {}, {}, {}
+        for a, d in per.items():
+            c = d.candidates.get(d.verdict, d.candidates["none"])
+            main, coup = c.reg.models(c.alphas, c.theta)
+            axes[a] = main
+            if coup is not None:
+                coupling[a] = coup
+            eff = c.model_effect()
+            if eff:
+                effects.setdefault(c.effect, {"axes": []})
+                effects[c.effect].update(eff)
+                effects[c.effect]["axes"].append(a)
+        lim = (min(0.0, min(float(fit.v[a].min()) for a in axes)),
+               max(150.0, max(float(fit.v[a].max()) for a in axes)))
+        save_model(args.out_model, StageModel(axes, coupling, lim), effects=effects or None)
+        print(f"model with the found effect: {args.out_model}")
+    return 0
+
+
 def _default_stage_yaml():
     import os
     from piezo_stage.io.plant_file import default_config_dir
@@ -279,6 +344,26 @@ def build_parser():
     s.add_argument("--out", required=True, help="output CSV t,vx,vy (V)")
     s.add_argument("--method", choices=("exact", "seed-eq12"), default="exact")
     s.set_defaults(fn=cmd_invert)
+
+    s = sub.add_parser("excite", help="write a diagnostic excitation (t,vx,vy)")
+    s.add_argument("--protocol", choices=("gap",), default="gap")
+    s.add_argument("--out", default="excite_gap.csv")
+    s.add_argument("--rate", type=float, default=5000.0, help="sample rate [Hz]")
+    s.add_argument("--seed", type=int, default=0, help="varies amplitudes and step levels")
+    s.add_argument("--v-min", type=float, default=0.0)
+    s.add_argument("--v-max", type=float, default=150.0)
+    s.set_defaults(fn=cmd_excite)
+
+    s = sub.add_parser("gap", help="diagnose the sim-to-real gap")
+    s.add_argument("fit", help="record to fit on (CSV t,vx,vy,wx,wy or bag)")
+    s.add_argument("--holdout", help="a different record to score on")
+    s.add_argument("--model", help="the sim's model (default: identified from FIT)")
+    s.add_argument("--axis", choices=("x", "y", "both"), default="both")
+    s.add_argument("--json", metavar="FILE")
+    s.add_argument("--report", metavar="DIR", help="Markdown report with PNG plots")
+    s.add_argument("--out-model", metavar="MODEL.yaml",
+                   help="write the model with the found effect (simulate --model uses it)")
+    s.set_defaults(fn=cmd_gap)
 
     s = sub.add_parser("launch", help="start the ROS 2 node set")
     s.add_argument("config", nargs="?", help="node parameters YAML (default config/stage.yaml)")

@@ -51,6 +51,10 @@ class _LinearFilter:
         return y
 
 
+def _lfilter_cols(b, a, X):
+    return signal.lfilter(b, a, X, axis=0)
+
+
 class Creep:
     """Logarithmic creep: y = x - gamma * sum_i (x - LP_tau_i(x)) / n_tau.
 
@@ -78,6 +82,11 @@ class Creep:
         x = np.asarray(x, float)
         slow = sum(lp.process(x) for lp in self._lps) / len(self._lps)
         return x - self.gamma * (x - slow)
+
+    def apply(self, X):
+        """The operator on columns of X from rest (linear: E(X theta) = E(X) theta)."""
+        slow = sum(_lfilter_cols(lp.b, lp.a, X) for lp in self._lps) / len(self._lps)
+        return X - self.gamma * (X - slow)
 
 
 class Dynamics:
@@ -111,6 +120,9 @@ class Dynamics:
     def process(self, x):
         return self._f.process(np.asarray(x, float))
 
+    def apply(self, X):
+        return _lfilter_cols(self._f.b, self._f.a, X)
+
 
 class Delay:
     """Pure delay of ``delay_s`` seconds (fractional samples by linear interpolation)."""
@@ -137,6 +149,13 @@ class Delay:
         self._buf = ext[-(self._n + 1):].copy()
         return y
 
+    def apply(self, X):
+        X = np.asarray(X, float)
+        pad = np.zeros((self._n + 1,) + X.shape[1:])
+        ext = np.concatenate([pad, X])
+        k = np.arange(X.shape[0]) + 1
+        return (1 - self._frac) * ext[k] + self._frac * ext[k - 1]
+
 
 class Drift:
     """Thermal drift independent of the input: rate * t + amplitude * (1 - exp(-t/tau))."""
@@ -156,6 +175,12 @@ class Drift:
         t = (self._k + np.arange(x.size)) * self.dt
         self._k += x.size
         return x + self.rate * t + self.amplitude * (1 - np.exp(-t / self.tau_s))
+
+    @staticmethod
+    def columns(n, fs_hz, tau_s):
+        """The drift's two shapes over n samples: t [s] and 1 - exp(-t / tau)."""
+        t = np.arange(n) / fs_hz
+        return np.column_stack([t, 1 - np.exp(-t / tau_s)])
 
 
 _CLASSES = {"creep": Creep, "dynamics": Dynamics, "delay": Delay, "drift": Drift}

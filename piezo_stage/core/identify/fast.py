@@ -17,8 +17,12 @@ LOG_ALPHA_BOUNDS = (np.log(1e-5), np.log(10.0))
 GRID = 21
 
 
-def fit_fast(reg: DuhemRegression, budget: int | None = None, progress=None):
-    """Returns (alphas, Fit, history) where history is the best RMS after each evaluation."""
+def fit_fast(reg: DuhemRegression, budget: int | None = None, progress=None, x0=None,
+             grid=GRID, step=0.7):
+    """Returns (alphas, Fit, history) where history is the best RMS after each evaluation.
+
+    ``x0`` (alphas) skips the grid and polishes from there with a simplex of ``step``
+    in log(alpha) (refits after a small change of the problem)."""
     history = []
     best = {"rms": np.inf, "alphas": None, "fit": None}
     lo, hi = LOG_ALPHA_BOUNDS
@@ -35,12 +39,16 @@ def fit_fast(reg: DuhemRegression, budget: int | None = None, progress=None):
         return fit.rms if np.isfinite(fit.rms) else 1e300
 
     k = reg.n_alpha
-    grid = np.linspace(lo, hi, GRID)
-    g_vals = [objective(np.full(k, g)) for g in grid[: max(2, min(GRID, budget // 3))]]
-    x0 = np.full(k, grid[int(np.argmin(g_vals))])
+    if x0 is None:
+        g = np.linspace(lo, hi, grid)
+        g_vals = [objective(np.full(k, x)) for x in g[: max(2, min(grid, budget // 3))]]
+        x0 = np.full(k, g[int(np.argmin(g_vals))])
+    else:
+        x0 = np.log(np.resize(np.asarray(x0, float), k))
+        objective(x0)
     remaining = budget - len(history)
     if remaining > 0:
-        simplex = [x0] + [x0 + 0.7 * e for e in np.eye(k)]
+        simplex = [x0] + [x0 + step * e for e in np.eye(k)]
         minimize(objective, x0, method="Nelder-Mead",
                  options={"maxfev": remaining, "xatol": 1e-4, "fatol": 1e-9,
                           "initial_simplex": np.array(simplex)})

@@ -1,0 +1,47 @@
+"""Diagnostic excitation for the sim-to-real gap (``piezo-stage excite --protocol gap``).
+
+Per axis, the other held at its lower limit: sines over a range of frequencies (rate
+and dynamics effects), steps with multi-second holds up and down (creep follows the
+step's sign, drift does not), variable amplitudes (minor loops); then the other axis
+alone (coupling shows on the idle axis). Voltages in [lo, hi]; the seed varies the
+amplitudes and step levels so FIT and HOLDOUT can be two different records.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SINES = ((1.0, 2, 1.0), (5.0, 5, 0.7), (20.0, 10, 0.5), (80.0, 16, 0.25))  # Hz, cycles, amp
+
+
+def gap_protocol(fs_hz=5000.0, lo=0.0, hi=150.0, seed=0, hold_s=3.0):
+    """Returns (t [s], vx [V], vy [V]); about 35 s at the defaults."""
+    rng = np.random.default_rng(seed)
+    span = hi - lo
+    dt = 1.0 / fs_hz
+
+    def ramp_to(a, b, s=0.1):
+        n = max(2, int(s * fs_hz))
+        return a + (b - a) * (1 - np.cos(np.linspace(0, np.pi, n))) / 2
+
+    def axis_block():
+        parts = []
+        for f, cyc, amp in SINES:
+            a = amp * rng.uniform(0.85, 1.0)
+            t = np.arange(int(cyc * fs_hz / f)) * dt
+            parts.append(lo + span * a / 2 * (1 - np.cos(2 * np.pi * f * t)))
+        levels = lo + span * np.array([rng.uniform(0.55, 0.75), rng.uniform(0.15, 0.3),
+                                       rng.uniform(0.8, 0.95), 0.0])
+        cur = lo
+        for L in levels:
+            parts.append(ramp_to(cur, L, 0.02))
+            parts.append(np.full(int(hold_s * fs_hz), L))
+            cur = L
+        return np.concatenate(parts)
+
+    bx = axis_block()
+    by = axis_block()
+    vx = np.concatenate([bx, np.full(by.size, lo)])
+    vy = np.concatenate([np.full(bx.size, lo), by])
+    t = np.arange(vx.size) * dt
+    return t, vx, vy

@@ -1,0 +1,79 @@
+"""The gap report: a self-contained Markdown file with PNG plots, readable without
+the JSON: the verdict and why, the ranking table, where the gap lies, and plots of
+the residual over time, its spectrum, the loop overlay and before/after."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from scipy import signal
+
+from piezo_stage.io.files import atomic_write
+
+
+def write_report(out_dir, result, holdout):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    os.makedirs(out_dir, exist_ok=True)
+    lines = ["# Sim-to-real gap report", "",
+             f"**Verdict: {result['verdict']}** — {result['reason']}", "",
+             f"Noise floor (from the data): {result['noise_floor_um']:.4f} um. "
+             f"Scored on {'the FIT record itself (no holdout given)' if result['holdout_is_fit'] else 'the HOLDOUT record'}. "
+             f"Run time {result['seconds']:.1f} s.", ""]
+    for axis, d in result["_diagnoses"].items():
+        lines += [f"## Axis {axis}: {d.verdict}", "", d.reason, "",
+                  "| effect | rms before um | rms after um | gap before um | gap after um | "
+                  "shrink % | parameters |", "|---|---|---|---|---|---|---|"]
+        for r in d.ranking:
+            params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                               for k, v in r["params"].items())
+            lines.append(f"| {r['effect']} | {r['rms_before_um']:.4f} | {r['rms_after_um']:.4f} | "
+                         f"{r['gap_before_um']:.4f} | {r['gap_after_um']:.4f} | "
+                         f"{r['shrink_pct']:.1f} | {params} |")
+        wh = d.where
+        lines += ["", f"Where: band {wh['band_hz'][0]:g}-{wh['band_hz'][1]:g} Hz, segment "
+                  f"**{wh['segment']}** (RMS by segment: " +
+                  ", ".join(f"{k} {v:.3f}" for k, v in wh['segment_rms_um'].items()) +
+                  " um), by amplitude: " +
+                  ", ".join(f"{k} {v:.3f}" for k, v in wh['amplitude_rms_um'].items()) + " um" +
+                  (f", correlation with the other axis's input {wh['corr_other_input']:.2f}"
+                   if "corr_other_input" in wh else "") + ".", ""]
+        base = d.candidates["none"]
+        best = d.candidates.get(d.ranking[0]["effect"], base)
+        w = holdout.w[axis]
+        pb = base.predict(holdout, axis)
+        pa = best.predict(holdout, axis)
+        t = holdout.t
+        fig, ax = plt.subplots(2, 2, figsize=(12, 7))
+        ax[0, 0].plot(t, w - pb, lw=0.4, label="before (base model)")
+        ax[0, 0].plot(t, w - pa, lw=0.4, label=f"after ({best.effect})")
+        ax[0, 0].set(xlabel="time [s]", ylabel="measured - model [um]", title="residual")
+        ax[0, 0].legend()
+        for r, lab in ((w - pb, "before"), (w - pa, "after")):
+            f, P = signal.welch(r - r.mean(), fs=holdout.fs_hz,
+                                nperseg=min(len(r), 4096))
+            ax[0, 1].loglog(f[1:], P[1:], lw=0.8, label=lab)
+        ax[0, 1].set(xlabel="frequency [Hz]", ylabel="PSD [um^2/Hz]", title="residual spectrum")
+        ax[0, 1].legend()
+        v = holdout.v[axis]
+        ax[1, 0].plot(v, w, ".", ms=0.5, color="0.6", label="measured")
+        ax[1, 0].plot(v, pb, lw=0.5, label="base model")
+        ax[1, 0].set(xlabel="voltage [V]", ylabel="displacement [um]", title="loop overlay")
+        ax[1, 0].legend()
+        effs = [r["effect"] for r in d.ranking]
+        ax[1, 1].bar(effs, [r["gap_after_um"] for r in d.ranking], color="tab:blue",
+                     label="gap after")
+        ax[1, 1].axhline(d.ranking[0]["gap_before_um"], color="k", ls="--",
+                         label="gap before")
+        ax[1, 1].set(ylabel="held-out gap [um]", title="before / after per candidate")
+        ax[1, 1].legend()
+        fig.tight_layout()
+        png = f"gap_{axis}.png"
+        fig.savefig(os.path.join(out_dir, png), dpi=100)
+        plt.close(fig)
+        lines += [f"![axis {axis}]({png})", ""]
+    with atomic_write(os.path.join(out_dir, "report.md")) as fh:
+        fh.write("\n".join(lines) + "\n")
+    return os.path.join(out_dir, "report.md")
