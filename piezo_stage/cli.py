@@ -422,7 +422,7 @@ def build_parser():
     s.set_defaults(fn=cmd_study)
 
     s = sub.add_parser("bench", help="performance benchmarks (figures as ratios)")
-    s.add_argument("what", choices=("plant", "identify", "loop"))
+    s.add_argument("what", choices=("plant", "identify", "loop", "gap"))
     s.add_argument("--samples", type=int, default=2_000_000)
     s.set_defaults(fn=cmd_bench)
     return p

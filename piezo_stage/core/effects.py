@@ -112,7 +112,12 @@ class Dynamics:
         else:
             raise ConfigError(f"dynamics kind must be 'resonance' or 'lag', got {kind!r}")
         bd, ad, _ = signal.cont2discrete((num, den), dt, method="zoh")
-        self._f = _LinearFilter(np.ravel(bd), ad)
+        # ZOH discretisation gives y at the *start* of the next hold interval (b[0] = 0);
+        # the plant reads its sensor at the *end* of the interval in which the input
+        # was applied, so drop that one-sample shift: y_k answers x_k held over [k-1, k]
+        bd = np.ravel(bd)
+        assert abs(bd[0]) < 1e-12
+        self._f = _LinearFilter(bd[1:], ad)
 
     def reset(self, x0=0.0):
         self._f.reset(x0)
