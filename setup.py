@@ -12,7 +12,7 @@ from setuptools import find_packages, setup
 package_name = "piezo_stage"
 
 NODES = ["stage_driver", "identifier", "feedforward", "controller", "trajectory",
-         "recorder"]
+         "recorder", "gap"]
 
 setup(
     name=package_name,

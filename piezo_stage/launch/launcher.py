@@ -21,7 +21,8 @@ import yaml
 
 from piezo_stage.core.errors import ConfigError
 
-ORDER = ("recorder", "identifier", "controller", "feedforward", "trajectory", "stage_driver")
+ORDER = ("recorder", "identifier", "gap", "controller", "feedforward", "trajectory",
+         "stage_driver")
 
 
 def _params(config_path):
@@ -75,13 +76,14 @@ class Launch:
         rec = int("recorder" in has)
         g = {"stage_driver": {"min_subscribers": rec + sum(n in has for n in
                                                            ("feedforward", "controller",
-                                                            "identifier")),
+                                                            "identifier", "gap")),
                               "min_voltage_subscribers": rec + int("identifier" in has),
                               "min_record_subscribers": rec},
              "feedforward": {"min_subscribers": rec + int("controller" in has)},
              "controller": {"min_subscribers": rec + int("stage_driver" in has)},
-             "trajectory": {"min_subscribers": rec + int("feedforward" in has)}}
-        return g if self.lockstep else {"trajectory": g["trajectory"]}
+             "trajectory": {"min_subscribers": rec + int("feedforward" in has)},
+             "gap": {"min_subscribers": rec}}
+        return g if self.lockstep else {"trajectory": g["trajectory"], "gap": g["gap"]}
 
     def command(self, node):
         cmd = [sys.executable, "-m", f"piezo_stage.nodes.{node}_node", "--ros-args",

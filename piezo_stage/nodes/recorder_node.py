@@ -24,6 +24,7 @@ CONTRACT = {  # relative name: (type, latched)
     "reference": ("sensor_msgs/msg/JointState", False),
     "command": ("geometry_msgs/msg/Vector3Stamped", False),
     "setpoint": ("geometry_msgs/msg/PointStamped", False),
+    "gap/residual": ("geometry_msgs/msg/PointStamped", False),
     "trajectory": ("trajectory_msgs/msg/JointTrajectory", False),  # any publisher QoS
     "model": ("std_msgs/msg/String", True),
     "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", False),

@@ -1,0 +1,74 @@
+"""gap: a simulated twin beside the real stage, on the same voltages, live.
+
+Runs the model file (hysteresis, coupling and any effects it lists) on the applied
+voltages carried by joint_states (effort, V) and publishes the residual measured -
+twin on ``gap/residual`` (geometry_msgs/PointStamped, metres) and its rolling RMS on
+/diagnostics, so a lab user sees the sim-to-real gap while running.
+"""
+
+import numpy as np
+from geometry_msgs.msg import PointStamped
+from sensor_msgs.msg import JointState
+
+from piezo_stage.core.plant import Plant, PlantConfig
+from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.io.model_file import load_model
+from piezo_stage.io.plant_file import default_config_dir, enabled_effects
+from piezo_stage.nodes._common import QOS_DATA, Diagnostics, Gate, declare, run
+from piezo_stage_msgs_adapters import joint_state_to_um, point_msg
+from rclpy.node import Node
+
+
+class Gap(Node):
+    def __init__(self):
+        super().__init__("gap")
+        rate = declare(self, "control_rate_hz", 1000.0, "control rate [Hz]", read_only=True,
+                       lo=1.0, hi=1e5)
+        path = declare(self, "model_file", "", "the twin's model ('' = config/stage_model.yaml)",
+                       read_only=True) or f"{default_config_dir()}/stage_model.yaml"
+        self.window = declare(self, "window", 1000, "samples in the rolling RMS", lo=10,
+                              hi=10_000_000)
+        model, effects = load_model(path)
+        cfg = PlantConfig.exact(model, rate)
+        cfg.effects = enabled_effects(effects)
+        self.twin = Plant(cfg, rate)
+        self.model_name = path
+        self.res = {a: [] for a in ("x", "y")}
+        self.offset, self.n0 = {"x": 0.0, "y": 0.0}, 0
+        self.pub = self.create_publisher(PointStamped, "gap/residual", QOS_DATA)
+        self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
+                                                   "residual subscribers to wait for"))])
+        self.create_subscription(JointState, "joint_states", self.on_state, QOS_DATA)
+        Diagnostics(self, self.status)
+
+    def on_state(self, msg):
+        try:
+            ns, w, v = joint_state_to_um(msg, with_effort=True)
+        except PiezoStageError:
+            return
+        if v is None:
+            return
+        twin = self.twin.step(v["x"], v["y"])
+        r = {a: w[a] - twin[i] for i, a in enumerate(("x", "y"))}
+        # the real sensor's zero: the mean residual of the first samples (noise averages out)
+        self.n0 += 1
+        if self.n0 <= 100:
+            for a in r:
+                self.offset[a] += (r[a] - self.offset[a]) / self.n0
+        r = {a: r[a] - self.offset[a] for a in r}
+        for a in r:
+            self.res[a] = (self.res[a] + [r[a]])[-self.window:]
+        self.gate.publish(self.pub, point_msg(ns, r))
+
+    def status(self):
+        vals = {f"rms_{a}_um": float(np.sqrt(np.mean(np.square(x)))) if x else float("nan")
+                for a, x in self.res.items()}
+        return 0, "ok", {**vals, "model": self.model_name, "samples": self.twin.samples}
+
+
+def main(args=None):
+    return run(Gap, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
