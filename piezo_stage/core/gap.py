@@ -350,7 +350,13 @@ def diagnose(fit: Record, holdout: Record | None = None, effects=EFFECTS, axes=N
             raise DataError(f"FIT and HOLDOUT have different channels (axis {a})")
     if len(fit.t) < 200 or len(holdout.t) < 200:
         raise DataError("records too short for a gap diagnosis (need >= 200 samples)")
-    per = {a: diagnose_axis(fit, holdout, a, effects, base_model) for a in axes}
+    # the axes are independent problems; the compiled loops, lfilter and BLAS release
+    # the GIL, so two threads use both cores
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
+        futures = {a: pool.submit(diagnose_axis, fit, holdout, a, effects, base_model)
+                   for a in axes}
+        per = {a: f.result() for a, f in futures.items()}
     worst = max(per.values(), key=lambda d: d.ranking[0]["gap_before_um"])
     out = {"verdict": worst.verdict, "reason": worst.reason, "ranking": worst.ranking,
            "where": worst.where, "noise_floor_um": worst.noise_floor_um,
