@@ -183,3 +183,16 @@ def test_identify_bad_input_and_failed_solver(cfg, tmp_path):
              "--out", out)
     assert r.returncode == 3 and "did not improve" in r.stderr
     assert not out.exists()
+
+
+def test_noisy_measured_voltage(cfg):
+    """A measured voltage with 0.05 V noise: the fit still reaches the noise floor."""
+    rec = record(cfg, fs=5000, cycles=2, seed=4)
+    rng = np.random.default_rng(0)
+    noisy = Record(rec.t, {"x": rec.v["x"] + rng.normal(0, 0.05, len(rec))}, {"x": rec.w["x"]})
+    r = identify_axis(noisy, "x")
+    assert any("noisy" in n for n in r.notes)
+    assert r.fit["rms_um"] < 0.115
+    assert r.model.ascending.alpha == pytest.approx(0.03, rel=0.1)
+    clean = identify_axis(rec, "x")
+    assert not any("noisy" in n for n in clean.notes)

@@ -12,7 +12,7 @@ from piezo_stage.core.errors import DataError, SolverError
 from piezo_stage.core.metrics import error_figures, noise_floor
 from piezo_stage.core.record import Record
 from piezo_stage.core.identify.regress import DuhemRegression
-from piezo_stage.core.identify.segmentation import segment
+from piezo_stage.core.identify.segmentation import branch_monotone, segment, voltage_noise
 
 METHODS = ("fast", "afsa", "afsa-bat")
 MIN_BRANCH_SAMPLES = 20
@@ -126,6 +126,11 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
         raise DataError("structure must be whole or segmented")
     v, w = _axis_data(rec, axis)
     seg = check_identifiable(v, rec.source)
+    notes = []
+    if voltage_noise(v) > 1e-4 * np.ptp(v):  # a measured, noisy voltage
+        v = branch_monotone(v, seg)
+        notes.append("the voltage is noisy (measured, not commanded): micro-reversals "
+                     "inside each branch were removed before fitting")
     other = OTHER[axis]
     v_other = rec.v.get(other)
     use_c = (opts.coupling == "on" or (opts.coupling == "auto" and opts.method == "fast"
@@ -134,7 +139,6 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
         raise DataError(f"coupling requested but the record has no v{other}")
     if use_c and opts.method != "fast":
         raise DataError("a coupling term is fitted by the fast method only")
-    notes = []
     if opts.structure == "segmented":
         notes.append("segmented: within one branch only h = f + g (ascending) and "
                      "h = g - f (descending) are identifiable; reported as h")
@@ -173,6 +177,8 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
 def validate_axis(res: AxisResult, rec: Record) -> dict:
     """Error of an identified axis on another record (initial output re-estimated)."""
     v, w = _axis_data(rec, res.axis)
+    if voltage_noise(v) > 1e-4 * np.ptp(v):
+        v = branch_monotone(v)
     v_other = rec.v.get(OTHER[res.axis])
     if res.coupling is not None and v_other is None:
         raise DataError(f"{rec.source}: the model has coupling but the record has no "

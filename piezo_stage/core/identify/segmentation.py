@@ -78,3 +78,19 @@ def segment(v, threshold_V: float | None = None) -> Segmentation:
     for a, b, s in segments:
         labels[a:b] = s
     return Segmentation(labels, segments, np.asarray(turning, int), float(thr))
+
+
+def branch_monotone(v, seg: Segmentation | None = None):
+    """The voltage with noise-driven micro-reversals removed inside each branch.
+
+    The discrete Duhem law accumulates |dv|: sensor noise on a *measured* voltage adds
+    path length (and branch flips) the actuator never saw. Within each segment the
+    voltage is replaced by its running maximum (ascending) or minimum (descending).
+    A clean commanded voltage is returned unchanged.
+    """
+    v = np.asarray(v, float)
+    seg = seg or segment(v)
+    out = v.copy()
+    for a, b, sign in seg.segments:
+        out[a:b] = np.maximum.accumulate(v[a:b]) if sign > 0 else np.minimum.accumulate(v[a:b])
+    return out
