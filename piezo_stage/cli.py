@@ -169,6 +169,10 @@ def cmd_identify(args):
     from piezo_stage.io.records import load_record
     rec = load_record(args.data)
     val = load_record(args.validate) if args.validate else None
+    if args.voltage == "exact":
+        rec.voltage_exact = True
+        if val is not None:
+            val.voltage_exact = True
     axes = ["x", "y"] if args.axis == "both" else [args.axis]
     axes = [a for a in axes if a in rec.v and a in rec.w]
     if not axes:
@@ -408,6 +412,9 @@ def build_parser():
     s.add_argument("--budget", type=int, metavar="EVALS", help="objective evaluations")
     s.add_argument("--coupling", choices=("auto", "on", "off"), default="auto",
                    help="fit cross-coupling from the other axis (fast only)")
+    s.add_argument("--voltage", choices=("auto", "exact"), default="auto",
+                   help="exact: v is what the actuator got (never cleaned); auto: a noisy "
+                   "(measured) v has its in-branch micro-reversals removed (bags: exact)")
     s.add_argument("--n", type=int, default=3, help="degree of f (default 3)")
     s.add_argument("--m", type=int, default=2, help="degree of g (default 2)")
     s.add_argument("--out", metavar="MODEL.yaml", help="write the model file")

@@ -31,6 +31,9 @@ class Record:
     v: dict = field(default_factory=dict)
     w: dict = field(default_factory=dict)
     source: str = "record"
+    # True when v is exactly what the actuator got (the driver's applied voltage, as
+    # in our bags); False for a voltage of unknown origin, possibly a noisy measurement
+    voltage_exact: bool = False
 
     def __post_init__(self):
         self.t = np.asarray(self.t, float)
@@ -61,7 +64,8 @@ class Record:
 
     def slice(self, start: int, stop: int) -> "Record":
         return Record(self.t[start:stop], {a: x[start:stop] for a, x in self.v.items()},
-                      {a: x[start:stop] for a, x in self.w.items()}, self.source)
+                      {a: x[start:stop] for a, x in self.w.items()}, self.source,
+                      self.voltage_exact)
 
 
 def check_time(t, source="record"):

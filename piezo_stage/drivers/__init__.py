@@ -10,6 +10,46 @@ from __future__ import annotations
 from piezo_stage.core.errors import ConfigError
 
 
+RO = {"read_only": True}
+# The driver node's parameters: (key, name, default, description with unit, limits)
+DRIVER_PARAMS = (
+    ("backend", "backend", "sim", "sim | daq | replay", {**RO, "choices": ("sim", "daq", "replay")}),
+    ("mode", "mode", "lockstep", "lockstep (sim) | realtime",
+     {**RO, "choices": ("lockstep", "realtime")}),
+    ("rate", "control_rate_hz", 1000.0, "control rate [Hz]", {**RO, "lo": 1.0, "hi": 1e5}),
+    ("plant_config", "plant_config", "", "sim plant YAML ('' = default)", RO),
+    ("seed", "seed", -1, "sim noise seed (-1: the config's)", RO),
+    ("replay_bag", "replay_bag", "", "bag for the replay backend", RO),
+    ("stale", "stale_timeout_s", 0.05, "real time: command age that counts as stale [s]",
+     {"lo": 0.001, "hi": 10.0}),
+    ("safe", "safe_voltage_V", 0.0, "output after a stale command [V]", {"lo": -200.0, "hi": 200.0}),
+    ("ramp", "safe_ramp_V_per_s", 500.0, "ramp rate to the safe voltage [V/s]",
+     {"lo": 1.0, "hi": 1e6}),
+    ("max_steps", "max_steps", 0, "stop after this many steps (0: never)", {}),
+    ("min_subs", "min_subscribers", 0, "lockstep: joint_states subscribers to wait for", {}),
+    ("min_v", "min_voltage_subscribers", 0, "lockstep: voltage subscribers to wait for", {}),
+    ("min_rec", "min_record_subscribers", 0, "lockstep: true_position subscribers to wait "
+     "for (recorders)", {}),
+    ("exit_done", "exit_after_max_steps", False, "exit (code 0) once max_steps are done "
+     "and delivered", {}),
+    ("ao_channels", "ao_channels", "Dev1/ao0,Dev1/ao1", "NI-DAQ output channels x,y", RO),
+    ("ai_channels", "ai_channels", "Dev1/ai0,Dev1/ai1", "NI-DAQ input channels x,y", RO),
+    ("amplifier_gain", "amplifier_gain", 15.0, "NI-DAQ: amplifier gain [V/V]", RO),
+    ("sensor_um_per_V", "sensor_um_per_V", 10.0, "NI-DAQ: sensor scale [um/V]", RO),
+    ("sensor_offset_um", "sensor_offset_um", 0.0, "NI-DAQ: sensor offset [um]", RO),
+)
+
+
+def step_period_summary(times) -> str:
+    """Steps/s, median and p99 step period of a list of step times [s]."""
+    import numpy as np
+    d = np.diff(times)
+    if d.size == 0:
+        return "no steps timed"
+    return (f"{1 / d.mean():.0f} steps/s, step period median {1e3 * np.median(d):.3f} ms, "
+            f"p99 {1e3 * np.percentile(d, 99):.3f} ms")
+
+
 def clamp_slew(v: dict, prev: dict, limits, max_step) -> tuple[dict, bool]:
     """The driver's last line of defence: clamp to limits, then limit the step."""
     lo, hi = limits

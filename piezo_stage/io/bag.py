@@ -259,7 +259,7 @@ def read_bag_record(path, namespace=None):
     axes = [a for a in ("x", "y") if all(a in pos[s] for s in stamps)]
     return Record(t, {a: np.array([volt[s][a] for s in stamps]) for a in axes},
                   {a: np.array([pos[s][a] for s in stamps]) for a in axes},
-                  source=os.fspath(path))
+                  source=os.fspath(path), voltage_exact=True)
 
 
 def write_record_bag(path, rec, namespace="/stage", metadata=None):

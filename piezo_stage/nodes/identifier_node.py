@@ -61,7 +61,7 @@ class Identifier(Node):
         t = (np.array(stamps, dtype=np.int64) - stamps[0]) * 1e-9 if stamps else np.zeros(0)
         return Record(t, {a: np.array([self.v[s][a] for s in stamps]) for a in ("x", "y")},
                       {a: np.array([self.w[s][a] for s in stamps]) for a in ("x", "y")},
-                      source="live buffer")
+                      source="live buffer", voltage_exact=True)
 
     def identify(self) -> str:
         rec = self.record()

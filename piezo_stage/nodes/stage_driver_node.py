@@ -15,7 +15,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from piezo_stage.core.errors import DataError
-from piezo_stage.drivers import clamp_slew, make_backend
+from piezo_stage.drivers import DRIVER_PARAMS, clamp_slew, make_backend, step_period_summary
 from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, Gate, declare, run,
                                        validate_choices)
 from piezo_stage_msgs_adapters import joint_state, point_msg, voltage_from_msg, voltage_msg
@@ -27,40 +27,8 @@ from rclpy.node import Node
 class StageDriver(Node):
     def __init__(self):
         super().__init__("stage_driver")
-        p = {
-            "backend": declare(self, "backend", "sim", "sim | daq | replay", read_only=True,
-                               choices=("sim", "daq", "replay")),
-            "mode": declare(self, "mode", "lockstep", "lockstep (sim) | realtime",
-                            read_only=True, choices=("lockstep", "realtime")),
-            "rate": declare(self, "control_rate_hz", 1000.0, "control rate [Hz]",
-                            read_only=True, lo=1.0, hi=100_000.0),
-            "plant_config": declare(self, "plant_config", "", "sim plant YAML ('' = default)",
-                                    read_only=True),
-            "seed": declare(self, "seed", -1, "sim noise seed (-1: the config's)", read_only=True),
-            "replay_bag": declare(self, "replay_bag", "", "bag for the replay backend",
-                                  read_only=True),
-            "stale": declare(self, "stale_timeout_s", 0.05, "real time: command age that "
-                             "counts as stale [s]", lo=0.001, hi=10.0),
-            "safe": declare(self, "safe_voltage_V", 0.0, "output after a stale command [V]",
-                            lo=-200.0, hi=200.0),
-            "ramp": declare(self, "safe_ramp_V_per_s", 500.0, "ramp rate to the safe "
-                            "voltage [V/s]", lo=1.0, hi=1e6),
-            "max_steps": declare(self, "max_steps", 0, "stop after this many steps (0: never)"),
-            "min_subs": declare(self, "min_subscribers", 0, "lockstep: joint_states "
-                                "subscribers to wait for before the first sample"),
-            "min_v": declare(self, "min_voltage_subscribers", 0, "lockstep: voltage "
-                             "subscribers to wait for"),
-            "min_rec": declare(self, "min_record_subscribers", 0, "lockstep: true_position "
-                               "subscribers to wait for (recorders)"),
-            "exit_done": declare(self, "exit_after_max_steps", False, "exit (code 0) once "
-                                 "max_steps are done and delivered"),
-        }
-        for k in ("ao_channels", "ai_channels"):
-            p[k] = declare(self, k, "Dev1/ao0,Dev1/ao1" if k[1] == "o" else "Dev1/ai0,Dev1/ai1",
-                           "NI-DAQ channels x,y", read_only=True)
-        for k, d, u in (("amplifier_gain", 15.0, "V/V"), ("sensor_um_per_V", 10.0, "um/V"),
-                        ("sensor_offset_um", 0.0, "um")):
-            p[k] = declare(self, k, d, f"NI-DAQ scaling [{u}]", read_only=True)
+        p = {key: declare(self, name, default, desc, **kw)
+             for key, name, default, desc, kw in DRIVER_PARAMS}
         validate_choices(self)
         self.p = p
         self.backend = make_backend(p["backend"], p["rate"], p)
@@ -146,12 +114,8 @@ class StageDriver(Node):
         """All steps done: make sure every subscriber has them, then exit cleanly."""
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
                                   for pub in (self.jpub, self.vpub, self.tpub)):
-            import numpy as np
-            d = np.diff(self.step_times[1:])  # from the first command on
-            if d.size:
-                self.get_logger().info(
-                    f"done after {self.k} samples: {1 / d.mean():.0f} steps/s, step period "
-                    f"median {1e3 * np.median(d):.3f} ms, p99 {1e3 * np.percentile(d, 99):.3f} ms")
+            self.get_logger().info(f"done after {self.k} samples: "
+                                   f"{step_period_summary(self.step_times[1:])}")
             rclpy.try_shutdown()
 
     def on_estop(self, request, response):

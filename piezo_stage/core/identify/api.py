@@ -127,7 +127,7 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
     v, w = _axis_data(rec, axis)
     seg = check_identifiable(v, rec.source)
     notes = []
-    if voltage_noise(v) > 1e-4 * np.ptp(v):  # a measured, noisy voltage
+    if not rec.voltage_exact and voltage_noise(v) > 1e-4 * np.ptp(v):  # measured, noisy
         v = branch_monotone(v, seg)
         notes.append("the voltage is noisy (measured, not commanded): micro-reversals "
                      "inside each branch were removed before fitting")
@@ -177,7 +177,7 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
 def validate_axis(res: AxisResult, rec: Record) -> dict:
     """Error of an identified axis on another record (initial output re-estimated)."""
     v, w = _axis_data(rec, res.axis)
-    if voltage_noise(v) > 1e-4 * np.ptp(v):
+    if not rec.voltage_exact and voltage_noise(v) > 1e-4 * np.ptp(v):
         v = branch_monotone(v)
     v_other = rec.v.get(OTHER[res.axis])
     if res.coupling is not None and v_other is None:
