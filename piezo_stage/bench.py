@@ -269,7 +269,7 @@ def bench_loop(steps=3000):
         counts[topic] = counts.get(topic, 0) + 1
     published = steps + 1
     lost = {t: published - counts.get(t, 0) for t in
-            ("/stage/joint_states", "/stage/voltage", "/stage/sim/true_position",
+            ("/stage/joint_states", "/stage/sim/true_position",
              "/stage/reference", "/stage/command")}
     print("bench loop: lockstep closed loop, driver + feedforward + controller + trajectory "
           "+ recorder as separate processes (Fast DDS, this host)")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import array
 import math
 
 import numpy as np
@@ -45,9 +46,11 @@ def joint_state(ns: int, w_um: dict, v_applied=None) -> JointState:
     """Measured position [um] -> sensor_msgs/JointState (names x, y; metres). The
     voltage applied during that sample [V], when given, goes in ``effort`` (the
     actuator's drive effort), so position and drive arrive in one message."""
+    # array('d') takes the generated setters' fast path (lists are checked per element)
     return JointState(header=header(ns), name=list(JOINTS),
-                      position=[float(w_um[a]) * UM for a in JOINTS],
-                      effort=[float(v_applied[a]) for a in JOINTS] if v_applied else [])
+                      position=array.array("d", (float(w_um[a]) * UM for a in JOINTS)),
+                      effort=array.array("d", (float(v_applied[a]) for a in JOINTS))
+                      if v_applied else array.array("d"))
 
 
 def joint_state_to_um(msg: JointState, with_effort=False):
@@ -82,8 +85,8 @@ def voltage_from_msg(msg: Vector3Stamped) -> tuple[int, dict]:
 def reference_msg(ns: int, desired_um: dict, ff_V: dict) -> JointState:
     """Internal /reference: position = desired position [m], effort = feedforward [V]."""
     return JointState(header=header(ns), name=list(JOINTS),
-                      position=[float(desired_um[a]) * UM for a in JOINTS],
-                      effort=[float(ff_V[a]) for a in JOINTS])
+                      position=array.array("d", (float(desired_um[a]) * UM for a in JOINTS)),
+                      effort=array.array("d", (float(ff_V[a]) for a in JOINTS)))
 
 
 def reference_from_msg(msg: JointState) -> tuple[int, dict, dict]:

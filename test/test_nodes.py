@@ -49,7 +49,7 @@ def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env):
     nodes = ["stage_driver", "feedforward", "controller", "trajectory"]
     a = lockstep(tmp_path, env, "a", nodes=nodes, steps=1500)  # > 1 s: diagnostics at 1 Hz
     # 0 messages lost: every loop sample of the run is in the bag
-    for suffix in ("/joint_states", "/voltage", "/sim/true_position", "/reference",
+    for suffix in ("/joint_states", "/sim/true_position", "/reference",
                    "/command"):
         assert len(topic_data(a, suffix)) == 1501, suffix
     rec = read_bag_record(a)
@@ -73,7 +73,7 @@ def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env):
     assert "model" in keys["piezo_stage: feedforward"]
     # same seed, same data: two runs give byte-identical loop topics
     b = lockstep(tmp_path, env, "b", nodes=nodes, steps=1500)
-    for suffix in ("/joint_states", "/voltage", "/reference", "/command"):
+    for suffix in ("/joint_states", "/reference", "/command"):
         assert topic_data(a, suffix) == topic_data(b, suffix), suffix
 
 

@@ -27,7 +27,6 @@ DRIVER_PARAMS = (
      {"lo": 1.0, "hi": 1e6}),
     ("max_steps", "max_steps", 0, "stop after this many steps (0: never)", {}),
     ("min_subs", "min_subscribers", 0, "lockstep: joint_states subscribers to wait for", {}),
-    ("min_v", "min_voltage_subscribers", 0, "lockstep: voltage subscribers to wait for", {}),
     ("min_rec", "min_record_subscribers", 0, "lockstep: true_position subscribers to wait "
      "for (recorders)", {}),
     ("exit_done", "exit_after_max_steps", False, "exit (code 0) once max_steps are done "

@@ -216,11 +216,10 @@ def read_metadata(path) -> dict:
 
 
 def read_bag_record(path, namespace=None):
-    """A Record (t [s], v [V], w [um]) from a bag's joint_states and voltage topics.
+    """A Record (t [s], v [V], w [um]) from a bag's ``<ns>/joint_states``.
 
-    Measured positions come from ``<ns>/joint_states`` (sensor_msgs/JointState, metres)
-    and applied voltages from ``<ns>/voltage`` (geometry_msgs/Vector3Stamped, volts);
-    samples are paired by header stamp.
+    sensor_msgs/JointState: measured position in metres, and the voltage applied during
+    that sample in ``effort`` (volts), as the stage driver publishes them.
     """
     import numpy as np
     from piezo_stage.core.record import Record
@@ -229,28 +228,25 @@ def read_bag_record(path, namespace=None):
     try:
         for topic, msgtype, _, data in iter_messages(path):
             seen.add(topic)
-            if topic.endswith("/joint_states") and msgtype == "sensor_msgs/msg/JointState":
-                if namespace and not topic.startswith(namespace):
-                    continue
-                m = deserialize(data, msgtype)
-                st = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
-                names = list(m.name)
-                pos[st] = {n: float(m.position[i]) * 1e6 for i, n in enumerate(names)
-                           if n in ("x", "y") and i < len(m.position)}
-            elif topic.endswith("/voltage") and msgtype == "geometry_msgs/msg/Vector3Stamped":
-                if namespace and not topic.startswith(namespace):
-                    continue
-                m = deserialize(data, msgtype)
-                st = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
-                volt[st] = {"x": float(m.vector.x), "y": float(m.vector.y)}
+            if not (topic.endswith("/joint_states") and msgtype == "sensor_msgs/msg/JointState"):
+                continue
+            if namespace and not topic.startswith(namespace):
+                continue
+            m = deserialize(data, msgtype)
+            st = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+            names = list(m.name)
+            pos[st] = {n: float(m.position[i]) * 1e6 for i, n in enumerate(names)
+                       if n in ("x", "y") and i < len(m.position)}
+            if len(m.effort) == len(names):
+                volt[st] = {n: float(m.effort[i]) for i, n in enumerate(names) if n in ("x", "y")}
     except DataError:
         raise
     except Exception as e:  # a corrupt message body: one line, not a traceback
         raise DataError(f"{path}: unreadable bag ({type(e).__name__}: {e})") from None
     if not pos or not volt:
-        raise DataError(f"{path}: bag lacks the needed topics (<ns>/joint_states "
-                        f"sensor_msgs/JointState and <ns>/voltage geometry_msgs/"
-                        f"Vector3Stamped); it has {', '.join(sorted(seen)) or 'no messages'}")
+        raise DataError(f"{path}: bag lacks the needed topic (<ns>/joint_states, "
+                        f"sensor_msgs/JointState with the applied voltage in effort); it has "
+                        f"{', '.join(sorted(seen)) or 'no messages'}")
     stamps = sorted(set(pos) & set(volt))
     if len(stamps) < 3:
         raise DataError(f"{path}: fewer than 3 samples with both position and voltage")
@@ -263,30 +259,25 @@ def read_bag_record(path, namespace=None):
 
 
 def write_record_bag(path, rec, namespace="/stage", metadata=None):
-    """Write a Record as the driver would publish it (joint_states in metres, voltage in
-    volts, one pair per sample, header stamps = record time). For fixtures and for
+    """Write a Record as the driver would publish it (joint_states: position in metres,
+    applied voltage in effort; header stamps = record time). For fixtures and for
     converting CSV records into bags."""
+    import numpy as np
     ts = _typestore()
     Time = ts.types["builtin_interfaces/msg/Time"]
     Header = ts.types["std_msgs/msg/Header"]
     JointState = ts.types["sensor_msgs/msg/JointState"]
-    Vector3 = ts.types["geometry_msgs/msg/Vector3"]
-    Vector3Stamped = ts.types["geometry_msgs/msg/Vector3Stamped"]
-    import numpy as np
     axes = [a for a in ("x", "y") if a in rec.w]
-    js_t, v_t = f"{namespace}/joint_states", f"{namespace}/voltage"
+    js_t = f"{namespace}/joint_states"
+    zeros = np.zeros(len(rec))
     with BagWriter(path, metadata=metadata) as bag:
         bag.add_topic(js_t, "sensor_msgs/msg/JointState")
-        bag.add_topic(v_t, "geometry_msgs/msg/Vector3Stamped")
         for k in range(len(rec)):
             ns = int(round(rec.t[k] * 1e9))
             h = Header(stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000),
                        frame_id="stage")
             js = JointState(header=h, name=axes,
                             position=np.array([rec.w[a][k] * 1e-6 for a in axes]),
-                            velocity=np.zeros(0), effort=np.zeros(0))
-            vs = Vector3Stamped(header=h, vector=Vector3(
-                x=float(rec.v.get("x", [0.0] * len(rec))[k]),
-                y=float(rec.v.get("y", [0.0] * len(rec))[k]), z=0.0))
+                            velocity=np.zeros(0),
+                            effort=np.array([rec.v.get(a, zeros)[k] for a in axes]))
             bag.write(js_t, serialize(js, "sensor_msgs/msg/JointState"), ns)
-            bag.write(v_t, serialize(vs, "geometry_msgs/msg/Vector3Stamped"), ns)

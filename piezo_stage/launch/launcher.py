@@ -77,7 +77,6 @@ class Launch:
         g = {"stage_driver": {"min_subscribers": rec + sum(n in has for n in
                                                            ("feedforward", "controller",
                                                             "identifier", "gap")),
-                              "min_voltage_subscribers": rec + int("identifier" in has),
                               "min_record_subscribers": rec},
              "feedforward": {"min_subscribers": rec + int("controller" in has)},
              "controller": {"min_subscribers": rec + int("stage_driver" in has)},

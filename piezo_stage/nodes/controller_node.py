@@ -35,9 +35,13 @@ class Controller(Node):
         self.pub = self.create_publisher(Vector3Stamped, "command", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "command subscribers to wait for"))])
-        self.create_subscription(JointState, "joint_states", self.on_state, QOS_DATA)
-        self.create_subscription(JointState, "reference", self.on_reference, QOS_DATA)
+        self.hot = [self.create_subscription(JointState, "joint_states", self.on_state, QOS_DATA),
+                    self.create_subscription(JointState, "reference", self.on_reference,
+                                             QOS_DATA)]
         Diagnostics(self, lambda: (0, "ok", {**self.stats, "feedback": self.feedback}))
+
+    def hot_subscriptions(self):
+        return self.hot
 
     def on_state(self, msg):
         try:

@@ -48,12 +48,16 @@ class Feedforward(Node):
         self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "reference subscribers to wait for"))])
-        self.create_subscription(JointState, "joint_states", self.on_state, QOS_DATA)
+        self.hot = [self.create_subscription(JointState, "joint_states", self.on_state,
+                                             QOS_DATA)]
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
         Diagnostics(self, lambda: (0, "ok", {**self.stats, "model": self.model_name}))
+
+    def hot_subscriptions(self):
+        return self.hot
 
     def set_model(self, model, name):
         inv = StageInverse(model, use_coupling=self.use_c)

@@ -38,8 +38,12 @@ class Gap(Node):
         self.pub = self.create_publisher(PointStamped, "gap/residual", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "residual subscribers to wait for"))])
-        self.create_subscription(JointState, "joint_states", self.on_state, QOS_DATA)
+        self.hot = [self.create_subscription(JointState, "joint_states", self.on_state,
+                                             QOS_DATA)]
         Diagnostics(self, self.status)
+
+    def hot_subscriptions(self):
+        return self.hot
 
     def on_state(self, msg):
         try:

@@ -7,7 +7,6 @@ complete voltage cycles, and hands the model to the feedforward on ``model``
 
 import numpy as np
 import yaml
-from geometry_msgs.msg import Vector3Stamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -19,7 +18,7 @@ from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.record import Record
 from piezo_stage.io.model_file import model_to_dict
 from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, Diagnostics, declare, run
-from piezo_stage_msgs_adapters import joint_state_to_um, model_msg, voltage_from_msg
+from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
 from rclpy.node import Node
 
 
@@ -38,19 +37,20 @@ class Identifier(Node):
         self.stats = {"samples": 0, "identifications": 0, "last_fit_rms_um": float("nan"),
                       "last_error": ""}
         self.pub = self.create_publisher(String, "model", QOS_LATCHED)
-        self.create_subscription(JointState, "joint_states", self.on_state, QOS_DATA)
-        self.create_subscription(Vector3Stamped, "voltage", self.on_voltage, QOS_DATA)
+        self.hot = [self.create_subscription(JointState, "joint_states", self.on_state,
+                                             QOS_DATA)]
         self.create_service(Trigger, "~/identify", self.on_identify)
         self.create_timer(0.5, self.on_timer)
         Diagnostics(self, lambda: (0 if not self.stats["last_error"] else 1, "ok", self.stats))
 
-    def on_state(self, msg):
-        ns, w = joint_state_to_um(msg)
-        self.w[ns] = w
+    def hot_subscriptions(self):
+        return self.hot
 
-    def on_voltage(self, msg):
-        ns, v = voltage_from_msg(msg)
-        self.v[ns] = v
+    def on_state(self, msg):
+        ns, w, v = joint_state_to_um(msg, with_effort=True)
+        if v is None:  # a driver that does not report the applied voltage
+            return
+        self.w[ns], self.v[ns] = w, v
         if len(self.v) > self.max_samples:  # drop the oldest
             for k in sorted(self.v)[: len(self.v) - self.max_samples]:
                 self.v.pop(k, None)

@@ -19,7 +19,6 @@ from rclpy.node import Node
 
 CONTRACT = {  # relative name: (type, latched)
     "joint_states": ("sensor_msgs/msg/JointState", False),
-    "voltage": ("geometry_msgs/msg/Vector3Stamped", False),
     "sim/true_position": ("geometry_msgs/msg/PointStamped", False),
     "reference": ("sensor_msgs/msg/JointState", False),
     "command": ("geometry_msgs/msg/Vector3Stamped", False),
@@ -60,6 +59,9 @@ class Recorder(Node):
                                   lo=0.01, hi=60.0), self.bag.flush)
         Diagnostics(self, lambda: (0, "ok", {"bag": out, **self.bag.counts}))
 
+    def hot_subscriptions(self):
+        return list(self.subs.values())  # everything recorded is served by the lean loop
+
     def resolve_topic_name(self, rel):
         return rel if rel.startswith("/") else f"{self.get_namespace().rstrip('/')}/{rel}"
 
@@ -69,6 +71,7 @@ class Recorder(Node):
         self.bag.add_topic(topic, msgtype)
         stamped = msgtype in STAMPED
         qos = QOS_LATCHED if latched else (QOS_DIAG if topic == "/diagnostics" else QOS_DATA)
+        self.hot_changed = True
         self.subs[topic] = self.create_subscription(
             msg_class(msgtype), topic, lambda data: self.write(topic, data, stamped), qos,
             raw=True)

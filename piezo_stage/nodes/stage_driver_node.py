@@ -18,7 +18,7 @@ from piezo_stage.core.errors import DataError
 from piezo_stage.drivers import DRIVER_PARAMS, clamp_slew, make_backend, step_period_summary
 from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, Gate, declare, run,
                                        validate_choices)
-from piezo_stage_msgs_adapters import joint_state, point_msg, voltage_from_msg, voltage_msg
+from piezo_stage_msgs_adapters import joint_state, point_msg, voltage_from_msg
 import rclpy
 from rclpy.duration import Duration
 from rclpy.node import Node
@@ -41,12 +41,12 @@ class StageDriver(Node):
         self.stats = {"steps": 0, "rejected": 0, "limit_hits": 0, "stale": 0,
                       "unexpected_stamp": 0, "deadline_misses": 0, "estop": False}
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
-        self.vpub = self.create_publisher(Vector3Stamped, "voltage", QOS_DATA)
         self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
         lock = p["mode"] == "lockstep"
-        self.gate = Gate(self, [(self.jpub, p["min_subs"] * lock), (self.vpub, p["min_v"] * lock),
+        self.gate = Gate(self, [(self.jpub, p["min_subs"] * lock),
                                 (self.tpub, p["min_rec"] * lock * (p["backend"] == "sim"))])
-        self.create_subscription(Vector3Stamped, "command", self.on_command, QOS_DATA)
+        self.cmd_sub = self.create_subscription(Vector3Stamped, "command", self.on_command,
+                                                QOS_DATA)
         self.create_service(Trigger, "estop", self.on_estop)
         Diagnostics(self, self.status, hardware_id=p["backend"])
         self._last_tick = time.monotonic()
@@ -54,6 +54,9 @@ class StageDriver(Node):
         if p["mode"] == "realtime":
             self.create_timer(self.dt, self.on_tick)
         self.advance(self.v)  # sample 0: the stage at rest
+
+    def hot_subscriptions(self):
+        return [self.cmd_sub] if self.p["mode"] == "lockstep" else []
 
     def stamp(self, k):
         return self.t0_ns + int(round(k * self.dt * 1e9))
@@ -73,7 +76,6 @@ class StageDriver(Node):
         self.v = v
         ns = self.stamp(self.k)
         self.gate.publish(self.jpub, joint_state(ns, w, applied))
-        self.gate.publish(self.vpub, voltage_msg(ns, applied))
         if true is not None:
             self.gate.publish(self.tpub, point_msg(ns, true))
         self.k += 1
@@ -113,7 +115,7 @@ class StageDriver(Node):
     def finish(self):
         """All steps done: make sure every subscriber has them, then exit cleanly."""
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
-                                  for pub in (self.jpub, self.vpub, self.tpub)):
+                                  for pub in (self.jpub, self.tpub)):
             self.get_logger().info(f"done after {self.k} samples: "
                                    f"{step_period_summary(self.step_times[1:])}")
             rclpy.try_shutdown()
