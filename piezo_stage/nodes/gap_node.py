@@ -6,6 +6,8 @@ twin on ``gap/residual`` (geometry_msgs/PointStamped, metres) and its rolling RM
 /diagnostics, so a lab user sees the sim-to-real gap while running.
 """
 
+from collections import deque
+
 import numpy as np
 from geometry_msgs.msg import PointStamped
 from sensor_msgs.msg import JointState
@@ -33,7 +35,7 @@ class Gap(Node):
         cfg.effects = enabled_effects(effects)
         self.twin = Plant(cfg, rate)
         self.model_name = path
-        self.res = {a: [] for a in ("x", "y")}
+        self.res = {a: deque(maxlen=self.window) for a in ("x", "y")}
         self.offset, self.n0 = {"x": 0.0, "y": 0.0}, 0
         self.pub = self.create_publisher(PointStamped, "gap/residual", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
@@ -61,7 +63,7 @@ class Gap(Node):
                 self.offset[a] += (r[a] - self.offset[a]) / self.n0
         r = {a: r[a] - self.offset[a] for a in r}
         for a in r:
-            self.res[a] = (self.res[a] + [r[a]])[-self.window:]
+            self.res[a].append(r[a])
         self.gate.publish(self.pub, point_msg(ns, r))
 
     def status(self):

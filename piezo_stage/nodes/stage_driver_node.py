@@ -9,6 +9,7 @@ Commands are clamped to the voltage and slew limits; NaN/inf commands are reject
 """
 
 import time
+from collections import deque
 
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from sensor_msgs.msg import JointState
@@ -50,7 +51,7 @@ class StageDriver(Node):
         self.create_service(Trigger, "estop", self.on_estop)
         Diagnostics(self, self.status, hardware_id=p["backend"])
         self._last_tick = time.monotonic()
-        self.step_times = []
+        self.step_times = deque(maxlen=1_000_000)  # bounded: real-time runs go on
         if p["mode"] == "realtime":
             self.create_timer(self.dt, self.on_tick)
         self.advance(self.v)  # sample 0: the stage at rest
@@ -117,7 +118,7 @@ class StageDriver(Node):
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
                                   for pub in (self.jpub, self.tpub)):
             self.get_logger().info(f"done after {self.k} samples: "
-                                   f"{step_period_summary(self.step_times[1:])}")
+                                   f"{step_period_summary(list(self.step_times)[1:])}")
             rclpy.try_shutdown()
 
     def on_estop(self, request, response):
