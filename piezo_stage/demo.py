@@ -23,7 +23,7 @@ def tracking_from_bag(bag, t_from_s):
     for topic, msgtype, _, data in iter_messages(bag):
         if topic.endswith("/reference"):
             m = deserialize(data, msgtype)
-            ref[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = np.array(m.position) * 1e6
+            ref[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = np.array(m.position[:2]) * 1e6
         elif topic.endswith("/joint_states"):
             m = deserialize(data, msgtype)
             meas[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = np.array(m.position) * 1e6

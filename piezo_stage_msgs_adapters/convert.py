@@ -82,21 +82,31 @@ def voltage_from_msg(msg: Vector3Stamped) -> tuple[int, dict]:
     return time_to_ns(msg.header.stamp), v
 
 
-def reference_msg(ns: int, desired_um: dict, ff_V: dict) -> JointState:
-    """Internal /reference: position = desired position [m], effort = feedforward [V]."""
-    return JointState(header=header(ns), name=list(JOINTS),
-                      position=array.array("d", (float(desired_um[a]) * UM for a in JOINTS)),
-                      effort=array.array("d", (float(ff_V[a]) for a in JOINTS)))
+MEASURED = ("x_measured", "y_measured")
 
 
-def reference_from_msg(msg: JointState) -> tuple[int, dict, dict]:
+def reference_msg(ns: int, desired_um: dict, ff_V: dict, measured_um: dict) -> JointState:
+    """Internal /reference for sample t_{k+1}: joints x, y with position = desired
+    position [m] and effort = feedforward [V], and joints x_measured, y_measured with
+    position = the measurement of t_k it was computed from [m] (effort 0), so the
+    controller gets everything for one step in one message."""
+    return JointState(header=header(ns), name=list(JOINTS + MEASURED),
+                      position=array.array("d", [float(desired_um[a]) * UM for a in JOINTS]
+                                           + [float(measured_um[a]) * UM for a in JOINTS]),
+                      effort=array.array("d", [float(ff_V[a]) for a in JOINTS] + [0.0, 0.0]))
+
+
+def reference_from_msg(msg: JointState) -> tuple[int, dict, dict, dict]:
+    """-> (stamp ns, desired {axis: um}, feedforward {axis: V}, measured {axis: um})."""
     names = list(msg.name)
-    if names != list(JOINTS) or len(msg.position) != 2 or len(msg.effort) != 2:
-        raise DataError("reference: expected joints [x, y] with position and effort")
+    if names != list(JOINTS + MEASURED) or len(msg.position) != 4 or len(msg.effort) != 4:
+        raise DataError("reference: expected joints [x, y, x_measured, y_measured] with "
+                        "position and effort")
     d = {a: float(msg.position[i]) / UM for i, a in enumerate(JOINTS)}
     f = {a: float(msg.effort[i]) for i, a in enumerate(JOINTS)}
-    _finite(list(d.values()) + list(f.values()), "reference")
-    return time_to_ns(msg.header.stamp), d, f
+    w = {a: float(msg.position[2 + i]) / UM for i, a in enumerate(JOINTS)}
+    _finite(list(d.values()) + list(f.values()) + list(w.values()), "reference")
+    return time_to_ns(msg.header.stamp), d, f, w
 
 
 def point_msg(ns: int, w_um: dict) -> PointStamped:

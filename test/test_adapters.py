@@ -45,8 +45,10 @@ def test_trajectory_round_trip_and_rejections():
 
 
 def test_reference_and_setpoint_and_model():
-    ns, d, f = A.reference_from_msg(A.reference_msg(7, {"x": 1.0, "y": 2.0}, {"x": 3.0, "y": 4.0}))
+    ns, d, f, w = A.reference_from_msg(A.reference_msg(7, {"x": 1.0, "y": 2.0},
+                                                       {"x": 3.0, "y": 4.0}, {"x": 5.0, "y": 6.0}))
     assert (ns, f) == (7, {"x": 3.0, "y": 4.0}) and d == pytest.approx({"x": 1.0, "y": 2.0})
+    assert w == pytest.approx({"x": 5.0, "y": 6.0})
     with pytest.raises(DataError):
         A.setpoint_from_msg(A.point_msg(1, {"x": 500.0, "y": 0.0}), (-10, 90))
     import os

@@ -75,8 +75,8 @@ class Launch:
         has = set(self.nodes)
         rec = int("recorder" in has)
         g = {"stage_driver": {"min_subscribers": rec + sum(n in has for n in
-                                                           ("feedforward", "controller",
-                                                            "identifier", "gap")),
+                                                           ("feedforward", "identifier",
+                                                            "gap")),
                               "min_record_subscribers": rec},
              "feedforward": {"min_subscribers": rec + int("controller" in has)},
              "controller": {"min_subscribers": rec + int("stage_driver" in has)},

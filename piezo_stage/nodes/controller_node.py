@@ -1,9 +1,9 @@
 """controller: composite law, feedforward + PID on the measured error (seed eq. 17-19).
 
-For each reference stamped t_{k+1} it waits for the measurement of t_k (the two come
-from different nodes, in either order), computes v = v_ff + PID(desired - measured)
-per axis (the error of the sample just measured against what was asked for it),
-clamps to the voltage limits and publishes ``command``
+Each reference stamped t_{k+1} carries the desired position and the feedforward for
+t_{k+1} and the measurement of t_k they were computed from; the controller computes
+v = v_ff + PID(asked - measured) per axis (the error of the sample just measured
+against what was asked for it), clamps to the voltage limits and publishes ``command``
 (geometry_msgs/Vector3Stamped, volts) stamped t_{k+1}. Decoupling lives in the
 feedforward's joint inverse (see core/control.py).
 """
@@ -14,7 +14,7 @@ from sensor_msgs.msg import JointState
 from piezo_stage.core.control import PID, PIDGains, composite
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.nodes._common import QOS_DATA, Diagnostics, Gate, declare, run
-from piezo_stage_msgs_adapters import joint_state_to_um, reference_from_msg, voltage_msg
+from piezo_stage_msgs_adapters import reference_from_msg, voltage_msg
 from rclpy.node import Node
 
 
@@ -30,47 +30,31 @@ class Controller(Node):
         self.feedback = declare(self, "feedback", True, "PID on (false: feedforward only)")
         self.limits = tuple(declare(self, "voltage_limits_V", [0.0, 150.0], "clamp [V]"))
         self.pid = {a: PID(g, 1.0 / rate) for a in ("x", "y")}
-        self.meas, self.refs, self.asked = {}, {}, {}
+        self.asked, self.last_ns = None, -1
         self.stats = {"commands": 0, "clamped": 0, "bad_messages": 0}
         self.pub = self.create_publisher(Vector3Stamped, "command", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "command subscribers to wait for"))])
-        self.hot = [self.create_subscription(JointState, "joint_states", self.on_state, QOS_DATA),
-                    self.create_subscription(JointState, "reference", self.on_reference,
+        self.hot = [self.create_subscription(JointState, "reference", self.on_reference,
                                              QOS_DATA)]
         Diagnostics(self, lambda: (0, "ok", {**self.stats, "feedback": self.feedback}))
 
     def hot_subscriptions(self):
         return self.hot
 
-    def on_state(self, msg):
-        try:
-            ns, w = joint_state_to_um(msg)
-        except PiezoStageError:
-            self.stats["bad_messages"] += 1
-            return
-        self.meas[ns] = w
-        self.try_step(ns + self.dt_ns)
-
     def on_reference(self, msg):
         try:
-            ns, desired, ff = reference_from_msg(msg)
+            ns, desired, ff, w = reference_from_msg(msg)
         except PiezoStageError:
             self.stats["bad_messages"] += 1
             return
-        self.refs[ns] = (desired, ff)
-        self.try_step(ns)
-
-    def try_step(self, ns):
-        w = self.meas.get(ns - self.dt_ns)
-        ref = self.refs.get(ns)
-        if w is None or ref is None:
-            return
-        desired, ff = ref
+        if ns <= self.last_ns:
+            return  # a duplicate changes nothing
+        self.last_ns = ns
         # the error of the sample just measured (t_k) against what was asked for t_k;
         # desired(t_{k+1}) - w(t_k) would mistake the trajectory's own motion for error
-        asked = self.asked.get(ns - self.dt_ns, w)
-        self.asked = {ns: desired}
+        asked = self.asked if self.asked is not None else w
+        self.asked = desired
         v = {}
         for a in ("x", "y"):
             if self.feedback:
@@ -78,9 +62,6 @@ class Controller(Node):
                 self.stats["clamped"] += clamped
             else:
                 v[a] = min(max(ff[a], self.limits[0]), self.limits[1])
-        # keep only what a later step can still need
-        self.meas = {k: x for k, x in self.meas.items() if k >= ns - self.dt_ns}
-        self.refs = {k: x for k, x in self.refs.items() if k > ns}
         self.stats["commands"] += 1
         self.gate.publish(self.pub, voltage_msg(ns, v))
 

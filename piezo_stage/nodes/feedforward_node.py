@@ -2,8 +2,8 @@
 
 Clocked by joint_states: on sample k it samples the desired trajectory (or the last
 streamed setpoint) at t_{k+1}, inverts the 2-axis model exactly (coupling included)
-and publishes the internal ``reference`` (sensor_msgs/JointState: position = desired
-[m], effort = feedforward [V]) stamped t_{k+1}. A new model on ``model`` replaces the
+and publishes the internal ``reference`` (sensor_msgs/JointState: desired position
+[m] and feedforward [V] for x, y, plus the measurement of t_k) stamped t_{k+1}. A new model on ``model`` replaces the
 inverse without a restart, continuing from the current voltage and position.
 Without any model the feedforward is a linear nominal gain.
 """
@@ -119,7 +119,7 @@ class Feedforward(Node):
         else:
             self.ff = {a: min(max(self.desired[a] / self.gain, self.limits[0]), self.limits[1])
                        for a in ("x", "y")}
-        self.gate.publish(self.pub, reference_msg(t_next, self.desired, self.ff))
+        self.gate.publish(self.pub, reference_msg(t_next, self.desired, self.ff, w))
 
 
 def main(args=None):
