@@ -14,13 +14,16 @@ from std_msgs.msg import Header, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from piezo_stage.core.errors import DataError
+from piezo_stage_msgs_adapters import cdr
 
 __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "joint_state_to_um", "voltage_msg", "voltage_from_msg", "reference_msg",
-           "reference_from_msg", "point_msg", "setpoint_from_msg", "trajectory_msg",
+           "reference_from_msg", "point_msg", "joint_state_cdr", "voltage_cdr",
+           "reference_cdr", "point_cdr", "setpoint_from_msg", "trajectory_msg",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array"]
 
 JOINTS = ("x", "y")
+FRAME = "stage"  # header.frame_id of everything the nodes publish
 UM = 1e-6  # metres per micrometre
 
 
@@ -33,7 +36,7 @@ def time_to_ns(t: Time) -> int:
     return int(t.sec) * 1_000_000_000 + int(t.nanosec)
 
 
-def header(ns: int, frame_id: str = "stage") -> Header:
+def header(ns: int, frame_id: str = FRAME) -> Header:
     return Header(stamp=ns_to_time(ns), frame_id=frame_id)
 
 
@@ -53,19 +56,35 @@ def joint_state(ns: int, w_um: dict, v_applied=None) -> JointState:
                       if v_applied else array.array("d"))
 
 
-def joint_state_to_um(msg: JointState, with_effort=False):
-    """-> (stamp ns, {axis: um}) or, with_effort, (ns, um dict, V dict or None)."""
-    names = list(msg.name)
-    if len(msg.position) != len(names) or not set(JOINTS) <= set(names):
+def joint_state_cdr(ns: int, w_um: dict, v_applied=None) -> bytes:
+    """The same message as ``joint_state``, as the CDR bytes a raw publisher sends."""
+    return cdr.encode_joint_state(ns, FRAME, JOINTS, [float(w_um[a]) * UM for a in JOINTS],
+                                  (), [float(v_applied[a]) for a in JOINTS]
+                                  if v_applied else ())
+
+
+def _joint_state_fields(msg):
+    """(ns, names, position, effort) of a JointState message or its CDR bytes."""
+    if isinstance(msg, (bytes, bytearray, memoryview)):
+        ns, _, names, pos, _, eff = cdr.decode_joint_state(msg)
+        return ns, names, pos, eff
+    return time_to_ns(msg.header.stamp), list(msg.name), msg.position, msg.effort
+
+
+def joint_state_to_um(msg, with_effort=False):
+    """JointState (message or CDR bytes) -> (stamp ns, {axis: um}) or, with_effort,
+    (ns, um dict, V dict or None)."""
+    ns, names, position, effort = _joint_state_fields(msg)
+    if len(position) != len(names) or not set(JOINTS) <= set(names):
         raise DataError(f"joint_states: expected joints x, y with positions, got {names}")
-    w = {n: float(msg.position[i]) / UM for i, n in enumerate(names) if n in JOINTS}
+    w = {n: float(position[i]) / UM for i, n in enumerate(names) if n in JOINTS}
     _finite(w.values(), "joint_states")
     if not with_effort:
-        return time_to_ns(msg.header.stamp), w
+        return ns, w
     v = None
-    if len(msg.effort) == len(names):
-        v = {n: float(msg.effort[i]) for i, n in enumerate(names) if n in JOINTS}
-    return time_to_ns(msg.header.stamp), w, v
+    if len(effort) == len(names):
+        v = {n: float(effort[i]) for i, n in enumerate(names) if n in JOINTS}
+    return ns, w, v
 
 
 def voltage_msg(ns: int, v: dict) -> Vector3Stamped:
@@ -75,11 +94,21 @@ def voltage_msg(ns: int, v: dict) -> Vector3Stamped:
     return m
 
 
-def voltage_from_msg(msg: Vector3Stamped) -> tuple[int, dict]:
-    """Raises DataError on NaN/inf (the driver rejects such commands)."""
-    v = {"x": float(msg.vector.x), "y": float(msg.vector.y)}
+def voltage_cdr(ns: int, v: dict) -> bytes:
+    """The same message as ``voltage_msg``, as CDR bytes."""
+    return cdr.encode_vector3_stamped(ns, FRAME, float(v["x"]), float(v["y"]), 0.0)
+
+
+def voltage_from_msg(msg) -> tuple[int, dict]:
+    """Vector3Stamped (message or CDR bytes) -> (ns, {axis: V}). Raises DataError on
+    NaN/inf (the driver rejects such commands) or malformed bytes."""
+    if isinstance(msg, (bytes, bytearray, memoryview)):
+        ns, _, (x, y, _) = cdr.decode_vector3_stamped(msg)
+    else:
+        ns, x, y = time_to_ns(msg.header.stamp), msg.vector.x, msg.vector.y
+    v = {"x": float(x), "y": float(y)}
     _finite(v.values(), "voltage command")
-    return time_to_ns(msg.header.stamp), v
+    return ns, v
 
 
 MEASURED = ("x_measured", "y_measured")
@@ -96,23 +125,39 @@ def reference_msg(ns: int, desired_um: dict, ff_V: dict, measured_um: dict) -> J
                       effort=array.array("d", [float(ff_V[a]) for a in JOINTS] + [0.0, 0.0]))
 
 
-def reference_from_msg(msg: JointState) -> tuple[int, dict, dict, dict]:
-    """-> (stamp ns, desired {axis: um}, feedforward {axis: V}, measured {axis: um})."""
-    names = list(msg.name)
-    if names != list(JOINTS + MEASURED) or len(msg.position) != 4 or len(msg.effort) != 4:
+def reference_cdr(ns: int, desired_um: dict, ff_V: dict, measured_um: dict) -> bytes:
+    """The same message as ``reference_msg``, as CDR bytes."""
+    return cdr.encode_joint_state(
+        ns, FRAME, JOINTS + MEASURED,
+        [float(desired_um[a]) * UM for a in JOINTS] + [float(measured_um[a]) * UM
+                                                      for a in JOINTS],
+        (), [float(ff_V[a]) for a in JOINTS] + [0.0, 0.0])
+
+
+def reference_from_msg(msg) -> tuple[int, dict, dict, dict]:
+    """Reference (message or CDR bytes) -> (stamp ns, desired {axis: um}, feedforward
+    {axis: V}, measured {axis: um})."""
+    ns, names, position, effort = _joint_state_fields(msg)
+    if list(names) != list(JOINTS + MEASURED) or len(position) != 4 or len(effort) != 4:
         raise DataError("reference: expected joints [x, y, x_measured, y_measured] with "
                         "position and effort")
-    d = {a: float(msg.position[i]) / UM for i, a in enumerate(JOINTS)}
-    f = {a: float(msg.effort[i]) for i, a in enumerate(JOINTS)}
-    w = {a: float(msg.position[2 + i]) / UM for i, a in enumerate(JOINTS)}
+    d = {a: float(position[i]) / UM for i, a in enumerate(JOINTS)}
+    f = {a: float(effort[i]) for i, a in enumerate(JOINTS)}
+    w = {a: float(position[2 + i]) / UM for i, a in enumerate(JOINTS)}
     _finite(list(d.values()) + list(f.values()) + list(w.values()), "reference")
-    return time_to_ns(msg.header.stamp), d, f, w
+    return ns, d, f, w
 
 
 def point_msg(ns: int, w_um: dict) -> PointStamped:
     m = PointStamped(header=header(ns))
     m.point.x, m.point.y = float(w_um["x"]) * UM, float(w_um["y"]) * UM
     return m
+
+
+def point_cdr(ns: int, w_um: dict) -> bytes:
+    """The same message as ``point_msg``, as CDR bytes."""
+    return cdr.encode_point_stamped(ns, FRAME, float(w_um["x"]) * UM, float(w_um["y"]) * UM,
+                                    0.0)
 
 
 def setpoint_from_msg(msg: PointStamped, range_um=None) -> dict:

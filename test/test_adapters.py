@@ -58,3 +58,73 @@ def test_reference_and_setpoint_and_model():
     assert set(model.axes) == {"x", "y"}
     diag = A.diagnostic_array(1, "n", 1, "warn", {"k": 2})
     assert diag.status[0].values[0].value == "2"
+
+
+# --- CDR codecs of the per-sample topics: checked against rclpy's own serializer ---
+
+W, V, D = {"x": 12.5, "y": -3.0}, {"x": 80.0, "y": 10.0}, {"x": 21.0, "y": 45.0}
+
+
+def _typed_and_raw():
+    """(typed message, the same message as our CDR bytes, its type) per hot topic."""
+    from geometry_msgs.msg import PointStamped, Vector3Stamped
+    from sensor_msgs.msg import JointState
+    ns = 3_000_000_123
+    return [(A.joint_state(ns, W, V), A.joint_state_cdr(ns, W, V), JointState),
+            (A.joint_state(ns, W), A.joint_state_cdr(ns, W), JointState),
+            (A.point_msg(ns, W), A.point_cdr(ns, W), PointStamped),
+            (A.voltage_msg(ns, V), A.voltage_cdr(ns, V), Vector3Stamped),
+            (A.reference_msg(ns, D, V, W), A.reference_cdr(ns, D, V, W), JointState)]
+
+
+def test_cdr_encoders_give_the_messages_rclpy_reads():
+    from rclpy.serialization import deserialize_message
+    for typed, raw, cls in _typed_and_raw():
+        assert deserialize_message(raw, cls) == typed, cls.__name__
+
+
+def test_cdr_decoders_read_what_rclpy_writes():
+    from rclpy.serialization import serialize_message
+    (js, _, _), (js0, _, _), _, (vm, _, _), (ref, _, _) = _typed_and_raw()
+    assert A.joint_state_to_um(serialize_message(js), True) == \
+        A.joint_state_to_um(js, True)
+    assert A.joint_state_to_um(serialize_message(js0), True)[2] is None  # no effort
+    assert A.voltage_from_msg(serialize_message(vm)) == A.voltage_from_msg(vm)
+    assert A.reference_from_msg(serialize_message(ref)) == A.reference_from_msg(ref)
+    # a lab node's JointState: other frame, names in another order, extra joint, velocity
+    from sensor_msgs.msg import JointState
+    other = JointState(name=["z", "y", "x"], position=[1.0, 2e-6, 3e-6],
+                       velocity=[0.0, 0.0, 0.0])
+    other.header.frame_id = "piezo_base_link"
+    other.header.stamp.sec, other.header.stamp.nanosec = 4, 5
+    ns, w = A.joint_state_to_um(serialize_message(other))
+    assert ns == 4_000_000_005 and w == pytest.approx({"x": 3.0, "y": 2.0})
+
+
+def test_cdr_big_endian_and_xcdr2_are_read():
+    import struct
+    from piezo_stage_msgs_adapters import cdr
+    # Vector3Stamped, big-endian XCDR1: stamp, frame "s", pad to 8, three doubles
+    be = b"\x00\x00\x00\x00" + struct.pack(">iI", 1, 2) + struct.pack(">I", 2) + b"s\x00" \
+        + b"\x00" * 2 + struct.pack(">3d", 1.5, -2.5, 0.0)
+    assert A.voltage_from_msg(be) == (1_000_000_002, {"x": 1.5, "y": -2.5})
+    # the same in little-endian XCDR2 (8-byte values aligned to 4: no padding here)
+    le2 = b"\x00\x07\x00\x00" + struct.pack("<iI", 1, 2) + struct.pack("<I", 2) + b"s\x00" \
+        + b"\x00" * 2 + struct.pack("<3d", 1.5, -2.5, 0.0)
+    assert cdr.decode_vector3_stamped(le2) == (1_000_000_002, "s", (1.5, -2.5, 0.0))
+
+
+def test_cdr_rejects_malformed_and_non_finite():
+    raw = A.joint_state_cdr(1, W, V)
+    for bad in (b"", b"\x00\x01", raw[:30], raw[:-8], b"\x01\x01\x00\x00" + raw[4:],
+                b"\x00\x02\x00\x00" + raw[4:]):  # empty, truncated, unknown encapsulation
+        with pytest.raises(DataError):
+            A.joint_state_to_um(bad, True)
+    assert int.from_bytes(raw[24:28], "little") == 2  # the name count
+    huge = raw[:24] + (10 ** 6).to_bytes(4, "little") + raw[28:]
+    with pytest.raises(DataError, match="sequence longer"):
+        A.joint_state_to_um(huge)
+    with pytest.raises(DataError, match="NaN"):
+        A.voltage_from_msg(A.voltage_cdr(1, {"x": math.nan, "y": 0.0}))
+    with pytest.raises(DataError, match="reference"):
+        A.reference_from_msg(raw)  # a joint_states message is not a reference

@@ -42,6 +42,12 @@ def test_deterministic_for_seed_and_chunking(cfg):
     steps = np.array([p.step(x, y) for x, y in zip(v, v[::-1])])
     np.testing.assert_array_equal(steps[:, 0], a["x"])
     np.testing.assert_array_equal(steps[:, 1], a["y"])
+    # the compiled single step and the batch path share state: any interleaving
+    p = Plant(cfg, 1000)
+    first = np.array([p.step(x, y) for x, y in zip(v[:700], v[::-1][:700])])
+    rest = p.run(v[700:], v[::-1][700:])
+    np.testing.assert_array_equal(first[:, 0], a["x"][:700])
+    np.testing.assert_array_equal(rest["y"], a["y"][700:])
     c = copy.deepcopy(cfg)
     c.seed = 7
     d = Plant(c, 1000).run(v, v[::-1])
@@ -144,3 +150,18 @@ def test_unknown_effect_rejected(cfg):
         Plant(with_effect(cfg, "magic"), 1000)
     with pytest.raises(ConfigError):
         Plant(with_effect(cfg, "creep", gama=0.1), 1000)
+
+
+def test_compiled_step_matches_batch_at_limits(cfg):
+    """Steps beyond the clamp and the slew limit: the compiled single step counts the
+    same limit hits and reports the same true and applied values as the batch path."""
+    c = copy.deepcopy(cfg)
+    c.slew_V_per_s = 2.0e4  # 2 V per 10 kHz substep: the 0 -> 160 V jumps hit it
+    v = np.r_[np.zeros(5), np.full(20, 160.0), np.full(20, -5.0), np.linspace(0, 150, 40)]
+    a, b = Plant(c, 1000), Plant(c, 1000)
+    batch = a.run(v, v[::-1])
+    for k, (x, y) in enumerate(zip(v, v[::-1])):
+        assert b.step(x, y) == (batch["x"][k], batch["y"][k])
+    assert b.limit_hits == a.limit_hits > 0
+    assert b.last_true["x"][0] == a.last_true["x"][-1]
+    assert b.last_applied["y"][0] == a.last_applied["y"][-1]

@@ -89,6 +89,70 @@ def slew_clamp_run(v, v_prev, v_min, v_max, max_step, out):
 
 
 @njit
+def plant_step(vx, vy, vstate, dstate, alpha, H, present, substeps, v_min, v_max,
+               max_step, noise, noise_rms, quant, out):
+    """One command period of the effect-free plant, compiled (``Plant.step``).
+
+    Same arithmetic, in the same order, as ``Plant.run`` on one command: per substep
+    the amplifier (clamp, then slew, as ``slew_clamp_run``) and the Duhem steps of the
+    models x, y, coupling into x (driven by y), coupling into y (driven by x); then the
+    sensor. ``vstate[2]`` amplifier outputs; ``dstate[4, 2]`` (v, w) per model;
+    ``alpha[4, 2]``, ``H[4, 2, D]``; ``present[4]``. Writes ``out[6]`` = measured x, y,
+    true x, y, applied x, y; returns the number of substeps that hit a limit.
+    """
+    hits = 0
+    wx = 0.0
+    wy = 0.0
+    for _ in range(substeps):
+        for a in range(2):
+            x = vx if a == 0 else vy
+            p = vstate[a]
+            hit = False
+            if x > v_max:
+                x = v_max
+                hit = True
+            elif x < v_min:
+                x = v_min
+                hit = True
+            d = x - p
+            if d > max_step:
+                x = p + max_step
+                hit = True
+            elif d < -max_step:
+                x = p - max_step
+                hit = True
+            if hit:
+                hits += 1
+            vstate[a] = x
+        for a in range(2):
+            w = 0.0
+            if present[a]:
+                w = duhem_step(dstate[a, 0], dstate[a, 1], vstate[a], alpha[a], H[a])
+                dstate[a, 0] = vstate[a]
+                dstate[a, 1] = w
+                c = 2 + a
+                if present[c]:
+                    wc = duhem_step(dstate[c, 0], dstate[c, 1], vstate[1 - a], alpha[c],
+                                    H[c])
+                    dstate[c, 0] = vstate[1 - a]
+                    dstate[c, 1] = wc
+                    w = w + wc
+            if a == 0:
+                wx = w
+            else:
+                wy = w
+    out[2] = wx
+    out[3] = wy
+    for a in range(2):
+        m = out[2 + a] + noise_rms * noise[a]
+        if quant > 0.0:
+            m = np.round(m / quant) * quant
+        out[a] = m
+        out[4 + a] = vstate[a]
+    return hits
+
+
+@njit
 def _branch_residual(dv, vp, wp, wt, alpha, H):
     # r(dv) = (w_prev + dv H(v_prev+dv)) - (1 + alpha |dv|) w_target: zero where the
     # forward step from (v_prev, w_prev) lands exactly on w_target.

@@ -75,9 +75,9 @@ class SimBackend:
         self.slew_V_per_s = cfg.slew_V_per_s
 
     def step(self, vx, vy):
-        m = self.plant.run([vx], [vy])
+        mx, my = self.plant.step(vx, vy)
         true = {a: float(x[0]) for a, x in self.plant.last_true.items()}
-        return {a: float(x[0]) for a, x in m.items()}, true, {"x": vx, "y": vy}
+        return {"x": mx, "y": my}, true, {"x": vx, "y": vy}
 
     def close(self):
         pass

@@ -7,6 +7,7 @@ import time
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
+from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -24,17 +25,46 @@ QOS_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 QOS_DIAG = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 
 
+class LeanLoop(CallbackGroup):
+    """Callback group of a node's per-sample subscriptions: served by the lean loop in
+    ``_spin`` and never by the executor (``can_execute`` is False), so the executor's
+    slow path neither builds them into its wait set nor dispatches them."""
+
+    def can_execute(self, entity):
+        return False
+
+    def beginning_execution(self, entity):
+        return False
+
+    def ending_execution(self, entity):
+        pass
+
+
+def hot_subscription(node, msg_type, topic, callback, qos, raw=False):
+    """A per-sample subscription (lockstep inputs, the recorder's topics), dispatched by
+    the lean loop. With ``raw`` the callback gets the CDR bytes."""
+    group = node.__dict__.setdefault("_lean_group", LeanLoop())
+    sub = node.create_subscription(msg_type, topic, callback, qos, callback_group=group,
+                                   raw=raw)
+    node.__dict__.setdefault("_hot", []).append(sub)
+    node.hot_changed = True
+    return sub
+
+
+SLOW_PERIOD_S = 0.05  # the executor's turn (timers, services, other topics) in the lean loop
+
+
 def _spin(node):
-    """Spin; a node's ``hot_subscriptions()`` (its per-sample inputs in lockstep) are
-    served by a lean wait-set loop that takes and dispatches their messages directly,
-    while the default executor serves everything else (timers, services, other
-    subscriptions) every few milliseconds. The default executor costs ~0.3-0.5 ms of
-    CPU per callback here, too much for a 1 kHz loop through four processes."""
+    """Spin. A node's hot subscriptions (``hot_subscription``) are served by a lean
+    wait-set loop that takes and dispatches their messages directly; the default
+    executor serves everything else (timers, services, parameters, other topics) every
+    ``SLOW_PERIOD_S``. The default executor costs ~0.3-0.5 ms of CPU per callback here,
+    too much for a 1 kHz loop through four processes."""
     from contextlib import ExitStack
     from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
     executor = rclpy.executors.SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
-    if not list(getattr(node, "hot_subscriptions", lambda: [])()):
+    if not getattr(node, "_hot", None):
         executor.spin()
         return
     ctx = node.context
@@ -43,25 +73,24 @@ def _spin(node):
         ws = None
         last = 0.0
         while ctx.ok():
-            if ws is None or getattr(node, "hot_changed", False):  # (re)build the wait set
+            if ws is None or node.hot_changed:  # (re)build the wait set
                 node.hot_changed = False
                 stack.close()
-                hot = list(node.hot_subscriptions())
-                for sub in hot:
-                    stack.enter_context(sub.handle)
+                hot = [(s.handle, s.msg_type, s.raw, s.callback) for s in node._hot]
+                for h, *_ in hot:
+                    stack.enter_context(h)
                 ws = _rclpy.WaitSet(len(hot), 0, 0, 0, 0, 0, ctx.handle)
             ws.clear_entities()
-            for sub in hot:
-                ws.add_subscription(sub.handle)
+            for h, *_ in hot:
+                ws.add_subscription(h)
             ws.wait(2_000_000)  # ns: wake at least every 2 ms for the slow work
-            for sub in hot:
-                while True:
-                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
-                    if taken is None:
-                        break
-                    sub.callback(taken[0])
+            for h, msg_type, raw, callback in hot:
+                taken = h.take_message(msg_type, raw)
+                while taken is not None:
+                    callback(taken[0])
+                    taken = h.take_message(msg_type, raw)
             now = time.monotonic()
-            if now - last > 0.02:
+            if now - last > SLOW_PERIOD_S:
                 last = now
                 executor.spin_once(timeout_sec=0)
     finally:

@@ -13,8 +13,9 @@ from sensor_msgs.msg import JointState
 
 from piezo_stage.core.control import PID, PIDGains, composite
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.nodes._common import QOS_DATA, Diagnostics, Gate, declare, run
-from piezo_stage_msgs_adapters import reference_from_msg, voltage_msg
+from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, Gate, declare,
+                                       hot_subscription, run)
+from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
 from rclpy.node import Node
 
 
@@ -35,12 +36,8 @@ class Controller(Node):
         self.pub = self.create_publisher(Vector3Stamped, "command", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "command subscribers to wait for"))])
-        self.hot = [self.create_subscription(JointState, "reference", self.on_reference,
-                                             QOS_DATA)]
+        hot_subscription(self, JointState, "reference", self.on_reference, QOS_DATA, raw=True)
         Diagnostics(self, lambda: (0, "ok", {**self.stats, "feedback": self.feedback}))
-
-    def hot_subscriptions(self):
-        return self.hot
 
     def on_reference(self, msg):
         try:
@@ -63,7 +60,7 @@ class Controller(Node):
             else:
                 v[a] = min(max(ff[a], self.limits[0]), self.limits[1])
         self.stats["commands"] += 1
-        self.gate.publish(self.pub, voltage_msg(ns, v))
+        self.gate.publish(self.pub, voltage_cdr(ns, v))
 
 
 def main(args=None):

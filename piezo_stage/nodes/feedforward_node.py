@@ -16,8 +16,9 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
-from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, Diagnostics, Gate, declare, run
-from piezo_stage_msgs_adapters import (joint_state_to_um, model_from_msg, reference_msg,
+from piezo_stage.nodes._common import (QOS_DATA, QOS_LATCHED, Diagnostics, Gate, declare,
+                                       hot_subscription, run)
+from piezo_stage_msgs_adapters import (joint_state_to_um, model_from_msg, reference_cdr,
                                        setpoint_from_msg, trajectory_from_msg)
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -41,23 +42,19 @@ class Feedforward(Node):
         self.inv, self.model_name, self.traj, self.t_start = None, "nominal", None, None
         self.desired, self.last_ns, self.ff = None, -1, {"x": 0.0, "y": 0.0}
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
-                      "saturated": 0}
+                      "saturated": 0, "bad_messages": 0}
         if model_file:
             from piezo_stage.io.model_file import load_model
             self.set_model(load_model(model_file)[0], model_file)
         self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "reference subscribers to wait for"))])
-        self.hot = [self.create_subscription(JointState, "joint_states", self.on_state,
-                                             QOS_DATA)]
+        hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True)
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
         Diagnostics(self, lambda: (0, "ok", {**self.stats, "model": self.model_name}))
-
-    def hot_subscriptions(self):
-        return self.hot
 
     def set_model(self, model, name):
         inv = StageInverse(model, use_coupling=self.use_c)
@@ -93,7 +90,11 @@ class Feedforward(Node):
             self.get_logger().warning(f"setpoint rejected: {e}")
 
     def on_state(self, msg):
-        ns, w, v_applied = joint_state_to_um(msg, with_effort=True)
+        try:
+            ns, w, v_applied = joint_state_to_um(msg, with_effort=True)
+        except PiezoStageError:
+            self.stats["bad_messages"] += 1
+            return
         if ns <= self.last_ns:
             return  # duplicates change nothing
         self.last_ns, t_next = ns, ns + self.dt_ns
@@ -119,7 +120,7 @@ class Feedforward(Node):
         else:
             self.ff = {a: min(max(self.desired[a] / self.gain, self.limits[0]), self.limits[1])
                        for a in ("x", "y")}
-        self.gate.publish(self.pub, reference_msg(t_next, self.desired, self.ff, w))
+        self.gate.publish(self.pub, reference_cdr(t_next, self.desired, self.ff, w))
 
 
 def main(args=None):

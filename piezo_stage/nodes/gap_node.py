@@ -16,7 +16,8 @@ from piezo_stage.core.plant import Plant, PlantConfig
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir, enabled_effects
-from piezo_stage.nodes._common import QOS_DATA, Diagnostics, Gate, declare, run
+from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, Gate, declare,
+                                       hot_subscription, run)
 from piezo_stage_msgs_adapters import joint_state_to_um, point_msg
 from rclpy.node import Node
 
@@ -40,12 +41,9 @@ class Gap(Node):
         self.pub = self.create_publisher(PointStamped, "gap/residual", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "residual subscribers to wait for"))])
-        self.hot = [self.create_subscription(JointState, "joint_states", self.on_state,
-                                             QOS_DATA)]
+        hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
+                         raw=True)
         Diagnostics(self, self.status)
-
-    def hot_subscriptions(self):
-        return self.hot
 
     def on_state(self, msg):
         try:

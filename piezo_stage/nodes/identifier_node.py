@@ -17,7 +17,8 @@ from piezo_stage.core.identify import IdentifyOptions, identify_axis
 from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.record import Record
 from piezo_stage.io.model_file import model_to_dict
-from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, Diagnostics, declare, run
+from piezo_stage.nodes._common import (QOS_DATA, QOS_LATCHED, Diagnostics, declare,
+                                       hot_subscription, run)
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
 from rclpy.node import Node
 
@@ -37,14 +38,11 @@ class Identifier(Node):
         self.stats = {"samples": 0, "identifications": 0, "last_fit_rms_um": float("nan"),
                       "last_error": ""}
         self.pub = self.create_publisher(String, "model", QOS_LATCHED)
-        self.hot = [self.create_subscription(JointState, "joint_states", self.on_state,
-                                             QOS_DATA)]
+        hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
+                         raw=True)
         self.create_service(Trigger, "~/identify", self.on_identify)
         self.create_timer(0.5, self.on_timer)
         Diagnostics(self, lambda: (0 if not self.stats["last_error"] else 1, "ok", self.stats))
-
-    def hot_subscriptions(self):
-        return self.hot
 
     def on_state(self, msg):
         ns, w, v = joint_state_to_um(msg, with_effort=True)

@@ -14,7 +14,8 @@ import os
 import struct
 
 from piezo_stage.io.bag import BagWriter, new_bag_dir
-from piezo_stage.nodes._common import QOS_DATA, QOS_DIAG, QOS_LATCHED, Diagnostics, declare, run
+from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_LATCHED, Diagnostics, declare,
+                                       hot_subscription, run)
 from rclpy.node import Node
 
 CONTRACT = {  # relative name: (type, latched)
@@ -59,9 +60,6 @@ class Recorder(Node):
                                   lo=0.01, hi=60.0), self.bag.flush)
         Diagnostics(self, lambda: (0, "ok", {"bag": out, **self.bag.counts}))
 
-    def hot_subscriptions(self):
-        return list(self.subs.values())  # everything recorded is served by the lean loop
-
     def resolve_topic_name(self, rel):
         return rel if rel.startswith("/") else f"{self.get_namespace().rstrip('/')}/{rel}"
 
@@ -71,10 +69,9 @@ class Recorder(Node):
         self.bag.add_topic(topic, msgtype)
         stamped = msgtype in STAMPED
         qos = QOS_LATCHED if latched else (QOS_DIAG if topic == "/diagnostics" else QOS_DATA)
-        self.hot_changed = True
-        self.subs[topic] = self.create_subscription(
-            msg_class(msgtype), topic, lambda data: self.write(topic, data, stamped), qos,
-            raw=True)
+        self.subs[topic] = hot_subscription(  # everything recorded: the lean loop
+            self, msg_class(msgtype), topic, lambda data: self.write(topic, data, stamped),
+            qos, raw=True)
 
     def discover(self):
         for topic, types in self.get_topic_names_and_types():

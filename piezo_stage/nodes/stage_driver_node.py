@@ -17,9 +17,9 @@ from std_srvs.srv import Trigger
 
 from piezo_stage.core.errors import DataError
 from piezo_stage.drivers import DRIVER_PARAMS, clamp_slew, make_backend, step_period_summary
-from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, Gate, declare, run,
-                                       validate_choices)
-from piezo_stage_msgs_adapters import joint_state, point_msg, voltage_from_msg
+from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, Gate, declare, hot_subscription,
+                                       run, validate_choices)
+from piezo_stage_msgs_adapters import joint_state_cdr, point_cdr, voltage_from_msg
 import rclpy
 from rclpy.duration import Duration
 from rclpy.node import Node
@@ -46,8 +46,9 @@ class StageDriver(Node):
         lock = p["mode"] == "lockstep"
         self.gate = Gate(self, [(self.jpub, p["min_subs"] * lock),
                                 (self.tpub, p["min_rec"] * lock * (p["backend"] == "sim"))])
-        self.cmd_sub = self.create_subscription(Vector3Stamped, "command", self.on_command,
-                                                QOS_DATA)
+        sub = (lambda *a, **k: hot_subscription(self, *a, **k)) if lock \
+            else self.create_subscription
+        sub(Vector3Stamped, "command", self.on_command, QOS_DATA, raw=True)
         self.create_service(Trigger, "estop", self.on_estop)
         Diagnostics(self, self.status, hardware_id=p["backend"])
         self._last_tick = time.monotonic()
@@ -55,9 +56,6 @@ class StageDriver(Node):
         if p["mode"] == "realtime":
             self.create_timer(self.dt, self.on_tick)
         self.advance(self.v)  # sample 0: the stage at rest
-
-    def hot_subscriptions(self):
-        return [self.cmd_sub] if self.p["mode"] == "lockstep" else []
 
     def stamp(self, k):
         return self.t0_ns + int(round(k * self.dt * 1e9))
@@ -76,9 +74,9 @@ class StageDriver(Node):
         w, true, applied = self.backend.step(v["x"], v["y"])
         self.v = v
         ns = self.stamp(self.k)
-        self.gate.publish(self.jpub, joint_state(ns, w, applied))
+        self.gate.publish(self.jpub, joint_state_cdr(ns, w, applied))
         if true is not None:
-            self.gate.publish(self.tpub, point_msg(ns, true))
+            self.gate.publish(self.tpub, point_cdr(ns, true))
         self.k += 1
         self.stats["steps"] = self.k
         self.step_times.append(time.perf_counter())
