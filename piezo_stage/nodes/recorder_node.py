@@ -51,6 +51,9 @@ class Recorder(Node):
                 meta["piezo_stage_" + key.split("_")[0]] = {"path": path,
                                                             "yaml": open(path).read()}
         self.bag = BagWriter(out, metadata=meta)
+        # off the loop's critical path: take what arrived every few ms, not per message
+        self.hot_batch_s = declare(self, "batch_period_s", 0.004, "wait between takes "
+                                   "[s]; queues hold 5000 samples per topic", lo=0.0, hi=60.0)
         self.get_logger().info(f"recording to {out}")
         self.subs = {}
         for rel, (msgtype, latched) in CONTRACT.items():
