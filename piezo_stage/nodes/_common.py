@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import time
 
 import rclpy
@@ -127,6 +128,10 @@ def run(node_factory, args=None):
     code = 0
     try:
         node = node_factory()
+        # what exists now (modules, the node) lives for the whole run: keep it out of the
+        # cyclic collector's scans, so a full collection is not a multi-ms loop stall
+        gc.collect()
+        gc.freeze()
         _spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
