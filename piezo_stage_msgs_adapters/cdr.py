@@ -15,6 +15,7 @@ the NUL, then the bytes; sequences are a uint32 count, then the elements.
 
 from __future__ import annotations
 
+import functools
 import struct
 
 from piezo_stage.core.errors import DataError
@@ -114,17 +115,42 @@ class _Writer:
         return b"".join(self.parts)
 
 
-def encode_joint_state(ns: int, frame_id: str, names, position=(), velocity=(),
-                       effort=()) -> bytes:
-    """sensor_msgs/msg/JointState as CDR bytes."""
+@functools.lru_cache(maxsize=64)
+def _joint_state_layout(frame_id: str, names: tuple, counts: tuple):
+    """Template bytes (zero stamp and values) of a JointState layout and the offsets
+    and packers of its stamp and value blocks: encoding is then a copy and a few packs."""
     w = _Writer()
-    w.header(ns, frame_id)
+    w.header(0, frame_id)
     w._put(struct.pack("<I", len(names)), 4)
     for n in names:
         w.string(n)
-    for seq in (position, velocity, effort):
-        w.double_seq(seq)
-    return w.bytes()
+    blocks = []
+    for n in counts:
+        w._put(struct.pack("<I", n), 4)
+        if n:
+            w._put(bytes(8 * n), 8)
+            blocks.append((4 + w.pos - 8 * n, struct.Struct(f"<{n}d")))
+        else:
+            blocks.append(None)
+    return w.bytes(), tuple(blocks)
+
+
+_STAMP_LE = struct.Struct("<iI")
+
+
+def encode_joint_state(ns: int, frame_id: str, names, position=(), velocity=(),
+                       effort=()) -> bytes:
+    """sensor_msgs/msg/JointState as CDR bytes."""
+    seqs = (position, velocity, effort)
+    template, blocks = _joint_state_layout(frame_id, tuple(names),
+                                           tuple(len(x) for x in seqs))
+    buf = bytearray(template)
+    ns = int(ns)
+    _STAMP_LE.pack_into(buf, 4, ns // 1_000_000_000, ns % 1_000_000_000)
+    for blk, vals in zip(blocks, seqs):
+        if blk is not None:
+            blk[1].pack_into(buf, blk[0], *vals)
+    return bytes(buf)
 
 
 def decode_joint_state(data: bytes):

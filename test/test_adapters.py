@@ -81,6 +81,17 @@ def test_cdr_encoders_give_the_messages_rclpy_reads():
     from rclpy.serialization import deserialize_message
     for typed, raw, cls in _typed_and_raw():
         assert deserialize_message(raw, cls) == typed, cls.__name__
+    # other layouts (odd name lengths, velocity only, long frame) use their own templates
+    from piezo_stage_msgs_adapters import cdr
+    from sensor_msgs.msg import JointState
+    for names, pos, vel, eff, frame in ((["a", "bb", "ccc"], [1.0, 2.0, 3.0],
+                                         [4.0, 5.0, 6.0], [], "f"),
+                                        (["x"], [], [], [7.5], "a_longer_frame_id_")):
+        m = deserialize_message(cdr.encode_joint_state(5_000_000_006, frame, names, pos,
+                                                       vel, eff), JointState)
+        assert (m.header.frame_id, list(m.name), list(m.position), list(m.velocity),
+                list(m.effort)) == (frame, names, pos, vel, eff)
+        assert (m.header.stamp.sec, m.header.stamp.nanosec) == (5, 6)
 
 
 def test_cdr_decoders_read_what_rclpy_writes():

@@ -237,6 +237,18 @@ def duhem_inverse_run(w_target, v_prev, w_prev, alpha, H, v_min, v_max, n_scan,
 
 
 @njit
+def stage_sync(vx, vy, vp, wp, alpha, H, cvp, cwp, calpha, cH):
+    """Advance a 2-axis model (direct and coupling parts) by the applied voltages."""
+    for a in range(2):
+        va = vx if a == 0 else vy
+        vo = vy if a == 0 else vx
+        wp[a] = duhem_step(vp[a], wp[a], va, alpha[a], H[a])
+        cwp[a] = duhem_step(cvp[a], cwp[a], vo, calpha[a], cH[a])
+        vp[a] = va
+        cvp[a] = vo
+
+
+@njit
 def stage_inverse_step(target, vp, wp, alpha, H, cvp, cwp, calpha, cH, use_c, v_min,
                        v_max, sweeps, n_scan, out):
     """Joint inverse of a 2-axis model with coupling for one sample (axis 0 = x, 1 = y).

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from piezo_stage.core._jit import as_f64, duhem_inverse_run, duhem_step, stage_inverse_step
+from piezo_stage.core._jit import as_f64, duhem_inverse_run, stage_inverse_step, stage_sync
 from piezo_stage.core.duhem import AXES, OTHER, DuhemModel, DuhemState, StageModel
 from piezo_stage.core.errors import DataError
 
@@ -159,6 +159,8 @@ class StageInverse:
         for i, k in enumerate(ckp):
             self._cH[i, :, :k[1].shape[1]] = k[1]
         self._out = np.zeros((4, 2))
+        self._target = np.zeros(2)
+        self._present = tuple(bool(p) for p in self.present)
         self.saturated = 0
         self.reset()
 
@@ -186,23 +188,22 @@ class StageInverse:
         """Advance the model with the voltages really applied (feedforward plus
         feedback, after the driver's limits), so the next inverse starts from the
         state the stage is actually in rather than from the feedforward's own output."""
-        v = (float(vx), float(vy))
-        for a in range(2):
-            self.wp[a] = duhem_step(self.vp[a], self.wp[a], v[a], self._alpha[a], self._H[a])
-            self.cwp[a] = duhem_step(self.cvp[a], self.cwp[a], v[1 - a], self._calpha[a],
-                                     self._cH[a])
-        self.vp[:] = v
-        self.cvp[:] = v[::-1]
+        stage_sync(float(vx), float(vy), self.vp, self.wp, self._alpha, self._H, self.cvp,
+                   self.cwp, self._calpha, self._cH)
 
     def step(self, wx: float, wy: float, commit: bool = True):
         """Voltages for the targets; ``commit=False`` leaves the state for ``sync``."""
-        o = stage_inverse_step(np.array([wx, wy], float), self.vp, self.wp, self._alpha,
-                               self._H, self.cvp, self.cwp, self._calpha, self._cH,
-                               self.use_coupling, self.limits[0], self.limits[1],
-                               self.sweeps, N_SCAN, self._out)
-        v = np.where(self.present, o[0], self.limits[0])
-        sat = {a: bool(o[3, i]) and bool(self.present[i]) for i, a in enumerate(AXES)}
-        self.saturated += sum(sat.values())
+        t = self._target
+        t[0], t[1] = wx, wy
+        o = stage_inverse_step(t, self.vp, self.wp, self._alpha, self._H, self.cvp,
+                               self.cwp, self._calpha, self._cH, self.use_coupling,
+                               self.limits[0], self.limits[1], self.sweeps, N_SCAN,
+                               self._out)
+        vx, vy, sx, sy = o[0, 0], o[0, 1], o[3, 0], o[3, 1]
+        px, py = self._present
+        vx, vy = float(vx) if px else self.limits[0], float(vy) if py else self.limits[0]
+        sat = {"x": bool(sx) and px, "y": bool(sy) and py}
+        self.saturated += sat["x"] + sat["y"]
         if commit:
-            self.sync(v[0], v[1])
-        return float(v[0]), float(v[1]), sat
+            self.sync(vx, vy)
+        return vx, vy, sat
