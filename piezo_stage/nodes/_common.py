@@ -140,6 +140,7 @@ def run(node_factory, args=None):
         sys.stderr.write(f"{getattr(node, 'get_name', lambda: 'node')()}: fatal: {e}\n")
         code = 1
     finally:
+        gc.unfreeze()  # teardown as usual: the middleware's objects are collected
         if node is not None:
             close = getattr(node, "close", None)
             if close:
