@@ -86,6 +86,18 @@ def test_fast_fits_coupling_when_both_axes_move(cfg):
     assert without.fit["rms_um"] > 1.5 * with_c.fit["rms_um"]
 
 
+def test_coupling_not_fitted_when_both_axes_get_the_same_waveform(cfg):
+    """vy = 0.9 vx + 5: any split between the direct and the coupling term fits, so
+    'auto' leaves the coupling out (and says why) and 'on' refuses."""
+    rec = record(cfg, fs=2000, cycles=2,
+                 vy=lambda t: 0.9 * (75 - 75 * np.cos(2 * np.pi * t)) + 5)
+    res = identify_axis(rec, "x")
+    assert res.coupling is None
+    assert any("not identifiable" in n and "correlation" in n for n in res.notes)
+    with pytest.raises(DataError, match="moved in step"):
+        identify_axis(rec, "x", IdentifyOptions(coupling="on"))
+
+
 def test_validation_on_other_frequency(cfg):
     fit = record(cfg, freq=1.0, seed=1)
     res = identify_axis(fit, "x")

@@ -76,28 +76,31 @@ def _spin(node):
         ws = None
         last = 0.0
         while ctx.ok():
-            if ws is None or node.hot_changed:  # (re)build the wait set
-                node.hot_changed = False
-                stack.close()
-                hot = [(s.handle, s.msg_type, s.raw, s.callback) for s in node._hot]
+            try:
+                if ws is None or node.hot_changed:  # (re)build the wait set
+                    node.hot_changed = False
+                    stack.close()
+                    hot = [(s.handle, s.msg_type, s.raw, s.callback) for s in node._hot]
+                    for h, *_ in hot:
+                        stack.enter_context(h)
+                    ws = _rclpy.WaitSet(len(hot), 0, 0, 0, 0, 0, ctx.handle)
+                ws.clear_entities()
                 for h, *_ in hot:
-                    stack.enter_context(h)
-                ws = _rclpy.WaitSet(len(hot), 0, 0, 0, 0, 0, ctx.handle)
-            ws.clear_entities()
-            for h, *_ in hot:
-                ws.add_subscription(h)
-            ws.wait(2_000_000)  # ns: wake at least every 2 ms for the slow work
-            _take_all(hot)
-            now = time.monotonic()
-            if now - last > SLOW_PERIOD_S:
-                last = now
-                executor.spin_once(timeout_sec=0)
-            if batch:  # a node off the loop's critical path (the recorder) wakes less
-                time.sleep(batch)
-    except KeyboardInterrupt:
-        _drain(hot)
-        raise
-    else:
+                    ws.add_subscription(h)
+                ws.wait(2_000_000)  # ns: wake at least every 2 ms for the slow work
+                _take_all(hot)
+                now = time.monotonic()
+                if now - last > SLOW_PERIOD_S:
+                    last = now
+                    executor.spin_once(timeout_sec=0)
+                if batch:  # a node off the loop's critical path (the recorder) wakes less
+                    t_end = now + batch
+                    while ctx.ok() and time.monotonic() < t_end:
+                        time.sleep(min(batch, 0.02))
+            except Exception:
+                if ctx.ok():
+                    raise
+                break  # SIGINT shut the context down mid-iteration: rcl calls now fail
         _drain(hot)
     finally:
         stack.close()
@@ -121,8 +124,17 @@ def _take_all(hot):
             taken = h.take_message(msg_type, raw)
 
 
+def _shutdown_only(signum, frame):
+    """SIGINT: rclpy's own handler (installed by init, chained to this one) has already
+    shut the context down from its thread; the spin loops see that and return. Raising
+    KeyboardInterrupt here instead would unwind from an arbitrary point inside the
+    executor, which on rare occasions left a node hanging or crashing at teardown."""
+
+
 def run(node_factory, args=None):
     """Jazzy form: init; try spin; except interrupt/external shutdown; finally clean up."""
+    import signal
+    signal.signal(signal.SIGINT, _shutdown_only)  # before init: rclpy chains to it
     rclpy.init(args=args)
     node = None
     code = 0
@@ -136,6 +148,8 @@ def run(node_factory, args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as e:  # a node that cannot run says why and exits non-zero
+        if not rclpy.ok():
+            return code  # raced with SIGINT's shutdown (rcl calls fail from then on)
         import sys
         sys.stderr.write(f"{getattr(node, 'get_name', lambda: 'node')()}: fatal: {e}\n")
         code = 1

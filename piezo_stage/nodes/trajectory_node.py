@@ -1,9 +1,10 @@
 """trajectory: publishes a whole desired trajectory (trajectory_msgs/JointTrajectory).
 
 Kinds: sine, variable_sine, steps, triangle, csv, and the seed's preset
-y(t) = 21 + 24 sin(2 pi f t - pi/2) um (``seed``). ``excite_s`` > 0 prepends a 1 Hz
-full-stroke sine of that length, so the identifier has a loop to learn from before
-the tracking starts. Published once its consumers listen, again on a parameter change.
+y(t) = 21 + 24 sin(2 pi f t - pi/2) um (``seed``). ``excite_s`` > 0 prepends a
+full-stroke sine of that length (x at 1 Hz, y at ``excite_y_hz``), so the identifier
+has loops to learn from, and can tell each axis from its coupling, before the tracking
+starts. Published once its consumers listen, again on a parameter change.
 """
 
 import numpy as np
@@ -24,9 +25,11 @@ PARAMS = {  # name: (default, description)
     "amplitude_um": (24.0, "amplitude [um]"),
     "dt_s": (0.001, "point spacing [s]"),
     "csv_path": ("", "CSV t,wx,wy for kind csv"),
-    "excite_s": (0.0, "prepended 1 Hz excitation [s] (0: none)"),
+    "excite_s": (0.0, "prepended excitation [s] (0: none)"),
     "excite_center_um": (35.0, "excitation centre [um]"),
     "excite_amplitude_um": (34.0, "excitation amplitude [um]"),
+    "excite_y_hz": (1.5, "y excitation frequency [Hz] (x: 1 Hz); unequal, so the "
+                    "axes' coupling is identifiable"),
 }
 
 
@@ -48,6 +51,8 @@ class Trajectory(Node):
         if p["excite_s"] > 0:
             te, we = generate("sine", p["excite_s"], p["dt_s"], 1.0, p["excite_center_um"],
                               p["excite_amplitude_um"])
+            we["y"] = generate("sine", p["excite_s"], p["dt_s"], p["excite_y_hz"],
+                               p["excite_center_um"], p["excite_amplitude_um"])[1]["y"]
             # blend into the tracking start over 0.2 s so no step is asked for
             tb = np.arange(1, int(0.2 / p["dt_s"]) + 1) * p["dt_s"]
             wb = {a: we[a][-1] + (w[a][0] - we[a][-1]) * (1 - np.cos(np.pi * tb / 0.2)) / 2

@@ -18,6 +18,11 @@ METHODS = ("fast", "afsa", "afsa-bat")
 MIN_BRANCH_SAMPLES = 20
 
 
+# |correlation| of the two axes' voltages above which direct and coupling terms cannot
+# be told apart (the same waveform on both axes: any split of the response fits)
+COLLINEAR = 0.99
+
+
 @dataclass
 class IdentifyOptions:
     """method: fast | afsa | afsa-bat; structure: whole | segmented; n, m: degrees of f
@@ -137,6 +142,16 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
              and v_other is not None and np.ptp(v_other) > 0.05 * np.ptp(v)))
     if use_c and v_other is None:
         raise DataError(f"coupling requested but the record has no v{other}")
+    if use_c:  # a coupling term needs the other axis to move on its own
+        r = abs(float(np.corrcoef(v, v_other)[0, 1]))
+        if r > COLLINEAR:
+            why = (f"v{other} moved in step with v{axis} (correlation {r:.4f}), so a "
+                   f"coupling term is not identifiable from this record; excite the axes "
+                   f"separately or at different frequencies")
+            if opts.coupling == "on":
+                raise DataError(why)
+            use_c = False
+            notes.append("no coupling term: " + why)
     if use_c and opts.method != "fast":
         raise DataError("a coupling term is fitted by the fast method only")
     if opts.structure == "segmented":
@@ -146,7 +161,7 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
     if opts.method == "fast":
         from piezo_stage.core.identify.fast import fit_fast
         reg = DuhemRegression(v, w, opts.structure, opts.n, opts.m,
-                              v_other if use_c else None)
+                              v_other if use_c else None, coupling_state=False)
         alphas, fit, hist = fit_fast(reg, opts.budget, progress)
         model, coupling = reg.models(alphas, fit.theta)
         evaluations = reg.evaluations

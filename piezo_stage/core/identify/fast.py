@@ -1,8 +1,8 @@
 """The ``fast`` solver: variable projection over alpha, exact least squares for the rest.
 
-The search runs on log(alpha) in [1e-5, 10] 1/V: a coarse grid over a shared alpha,
-then Nelder-Mead over all alphas (one per branch, plus one for a coupling term) from
-the best grid point. Each evaluation is one compiled regressor pass and one small
+The search runs on log(alpha) in [1e-5, 10] 1/V (a coupling term's from 1e-3): a
+coarse grid over a shared alpha, then Nelder-Mead over all alphas (one per branch, plus
+one for a coupling term) from the best grid point. Each evaluation is one compiled regressor pass and one small
 least-squares solve, so the whole fit of 10,000 samples takes a fraction of a second.
 """
 
@@ -14,6 +14,10 @@ from scipy.optimize import minimize
 from piezo_stage.core.identify.regress import DuhemRegression
 
 LOG_ALPHA_BOUNDS = (np.log(1e-5), np.log(10.0))
+# A coupling term's alpha stays above 1e-3 1/V (its state forgets within ~1,000 V of the
+# other axis's travel): a small effect below the noise leaves its alpha unconstrained,
+# and a term that hardly forgets integrates f |dv| into a drift nobody measured.
+LOG_COUPLING_ALPHA_MIN = np.log(1e-3)
 GRID = 21
 
 
@@ -25,11 +29,15 @@ def fit_fast(reg: DuhemRegression, budget: int | None = None, progress=None, x0=
     in log(alpha) (refits after a small change of the problem)."""
     history = []
     best = {"rms": np.inf, "alphas": None, "fit": None}
+    k = reg.n_alpha
     lo, hi = LOG_ALPHA_BOUNDS
+    lows = np.full(k, lo)
+    if reg.v_other is not None:
+        lows[-1] = LOG_COUPLING_ALPHA_MIN
     budget = budget or 400
 
     def objective(log_alphas):
-        la = np.clip(log_alphas, lo, hi)
+        la = np.clip(log_alphas, lows, hi)
         fit = reg.solve(np.exp(la))
         if fit.rms < best["rms"]:
             best.update(rms=fit.rms, alphas=np.exp(la), fit=fit)
@@ -38,7 +46,6 @@ def fit_fast(reg: DuhemRegression, budget: int | None = None, progress=None, x0=
             progress(len(history), best["rms"])
         return fit.rms if np.isfinite(fit.rms) else 1e300
 
-    k = reg.n_alpha
     if x0 is None:
         g = np.linspace(lo, hi, grid)
         g_vals = [objective(np.full(k, x)) for x in g[: max(2, min(grid, budget // 3))]]

@@ -66,7 +66,7 @@ class DuhemRegression:
     """
 
     def __init__(self, v, w, structure="segmented", n=3, m=2, v_other=None,
-                 coupling_deg=1):
+                 coupling_deg=1, coupling_state=True):
         self.v = as_f64(v)
         self.w = as_f64(w)
         self.structure = structure
@@ -76,6 +76,12 @@ class DuhemRegression:
         self.B = _basis(self.v, self.lo, self.hi, self.D)
         self.v_other = None if v_other is None else as_f64(v_other)
         self.cdeg = int(coupling_deg)
+        # coupling_state=False pins the coupling's initial output to 0: a model meant for
+        # inversion keeps every constant in the main term. Left free, a coupling whose
+        # alpha goes to 0 becomes a permanent offset split against the main term's
+        # initial state (the data cannot tell them apart), which the inverse, started
+        # mid-run from a coupling output of 0, turns into a tracking offset.
+        self.cstate = bool(coupling_state)
         if self.v_other is not None:
             self.olo, self.ohi = float(self.v_other.min()), float(self.v_other.max())
             self.Bo = _basis(self.v_other, self.olo, self.ohi, self.cdeg)
@@ -107,7 +113,7 @@ class DuhemRegression:
                              self.Bo, self._Xo)
         d1 = self.cdeg + 1
         Xa, Xd, free = X[:, :d1], X[:, d1:2 * d1], X[:, -1:]
-        return np.hstack([Xa - Xd, Xa + Xd, free])
+        return np.hstack([Xa - Xd, Xa + Xd] + ([free] if self.cstate else []))
 
     def design(self, alphas):
         alphas = np.atleast_1d(np.asarray(alphas, float))
@@ -163,8 +169,9 @@ class DuhemRegression:
         coupling = None
         if self.v_other is not None:
             c1 = self.cdeg + 1
-            o = theta[k + 1:]
+            o = theta[k + 1:k + 1 + 2 * c1 + self.cstate]  # extra columns come after
             fc = _to_power(o[:c1], self.olo, self.ohi)
             gc = _to_power(o[c1:2 * c1], self.olo, self.ohi)
-            coupling = DuhemModel.whole(alphas[-1], fc, gc, DuhemState(self.v_other[0], o[-1]))
+            w0c = float(o[2 * c1]) if self.cstate else 0.0
+            coupling = DuhemModel.whole(alphas[-1], fc, gc, DuhemState(self.v_other[0], w0c))
         return main, coupling
