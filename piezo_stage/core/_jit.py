@@ -66,26 +66,33 @@ def slew_clamp_run(v, v_prev, v_min, v_max, max_step, out):
     """
     hits = 0
     for k in range(v.shape[0]):
-        x = v[k]
-        hit = False
-        if x > v_max:
-            x = v_max
-            hit = True
-        elif x < v_min:
-            x = v_min
-            hit = True
-        d = x - v_prev
-        if d > max_step:
-            x = v_prev + max_step
-            hit = True
-        elif d < -max_step:
-            x = v_prev - max_step
-            hit = True
+        x, hit = amplifier_step(v[k], v_prev, v_min, v_max, max_step)
         if hit:
             hits += 1
         out[k] = x
         v_prev = x
     return v_prev, hits
+
+
+@njit
+def amplifier_step(x, v_prev, v_min, v_max, max_step):
+    """One amplifier sample: clamp to [v_min, v_max], then limit the step from v_prev.
+    Returns (output, whether a limit was hit)."""
+    hit = False
+    if x > v_max:
+        x = v_max
+        hit = True
+    elif x < v_min:
+        x = v_min
+        hit = True
+    d = x - v_prev
+    if d > max_step:
+        x = v_prev + max_step
+        hit = True
+    elif d < -max_step:
+        x = v_prev - max_step
+        hit = True
+    return x, hit
 
 
 @njit
@@ -105,22 +112,7 @@ def plant_step(vx, vy, vstate, dstate, alpha, H, present, substeps, v_min, v_max
     wy = 0.0
     for _ in range(substeps):
         for a in range(2):
-            x = vx if a == 0 else vy
-            p = vstate[a]
-            hit = False
-            if x > v_max:
-                x = v_max
-                hit = True
-            elif x < v_min:
-                x = v_min
-                hit = True
-            d = x - p
-            if d > max_step:
-                x = p + max_step
-                hit = True
-            elif d < -max_step:
-                x = p - max_step
-                hit = True
+            x, hit = amplifier_step(vx if a == 0 else vy, vstate[a], v_min, v_max, max_step)
             if hit:
                 hits += 1
             vstate[a] = x
