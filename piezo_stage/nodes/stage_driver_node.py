@@ -46,9 +46,12 @@ class StageDriver(Node):
         lock = p["mode"] == "lockstep"
         self.gate = Gate(self, [(self.jpub, p["min_subs"] * lock),
                                 (self.tpub, p["min_rec"] * lock * (p["backend"] == "sim"))])
-        sub = (lambda *a, **k: hot_subscription(self, *a, **k)) if lock \
-            else self.create_subscription
-        sub(Vector3Stamped, "command", self.on_command, QOS_DATA, raw=True)
+        if lock:  # one command per step: served by the lean loop
+            hot_subscription(self, Vector3Stamped, "command", self.on_command, QOS_DATA,
+                             raw=True)
+        else:
+            self.create_subscription(Vector3Stamped, "command", self.on_command, QOS_DATA,
+                                     raw=True)
         self.create_service(Trigger, "estop", self.on_estop)
         Diagnostics(self, self.status, hardware_id=p["backend"])
         self._last_tick = time.monotonic()
