@@ -1,7 +1,8 @@
 """identifier: buffers live voltage and displacement, identifies the Duhem model.
 
 Identifies on request (~/identify, std_srvs/Trigger) or by itself after ``auto_cycles``
-complete voltage cycles, and hands the model to the feedforward on ``model``
+complete voltage cycles (on the data up to the turning point that completes them), and
+hands the model to the feedforward on ``model``
 (std_msgs/String holding the model file's YAML, transient local: late joiners get it).
 """
 
@@ -54,15 +55,16 @@ class Identifier(Node):
                 self.v.pop(k, None)
                 self.w.pop(k, None)
 
-    def record(self) -> Record:
-        stamps = sorted(set(self.w) & set(self.v))
+    def record(self, n=None) -> Record:
+        """The buffer as a Record (its first n samples when n is given)."""
+        stamps = sorted(set(self.w) & set(self.v))[:n]
         t = (np.array(stamps, dtype=np.int64) - stamps[0]) * 1e-9 if stamps else np.zeros(0)
         return Record(t, {a: np.array([self.v[s][a] for s in stamps]) for a in ("x", "y")},
                       {a: np.array([self.w[s][a] for s in stamps]) for a in ("x", "y")},
                       source="live buffer", voltage_exact=True)
 
-    def identify(self) -> str:
-        rec = self.record()
+    def identify(self, n=None) -> str:
+        rec = self.record(n)
         self.stats["samples"] = len(rec)
         opts = IdentifyOptions(method=self.method, structure=self.structure)
         res, skipped = {}, []
@@ -86,21 +88,28 @@ class Identifier(Node):
             return
         vx = np.array([self.v[k]["x"] for k in sorted(self.v)])
         try:
-            cycles = len(segment(vx).turning_points) // 2
+            tp = segment(vx).turning_points
         except PiezoStageError:
             return
-        if cycles >= self.auto_cycles:
+        if len(tp) // 2 >= self.auto_cycles:
             self.done_auto = True
-            self.on_identify(None, Trigger.Response())
+            # on the data up to the turning point that completes the cycles, not on
+            # whatever arrived by this timer tick: the same run gives the same model
+            self.identify_and_report(int(tp[2 * self.auto_cycles - 1]) + 1)
 
-    def on_identify(self, request, response):
+    def identify_and_report(self, n=None):
+        """-> (success, message); the outcome also goes to the log and diagnostics."""
         try:
-            response.message, response.success = self.identify(), True
+            ok, message = True, self.identify(n)
             self.stats["last_error"] = ""
         except (PiezoStageError, IndexError) as e:
-            response.message, response.success = f"identification failed: {e}", False
+            ok, message = False, f"identification failed: {e}"
             self.stats["last_error"] = str(e)
-        self.get_logger().info(response.message)
+        self.get_logger().info(message)
+        return ok, message
+
+    def on_identify(self, request, response):
+        response.success, response.message = self.identify_and_report()
         return response
 
 
