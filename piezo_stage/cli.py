@@ -306,7 +306,7 @@ def cmd_launch(args):
     if record == "auto":
         record = new_bag_dir("bags")
     launch = Launch(args.config or _default_stage_yaml(), record=record,
-                    namespace=args.namespace)
+                    namespace=args.namespace, arm=not args.no_arm)
     rc = launch.run(args.duration)
     if record:
         print(f"bag: {record}")
@@ -374,6 +374,8 @@ def build_parser():
     s.add_argument("--record", metavar="DIR", help="record a bag to DIR ('auto': bags/<time>)")
     s.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     s.add_argument("--namespace", default="/stage")
+    s.add_argument("--no-arm", action="store_true", help="start disarmed and stay so "
+                   "until armed on the arm service")
     s.set_defaults(fn=cmd_launch)
 
     s = sub.add_parser("demo", help="the main job: node set on the simulated stage")

@@ -40,7 +40,7 @@ def run_demo(args):
     from piezo_stage.launch.launcher import Launch
     bag = args.out or new_bag_dir("bags")
     rate = 1000.0
-    total = args.excite + 0.2 + args.track
+    total = args.excite + 0.2 + args.track + 0.2  # + arming and the approach
     steps = int(round(total * rate))
     overrides = {
         "stage_driver": {"mode": "lockstep", "max_steps": steps, "exit_after_max_steps": True},

@@ -20,7 +20,8 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "joint_state_to_um", "voltage_msg", "voltage_from_msg", "reference_msg",
            "reference_from_msg", "point_msg", "joint_state_cdr", "voltage_cdr",
            "reference_cdr", "point_cdr", "setpoint_from_msg", "trajectory_msg",
-           "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array"]
+           "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
+           "arming_state_msg", "arming_state_from_msg"]
 
 JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
@@ -114,29 +115,33 @@ def voltage_from_msg(msg) -> tuple[int, dict]:
 MEASURED = ("x_measured", "y_measured")
 
 
-def reference_msg(ns: int, desired_um: dict, ff_V: dict, measured_um: dict) -> JointState:
-    """Internal /reference for sample t_{k+1}: joints x, y with position = desired
+def reference_msg(ns: int, desired_um: dict, ff_V: dict, measured_um: dict,
+                  applied_V: dict) -> JointState:
+    """Internal /reference for a target sample: joints x, y with position = desired
     position [m] and effort = feedforward [V], and joints x_measured, y_measured with
-    position = the measurement of t_k it was computed from [m] (effort 0), so the
-    controller gets everything for one step in one message."""
+    position = the measurement it was computed from [m] and effort = the voltage the
+    driver applied for that measurement [V] (so the controller sees its own commands
+    come back), all for one step in one message."""
     return JointState(header=header(ns), name=list(JOINTS + MEASURED),
                       position=array.array("d", [float(desired_um[a]) * UM for a in JOINTS]
                                            + [float(measured_um[a]) * UM for a in JOINTS]),
-                      effort=array.array("d", [float(ff_V[a]) for a in JOINTS] + [0.0, 0.0]))
+                      effort=array.array("d", [float(ff_V[a]) for a in JOINTS]
+                                         + [float(applied_V[a]) for a in JOINTS]))
 
 
-def reference_cdr(ns: int, desired_um: dict, ff_V: dict, measured_um: dict) -> bytes:
+def reference_cdr(ns: int, desired_um: dict, ff_V: dict, measured_um: dict,
+                  applied_V: dict) -> bytes:
     """The same message as ``reference_msg``, as CDR bytes."""
     return cdr.encode_joint_state(
         ns, FRAME, JOINTS + MEASURED,
         [float(desired_um[a]) * UM for a in JOINTS] + [float(measured_um[a]) * UM
                                                       for a in JOINTS],
-        (), [float(ff_V[a]) for a in JOINTS] + [0.0, 0.0])
+        (), [float(ff_V[a]) for a in JOINTS] + [float(applied_V[a]) for a in JOINTS])
 
 
-def reference_from_msg(msg) -> tuple[int, dict, dict, dict]:
+def reference_from_msg(msg) -> tuple[int, dict, dict, dict, dict]:
     """Reference (message or CDR bytes) -> (stamp ns, desired {axis: um}, feedforward
-    {axis: V}, measured {axis: um})."""
+    {axis: V}, measured {axis: um}, applied {axis: V})."""
     ns, names, position, effort = _joint_state_fields(msg)
     if list(names) != list(JOINTS + MEASURED) or len(position) != 4 or len(effort) != 4:
         raise DataError("reference: expected joints [x, y, x_measured, y_measured] with "
@@ -144,8 +149,9 @@ def reference_from_msg(msg) -> tuple[int, dict, dict, dict]:
     d = {a: float(position[i]) / UM for i, a in enumerate(JOINTS)}
     f = {a: float(effort[i]) for i, a in enumerate(JOINTS)}
     w = {a: float(position[2 + i]) / UM for i, a in enumerate(JOINTS)}
-    _finite(list(d.values()) + list(f.values()) + list(w.values()), "reference")
-    return ns, d, f, w
+    v = {a: float(effort[2 + i]) for i, a in enumerate(JOINTS)}
+    _finite([*d.values(), *f.values(), *w.values(), *v.values()], "reference")
+    return ns, d, f, w, v
 
 
 def point_msg(ns: int, w_um: dict) -> PointStamped:
@@ -224,6 +230,28 @@ def model_from_msg(msg: String):
     except yaml.YAMLError:
         raise DataError("model message: malformed YAML") from None
     return model_from_dict(doc, "model message")
+
+
+ARM_LEVEL = {"armed": 0, "approaching": 0, "arming": 1, "disarmed": 1, "faulted": 2}
+
+
+def arming_state_msg(since_ns: int, name: str, state: str, reason: str, values: dict,
+                     hardware_id: str = "") -> DiagnosticArray:
+    """The driver's arming state (latched ``state`` topic): header.stamp is the first
+    sample stamp the state applies to; one status whose message is the state, with
+    ``state``, ``reason`` and the driver's loop figures as key-values."""
+    return diagnostic_array(since_ns, name, ARM_LEVEL.get(state, 2), state,
+                            {"state": state, "reason": reason, **values}, hardware_id)
+
+
+def arming_state_from_msg(msg: DiagnosticArray) -> tuple[int, str, str, dict]:
+    """-> (since ns, state, reason, {key: value string}); DataError if malformed."""
+    if not msg.status:
+        raise DataError("state: no status")
+    kv = {k.key: k.value for k in msg.status[0].values}
+    if "state" not in kv:
+        raise DataError("state: no 'state' value")
+    return time_to_ns(msg.header.stamp), kv["state"], kv.get("reason", ""), kv
 
 
 def diagnostic_array(ns: int, name: str, level: int, message: str, values: dict,

@@ -45,10 +45,11 @@ def test_trajectory_round_trip_and_rejections():
 
 
 def test_reference_and_setpoint_and_model():
-    ns, d, f, w = A.reference_from_msg(A.reference_msg(7, {"x": 1.0, "y": 2.0},
-                                                       {"x": 3.0, "y": 4.0}, {"x": 5.0, "y": 6.0}))
-    assert (ns, f) == (7, {"x": 3.0, "y": 4.0}) and d == pytest.approx({"x": 1.0, "y": 2.0})
-    assert w == pytest.approx({"x": 5.0, "y": 6.0})
+    ns, d, f, w, v = A.reference_from_msg(A.reference_msg(
+        7, {"x": 1.0, "y": 2.0}, {"x": 3.0, "y": 4.0}, {"x": 5.0, "y": 6.0},
+        {"x": 7.0, "y": 8.0}))
+    assert (ns, f, v) == (7, {"x": 3.0, "y": 4.0}, {"x": 7.0, "y": 8.0})
+    assert d == pytest.approx({"x": 1.0, "y": 2.0}) and w == pytest.approx({"x": 5.0, "y": 6.0})
     with pytest.raises(DataError):
         A.setpoint_from_msg(A.point_msg(1, {"x": 500.0, "y": 0.0}), (-10, 90))
     import os
@@ -58,6 +59,11 @@ def test_reference_and_setpoint_and_model():
     assert set(model.axes) == {"x", "y"}
     diag = A.diagnostic_array(1, "n", 1, "warn", {"k": 2})
     assert diag.status[0].values[0].value == "2"
+    st = A.arming_state_msg(9, "/stage/stage_driver: arming", "faulted", "stale", {"k": 1})
+    assert A.arming_state_from_msg(st)[:3] == (9, "faulted", "stale")
+    assert st.status[0].level == bytes([2]) and st.status[0].message == "faulted"
+    with pytest.raises(DataError):
+        A.arming_state_from_msg(A.diagnostic_array(1, "n", 0, "ok", {}))
 
 
 # --- CDR codecs of the per-sample topics: checked against rclpy's own serializer ---
@@ -74,7 +80,7 @@ def _typed_and_raw():
             (A.joint_state(ns, W), A.joint_state_cdr(ns, W), JointState),
             (A.point_msg(ns, W), A.point_cdr(ns, W), PointStamped),
             (A.voltage_msg(ns, V), A.voltage_cdr(ns, V), Vector3Stamped),
-            (A.reference_msg(ns, D, V, W), A.reference_cdr(ns, D, V, W), JointState)]
+            (A.reference_msg(ns, D, V, W, V), A.reference_cdr(ns, D, V, W, V), JointState)]
 
 
 def test_cdr_encoders_give_the_messages_rclpy_reads():

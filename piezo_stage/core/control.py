@@ -9,6 +9,7 @@ exact form of the seed's decoupler (eqs. 15-16) when the model holds the couplin
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from piezo_stage.core.errors import ConfigError
@@ -59,12 +60,72 @@ class PID:
         return g.kp * e + self.integral + g.kd * self.d
 
 
-def composite(v_ff: float, e_um: float, pid: PID, limits=(0.0, 150.0)) -> tuple[float, bool]:
-    """v = v_ff + PID(e), clamped to the limits; the integral holds while saturated
-    in the direction of the error (conditional integration). Returns (v, clamped)."""
-    lo, hi = limits
-    u = v_ff + pid.g.kp * e_um + pid.integral
-    pushing_out = (u >= hi and e_um > 0) or (u <= lo and e_um < 0)
-    v = v_ff + pid.update(e_um, hold_integral=pushing_out)
-    clamped = v > hi or v < lo
-    return min(max(v, lo), hi), clamped
+class CompositeAxis:
+    """One axis of the composite law with the safeguards a running stage needs.
+
+    ``update(v_ff, e_um, active)`` returns (v, clamped). The feedback acts only while
+    ``active`` (the driver applies our commands and they come back as applied, and the
+    reference is fresh); otherwise the output is the feedforward alone and the
+    integral holds. Conditional integration stops windup while the output is clamped.
+    Switching feedback off (``set_feedback(False)``) fades its last contribution out
+    with time constant ``fade_s`` instead of dropping it; switching it on starts the
+    integral so that the output does not jump (bumpless transfer both ways).
+    """
+
+    def __init__(self, pid: PID, limits=(0.0, 150.0), feedback=True, fade_s=0.05):
+        self.pid, self.limits = pid, tuple(limits)
+        self.feedback = bool(feedback)
+        self.fade = math.exp(-pid.dt / fade_s) if fade_s > 0 else 0.0
+        self.carry = 0.0        # feedback output being faded out after a switch-off
+        self.last_fb = 0.0      # the feedback contribution of the last update [V]
+        self._bump_e = None     # switch-on: take the first error without a step
+
+    def set_feedback(self, on: bool):
+        on = bool(on)
+        if on and not self.feedback:
+            self.pid.reset()
+            self._bump_e = True
+        elif not on and self.feedback:
+            self.carry += self.last_fb
+            self.last_fb = 0.0
+        self.feedback = on
+
+    def reset(self):
+        """Loop opened (disarmed, faulted, stale): forget the integral and the fade."""
+        self.pid.reset()
+        self.carry = self.last_fb = 0.0
+
+    def update(self, v_ff: float, e_um: float, active: bool,
+               hold: bool = False) -> tuple[float, bool]:
+        """``active``: feedback acts; ``hold``: the integral holds (the loop is not
+        closed: our last command did not come back as applied)."""
+        lo, hi = self.limits
+        self.carry *= self.fade
+        if not (self.feedback and active):
+            u = v_ff + self.carry
+            return min(max(u, lo), hi), (u > hi or u < lo)
+        if self._bump_e:  # switch-on: the integral absorbs the proportional step
+            self._bump_e = None
+            self.pid.integral = -self.pid.g.kp * e_um + self.carry
+            self.carry = 0.0
+        u_try = v_ff + self.carry + self.pid.g.kp * e_um + self.pid.integral
+        pushing_out = (u_try >= hi and e_um > 0) or (u_try <= lo and e_um < 0)
+        self.last_fb = self.pid.update(e_um, hold_integral=pushing_out or hold)
+        u = v_ff + self.carry + self.last_fb
+        return min(max(u, lo), hi), (u > hi or u < lo)
+
+
+def clamp_slew(v: dict, prev: dict, limits, max_step) -> tuple[dict, bool]:
+    """Clamp each axis's voltage to ``limits`` (V: (lo, hi), or per axis {axis: (lo,
+    hi)}), then move it from ``prev`` by at most ``max_step`` (V, or per axis).
+    Returns (voltages, whether anything was limited). The driver's last line of
+    defence, and the supervisor's ramp to the safe voltage."""
+    out, hit = {}, False
+    for a, x in v.items():
+        lo, hi = limits[a] if isinstance(limits, dict) else limits
+        step = max_step[a] if isinstance(max_step, dict) else max_step
+        y = min(max(x, lo), hi)
+        y = min(max(y, prev[a] - step), prev[a] + step)
+        hit |= y != x
+        out[a] = y
+    return out, hit

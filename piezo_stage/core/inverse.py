@@ -184,6 +184,20 @@ class StageInverse:
     def v(self):
         return {"x": float(self.vp[0]), "y": float(self.vp[1])}
 
+    @property
+    def w(self):
+        """The model's present output [um] per axis (main term plus the coupling the
+        inverse compensates)."""
+        w = self.wp + self.cwp if self.use_coupling else self.wp
+        return {"x": float(w[0]), "y": float(w[1])}
+
+    def snapshot(self):
+        """A copy of the hysteresis state (for stepping ahead and coming back)."""
+        return self.vp.copy(), self.wp.copy(), self.cvp.copy(), self.cwp.copy()
+
+    def restore(self, snap):
+        self.vp[:], self.wp[:], self.cvp[:], self.cwp[:] = snap
+
     def sync(self, vx: float, vy: float):
         """Advance the model with the voltages really applied (feedforward plus
         feedback, after the driver's limits), so the next inverse starts from the

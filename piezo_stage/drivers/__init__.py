@@ -1,42 +1,24 @@
 """Stage backends behind the driver node: simulated, NI-DAQ, replay of a bag.
 
-Each backend has ``rate_hz``, ``limits`` (V), ``slew_V_per_s`` and
-``step(vx, vy) -> (measured {axis: um}, true {axis: um} or None, applied {axis: V})``,
-advancing one control period with the voltages held, and ``close()``.
+Each backend has ``rate_hz``, ``limits`` ({axis: (lo, hi)} V), ``slew_V_per_s``
+({axis: V/s}), ``hardware_id`` (what /diagnostics names), ``paced`` (True when
+``step`` itself waits for the hardware's sample clock), ``step(vx, vy) -> (measured
+{axis: um}, true {axis: um} or None, applied {axis: V}, sample index or None)``,
+advancing one sample period with the voltages held, and ``close(safe_V,
+ramp_V_per_s)``, which leaves the outputs at the safe voltage.
 """
 
 from __future__ import annotations
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.drivers.daq import DAQ_PARAMS
 
-
-RO = {"read_only": True}
-# The driver node's parameters: (key, name, default, description with unit, limits)
-DRIVER_PARAMS = (
-    ("backend", "backend", "sim", "sim | daq | replay", {**RO, "choices": ("sim", "daq", "replay")}),
-    ("mode", "mode", "lockstep", "lockstep (sim) | realtime",
-     {**RO, "choices": ("lockstep", "realtime")}),
-    ("rate", "control_rate_hz", 1000.0, "control rate [Hz]", {**RO, "lo": 1.0, "hi": 1e5}),
-    ("plant_config", "plant_config", "", "sim plant YAML ('' = default)", RO),
-    ("seed", "seed", -1, "sim noise seed (-1: the config's)", RO),
-    ("replay_bag", "replay_bag", "", "bag for the replay backend", RO),
-    ("stale", "stale_timeout_s", 0.05, "real time: command age that counts as stale [s]",
-     {"lo": 0.001, "hi": 10.0}),
-    ("safe", "safe_voltage_V", 0.0, "output after a stale command [V]", {"lo": -200.0, "hi": 200.0}),
-    ("ramp", "safe_ramp_V_per_s", 500.0, "ramp rate to the safe voltage [V/s]",
-     {"lo": 1.0, "hi": 1e6}),
-    ("max_steps", "max_steps", 0, "stop after this many steps (0: never)", {}),
-    ("min_subs", "min_subscribers", 0, "lockstep: joint_states subscribers to wait for", {}),
-    ("min_rec", "min_record_subscribers", 0, "lockstep: true_position subscribers to wait "
-     "for (recorders)", {}),
-    ("exit_done", "exit_after_max_steps", False, "exit (code 0) once max_steps are done "
-     "and delivered", {}),
-    ("ao_channels", "ao_channels", "Dev1/ao0,Dev1/ao1", "NI-DAQ output channels x,y", RO),
-    ("ai_channels", "ai_channels", "Dev1/ai0,Dev1/ai1", "NI-DAQ input channels x,y", RO),
-    ("amplifier_gain", "amplifier_gain", 15.0, "NI-DAQ: amplifier gain [V/V]", RO),
-    ("sensor_um_per_V", "sensor_um_per_V", 10.0, "NI-DAQ: sensor scale [um/V]", RO),
-    ("sensor_offset_um", "sensor_offset_um", 0.0, "NI-DAQ: sensor offset [um]", RO),
-)
+# Backend configuration (name, default, description): the driver declares them read-only.
+BACKEND_PARAMS = (
+    ("plant_config", "", "sim: plant YAML ('' = the package's config/sim_stage.yaml)"),
+    ("seed", -1, "sim: noise seed (-1: the plant config's)"),
+    ("replay_bag", "", "replay: the bag to play"),
+) + DAQ_PARAMS
 
 
 def step_period_summary(times) -> str:
@@ -49,19 +31,9 @@ def step_period_summary(times) -> str:
             f"p99 {1e3 * np.percentile(d, 99):.3f} ms")
 
 
-def clamp_slew(v: dict, prev: dict, limits, max_step) -> tuple[dict, bool]:
-    """The driver's last line of defence: clamp to limits, then limit the step."""
-    lo, hi = limits
-    out, hit = {}, False
-    for a, x in v.items():
-        y = min(max(x, lo), hi)
-        y = min(max(y, prev[a] - max_step), prev[a] + max_step)
-        hit |= y != x
-        out[a] = y
-    return out, hit
-
-
 class SimBackend:
+    paced = False  # the driver paces it (lockstep: by commands; real time: wall clock)
+
     def __init__(self, config_path: str, rate_hz: float, seed=None):
         from piezo_stage.core.plant import Plant
         from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
@@ -71,28 +43,31 @@ class SimBackend:
         self.config = cfg
         self.plant = Plant(cfg, rate_hz)
         self.rate_hz = rate_hz
-        self.limits = cfg.model.voltage_limits
-        self.slew_V_per_s = cfg.slew_V_per_s
+        self.limits = {a: tuple(cfg.model.voltage_limits) for a in ("x", "y")}
+        self.slew_V_per_s = {a: cfg.slew_V_per_s for a in ("x", "y")}
+        self.hardware_id = f"sim seed {cfg.seed} ({config_path or 'sim_stage.yaml'})"
 
     def step(self, vx, vy):
         mx, my = self.plant.step(vx, vy)
         true = {a: float(x[0]) for a, x in self.plant.last_true.items()}
-        return {"x": mx, "y": my}, true, {"x": vx, "y": vy}
+        return {"x": mx, "y": my}, true, {"x": vx, "y": vy}, None
 
-    def close(self):
-        pass
+    def close(self, safe_V=0.0, ramp_V_per_s=0.0):
+        pass  # nothing stays energised
 
 
 class ReplayBackend:
     """Plays a recorded bag's measurements (and applied voltages) as if live."""
+    paced = False
 
     def __init__(self, bag_path: str, rate_hz: float):
         from piezo_stage.io.bag import read_bag_record
         self.rec = read_bag_record(bag_path)
         self.k = 0
         self.rate_hz = rate_hz
-        self.limits = (-1e9, 1e9)
-        self.slew_V_per_s = float("inf")
+        self.limits = {a: (-1e9, 1e9) for a in ("x", "y")}
+        self.slew_V_per_s = {a: float("inf") for a in ("x", "y")}
+        self.hardware_id = f"replay of {bag_path}"
 
     @property
     def exhausted(self):
@@ -103,13 +78,13 @@ class ReplayBackend:
         self.k += 1
         w = {a: float(x[k]) for a, x in self.rec.w.items()}
         v = {a: float(self.rec.v.get(a, [0.0] * len(self.rec))[k]) for a in ("x", "y")}
-        return {"x": w.get("x", 0.0), "y": w.get("y", 0.0)}, None, v
+        return {"x": w.get("x", 0.0), "y": w.get("y", 0.0)}, None, v, None
 
-    def close(self):
+    def close(self, safe_V=0.0, ramp_V_per_s=0.0):
         pass
 
 
-def make_backend(kind: str, rate_hz: float, params: dict):
+def make_backend(kind: str, rate_hz: float, params: dict, safe_V: float = 0.0):
     if kind == "sim":
         return SimBackend(params.get("plant_config", ""), rate_hz, params.get("seed"))
     if kind == "replay":
@@ -118,5 +93,5 @@ def make_backend(kind: str, rate_hz: float, params: dict):
         return ReplayBackend(params["replay_bag"], rate_hz)
     if kind == "daq":
         from piezo_stage.drivers.daq import DaqBackend
-        return DaqBackend(rate_hz, params)
+        return DaqBackend(rate_hz, params, safe_V)
     raise ConfigError(f"unknown backend {kind!r}; use sim, daq or replay")

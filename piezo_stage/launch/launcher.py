@@ -5,8 +5,11 @@ __ns:=<namespace> --params-file CONFIG [-p name:=value ...]``, exactly what
 ``ros2 run`` would pass. In lockstep the launcher tells each publisher how many
 subscribers to wait for (the set it started, recorder included), so no sample is
 published before everyone listens. Ctrl-C (SIGINT) is forwarded: producers first,
-the recorder last, so the bag holds everything. A node that exits 0 by itself (the
-driver after max_steps) ends the run cleanly; one that dies ends it with exit 1.
+then the driver (which ramps the stage to its safe voltage before it exits; the
+launcher waits for it), the recorder last, so the bag holds everything, the ramp
+included. A node that exits 0 by itself (the driver after max_steps) ends the run
+cleanly; one that dies ends it with exit 1. The set starts disarmed and the driver arms
+itself once the loop is closed (``auto_arm``), unless ``arm=False``.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ def _fmt(v):
 
 class Launch:
     def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
-                 nodes=None, env=None):
+                 nodes=None, env=None, arm=True):
         self.config_path = os.path.abspath(config_path)
         params = _params(self.config_path)
         self.nodes = [n for n in ORDER if n in (nodes or params) and n != "recorder"]
@@ -62,7 +65,12 @@ class Launch:
         self.ns = namespace
         self.record = record
         drv = params.get("stage_driver", {})
-        self.lockstep = drv.get("mode", "lockstep") == "lockstep"
+        mode = drv.get("mode", "lockstep")
+        if mode not in ("lockstep", "realtime"):
+            raise ConfigError(f"{config_path}: stage_driver mode {mode!r}: use lockstep "
+                              "or realtime")
+        self.lockstep = mode == "lockstep"
+        self.arm = bool(arm)
         self.backend = drv.get("backend", "sim")
         self.overrides = {n: dict(o) for n, o in (overrides or {}).items()}
         self.env = dict(os.environ if env is None else env)
@@ -78,18 +86,22 @@ class Launch:
                                                            ("feedforward", "identifier",
                                                             "gap")),
                               "min_record_subscribers": rec},
-             "feedforward": {"min_subscribers": rec + int("controller" in has)},
+             "feedforward": {"min_subscribers": rec + int("controller" in has),
+                             "wait_for_trajectory": "trajectory" in has},
              "controller": {"min_subscribers": rec + int("stage_driver" in has)},
              "trajectory": {"min_subscribers": rec + int("feedforward" in has)},
              "gap": {"min_subscribers": rec}}
-        return g if self.lockstep else {"trajectory": g["trajectory"], "gap": g["gap"]}
+        g = g if self.lockstep else {"trajectory": g["trajectory"], "gap": g["gap"]}
+        g.setdefault("stage_driver", {})["auto_arm"] = self.arm
+        return g
 
     def command(self, node):
         cmd = [sys.executable, "-m", f"piezo_stage.nodes.{node}_node", "--ros-args",
                "-r", f"__ns:={self.ns}", "--params-file", self.config_path]
         extra = dict(self._gates().get(node, {}))
         if node == "recorder":
-            extra.update(output=os.path.abspath(self.record), config_file=self.config_path)
+            extra.update(output=os.path.abspath(self.record), config_file=self.config_path,
+                         log_time="stamp" if self.lockstep else "receive")
         extra.update(self.overrides.get(node, {}))
         for k, v in extra.items():
             cmd += ["-p", f"{k}:={_fmt(v)}"]
@@ -101,10 +113,10 @@ class Launch:
                                              start_new_session=True)
 
     def stop(self, timeout=15.0):
-        """SIGINT to producers first, then the recorder; escalate if a node hangs."""
-        order = [n for n in reversed(self.nodes) if n != "recorder"] + \
-            [n for n in self.nodes if n == "recorder"]
-        for group in ([n for n in order if n != "recorder"], ["recorder"]):
+        """SIGINT to the producers, then the driver (it ramps down and exits), then
+        the recorder; escalate if a node hangs."""
+        producers = [n for n in reversed(self.nodes) if n not in ("recorder", "stage_driver")]
+        for group in (producers, ["stage_driver"], ["recorder"]):
             for n in group:
                 p = self.procs.get(n)
                 if p and p.poll() is None:

@@ -12,6 +12,7 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from piezo_stage.core.errors import ConfigError
 from piezo_stage_msgs_adapters import diagnostic_array
 
 # Loop and record topics: reliable with a deep queue, so a briefly slow subscriber (the
@@ -23,6 +24,11 @@ QOS_DATA = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000,
 QOS_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# State changes (the driver's arming state, the feedforward's phase): latched, and
+# every change delivered in order, so a reader that takes them in batches misses none.
+QOS_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 QOS_DIAG = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 
 
@@ -41,12 +47,14 @@ class LeanLoop(CallbackGroup):
         pass
 
 
-def hot_subscription(node, msg_type, topic, callback, qos, raw=False):
-    """A per-sample subscription (lockstep inputs, the recorder's topics), dispatched by
-    the lean loop. With ``raw`` the callback gets the CDR bytes."""
+def hot_subscription(node, msg_type, topic, callback, qos, raw=False, with_info=False):
+    """A per-sample subscription (loop inputs, the recorder's topics), dispatched by
+    the lean loop. With ``raw`` the callback gets the CDR bytes; with ``with_info`` it
+    also gets the middleware's message info (``received_timestamp`` [ns], ...)."""
     group = node.__dict__.setdefault("_lean_group", LeanLoop())
     sub = node.create_subscription(msg_type, topic, callback, qos, callback_group=group,
                                    raw=raw)
+    sub.lean_info = with_info
     node.__dict__.setdefault("_hot", []).append(sub)
     node.hot_changed = True
     return sub
@@ -60,12 +68,18 @@ def _spin(node):
     wait-set loop that takes and dispatches their messages directly; the default
     executor serves everything else (timers, services, parameters, other topics) every
     ``SLOW_PERIOD_S``. The default executor costs ~0.3-0.5 ms of CPU per callback here,
-    too much for a 1 kHz loop through four processes."""
+    too much for a 1 kHz loop through four processes.
+
+    A node with a real-time tick sets ``lean_deadline`` (monotonic seconds of its next
+    tick; 0.0 for a tick paced by the hardware, which blocks in it) and
+    ``on_lean_tick()``, which the loop calls once the deadline has passed, right after
+    taking what has arrived. The loop sleeps in the wait set until then."""
     from contextlib import ExitStack
     from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
     executor = rclpy.executors.SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
-    if not getattr(node, "_hot", None):
+    ticking = hasattr(node, "on_lean_tick")
+    if not getattr(node, "_hot", None) and not ticking:
         executor.spin()
         return
     ctx = node.context
@@ -80,16 +94,26 @@ def _spin(node):
                 if ws is None or node.hot_changed:  # (re)build the wait set
                     node.hot_changed = False
                     stack.close()
-                    hot = [(s.handle, s.msg_type, s.raw, s.callback) for s in node._hot]
+                    hot = [(s.handle, s.msg_type, s.raw, s.callback, s.lean_info)
+                           for s in getattr(node, "_hot", [])]
                     for h, *_ in hot:
                         stack.enter_context(h)
-                    ws = _rclpy.WaitSet(len(hot), 0, 0, 0, 0, 0, ctx.handle)
-                ws.clear_entities()
-                for h, *_ in hot:
-                    ws.add_subscription(h)
-                ws.wait(2_000_000)  # ns: wake at least every 2 ms for the slow work
+                    ws = _rclpy.WaitSet(len(hot), 0, 0, 0, 0, 0, ctx.handle) if hot else None
+                timeout = 0.002  # s: wake at least every 2 ms for the slow work
+                deadline = getattr(node, "lean_deadline", None) if ticking else None
+                if deadline is not None:
+                    timeout = min(timeout, max(0.0, deadline - time.monotonic()))
+                if ws is not None:
+                    ws.clear_entities()
+                    for h, *_ in hot:
+                        ws.add_subscription(h)
+                    ws.wait(int(timeout * 1e9))
+                elif timeout > 0:
+                    time.sleep(timeout)
                 _take_all(hot)
                 now = time.monotonic()
+                if deadline is not None and now >= deadline:
+                    node.on_lean_tick()
                 if now - last > SLOW_PERIOD_S:
                     last = now
                     executor.spin_once(timeout_sec=0)
@@ -117,10 +141,13 @@ def _drain(hot):
 
 
 def _take_all(hot):
-    for h, msg_type, raw, callback in hot:
+    for h, msg_type, raw, callback, info in hot:
         taken = h.take_message(msg_type, raw)
         while taken is not None:
-            callback(taken[0])
+            if info:
+                callback(taken[0], taken[1])
+            else:
+                callback(taken[0])
             taken = h.take_message(msg_type, raw)
 
 
@@ -131,15 +158,37 @@ def _shutdown_only(signum, frame):
     executor, which on rare occasions left a node hanging or crashing at teardown."""
 
 
-def run(node_factory, args=None):
-    """Jazzy form: init; try spin; except interrupt/external shutdown; finally clean up."""
+def run(node_factory, args=None, graceful=False):
+    """Jazzy form: init; try spin; except interrupt/external shutdown; finally clean up.
+
+    ``graceful``: SIGINT and SIGTERM do not shut the context down; they call the node's
+    ``request_shutdown()``, and the node shuts the context down itself once it is safe
+    (the driver first ramps the stage to its safe voltage, still publishing). A second
+    signal shuts down at once."""
     import signal
-    signal.signal(signal.SIGINT, _shutdown_only)  # before init: rclpy chains to it
-    rclpy.init(args=args)
+    opts = None
+    if graceful:
+        from rclpy.signals import SignalHandlerOptions
+        opts = SignalHandlerOptions.NO
+        holder = {}
+
+        def on_signal(signum, frame):
+            node = holder.get("node")
+            if node is None or getattr(node, "shutdown_requested", False):
+                rclpy.try_shutdown()
+            else:
+                node.request_shutdown()
+        signal.signal(signal.SIGINT, on_signal)
+        signal.signal(signal.SIGTERM, on_signal)
+    else:
+        signal.signal(signal.SIGINT, _shutdown_only)  # before init: rclpy chains to it
+    rclpy.init(args=args, signal_handler_options=opts)
     node = None
     code = 0
     try:
         node = node_factory()
+        if graceful:
+            holder["node"] = node
         # what exists now (modules, the node) lives for the whole run: keep it out of the
         # cyclic collector's scans, so a full collection is not a multi-ms loop stall
         gc.collect()
@@ -151,7 +200,8 @@ def run(node_factory, args=None):
         if not rclpy.ok():
             return code  # raced with SIGINT's shutdown (rcl calls fail from then on)
         import sys
-        sys.stderr.write(f"{getattr(node, 'get_name', lambda: 'node')()}: fatal: {e}\n")
+        name = node.get_fully_qualified_name() if node is not None else _node_name(args)
+        sys.stderr.write(f"{name}: fatal: {e}\n")
         code = 1
     finally:
         gc.unfreeze()  # teardown as usual: the middleware's objects are collected
@@ -164,30 +214,42 @@ def run(node_factory, args=None):
     return code
 
 
+def _node_name(args):
+    """The node's name for a start-up error (the node object may not exist yet)."""
+    import sys
+    return sys.argv[0].rsplit("/", 1)[-1].removesuffix("_node.py").removesuffix("_node")
+
+
 def declare(node, name, default, description, read_only=False, lo=None, hi=None,
             choices=None):
-    """Declare a parameter with a descriptor (units in the description, ranges)."""
+    """Declare a parameter with a descriptor (units in the description, ranges,
+    read_only). Values outside ``choices`` are refused, at start (ConfigError) and when
+    set at run time (the set call fails with the reason)."""
     d = ParameterDescriptor(description=description, read_only=read_only)
     if lo is not None and isinstance(default, float):
         d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi))]
-    elif lo is not None and isinstance(default, int):
+    elif lo is not None and isinstance(default, int) and not isinstance(default, bool):
         d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
     if choices:
         d.additional_constraints = "one of: " + ", ".join(choices)
-        node._choices = {**getattr(node, "_choices", {}), name: tuple(choices)}
-    return node.declare_parameter(name, default, d).value
+        if "_choices" not in node.__dict__:
+            node._choices = {}
+            node.add_on_set_parameters_callback(lambda ps: _check_choices(node, ps))
+        node._choices[name] = tuple(choices)
+    value = node.declare_parameter(name, default, d).value
+    if choices and value not in choices:
+        raise ConfigError(f"parameter {name} = {value!r}: must be one of "
+                          f"{', '.join(choices)}")
+    return value
 
 
-def validate_choices(node):
-    """On-set callback: reject values outside a parameter's declared choices."""
-    def cb(params):
-        for p in params:
-            ch = getattr(node, "_choices", {}).get(p.name)
-            if ch and p.value not in ch:
-                return SetParametersResult(successful=False,
-                                           reason=f"{p.name} must be one of {ch}")
-        return SetParametersResult(successful=True)
-    node.add_on_set_parameters_callback(cb)
+def _check_choices(node, params):
+    for p in params:
+        ch = node._choices.get(p.name)
+        if ch and p.value not in ch:
+            return SetParametersResult(successful=False,
+                                       reason=f"{p.name} must be one of {', '.join(ch)}")
+    return SetParametersResult(successful=True)
 
 
 class Gate:

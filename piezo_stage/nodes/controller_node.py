@@ -1,22 +1,37 @@
 """controller: composite law, feedforward + PID on the measured error (seed eq. 17-19).
 
-Each reference stamped t_{k+1} carries the desired position and the feedforward for
-t_{k+1} and the measurement of t_k they were computed from; the controller computes
-v = v_ff + PID(asked - measured) per axis (the error of the sample just measured
-against what was asked for it), clamps to the voltage limits and publishes ``command``
-(geometry_msgs/Vector3Stamped, volts) stamped t_{k+1}. Decoupling lives in the
-feedforward's joint inverse (see core/control.py).
+Each reference, stamped for the target sample, carries the desired position and the
+feedforward for it, and the measurement of the sample t_k it answers with the voltage
+applied for t_k. The controller computes v = v_ff + PID(asked(t_k) - measured(t_k)) per
+axis (the error of the sample just measured against what was asked for it), clamps to
+the voltage limits and publishes ``command`` (geometry_msgs/Vector3Stamped, volts)
+stamped for the target sample.
+
+The feedback acts only while the driver applies commands (its ``state``, by stamp); the
+integral holds while our command for t_k did not come back as the voltage applied at
+t_k (the loop is not closed), while the output is clamped, and it restarts after a gap
+in the references (a stall). In real time a reference whose target has already passed
+is dropped: its command could only arrive late. A non-finite result is never sent.
+kp, ki, kd and feedback take effect at run time (feedback switches bumplessly).
 """
 
+import math
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
+from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 
-from piezo_stage.core.control import PID, PIDGains, composite
+from piezo_stage.core.arming import StateTimeline
+from piezo_stage.core.control import PID, CompositeAxis, PIDGains
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, Gate, declare,
+from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, Diagnostics, Gate, declare,
                                        hot_subscription, run)
-from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
+from piezo_stage_msgs_adapters import arming_state_from_msg, reference_from_msg, voltage_cdr
 from rclpy.node import Node
+
+GAINS = ("kp", "ki", "kd")
 
 
 class Controller(Node):
@@ -25,42 +40,93 @@ class Controller(Node):
         rate = declare(self, "control_rate_hz", 1000.0, "control rate [Hz]", read_only=True,
                        lo=1.0, hi=1e5)
         self.dt_ns = int(round(1e9 / rate))
-        g = PIDGains(kp=declare(self, "kp", 0.2, "proportional gain [V/um]", lo=0.0, hi=100.0),
-                     ki=declare(self, "ki", 150.0, "integral gain [V/(um s)]", lo=0.0, hi=1e5),
-                     kd=declare(self, "kd", 0.0, "derivative gain [V s/um]", lo=0.0, hi=10.0))
-        self.feedback = declare(self, "feedback", True, "PID on (false: feedforward only)")
-        self.limits = tuple(declare(self, "voltage_limits_V", [0.0, 150.0], "clamp [V]"))
-        self.pid = {a: PID(g, 1.0 / rate) for a in ("x", "y")}
-        self.asked, self.last_ns = None, -1
-        self.stats = {"commands": 0, "clamped": 0, "bad_messages": 0}
+        self.gains = PIDGains(
+            kp=declare(self, "kp", 0.2, "proportional gain [V/um]", lo=0.0, hi=100.0),
+            ki=declare(self, "ki", 150.0, "integral gain [V/(um s)]", lo=0.0, hi=1e5),
+            kd=declare(self, "kd", 0.0, "derivative gain [V s/um]", lo=0.0, hi=10.0))
+        feedback = declare(self, "feedback", True, "PID on (false: feedforward only); "
+                           "switches bumplessly")
+        self.limits = tuple(declare(self, "voltage_limits_V", [0.0, 150.0], "clamp [V]",
+                                    read_only=True))
+        self.axes = {a: CompositeAxis(PID(self.gains, 1.0 / rate), self.limits, feedback)
+                     for a in ("x", "y")}
+        self.timeline, self.lookahead_ns, self.realtime = StateTimeline(), self.dt_ns, False
+        self.sent = {}     # target stamp -> (desired um, command V): for t_k's check
+        self.last_ns = -1
+        self.stats = {"commands": 0, "clamped": 0, "bad_messages": 0, "late_dropped": 0,
+                      "not_closed": 0, "non_finite": 0, "restarts": 0}
         self.pub = self.create_publisher(Vector3Stamped, "command", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "command subscribers to wait for"))])
+        hot_subscription(self, DiagnosticArray, "state", self.on_driver_state, QOS_EVENTS)
         hot_subscription(self, JointState, "reference", self.on_reference, QOS_DATA, raw=True)
-        Diagnostics(self, lambda: (0, "ok", {**self.stats, "feedback": self.feedback}))
+        self.add_on_set_parameters_callback(self.on_set)
+        Diagnostics(self, lambda: (0, "ok", {**self.stats, "feedback":
+                                             self.axes["x"].feedback, **vars(self.gains)}))
+
+    def on_set(self, params):
+        g = dict(vars(self.gains))
+        g.update({p.name: float(p.value) for p in params if p.name in GAINS})
+        try:
+            gains = PIDGains(**g)
+        except PiezoStageError as e:
+            return SetParametersResult(successful=False, reason=str(e))
+        for k in GAINS:  # one gains object shared by both axes' PIDs
+            setattr(self.gains, k, getattr(gains, k))
+        for p in params:
+            if p.name == "feedback":
+                for ax in self.axes.values():
+                    ax.set_feedback(bool(p.value))
+        return SetParametersResult(successful=True)
+
+    def on_driver_state(self, msg):
+        try:
+            since, state, _, values = arming_state_from_msg(msg)
+            self.lookahead_ns = int(round(float(values.get("lookahead_s", 0)) * 1e9)) or self.dt_ns
+        except (PiezoStageError, ValueError):
+            self.stats["bad_messages"] += 1
+            return
+        self.realtime = values.get("mode") == "realtime"
+        self.timeline.add(since, state)
 
     def on_reference(self, msg):
         try:
-            ns, desired, ff, w = reference_from_msg(msg)
+            ns, desired, ff, w, applied = reference_from_msg(msg)
         except PiezoStageError:
             self.stats["bad_messages"] += 1
             return
         if ns <= self.last_ns:
             return  # a duplicate changes nothing
+        if self.realtime and ns < time.time_ns():
+            self.stats["late_dropped"] += 1  # its command would arrive after its tick
+            return
+        t_k = ns - self.lookahead_ns
+        if self.last_ns >= 0 and ns - self.last_ns > 10 * self.dt_ns:
+            self.restart()  # a stall: what the integral knew is stale
         self.last_ns = ns
-        # the error of the sample just measured (t_k) against what was asked for t_k;
-        # desired(t_{k+1}) - w(t_k) would mistake the trajectory's own motion for error
-        asked = self.asked if self.asked is not None else w
-        self.asked = desired
+        enabled = self.timeline.enabled(t_k) and self.timeline.enabled(ns)
+        if not enabled:
+            self.restart(count=False)
+        asked, sent = self.sent.pop(t_k, (w, None))
+        closed = sent is not None and all(abs(sent[a] - applied[a]) < 1e-6 for a in sent)
+        self.stats["not_closed"] += enabled and not closed
         v = {}
-        for a in ("x", "y"):
-            if self.feedback:
-                v[a], clamped = composite(ff[a], asked[a] - w[a], self.pid[a], self.limits)
-                self.stats["clamped"] += clamped
-            else:
-                v[a] = min(max(ff[a], self.limits[0]), self.limits[1])
+        for a, ax in self.axes.items():
+            v[a], clamped = ax.update(ff[a], asked[a] - w[a], enabled, hold=not closed)
+            self.stats["clamped"] += clamped
+        if not all(math.isfinite(x) for x in v.values()):
+            self.stats["non_finite"] += 1
+            self.restart(count=False)
+            return
+        self.sent = {t: s for t, s in self.sent.items() if t > t_k}
+        self.sent[ns] = (desired, v)
         self.stats["commands"] += 1
         self.gate.publish(self.pub, voltage_cdr(ns, v))
+
+    def restart(self, count=True):
+        self.stats["restarts"] += count
+        for ax in self.axes.values():
+            ax.reset()
 
 
 def main(args=None):

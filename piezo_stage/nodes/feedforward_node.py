@@ -1,25 +1,35 @@
 """feedforward: the inverse Duhem model turns desired positions into voltages.
 
-Clocked by joint_states: on sample k it samples the desired trajectory (or the last
-streamed setpoint) at t_{k+1}, inverts the 2-axis model exactly (coupling included)
-and publishes the internal ``reference`` (sensor_msgs/JointState: desired position
-[m] and feedforward [V] for x, y, plus the measurement of t_k) stamped t_{k+1}. A new model on ``model`` replaces the
-inverse without a restart, continuing from the current voltage and position.
-Without any model the feedforward is a linear nominal gain.
+Clocked by joint_states: sample k (stamp t_k) is answered by the internal ``reference``
+(sensor_msgs/JointState: desired position [m] and feedforward [V] for x, y, plus the
+measurement of t_k and the voltage applied for it) stamped t_k + lookahead, the
+driver's look-ahead (one period in lockstep; in real time the loop's latency budget,
+announced on the driver's ``state``), so a command reaches the driver before the tick
+it is for. The planner (core/arming.py) decides the desired position: while the driver
+does not apply commands it holds where the stage is (feedforward = the applied voltage,
+so enabling is bumpless); enabled, it approaches the goal and then runs the trajectory
+clock. The inverse is synced to the voltages really applied and steps through the
+commands still in flight before computing the next. A new model on ``model`` replaces
+the inverse without a restart. Without any model the feedforward is a nominal gain.
 """
 
+import time
+
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
+from piezo_stage.core.arming import HOLD, ReferencePlanner, StateTimeline
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
-from piezo_stage.nodes._common import (QOS_DATA, QOS_LATCHED, Diagnostics, Gate, declare,
+from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, QOS_LATCHED, Diagnostics, Gate, declare,
                                        hot_subscription, run)
-from piezo_stage_msgs_adapters import (joint_state_to_um, model_from_msg, reference_cdr,
-                                       setpoint_from_msg, trajectory_from_msg)
+from piezo_stage_msgs_adapters import (arming_state_from_msg, joint_state_to_um,
+                                       model_from_msg, reference_cdr, setpoint_from_msg,
+                                       trajectory_from_msg)
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
@@ -27,39 +37,53 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 class Feedforward(Node):
     def __init__(self):
         super().__init__("feedforward")
+        ro = {"read_only": True}
         self.dt_ns = int(round(1e9 / declare(self, "control_rate_hz", 1000.0, "control "
-                                             "rate [Hz]", read_only=True, lo=1.0, hi=1e5)))
+                                             "rate [Hz]", lo=1.0, hi=1e5, **ro)))
         model_file = declare(self, "model_file", "", "initial model YAML ('' = none until "
-                             "one arrives on model)")
+                             "one arrives on model)", **ro)
         self.gain = declare(self, "nominal_um_per_V", 0.5, "gain used before any model "
-                            "[um/V]", lo=0.01, hi=100.0)
-        self.use_c = declare(self, "use_coupling", True, "invert the coupling (decoupling)")
-        self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]")
+                            "[um/V]", lo=0.01, hi=100.0, **ro)
+        self.use_c = declare(self, "use_coupling", True, "invert the coupling "
+                             "(decoupling)", **ro)
+        self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]", **ro)
         self.hold_s = declare(self, "model_required_after_s", 0.0, "lockstep: hold the "
-                              "loop at this trajectory time until a model arrives (0: never)")
-        self.pending = None
+                              "loop at this trajectory time until a model arrives (0: never)", **ro)
+        self.wait_traj = declare(self, "wait_for_trajectory", False, "lockstep: answer no "
+                                 "sample before a trajectory has arrived", **ro)
+        self.planner = ReferencePlanner(
+            declare(self, "approach_speed_um_per_s", 200.0, "approach speed [um/s]",
+                    lo=0.1, hi=1e6, **ro),
+            declare(self, "approach_accel_um_per_s2", 20000.0, "approach acceleration "
+                    "[um/s^2]", lo=1.0, hi=1e9, **ro))
         self.limits = (0.0, 150.0)
-        self.inv, self.model_name, self.traj, self.t_start = None, "nominal", None, None
-        self.desired, self.last_ns, self.ff = None, -1, {"x": 0.0, "y": 0.0}
+        self.inv, self.model_name, self.pending = None, "nominal", None
+        self.timeline, self.lookahead_ns, self.realtime = StateTimeline(), self.dt_ns, False
+        self.last_ns, self.ff, self.planned = -1, {"x": 0.0, "y": 0.0}, {}
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
-                      "saturated": 0, "bad_messages": 0}
+                      "saturated": 0, "bad_messages": 0, "late_dropped": 0}
         if model_file:
             from piezo_stage.io.model_file import load_model
             self.set_model(load_model(model_file)[0], model_file)
         self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
+        self.phase_pub = self.create_publisher(String, "feedforward/phase", QOS_EVENTS)
+        self.phase_pub.publish(String(data=HOLD))
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "reference subscribers to wait for"))])
+        hot_subscription(self, DiagnosticArray, "state", self.on_driver_state, QOS_EVENTS)
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True)
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
-        Diagnostics(self, lambda: (0, "ok", {**self.stats, "model": self.model_name}))
+        Diagnostics(self, lambda: (0, "ok", {**self.stats, "model": self.model_name,
+                                             "phase": self.planner.phase,
+                                             "lookahead_ms": self.lookahead_ns * 1e-6}))
 
     def set_model(self, model, name):
         inv = StageInverse(model, use_coupling=self.use_c)
-        if self.desired is not None:
-            inv.reset(v=self.ff, w=self.desired)
+        if self.planner.desired is not None:
+            inv.reset(v=self.ff, w=self.planner.desired)
         self.inv, self.model_name, self.limits = inv, name, model.voltage_limits
         self.stats["models"] += 1
         self.get_logger().info(f"using model {name}")
@@ -69,22 +93,36 @@ class Feedforward(Node):
             self.set_model(model_from_msg(msg)[0], f"model message #{self.stats['models'] + 1}")
         except PiezoStageError as e:
             self.get_logger().error(f"model rejected: {e}")
-        if self.pending is not None and self.inv is not None:
+        self.resume()
+
+    def resume(self):
+        """Lockstep: answer the sample the loop was held at, once what it waited for is here."""
+        if self.pending is not None:
             msg, self.pending = self.pending, None
             self.on_state(msg)
 
+    def on_driver_state(self, msg):
+        try:
+            since, state, _, values = arming_state_from_msg(msg)
+            self.lookahead_ns = int(round(float(values.get("lookahead_s", 0)) * 1e9)) or self.dt_ns
+        except (PiezoStageError, ValueError):
+            self.stats["bad_messages"] += 1
+            return
+        self.realtime = values.get("mode") == "realtime"
+        self.timeline.add(since, state)
+
     def on_trajectory(self, msg):
         try:
-            self.traj = trajectory_from_msg(msg, self.range)
-            self.t_start = None
-            self.get_logger().info(f"trajectory of {len(self.traj[0])} points accepted")
+            self.planner.set_trajectory(*trajectory_from_msg(msg, self.range))
+            self.get_logger().info(f"trajectory of {len(msg.points)} points accepted")
         except PiezoStageError as e:
             self.stats["rejected_trajectories"] += 1
             self.get_logger().warning(f"trajectory rejected: {e}")
+        self.resume()
 
     def on_setpoint(self, msg):
         try:
-            self.desired, self.traj = setpoint_from_msg(msg, self.range), None
+            self.planner.set_setpoint(setpoint_from_msg(msg, self.range))
         except PiezoStageError as e:
             self.stats["rejected_setpoints"] += 1
             self.get_logger().warning(f"setpoint rejected: {e}")
@@ -97,30 +135,56 @@ class Feedforward(Node):
             return
         if ns <= self.last_ns:
             return  # duplicates change nothing
-        self.last_ns, t_next = ns, ns + self.dt_ns
-        if self.desired is None:
-            self.desired = dict(w)
-        if self.traj is not None:
-            if self.t_start is None:
-                self.t_start = t_next
-            t, traj = self.traj
-            tau = (t_next - self.t_start) * 1e-9
-            if self.inv is None and 0 < self.hold_s <= tau:
-                self.pending, self.last_ns = msg, ns - 1  # resume on the model
-                return
-            self.desired = {a: float(np.interp(tau, t, traj[a])) if a in traj
-                            else self.desired[a] for a in ("x", "y")}
+        target = ns + self.lookahead_ns
+        clock = self.planner.clock_s(target)
+        waiting = (self.wait_traj and self.planner.traj is None) or (
+            self.inv is None and 0 < self.hold_s <= (clock if clock is not None else -1))
+        if waiting and not self.realtime:
+            self.pending = msg  # lockstep: the loop waits here
+            return
+        self.last_ns = ns
+        applied = v_applied or self.ff
         if self.inv is not None:
-            if v_applied is not None:  # follow what the stage really got
-                self.inv.sync(v_applied["x"], v_applied["y"])
-            vx, vy, sat = self.inv.step(self.desired["x"], self.desired["y"],
-                                        commit=v_applied is None)
-            self.stats["saturated"] = self.inv.saturated
-            self.ff = {"x": vx, "y": vy}
+            self.inv.sync(applied["x"], applied["y"])  # the stage's state at t_k
+        phase = self.planner.phase
+        if not self.timeline.enabled(target):
+            self.planner.hold(self.inv.w if self.inv else {a: applied[a] * self.gain
+                                                          for a in applied})
+            desired, self.ff, self.planned = self.planner.desired, dict(applied), {}
         else:
-            self.ff = {a: min(max(self.desired[a] / self.gain, self.limits[0]), self.limits[1])
-                       for a in ("x", "y")}
-        self.gate.publish(self.pub, reference_cdr(t_next, self.desired, self.ff, w))
+            desired = self.planner.sample(target)
+            self.planned[target] = desired
+            try:
+                self.ff = self.feedforward(ns, target, desired)
+            except PiezoStageError as e:  # hold the last feedforward, say why, go on
+                self.stats["bad_messages"] += 1
+                self.get_logger().error(f"feedforward for {desired}: {e}",
+                                        throttle_duration_sec=1.0)
+        if self.planner.phase != phase:
+            self.phase_pub.publish(String(data=self.planner.phase))
+        if self.realtime and target < time.time_ns():
+            self.stats["late_dropped"] += 1  # it could only reach the driver too late
+            return
+        self.gate.publish(self.pub, reference_cdr(target, desired, self.ff, w, applied))
+
+    def feedforward(self, ns, target, desired):
+        if self.inv is None:
+            return {a: min(max(desired[a] / self.gain, self.limits[0]), self.limits[1])
+                    for a in ("x", "y")}
+        # the commands between t_k and the target are in flight: step through them
+        # from the synced state, then invert the target, then come back
+        ahead = [self.planned[t] for t in sorted(self.planned) if ns < t < target]
+        self.planned = {t: d for t, d in self.planned.items() if t > ns}
+        snap = self.inv.snapshot() if ahead else None
+        for d in ahead:
+            self.inv.step(d["x"], d["y"], commit=True)
+        vx, vy, _ = self.inv.step(desired["x"], desired["y"], commit=False)
+        if snap is not None:
+            self.inv.restore(snap)
+        self.stats["saturated"] = self.inv.saturated
+        if not (np.isfinite(vx) and np.isfinite(vy)):
+            raise PiezoStageError("inverse gave a non-finite voltage")
+        return {"x": vx, "y": vy}
 
 
 def main(args=None):

@@ -14,20 +14,22 @@ import os
 import struct
 
 from piezo_stage.io.bag import BagWriter, new_bag_dir
-from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_LATCHED, Diagnostics, declare,
+from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_EVENTS, QOS_LATCHED, Diagnostics, declare,
                                        hot_subscription, run)
 from rclpy.node import Node
 
-CONTRACT = {  # relative name: (type, latched)
-    "joint_states": ("sensor_msgs/msg/JointState", False),
-    "sim/true_position": ("geometry_msgs/msg/PointStamped", False),
-    "reference": ("sensor_msgs/msg/JointState", False),
-    "command": ("geometry_msgs/msg/Vector3Stamped", False),
-    "setpoint": ("geometry_msgs/msg/PointStamped", False),
-    "gap/residual": ("geometry_msgs/msg/PointStamped", False),
-    "trajectory": ("trajectory_msgs/msg/JointTrajectory", False),  # any publisher QoS
-    "model": ("std_msgs/msg/String", True),
-    "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", False),
+CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag)
+    "joint_states": ("sensor_msgs/msg/JointState", "data"),
+    "sim/true_position": ("geometry_msgs/msg/PointStamped", "data"),
+    "reference": ("sensor_msgs/msg/JointState", "data"),
+    "command": ("geometry_msgs/msg/Vector3Stamped", "data"),
+    "setpoint": ("geometry_msgs/msg/PointStamped", "data"),
+    "gap/residual": ("geometry_msgs/msg/PointStamped", "data"),
+    "trajectory": ("trajectory_msgs/msg/JointTrajectory", "data"),  # any publisher QoS
+    "model": ("std_msgs/msg/String", "latched"),
+    "state": ("diagnostic_msgs/msg/DiagnosticArray", "events"),
+    "feedforward/phase": ("std_msgs/msg/String", "events"),
+    "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", "diag"),
 }
 STAMPED = {t for t, _ in CONTRACT.values()} - {"std_msgs/msg/String",
                                                "trajectory_msgs/msg/JointTrajectory"}
@@ -54,10 +56,13 @@ class Recorder(Node):
         # off the loop's critical path: take what arrived every few ms, not per message
         self.hot_batch_s = declare(self, "batch_period_s", 0.004, "wait between takes "
                                    "[s]; queues hold 5000 samples per topic", lo=0.0, hi=60.0)
+        self.log_received = declare(self, "log_time", "stamp", "bag log time: stamp "
+                                    "(lockstep) | receive (real time)", read_only=True,
+                                    choices=("stamp", "receive")) == "receive"
         self.get_logger().info(f"recording to {out}")
         self.subs = {}
-        for rel, (msgtype, latched) in CONTRACT.items():
-            self.subscribe(self.resolve_topic_name(rel), msgtype, latched)
+        for rel, (msgtype, kind) in CONTRACT.items():
+            self.subscribe(self.resolve_topic_name(rel), msgtype, kind)
         self.create_timer(1.0, self.discover)
         self.create_timer(declare(self, "flush_period_s", 0.5, "chunk flush period [s]",
                                   lo=0.01, hi=60.0), self.bag.flush)
@@ -66,15 +71,17 @@ class Recorder(Node):
     def resolve_topic_name(self, rel):
         return rel if rel.startswith("/") else f"{self.get_namespace().rstrip('/')}/{rel}"
 
-    def subscribe(self, topic, msgtype, latched=False):
+    def subscribe(self, topic, msgtype, kind="data"):
         if topic in self.subs:
             return
         self.bag.add_topic(topic, msgtype)
         stamped = msgtype in STAMPED
-        qos = QOS_LATCHED if latched else (QOS_DIAG if topic == "/diagnostics" else QOS_DATA)
+        qos = {"latched": QOS_LATCHED, "events": QOS_EVENTS, "diag": QOS_DIAG}.get(
+            kind, QOS_DATA)
         self.subs[topic] = hot_subscription(  # everything recorded: the lean loop
-            self, msg_class(msgtype), topic, lambda data: self.write(topic, data, stamped),
-            qos, raw=True)
+            self, msg_class(msgtype), topic,
+            lambda data, info: self.write(topic, data, stamped, info), qos, raw=True,
+            with_info=True)
 
     def discover(self):
         for topic, types in self.get_topic_names_and_types():
@@ -85,13 +92,16 @@ class Recorder(Node):
                 except (ImportError, AttributeError, KeyError):
                     self.get_logger().warning(f"cannot record {topic}: unknown type {types[0]}")
 
-    def write(self, topic, data, stamped):
+    def write(self, topic, data, stamped, info):
+        received = info.get("received_timestamp") or self.get_clock().now().nanoseconds
         if stamped:  # CDR: 4-byte encapsulation, then header.stamp (int32 sec, uint32 ns)
             sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
             t = sec * 1_000_000_000 + nsec
         else:
-            t = self.get_clock().now().nanoseconds
-        self.bag.write(topic, data, t)
+            t = received
+        # log time: when it arrived (real time), or its stamp (lockstep's simulated
+        # time, so reruns are identical); publish time: its stamp
+        self.bag.write(topic, data, received if self.log_received else t, t)
 
     def close(self):
         self.bag.finish()

@@ -1,25 +1,37 @@
 """stage_driver: the stage (sim, NI-DAQ or replay) on topics; the last line of defence.
 
-Lockstep (sim): one control period per command whose stamp is the next step, stamps in
-simulated time from 0, so two runs with the same seed give identical data.
-Real time: its own timer at the control rate, zero-order hold of the last command; a
-stale command (older than stale_timeout_s) ramps the output to safe_voltage_V.
-Commands are clamped to the voltage and slew limits; NaN/inf commands are rejected
-(the last good value is held) and counted; ~/estop (std_srvs/Trigger) drives to 0 V.
+Samples sit on the stage's own sample clock, ``t0 + j * dt``: in lockstep t0 = 0 and
+one step is taken per command stamped for the next sample; in real time t0 is the ROS
+time of the first tick, the sim is paced by the wall clock (a tick serviced more than a
+period late skips the missed samples: the plant holds its voltage over them and the
+stamps show the gap) and the DAQ by its hardware clock. Commands are applied at the tick
+they are stamped for; late ones are counted and the last command is held. The arming
+supervisor (core/arming.py) decides what is applied: the safe voltage until the loop is
+proven closed, then commands, and a ramp to the safe voltage on a fault (stale
+commands), an e-stop (latched until disarm) or shutdown. Everything is clamped to the
+voltage limits and the slew limit. State: latched ``state`` topic and /diagnostics;
+``arm`` (std_srvs/SetBool) arms and disarms; ``estop`` (std_srvs/Trigger).
 """
 
 import time
 from collections import deque
 
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from sensor_msgs.msg import JointState
-from std_srvs.srv import Trigger
+from std_msgs.msg import String
+from std_srvs.srv import SetBool, Trigger
 
+from piezo_stage.core.arming import (ENABLED, ArmingParams, ArmingSupervisor,
+                                     CommandSchedule)
+from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import DataError
-from piezo_stage.drivers import DRIVER_PARAMS, clamp_slew, make_backend, step_period_summary
-from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, Gate, declare, hot_subscription,
-                                       run, validate_choices)
-from piezo_stage_msgs_adapters import joint_state_cdr, point_cdr, voltage_from_msg
+from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
+from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, Diagnostics, Gate, declare,
+                                       hot_subscription, run)
+from piezo_stage_msgs_adapters import (arming_state_msg, joint_state_cdr, point_cdr,
+                                       voltage_from_msg)
 import rclpy
 from rclpy.duration import Duration
 from rclpy.node import Node
@@ -28,122 +40,246 @@ from rclpy.node import Node
 class StageDriver(Node):
     def __init__(self):
         super().__init__("stage_driver")
-        p = {key: declare(self, name, default, desc, **kw)
-             for key, name, default, desc, kw in DRIVER_PARAMS}
-        validate_choices(self)
-        self.p = p
-        self.backend = make_backend(p["backend"], p["rate"], p)
-        self.dt = 1.0 / p["rate"]
-        self.lo_hi = self.backend.limits
-        self.max_step = self.backend.slew_V_per_s * self.dt
-        self.v = {"x": max(self.lo_hi[0], 0.0), "y": max(self.lo_hi[0], 0.0)}
-        self.cmd, self.cmd_time = dict(self.v), time.monotonic()
-        self.k, self.t0_ns = 0, 0 if p["mode"] == "lockstep" else time.time_ns()
-        self.stats = {"steps": 0, "rejected": 0, "limit_hits": 0, "stale": 0,
-                      "unexpected_stamp": 0, "deadline_misses": 0, "estop": False}
+        ro = {"read_only": True}
+        d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
+        p = self.p = {
+            "backend": d("backend", "sim", "stage backend", choices=("sim", "daq", "replay"), **ro),
+            "mode": d("mode", "lockstep", "lockstep (sim, replay) | realtime",
+                      choices=("lockstep", "realtime"), **ro),
+            "rate": d("control_rate_hz", 1000.0, "sample rate [Hz]", lo=1.0, hi=1e5, **ro),
+            "lookahead": d("lookahead_s", 0.005, "real time: commands are computed this "
+                           "far ahead of the sample they answer [s]", lo=0.0, hi=1.0, **ro),
+            "max_steps": d("max_steps", 0, "stop after this many samples (0: never)",
+                           lo=0, hi=2**31 - 1, **ro),
+            "exit_done": d("exit_after_max_steps", False, "exit (code 0) after max_steps"),
+            "min_subs": d("min_subscribers", 0, "lockstep: joint_states subscribers to "
+                          "wait for", lo=0, hi=100, **ro),
+            "min_rec": d("min_record_subscribers", 0, "lockstep: true_position "
+                         "subscribers to wait for (recorders)", lo=0, hi=100, **ro),
+            "prio": d("thread_priority", 50, "real time: SCHED_FIFO priority of the "
+                      "sample loop (0: leave the scheduler alone)", lo=0, hi=99, **ro)}
+        if p["backend"] == "daq" and p["mode"] != "realtime":
+            raise DataError("backend daq runs in real time only (mode: realtime)")
+        arm = ArmingParams(
+            safe_V=d("safe_voltage_V", 0.0, "disarmed/faulted output [V]", lo=-200.0, hi=200.0, **ro),
+            ramp_V_per_s=d("safe_ramp_V_per_s", 500.0, "ramp rate to the safe voltage "
+                           "[V/s]", lo=1.0, hi=1e6, **ro),
+            stale_s=d("stale_timeout_s", 0.05, "real time: no valid command for this "
+                      "long faults the stage [s]", lo=0.001, hi=10.0, **ro),
+            confirm_ticks=d("arm_confirm_ticks", 20, "ticks of a closed loop before "
+                            "arming", lo=1, hi=100000, **ro),
+            tolerance_V=d("arm_tolerance_V", 0.01, "|command - applied| that counts as "
+                          "holding [V]", lo=1e-9, hi=10.0, **ro),
+            auto_arm=d("auto_arm", False, "arm once the loop is closed, and re-arm after "
+                       "a stale fault", **ro))
+        bp = {k: d(k, default, desc, **ro) for k, default, desc in BACKEND_PARAMS}
+        self.backend = make_backend(p["backend"], p["rate"], bp, arm.safe_V)
+        self.lock = p["mode"] == "lockstep"
+        self.dt_ns = int(round(1e9 / p["rate"]))
+        self.lookahead_ns = self.dt_ns if self.lock else max(
+            self.dt_ns, int(round(p["lookahead"] * 1e9)))
+        self.max_step = {a: s / p["rate"] for a, s in self.backend.slew_V_per_s.items()}
+        self.v = {"x": arm.safe_V, "y": arm.safe_V}
+        self.j, self.t0_ns, self.mono0 = -1, 0, None
+        self.stats = {"samples": 0, "rejected": 0, "limit_hits": 0, "unexpected_stamp": 0,
+                      "missed_ticks": 0, "late_commands": 0}
+        self.tick_late_ns = deque(maxlen=5000)        # real time: tick - its deadline
+        self.step_times = deque(maxlen=1_000_000)     # lockstep: the loop's pace
+        self.link, self.shutdown_requested, self.shutdown_by = "starting", False, None
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
         self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
-        lock = p["mode"] == "lockstep"
-        self.gate = Gate(self, [(self.jpub, p["min_subs"] * lock),
-                                (self.tpub, p["min_rec"] * lock * (p["backend"] == "sim"))])
-        if lock:  # one command per step: served by the lean loop
-            hot_subscription(self, Vector3Stamped, "command", self.on_command, QOS_DATA,
-                             raw=True)
-        else:
-            self.create_subscription(Vector3Stamped, "command", self.on_command, QOS_DATA,
-                                     raw=True)
+        self.spub = self.create_publisher(DiagnosticArray, "state", QOS_EVENTS)
+        self.sup = ArmingSupervisor(arm, self.v, 1.0 / p["rate"],
+                                    3 * self.dt_ns if self.lock else max(
+                                        3 * self.dt_ns, 20_000_000), self.on_state_change)
+        self.sched = CommandSchedule(0, self.dt_ns, self.lookahead_ns)
+        self.gate = Gate(self, [(self.jpub, p["min_subs"] * self.lock),
+                                (self.tpub, p["min_rec"] * self.lock * (p["backend"] == "sim"))])
+        hot_subscription(self, Vector3Stamped, "command", self.on_command, QOS_DATA,
+                         raw=True, with_info=True)
+        self.create_subscription(String, "feedforward/phase", self.on_phase, QOS_EVENTS)
+        self.create_service(SetBool, "arm", self.on_arm)
         self.create_service(Trigger, "estop", self.on_estop)
-        Diagnostics(self, self.status, hardware_id=p["backend"])
-        self._last_tick = time.monotonic()
-        self.step_times = deque(maxlen=1_000_000)  # bounded: real-time runs go on
-        if p["mode"] == "realtime":
-            self.create_timer(self.dt, self.on_tick)
-        self.advance(self.v)  # sample 0: the stage at rest
+        self.create_timer(0.5, self.check_links)
+        Diagnostics(self, self.status, hardware_id=self.backend.hardware_id)
+        self.on_state_change(self.sup.state, self.sup.reason, 0)
+        if self.lock:
+            self.tick(0, None, False)  # sample 0: the stage at rest
+        else:
+            self.lean_deadline = 0.0   # the first real-time tick: now
+            self.rt_priority = set_realtime_priority(p["prio"], self.get_logger())
 
-    def stamp(self, k):
-        return self.t0_ns + int(round(k * self.dt * 1e9))
+    # -- time -------------------------------------------------------------------------
+    def stamp(self, j):
+        return self.t0_ns + j * self.dt_ns
 
-    def advance(self, v):
-        done = (self.p["max_steps"] and self.k > self.p["max_steps"]) or \
-            getattr(self.backend, "exhausted", False)
-        if done:
-            if self.p["exit_done"] and not hasattr(self, "_exit_timer"):
-                self._exit_timer = self.create_timer(0.2, self.finish)
+    def on_lean_tick(self):
+        """Real time: the sample clock's tick (the DAQ's read blocks until its clock)."""
+        now = time.monotonic()
+        if self.mono0 is None:  # map the sample clock to ROS time once
+            self.mono0, self.t0_ns = now, self.get_clock().now().nanoseconds
+            self.sched.t0 = self.t0_ns
+        j = self.j + 1 if self.backend.paced else int((now - self.mono0) * 1e9 // self.dt_ns)
+        self.tick_late_ns.append(int((now - self.mono0) * 1e9) - j * self.dt_ns)
+        cmd, on_time = self.sched.due(j)
+        self.tick(j, cmd, on_time, missed=j - self.j - 1)
+        self.lean_deadline = 0.0 if self.backend.paced else self.mono0 + (self.j + 1) * self.dt_ns * 1e-9
+
+    # -- commands -----------------------------------------------------------------------
+    def on_command(self, msg, info):
+        try:
+            ns, v = voltage_from_msg(msg)
+        except DataError:  # NaN/inf or malformed: never counts as a fresh command
+            self.stats["rejected"] += 1
             return
-        if self.stats["estop"]:
-            v = {"x": 0.0, "y": 0.0}
-        v, hit = clamp_slew(v, self.v, self.lo_hi, self.max_step)
-        self.stats["limit_hits"] += hit
-        w, true, applied = self.backend.step(v["x"], v["y"])
-        self.v = v
-        ns = self.stamp(self.k)
+        if self.lock:
+            if ns != self.stamp(self.j + 1):
+                self.stats["unexpected_stamp"] += 1
+                return
+            self.sup.note_command(ns)
+            self.tick(self.j + 1, v, True)
+            return
+        recv = info.get("received_timestamp") or self.get_clock().now().nanoseconds
+        self.sup.note_command(recv)
+        self.sched.add(ns, v, recv, self.j)
+        self.stats["late_commands"] = self.sched.late
+
+    # -- one sample -----------------------------------------------------------------------
+    def tick(self, j, cmd, on_time, missed=0):
+        if self.p["max_steps"] and j > self.p["max_steps"] or getattr(self.backend, "exhausted", False):
+            return self.done()
+        now = self.stamp(j) if self.lock else self.get_clock().now().nanoseconds
+        target = self.sup.tick(self.stamp(j), now, cmd, on_time, self.link)
+        v, hit = clamp_slew(target, self.v, self.backend.limits,
+                            {a: s * (missed + 1) for a, s in self.max_step.items()})
+        self.stats["limit_hits"] += hit and self.sup.state in ENABLED
+        for _ in range(missed):  # the plant held the last voltage over the missed ticks
+            self.backend.step(self.v["x"], self.v["y"])
+        w, true, applied, hw_j = self.backend.step(v["x"], v["y"])
+        if hw_j is not None:  # the DAQ's own sample count: its misses show in the stamps
+            missed, j = missed + hw_j - j, hw_j
+        self.stats["missed_ticks"] += missed
+        self.v, self.j = dict(applied), j
+        self.sup.applied(applied)
+        ns = self.stamp(j)
         self.gate.publish(self.jpub, joint_state_cdr(ns, w, applied))
         if true is not None:
             self.gate.publish(self.tpub, point_cdr(ns, true))
-        self.k += 1
-        self.stats["steps"] = self.k
+        self.stats["samples"] += 1
         self.step_times.append(time.perf_counter())
+        if self.shutdown_requested and (self.sup.state not in ENABLED and all(
+                abs(x - self.sup.p.safe_V) < 1e-9 for x in self.v.values())
+                or time.monotonic() > self.shutdown_by):
+            rclpy.try_shutdown()  # at the safe voltage (or out of time): exit
 
-    def on_command(self, msg):
-        try:
-            ns, v = voltage_from_msg(msg)
-        except DataError:
-            self.stats["rejected"] += 1
-            v, ns = dict(self.cmd), None  # hold the last good value
-        else:
-            self.cmd = v
-        self.cmd_time = time.monotonic()
-        if self.p["mode"] == "lockstep":
-            self.advance_on_command(ns)
-
-    def advance_on_command(self, ns):
-        if ns is not None and ns != self.stamp(self.k):
-            self.stats["unexpected_stamp"] += 1
-            return
-        self.advance(self.cmd)
-
-    def on_tick(self):
-        now = time.monotonic()
-        if now - self._last_tick > 1.5 * self.dt:
-            self.stats["deadline_misses"] += 1
-        self._last_tick = now
-        target = self.cmd
-        if now - self.cmd_time > self.p["stale"]:
-            self.stats["stale"] += 1
-            step = self.p["ramp"] * self.dt
-            target = {a: min(max(self.p["safe"], x - step), x + step) for a, x in self.v.items()}
-        self.advance(target)
+    def done(self):
+        if self.lock:
+            if self.p["exit_done"] and not hasattr(self, "_exit_timer"):
+                self._exit_timer = self.create_timer(0.2, self.finish)
+        elif not self.shutdown_requested:
+            self.request_shutdown()
 
     def finish(self):
-        """All steps done: make sure every subscriber has them, then exit cleanly."""
+        """Lockstep, all steps done: make sure every subscriber has them, then exit."""
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
                                   for pub in (self.jpub, self.tpub)):
-            self.get_logger().info(f"done after {self.k} samples: "
+            self.get_logger().info(f"done after {self.j + 1} samples: "
                                    f"{step_period_summary(list(self.step_times)[1:])}")
             rclpy.try_shutdown()
 
+    def request_shutdown(self):
+        """SIGINT/SIGTERM or max_steps: ramp to the safe voltage, still publishing, then
+        exit. Lockstep (a simulation waiting for commands) exits at once."""
+        self.shutdown_requested = True
+        if self.lock:
+            rclpy.try_shutdown()
+            return
+        self.sup.request_disarm(self.stamp(self.j))
+        self.sup.reason = "shutting down"
+        span = max(abs(x - self.sup.p.safe_V) for x in self.v.values())
+        self.shutdown_by = time.monotonic() + span / self.sup.p.ramp_V_per_s + 1.0
+
+    # -- arming ---------------------------------------------------------------------------
+    def on_state_change(self, state, reason, since_ns):
+        values = {"lookahead_s": self.lookahead_ns * 1e-9, "control_rate_hz": self.p["rate"],
+                  "mode": self.p["mode"]}
+        self.spub.publish(arming_state_msg(since_ns, self.status_name("arming"), state,
+                                           reason, values, self.backend.hardware_id))
+        if self.lock and state in ENABLED:  # deterministic: all know before it applies
+            self.spub.wait_for_all_acked(Duration(seconds=2))
+        if state == "faulted":
+            self.get_logger().warning(f"{state}: {reason}")
+        else:
+            self.get_logger().info(f"{state}: {reason}")
+
+    def status_name(self, task):
+        return f"{self.get_namespace().rstrip('/')}/{self.get_name()}: {task}"
+
+    def check_links(self):
+        """Which link of the loop is missing, in words (for refusals and diagnostics)."""
+        ns = self.get_namespace().rstrip("/")
+        missing = [f"no {who}: nothing {verb} {ns}/{topic}" for who, verb, topic, n in (
+            ("controller", "publishes", "command", self.count_publishers(f"{ns}/command")),
+            ("feedforward", "subscribes to", "joint_states",
+             self.count_subscribers(f"{ns}/joint_states")),
+            ("feedforward", "publishes", "reference", self.count_publishers(f"{ns}/reference")),
+        ) if n == 0]
+        self.link = "; ".join(missing)
+
+    def on_phase(self, msg):
+        self.sup.set_tracking(msg.data == "tracking", self.stamp(self.j))
+
+    def on_arm(self, request, response):
+        self.check_links()
+        now = self.stamp(self.j)
+        if request.data:
+            response.success, response.message = self.sup.request_arm(now)
+            if self.link and not response.success:
+                response.message += f" ({self.link})"
+        else:
+            response.success, response.message = self.sup.request_disarm(now)
+        return response
+
     def on_estop(self, request, response):
-        self.stats["estop"] = True
-        self.get_logger().warning("E-STOP: driving the stage to 0 V")
-        if self.p["mode"] == "lockstep":
-            self.advance({"x": 0.0, "y": 0.0})
-        response.success, response.message = True, "driving to 0 V; restart to clear"
+        self.sup.trigger_estop(self.stamp(self.j))
+        response.success = True
+        response.message = "driving to the safe voltage; latched until disarm and re-arm"
         return response
 
     def status(self):
-        s = self.stats
-        level = 2 if s["estop"] else 1 if (s["rejected"] or s["stale"]) else 0
-        return level, "e-stop" if s["estop"] else "ok", {**s, "backend": self.p["backend"],
-                                                          "mode": self.p["mode"],
-                                                          "v_x_V": self.v["x"],
-                                                          "v_y_V": self.v["y"]}
+        lag = np.array(self.sched.arrival_lag_ns or [0]) * 1e-6
+        late = np.array(self.tick_late_ns or [0]) * 1e-6
+        s, st = self.stats, self.sup.state
+        level = 2 if st == "faulted" else 1 if st in ("disarmed", "arming") else 0
+        values = {**s, "state": st, "reason": self.sup.reason, "backend": self.p["backend"],
+                  "mode": self.p["mode"], "v_x_V": self.v["x"], "v_y_V": self.v["y"],
+                  "tick_late_median_ms": np.median(late), "tick_late_p99_ms": np.percentile(late, 99),
+                  "command_lag_median_ms": np.median(lag), "command_lag_p99_ms": np.percentile(lag, 99),
+                  "lookahead_ms": self.lookahead_ns * 1e-6,
+                  "thread_priority": getattr(self, "rt_priority", 0), **self.sup.counts}
+        return level, f"{st}: {self.sup.reason}", values
 
     def close(self):
-        self.backend.close()
+        self.backend.close(self.sup.p.safe_V, self.sup.p.ramp_V_per_s)
+
+
+def set_realtime_priority(prio, logger) -> int:
+    """SCHED_FIFO for this (the sample loop's) thread, as ros2_control does for its
+    control thread; where the OS does not permit it, say so and run as a normal thread."""
+    import os
+    if prio <= 0:
+        return 0
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+        return prio
+    except (PermissionError, OSError, AttributeError) as e:
+        logger.warning(f"thread_priority {prio}: not permitted here ({e}); the sample "
+                       "loop runs at normal priority, so expect more missed ticks")
+        return 0
 
 
 def main(args=None):
-    return run(StageDriver, args)
+    return run(StageDriver, args, graceful=True)
 
 
 if __name__ == "__main__":
