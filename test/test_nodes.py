@@ -69,7 +69,8 @@ def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env):
             names.add(st.name)
             keys.setdefault(st.name, set()).update(kv.key for kv in st.values)
     assert {f"piezo_stage: {n}" for n in nodes} <= names
-    assert {"steps", "rejected", "limit_hits", "deadline_misses"} <= keys["piezo_stage: stage_driver"]
+    assert {"samples", "rejected", "limit_hits", "missed_ticks", "late_commands",
+            "state"} <= keys["piezo_stage: stage_driver"]
     assert "model" in keys["piezo_stage: feedforward"]
     # same seed, same data: two runs give byte-identical loop topics
     b = lockstep(tmp_path, env, "b", nodes=nodes, steps=1500)

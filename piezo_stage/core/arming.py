@@ -284,12 +284,13 @@ class ArmingSupervisor:
         at_safe = all(abs(x - self.p.safe_V) <= 1e-9 for x in self.v.values())
         if self.state == DISARMED and self.arm_requested:
             self._set(ARMING, "waiting for the loop to close", stamp_ns)
-        if self.state == FAULTED and self.arm_requested and not self.estop:
-            self._set(ARMING, "re-arming after a fault", stamp_ns)
-        if self.state == ARMING:
+        # a fault is reported as such until the loop is back; with auto_arm it then
+        # re-arms through the approach (an e-stop waits for disarm and arm)
+        rearm = self.state == FAULTED and self.arm_requested and not self.estop
+        if self.state == ARMING or rearm:
             if self.evidence >= self.p.confirm_ticks and at_safe:
                 self._enable(stamp_ns)
-            else:
+            elif self.state == ARMING:
                 self.reason = ("waiting for the output to reach the safe voltage"
                                if not at_safe else f"waiting for the loop: {self.link}")
         return target

@@ -173,6 +173,8 @@ class DaqBackend:
         self._late_call(self._write, self.v)
         while not self._late_call(self.reader.read_one_sample, self.raw_in):
             pass  # late error: that clock is gone; the next read takes the next one
+        # shapes are checked on the first call; then no per-sample attribute queries
+        self.reader.verify_array_shape = self.writer.verify_array_shape = False
         if self.wd is not None:
             self.wd.reset_timer()
         index = int(self.ai.in_stream.total_samp_per_chan_acquired) - 1

@@ -57,7 +57,8 @@ class Feedforward(Node):
             declare(self, "approach_accel_um_per_s2", 20000.0, "approach acceleration "
                     "[um/s^2]", lo=1.0, hi=1e9, **ro))
         self.limits = (0.0, 150.0)
-        self.inv, self.model_name, self.pending = None, "nominal", None
+        self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
+        self.started = False  # the inverse has been put where the stage is
         self.timeline, self.lookahead_ns, self.realtime = StateTimeline(), self.dt_ns, False
         self.last_ns, self.ff, self.planned = -1, {"x": 0.0, "y": 0.0}, {}
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
@@ -73,7 +74,11 @@ class Feedforward(Node):
         hot_subscription(self, DiagnosticArray, "state", self.on_driver_state, QOS_EVENTS)
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True)
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        # volatile: any publisher matches; transient local: a restarted feedforward gets
+        # the latched trajectory too (the same message twice is taken once)
         self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable)
+        self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory,
+                                 QOS_LATCHED)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
         Diagnostics(self, lambda: (0, "ok", {**self.stats, "model": self.model_name,
@@ -85,6 +90,7 @@ class Feedforward(Node):
         if self.planner.desired is not None:
             inv.reset(v=self.ff, w=self.planner.desired)
         self.inv, self.model_name, self.limits = inv, name, model.voltage_limits
+        self.started = self.planner.desired is not None  # else: from the first sample
         self.stats["models"] += 1
         self.get_logger().info(f"using model {name}")
 
@@ -113,7 +119,12 @@ class Feedforward(Node):
 
     def on_trajectory(self, msg):
         try:
-            self.planner.set_trajectory(*trajectory_from_msg(msg, self.range))
+            t, w = trajectory_from_msg(msg, self.range)
+            key = hash((t.tobytes(), *(w[a].tobytes() for a in sorted(w))))
+            if key == self.traj_key:
+                return  # the same trajectory again (volatile and latched delivery)
+            self.traj_key = key
+            self.planner.set_trajectory(t, w)
             self.get_logger().info(f"trajectory of {len(msg.points)} points accepted")
         except PiezoStageError as e:
             self.stats["rejected_trajectories"] += 1
@@ -144,12 +155,16 @@ class Feedforward(Node):
             return
         self.last_ns = ns
         applied = v_applied or self.ff
-        if self.inv is not None:
+        if self.inv is not None and not self.started:
+            # start (or restart, or a new model) from where the stage is, not from the
+            # model's initial state: hysteresis remembers what this node did not see
+            self.inv.reset(v=applied, w=w)
+            self.started = True
+        elif self.inv is not None:
             self.inv.sync(applied["x"], applied["y"])  # the stage's state at t_k
         phase = self.planner.phase
         if not self.timeline.enabled(target):
-            self.planner.hold(self.inv.w if self.inv else {a: applied[a] * self.gain
-                                                          for a in applied})
+            self.planner.hold(self.inv.w if self.inv else w)
             desired, self.ff, self.planned = self.planner.desired, dict(applied), {}
         else:
             desired = self.planner.sample(target)

@@ -85,7 +85,7 @@ class StageDriver(Node):
                       "missed_ticks": 0, "late_commands": 0}
         self.tick_late_ns = deque(maxlen=5000)        # real time: tick - its deadline
         self.step_times = deque(maxlen=1_000_000)     # lockstep: the loop's pace
-        self.link, self.shutdown_requested, self.shutdown_by = "starting", False, None
+        self.link, self.shutdown_requested, self.shutdown_by = "", False, None
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
         self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
         self.spub = self.create_publisher(DiagnosticArray, "state", QOS_EVENTS)
