@@ -243,14 +243,13 @@ def _loop_run(env, steps):
     import os
     import re
     import tempfile
-    from piezo_stage.cli import _default_stage_yaml
+    from piezo_stage.paths import default_config
     from piezo_stage.io.bag import iter_messages
     from piezo_stage.launch.launcher import Launch
     bag = os.path.join(tempfile.mkdtemp(), "bench")
     o = {"stage_driver": {"max_steps": steps, "exit_after_max_steps": True},
-         "feedforward": {"model_file": os.path.join(os.path.dirname(_default_stage_yaml()),
-                                                    "stage_model.yaml")}}
-    launch = Launch(_default_stage_yaml(), record=bag, overrides=o, env=env,
+         "feedforward": {"model_file": default_config("stage_model.yaml")}}
+    launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"])
     log = tempfile.TemporaryFile("w+")
     c0 = _cpu_ticks()
@@ -374,4 +373,7 @@ def main(args):
         return bench_loop()
     if args.what == "gap":
         return bench_gap()
+    if args.what == "realtime":
+        from piezo_stage.bench_realtime import bench_realtime
+        return bench_realtime(args.track)
     raise SystemExit(f"unknown benchmark {args.what}")

@@ -293,19 +293,14 @@ def cmd_gap(args):
     return 0
 
 
-def _default_stage_yaml():
-    import os
-    from piezo_stage.io.plant_file import default_config_dir
-    return os.path.join(default_config_dir(), "stage.yaml")
-
-
 def cmd_launch(args):
+    from piezo_stage.paths import default_config
     from piezo_stage.io.bag import new_bag_dir
     from piezo_stage.launch.launcher import Launch
     record = args.record
     if record == "auto":
         record = new_bag_dir("bags")
-    launch = Launch(args.config or _default_stage_yaml(), record=record,
+    launch = Launch(args.config or default_config("stage.yaml"), record=record,
                     namespace=args.namespace, arm=not args.no_arm)
     rc = launch.run(args.duration)
     if record:
@@ -431,7 +426,9 @@ def build_parser():
     s.set_defaults(fn=cmd_study)
 
     s = sub.add_parser("bench", help="performance benchmarks (figures as ratios)")
-    s.add_argument("what", choices=("plant", "identify", "loop", "gap"))
+    s.add_argument("what", choices=("plant", "identify", "loop", "gap", "realtime"))
+    s.add_argument("--track", type=float, default=20.0, metavar="S",
+                   help="realtime: seconds of the seed's trajectory")
     s.add_argument("--samples", type=int, default=2_000_000)
     s.set_defaults(fn=cmd_bench)
     return p

@@ -36,7 +36,7 @@ def tracking_from_bag(bag, t_from_s):
 
 
 def run_demo(args):
-    from piezo_stage.cli import _default_stage_yaml
+    from piezo_stage.paths import default_config
     from piezo_stage.launch.launcher import Launch
     bag = args.out or new_bag_dir("bags")
     rate = 1000.0
@@ -53,7 +53,7 @@ def run_demo(args):
     }
     print(f"demo: lockstep simulated stage, {args.excite:g} s excitation + {args.track:g} s "
           f"of the seed's 10 Hz trajectory ({steps} steps at {rate:g} Hz)", flush=True)
-    launch = Launch(_default_stage_yaml(), record=bag, namespace=args.namespace,
+    launch = Launch(default_config("stage.yaml"), record=bag, namespace=args.namespace,
                     overrides=overrides)
     rc = launch.run(duration=600.0)
     if rc != 0 or not os.path.isdir(bag):

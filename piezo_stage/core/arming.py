@@ -335,14 +335,15 @@ class CommandSchedule:
     command is stamped, so ``add`` can measure the sample-to-arrival latency.
     """
 
-    def __init__(self, t0_ns: int, dt_ns: int, lookahead_ns: int, window: int = 5000):
-        from collections import deque
+    def __init__(self, t0_ns: int, dt_ns: int, lookahead_ns: int):
+        from piezo_stage.core.metrics import LatencyHistogram
         self.t0, self.dt, self.lookahead = int(t0_ns), int(dt_ns), int(lookahead_ns)
         self.pending = {}            # tick -> voltages
         self.held = None             # (tick, voltages) applied last
         self.late = 0
+        self.held_ticks = 0          # ticks with no command of their own (held the last)
         self.received = 0
-        self.arrival_lag_ns = deque(maxlen=window)  # sample taken -> command arrived
+        self.arrival_lag = LatencyHistogram()  # sample taken -> its command arrived [s]
 
     def tick_of(self, stamp_ns: int) -> int:
         return (int(stamp_ns) - self.t0 + self.dt // 2) // self.dt
@@ -350,7 +351,7 @@ class CommandSchedule:
     def add(self, stamp_ns: int, v: dict, recv_ns: int, last_tick: int):
         j = self.tick_of(stamp_ns)
         self.received += 1
-        self.arrival_lag_ns.append(int(recv_ns) - (int(stamp_ns) - self.lookahead))
+        self.arrival_lag.add((int(recv_ns) - (int(stamp_ns) - self.lookahead)) * 1e-9)
         if j <= last_tick:
             self.late += 1
             if self.held is None or j > self.held[0]:
@@ -359,8 +360,10 @@ class CommandSchedule:
         self.pending[j] = dict(v)
 
     def due(self, j: int):
-        """-> (voltages or None, exactly on time for tick j)."""
+        """-> (voltages or None, exactly on time for tick j). A tick with no command
+        stamped for it counts as held (``held``)."""
         on_time = j in self.pending
+        self.held_ticks += not on_time
         ready = [k for k in self.pending if k <= j]
         if ready:
             k = max(ready)

@@ -62,3 +62,31 @@ def loop_figures(v, w) -> dict:
     return {"range_um": span, "max_width_um": float(width[i]),
             "max_width_pct": 100.0 * float(width[i]) / span if span else float("nan"),
             "max_width_at_V": float(grid[i]), "mid_width_um": float(width[100])}
+
+
+class LatencyHistogram:
+    """Whole-run percentiles of a latency at fixed cost: 10 us bins up to ``top_s``
+    (beyond it, the last bin), one integer increment per sample, bounded memory."""
+
+    def __init__(self, bin_s: float = 1e-5, top_s: float = 0.1):
+        self.bin = float(bin_s)
+        self.counts = [0] * (int(top_s / bin_s) + 1)
+        self.n, self.max_s = 0, 0.0
+
+    def add(self, x_s: float):
+        k = int(x_s / self.bin) if x_s > 0 else 0
+        self.counts[min(k, len(self.counts) - 1)] += 1
+        self.n += 1
+        if x_s > self.max_s:
+            self.max_s = x_s
+
+    def percentile(self, q: float) -> float:
+        """The q-th percentile [s] (upper edge of its bin); 0 when empty."""
+        if not self.n:
+            return 0.0
+        want, run = q / 100.0 * self.n, 0
+        for k, c in enumerate(self.counts):
+            run += c
+            if run >= want:
+                return (k + 1) * self.bin
+        return self.max_s

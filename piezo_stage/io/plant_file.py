@@ -92,13 +92,9 @@ def load_plant_config(path) -> PlantConfig:
 
 
 def default_config_dir() -> str:
-    """config/ of this package: the source tree, or share/piezo_stage/config when installed."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    src = os.path.normpath(os.path.join(here, "..", "..", "config"))
-    if os.path.isdir(src):
-        return src
-    import sys
-    return os.path.join(sys.prefix, "share", "piezo_stage", "config")
+    """config/ of this package (see piezo_stage.paths)."""
+    from piezo_stage.paths import config_dir
+    return config_dir()
 
 
 def default_plant_config_path() -> str:

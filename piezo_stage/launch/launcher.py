@@ -64,7 +64,7 @@ class Launch:
             self.nodes.insert(0, "recorder")
         self.ns = namespace
         self.record = record
-        drv = params.get("stage_driver", {})
+        drv = {**params.get("stage_driver", {}), **(overrides or {}).get("stage_driver", {})}
         mode = drv.get("mode", "lockstep")
         if mode not in ("lockstep", "realtime"):
             raise ConfigError(f"{config_path}: stage_driver mode {mode!r}: use lockstep "
@@ -91,7 +91,9 @@ class Launch:
              "controller": {"min_subscribers": rec + int("stage_driver" in has)},
              "trajectory": {"min_subscribers": rec + int("feedforward" in has)},
              "gap": {"min_subscribers": rec}}
-        g = g if self.lockstep else {"trajectory": g["trajectory"], "gap": g["gap"]}
+        if not self.lockstep:  # real time: the driver's clock starts once they listen
+            g = {"trajectory": g["trajectory"], "gap": g["gap"],
+                 "stage_driver": g["stage_driver"]}
         g.setdefault("stage_driver", {})["auto_arm"] = self.arm
         return g
 

@@ -252,6 +252,28 @@ def _check_choices(node, params):
     return SetParametersResult(successful=True)
 
 
+def set_realtime_priority(prio, logger, main_thread=True) -> int:
+    """SCHED_FIFO at ``prio`` for every thread of this process (the loop's and the
+    middleware's, so a publish never waits on a starved middleware thread: priority
+    inversion), as ros2_control does for its control thread. Where the OS does not
+    permit it, say so and go on at normal priority. Real time only: a lockstep loop is
+    CPU-bound and would starve everything else. ``main_thread=False``: only the
+    middleware's threads (a recorder receives and acknowledges promptly, while its own
+    batch writing and compression stay at normal priority)."""
+    import os
+    if prio <= 0:
+        return 0
+    try:
+        for tid in os.listdir("/proc/self/task"):
+            if main_thread or int(tid) != os.getpid():
+                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(prio))
+        return prio
+    except (PermissionError, OSError, AttributeError, ValueError) as e:
+        logger.warning(f"thread_priority {prio}: not permitted here ({e}); running at "
+                       "normal priority, so expect more missed ticks and late commands")
+        return 0
+
+
 class Gate:
     """Holds outgoing messages until every listed publisher has its number of matched
     subscriptions, then sends them in order. In lockstep nothing is published before

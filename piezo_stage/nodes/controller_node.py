@@ -27,7 +27,7 @@ from piezo_stage.core.arming import StateTimeline
 from piezo_stage.core.control import PID, CompositeAxis, PIDGains
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, Diagnostics, Gate, declare,
-                                       hot_subscription, run)
+                                       hot_subscription, run, set_realtime_priority)
 from piezo_stage_msgs_adapters import arming_state_from_msg, reference_from_msg, voltage_cdr
 from rclpy.node import Node
 
@@ -51,6 +51,9 @@ class Controller(Node):
         self.axes = {a: CompositeAxis(PID(self.gains, 1.0 / rate), self.limits, feedback)
                      for a in ("x", "y")}
         self.timeline, self.lookahead_ns, self.realtime = StateTimeline(), self.dt_ns, False
+        self.prio = declare(self, "thread_priority", 45, "real time: SCHED_FIFO priority "
+                            "(0: leave the scheduler alone; lockstep never changes it)",
+                            read_only=True, lo=0, hi=99)
         self.sent = {}     # target stamp -> (desired um, command V): for t_k's check
         self.last_ns = -1
         self.stats = {"commands": 0, "clamped": 0, "bad_messages": 0, "late_dropped": 0,
@@ -86,6 +89,8 @@ class Controller(Node):
         except (PiezoStageError, ValueError):
             self.stats["bad_messages"] += 1
             return
+        if values.get("mode") == "realtime" and not self.realtime:
+            set_realtime_priority(self.prio, self.get_logger())
         self.realtime = values.get("mode") == "realtime"
         self.timeline.add(since, state)
 

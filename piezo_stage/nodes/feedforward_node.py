@@ -25,8 +25,9 @@ from trajectory_msgs.msg import JointTrajectory
 from piezo_stage.core.arming import HOLD, ReferencePlanner, StateTimeline
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
+from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, QOS_LATCHED, Diagnostics, Gate, declare,
-                                       hot_subscription, run)
+                                       hot_subscription, run, set_realtime_priority)
 from piezo_stage_msgs_adapters import (arming_state_from_msg, joint_state_to_um,
                                        model_from_msg, reference_cdr, setpoint_from_msg,
                                        trajectory_from_msg)
@@ -60,7 +61,11 @@ class Feedforward(Node):
         self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
         self.started = False  # the inverse has been put where the stage is
         self.timeline, self.lookahead_ns, self.realtime = StateTimeline(), self.dt_ns, False
+        self.prio = declare(self, "thread_priority", 45, "real time: SCHED_FIFO priority "
+                            "(0: leave the scheduler alone; lockstep never changes it)",
+                            read_only=True, lo=0, hi=99)
         self.last_ns, self.ff, self.planned = -1, {"x": 0.0, "y": 0.0}, {}
+        self.last_target = None
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
                       "saturated": 0, "bad_messages": 0, "late_dropped": 0}
         if model_file:
@@ -72,7 +77,9 @@ class Feedforward(Node):
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "reference subscribers to wait for"))])
         hot_subscription(self, DiagnosticArray, "state", self.on_driver_state, QOS_EVENTS)
-        hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True)
+        hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
+                         with_info=True)
+        self.lag = LatencyHistogram()  # sample stamp -> its arrival here
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         # volatile: any publisher matches; transient local: a restarted feedforward gets
         # the latched trajectory too (the same message twice is taken once)
@@ -81,9 +88,12 @@ class Feedforward(Node):
                                  QOS_LATCHED)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
-        Diagnostics(self, lambda: (0, "ok", {**self.stats, "model": self.model_name,
-                                             "phase": self.planner.phase,
-                                             "lookahead_ms": self.lookahead_ns * 1e-6}))
+        Diagnostics(self, lambda: (0, "ok", {
+            **self.stats, "model": self.model_name, "phase": self.planner.phase,
+            "lookahead_ms": self.lookahead_ns * 1e-6,
+            "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
+            "joint_states_lag_p99_ms": self.lag.percentile(99) * 1e3,
+            "joint_states_lag_max_ms": self.lag.max_s * 1e3}))
 
     def set_model(self, model, name):
         inv = StageInverse(model, use_coupling=self.use_c)
@@ -114,6 +124,8 @@ class Feedforward(Node):
         except (PiezoStageError, ValueError):
             self.stats["bad_messages"] += 1
             return
+        if values.get("mode") == "realtime" and not self.realtime:
+            set_realtime_priority(self.prio, self.get_logger())
         self.realtime = values.get("mode") == "realtime"
         self.timeline.add(since, state)
 
@@ -138,7 +150,7 @@ class Feedforward(Node):
             self.stats["rejected_setpoints"] += 1
             self.get_logger().warning(f"setpoint rejected: {e}")
 
-    def on_state(self, msg):
+    def on_state(self, msg, info=None):
         try:
             ns, w, v_applied = joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:
@@ -146,6 +158,8 @@ class Feedforward(Node):
             return
         if ns <= self.last_ns:
             return  # duplicates change nothing
+        if self.realtime and info:
+            self.lag.add((info["received_timestamp"] - ns) * 1e-9)
         target = ns + self.lookahead_ns
         clock = self.planner.clock_s(target)
         waiting = (self.wait_traj and self.planner.traj is None) or (
@@ -162,6 +176,15 @@ class Feedforward(Node):
             self.started = True
         elif self.inv is not None:
             self.inv.sync(applied["x"], applied["y"])  # the stage's state at t_k
+        # one reference per target tick; after a sample the driver skipped (a missed
+        # tick), also the targets that sample would have answered, so no tick goes
+        # without a command of its own
+        gap = (target - self.last_target) // self.dt_ns if self.last_target else 1
+        for t in range(target - (min(gap, 20) - 1) * self.dt_ns, target + 1, self.dt_ns):
+            self.answer(ns, t, w, applied)
+        self.last_target = target
+
+    def answer(self, ns, target, w, applied):
         phase = self.planner.phase
         if not self.timeline.enabled(target):
             self.planner.hold(self.inv.w if self.inv else w)

@@ -15,7 +15,7 @@ import struct
 
 from piezo_stage.io.bag import BagWriter, new_bag_dir
 from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_EVENTS, QOS_LATCHED, Diagnostics, declare,
-                                       hot_subscription, run)
+                                       hot_subscription, run, set_realtime_priority)
 from rclpy.node import Node
 
 CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag)
@@ -59,6 +59,12 @@ class Recorder(Node):
         self.log_received = declare(self, "log_time", "stamp", "bag log time: stamp "
                                     "(lockstep) | receive (real time)", read_only=True,
                                     choices=("stamp", "receive")) == "receive"
+        prio = declare(self, "thread_priority", 40, "real-time recording (log_time "
+                       "receive): SCHED_FIFO priority of the middleware's receiving threads "
+                       "(the writing stays at normal priority; 0: leave the scheduler "
+                       "alone)", read_only=True, lo=0, hi=99)
+        if self.log_received:
+            set_realtime_priority(prio, self.get_logger(), main_thread=False)
         self.get_logger().info(f"recording to {out}")
         self.subs = {}
         for rel, (msgtype, kind) in CONTRACT.items():

@@ -16,7 +16,6 @@ voltage limits and the slew limit. State: latched ``state`` topic and /diagnosti
 import time
 from collections import deque
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from sensor_msgs.msg import JointState
@@ -27,9 +26,10 @@ from piezo_stage.core.arming import (ENABLED, ArmingParams, ArmingSupervisor,
                                      CommandSchedule)
 from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
 from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, Diagnostics, Gate, declare,
-                                       hot_subscription, run)
+                                       hot_subscription, run, set_realtime_priority)
 from piezo_stage_msgs_adapters import (arming_state_msg, joint_state_cdr, point_cdr,
                                        voltage_from_msg)
 import rclpy
@@ -83,7 +83,7 @@ class StageDriver(Node):
         self.j, self.t0_ns, self.mono0 = -1, 0, None
         self.stats = {"samples": 0, "rejected": 0, "limit_hits": 0, "unexpected_stamp": 0,
                       "missed_ticks": 0, "late_commands": 0}
-        self.tick_late_ns = deque(maxlen=5000)        # real time: tick - its deadline
+        self.tick_late = LatencyHistogram()           # real time: tick - its deadline
         self.step_times = deque(maxlen=1_000_000)     # lockstep: the loop's pace
         self.link, self.shutdown_requested, self.shutdown_by = "", False, None
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
@@ -93,15 +93,17 @@ class StageDriver(Node):
                                     3 * self.dt_ns if self.lock else max(
                                         3 * self.dt_ns, 20_000_000), self.on_state_change)
         self.sched = CommandSchedule(0, self.dt_ns, self.lookahead_ns)
-        self.gate = Gate(self, [(self.jpub, p["min_subs"] * self.lock),
-                                (self.tpub, p["min_rec"] * self.lock * (p["backend"] == "sim"))])
+        # lockstep: nothing is published before every consumer listens; real time: the
+        # sample clock starts then (the first publishes to new readers are slow)
+        self.gate = Gate(self, [(self.jpub, p["min_subs"]),
+                                (self.tpub, p["min_rec"] * (p["backend"] == "sim"))])
         hot_subscription(self, Vector3Stamped, "command", self.on_command, QOS_DATA,
                          raw=True, with_info=True)
         self.create_subscription(String, "feedforward/phase", self.on_phase, QOS_EVENTS)
         self.create_service(SetBool, "arm", self.on_arm)
         self.create_service(Trigger, "estop", self.on_estop)
         self.create_timer(0.5, self.check_links)
-        Diagnostics(self, self.status, hardware_id=self.backend.hardware_id)
+        self.diag = Diagnostics(self, self.status, hardware_id=self.backend.hardware_id)
         self.on_state_change(self.sup.state, self.sup.reason, 0)
         if self.lock:
             self.tick(0, None, False)  # sample 0: the stage at rest
@@ -115,13 +117,19 @@ class StageDriver(Node):
 
     def on_lean_tick(self):
         """Real time: the sample clock's tick (the DAQ's read blocks until its clock)."""
+        if not self.gate.open:
+            self.lean_deadline = time.monotonic() + 0.01  # consumers still matching
+            return
         now = time.monotonic()
         if self.mono0 is None:  # map the sample clock to ROS time once
             self.mono0, self.t0_ns = now, self.get_clock().now().nanoseconds
             self.sched.t0 = self.t0_ns
         j = self.j + 1 if self.backend.paced else int((now - self.mono0) * 1e9 // self.dt_ns)
-        self.tick_late_ns.append(int((now - self.mono0) * 1e9) - j * self.dt_ns)
+        self.tick_late.add(now - self.mono0 - j * self.dt_ns * 1e-9)
+        held = self.sched.held_ticks
         cmd, on_time = self.sched.due(j)
+        if self.sup.state not in ENABLED:
+            self.sched.held_ticks = held  # only an enabled stage is held at a stale value
         self.tick(j, cmd, on_time, missed=j - self.j - 1)
         self.lean_deadline = 0.0 if self.backend.paced else self.mono0 + (self.j + 1) * self.dt_ns * 1e-9
 
@@ -166,10 +174,12 @@ class StageDriver(Node):
         if true is not None:
             self.gate.publish(self.tpub, point_cdr(ns, true))
         self.stats["samples"] += 1
-        self.step_times.append(time.perf_counter())
+        if self.lock:
+            self.step_times.append(time.perf_counter())
         if self.shutdown_requested and (self.sup.state not in ENABLED and all(
                 abs(x - self.sup.p.safe_V) < 1e-9 for x in self.v.values())
                 or time.monotonic() > self.shutdown_by):
+            self.final_report()
             rclpy.try_shutdown()  # at the safe voltage (or out of time): exit
 
     def done(self):
@@ -185,7 +195,13 @@ class StageDriver(Node):
                                   for pub in (self.jpub, self.tpub)):
             self.get_logger().info(f"done after {self.j + 1} samples: "
                                    f"{step_period_summary(list(self.step_times)[1:])}")
+            self.final_report()
             rclpy.try_shutdown()
+
+    def final_report(self):
+        """Last diagnostics with the final counts, delivered before exiting."""
+        self.diag.publish()
+        self.diag.pub.wait_for_all_acked(Duration(seconds=1))
 
     def request_shutdown(self):
         """SIGINT/SIGTERM or max_steps: ramp to the safe voltage, still publishing, then
@@ -247,35 +263,23 @@ class StageDriver(Node):
         return response
 
     def status(self):
-        lag = np.array(self.sched.arrival_lag_ns or [0]) * 1e-6
-        late = np.array(self.tick_late_ns or [0]) * 1e-6
+        lag, late, ms = self.sched.arrival_lag, self.tick_late, 1e3
         s, st = self.stats, self.sup.state
         level = 2 if st == "faulted" else 1 if st in ("disarmed", "arming") else 0
         values = {**s, "state": st, "reason": self.sup.reason, "backend": self.p["backend"],
                   "mode": self.p["mode"], "v_x_V": self.v["x"], "v_y_V": self.v["y"],
-                  "tick_late_median_ms": np.median(late), "tick_late_p99_ms": np.percentile(late, 99),
-                  "command_lag_median_ms": np.median(lag), "command_lag_p99_ms": np.percentile(lag, 99),
+                  "tick_late_median_ms": late.percentile(50) * ms,
+                  "tick_late_p99_ms": late.percentile(99) * ms, "tick_late_max_ms": late.max_s * ms,
+                  "command_lag_median_ms": lag.percentile(50) * ms,
+                  "command_lag_p99_ms": lag.percentile(99) * ms, "command_lag_max_ms": lag.max_s * ms,
+                  "late_commands": self.sched.late, "commands": self.sched.received,
+                  "held_ticks": self.sched.held_ticks,
                   "lookahead_ms": self.lookahead_ns * 1e-6,
                   "thread_priority": getattr(self, "rt_priority", 0), **self.sup.counts}
         return level, f"{st}: {self.sup.reason}", values
 
     def close(self):
         self.backend.close(self.sup.p.safe_V, self.sup.p.ramp_V_per_s)
-
-
-def set_realtime_priority(prio, logger) -> int:
-    """SCHED_FIFO for this (the sample loop's) thread, as ros2_control does for its
-    control thread; where the OS does not permit it, say so and run as a normal thread."""
-    import os
-    if prio <= 0:
-        return 0
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-        return prio
-    except (PermissionError, OSError, AttributeError) as e:
-        logger.warning(f"thread_priority {prio}: not permitted here ({e}); the sample "
-                       "loop runs at normal priority, so expect more missed ticks")
-        return 0
 
 
 def main(args=None):

@@ -1,0 +1,76 @@
+"""A recorded run of the node set, read back as arrays: what the benchmarks, the
+experiments and the tests judge a run by.
+
+``read_run(bag)`` -> ``Run`` with, per sample of joint_states (stamp order): stamps [ns],
+measured position [um], applied voltage [V], receive time at the recorder [ns] (its log
+time in real time); the true positions and the references (desired [um]) by stamp; the
+driver's state changes; the driver's last diagnostics (key -> value string).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from piezo_stage.io.bag import deserialize, iter_messages
+
+UM = 1e6  # um per metre
+
+
+def _ns(m) -> int:
+    return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+
+
+@dataclass
+class Run:
+    t_ns: np.ndarray                       # joint_states stamps
+    w_um: np.ndarray                       # (n, 2) measured x, y
+    v_V: np.ndarray                        # (n, 2) applied x, y
+    recv_ns: np.ndarray                    # recorder's log time of each sample
+    true_um: dict = field(default_factory=dict)       # stamp -> (2,)
+    desired_um: dict = field(default_factory=dict)    # reference stamp -> (2,)
+    states: list = field(default_factory=list)        # (since ns, state)
+    driver: dict = field(default_factory=dict)        # last driver diagnostics
+    diagnostics: dict = field(default_factory=dict)   # node name -> its last ones
+
+    def state_times(self, name: str) -> list:
+        return [s for s, n in self.states if n == name]
+
+    def errors_um(self, t_from_ns: int, t_to_ns: int) -> np.ndarray:
+        """(n, 2) true - desired at every stamp in [t_from, t_to] that has both."""
+        ks = [k for k in sorted(self.desired_um) if t_from_ns <= k <= t_to_ns
+              and k in self.true_um]
+        return np.array([self.true_um[k] - self.desired_um[k] for k in ks]).reshape(-1, 2)
+
+
+def read_run(bag) -> Run:
+    t, w, v, recv, true, ref, states, diags = [], [], [], [], {}, {}, [], {}
+    for topic, msgtype, log_ns, data in iter_messages(bag):
+        if topic.endswith("/joint_states"):
+            m = deserialize(data, msgtype)
+            t.append(_ns(m))
+            recv.append(log_ns)
+            w.append(np.array(m.position[:2]) * UM)
+            v.append(np.array(m.effort[:2]) if len(m.effort) >= 2 else np.full(2, np.nan))
+        elif topic.endswith("/sim/true_position"):
+            m = deserialize(data, msgtype)
+            true[_ns(m)] = np.array([m.point.x, m.point.y]) * UM
+        elif topic.endswith("/reference"):
+            m = deserialize(data, msgtype)
+            ref[_ns(m)] = np.array(m.position[:2]) * UM
+        elif topic.endswith("/state") and msgtype.endswith("DiagnosticArray"):
+            m = deserialize(data, msgtype)
+            states.append((_ns(m), m.status[0].message))
+        elif topic == "/diagnostics":
+            m = deserialize(data, msgtype)
+            for st in m.status:
+                kv = {k.key: k.value for k in st.values}
+                kv["hardware_id"] = st.hardware_id
+                node = st.name.split(":")[-1].strip() if st.name.startswith("piezo_stage") \
+                    else st.name.split(":")[0].rsplit("/", 1)[-1]
+                diags[node] = kv
+    order = np.argsort(t, kind="stable")
+    arr = lambda x, shape: np.array(x).reshape(shape)[order]  # noqa: E731
+    return Run(arr(t, -1), arr(w, (-1, 2)), arr(v, (-1, 2)), arr(recv, -1), true, ref,
+               states, diags.get("stage_driver", {}), diags)
