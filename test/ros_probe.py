@@ -82,3 +82,24 @@ class Probe:
     def close(self):
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.ctx)
+
+
+def set_params(probe: Probe, node: str, **values):
+    """Set parameters on another node as `ros2 param set` does -> [(ok, reason)]."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    cli = AsyncParameterClient(probe.node, node)
+    assert cli.wait_for_services(10.0), node
+    fut = cli.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+    assert probe.wait(fut.done, 10.0)
+    return [(r.successful, r.reason) for r in fut.result().results]
+
+
+def get_params(probe: Probe, node: str, *names):
+    from rclpy.parameter import parameter_value_to_python
+    from rclpy.parameter_client import AsyncParameterClient
+    cli = AsyncParameterClient(probe.node, node)
+    assert cli.wait_for_services(10.0), node
+    fut = cli.get_parameters(list(names))
+    assert probe.wait(fut.done, 10.0)
+    return [parameter_value_to_python(v) for v in fut.result().values]

@@ -191,3 +191,35 @@ def test_a_node_dying_under_launch_ends_the_run_at_the_safe_voltage(tmp_path, do
     ticks = np.maximum(np.round(np.diff(t[k]) / 1e6), 1)[:, None]
     assert np.all(np.abs(np.diff(v[k], axis=0)) <= RAMP * 1e-3 * ticks + 1e-9)  # a ramp
     assert v[k].max() > 5.0  # from a real voltage, not from rest
+
+
+def test_controller_gains_and_feedback_are_live_and_read_only_ones_refused(tmp_path, domain):
+    """Parameters set from an outside node take effect (the node re-reads them), bad
+    values and read-only ones are refused with the reason."""
+    from ros_probe import get_params, set_params
+    d, env = domain
+    launch = Launch(realtime_config(tmp_path), env=env, nodes=["controller"])
+    proc = subprocess.Popen(launch.command("controller"), env=env)
+    probe = Probe(d)
+    try:
+        assert set_params(probe, "/stage/controller", kp=0.5, ki=90.0) == [(True, ""),
+                                                                          (True, "")]
+        assert get_params(probe, "/stage/controller", "kp", "ki") == [0.5, 90.0]
+        assert set_params(probe, "/stage/controller", feedback=False)[0][0]
+        ok, why = set_params(probe, "/stage/controller", kp=-1.0)[0]
+        assert not ok and why
+        ok, why = set_params(probe, "/stage/controller", voltage_limits_V=[0.0, 500.0])[0]
+        assert not ok and "read-only" in why.lower()
+        assert get_params(probe, "/stage/controller", "kp") == [0.5]
+        # the law itself uses them: its diagnostics report the gains it computes with
+        from diagnostic_msgs.msg import DiagnosticArray
+        seen = {}
+        probe.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: seen.update(
+            {kv.key: kv.value for st in m.status if st.name.endswith("controller")
+             for kv in st.values}), 10)
+        assert probe.wait(lambda: seen.get("kp") == "0.5", 5.0), seen
+        assert seen["ki"] == "90.0" and seen["feedback"] == "False"
+    finally:
+        probe.close()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
