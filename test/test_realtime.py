@@ -82,6 +82,23 @@ def test_arming_is_refused_with_the_missing_link_and_e_stop_stays_latched(tmp_pa
                   for n in ("feedforward", "controller")]
         assert probe.wait(lambda: probe.arm(True).success, 30)  # once the loop closes
         assert probe.wait_state("armed", 10)
+        # a streamed setpoint from an outside node: approached (not jumped to), and its
+        # latency reported (it cannot be previewed): the look-ahead plus under a period
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PointStamped
+        from piezo_stage.nodes._common import QOS_DATA
+        diag = {}
+        probe.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diag.update(
+            {kv.key: kv.value for st in m.status if st.name.endswith("feedforward")
+             for kv in st.values}), 10)
+        sp = probe.node.create_publisher(PointStamped, "/stage/setpoint", QOS_DATA)
+        probe.wait(lambda: sp.get_subscription_count() > 0, 5)
+        m = PointStamped()
+        m.point.x, m.point.y = 30e-6, 20e-6
+        sp.publish(m)
+        assert probe.wait(lambda: probe.effort and probe.effort[0] > 40.0, 5)
+        assert probe.wait(lambda: 4.5 <= float(diag.get("setpoint_latency_median_ms", 0))
+                          <= 9.0, 5), diag.get("setpoint_latency_median_ms")
         n = len(probe.states)
         assert probe.estop().success and probe.wait_state("faulted", 5, after=n)
         probe.spin(0.5)

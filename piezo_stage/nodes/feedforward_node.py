@@ -80,6 +80,7 @@ class Feedforward(Node):
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
         self.lag = LatencyHistogram()  # sample stamp -> its arrival here
+        self.sp_latency, self.setpoint_arrival = LatencyHistogram(), None
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         # volatile: any publisher matches; transient local: a restarted feedforward gets
         # the latched trajectory too (the same message twice is taken once)
@@ -93,7 +94,9 @@ class Feedforward(Node):
             "lookahead_ms": self.lookahead_ns * 1e-6,
             "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
             "joint_states_lag_p99_ms": self.lag.percentile(99) * 1e3,
-            "joint_states_lag_max_ms": self.lag.max_s * 1e3}))
+            "joint_states_lag_max_ms": self.lag.max_s * 1e3,
+            "setpoint_latency_median_ms": self.sp_latency.percentile(50) * 1e3,
+            "setpoint_latency_max_ms": self.sp_latency.max_s * 1e3}))
 
     def set_model(self, model, name):
         inv = StageInverse(model, use_coupling=self.use_c)
@@ -146,6 +149,7 @@ class Feedforward(Node):
     def on_setpoint(self, msg):
         try:
             self.planner.set_setpoint(setpoint_from_msg(msg, self.range))
+            self.setpoint_arrival = time.time_ns()  # for its arrival-to-applied latency
         except PiezoStageError as e:
             self.stats["rejected_setpoints"] += 1
             self.get_logger().warning(f"setpoint rejected: {e}")
@@ -200,6 +204,10 @@ class Feedforward(Node):
                                         throttle_duration_sec=1.0)
         if self.planner.phase != phase:
             self.phase_pub.publish(String(data=self.planner.phase))
+        if self.setpoint_arrival and self.realtime and self.timeline.enabled(target):
+            # a streamed setpoint cannot be previewed: it starts at this target tick
+            self.sp_latency.add((target - self.setpoint_arrival) * 1e-9)
+            self.setpoint_arrival = None
         if self.realtime and target < time.time_ns():
             self.stats["late_dropped"] += 1  # it could only reach the driver too late
             return
