@@ -189,23 +189,33 @@ def trajectory_msg(t_s, w_um: dict) -> JointTrajectory:
     return msg
 
 
-def trajectory_from_msg(msg: JointTrajectory, range_um=None):
+def trajectory_from_msg(msg: JointTrajectory, range_um=None, max_points=None):
     """JointTrajectory -> (t [s], {axis: um}); DataError with the reason if the message
-    names unknown joints, has non-increasing times, NaN, or leaves the stage range."""
+    names unknown or repeated joints, has more than ``max_points`` points, points
+    without one position per joint, negative or non-increasing times, NaN, or leaves
+    the stage range."""
     names = list(msg.joint_names)
     unknown = [n for n in names if n not in JOINTS]
     if unknown or not names:
         raise DataError(f"trajectory: unknown joint name(s) {unknown or names}; use x, y")
+    if len(set(names)) != len(names):
+        raise DataError(f"trajectory: joint names repeat: {names}")
     if not msg.points:
         raise DataError("trajectory: no points")
+    if max_points is not None and len(msg.points) > max_points:
+        raise DataError(f"trajectory: {len(msg.points)} points, more than the "
+                        f"{max_points} accepted (max_trajectory_points)")
+    bad = next((k for k, p in enumerate(msg.points) if len(p.positions) != len(names)), None)
+    if bad is not None:
+        raise DataError(f"trajectory: point {bad} has {len(msg.points[bad].positions)} "
+                        f"positions for {len(names)} joints")
     t = np.array([p.time_from_start.sec + p.time_from_start.nanosec * 1e-9
                   for p in msg.points])
+    if t[0] < 0:
+        raise DataError("trajectory: negative time_from_start")
     if np.any(np.diff(t) <= 0):
         raise DataError("trajectory: time_from_start is not strictly increasing")
-    pos = np.array([list(p.positions) for p in msg.points], dtype=float)
-    if pos.shape != (len(msg.points), len(names)):
-        raise DataError("trajectory: every point needs one position per joint")
-    pos = pos / UM
+    pos = np.array([list(p.positions) for p in msg.points], dtype=float) / UM
     if not np.all(np.isfinite(pos)):
         raise DataError("trajectory: NaN or inf position")
     if range_um is not None:
@@ -213,8 +223,7 @@ def trajectory_from_msg(msg: JointTrajectory, range_um=None):
         if pos.min() < lo or pos.max() > hi:
             raise DataError(f"trajectory: positions {pos.min():.2f}..{pos.max():.2f} um "
                             f"outside the stage range [{lo:g}, {hi:g}] um")
-    w = {n: pos[:, i] for i, n in enumerate(names)}
-    return t, w
+    return t, {n: pos[:, i] for i, n in enumerate(names)}
 
 
 def model_msg(yaml_text: str) -> String:
@@ -223,13 +232,9 @@ def model_msg(yaml_text: str) -> String:
 
 def model_from_msg(msg: String):
     """std_msgs/String with a model file's YAML -> (StageModel, effects)."""
-    import yaml
-    from piezo_stage.io.model_file import model_from_dict
-    try:
-        doc = yaml.safe_load(msg.data)
-    except yaml.YAMLError:
-        raise DataError("model message: malformed YAML") from None
-    return model_from_dict(doc, "model message")
+    from piezo_stage.io.model_file import model_from_dict, parse_yaml
+    return model_from_dict(parse_yaml(msg.data, "model message", max_bytes=65536),
+                           "model message")
 
 
 ARM_LEVEL = {"armed": 0, "approaching": 0, "arming": 1, "disarmed": 1, "faulted": 2}

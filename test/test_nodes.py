@@ -106,8 +106,10 @@ n.destroy_node(); rclpy.try_shutdown()
 def test_stage_follows_a_trajectory_from_another_lab_node(tmp_path, env):
     ext = subprocess.Popen([sys.executable, "-c", EXTERNAL], env=env)
     try:
+        # the loop waits for the lab node's trajectory (its bad one does not count)
         bag = lockstep(tmp_path, env, "ext", steps=4000,
-                       nodes=["stage_driver", "feedforward", "controller"])
+                       nodes=["stage_driver", "feedforward", "controller"],
+                       overrides={"feedforward": {"wait_for_trajectory": True}})
         assert ext.wait(60) == 0
     finally:
         if ext.poll() is None:

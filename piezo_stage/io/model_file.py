@@ -39,18 +39,65 @@ SCHEMA_KEY = "piezo_stage_model"
 SCHEMA_VERSION = 1
 
 
+MAX_YAML_BYTES = 1_000_000  # a model or plant file is a few kB; this is generous
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """SafeLoader that refuses aliases: a 1 kB 'billion laughs' document expands to
+    gigabytes; our files never need anchors."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, "YAML aliases are not accepted",
+                                              event.start_mark)
+        return super().compose_node(parent, index)
+
+
+def parse_yaml(text, source="YAML", max_bytes=MAX_YAML_BYTES):
+    """Parse bounded YAML text (no aliases, at most max_bytes); ModelError on any
+    problem, with where."""
+    if len(text) > max_bytes:
+        raise ModelError(f"{source}: {len(text)} bytes, more than the {max_bytes} accepted")
+    try:
+        return yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 - a SafeLoader
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        why = "aliases are not accepted" if "aliases" in str(e) else "malformed YAML"
+        raise ModelError(f"{source}: {why}{where}") from None
+
+
 def load_yaml(path, what="file"):
     try:
-        with open(path) as fh:
-            return yaml.safe_load(fh)
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_YAML_BYTES + 1)
     except FileNotFoundError:
         raise ModelError(f"{what} not found: {path}") from None
     except IsADirectoryError:
         raise ModelError(f"{what} is a directory: {path}") from None
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        raise ModelError(f"malformed YAML in {path}{where}") from None
+    except PermissionError:
+        raise ModelError(f"{what} not readable: {path}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise ModelError(f"{what} is not UTF-8 text: {path}") from None
+    return parse_yaml(text, f"{what} {path}")
+
+
+def _number(x, where):
+    """A real number (booleans and strings are not numbers here)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        raise ModelError(f"{where}: expected a number, got {x!r}")
+    if not np.isfinite(x):
+        raise ModelError(f"{where}: not finite")
+    return float(x)
+
+
+def _numbers(xs, where):
+    if not isinstance(xs, (list, tuple)) or not xs:
+        raise ModelError(f"{where}: expected a list of numbers")
+    return [_number(x, f"{where}[{i}]") for i, x in enumerate(xs)]
 
 
 def _check_keys(d, allowed, where):
@@ -69,10 +116,12 @@ def _branch(d, where):
         raise ModelError(f"{where}: give either h or f and g, not both")
     if "h" not in d and ("f" not in d or "g" not in d):
         raise ModelError(f"{where}: needs f and g (or h)")
+    alpha = _number(d["alpha"], f"{where}.alpha")
     try:
         if "h" in d:
-            return DuhemBranch.from_h(float(d["alpha"]), d["h"])
-        return DuhemBranch(float(d["alpha"]), d["f"], d["g"])
+            return DuhemBranch.from_h(alpha, _numbers(d["h"], f"{where}.h"))
+        return DuhemBranch(alpha, _numbers(d["f"], f"{where}.f"),
+                           _numbers(d["g"], f"{where}.g"))
     except (TypeError, ValueError) as e:  # ModelError is a ValueError
         raise ModelError(f"{where}: {e}") from None
 
@@ -83,10 +132,8 @@ def _duhem(d, where) -> DuhemModel:
     structure = d.get("structure", "whole")
     init = d.get("initial_state", {}) or {}
     _check_keys(init, ("v_V", "w_um"), f"{where}.initial_state")
-    try:
-        state = DuhemState(float(init.get("v_V", 0.0)), float(init.get("w_um", 0.0)))
-    except (TypeError, ValueError):
-        raise ModelError(f"{where}.initial_state: not a number") from None
+    state = DuhemState(_number(init.get("v_V", 0.0), f"{where}.initial_state.v_V"),
+                       _number(init.get("w_um", 0.0), f"{where}.initial_state.w_um"))
     if structure == "whole":
         _check_keys(d, ("structure", "initial_state", "alpha", "f", "g", "h", "coupling",
                         "note"), where)
@@ -124,14 +171,37 @@ def model_from_dict(doc, source="model") -> tuple[StageModel, dict]:
         if isinstance(d, dict) and d.get("coupling") is not None:
             coupling[a] = _duhem(d["coupling"], f"{source}: axes.{a}.coupling")
     lim = doc.get("voltage_limits_V", [0.0, 150.0])
-    try:
-        lim = (float(lim[0]), float(lim[1]))
-    except (TypeError, ValueError, IndexError):
-        raise ModelError(f"{source}: voltage_limits_V must be [min, max]") from None
+    if not isinstance(lim, (list, tuple)) or len(lim) != 2:
+        raise ModelError(f"{source}: voltage_limits_V must be [min, max]")
+    lim = tuple(_numbers(list(lim), f"{source}: voltage_limits_V"))
+    if not lim[0] < lim[1] or max(abs(lim[0]), abs(lim[1])) > MAX_VOLTS:
+        raise ModelError(f"{source}: voltage_limits_V {list(lim)} must have min < max "
+                         f"within +-{MAX_VOLTS:g} V")
+    _check_magnitudes(axes, coupling, lim, source)
     effects = doc.get("effects") or {}
     if not isinstance(effects, dict):
         raise ModelError(f"{source}: effects must be a mapping")
     return StageModel(axes, coupling, lim), effects
+
+
+MAX_VOLTS = 1000.0      # no piezo amplifier here drives more
+MAX_SLOPE = 1.0e4       # um/V: h(v) beyond this anywhere in the limits is not a stage
+
+
+def _check_magnitudes(axes, coupling, lim, source):
+    """Every branch polynomial finite and physically sized over the voltage limits
+    (1e300 coefficients, or 2,000 terms that overflow, are refused here)."""
+    v = np.linspace(lim[0], lim[1], 201)
+    for kind, models in (("axes", axes), ("coupling", coupling)):
+        for a, m in models.items():
+            for name, br in (("ascending", m.ascending), ("descending", m.descending)):
+                for asc in (True, False):
+                    with np.errstate(all="ignore"):
+                        y = np.polynomial.polynomial.polyval(v, br.h(asc))
+                    if not np.all(np.isfinite(y)) or np.abs(y).max() > MAX_SLOPE:
+                        raise ModelError(f"{source}: {kind}.{a} {name} branch reaches "
+                                         f"{np.nanmax(np.abs(y)):.3g} um/V within the "
+                                         f"voltage limits (finite and <= {MAX_SLOPE:g})")
 
 
 def load_model(path) -> tuple[StageModel, dict]:

@@ -23,6 +23,7 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.arming import HOLD, ReferencePlanner, StateTimeline
+from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
@@ -50,6 +51,9 @@ class Feedforward(Node):
         self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]", **ro)
         self.hold_s = declare(self, "model_required_after_s", 0.0, "lockstep: hold the "
                               "loop at this trajectory time until a model arrives (0: never)", **ro)
+        self.max_points = declare(self, "max_trajectory_points", 200_000, "longer "
+                                  "trajectories are refused (memory, parse time)",
+                                  read_only=True, lo=2, hi=10_000_000)
         self.wait_traj = declare(self, "wait_for_trajectory", False, "lockstep: answer no "
                                  "sample before a trajectory has arrived", **ro)
         self.planner = ReferencePlanner(
@@ -66,7 +70,9 @@ class Feedforward(Node):
                             read_only=True, lo=0, hi=99)
         self.last_ns, self.ff, self.planned = -1, {"x": 0.0, "y": 0.0}, {}
         self.last_target = None
+        self.driver_limits, self.last_rejection = None, ""
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
+                      "rejected_models": 0,
                       "saturated": 0, "bad_messages": 0, "late_dropped": 0}
         if model_file:
             from piezo_stage.io.model_file import load_model
@@ -89,7 +95,9 @@ class Feedforward(Node):
                                  QOS_LATCHED)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
-        Diagnostics(self, lambda: (0, "ok", {
+        Diagnostics(self, lambda: (1 if self.last_rejection else 0,
+                                   f"model rejected: {self.last_rejection}"
+                                   if self.last_rejection else f"using {self.model_name}", {
             **self.stats, "model": self.model_name, "phase": self.planner.phase,
             "lookahead_ms": self.lookahead_ns * 1e-6,
             "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
@@ -99,19 +107,35 @@ class Feedforward(Node):
             "setpoint_latency_max_ms": self.sp_latency.max_s * 1e3}))
 
     def set_model(self, model, name):
+        missing = {"x", "y"} - set(model.axes)
+        if missing:
+            raise PiezoStageError(f"{name} has no model for axis {', '.join(sorted(missing))}")
+        if self.driver_limits:  # never wider than what the driver will apply
+            lo = max(model.voltage_limits[0], self.driver_limits[0])
+            hi = min(model.voltage_limits[1], self.driver_limits[1])
+            if not lo < hi:
+                raise PiezoStageError(f"{name}: voltage limits {list(model.voltage_limits)} "
+                                      f"outside the driver's {self.driver_limits}")
+            model = StageModel(model.axes, model.coupling, (lo, hi))
         inv = StageInverse(model, use_coupling=self.use_c)
+        warm = StageInverse(model, use_coupling=self.use_c)  # compile the kernels now,
+        warm.sync(*model.voltage_limits)                      # not at the first sample
+        warm.step(0.0, 0.0)
         if self.planner.desired is not None:
             inv.reset(v=self.ff, w=self.planner.desired)
         self.inv, self.model_name, self.limits = inv, name, model.voltage_limits
         self.started = self.planner.desired is not None  # else: from the first sample
         self.stats["models"] += 1
+        self.last_rejection = ""  # the warning clears with a good model
         self.get_logger().info(f"using model {name}")
 
     def on_model(self, msg):
         try:
             self.set_model(model_from_msg(msg)[0], f"model message #{self.stats['models'] + 1}")
-        except PiezoStageError as e:
-            self.get_logger().error(f"model rejected: {e}")
+        except PiezoStageError as e:  # the old model stays
+            self.stats["rejected_models"] += 1
+            self.last_rejection = str(e)
+            self.get_logger().error(f"model rejected, keeping {self.model_name}: {e}")
         self.resume()
 
     def resume(self):
@@ -131,10 +155,15 @@ class Feedforward(Node):
             set_realtime_priority(self.prio, self.get_logger())
         self.realtime = values.get("mode") == "realtime"
         self.timeline.add(since, state)
+        try:
+            lim = [float(x) for x in values.get("voltage_limits_V", "").strip("[]").split(",")]
+            self.driver_limits = (lim[0], lim[1]) if len(lim) == 2 else None
+        except ValueError:
+            pass
 
     def on_trajectory(self, msg):
         try:
-            t, w = trajectory_from_msg(msg, self.range)
+            t, w = trajectory_from_msg(msg, self.range, self.max_points)
             key = hash((t.tobytes(), *(w[a].tobytes() for a in sorted(w))))
             if key == self.traj_key:
                 return  # the same trajectory again (volatile and latched delivery)

@@ -6,6 +6,8 @@ hands the model to the feedforward on ``model``
 (std_msgs/String holding the model file's YAML, transient local: late joiners get it).
 """
 
+from collections import deque
+
 import numpy as np
 import yaml
 from sensor_msgs.msg import JointState
@@ -35,32 +37,42 @@ class Identifier(Node):
                                    "complete cycles (0: on request only)", lo=0, hi=1000)
         self.max_samples = declare(self, "max_samples", 200_000, "buffer length", lo=100,
                                    hi=10_000_000)
-        self.w, self.v, self.done_auto = {}, {}, False
+        # samples in stamp order, bounded: the oldest fall off the front (no re-sort)
+        self.buf, self.done_auto = deque(maxlen=self.max_samples), False
         self.stats = {"samples": 0, "identifications": 0, "last_fit_rms_um": float("nan"),
-                      "last_error": ""}
+                      "last_error": "", "bad_messages": 0, "out_of_order": 0}
         self.pub = self.create_publisher(String, "model", QOS_LATCHED)
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
                          raw=True)
         self.create_service(Trigger, "~/identify", self.on_identify)
         self.create_timer(0.5, self.on_timer)
-        Diagnostics(self, lambda: (0 if not self.stats["last_error"] else 1, "ok", self.stats))
+        Diagnostics(self, self.status)
+
+    def status(self):
+        err = self.stats["last_error"]
+        return ((1, f"last identification failed: {err}") if err else
+                (0, f"{len(self.buf)} samples buffered")) + ({**self.stats,
+                                                            "buffered": len(self.buf)},)
 
     def on_state(self, msg):
-        ns, w, v = joint_state_to_um(msg, with_effort=True)
+        try:
+            ns, w, v = joint_state_to_um(msg, with_effort=True)
+        except PiezoStageError:  # a malformed or foreign JointState: count it, go on
+            self.stats["bad_messages"] += 1
+            return
         if v is None:  # a driver that does not report the applied voltage
             return
-        self.w[ns], self.v[ns] = w, v
-        if len(self.v) > self.max_samples:  # drop the oldest
-            for k in sorted(self.v)[: len(self.v) - self.max_samples]:
-                self.v.pop(k, None)
-                self.w.pop(k, None)
+        if self.buf and ns <= self.buf[-1][0]:
+            self.stats["out_of_order"] += 1
+            return
+        self.buf.append((ns, w["x"], w["y"], v["x"], v["y"]))
 
     def record(self, n=None) -> Record:
         """The buffer as a Record (its first n samples when n is given)."""
-        stamps = sorted(set(self.w) & set(self.v))[:n]
-        t = (np.array(stamps, dtype=np.int64) - stamps[0]) * 1e-9 if stamps else np.zeros(0)
-        return Record(t, {a: np.array([self.v[s][a] for s in stamps]) for a in ("x", "y")},
-                      {a: np.array([self.w[s][a] for s in stamps]) for a in ("x", "y")},
+        a = np.array(list(self.buf)[:n], dtype=float).reshape(-1, 5)
+        stamps = a[:, 0].astype(np.int64) if len(a) else np.zeros(0, np.int64)
+        t = (stamps - stamps[0]) * 1e-9 if len(a) else np.zeros(0)
+        return Record(t, {"x": a[:, 3], "y": a[:, 4]}, {"x": a[:, 1], "y": a[:, 2]},
                       source="live buffer", voltage_exact=True)
 
     def identify(self, n=None) -> str:
@@ -84,9 +96,9 @@ class Identifier(Node):
                 ", ".join(f"{a} {r.fit['rms_um']:.4f} um" for a, r in res.items()))
 
     def on_timer(self):
-        if self.auto_cycles <= 0 or self.done_auto or len(self.v) < 100:
+        if self.auto_cycles <= 0 or self.done_auto or len(self.buf) < 100:
             return
-        vx = np.array([self.v[k]["x"] for k in sorted(self.v)])
+        vx = np.array([b[3] for b in self.buf])
         try:
             tp = segment(vx).turning_points
         except PiezoStageError:

@@ -217,12 +217,15 @@ class StageDriver(Node):
 
     # -- arming ---------------------------------------------------------------------------
     def on_state_change(self, state, reason, since_ns):
+        lim = self.backend.limits
         values = {"lookahead_s": self.lookahead_ns * 1e-9, "control_rate_hz": self.p["rate"],
-                  "mode": self.p["mode"]}
+                  "mode": self.p["mode"], "voltage_limits_V": [
+                      max(lo for lo, _ in lim.values()), min(hi for _, hi in lim.values())]}
+        # announced a few samples ahead of when it applies, and before the next sample
+        # is published: the loop nodes take `state` before their data in every pass, so
+        # in lockstep each has it before the sample it must act on (reruns identical)
         self.spub.publish(arming_state_msg(since_ns, self.status_name("arming"), state,
                                            reason, values, self.backend.hardware_id))
-        if self.lock and state in ENABLED:  # deterministic: all know before it applies
-            self.spub.wait_for_all_acked(Duration(seconds=2))
         if state == "faulted":
             self.get_logger().warning(f"{state}: {reason}")
         else:
