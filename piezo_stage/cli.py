@@ -69,6 +69,11 @@ def cmd_simulate(args):
     _check_voltages(rec, cfg.model.voltage_limits, args.inp)
     plant = Plant(cfg, rec.fs_hz)
     w = plant.run(rec.v["x"], rec.v["y"])
+    for a, x in w.items():
+        if not np.all(np.isfinite(x)):
+            i = int(np.flatnonzero(~np.isfinite(x))[0])
+            raise DataError(f"the simulated {a} displacement is not finite from line {i + 2} "
+                            "on (the model diverges); nothing written")
     write_table(args.out, {"t": rec.t, "vx": rec.v["x"], "vy": rec.v["y"],
                            "wx": w["x"], "wy": w["y"]})
     return 0
@@ -82,6 +87,10 @@ def cmd_invert(args):
     from piezo_stage.io.csv_table import read_table, write_table
     from piezo_stage.io.model_file import load_model
     model, _ = load_model(args.model)
+    missing = sorted({"x", "y"} - set(model.axes))
+    if missing:
+        raise DataError(f"{args.model} has no model for axis {', '.join(missing)}: its "
+                        "voltages cannot be computed (give a model with both axes)")
     cols = read_table(args.inp, ["t", "wx", "wy"])
     rec = Record(cols["t"], w={"x": cols["wx"], "y": cols["wy"]}, source=args.inp)
     if args.method == "exact":
@@ -434,9 +443,35 @@ def build_parser():
     return p
 
 
+INPUTS = ("inp", "model", "config", "data", "validate", "fit", "holdout", "bag")
+FILE_OUTPUTS = ("json", "out_model")  # and "out" where it names a file (not a folder)
+DIR_COMMANDS = ("study", "demo", "launch")  # whose --out is a folder
+
+
+def check_paths(args):
+    """Outputs never overwrite an input, and can be written: else DataError (exit 2)."""
+    import os
+    ins = {os.path.realpath(p) for k in INPUTS if isinstance(p := getattr(args, k, None), str)}
+    outs = [(k, p) for k in FILE_OUTPUTS + ("out", "report")
+            if isinstance(p := getattr(args, k, None), str)]
+    for k, p in outs:
+        flag = "--" + k.replace("_", "-")
+        if os.path.realpath(p) in ins:
+            raise DataError(f"{flag} {p} is also an input: outputs never overwrite inputs")
+        if k in FILE_OUTPUTS or (k == "out" and args.cmd not in DIR_COMMANDS):
+            if os.path.isdir(p):
+                raise DataError(f"{flag} {p} is a directory; give a file name")
+            parent = os.path.dirname(os.path.abspath(p))
+            while not os.path.exists(parent):
+                parent = os.path.dirname(parent)
+            if not os.access(parent, os.W_OK):
+                raise DataError(f"{flag} {p}: {parent} is not writable")
+
+
 def main(argv=None):
     args = build_parser().parse_args(argv)
     try:
+        check_paths(args)
         return args.fn(args) or 0
     except SolverError as e:  # the data were fine; the solver did not deliver
         _die(str(e), EXIT_SOLVER)

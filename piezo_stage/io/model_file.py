@@ -85,13 +85,21 @@ def load_yaml(path, what="file"):
     return parse_yaml(text, f"{what} {path}")
 
 
-def _number(x, where):
-    """A real number (booleans and strings are not numbers here)."""
-    if isinstance(x, bool) or not isinstance(x, (int, float)):
-        raise ModelError(f"{where}: expected a number, got {x!r}")
-    if not np.isfinite(x):
-        raise ModelError(f"{where}: not finite")
-    return float(x)
+def as_number(x, where, error=ModelError):
+    """A finite real number. Booleans are not numbers here; a string is one only when
+    it reads as a number (YAML 1.1 reads ``1e-3`` and ``1.0e6`` as strings)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float, str)):
+        raise error(f"{where}: expected a number, got {x!r}")
+    try:
+        v = float(x)
+    except ValueError:
+        raise error(f"{where}: expected a number, got {x!r}") from None
+    if not np.isfinite(v):
+        raise error(f"{where}: not finite")
+    return v
+
+
+_number = as_number
 
 
 def _numbers(xs, where):

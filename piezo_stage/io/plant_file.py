@@ -17,32 +17,54 @@ Schema (version 1)::
 
 from __future__ import annotations
 
+import math
 import os
 
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.core.plant import PlantConfig
-from piezo_stage.io.model_file import load_model, load_yaml
+from piezo_stage.io.model_file import as_number, load_model, load_yaml
 
 SCHEMA_KEY = "piezo_stage_plant"
 _TOP = (SCHEMA_KEY, "model", "internal_rate_hz", "amplifier", "sensor", "seed", "effects",
         "note")
 
 
-def _num(d, key, default, where):
+def _num(d, key, default, where, lo=-math.inf, hi=math.inf):
+    """A number within [lo, hi] (booleans and strings are not numbers here)."""
+    x = as_number(d.get(key, default), f"{where}.{key}", ConfigError)
+    if not lo <= x <= hi:
+        raise ConfigError(f"{where}.{key} = {x:g} is outside [{lo:g}, {hi:g}]")
+    return float(x)
+
+
+EFFECT_LIMITS = {"delay_s": (0.0, 1.0)}  # else: finite, |x| <= 1e6
+
+
+def _numeric(x) -> bool:
     try:
-        return float(d.get(key, default))
+        float(x)
+        return isinstance(x, str)
     except (TypeError, ValueError):
-        raise ConfigError(f"{where}.{key} must be a number") from None
+        return False
 
 
 def enabled_effects(effects: dict, where="effects") -> dict:
-    """Keep the effects with enabled: true (default true when the key is absent)."""
+    """Keep the effects with enabled: true (default true when the key is absent);
+    their numbers must be finite and in range, ``enabled`` a boolean."""
     if not isinstance(effects, dict):
         raise ConfigError(f"{where} must be a mapping")
     out = {}
     for name, p in effects.items():
+        if p is not None and not isinstance(p, dict):
+            raise ConfigError(f"{where}.{name} must be a mapping")
         p = dict(p or {})
-        if p.pop("enabled", True):
+        on = p.pop("enabled", True)
+        if not isinstance(on, bool):
+            raise ConfigError(f"{where}.{name}.enabled must be true or false, got {on!r}")
+        for k, x in list(p.items()):
+            if isinstance(x, (bool, int, float)) or _numeric(x):
+                p[k] = _num(p, k, 0.0, f"{where}.{name}", *EFFECT_LIMITS.get(k, (-1e6, 1e6)))
+        if on:
             out[name] = p
     return out
 
@@ -74,10 +96,10 @@ def plant_config_from_dict(doc, base_dir=".", source="plant config") -> PlantCon
         raise ConfigError(f"{source}: seed must be an integer") from None
     return PlantConfig(
         model=model,
-        internal_rate_hz=_num(doc, "internal_rate_hz", 10_000.0, source),
-        slew_V_per_s=_num(amp, "slew_V_per_s", 1.0e5, "amplifier"),
-        noise_rms_um=_num(sensor, "noise_rms_um", 0.1, "sensor"),
-        quantization_um=_num(sensor, "quantization_um", 0.005, "sensor"),
+        internal_rate_hz=_num(doc, "internal_rate_hz", 10_000.0, source, 1.0, 1.0e6),
+        slew_V_per_s=_num(amp, "slew_V_per_s", 1.0e5, "amplifier", 1e-3, 1e9),
+        noise_rms_um=_num(sensor, "noise_rms_um", 0.1, "sensor", 0.0, 1e3),
+        quantization_um=_num(sensor, "quantization_um", 0.005, "sensor", 0.0, 1e3),
         effects=effects,
         seed=seed,
     )

@@ -1,0 +1,203 @@
+"""Hostile and clumsy input: bounded parsing, strict validation, outputs that never
+overwrite inputs, nodes that survive any well-typed message (issue 10)."""
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import CONFIG, ROOT
+from piezo_stage.core.errors import DataError, ModelError
+from piezo_stage.io.model_file import load_model, parse_yaml
+
+MODEL = os.path.join(CONFIG, "stage_model.yaml")
+GOOD = open(MODEL).read()
+
+
+def cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=120, cwd=cwd or ROOT)
+
+
+def one_line_exit_2(r):
+    assert r.returncode == 2, (r.returncode, r.stderr[-500:])
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "Traceback" not in r.stderr
+
+
+BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+    for p, c in zip("abcdefgh", "bcdefghi"))
+
+
+def test_yaml_alias_bomb_is_refused_at_once(tmp_path):
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text(BOMB)
+    t0 = time.monotonic()
+    with pytest.raises(ModelError, match="aliases"):
+        load_model(bomb)
+    assert time.monotonic() - t0 < 1.0
+    with pytest.raises(ModelError, match="bytes"):
+        parse_yaml("x: 1\n" * 20000, "message", max_bytes=65536)
+
+
+@pytest.mark.parametrize("edit, why", [
+    (lambda t: t.replace("g: [0.36, 0.0006]", "g: [1.0e300, 0.0006]"), "um/V"),
+    (lambda t: t.replace("voltage_limits_V: [0.0, 150.0]", "voltage_limits_V: [0, 150, 3]"),
+     "min, max"),
+    (lambda t: t.replace("voltage_limits_V: [0.0, 150.0]", "voltage_limits_V: [150, 0]"),
+     "min < max"),
+    (lambda t: t.replace("alpha: 0.030", "alpha: true"), "number"),
+])
+def test_model_files_are_validated(tmp_path, edit, why):
+    assert "voltage_limits_V: [0.0, 150.0]" in GOOD
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(edit(GOOD))
+    with pytest.raises(ModelError, match=why):
+        load_model(bad)
+
+
+def test_a_polynomial_that_overflows_is_refused(tmp_path):
+    import yaml
+    doc = yaml.safe_load(GOOD)
+    ax = doc["axes"]["x"]
+    branch = ax["ascending"] if "ascending" in ax else ax
+    branch.pop("f", None), branch.pop("g", None)
+    branch["h"] = [1.0] * 2000
+    bad = tmp_path / "big.yaml"
+    bad.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ModelError, match="finite"):
+        load_model(bad)
+
+
+def test_outputs_never_overwrite_inputs_and_must_be_writable(tmp_path):
+    volts = tmp_path / "v.csv"
+    volts.write_text("t,vx,vy\n" + "".join(f"{k * 1e-3},{k % 50},{0}\n" for k in range(200)))
+    before = volts.read_text()
+    one_line_exit_2(cli("simulate", "--in", volts, "--out", volts))
+    assert volts.read_text() == before
+    one_line_exit_2(cli("invert", "--model", MODEL, "--in", volts, "--out", MODEL))
+    one_line_exit_2(cli("identify", volts, "--out", volts))
+    one_line_exit_2(cli("simulate", "--in", volts, "--out", tmp_path))  # a directory
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    if not os.access(locked, os.W_OK):  # (root may write anyway)
+        one_line_exit_2(cli("simulate", "--in", volts, "--out", locked / "o.csv"))
+
+
+def test_missing_axis_and_divergent_output_are_errors_not_silent(tmp_path):
+    import yaml
+    doc = yaml.safe_load(GOOD)
+    del doc["axes"]["y"]
+    xonly = tmp_path / "x.yaml"
+    xonly.write_text(yaml.safe_dump(doc))
+    target = tmp_path / "w.csv"
+    target.write_text("t,wx,wy\n" + "".join(f"{k * 1e-3},10,10\n" for k in range(50)))
+    r = cli("invert", "--model", xonly, "--in", target, "--out", tmp_path / "v.csv")
+    one_line_exit_2(r)
+    assert "axis y" in r.stderr and not (tmp_path / "v.csv").exists()
+
+
+@pytest.mark.parametrize("line, why", [("internal_rate_hz: 1.0e9", "internal_rate_hz"),
+                                       ("effects: {delay: {enabled: true, delay_s: 1.0e6}}",
+                                        "delay_s"),
+                                       ("effects: {delay: {enabled: 'yes'}}", "enabled")])
+def test_plant_configs_are_range_checked(tmp_path, line, why):
+    cfg = tmp_path / "plant.yaml"
+    cfg.write_text(f"piezo_stage_plant: 1\nmodel: {MODEL}\n{line}\n")
+    volts = tmp_path / "v.csv"
+    volts.write_text("t,vx,vy\n0,0,0\n0.001,1,1\n0.002,2,2\n")
+    r = cli("simulate", "--in", volts, "--out", tmp_path / "o.csv", "--config", cfg)
+    one_line_exit_2(r)
+    assert why in r.stderr
+
+
+def test_launch_refuses_an_unknown_mode(tmp_path):
+    cfg = tmp_path / "bogus.yaml"
+    cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: bogus\n")
+    r = cli("launch", cfg, "--duration", "5")
+    one_line_exit_2(r)
+    assert "bogus" in r.stderr
+
+
+def test_trajectory_messages_are_checked_point_by_point():
+    pytest.importorskip("trajectory_msgs")
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+    import piezo_stage_msgs_adapters as A
+
+    def traj(names, points):
+        return JointTrajectory(joint_names=names, points=[JointTrajectoryPoint(
+            positions=p, time_from_start=Duration(sec=s, nanosec=0)) for s, p in points])
+    with pytest.raises(DataError, match="point 1 has 1 positions"):
+        A.trajectory_from_msg(traj(["x", "y"], [(0, [1e-6, 1e-6]), (1, [1e-6])]))
+    with pytest.raises(DataError, match="repeat"):
+        A.trajectory_from_msg(traj(["x", "x"], [(0, [1e-6, 1e-6])]))
+    with pytest.raises(DataError, match="negative"):
+        A.trajectory_from_msg(traj(["x"], [(-1, [1e-6]), (1, [1e-6])]))
+    with pytest.raises(DataError, match="more than"):
+        A.trajectory_from_msg(traj(["x"], [(k, [1e-6]) for k in range(11)]), max_points=10)
+
+
+def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path):
+    """An outside node sends a ragged trajectory, foreign and ragged JointStates, an
+    alias bomb, a one-axis model and an absurd one: the feedforward and the identifier
+    keep running, count them, and the feedforward keeps its model."""
+    pytest.importorskip("rclpy")
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+    from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED
+    from ros_probe import Probe
+    d = random.randint(150, 200)  # Fast DDS takes domain ids up to 232
+    env = dict(os.environ, ROS_DOMAIN_ID=str(d), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONPATH=ROOT)
+    procs = [subprocess.Popen([sys.executable, "-m", f"piezo_stage.nodes.{n}_node",
+                               "--ros-args", "-r", "__ns:=/stage", *extra], env=env)
+             for n, extra in (("feedforward", ["-p", f"model_file:={MODEL}"]),
+                              ("identifier", []))]
+    probe = Probe(d)
+    try:
+        diag = {}
+        probe.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diag.update(
+            {st.name.split(": ")[-1]: {kv.key: kv.value for kv in st.values}
+             for st in m.status}), 10)
+        js = probe.node.create_publisher(JointState, "/stage/joint_states", QOS_DATA)
+        tr = probe.node.create_publisher(JointTrajectory, "/stage/trajectory", 10)
+        mo = probe.node.create_publisher(String, "/stage/model", QOS_LATCHED)
+        assert probe.wait(lambda: js.get_subscription_count() >= 2 and
+                          tr.get_subscription_count() >= 1 and
+                          mo.get_subscription_count() >= 1, 30)
+        probe.spin(1.0)  # both ends of each match established
+        for _ in range(3):
+            js.publish(JointState(name=["a", "b"], position=[1.0, 2.0]))
+            js.publish(JointState(name=["x", "y"], position=[1e-6]))
+            probe.spin(0.1)
+        tr.publish(JointTrajectory(joint_names=["x", "y"], points=[
+            JointTrajectoryPoint(positions=[1e-6])]))
+        import yaml
+        xonly = yaml.safe_load(GOOD)
+        del xonly["axes"]["y"]
+        for text in (BOMB, yaml.safe_dump(xonly),
+                     GOOD.replace("g: [0.36, 0.0006]", "g: [1.0e300, 0.0006]")):
+            mo.publish(String(data=text))
+            probe.spin(0.2)
+        assert probe.wait(lambda: int(diag.get("feedforward", {}).get(
+            "rejected_models", 0)) >= 3, 10), diag.get("feedforward")
+        assert probe.wait(lambda: int(diag.get("identifier", {}).get("bad_messages", 0)) >= 2,
+                          10), sorted(diag.get("identifier", {}).items())
+        ff = diag["feedforward"]
+        assert ff["model"] == MODEL and int(ff["rejected_trajectories"]) >= 1
+        assert all(p.poll() is None for p in procs)  # nobody died
+    finally:
+        probe.close()
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+        for p in procs:
+            assert p.wait(30) == 0
