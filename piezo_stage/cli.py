@@ -323,8 +323,26 @@ def cmd_demo(args):
 
 
 def cmd_replay(args):
+    import math
     from piezo_stage.replay import replay
+    if not (math.isfinite(args.rate) and args.rate >= 0):
+        raise DataError(f"--rate {args.rate}: must be a finite number >= 0 (0: as fast as "
+                        "possible)")
     return replay(args.bag, args.rate, args.namespace)
+
+
+def cmd_bag(args):
+    from piezo_stage.io.bag import repair_bag, scan_bag
+    if args.action == "check":
+        scan = scan_bag(args.bag)
+        print(f"{args.bag}: {len(scan.messages)} readable messages on "
+              f"{len(scan.channels)} topics; {scan.damage() or 'intact'}")
+        return 0 if not scan.damage() else 1
+    scan = repair_bag(args.bag)
+    print(f"{args.bag}: rewritten with {len(scan.messages)} messages on "
+          f"{len(scan.channels)} topics, a summary and metadata.yaml (original kept as "
+          f"*.orig); it had: {scan.damage() or 'no damage'}")
+    return 0
 
 
 def cmd_bench(args):
@@ -396,6 +414,11 @@ def build_parser():
                    help="playback speed (1: original timing; 0: as fast as possible)")
     s.add_argument("--namespace", default=None, help="replace the recorded namespace")
     s.set_defaults(fn=cmd_replay)
+
+    s = sub.add_parser("bag", help="check or repair a recorded bag")
+    s.add_argument("action", choices=("check", "repair"))
+    s.add_argument("bag", help="bag directory or .mcap file")
+    s.set_defaults(fn=cmd_bag)
 
     for name, hlp in (("loop", "hysteresis loop figures of the simulated stage"),):
         s = sub.add_parser(name, help=hlp)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import glob
 import os
+from dataclasses import dataclass, field
 import time
 from functools import lru_cache
 
@@ -182,15 +183,114 @@ def mcap_path(path) -> str:
     return p
 
 
-def iter_messages(path, topics=None):
+@dataclass
+class BagScan:
+    """What a record-by-record read of an MCAP file recovered (see ``scan_bag``)."""
+
+    path: str
+    schemas: dict = field(default_factory=dict)      # id -> mcap Schema
+    channels: dict = field(default_factory=dict)     # id -> mcap Channel
+    messages: list = field(default_factory=list)     # mcap Message, file order
+    metadata: list = field(default_factory=list)     # mcap Metadata
+    corrupt: list = field(default_factory=list)      # (chunk number, offset, lost, why)
+    truncated_at: int | None = None                  # byte offset of a cut-off record
+    complete: bool = False                           # the data section ends properly
+
+    def damage(self) -> str:
+        """One line on what is missing, or '' when nothing is."""
+        parts = [f"chunk {k} at byte {off} is corrupt ({why}; {lost} message(s) lost)"
+                 for k, off, lost, why in self.corrupt]
+        if self.truncated_at is not None:
+            parts.append(f"the file is cut off at byte {self.truncated_at} (writer killed?)")
+        elif not self.complete:
+            parts.append("the file has no summary (writer killed?)")
+        return "; ".join(parts)
+
+
+def scan_bag(path) -> BagScan:
+    """Read an MCAP file record by record, keeping every intact record: a chunk whose
+    CRC or compression is broken is skipped and noted (with the number of messages its
+    message index says it held), a cut-off tail is noted, and reading goes on past both.
+    """
+    import io
+    from mcap.exceptions import EndOfFile, McapError
+    from mcap.records import Channel, Message, MessageIndex, Metadata, Schema
+    from mcap.stream_reader import MAGIC_SIZE, StreamReader
+    p = mcap_path(path)
+    try:
+        with open(p, "rb") as fh:
+            data = fh.read()
+    except OSError as e:
+        raise DataError(f"{p}: cannot read ({e.strerror})") from None
+    magic = data[:MAGIC_SIZE]
+    if len(data) < MAGIC_SIZE or magic[1:5] != b"MCAP":
+        raise DataError(f"{p}: not an MCAP file")
+    scan, off, chunk_no, last_chunk = BagScan(p), MAGIC_SIZE, -1, None
+    while off < len(data):
+        if off + 9 > len(data):
+            scan.truncated_at = off
+            break
+        op, n = data[off], int.from_bytes(data[off + 1:off + 9], "little")
+        end = off + 9 + n
+        if end > len(data):
+            scan.truncated_at = off
+            break
+        if op == 15:  # DataEnd (its CRC covers the whole data section): the end
+            scan.complete = True
+            break
+        if op == 6:  # a chunk
+            chunk_no += 1
+        got = []
+        try:  # one record, through mcap's own parser (CRCs checked)
+            for r in StreamReader(io.BytesIO(magic + data[off:end]), validate_crcs=True,
+                                  record_size_limit=None).records:
+                got.append(r)
+        except EndOfFile:
+            pass  # the one-record stream ended: all of it was read
+        except (McapError, EOFError, ValueError, RuntimeError, Exception) as e:  # noqa: BLE001
+            if op != 6:  # a broken record outside chunks: the data cannot be followed
+                scan.truncated_at = off
+                break
+            why = str(e).strip().split("\n")[0][:80] or type(e).__name__
+            scan.corrupt.append([chunk_no, off, 0, why])
+            last_chunk, got = scan.corrupt[-1], []
+        if op == 6 and got:
+            last_chunk = None
+        for r in got:
+            if isinstance(r, Schema):
+                scan.schemas[r.id] = r
+            elif isinstance(r, Channel):
+                scan.channels[r.id] = r
+            elif isinstance(r, Message):
+                scan.messages.append(r)
+            elif isinstance(r, Metadata):
+                scan.metadata.append(r)
+            elif isinstance(r, MessageIndex) and last_chunk is not None:
+                last_chunk[2] += len(r.records)  # what the corrupt chunk held
+        if scan.complete:
+            break
+        off = end
+    scan.corrupt = [tuple(c) for c in scan.corrupt]
+    return scan
+
+
+def _warn(line):
+    import sys
+    sys.stderr.write(f"piezo-stage: warning: {line}\n")
+
+
+def iter_messages(path, topics=None, on_damage=_warn):
     """Yield (topic, msgtype, log_time_ns, raw CDR bytes) in file order.
 
-    Reads the stream front to back, so a bag whose writer was killed yields every
-    message of its complete chunks and stops quietly at the truncation.
+    Reads the stream front to back; a bag whose writer was killed yields every message
+    of its complete chunks. A corrupt chunk is not taken for the end of the data: the
+    rest is read record by record (``scan_bag``) and ``on_damage`` gets one line saying
+    which chunk is corrupt and how much was lost; DataError when nothing is usable.
     """
     from mcap.exceptions import McapError
     from mcap.reader import NonSeekingReader
     p = mcap_path(path)
+    n = 0
     try:
         with open(p, "rb") as fh:
             reader = NonSeekingReader(fh, validate_crcs=True)
@@ -198,14 +298,59 @@ def iter_messages(path, topics=None):
                 for schema, channel, message in reader.iter_messages(
                         topics=topics, log_time_order=False):
                     yield channel.topic, schema.name, message.log_time, message.data
-            except (McapError, EOFError, ValueError) as e:
-                if "magic" in str(e).lower() and "start" in str(e).lower():
+                    n += 1
+                return
+            except Exception as e:  # noqa: BLE001 - CRC, decompression, truncation...
+                if isinstance(e, McapError) and "magic" in str(e).lower() and \
+                        "start" in str(e).lower():
                     raise
-                return  # truncated tail (writer killed): stop at the last good chunk
     except McapError as e:
         raise DataError(f"{p}: not a readable MCAP file ({e})") from None
     except OSError as e:
         raise DataError(f"{p}: cannot read ({e.strerror})") from None
+    scan = scan_bag(p)  # the stream stopped early: find out why, salvage the rest
+    if scan.corrupt:
+        on_damage(f"{p}: {scan.damage()}")
+    msgs = [m for m in scan.messages if topics is None
+            or scan.channels[m.channel_id].topic in topics]
+    if not msgs:
+        raise DataError(f"{p}: nothing usable ({scan.damage() or 'no messages'})")
+    for m in msgs[n:]:
+        ch = scan.channels[m.channel_id]
+        yield ch.topic, scan.schemas[ch.schema_id].name, m.log_time, m.data
+
+
+def repair_bag(path) -> BagScan:
+    """Rewrite a damaged bag (killed writer, corrupt chunks) with everything that can be
+    read, a summary and a fresh metadata.yaml, so standard readers open it. The original
+    file is kept beside it as ``<name>.orig``. Returns the scan of the original."""
+    import shutil
+    import tempfile
+    p = mcap_path(path)
+    scan = scan_bag(p)
+    if not scan.messages:
+        raise DataError(f"{p}: nothing to recover ({scan.damage() or 'no messages'})")
+    bag_dir = os.path.dirname(os.path.abspath(p))
+    tmp = tempfile.mkdtemp(dir=os.path.dirname(bag_dir), prefix=".repair-")
+    try:
+        out = BagWriter(os.path.join(tmp, os.path.basename(bag_dir)),
+                        metadata={m.name: dict(m.metadata) for m in scan.metadata})
+        for ch in scan.channels.values():
+            out.add_topic(ch.topic, scan.schemas[ch.schema_id].name,
+                          ch.metadata.get("offered_qos_profiles", RELIABLE_QOS))
+        for m in scan.messages:
+            ch = scan.channels[m.channel_id]
+            out.write(ch.topic, m.data, m.log_time, m.publish_time)
+        out.finish()
+        os.replace(p, p + ".orig")
+        os.replace(os.path.join(out.path, out.file_name), p)
+        if out.file_name != os.path.basename(p):  # metadata.yaml names the file
+            out.file_name = os.path.basename(p)
+        out.path = bag_dir
+        out._write_metadata_yaml()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return scan
 
 
 def read_metadata(path) -> dict:
