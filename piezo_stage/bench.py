@@ -373,6 +373,9 @@ def main(args):
         return bench_loop()
     if args.what == "gap":
         return bench_gap()
+    if args.what == "faults":
+        from piezo_stage.bench_faults import bench_faults
+        return bench_faults()
     if args.what == "realtime":
         from piezo_stage.bench_realtime import bench_realtime
         return bench_realtime(args.track)

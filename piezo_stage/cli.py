@@ -458,7 +458,8 @@ def build_parser():
     s.set_defaults(fn=cmd_study)
 
     s = sub.add_parser("bench", help="performance benchmarks (figures as ratios)")
-    s.add_argument("what", choices=("plant", "identify", "loop", "gap", "realtime"))
+    s.add_argument("what", choices=("plant", "identify", "loop", "gap", "realtime",
+                                           "faults"))
     s.add_argument("--track", type=float, default=20.0, metavar="S",
                    help="realtime: seconds of the seed's trajectory")
     s.add_argument("--samples", type=int, default=2_000_000)

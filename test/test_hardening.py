@@ -201,3 +201,14 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path):
             p.send_signal(signal.SIGINT)
         for p in procs:
             assert p.wait(30) == 0
+
+
+def test_csv_with_a_byte_order_mark_or_semicolons_reads(tmp_path):
+    from piezo_stage.io.csv_table import read_table
+    a = tmp_path / "bom.csv"
+    a.write_bytes("\ufefft,vx,vy\n0,1,2\n0.001,1,2\n".encode("utf-8"))
+    b = tmp_path / "semi.csv"
+    b.write_text("t;vx;vy\n0;1;2\n0.001;1;2\n")
+    for p in (a, b):
+        cols = read_table(p, ["t", "vx", "vy"])
+        np.testing.assert_array_equal(cols["vy"], [2.0, 2.0])

@@ -16,14 +16,17 @@ def read_table(path, required, optional=()) -> dict:
     non-numeric cells, ragged rows, NaN or inf.
     """
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # a BOM is not a name
             header = fh.readline()
             body = fh.read()
     except FileNotFoundError:
         raise DataError(f"{path}: no such file") from None
     except (IsADirectoryError, UnicodeDecodeError, PermissionError) as e:
         raise DataError(f"{path}: cannot read ({type(e).__name__})") from None
-    names = [h.strip() for h in header.strip().split(",")]
+    # comma-separated; a semicolon-separated file (a spreadsheet's export in locales
+    # with a decimal comma) is read the same way when its header has no comma
+    sep = ";" if ";" in header and "," not in header else ","
+    names = [h.strip() for h in header.strip().split(sep)]
     if not header.strip():
         raise DataError(f"{path}: empty file (expected a header row)")
     missing = [c for c in required if c not in names]
@@ -37,7 +40,7 @@ def read_table(path, required, optional=()) -> dict:
         raise DataError(f"{path}: no data rows")
     data = np.empty((len(rows), len(names)))
     for i, r in enumerate(rows):
-        cells = r.split(",")
+        cells = r.split(sep)
         if len(cells) != len(names):
             raise DataError(f"{path}: line {i + 2} has {len(cells)} fields, header has "
                             f"{len(names)}")

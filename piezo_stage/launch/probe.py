@@ -1,0 +1,106 @@
+"""An outside node (its own rclpy context and domain) for tests and benchmarks: watches
+the driver's state and joint_states, calls its services, publishes commands and sets
+parameters the way a lab's own node or `ros2 param set` would."""
+
+from __future__ import annotations
+
+import time
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import JointState
+from std_srvs.srv import SetBool, Trigger
+
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS
+
+
+class Probe:
+    def __init__(self, domain_id: int, ns: str = "/stage"):
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=int(domain_id))
+        self.node = rclpy.create_node("probe", context=self.ctx)
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.states, self.effort, self.samples = [], None, 0
+        self.node.create_subscription(DiagnosticArray, f"{ns}/state", self._on_state, QOS_EVENTS)
+        self.node.create_subscription(JointState, f"{ns}/joint_states", self._on_js, QOS_DATA)
+        self.arm_cli = self.node.create_client(SetBool, f"{ns}/arm")
+        self.estop_cli = self.node.create_client(Trigger, f"{ns}/estop")
+        self.ns, self.cmd_pub = ns, None  # made on first use: it would look like a controller
+
+    def _on_state(self, msg):
+        kv = {k.key: k.value for k in msg.status[0].values}
+        self.states.append((kv["state"], kv.get("reason", ""), time.monotonic()))
+
+    def _on_js(self, msg):
+        self.effort, self.samples = list(msg.effort), self.samples + 1
+
+    @property
+    def state(self):
+        return self.states[-1][0] if self.states else None
+
+    def spin(self, seconds: float):
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            self.ex.spin_once(timeout_sec=min(0.01, max(0.0, t_end - time.monotonic())))
+
+    def wait(self, cond, timeout: float) -> bool:
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            if cond():
+                return True
+            self.ex.spin_once(timeout_sec=0.01)
+        return cond()
+
+    def wait_state(self, name: str, timeout: float = 30.0, after: int = 0) -> bool:
+        return self.wait(lambda: any(s[0] == name for s in self.states[after:]), timeout)
+
+    def call(self, client, request, timeout: float = 10.0):
+        assert client.wait_for_service(timeout_sec=timeout), client.srv_name
+        fut = client.call_async(request)
+        assert self.wait(fut.done, timeout), f"{client.srv_name}: no answer"
+        return fut.result()
+
+    def arm(self, on: bool = True):
+        return self.call(self.arm_cli, SetBool.Request(data=on))
+
+    def estop(self):
+        return self.call(self.estop_cli, Trigger.Request())
+
+    def command(self, x: float, y: float, stamp_ns: int = 0):
+        m = Vector3Stamped()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        m.vector.x, m.vector.y = x, y
+        if self.cmd_pub is None:
+            self.cmd_pub = self.node.create_publisher(Vector3Stamped, f"{self.ns}/command",
+                                                      QOS_DATA)
+            self.wait(lambda: self.cmd_pub.get_subscription_count() > 0, 5)
+        self.cmd_pub.publish(m)
+
+    def close(self):
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
+
+
+def set_params(probe: Probe, node: str, **values):
+    """Set parameters on another node as `ros2 param set` does -> [(ok, reason)]."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    cli = AsyncParameterClient(probe.node, node)
+    assert cli.wait_for_services(10.0), node
+    fut = cli.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+    assert probe.wait(fut.done, 10.0)
+    return [(r.successful, r.reason) for r in fut.result().results]
+
+
+def get_params(probe: Probe, node: str, *names):
+    from rclpy.parameter import parameter_value_to_python
+    from rclpy.parameter_client import AsyncParameterClient
+    cli = AsyncParameterClient(probe.node, node)
+    assert cli.wait_for_services(10.0), node
+    fut = cli.get_parameters(list(names))
+    assert probe.wait(fut.done, 10.0)
+    return [parameter_value_to_python(v) for v in fut.result().values]
