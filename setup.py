@@ -40,8 +40,10 @@ setup(
         # rclpy and the messages come from the ros-jazzy-* wheels; a full ROS install
         # provides them instead, so they are an extra rather than a hard requirement.
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
-        "daq": ["nidaqmx>=0.9"],
-        "test": ["pytest>=7"],
+        "daq": ["nidaqmx>=1.0"],
+        # the tests import the real nidaqmx (it installs without NI hardware) and run
+        # the daq backend on it with only NI's driver layer replaced (the test double)
+        "test": ["pytest>=7", "nidaqmx>=1.0"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",
