@@ -198,3 +198,9 @@ def test_bad_arming_parameters_are_refused():
         ArmingParams(ramp_V_per_s=0.0)
     with pytest.raises(ConfigError):
         Approach({"x": 0.0}, {"x": 1.0}, 0.0, 1.0)
+
+
+def test_the_safe_ramp_keeps_its_rate_over_missed_ticks():
+    s, _ = sup(ramp_V_per_s=1000.0)
+    s.v = {"x": 10.0, "y": 10.0}
+    assert s.tick(0, 0, None, False, periods=4) == {"x": 6.0, "y": 6.0}  # 4 ms: 4 V

@@ -190,6 +190,22 @@ class ArmingParams:
                               "must be > 0 and the safe voltage finite")
 
 
+# The supervisor's settings as node parameters: (parameter name, ArmingParams field,
+# description with unit, (lo, hi) or None). Defaults are the dataclass's.
+PARAMETERS = (
+    ("safe_voltage_V", "safe_V", "disarmed/faulted output [V]", (-200.0, 200.0)),
+    ("safe_ramp_V_per_s", "ramp_V_per_s", "ramp rate to the safe voltage [V/s]", (1.0, 1e6)),
+    ("stale_timeout_s", "stale_s", "real time: no valid command for this long faults "
+     "the stage [s]", (0.001, 10.0)),
+    ("arm_confirm_ticks", "confirm_ticks", "ticks of a closed loop before arming",
+     (1, 100000)),
+    ("arm_tolerance_V", "tolerance_V", "|command - applied| that counts as holding [V]",
+     (1e-9, 10.0)),
+    ("auto_arm", "auto_arm", "arm once the loop is closed, and re-arm after a stale "
+     "fault", None),
+)
+
+
 class ArmingSupervisor:
     """The driver's state machine: decides, per tick, what voltage to aim for.
 
@@ -254,11 +270,15 @@ class ArmingSupervisor:
         """A valid (finite) command arrived: the controller is alive."""
         self.last_fresh_ns = recv_ns
 
-    def tick(self, stamp_ns: int, now_ns: int, cmd, on_time: bool, link: str = "") -> dict:
+    def tick(self, stamp_ns: int, now_ns: int, cmd, on_time: bool, link: str = "",
+             periods: int = 1) -> dict:
         """Target voltages for the sample stamped ``stamp_ns`` (driver time), ``now_ns``
         the receipt clock of ``note_command``. ``cmd``: the command due for this sample
         ({axis: V}) or None; ``on_time``: it arrived before its tick. ``link``: the
-        node's own diagnosis of a missing link (which node/topic), used in reasons."""
+        node's own diagnosis of a missing link (which node/topic), used in reasons.
+        ``periods``: sample periods since the last tick (more after missed ticks), so
+        the ramp to the safe voltage keeps its rate in seconds."""
+        self._periods = max(int(periods), 1)
         holding = cmd is not None and on_time and all(
             abs(cmd[a] - self.v[a]) <= self.p.tolerance_V for a in self.v)
         self.evidence = self.evidence + 1 if holding else 0
@@ -304,7 +324,8 @@ class ArmingSupervisor:
         safe = {a: self.p.safe_V for a in self.v}
         if self.estop:  # as fast as the amplifier's slew limit allows (the driver's)
             return safe
-        return clamp_slew(safe, self.v, (-math.inf, math.inf), self.ramp_step_V)[0]
+        step = self.ramp_step_V * getattr(self, "_periods", 1)
+        return clamp_slew(safe, self.v, (-math.inf, math.inf), step)[0]
 
     def _enable(self, stamp_ns: int):
         self.counts["arms"] += 1
@@ -359,11 +380,12 @@ class CommandSchedule:
             return
         self.pending[j] = dict(v)
 
-    def due(self, j: int):
-        """-> (voltages or None, exactly on time for tick j). A tick with no command
-        stamped for it counts as held (``held``)."""
+    def due(self, j: int, count_held: bool = True):
+        """-> (voltages or None, exactly on time for tick j). With ``count_held`` (the
+        stage is applying commands), a tick with no command stamped for it counts as
+        held (``held_ticks``)."""
         on_time = j in self.pending
-        self.held_ticks += not on_time
+        self.held_ticks += count_held and not on_time
         ready = [k for k in self.pending if k <= j]
         if ready:
             k = max(ready)
@@ -395,3 +417,27 @@ class StateTimeline:
 
     def enabled(self, ns: int) -> bool:
         return self.at(ns) in ENABLED
+
+
+class SampleClock:
+    """The stage's sample clock in real time, on the host's monotonic clock: tick j is
+    due at ``mono0 + j * dt``; a tick serviced late belongs to the latest deadline
+    passed (the ones skipped are missed ticks). ``late`` holds how late each serviced
+    tick ran. A hardware-paced backend (the DAQ) counts its own ticks instead."""
+
+    def __init__(self, dt_s: float, paced: bool):
+        from piezo_stage.core.metrics import LatencyHistogram
+        self.dt, self.paced, self.mono0 = float(dt_s), bool(paced), None
+        self.late = LatencyHistogram()
+
+    def tick(self, now: float, last_j: int) -> int:
+        """The index of the tick serviced at monotonic time ``now``."""
+        if self.mono0 is None:
+            self.mono0 = now
+        j = last_j + 1 if self.paced else int((now - self.mono0) // self.dt)
+        self.late.add(now - self.mono0 - j * self.dt)
+        return j
+
+    def deadline(self, j: int) -> float:
+        """When to service tick j (0.0: at once; the hardware paces)."""
+        return 0.0 if self.paced else self.mono0 + j * self.dt

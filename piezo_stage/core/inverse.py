@@ -29,7 +29,7 @@ import numpy as np
 
 from piezo_stage.core._jit import as_f64, duhem_inverse_run, stage_inverse_step, stage_sync
 from piezo_stage.core.duhem import AXES, OTHER, DuhemModel, DuhemState, StageModel
-from piezo_stage.core.errors import DataError
+from piezo_stage.core.errors import DataError, ModelError
 
 # Scan resolution for the first root: the voltage span is split into this many
 # intervals; a branch would need two roots within span/64 (> 2 V) to fool it.
@@ -197,6 +197,21 @@ class StageInverse:
 
     def restore(self, snap):
         self.vp[:], self.wp[:], self.cvp[:], self.cwp[:] = snap
+
+    def step_ahead(self, in_flight, wx: float, wy: float):
+        """Voltages for the target (wx, wy) [um] reached after the targets still in
+        flight (a list of {axis: um}, oldest first: commands computed but not yet
+        applied), from the present (synced) state, which is left as it was. Raises
+        ModelError when the inverse is not finite."""
+        snap = self.snapshot() if in_flight else None
+        for d in in_flight:
+            self.step(d["x"], d["y"], commit=True)
+        vx, vy, _ = self.step(wx, wy, commit=False)
+        if snap is not None:
+            self.restore(snap)
+        if not (np.isfinite(vx) and np.isfinite(vy)):
+            raise ModelError("the inverse gave a non-finite voltage")
+        return {"x": vx, "y": vy}
 
     def sync(self, vx: float, vy: float):
         """Advance the model with the voltages really applied (feedforward plus

@@ -11,6 +11,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
@@ -26,7 +27,9 @@ class Probe:
         self.ex.add_node(self.node)
         self.states, self.effort, self.samples = [], None, 0
         self.node.create_subscription(DiagnosticArray, f"{ns}/state", self._on_state, QOS_EVENTS)
-        self.node.create_subscription(JointState, f"{ns}/joint_states", self._on_js, QOS_DATA)
+        # only the newest sample matters here: no backlog to lag behind under load
+        newest = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        self.node.create_subscription(JointState, f"{ns}/joint_states", self._on_js, newest)
         self.arm_cli = self.node.create_client(SetBool, f"{ns}/arm")
         self.estop_cli = self.node.create_client(Trigger, f"{ns}/estop")
         self.ns, self.cmd_pub = ns, None  # made on first use: it would look like a controller

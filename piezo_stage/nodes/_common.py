@@ -12,7 +12,7 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.errors import ConfigError, PiezoStageError
 from piezo_stage_msgs_adapters import diagnostic_array
 
 # Loop and record topics: reliable with a deep queue, so a briefly slow subscriber (the
@@ -272,6 +272,55 @@ def set_realtime_priority(prio, logger, main_thread=True) -> int:
         logger.warning(f"thread_priority {prio}: not permitted here ({e}); running at "
                        "normal priority, so expect more missed ticks and late commands")
         return 0
+
+
+def missing_links(node) -> str:
+    """Which link of the control loop has no node, in words ('' when none is missing):
+    for an arm request's refusal and the driver's diagnostics."""
+    ns = node.get_namespace().rstrip("/")
+    missing = [f"no {who}: nothing {verb} {ns}/{topic}" for who, verb, topic, n in (
+        ("controller", "publishes", "command", node.count_publishers(f"{ns}/command")),
+        ("feedforward", "subscribes to", "joint_states",
+         node.count_subscribers(f"{ns}/joint_states")),
+        ("feedforward", "publishes", "reference", node.count_publishers(f"{ns}/reference")),
+    ) if n == 0]
+    return "; ".join(missing)
+
+
+class DriverState:
+    """What a loop node knows of the driver, from its announcements on ``state``
+    (taken in the lean loop before the node's data, so lockstep stays deterministic):
+    the state by sample stamp (``timeline``), the look-ahead, whether the set runs in
+    real time (the node then takes its real-time priority ``prio``), the driver's
+    voltage limits. ``bad`` counts malformed announcements."""
+
+    def __init__(self, node, dt_ns, prio):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from piezo_stage.core.arming import StateTimeline
+        self.node, self.prio = node, prio
+        self.timeline, self.lookahead_ns, self.dt_ns = StateTimeline(), dt_ns, dt_ns
+        self.realtime, self.limits, self.bad = False, None, 0
+        hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
+
+    def on_state(self, msg):
+        from piezo_stage_msgs_adapters import arming_state_from_msg
+        try:
+            since, state, _, values = arming_state_from_msg(msg)
+            self.lookahead_ns = int(round(float(values.get("lookahead_s", 0)) * 1e9)) \
+                or self.dt_ns
+            lim = [float(x) for x in values.get("voltage_limits_V", "").strip("[]").split(",")
+                   if x.strip()]
+        except (PiezoStageError, ValueError):
+            self.bad += 1
+            return
+        if values.get("mode") == "realtime" and not self.realtime:
+            set_realtime_priority(self.prio, self.node.get_logger())
+        self.realtime = values.get("mode") == "realtime"
+        self.limits = tuple(lim) if len(lim) == 2 else self.limits
+        self.timeline.add(since, state)
+
+    def enabled(self, ns) -> bool:
+        return self.timeline.enabled(ns)
 
 
 class Gate:

@@ -18,17 +18,15 @@ kp, ki, kd and feedback take effect at run time (feedback switches bumplessly).
 import math
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 
-from piezo_stage.core.arming import StateTimeline
 from piezo_stage.core.control import PID, CompositeAxis, PIDGains
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, Diagnostics, Gate, declare,
-                                       hot_subscription, run, set_realtime_priority)
-from piezo_stage_msgs_adapters import arming_state_from_msg, reference_from_msg, voltage_cdr
+from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, DriverState, Gate, declare,
+                                       hot_subscription, run)
+from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
 from rclpy.node import Node
 
 GAINS = ("kp", "ki", "kd")
@@ -50,10 +48,10 @@ class Controller(Node):
                                     read_only=True))
         self.axes = {a: CompositeAxis(PID(self.gains, 1.0 / rate), self.limits, feedback)
                      for a in ("x", "y")}
-        self.timeline, self.lookahead_ns, self.realtime = StateTimeline(), self.dt_ns, False
-        self.prio = declare(self, "thread_priority", 45, "real time: SCHED_FIFO priority "
-                            "(0: leave the scheduler alone; lockstep never changes it)",
-                            read_only=True, lo=0, hi=99)
+        # the driver's announcements: taken before the data in each lean-loop pass
+        self.driver = DriverState(self, self.dt_ns, declare(
+            self, "thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
+            "scheduler alone; lockstep never changes it)", read_only=True, lo=0, hi=99))
         self.sent = {}     # target stamp -> (desired um, command V): for t_k's check
         self.last_ns = -1
         self.stats = {"commands": 0, "clamped": 0, "bad_messages": 0, "late_dropped": 0,
@@ -61,7 +59,6 @@ class Controller(Node):
         self.pub = self.create_publisher(Vector3Stamped, "command", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "command subscribers to wait for"))])
-        hot_subscription(self, DiagnosticArray, "state", self.on_driver_state, QOS_EVENTS)
         hot_subscription(self, JointState, "reference", self.on_reference, QOS_DATA, raw=True)
         self.add_on_set_parameters_callback(self.on_set)
         Diagnostics(self, lambda: (0, "ok", {**self.stats, "feedback":
@@ -82,18 +79,6 @@ class Controller(Node):
                     ax.set_feedback(bool(p.value))
         return SetParametersResult(successful=True)
 
-    def on_driver_state(self, msg):
-        try:
-            since, state, _, values = arming_state_from_msg(msg)
-            self.lookahead_ns = int(round(float(values.get("lookahead_s", 0)) * 1e9)) or self.dt_ns
-        except (PiezoStageError, ValueError):
-            self.stats["bad_messages"] += 1
-            return
-        if values.get("mode") == "realtime" and not self.realtime:
-            set_realtime_priority(self.prio, self.get_logger())
-        self.realtime = values.get("mode") == "realtime"
-        self.timeline.add(since, state)
-
     def on_reference(self, msg):
         try:
             ns, desired, ff, w, applied = reference_from_msg(msg)
@@ -102,14 +87,14 @@ class Controller(Node):
             return
         if ns <= self.last_ns:
             return  # a duplicate changes nothing
-        if self.realtime and ns < time.time_ns():
+        if self.driver.realtime and ns < time.time_ns():
             self.stats["late_dropped"] += 1  # its command would arrive after its tick
             return
-        t_k = ns - self.lookahead_ns
+        t_k = ns - self.driver.lookahead_ns
         if self.last_ns >= 0 and ns - self.last_ns > 10 * self.dt_ns:
             self.restart()  # a stall: what the integral knew is stale
         self.last_ns = ns
-        enabled = self.timeline.enabled(t_k) and self.timeline.enabled(ns)
+        enabled = self.driver.enabled(t_k) and self.driver.enabled(ns)
         if not enabled:
             self.restart(count=False)
         asked, sent = self.sent.pop(t_k, (w, None))

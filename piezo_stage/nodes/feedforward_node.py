@@ -15,21 +15,19 @@ the inverse without a restart. Without any model the feedforward is a nominal ga
 
 import time
 
-import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
-from piezo_stage.core.arming import HOLD, ReferencePlanner, StateTimeline
+from piezo_stage.core.arming import HOLD, ReferencePlanner
 from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
-from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, QOS_LATCHED, Diagnostics, Gate, declare,
-                                       hot_subscription, run, set_realtime_priority)
-from piezo_stage_msgs_adapters import (arming_state_from_msg, joint_state_to_um,
+from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, QOS_LATCHED, Diagnostics,
+                                       DriverState, Gate, declare, hot_subscription, run)
+from piezo_stage_msgs_adapters import (joint_state_to_um,
                                        model_from_msg, reference_cdr, setpoint_from_msg,
                                        trajectory_from_msg)
 from rclpy.node import Node
@@ -64,13 +62,13 @@ class Feedforward(Node):
         self.limits = (0.0, 150.0)
         self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
         self.started = False  # the inverse has been put where the stage is
-        self.timeline, self.lookahead_ns, self.realtime = StateTimeline(), self.dt_ns, False
-        self.prio = declare(self, "thread_priority", 45, "real time: SCHED_FIFO priority "
-                            "(0: leave the scheduler alone; lockstep never changes it)",
-                            read_only=True, lo=0, hi=99)
+        # the driver's announcements: taken before the data in each lean-loop pass
+        self.driver = DriverState(self, self.dt_ns, declare(
+            self, "thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
+            "scheduler alone; lockstep never changes it)", read_only=True, lo=0, hi=99))
         self.last_ns, self.ff, self.planned = -1, {"x": 0.0, "y": 0.0}, {}
         self.last_target = None
-        self.driver_limits, self.last_rejection = None, ""
+        self.driver.limits, self.last_rejection = None, ""
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
                       "rejected_models": 0,
                       "saturated": 0, "bad_messages": 0, "late_dropped": 0}
@@ -82,7 +80,6 @@ class Feedforward(Node):
         self.phase_pub.publish(String(data=HOLD))
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "reference subscribers to wait for"))])
-        hot_subscription(self, DiagnosticArray, "state", self.on_driver_state, QOS_EVENTS)
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
         self.lag = LatencyHistogram()  # sample stamp -> its arrival here
@@ -99,7 +96,7 @@ class Feedforward(Node):
                                    f"model rejected: {self.last_rejection}"
                                    if self.last_rejection else f"using {self.model_name}", {
             **self.stats, "model": self.model_name, "phase": self.planner.phase,
-            "lookahead_ms": self.lookahead_ns * 1e-6,
+            "lookahead_ms": self.driver.lookahead_ns * 1e-6,
             "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
             "joint_states_lag_p99_ms": self.lag.percentile(99) * 1e3,
             "joint_states_lag_max_ms": self.lag.max_s * 1e3,
@@ -110,12 +107,12 @@ class Feedforward(Node):
         missing = {"x", "y"} - set(model.axes)
         if missing:
             raise PiezoStageError(f"{name} has no model for axis {', '.join(sorted(missing))}")
-        if self.driver_limits:  # never wider than what the driver will apply
-            lo = max(model.voltage_limits[0], self.driver_limits[0])
-            hi = min(model.voltage_limits[1], self.driver_limits[1])
+        if self.driver.limits:  # never wider than what the driver will apply
+            lo = max(model.voltage_limits[0], self.driver.limits[0])
+            hi = min(model.voltage_limits[1], self.driver.limits[1])
             if not lo < hi:
                 raise PiezoStageError(f"{name}: voltage limits {list(model.voltage_limits)} "
-                                      f"outside the driver's {self.driver_limits}")
+                                      f"outside the driver's {self.driver.limits}")
             model = StageModel(model.axes, model.coupling, (lo, hi))
         inv = StageInverse(model, use_coupling=self.use_c)
         warm = StageInverse(model, use_coupling=self.use_c)  # compile the kernels now,
@@ -143,23 +140,6 @@ class Feedforward(Node):
         if self.pending is not None:
             msg, self.pending = self.pending, None
             self.on_state(msg)
-
-    def on_driver_state(self, msg):
-        try:
-            since, state, _, values = arming_state_from_msg(msg)
-            self.lookahead_ns = int(round(float(values.get("lookahead_s", 0)) * 1e9)) or self.dt_ns
-        except (PiezoStageError, ValueError):
-            self.stats["bad_messages"] += 1
-            return
-        if values.get("mode") == "realtime" and not self.realtime:
-            set_realtime_priority(self.prio, self.get_logger())
-        self.realtime = values.get("mode") == "realtime"
-        self.timeline.add(since, state)
-        try:
-            lim = [float(x) for x in values.get("voltage_limits_V", "").strip("[]").split(",")]
-            self.driver_limits = (lim[0], lim[1]) if len(lim) == 2 else None
-        except ValueError:
-            pass
 
     def on_trajectory(self, msg):
         try:
@@ -191,13 +171,13 @@ class Feedforward(Node):
             return
         if ns <= self.last_ns:
             return  # duplicates change nothing
-        if self.realtime and info:
+        if self.driver.realtime and info:
             self.lag.add((info["received_timestamp"] - ns) * 1e-9)
-        target = ns + self.lookahead_ns
+        target = ns + self.driver.lookahead_ns
         clock = self.planner.clock_s(target)
         waiting = (self.wait_traj and self.planner.traj is None) or (
             self.inv is None and 0 < self.hold_s <= (clock if clock is not None else -1))
-        if waiting and not self.realtime:
+        if waiting and not self.driver.realtime:
             self.pending = msg  # lockstep: the loop waits here
             return
         self.last_ns = ns
@@ -219,7 +199,7 @@ class Feedforward(Node):
 
     def answer(self, ns, target, w, applied):
         phase = self.planner.phase
-        if not self.timeline.enabled(target):
+        if not self.driver.enabled(target):
             self.planner.hold(self.inv.w if self.inv else w)
             desired, self.ff, self.planned = self.planner.desired, dict(applied), {}
         else:
@@ -233,11 +213,11 @@ class Feedforward(Node):
                                         throttle_duration_sec=1.0)
         if self.planner.phase != phase:
             self.phase_pub.publish(String(data=self.planner.phase))
-        if self.setpoint_arrival and self.realtime and self.timeline.enabled(target):
+        if self.setpoint_arrival and self.driver.realtime and self.driver.enabled(target):
             # a streamed setpoint cannot be previewed: it starts at this target tick
             self.sp_latency.add((target - self.setpoint_arrival) * 1e-9)
             self.setpoint_arrival = None
-        if self.realtime and target < time.time_ns():
+        if self.driver.realtime and target < time.time_ns():
             self.stats["late_dropped"] += 1  # it could only reach the driver too late
             return
         self.gate.publish(self.pub, reference_cdr(target, desired, self.ff, w, applied))
@@ -246,21 +226,11 @@ class Feedforward(Node):
         if self.inv is None:
             return {a: min(max(desired[a] / self.gain, self.limits[0]), self.limits[1])
                     for a in ("x", "y")}
-        # the commands between t_k and the target are in flight: step through them
-        # from the synced state, then invert the target, then come back
         ahead = [self.planned[t] for t in sorted(self.planned) if ns < t < target]
         self.planned = {t: d for t, d in self.planned.items() if t > ns}
-        snap = self.inv.snapshot() if ahead else None
-        for d in ahead:
-            self.inv.step(d["x"], d["y"], commit=True)
-        vx, vy, _ = self.inv.step(desired["x"], desired["y"], commit=False)
-        if snap is not None:
-            self.inv.restore(snap)
+        v = self.inv.step_ahead(ahead, desired["x"], desired["y"])
         self.stats["saturated"] = self.inv.saturated
-        if not (np.isfinite(vx) and np.isfinite(vy)):
-            raise PiezoStageError("inverse gave a non-finite voltage")
-        return {"x": vx, "y": vy}
-
+        return v
 
 def main(args=None):
     return run(Feedforward, args)

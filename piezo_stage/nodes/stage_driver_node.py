@@ -22,14 +22,15 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
+from piezo_stage.core.arming import PARAMETERS as ARMING
 from piezo_stage.core.arming import (ENABLED, ArmingParams, ArmingSupervisor,
-                                     CommandSchedule)
+                                     CommandSchedule, SampleClock)
 from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
 from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, Diagnostics, Gate, declare,
-                                       hot_subscription, run, set_realtime_priority)
+                                       hot_subscription, missing_links, run,
+                                       set_realtime_priority)
 from piezo_stage_msgs_adapters import (arming_state_msg, joint_state_cdr, point_cdr,
                                        voltage_from_msg)
 import rclpy
@@ -60,18 +61,9 @@ class StageDriver(Node):
                       "sample loop (0: leave the scheduler alone)", lo=0, hi=99, **ro)}
         if p["backend"] == "daq" and p["mode"] != "realtime":
             raise DataError("backend daq runs in real time only (mode: realtime)")
-        arm = ArmingParams(
-            safe_V=d("safe_voltage_V", 0.0, "disarmed/faulted output [V]", lo=-200.0, hi=200.0, **ro),
-            ramp_V_per_s=d("safe_ramp_V_per_s", 500.0, "ramp rate to the safe voltage "
-                           "[V/s]", lo=1.0, hi=1e6, **ro),
-            stale_s=d("stale_timeout_s", 0.05, "real time: no valid command for this "
-                      "long faults the stage [s]", lo=0.001, hi=10.0, **ro),
-            confirm_ticks=d("arm_confirm_ticks", 20, "ticks of a closed loop before "
-                            "arming", lo=1, hi=100000, **ro),
-            tolerance_V=d("arm_tolerance_V", 0.01, "|command - applied| that counts as "
-                          "holding [V]", lo=1e-9, hi=10.0, **ro),
-            auto_arm=d("auto_arm", False, "arm once the loop is closed, and re-arm after "
-                       "a stale fault", **ro))
+        defaults = ArmingParams()
+        arm = ArmingParams(**{field: d(name, getattr(defaults, field), desc, **ro, **(
+            {"lo": r[0], "hi": r[1]} if r else {})) for name, field, desc, r in ARMING})
         bp = {k: d(k, default, desc, **ro) for k, default, desc in BACKEND_PARAMS}
         self.backend = make_backend(p["backend"], p["rate"], bp, arm.safe_V)
         self.lock = p["mode"] == "lockstep"
@@ -80,10 +72,9 @@ class StageDriver(Node):
             self.dt_ns, int(round(p["lookahead"] * 1e9)))
         self.max_step = {a: s / p["rate"] for a, s in self.backend.slew_V_per_s.items()}
         self.v = {"x": arm.safe_V, "y": arm.safe_V}
-        self.j, self.t0_ns, self.mono0 = -1, 0, None
+        self.j, self.t0_ns = -1, 0
         self.stats = {"samples": 0, "rejected": 0, "limit_hits": 0, "unexpected_stamp": 0,
                       "missed_ticks": 0, "late_commands": 0}
-        self.tick_late = LatencyHistogram()           # real time: tick - its deadline
         self.step_times = deque(maxlen=1_000_000)     # lockstep: the loop's pace
         self.link, self.shutdown_requested, self.shutdown_by = "", False, None
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
@@ -93,6 +84,7 @@ class StageDriver(Node):
                                     3 * self.dt_ns if self.lock else max(
                                         3 * self.dt_ns, 20_000_000), self.on_state_change)
         self.sched = CommandSchedule(0, self.dt_ns, self.lookahead_ns)
+        self.clock = SampleClock(self.dt_ns * 1e-9, self.backend.paced)
         # lockstep: nothing is published before every consumer listens; real time: the
         # sample clock starts then (the first publishes to new readers are slow)
         self.gate = Gate(self, [(self.jpub, p["min_subs"]),
@@ -120,18 +112,12 @@ class StageDriver(Node):
         if not self.gate.open:
             self.lean_deadline = time.monotonic() + 0.01  # consumers still matching
             return
-        now = time.monotonic()
-        if self.mono0 is None:  # map the sample clock to ROS time once
-            self.mono0, self.t0_ns = now, self.get_clock().now().nanoseconds
-            self.sched.t0 = self.t0_ns
-        j = self.j + 1 if self.backend.paced else int((now - self.mono0) * 1e9 // self.dt_ns)
-        self.tick_late.add(now - self.mono0 - j * self.dt_ns * 1e-9)
-        held = self.sched.held_ticks
-        cmd, on_time = self.sched.due(j)
-        if self.sup.state not in ENABLED:
-            self.sched.held_ticks = held  # only an enabled stage is held at a stale value
+        if self.clock.mono0 is None:  # map the sample clock to ROS time once
+            self.t0_ns = self.sched.t0 = self.get_clock().now().nanoseconds
+        j = self.clock.tick(time.monotonic(), self.j)
+        cmd, on_time = self.sched.due(j, count_held=self.sup.state in ENABLED)
         self.tick(j, cmd, on_time, missed=j - self.j - 1)
-        self.lean_deadline = 0.0 if self.backend.paced else self.mono0 + (self.j + 1) * self.dt_ns * 1e-9
+        self.lean_deadline = self.clock.deadline(self.j + 1)
 
     # -- commands -----------------------------------------------------------------------
     def on_command(self, msg, info):
@@ -157,7 +143,7 @@ class StageDriver(Node):
         if self.p["max_steps"] and j > self.p["max_steps"] or getattr(self.backend, "exhausted", False):
             return self.done()
         now = self.stamp(j) if self.lock else self.get_clock().now().nanoseconds
-        target = self.sup.tick(self.stamp(j), now, cmd, on_time, self.link)
+        target = self.sup.tick(self.stamp(j), now, cmd, on_time, self.link, missed + 1)
         v, hit = clamp_slew(target, self.v, self.backend.limits,
                             {a: s * (missed + 1) for a, s in self.max_step.items()})
         self.stats["limit_hits"] += hit and self.sup.state in ENABLED
@@ -235,15 +221,7 @@ class StageDriver(Node):
         return f"{self.get_namespace().rstrip('/')}/{self.get_name()}: {task}"
 
     def check_links(self):
-        """Which link of the loop is missing, in words (for refusals and diagnostics)."""
-        ns = self.get_namespace().rstrip("/")
-        missing = [f"no {who}: nothing {verb} {ns}/{topic}" for who, verb, topic, n in (
-            ("controller", "publishes", "command", self.count_publishers(f"{ns}/command")),
-            ("feedforward", "subscribes to", "joint_states",
-             self.count_subscribers(f"{ns}/joint_states")),
-            ("feedforward", "publishes", "reference", self.count_publishers(f"{ns}/reference")),
-        ) if n == 0]
-        self.link = "; ".join(missing)
+        self.link = missing_links(self)
 
     def on_phase(self, msg):
         self.sup.set_tracking(msg.data == "tracking", self.stamp(self.j))
@@ -266,7 +244,7 @@ class StageDriver(Node):
         return response
 
     def status(self):
-        lag, late, ms = self.sched.arrival_lag, self.tick_late, 1e3
+        lag, late, ms = self.sched.arrival_lag, self.clock.late, 1e3
         s, st = self.stats, self.sup.state
         level = 2 if st == "faulted" else 1 if st in ("disarmed", "arming") else 0
         values = {**s, "state": st, "reason": self.sup.reason, "backend": self.p["backend"],
