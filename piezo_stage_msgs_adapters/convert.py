@@ -78,6 +78,8 @@ def joint_state_to_um(msg, with_effort=False):
     ns, names, position, effort = _joint_state_fields(msg)
     if len(position) != len(names) or not set(JOINTS) <= set(names):
         raise DataError(f"joint_states: expected joints x, y with positions, got {names}")
+    if len(set(names)) != len(names):
+        raise DataError(f"joint_states: joint names repeat: {names}")
     w = {n: float(position[i]) / UM for i, n in enumerate(names) if n in JOINTS}
     _finite(w.values(), "joint_states")
     if not with_effort:

@@ -157,7 +157,8 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path):
                PYTHONPATH=ROOT)
     procs = [subprocess.Popen([sys.executable, "-m", f"piezo_stage.nodes.{n}_node",
                                "--ros-args", "-r", "__ns:=/stage", *extra], env=env)
-             for n, extra in (("feedforward", ["-p", f"model_file:={MODEL}"]),
+             for n, extra in (("feedforward", ["-p", f"model_file:={MODEL}", "-p",
+                                               "max_trajectory_points:=1000"]),
                               ("identifier", []))]
     probe = Probe(d)
     try:
@@ -178,6 +179,11 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path):
             probe.spin(0.1)
         tr.publish(JointTrajectory(joint_names=["x", "y"], points=[
             JointTrajectoryPoint(positions=[1e-6])]))
+        import piezo_stage_msgs_adapters as A
+        tr.publish(A.trajectory_msg(np.arange(5000) * 1e-3, {"x": np.full(5000, 10.0),
+                                                             "y": np.full(5000, 10.0)}))
+        js.publish(JointState(name=["x", "y", "x"], position=[1e-6, 1e-6, 9e-6],
+                              effort=[1.0, 1.0, 1.0]))
         import yaml
         xonly = yaml.safe_load(GOOD)
         del xonly["axes"]["y"]
@@ -190,7 +196,11 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path):
         assert probe.wait(lambda: int(diag.get("identifier", {}).get("bad_messages", 0)) >= 2,
                           10), sorted(diag.get("identifier", {}).items())
         ff = diag["feedforward"]
-        assert ff["model"] == MODEL and int(ff["rejected_trajectories"]) >= 1
+        assert probe.wait(lambda: int(diag["feedforward"]["rejected_trajectories"]) >= 2,
+                          10)  # the ragged one and the one over max_trajectory_points
+        assert int(diag["identifier"]["bad_messages"]) >= 3  # the repeated joint too
+        ff = diag["feedforward"]
+        assert ff["model"] == MODEL
         assert all(p.poll() is None for p in procs)  # nobody died
     finally:
         probe.close()
@@ -209,3 +219,13 @@ def test_csv_with_a_byte_order_mark_or_semicolons_reads(tmp_path):
     for p in (a, b):
         cols = read_table(p, ["t", "vx", "vy"])
         np.testing.assert_array_equal(cols["vy"], [2.0, 2.0])
+
+
+def test_a_bad_parameter_is_refused_at_start_naming_the_node():
+    pytest.importorskip("rclpy")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(150, 200)), PYTHONPATH=ROOT)
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.nodes.stage_driver_node",
+                        "--ros-args", "-r", "__ns:=/stage", "-p", "mode:=bogus"], env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1
+    assert "/stage/stage_driver: fatal:" in r.stderr and "bogus" in r.stderr

@@ -217,7 +217,10 @@ def run(node_factory, args=None, graceful=False):
 def _node_name(args):
     """The node's name for a start-up error (the node object may not exist yet)."""
     import sys
-    return sys.argv[0].rsplit("/", 1)[-1].removesuffix("_node.py").removesuffix("_node")
+    argv = list(args or sys.argv)
+    name = sys.argv[0].rsplit("/", 1)[-1].removesuffix(".py").removesuffix("_node")
+    ns = next((a.split(":=", 1)[1] for a in argv if a.startswith("__ns:=")), "")
+    return f"{ns.rstrip('/')}/{name}" if ns else name
 
 
 def declare(node, name, default, description, read_only=False, lo=None, hi=None,
