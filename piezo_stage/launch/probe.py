@@ -88,22 +88,28 @@ class Probe:
         rclpy.try_shutdown(context=self.ctx)
 
 
-def set_params(probe: Probe, node: str, **values):
-    """Set parameters on another node as `ros2 param set` does -> [(ok, reason)]."""
-    from rclpy.parameter import Parameter
+def _param_call(probe: Probe, node: str, call, *args, attempts: int = 3):
+    """A parameter service call; a reply dropped because the new client was not yet
+    discovered by the server (rmw: 'failed to send response') is asked again."""
     from rclpy.parameter_client import AsyncParameterClient
     cli = AsyncParameterClient(probe.node, node)
     assert cli.wait_for_services(10.0), node
-    fut = cli.set_parameters([Parameter(k, value=v) for k, v in values.items()])
-    assert probe.wait(fut.done, 10.0)
-    return [(r.successful, r.reason) for r in fut.result().results]
+    for _ in range(attempts):
+        fut = getattr(cli, call)(*args)
+        if probe.wait(fut.done, 5.0):
+            return fut.result()
+    raise TimeoutError(f"{node}: no answer to {call} after {attempts} attempts")
+
+
+def set_params(probe: Probe, node: str, **values):
+    """Set parameters on another node as `ros2 param set` does -> [(ok, reason)]."""
+    from rclpy.parameter import Parameter
+    res = _param_call(probe, node, "set_parameters",
+                      [Parameter(k, value=v) for k, v in values.items()])
+    return [(r.successful, r.reason) for r in res.results]
 
 
 def get_params(probe: Probe, node: str, *names):
     from rclpy.parameter import parameter_value_to_python
-    from rclpy.parameter_client import AsyncParameterClient
-    cli = AsyncParameterClient(probe.node, node)
-    assert cli.wait_for_services(10.0), node
-    fut = cli.get_parameters(list(names))
-    assert probe.wait(fut.done, 10.0)
-    return [parameter_value_to_python(v) for v in fut.result().values]
+    res = _param_call(probe, node, "get_parameters", list(names))
+    return [parameter_value_to_python(v) for v in res.values]
