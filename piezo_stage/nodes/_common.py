@@ -1,4 +1,5 @@
-"""What every node shares: QoS profiles, the Jazzy main(), parameters, diagnostics."""
+"""What every node shares: QoS profiles, the lean loop (executor), the Jazzy main(),
+parameters. The control loop's shared pieces are in _loop.py."""
 
 from __future__ import annotations
 
@@ -6,14 +7,10 @@ import gc
 import time
 
 import rclpy
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
 from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from piezo_stage.core.errors import ConfigError, PiezoStageError
-from piezo_stage_msgs_adapters import diagnostic_array
 
 # Loop and record topics: reliable with a deep queue, so a briefly slow subscriber (the
 # recorder) catches up instead of losing samples.
@@ -221,154 +218,3 @@ def _node_name(args):
     name = sys.argv[0].rsplit("/", 1)[-1].removesuffix(".py").removesuffix("_node")
     ns = next((a.split(":=", 1)[1] for a in argv if a.startswith("__ns:=")), "")
     return f"{ns.rstrip('/')}/{name}" if ns else name
-
-
-def declare(node, name, default, description, read_only=False, lo=None, hi=None,
-            choices=None):
-    """Declare a parameter with a descriptor (units in the description, ranges,
-    read_only). Values outside ``choices`` are refused, at start (ConfigError) and when
-    set at run time (the set call fails with the reason)."""
-    d = ParameterDescriptor(description=description, read_only=read_only)
-    if lo is not None and isinstance(default, float):
-        d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi))]
-    elif lo is not None and isinstance(default, int) and not isinstance(default, bool):
-        d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
-    if choices:
-        d.additional_constraints = "one of: " + ", ".join(choices)
-        if "_choices" not in node.__dict__:
-            node._choices = {}
-            node.add_on_set_parameters_callback(lambda ps: _check_choices(node, ps))
-        node._choices[name] = tuple(choices)
-    value = node.declare_parameter(name, default, d).value
-    if choices and value not in choices:
-        raise ConfigError(f"parameter {name} = {value!r}: must be one of "
-                          f"{', '.join(choices)}")
-    return value
-
-
-def _check_choices(node, params):
-    for p in params:
-        ch = node._choices.get(p.name)
-        if ch and p.value not in ch:
-            return SetParametersResult(successful=False,
-                                       reason=f"{p.name} must be one of {', '.join(ch)}")
-    return SetParametersResult(successful=True)
-
-
-def set_realtime_priority(prio, logger, main_thread=True) -> int:
-    """SCHED_FIFO at ``prio`` for every thread of this process (the loop's and the
-    middleware's, so a publish never waits on a starved middleware thread: priority
-    inversion), as ros2_control does for its control thread. Where the OS does not
-    permit it, say so and go on at normal priority. Real time only: a lockstep loop is
-    CPU-bound and would starve everything else. ``main_thread=False``: only the
-    middleware's threads (a recorder receives and acknowledges promptly, while its own
-    batch writing and compression stay at normal priority)."""
-    import os
-    if prio <= 0:
-        return 0
-    try:
-        for tid in os.listdir("/proc/self/task"):
-            if main_thread or int(tid) != os.getpid():
-                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(prio))
-        return prio
-    except (PermissionError, OSError, AttributeError, ValueError) as e:
-        logger.warning(f"thread_priority {prio}: not permitted here ({e}); running at "
-                       "normal priority, so expect more missed ticks and late commands")
-        return 0
-
-
-def missing_links(node) -> str:
-    """Which link of the control loop has no node, in words ('' when none is missing):
-    for an arm request's refusal and the driver's diagnostics."""
-    ns = node.get_namespace().rstrip("/")
-    missing = [f"no {who}: nothing {verb} {ns}/{topic}" for who, verb, topic, n in (
-        ("controller", "publishes", "command", node.count_publishers(f"{ns}/command")),
-        ("feedforward", "subscribes to", "joint_states",
-         node.count_subscribers(f"{ns}/joint_states")),
-        ("feedforward", "publishes", "reference", node.count_publishers(f"{ns}/reference")),
-    ) if n == 0]
-    return "; ".join(missing)
-
-
-class DriverState:
-    """What a loop node knows of the driver, from its announcements on ``state``
-    (taken in the lean loop before the node's data, so lockstep stays deterministic):
-    the state by sample stamp (``timeline``), the look-ahead, whether the set runs in
-    real time (the node then takes its real-time priority ``prio``), the driver's
-    voltage limits. ``bad`` counts malformed announcements."""
-
-    def __init__(self, node, dt_ns, prio):
-        from diagnostic_msgs.msg import DiagnosticArray
-        from piezo_stage.core.arming import StateTimeline
-        self.node, self.prio = node, prio
-        self.timeline, self.lookahead_ns, self.dt_ns = StateTimeline(), dt_ns, dt_ns
-        self.realtime, self.limits, self.bad = False, None, 0
-        hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
-
-    def on_state(self, msg):
-        from piezo_stage_msgs_adapters import arming_state_from_msg
-        try:
-            since, state, _, values = arming_state_from_msg(msg)
-            self.lookahead_ns = int(round(float(values.get("lookahead_s", 0)) * 1e9)) \
-                or self.dt_ns
-            lim = [float(x) for x in values.get("voltage_limits_V", "").strip("[]").split(",")
-                   if x.strip()]
-        except (PiezoStageError, ValueError):
-            self.bad += 1
-            return
-        if values.get("mode") == "realtime" and not self.realtime:
-            set_realtime_priority(self.prio, self.node.get_logger())
-        self.realtime = values.get("mode") == "realtime"
-        self.limits = tuple(lim) if len(lim) == 2 else self.limits
-        self.timeline.add(since, state)
-
-    def enabled(self, ns) -> bool:
-        return self.timeline.enabled(ns)
-
-
-class Gate:
-    """Holds outgoing messages until every listed publisher has its number of matched
-    subscriptions, then sends them in order. In lockstep nothing is published before
-    every consumer (the recorder included) listens, so a run loses nothing and is
-    reproducible. ``needs``: list of (publisher, n)."""
-
-    def __init__(self, node, needs):
-        self._node = node
-        self.needs = [(p, int(n)) for p, n in needs]
-        self.queue = []
-        self.open = all(n <= 0 for _, n in self.needs)
-        if not self.open:
-            self._timer = node.create_timer(0.01, self._poll)
-
-    def _poll(self):
-        if not self.open and all(p.get_subscription_count() >= n for p, n in self.needs):
-            self.open = True
-            self._timer.cancel()
-            self._node.destroy_timer(self._timer)  # out of the executor's wait set
-            for pub, m in self.queue:
-                pub.publish(m)
-            self.queue.clear()
-
-    def publish(self, pub, msg):
-        if self.open:
-            pub.publish(msg)
-        else:
-            self.queue.append((pub, msg))
-            self._poll()
-
-
-class Diagnostics:
-    """Publishes /diagnostics at 1 Hz from ``status()`` -> (level, message, values)."""
-
-    def __init__(self, node, status, hardware_id=""):
-        self.node, self.status, self.hw = node, status, hardware_id
-        self.pub = node.create_publisher(__import__("diagnostic_msgs.msg", fromlist=["x"])
-                                          .DiagnosticArray, "/diagnostics", QOS_DIAG)
-        self.t0 = time.monotonic()
-        node.create_timer(1.0, self.publish)
-
-    def publish(self):
-        level, message, values = self.status()
-        ns = self.node.get_clock().now().nanoseconds
-        self.pub.publish(diagnostic_array(ns, f"piezo_stage: {self.node.get_name()}", level,
-                                          message, values, self.hw))

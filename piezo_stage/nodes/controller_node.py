@@ -24,8 +24,9 @@ from sensor_msgs.msg import JointState
 
 from piezo_stage.core.control import PID, CompositeAxis, PIDGains
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, DriverState, Gate, declare,
-                                       hot_subscription, run)
+from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
+from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
 from rclpy.node import Node
 

@@ -25,8 +25,9 @@ from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
-from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, QOS_LATCHED, Diagnostics,
-                                       DriverState, Gate, declare, hot_subscription, run)
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED, hot_subscription, run
+from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage_msgs_adapters import (joint_state_to_um,
                                        model_from_msg, reference_cdr, setpoint_from_msg,
                                        trajectory_from_cdr)
@@ -48,7 +49,8 @@ class Feedforward(Node):
                              "(decoupling)", **ro)
         self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]", **ro)
         self.hold_s = declare(self, "model_required_after_s", 0.0, "lockstep: hold the "
-                              "loop at this trajectory time until a model arrives (0: never)", **ro)
+                              "loop at this trajectory time until a model arrives (0: never)",
+                              **ro)
         self.max_points = declare(self, "max_trajectory_points", 200_000, "longer "
                                   "trajectories are refused (memory, parse time)",
                                   read_only=True, lo=2, hi=10_000_000)

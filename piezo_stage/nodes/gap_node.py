@@ -16,8 +16,9 @@ from piezo_stage.core.plant import Plant, PlantConfig
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir, enabled_effects
-from piezo_stage.nodes._common import (QOS_DATA, Diagnostics, Gate, declare,
-                                       hot_subscription, run)
+from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
+from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage_msgs_adapters import joint_state_to_um, point_msg
 from rclpy.node import Node
 

@@ -20,8 +20,9 @@ from piezo_stage.core.identify import IdentifyOptions, identify_axis
 from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.record import Record
 from piezo_stage.io.model_file import model_to_dict
-from piezo_stage.nodes._common import (QOS_DATA, QOS_LATCHED, Diagnostics, declare,
-                                       hot_subscription, run)
+from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, hot_subscription, run
+from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
 from rclpy.node import Node
 

@@ -14,8 +14,10 @@ import os
 import struct
 
 from piezo_stage.io.bag import BagWriter, new_bag_dir
-from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_EVENTS, QOS_LATCHED, Diagnostics, declare,
-                                       hot_subscription, run, set_realtime_priority)
+from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_EVENTS,
+                                       QOS_LATCHED, hot_subscription, run)
+from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
 from rclpy.node import Node
 
 CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag)

@@ -28,9 +28,9 @@ from piezo_stage.core.arming import (ENABLED, ArmingParams, ArmingSupervisor,
 from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import DataError
 from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
-from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, Diagnostics, Gate, declare,
-                                       hot_subscription, missing_links, run,
-                                       set_realtime_priority)
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, hot_subscription, run
+from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage_msgs_adapters import (arming_state_msg, joint_state_cdr, point_cdr,
                                        voltage_from_msg)
 import rclpy
@@ -44,7 +44,8 @@ class StageDriver(Node):
         ro = {"read_only": True}
         d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
         p = self.p = {
-            "backend": d("backend", "sim", "stage backend", choices=("sim", "daq", "replay"), **ro),
+            "backend": d("backend", "sim", "stage backend", choices=("sim", "daq", "replay"),
+                         **ro),
             "mode": d("mode", "lockstep", "lockstep (sim, replay) | realtime",
                       choices=("lockstep", "realtime"), **ro),
             "rate": d("control_rate_hz", 1000.0, "sample rate [Hz]", lo=1.0, hi=1e5, **ro),
@@ -52,7 +53,8 @@ class StageDriver(Node):
                            "far ahead of the sample they answer [s]", lo=0.0, hi=1.0, **ro),
             "max_steps": d("max_steps", 0, "stop after this many samples (0: never)",
                            lo=0, hi=2**31 - 1, **ro),
-            "exit_done": d("exit_after_max_steps", False, "exit (code 0) after max_steps"),
+            "exit_done": d("exit_after_max_steps", False, "exit (code 0) after max_steps",
+                           **ro),
             "min_subs": d("min_subscribers", 0, "lockstep: joint_states subscribers to "
                           "wait for", lo=0, hi=100, **ro),
             "min_rec": d("min_record_subscribers", 0, "lockstep: true_position "
@@ -140,7 +142,8 @@ class StageDriver(Node):
 
     # -- one sample -----------------------------------------------------------------------
     def tick(self, j, cmd, on_time, missed=0):
-        if self.p["max_steps"] and j > self.p["max_steps"] or getattr(self.backend, "exhausted", False):
+        if self.p["max_steps"] and j > self.p["max_steps"] or \
+                getattr(self.backend, "exhausted", False):
             return self.done()
         now = self.stamp(j) if self.lock else self.get_clock().now().nanoseconds
         target = self.sup.tick(self.stamp(j), now, cmd, on_time, self.link, missed + 1)
@@ -221,7 +224,10 @@ class StageDriver(Node):
         return f"{self.get_namespace().rstrip('/')}/{self.get_name()}: {task}"
 
     def check_links(self):
-        self.link = missing_links(self)
+        """Graph queries cost the loop thread ~1 ms: only while not armed, where a
+        refusal or the arming reason needs them."""
+        if self.sup.state not in ENABLED:
+            self.link = missing_links(self)
 
     def on_phase(self, msg):
         self.sup.set_tracking(msg.data == "tracking", self.stamp(self.j))
@@ -250,9 +256,11 @@ class StageDriver(Node):
         values = {**s, "state": st, "reason": self.sup.reason, "backend": self.p["backend"],
                   "mode": self.p["mode"], "v_x_V": self.v["x"], "v_y_V": self.v["y"],
                   "tick_late_median_ms": late.percentile(50) * ms,
-                  "tick_late_p99_ms": late.percentile(99) * ms, "tick_late_max_ms": late.max_s * ms,
+                  "tick_late_p99_ms": late.percentile(99) * ms,
+                  "tick_late_max_ms": late.max_s * ms,
                   "command_lag_median_ms": lag.percentile(50) * ms,
-                  "command_lag_p99_ms": lag.percentile(99) * ms, "command_lag_max_ms": lag.max_s * ms,
+                  "command_lag_p99_ms": lag.percentile(99) * ms,
+                  "command_lag_max_ms": lag.max_s * ms,
                   "late_commands": self.sched.late, "commands": self.sched.received,
                   "held_ticks": self.sched.held_ticks,
                   "lookahead_ms": self.lookahead_ns * 1e-6,

@@ -13,7 +13,9 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.trajectory import KINDS, generate
-from piezo_stage.nodes._common import QOS_LATCHED, Diagnostics, Gate, declare, run
+from piezo_stage.nodes._common import QOS_LATCHED, run
+from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage_msgs_adapters import trajectory_msg
 from rclpy.node import Node
 

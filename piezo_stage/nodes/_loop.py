@@ -1,0 +1,130 @@
+"""What the control loop's nodes share: real-time priority, the driver's announcements
+(DriverState), which link of the loop is missing, start-up gating (Gate), and
+/diagnostics."""
+
+from __future__ import annotations
+
+import time
+
+from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.nodes._common import QOS_DIAG, QOS_EVENTS, hot_subscription
+from piezo_stage_msgs_adapters import diagnostic_array
+
+
+def set_realtime_priority(prio, logger, main_thread=True) -> int:
+    """SCHED_FIFO at ``prio`` for every thread of this process (the loop's and the
+    middleware's, so a publish never waits on a starved middleware thread: priority
+    inversion), as ros2_control does for its control thread. Where the OS does not
+    permit it, say so and go on at normal priority. Real time only: a lockstep loop is
+    CPU-bound and would starve everything else. ``main_thread=False``: only the
+    middleware's threads (a recorder receives and acknowledges promptly, while its own
+    batch writing and compression stay at normal priority)."""
+    import os
+    if prio <= 0:
+        return 0
+    try:
+        for tid in os.listdir("/proc/self/task"):
+            if main_thread or int(tid) != os.getpid():
+                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(prio))
+        return prio
+    except (PermissionError, OSError, AttributeError, ValueError) as e:
+        logger.warning(f"thread_priority {prio}: not permitted here ({e}); running at "
+                       "normal priority, so expect more missed ticks and late commands")
+        return 0
+
+
+def missing_links(node) -> str:
+    """Which link of the control loop has no node, in words ('' when none is missing):
+    for an arm request's refusal and the driver's diagnostics."""
+    ns = node.get_namespace().rstrip("/")
+    missing = [f"no {who}: nothing {verb} {ns}/{topic}" for who, verb, topic, n in (
+        ("controller", "publishes", "command", node.count_publishers(f"{ns}/command")),
+        ("feedforward", "subscribes to", "joint_states",
+         node.count_subscribers(f"{ns}/joint_states")),
+        ("feedforward", "publishes", "reference", node.count_publishers(f"{ns}/reference")),
+    ) if n == 0]
+    return "; ".join(missing)
+
+
+class DriverState:
+    """What a loop node knows of the driver, from its announcements on ``state``
+    (taken in the lean loop before the node's data, so lockstep stays deterministic):
+    the state by sample stamp (``timeline``), the look-ahead, whether the set runs in
+    real time (the node then takes its real-time priority ``prio``), the driver's
+    voltage limits. ``bad`` counts malformed announcements."""
+
+    def __init__(self, node, dt_ns, prio):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from piezo_stage.core.arming import StateTimeline
+        self.node, self.prio = node, prio
+        self.timeline, self.lookahead_ns, self.dt_ns = StateTimeline(), dt_ns, dt_ns
+        self.realtime, self.limits, self.bad = False, None, 0
+        hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
+
+    def on_state(self, msg):
+        from piezo_stage_msgs_adapters import arming_state_from_msg
+        try:
+            since, state, _, values = arming_state_from_msg(msg)
+            self.lookahead_ns = int(round(float(values.get("lookahead_s", 0)) * 1e9)) \
+                or self.dt_ns
+            lim = [float(x) for x in values.get("voltage_limits_V", "").strip("[]").split(",")
+                   if x.strip()]
+        except (PiezoStageError, ValueError):
+            self.bad += 1
+            return
+        if values.get("mode") == "realtime" and not self.realtime:
+            set_realtime_priority(self.prio, self.node.get_logger())
+        self.realtime = values.get("mode") == "realtime"
+        self.limits = tuple(lim) if len(lim) == 2 else self.limits
+        self.timeline.add(since, state)
+
+    def enabled(self, ns) -> bool:
+        return self.timeline.enabled(ns)
+
+
+class Gate:
+    """Holds outgoing messages until every listed publisher has its number of matched
+    subscriptions, then sends them in order. In lockstep nothing is published before
+    every consumer (the recorder included) listens, so a run loses nothing and is
+    reproducible. ``needs``: list of (publisher, n)."""
+
+    def __init__(self, node, needs):
+        self._node = node
+        self.needs = [(p, int(n)) for p, n in needs]
+        self.queue = []
+        self.open = all(n <= 0 for _, n in self.needs)
+        if not self.open:
+            self._timer = node.create_timer(0.01, self._poll)
+
+    def _poll(self):
+        if not self.open and all(p.get_subscription_count() >= n for p, n in self.needs):
+            self.open = True
+            self._timer.cancel()
+            self._node.destroy_timer(self._timer)  # out of the executor's wait set
+            for pub, m in self.queue:
+                pub.publish(m)
+            self.queue.clear()
+
+    def publish(self, pub, msg):
+        if self.open:
+            pub.publish(msg)
+        else:
+            self.queue.append((pub, msg))
+            self._poll()
+
+
+class Diagnostics:
+    """Publishes /diagnostics at 1 Hz from ``status()`` -> (level, message, values)."""
+
+    def __init__(self, node, status, hardware_id=""):
+        self.node, self.status, self.hw = node, status, hardware_id
+        self.pub = node.create_publisher(__import__("diagnostic_msgs.msg", fromlist=["x"])
+                                          .DiagnosticArray, "/diagnostics", QOS_DIAG)
+        self.t0 = time.monotonic()
+        node.create_timer(1.0, self.publish)
+
+    def publish(self):
+        level, message, values = self.status()
+        ns = self.node.get_clock().now().nanoseconds
+        self.pub.publish(diagnostic_array(ns, f"piezo_stage: {self.node.get_name()}", level,
+                                          message, values, self.hw))

@@ -1,0 +1,41 @@
+"""Node parameters: declared with a descriptor (units in the description, ranges,
+read_only), choices enforced at start and at run time."""
+
+from __future__ import annotations
+
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+
+from piezo_stage.core.errors import ConfigError
+
+
+def declare(node, name, default, description, read_only=False, lo=None, hi=None,
+            choices=None):
+    """Declare a parameter with a descriptor (units in the description, ranges,
+    read_only). Values outside ``choices`` are refused, at start (ConfigError) and when
+    set at run time (the set call fails with the reason)."""
+    d = ParameterDescriptor(description=description, read_only=read_only)
+    if lo is not None and isinstance(default, float):
+        d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi))]
+    elif lo is not None and isinstance(default, int) and not isinstance(default, bool):
+        d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+    if choices:
+        d.additional_constraints = "one of: " + ", ".join(choices)
+        if "_choices" not in node.__dict__:
+            node._choices = {}
+            node.add_on_set_parameters_callback(lambda ps: _check_choices(node, ps))
+        node._choices[name] = tuple(choices)
+    value = node.declare_parameter(name, default, d).value
+    if choices and value not in choices:
+        raise ConfigError(f"parameter {name} = {value!r}: must be one of "
+                          f"{', '.join(choices)}")
+    return value
+
+
+def _check_choices(node, params):
+    for p in params:
+        ch = node._choices.get(p.name)
+        if ch and p.value not in ch:
+            return SetParametersResult(successful=False,
+                                       reason=f"{p.name} must be one of {', '.join(ch)}")
+    return SetParametersResult(successful=True)
