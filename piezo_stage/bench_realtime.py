@@ -25,6 +25,7 @@ DT_NS = 1_000_000  # 1 kHz
 
 def _run(mode: str, track_s: float, env: dict, bag: str):
     from piezo_stage.bench import _cpu_ticks
+    from piezo_stage.launch.host_pauses import HostPauseMonitor
     from piezo_stage.launch.launcher import Launch
     from piezo_stage.paths import default_config
     o = {"stage_driver": {"mode": mode},
@@ -36,15 +37,24 @@ def _run(mode: str, track_s: float, env: dict, bag: str):
     launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"])
     c0 = _cpu_ticks()
-    rc = launch.run(duration=track_s + 3.0 if mode == "realtime" else 900.0)
+    with HostPauseMonitor() as mon:
+        rc = launch.run(duration=track_s + 3.0 if mode == "realtime" else 900.0)
     c1 = _cpu_ticks()
     if rc != 0:
         raise RuntimeError(f"the {mode} run failed: {launch.failed}")
-    return read_run(bag), (c1[1] - c0[1]) / max(1, c1[0] - c0[0])
+    return read_run(bag), (c1[1] - c0[1]) / max(1, c1[0] - c0[0]), mon.pauses
 
 
-def figures(run, track_s: float, slew_V_per_s: float) -> dict:
-    """The benchmark's figures of one run (see the module docstring)."""
+# tracking samples this long after a host pause are set aside in the "in-guest" figure:
+# the stage catches up from the held voltage within a few of the loop's time constants
+RECOVER_NS = 50_000_000
+
+
+def figures(run, track_s: float, slew_V_per_s: float, pauses=()) -> dict:
+    """The benchmark's figures of one run (see the module docstring). ``pauses``: host
+    pauses (both CPUs stopped) on the run's clock, to attribute missed ticks and to give
+    the tracking figure without the samples they disturbed."""
+    from piezo_stage.launch.host_pauses import inside
     f = {}
     armed = run.state_times("armed")
     if not armed:
@@ -53,6 +63,10 @@ def figures(run, track_s: float, slew_V_per_s: float) -> dict:
     e = run.errors_um(a0 + 300_000_000, a0 + int(track_s * 1e9))
     f["rms_um"], f["max_um"] = np.sqrt(np.mean(e ** 2, axis=0)), np.abs(e).max(axis=0)
     f["samples"] = len(e)
+    t_win = run.errors_t_ns(a0 + 300_000_000, a0 + int(track_s * 1e9))
+    keep = np.array([not inside(int(t), pauses, RECOVER_NS) for t in t_win], bool)
+    f["rms_guest_um"] = np.sqrt(np.mean(e[keep] ** 2, axis=0))
+    f["set_aside"] = int((~keep).sum())
     # ticks of the tracking window whose stamp no reference (hence no command) was for
     win = run.t_ns[(run.t_ns >= a0) & (run.t_ns <= a0 + int(track_s * 1e9))]
     f["held"] = int(sum(int(k) not in run.desired_um for k in win))
@@ -70,6 +84,10 @@ def figures(run, track_s: float, slew_V_per_s: float) -> dict:
     f["max_step_ratio"] = float((np.abs(np.diff(run.v_V, axis=0)) / gaps[:, None]).max()
                                 / (slew_V_per_s * DT_NS * 1e-9))
     f["missed"] = int((gaps - 1).sum())
+    f["missed_in_pauses"] = int(sum(
+        g - 1 for g, t0, t1 in zip(gaps, run.t_ns[:-1], run.t_ns[1:])
+        if g > 1 and any(a < t1 and b > t0 for a, b in pauses)))
+    f["pauses_ms"] = [(b - a) * 1e-6 for a, b in pauses]
     f["ticks"] = int(gaps.sum())
     lag = (run.recv_ns - run.t_ns) * 1e-6
     f["lag_ms"] = np.percentile(lag, [50, 99]).tolist() + [float(lag.max())]
@@ -91,8 +109,8 @@ def bench_realtime(track_s: float = 20.0) -> int:
           "1 kHz) + feedforward + controller + trajectory + recorder as separate processes")
     out = {}
     for mode in ("realtime", "lockstep"):
-        run, steal = _run(mode, track_s, env, os.path.join(tmp, mode))
-        out[mode] = figures(run, track_s, slew)
+        run, steal, pauses = _run(mode, track_s, env, os.path.join(tmp, mode))
+        out[mode] = figures(run, track_s, slew, pauses)
         out[mode]["steal"] = steal
     rt, ls = out["realtime"], out["lockstep"]
     d = rt["driver"]
@@ -103,6 +121,13 @@ def bench_realtime(track_s: float = 20.0) -> int:
           f"p99 {g('tick_late_p99_ms'):.3f} ms, max {g('tick_late_max_ms'):.3f} ms")
     miss_pct = 100 * rt["missed"] / rt["ticks"]
     print(f"    missed ticks: {rt['missed']} = {miss_pct:.3f} % (stamps show each gap)")
+    p_ms = rt["pauses_ms"]
+    guest_missed = rt["missed"] - rt["missed_in_pauses"]
+    guest_pct = 100 * guest_missed / rt["ticks"]
+    print(f"    host pauses (every CPU stopped at once, seen by FIFO-99 sentinels): "
+          f"{len(p_ms)}, longest {max(p_ms, default=0):.2f} ms, total {sum(p_ms):.2f} ms; "
+          f"missed ticks inside them {rt['missed_in_pauses']}, outside {guest_missed} "
+          f"= {guest_pct:.3f} %")
     print("    stamp-to-arrival lag of joint_states: at the feedforward (the loop's "
           f"subscriber, real-time priority) median {rt['ff_lag_ms'][0]:.3f} ms, p99 "
           f"{rt['ff_lag_ms'][1]:.3f} ms, max {rt['ff_lag_ms'][2]:.3f} ms; at the recorder "
@@ -122,12 +147,18 @@ def bench_realtime(track_s: float = 20.0) -> int:
               f"({f['startup_unreachable']} unreachable samples apart); largest voltage step "
               f"{f['max_step_ratio']:.2f} x the slew limit; lost {f['lost']}")
     ratio = float(np.max(rt["rms_um"] / ls["rms_um"]))
-    print(f"  real time / lockstep tracking rms (worse axis): {ratio:.2f}")
+    g_ratio = float(np.max(rt["rms_guest_um"] / ls["rms_um"]))
+    print(f"  real time / lockstep tracking rms (worse axis): {ratio:.2f}; without the "
+          f"{rt['set_aside']} samples in or {RECOVER_NS // 1_000_000} ms after host pauses: "
+          f"x/y rms {rt['rms_guest_um'][0]:.4f}/{rt['rms_guest_um'][1]:.4f} um, "
+          f"ratio {g_ratio:.2f}")
     checks = [("start-up error <= 1 um beyond the approach path", rt["startup_max_um"] <= 1.0),
               ("no voltage step beyond the slew limit", max(rt["max_step_ratio"],
                                                             ls["max_step_ratio"]) <= 1.0),
               ("real-time tracking <= 1.5 x lockstep", ratio <= 1.5),
+              ("  the same, host pauses set aside", g_ratio <= 1.5),
               ("missed ticks <= 0.1 %", miss_pct <= 0.1),
+              ("  the same, host pauses set aside", guest_pct <= 0.1),
               ("stamp-to-arrival lag p99 <= 2 ms (loop subscriber)", rt["ff_lag_ms"][1] <= 2.0),
               ("stamp-to-arrival lag p99 <= 2 ms (recorder)", rt["lag_ms"][1] <= 2.0),
               ("0 messages lost", rt["lost"] == 0 and ls["lost"] == 0)]

@@ -1,8 +1,12 @@
 """`piezo-stage replay BAG`: republish a recorded bag's messages on their topics.
 
 Raw CDR bytes are published as recorded (no deserialisation), at the original pace
-scaled by ``rate`` (0: as fast as the subscribers take them). Diagnostics and the
-model hand-over are not replayed, so a live identifier re-identifies from the data.
+scaled by ``rate`` (0: as fast as the subscribers take them), on the bag's one time
+base (log times: simulated time for lockstep runs, wall clock for real-time ones).
+/clock carries the bag's time every ``clock_period_s`` of it, so nodes on use_sim_time
+follow the replay (as ``ros2 bag play --clock`` does); the recorded /clock is not
+replayed. Diagnostics and the model hand-over are not replayed, so a live identifier
+re-identifies from the data.
 """
 
 from __future__ import annotations
@@ -11,14 +15,16 @@ import time
 
 from piezo_stage.io.bag import iter_messages
 
-SKIP = ("/diagnostics", "/model", "/rosout", "/parameter_events")
+SKIP = ("/diagnostics", "/model", "/rosout", "/parameter_events", "/clock")
 
 
-def replay(bag, rate=1.0, namespace=None) -> int:
+def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from piezo_stage.nodes._common import QOS_DATA
     from piezo_stage.nodes.recorder_node import msg_class
+    from piezo_stage_msgs_adapters import clock_msg
+    from rosgraph_msgs.msg import Clock
     rclpy.init()
     node = rclpy.create_node("replay")
     pubs, n = {}, 0
@@ -29,6 +35,8 @@ def replay(bag, rate=1.0, namespace=None) -> int:
                 name = topic if not namespace else namespace.rstrip("/") + "/" + \
                     topic.rsplit("/", 1)[-1]
                 pubs[topic] = node.create_publisher(msg_class(msgtype), name, QOS_DATA)
+        clock = node.create_publisher(Clock, "/clock", 10)
+        next_clock = None
         deadline = time.monotonic() + 5.0  # let subscribers match before the first sample
         while time.monotonic() < deadline and not all(p.get_subscription_count() for p in
                                                        pubs.values()):
@@ -39,6 +47,9 @@ def replay(bag, rate=1.0, namespace=None) -> int:
                 due = t0_wall + (log_ns - t0_log) * 1e-9 / rate
                 while time.monotonic() < due:
                     time.sleep(min(0.001, due - time.monotonic()))
+            if clock_period_s > 0 and (next_clock is None or log_ns >= next_clock):
+                clock.publish(clock_msg(log_ns))
+                next_clock = log_ns + int(clock_period_s * 1e9)
             pubs[topic].publish(data)
             n += 1
         for p in pubs.values():

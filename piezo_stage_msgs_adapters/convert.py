@@ -21,7 +21,7 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "reference_from_msg", "point_msg", "joint_state_cdr", "voltage_cdr",
            "reference_cdr", "point_cdr", "setpoint_from_msg", "trajectory_msg",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
-           "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr"]
+           "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr", "clock_msg"]
 
 JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
@@ -291,6 +291,12 @@ def arming_state_from_msg(msg: DiagnosticArray) -> tuple[int, str, str, dict]:
     if "state" not in kv:
         raise DataError("state: no 'state' value")
     return time_to_ns(msg.header.stamp), kv["state"], kv.get("reason", ""), kv
+
+
+def clock_msg(ns: int):
+    """rosgraph_msgs/Clock at ``ns`` (simulated time, for nodes on use_sim_time)."""
+    from rosgraph_msgs.msg import Clock
+    return Clock(clock=ns_to_time(ns))
 
 
 def diagnostic_array(ns: int, name: str, level: int, message: str, values: dict,

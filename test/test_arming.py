@@ -204,3 +204,35 @@ def test_the_safe_ramp_keeps_its_rate_over_missed_ticks():
     s, _ = sup(ramp_V_per_s=1000.0)
     s.v = {"x": 10.0, "y": 10.0}
     assert s.tick(0, 0, None, False, periods=4) == {"x": 6.0, "y": 6.0}  # 4 ms: 4 V
+
+
+def test_host_pauses_are_where_every_cpu_sentinel_stopped_at_once():
+    import os
+    import signal
+    import time
+    from piezo_stage.launch.host_pauses import HostPauseMonitor, inside, overlap
+    # the overlap logic: only what every CPU shares, longer than the floor
+    assert overlap([[(0, 10), (20, 30)], [(5, 25)]]) == [(5, 10), (20, 25)]
+    assert overlap([[(0, 10)], [(12, 20)]]) == []
+    assert overlap([[(0, 10)], [(0, 10)]], min_ns=10) == []
+    assert inside(35, [(20, 30)], after_ns=5) and not inside(36, [(20, 30)], after_ns=5)
+    # the real sentinels: stopping them all for 60 ms is a pause of about that length;
+    # stopping one of them is not
+    with HostPauseMonitor() as mon:
+        time.sleep(0.3)
+        os.kill(mon.procs[0].pid, signal.SIGSTOP)
+        time.sleep(0.06)
+        os.kill(mon.procs[0].pid, signal.SIGCONT)
+        time.sleep(0.2)
+        t0 = time.time_ns()
+        for p in mon.procs:
+            os.kill(p.pid, signal.SIGSTOP)
+        time.sleep(0.06)
+        for p in mon.procs:
+            os.kill(p.pid, signal.SIGCONT)
+        t1 = time.time_ns()
+        time.sleep(0.2)
+    if len(mon.procs) > 1:
+        assert len(mon.pauses) == 1, mon.pauses
+    a, b = mon.pauses[-1]
+    assert a >= t0 - 2_000_000 and b <= t1 + 2_000_000 and b - a > 40_000_000

@@ -194,3 +194,45 @@ def test_bag_repair_makes_a_killed_writers_bag_readable_by_standard_readers(tmp_
     with Reader(tmp_path / "k") as bag:  # rosbag2 layout: metadata.yaml agrees
         assert bag.message_count == n
     assert os.path.exists(p + ".orig")
+
+
+def test_metadata_is_rosbag2_v9_with_qos_as_offered(tmp_path):
+    """metadata.yaml as rosbag2 Jazzy reads it: QoS profiles as a YAML list (what rosbags'
+    own v9 writer emits), transient local where the publisher latches; rosbags' rosbag2
+    reader (metadata.yaml, not the MCAP summary) parses it and gets the durability."""
+    import yaml
+    from rosbags.interfaces import QosDurability
+    from rosbags.rosbag2 import Reader, Writer
+    from rosbags.typesys import Stores, get_typestore
+    with BagWriter(tmp_path / "q") as b:
+        b.add_topic("/s/joint_states", "sensor_msgs/msg/JointState")
+        b.add_topic("/s/model", "std_msgs/msg/String", "latched")
+        b.add_topic("/s/state", "diagnostic_msgs/msg/DiagnosticArray", "events")
+        ts = get_typestore(Stores.ROS2_JAZZY)
+        b.write("/s/model", bytes(ts.serialize_cdr(ts.types["std_msgs/msg/String"](
+            data="m"), "std_msgs/msg/String")), 5)
+    info = yaml.safe_load((tmp_path / "q" / "metadata.yaml").read_text())[
+        "rosbag2_bagfile_information"]
+    assert info["version"] == 9
+    topics = {t["topic_metadata"]["name"]: t["topic_metadata"]
+              for t in info["topics_with_message_count"]}
+    # rosbags' writer, same version, for the shape of a profile
+    ref_dir = tmp_path / "ref"
+    with Writer(ref_dir, version=9) as w:
+        w.add_connection("/t", "std_msgs/msg/String", typestore=ts)
+    ref = yaml.safe_load((ref_dir / "metadata.yaml").read_text())[
+        "rosbag2_bagfile_information"]["topics_with_message_count"][0]["topic_metadata"]
+    for meta in topics.values():
+        assert isinstance(meta["offered_qos_profiles"], list)
+        for prof in meta["offered_qos_profiles"]:
+            assert isinstance(prof, dict) and set(prof) == {
+                "history", "depth", "reliability", "durability", "deadline", "lifespan",
+                "liveliness", "liveliness_lease_duration", "avoid_ros_namespace_conventions"}
+        assert isinstance(ref["offered_qos_profiles"], list)
+    assert topics["/s/model"]["offered_qos_profiles"][0]["durability"] == "transient_local"
+    assert topics["/s/joint_states"]["offered_qos_profiles"][0]["durability"] == "volatile"
+    with Reader(tmp_path / "q") as r:  # rosbag2 reader on metadata.yaml
+        qos = {c.topic: c.ext.offered_qos_profiles for c in r.connections}
+        assert qos["/s/model"][0].durability == QosDurability.TRANSIENT_LOCAL
+        assert qos["/s/state"][0].depth == 20
+        assert r.message_count == 1

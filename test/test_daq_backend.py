@@ -19,6 +19,7 @@ import ni_driver_double as dd  # noqa: E402
 
 from piezo_stage.drivers import BACKEND_PARAMS  # noqa: E402
 from piezo_stage.drivers.daq import DaqBackend  # noqa: E402
+from piezo_stage.io.run_bag import status_node
 
 PARAMS = {k: v for k, v, _ in BACKEND_PARAMS}
 
@@ -172,7 +173,7 @@ def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp
             volts.append(list(m.effort))
         elif topic.endswith("/state"):
             states.append(m.status[0].message)
-        elif topic == "/diagnostics" and m.status[0].name.endswith("stage_driver"):
+        elif topic == "/diagnostics" and status_node(m.status[0].name) == "stage_driver":
             diag = {kv.key: kv.value for kv in m.status[0].values}
             diag["hardware_id"] = m.status[0].hardware_id
     assert "armed" in states and states[-1] == "disarmed"

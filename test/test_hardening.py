@@ -13,6 +13,7 @@ import pytest
 from conftest import CONFIG, ROOT
 from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.io.model_file import load_model, parse_yaml
+from piezo_stage.io.run_bag import status_node
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
 GOOD = open(MODEL).read()
@@ -164,7 +165,7 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path):
     try:
         diag = {}
         probe.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diag.update(
-            {st.name.split(": ")[-1]: {kv.key: kv.value for kv in st.values}
+            {status_node(st.name): {kv.key: kv.value for kv in st.values}
              for st in m.status}), 10)
         js = probe.node.create_publisher(JointState, "/stage/joint_states", QOS_DATA)
         tr = probe.node.create_publisher(JointTrajectory, "/stage/trajectory", 10)

@@ -68,10 +68,31 @@ def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env):
         for st in deserialize(data, "diagnostic_msgs/msg/DiagnosticArray").status:
             names.add(st.name)
             keys.setdefault(st.name, set()).update(kv.key for kv in st.values)
-    assert {f"piezo_stage: {n}" for n in nodes} <= names
+    # the diagnostic_msgs way: "<namespace>/<node>: <task>", the device named, a message
+    # that says why (never a bare "ok")
+    task = {"stage_driver": "sample loop", "feedforward": "inverse feedforward",
+            "controller": "feedback control", "trajectory": "trajectory",
+            "recorder": "recording"}
+    assert {f"/stage/{n}: {task[n]}" for n in nodes + ["recorder"]} <= names, names
     assert {"samples", "rejected", "limit_hits", "missed_ticks", "late_commands",
-            "state"} <= keys["piezo_stage: stage_driver"]
-    assert "model" in keys["piezo_stage: feedforward"]
+            "state"} <= keys["/stage/stage_driver: sample loop"]
+    assert "model" in keys["/stage/feedforward: inverse feedforward"]
+    last = {}
+    for _, data in topic_data(a, "/diagnostics"):
+        for st in deserialize(data, "diagnostic_msgs/msg/DiagnosticArray").status:
+            last[st.name] = st
+    for name, st in last.items():
+        assert st.message and st.message.lower() != "ok", name
+        assert st.hardware_id.startswith("sim seed 3"), (name, st.hardware_id)
+    # one time base: lockstep runs on the driver's /clock, so every topic (diagnostics,
+    # trajectory and state included) is logged in simulated time, and the rosbag2
+    # reader (metadata.yaml) gives the run's simulated duration
+    from rosbags.rosbag2 import Reader
+    logs = [log for _, _, log, _ in iter_messages(a)]
+    assert 0 <= min(logs) and max(logs) <= 1_501_000_000  # commands: for the next sample
+    with Reader(a) as r:
+        assert r.duration <= 1_501_000_001 and r.start_time < 1_500_000_000
+        assert r.duration >= 1_000_000_000  # diagnostics at 1 Hz of simulated time too
     # same seed, same data: two runs give byte-identical loop topics
     b = lockstep(tmp_path, env, "b", nodes=nodes, steps=1500)
     for suffix in ("/joint_states", "/reference", "/command"):
@@ -235,3 +256,45 @@ n.destroy_node(); rclpy.try_shutdown()
     got = [deserialize(d, "geometry_msgs/msg/PointStamped").header.stamp.sec
            for _, d in topic_data(str(bag), "/setpoint")]
     assert got == list(range(1, 301))
+
+
+def test_replay_honours_rate_on_the_bags_time_and_publishes_clock(tmp_path, env):
+    """A lockstep bag (one time base: simulated time from 0) replayed at rate 2 takes at
+    least half its duration, never less (the rate is honoured), and /clock carries the
+    bag's time in order, so a node on use_sim_time follows the replay."""
+    import threading
+    from rosgraph_msgs.msg import Clock
+    from piezo_stage.core.record import Record
+    from piezo_stage.io.bag import write_record_bag
+    from ros_probe import Probe
+    t = np.arange(1500) / 1000.0
+    v = 75 - 75 * np.cos(2 * np.pi * t)
+    bag = tmp_path / "r"
+    write_record_bag(bag, Record(t, {"x": v, "y": v}, {"x": 0.5 * v, "y": 0.5 * v}))
+    probe = Probe(int(env["ROS_DOMAIN_ID"]))
+    clocks = []
+    probe.node.create_subscription(Clock, "/clock", lambda m: clocks.append(
+        m.clock.sec * 10**9 + m.clock.nanosec), 100)
+    stop = threading.Event()
+    spinner = threading.Thread(target=lambda: [probe.ex.spin_once(timeout_sec=0.01)
+                                               for _ in iter(stop.is_set, True)])
+    spinner.start()
+    try:
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "replay", str(bag),
+                            "--rate", "2"], env=env, capture_output=True, text=True,
+                           timeout=60)
+        took = time.monotonic() - t0
+        assert r.returncode == 0, r.stderr
+        assert "replayed 1500 messages" in r.stdout
+        assert took >= 1.499 / 2
+        time.sleep(0.5)  # the spinner takes the last ones
+    finally:
+        stop.set()
+        spinner.join()
+        probe.close()
+    assert len(clocks) >= 100 and clocks == sorted(clocks)
+    assert clocks[0] == 0 and 1_480_000_000 <= clocks[-1] <= 1_499_000_000
+    bad = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "replay", str(bag), "--rate",
+                          "-1"], env=env, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--rate" in bad.stderr

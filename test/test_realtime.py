@@ -21,6 +21,7 @@ from conftest import CONFIG, ROOT  # noqa: E402
 from piezo_stage.io.run_bag import read_run  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 from ros_probe import Probe  # noqa: E402
+from piezo_stage.io.run_bag import status_node
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
 SLEW_V_PER_S = 1.0e5  # config/sim_stage.yaml's amplifier slew limit
@@ -89,7 +90,7 @@ def test_arming_is_refused_with_the_missing_link_and_e_stop_stays_latched(tmp_pa
         from piezo_stage.nodes._common import QOS_DATA
         diag = {}
         probe.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diag.update(
-            {kv.key: kv.value for st in m.status if st.name.endswith("feedforward")
+            {kv.key: kv.value for st in m.status if status_node(st.name) == "feedforward"
              for kv in st.values}), 10)
         sp = probe.node.create_publisher(PointStamped, "/stage/setpoint", QOS_DATA)
         probe.wait(lambda: sp.get_subscription_count() > 0, 5)
@@ -234,7 +235,7 @@ def test_controller_gains_and_feedback_are_live_and_read_only_ones_refused(tmp_p
         from diagnostic_msgs.msg import DiagnosticArray
         seen = {}
         probe.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: seen.update(
-            {kv.key: kv.value for st in m.status if st.name.endswith("controller")
+            {kv.key: kv.value for st in m.status if status_node(st.name) == "controller"
              for kv in st.values}), 10)
         assert probe.wait(lambda: seen.get("kp") == "0.5", 5.0), seen
         assert seen["ki"] == "90.0" and seen["feedback"] == "False"

@@ -25,11 +25,37 @@ import yaml
 from piezo_stage.core.errors import DataError
 from piezo_stage.io.files import atomic_write
 
-RELIABLE_QOS = ("- history: 3\n  depth: 0\n  reliability: 1\n  durability: 2\n"
-                "  deadline: {sec: 2147483647, nsec: 4294967295}\n"
-                "  lifespan: {sec: 2147483647, nsec: 4294967295}\n  liveliness: 1\n"
-                "  liveliness_lease_duration: {sec: 2147483647, nsec: 4294967295}\n"
-                "  avoid_ros_namespace_conventions: false\n")
+# What our publishers offer, by kind (see nodes/_common.py): (depth, transient local)
+QOS_KINDS = {"data": (5000, False), "latched": (1, True), "events": (20, True),
+             "diag": (50, False)}
+
+
+def offered_qos(kind: str = "data") -> list[dict]:
+    """A topic's offered QoS profiles in rosbag2's version-9 form (a list of mappings
+    with lower-case policy names), made with rosbags' own metadata writer."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+    from rosbags.rosbag2.metadata import dump_qos_v9
+    depth, latched = QOS_KINDS[kind]
+    zero = QosTime(0, 0)  # "not set": infinite deadline, lifespan and lease
+    return dump_qos_v9([Qos(QosHistory.KEEP_LAST, depth, QosReliability.RELIABLE,
+                            QosDurability.TRANSIENT_LOCAL if latched else
+                            QosDurability.VOLATILE, zero, zero, QosLiveliness.AUTOMATIC,
+                            zero, False)])
+
+
+def qos_profiles(qos) -> list[dict]:
+    """``qos`` as a version-9 list: a kind name, a list already, or the YAML text that
+    MCAP channels carry (either form, older integer policies converted)."""
+    if isinstance(qos, str) and qos in QOS_KINDS:
+        return offered_qos(qos)
+    if isinstance(qos, str):
+        from rosbags.rosbag2.metadata import dump_qos_v9, parse_qos
+        try:
+            return dump_qos_v9(parse_qos(yaml.safe_load(qos) or []))
+        except Exception:  # noqa: BLE001 - a foreign channel's text: keep the default
+            return offered_qos("data")
+    return list(qos)
 
 
 @lru_cache(maxsize=None)
@@ -85,23 +111,26 @@ class BagWriter:
         self._w = Writer(self._fh, chunk_size=chunk_size, compression=comp,
                          enable_crcs=True, enable_data_crcs=True)
         self._w.start(profile="ros2", library="piezo_stage")
-        self._schemas, self.topics, self.counts = {}, {}, {}
+        self._schemas, self.topics, self.counts, self.qos = {}, {}, {}, {}
         self._first = self._last = None
         self._finished = False
         for name, data in (metadata or {}).items():
             self.add_metadata(name, data)
         self._write_metadata_yaml()  # a bag killed before finish() still has one
 
-    def add_topic(self, topic: str, msgtype: str, qos: str = RELIABLE_QOS) -> int:
+    def add_topic(self, topic: str, msgtype: str, qos="data") -> int:
+        """Register ``topic``; ``qos``: what its publishers offer (see qos_profiles)."""
         if topic in self.topics:
             return self.topics[topic][0]
         if msgtype not in self._schemas:
             self._schemas[msgtype] = self._w.register_schema(
                 name=msgtype, encoding="ros2msg", data=msgdef(msgtype).encode())
-        cid = self._w.register_channel(topic=topic, message_encoding="cdr",
-                                       schema_id=self._schemas[msgtype],
-                                       metadata={"offered_qos_profiles": qos})
+        profiles = qos_profiles(qos)
+        cid = self._w.register_channel(  # rosbag2's MCAP plugin: the list as YAML text
+            topic=topic, message_encoding="cdr", schema_id=self._schemas[msgtype],
+            metadata={"offered_qos_profiles": yaml.safe_dump(profiles, sort_keys=False)})
         self.topics[topic] = (cid, msgtype)
+        self.qos[topic] = profiles
         self.counts[topic] = 0
         return cid
 
@@ -136,7 +165,7 @@ class BagWriter:
             "message_count": int(total),
             "topics_with_message_count": [
                 {"topic_metadata": {"name": t, "type": mt, "serialization_format": "cdr",
-                                    "offered_qos_profiles": RELIABLE_QOS,
+                                    "offered_qos_profiles": self.qos[t],
                                     "type_description_hash": ""},
                  "message_count": int(self.counts[t])}
                 for t, (_, mt) in self.topics.items()],
@@ -337,7 +366,7 @@ def repair_bag(path) -> BagScan:
                         metadata={m.name: dict(m.metadata) for m in scan.metadata})
         for ch in scan.channels.values():
             out.add_topic(ch.topic, scan.schemas[ch.schema_id].name,
-                          ch.metadata.get("offered_qos_profiles", RELIABLE_QOS))
+                          ch.metadata.get("offered_qos_profiles", "data"))
         for m in scan.messages:
             ch = scan.channels[m.channel_id]
             out.write(ch.topic, m.data, m.log_time, m.publish_time)

@@ -37,11 +37,20 @@ class Run:
     def state_times(self, name: str) -> list:
         return [s for s, n in self.states if n == name]
 
+    def errors_t_ns(self, t_from_ns: int, t_to_ns: int) -> list[int]:
+        """The stamps in [t_from, t_to] that have both a true and a desired position."""
+        return [k for k in sorted(self.desired_um) if t_from_ns <= k <= t_to_ns
+                and k in self.true_um]
+
     def errors_um(self, t_from_ns: int, t_to_ns: int) -> np.ndarray:
         """(n, 2) true - desired at every stamp in [t_from, t_to] that has both."""
-        ks = [k for k in sorted(self.desired_um) if t_from_ns <= k <= t_to_ns
-              and k in self.true_um]
+        ks = self.errors_t_ns(t_from_ns, t_to_ns)
         return np.array([self.true_um[k] - self.desired_um[k] for k in ks]).reshape(-1, 2)
+
+
+def status_node(name: str) -> str:
+    """The node of a DiagnosticStatus name ``"<namespace>/<node>: <task>"``."""
+    return name.split(":", 1)[0].rsplit("/", 1)[-1].strip()
 
 
 def read_run(bag) -> Run:
@@ -67,9 +76,7 @@ def read_run(bag) -> Run:
             for st in m.status:
                 kv = {k.key: k.value for k in st.values}
                 kv["hardware_id"] = st.hardware_id
-                node = st.name.split(":")[-1].strip() if st.name.startswith("piezo_stage") \
-                    else st.name.split(":")[0].rsplit("/", 1)[-1]
-                diags[node] = kv
+                diags[status_node(st.name)] = kv
     order = np.argsort(t, kind="stable")
     arr = lambda x, shape: np.array(x).reshape(shape)[order]  # noqa: E731
     return Run(arr(t, -1), arr(w, (-1, 2)), arr(v, (-1, 2)), arr(recv, -1), true, ref,

@@ -104,6 +104,8 @@ class Launch:
         if node == "recorder":
             extra.update(output=os.path.abspath(self.record), config_file=self.config_path,
                          log_time="stamp" if self.lockstep else "receive")
+        if self.lockstep:  # one clock: the driver's samples (/clock), bags included
+            extra["use_sim_time"] = True
         extra.update(self.overrides.get(node, {}))
         for k, v in extra.items():
             cmd += ["-p", f"{k}:={_fmt(v)}"]

@@ -44,6 +44,14 @@ class LeanLoop(CallbackGroup):
         pass
 
 
+def steady_timer(node, period_s, callback):
+    """A housekeeping timer (polls, flushes, links, diagnostics cadence) on the steady
+    clock: it runs while simulated time stands still (before the first sample, after the
+    last), where a ROS-time timer under use_sim_time would never fire."""
+    from rclpy.clock import Clock, ClockType
+    return node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
 def hot_subscription(node, msg_type, topic, callback, qos, raw=False, with_info=False):
     """A per-sample subscription (loop inputs, the recorder's topics), dispatched by
     the lean loop. With ``raw`` the callback gets the CDR bytes; with ``with_info`` it

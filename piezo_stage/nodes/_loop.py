@@ -7,7 +7,7 @@ from __future__ import annotations
 import time
 
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.nodes._common import QOS_DIAG, QOS_EVENTS, hot_subscription
+from piezo_stage.nodes._common import QOS_DIAG, QOS_EVENTS, hot_subscription, steady_timer
 from piezo_stage_msgs_adapters import diagnostic_array
 
 
@@ -94,7 +94,7 @@ class Gate:
         self.queue = []
         self.open = all(n <= 0 for _, n in self.needs)
         if not self.open:
-            self._timer = node.create_timer(0.01, self._poll)
+            self._timer = steady_timer(node, 0.01, self._poll)
 
     def _poll(self):
         if not self.open and all(p.get_subscription_count() >= n for p, n in self.needs):
@@ -114,17 +114,57 @@ class Gate:
 
 
 class Diagnostics:
-    """Publishes /diagnostics at 1 Hz from ``status()`` -> (level, message, values)."""
+    """/diagnostics at 1 Hz (steady cadence, stamped on the node's clock), the
+    diagnostic_msgs way: status name ``"<namespace>/<node>: <task>"`` (two stages never
+    collide), ``hardware_id`` naming the device (the driver's own; the other nodes
+    learn it from the driver's ``state``), and a message that says why the level is
+    what it is.
 
-    def __init__(self, node, status, hardware_id=""):
-        self.node, self.status, self.hw = node, status, hardware_id
-        self.pub = node.create_publisher(__import__("diagnostic_msgs.msg", fromlist=["x"])
-                                          .DiagnosticArray, "/diagnostics", QOS_DIAG)
-        self.t0 = time.monotonic()
-        node.create_timer(1.0, self.publish)
+    ``status()`` -> (level, message, values) gives the node's own state. ``rates``:
+    (counter key, what it counts, WARN above this many per second, averaged over the
+    last ``window_s``): levels come from what happened recently, so a warning clears
+    once its cause stops; the cumulative counters stay in the values."""
+
+    def __init__(self, node, status, task, hardware_id=None, rates=(), window_s=5.0):
+        from diagnostic_msgs.msg import DiagnosticArray
+        self.node, self.status, self.task, self.rates = node, status, task, tuple(rates)
+        self.hw, self.window_s, self.history = hardware_id, window_s, []
+        self.pub = node.create_publisher(DiagnosticArray, "/diagnostics", QOS_DIAG)
+        if hardware_id is None:  # the device is the driver's: from its announcements
+            self.hw = f"stage {node.get_namespace()}"
+            node.create_subscription(DiagnosticArray, "state", self._on_driver_state,
+                                     QOS_EVENTS)
+        steady_timer(node, 1.0, self.publish)
+
+    def _on_driver_state(self, msg):
+        if msg.status and msg.status[0].hardware_id:
+            self.hw = msg.status[0].hardware_id
+
+    @property
+    def name(self) -> str:
+        return f"{self.node.get_namespace().rstrip('/')}/{self.node.get_name()}: {self.task}"
+
+    def evaluate(self, now_s=None):
+        """(level, message, values) with the recent-rate checks applied."""
+        level, message, values = self.status()
+        now_s = time.monotonic() if now_s is None else now_s
+        self.history.append((now_s, {k: values.get(k, 0) for k, _, _ in self.rates}))
+        while len(self.history) > 1 and now_s - self.history[0][0] > self.window_s:
+            self.history.pop(0)
+        t0, old = self.history[0]
+        span = now_s - t0
+        why = []
+        for key, what, per_s in self.rates:
+            n = float(values.get(key, 0)) - float(old.get(key, 0))
+            if span > 0 and n > 0 and n / span > per_s:
+                why.append(f"{n:g} {what} in the last {span:.0f} s")
+        if why:
+            level = max(level, 1)
+            message = f"{message}; " + "; ".join(why)
+        return level, message, values
 
     def publish(self):
-        level, message, values = self.status()
+        level, message, values = self.evaluate()
         ns = self.node.get_clock().now().nanoseconds
-        self.pub.publish(diagnostic_array(ns, f"piezo_stage: {self.node.get_name()}", level,
-                                          message, values, self.hw))
+        self.pub.publish(diagnostic_array(ns, self.name, level, message, values,
+                                          self.hw() if callable(self.hw) else self.hw))

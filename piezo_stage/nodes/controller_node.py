@@ -62,8 +62,13 @@ class Controller(Node):
                                                    "command subscribers to wait for"))])
         hot_subscription(self, JointState, "reference", self.on_reference, QOS_DATA, raw=True)
         self.add_on_set_parameters_callback(self.on_set)
-        Diagnostics(self, lambda: (0, "ok", {**self.stats, "feedback":
-                                             self.axes["x"].feedback, **vars(self.gains)}))
+        Diagnostics(self, lambda: (0, ("composite (feedback on)" if self.axes["x"].feedback
+                                       else "feedforward only (feedback off)") +
+                                   ", kp {kp:g} ki {ki:g} kd {kd:g}".format(**vars(self.gains)),
+                                   {**self.stats, "feedback": self.axes["x"].feedback,
+                                    **vars(self.gains)}), "feedback control",
+                    rates=[(k, k.replace("_", " "), 0) for k in (
+                        "bad_messages", "late_dropped", "non_finite", "clamped")])
 
     def on_set(self, params):
         g = dict(vars(self.gains))

@@ -97,16 +97,18 @@ class Feedforward(Node):
                                  QOS_LATCHED, raw=True)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
-        Diagnostics(self, lambda: (1 if self.last_rejection else 0,
-                                   f"model rejected: {self.last_rejection}"
-                                   if self.last_rejection else f"using {self.model_name}", {
+        Diagnostics(self, lambda: (0, f"{self.planner.phase}, model {self.model_name}" + (
+            f" (last rejected: {self.last_rejection})" if self.last_rejection else ""), {
             **self.stats, "model": self.model_name, "phase": self.planner.phase,
             "lookahead_ms": self.driver.lookahead_ns * 1e-6,
             "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
             "joint_states_lag_p99_ms": self.lag.percentile(99) * 1e3,
             "joint_states_lag_max_ms": self.lag.max_s * 1e3,
             "setpoint_latency_median_ms": self.sp_latency.percentile(50) * 1e3,
-            "setpoint_latency_max_ms": self.sp_latency.max_s * 1e3}))
+            "setpoint_latency_max_ms": self.sp_latency.max_s * 1e3}), "inverse feedforward",
+            rates=[(k, k.replace("_", " "), 0) for k in (
+                "rejected_models", "rejected_trajectories", "rejected_setpoints",
+                "bad_messages", "late_dropped")])
 
     def set_model(self, model, name):
         missing = {"x", "y"} - set(model.axes)

@@ -44,7 +44,7 @@ class Gap(Node):
                                                    "residual subscribers to wait for"))])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
                          raw=True)
-        Diagnostics(self, self.status)
+        Diagnostics(self, self.status, "sim-to-real residual")
 
     def on_state(self, msg):
         try:
@@ -68,7 +68,9 @@ class Gap(Node):
     def status(self):
         vals = {f"rms_{a}_um": float(np.sqrt(np.mean(np.square(x)))) if x else float("nan")
                 for a, x in self.res.items()}
-        return 0, "ok", {**vals, "model": self.model_name, "samples": self.twin.samples}
+        msg = (f"residual rms x/y {vals['rms_x_um']:.4g}/{vals['rms_y_um']:.4g} um against "
+               f"{self.model_name}") if self.twin.samples else "waiting for samples"
+        return 0, msg, {**vals, "model": self.model_name, "samples": self.twin.samples}
 
 
 def main(args=None):

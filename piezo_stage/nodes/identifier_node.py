@@ -20,7 +20,7 @@ from piezo_stage.core.identify import IdentifyOptions, identify_axis
 from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.record import Record
 from piezo_stage.io.model_file import model_to_dict
-from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, hot_subscription, run
+from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, hot_subscription, run, steady_timer
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
@@ -46,8 +46,10 @@ class Identifier(Node):
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
                          raw=True)
         self.create_service(Trigger, "~/identify", self.on_identify)
-        self.create_timer(0.5, self.on_timer)
-        Diagnostics(self, self.status)
+        steady_timer(self, 0.5, self.on_timer)
+        Diagnostics(self, self.status, "identification",
+                    rates=[("bad_messages", "malformed joint_states", 0),
+                           ("out_of_order", "out-of-order samples", 0)])
 
     def status(self):
         err = self.stats["last_error"]

@@ -15,19 +15,22 @@ import struct
 
 from piezo_stage.io.bag import BagWriter, new_bag_dir
 from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_EVENTS,
-                                       QOS_LATCHED, hot_subscription, run)
+                                       QOS_LATCHED, hot_subscription, run, steady_timer)
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
 
 CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag)
+    # (the kind is what our publishers offer; the recorder subscribes volatile to
+    # trajectories, which outside nodes publish with any durability)
     "joint_states": ("sensor_msgs/msg/JointState", "data"),
     "sim/true_position": ("geometry_msgs/msg/PointStamped", "data"),
     "reference": ("sensor_msgs/msg/JointState", "data"),
     "command": ("geometry_msgs/msg/Vector3Stamped", "data"),
     "setpoint": ("geometry_msgs/msg/PointStamped", "data"),
     "gap/residual": ("geometry_msgs/msg/PointStamped", "data"),
-    "trajectory": ("trajectory_msgs/msg/JointTrajectory", "data"),  # any publisher QoS
+    "trajectory": ("trajectory_msgs/msg/JointTrajectory", "latched"),
     "model": ("std_msgs/msg/String", "latched"),
     "state": ("diagnostic_msgs/msg/DiagnosticArray", "events"),
     "feedforward/phase": ("std_msgs/msg/String", "events"),
@@ -71,10 +74,12 @@ class Recorder(Node):
         self.subs = {}
         for rel, (msgtype, kind) in CONTRACT.items():
             self.subscribe(self.resolve_topic_name(rel), msgtype, kind)
-        self.create_timer(1.0, self.discover)
-        self.create_timer(declare(self, "flush_period_s", 0.5, "chunk flush period [s]",
+        steady_timer(self, 1.0, self.discover)
+        steady_timer(self, declare(self, "flush_period_s", 0.5, "chunk flush period [s]",
                                   lo=0.01, hi=60.0), self.bag.flush)
-        Diagnostics(self, lambda: (0, "ok", {"bag": out, **self.bag.counts}))
+        Diagnostics(self, lambda: (0, f"recording to {out}: {sum(self.bag.counts.values())} "
+                                   f"messages on {len(self.bag.counts)} topics",
+                                   {"bag": out, **self.bag.counts}), "recording")
 
     def resolve_topic_name(self, rel):
         return rel if rel.startswith("/") else f"{self.get_namespace().rstrip('/')}/{rel}"
@@ -82,31 +87,47 @@ class Recorder(Node):
     def subscribe(self, topic, msgtype, kind="data"):
         if topic in self.subs:
             return
-        self.bag.add_topic(topic, msgtype)
+        self.bag.add_topic(topic, msgtype, self.offered(topic, kind))
         stamped = msgtype in STAMPED
         qos = {"latched": QOS_LATCHED, "events": QOS_EVENTS, "diag": QOS_DIAG}.get(
-            kind, QOS_DATA)
+            kind, QOS_DATA) if not topic.endswith("/trajectory") else QOS_DATA
         self.subs[topic] = hot_subscription(  # everything recorded: the lean loop
             self, msg_class(msgtype), topic,
             lambda data, info: self.write(topic, data, stamped, info), qos, raw=True,
             with_info=True)
+
+    def offered(self, topic, kind):
+        """The QoS the topic's publishers offer (as ``ros2 bag record`` stores it): asked
+        of the graph when a publisher is there (topics found by discovery), else what
+        our nodes offer for that kind."""
+        from piezo_stage.io.bag import QOS_KINDS
+        if kind not in QOS_KINDS:
+            infos = self.get_publishers_info_by_topic(topic)
+            if infos:
+                q = infos[0].qos_profile
+                latched = q.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                return "latched" if latched and q.depth <= 1 else \
+                    "events" if latched else "data"
+            return "data"
+        return kind
 
     def discover(self):
         for topic, types in self.get_topic_names_and_types():
             if topic not in self.subs and not topic.startswith("/rosout") \
                     and not topic.startswith("/parameter_events"):
                 try:
-                    self.subscribe(topic, types[0])
+                    self.subscribe(topic, types[0], kind="found")
                 except (ImportError, AttributeError, KeyError):
                     self.get_logger().warning(f"cannot record {topic}: unknown type {types[0]}")
 
     def write(self, topic, data, stamped, info):
-        received = info.get("received_timestamp") or self.get_clock().now().nanoseconds
+        if self.log_received:
+            received = info.get("received_timestamp") or self.get_clock().now().nanoseconds
         if stamped:  # CDR: 4-byte encapsulation, then header.stamp (int32 sec, uint32 ns)
             sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
             t = sec * 1_000_000_000 + nsec
-        else:
-            t = received
+        else:  # lockstep: the set's clock (simulated time under use_sim_time)
+            t = received if self.log_received else self.get_clock().now().nanoseconds
         # log time: when it arrived (real time), or its stamp (lockstep's simulated
         # time, so reruns are identical); publish time: its stamp
         self.bag.write(topic, data, received if self.log_received else t, t)

@@ -18,6 +18,7 @@ from collections import deque
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, Vector3Stamped
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
@@ -28,11 +29,12 @@ from piezo_stage.core.arming import (ENABLED, ArmingParams, ArmingSupervisor,
 from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import DataError
 from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
-from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, hot_subscription, run
+from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, hot_subscription, run,
+                                       steady_timer)
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
-from piezo_stage_msgs_adapters import (arming_state_msg, joint_state_cdr, point_cdr,
-                                       voltage_from_msg)
+from piezo_stage_msgs_adapters import (arming_state_msg, clock_msg, joint_state_cdr,
+                                       point_cdr, voltage_from_msg)
 import rclpy
 from rclpy.duration import Duration
 from rclpy.node import Node
@@ -59,6 +61,9 @@ class StageDriver(Node):
                           "wait for", lo=0, hi=100, **ro),
             "min_rec": d("min_record_subscribers", 0, "lockstep: true_position "
                          "subscribers to wait for (recorders)", lo=0, hi=100, **ro),
+            "clock": d("clock_period_s", 0.01, "lockstep: publish /clock (simulated time "
+                       "for nodes on use_sim_time) every this much sample time [s]; 0: "
+                       "not at all", lo=0.0, hi=10.0, **ro),
             "prio": d("thread_priority", 50, "real time: SCHED_FIFO priority of the "
                       "sample loop (0: leave the scheduler alone)", lo=0, hi=99, **ro)}
         if p["backend"] == "daq" and p["mode"] != "realtime":
@@ -82,6 +87,10 @@ class StageDriver(Node):
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
         self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
         self.spub = self.create_publisher(DiagnosticArray, "state", QOS_EVENTS)
+        # lockstep: the sample clock is the set's clock (a bag then has one time base)
+        self.clock_pub = self.create_publisher(Clock, "/clock", 10) \
+            if self.lock and p["clock"] > 0 else None
+        self.clock_every = max(1, int(round(p["clock"] * p["rate"]))) if p["clock"] else 0
         self.sup = ArmingSupervisor(arm, self.v, 1.0 / p["rate"],
                                     3 * self.dt_ns if self.lock else max(
                                         3 * self.dt_ns, 20_000_000), self.on_state_change)
@@ -96,8 +105,12 @@ class StageDriver(Node):
         self.create_subscription(String, "feedforward/phase", self.on_phase, QOS_EVENTS)
         self.create_service(SetBool, "arm", self.on_arm)
         self.create_service(Trigger, "estop", self.on_estop)
-        self.create_timer(0.5, self.check_links)
-        self.diag = Diagnostics(self, self.status, hardware_id=self.backend.hardware_id)
+        steady_timer(self, 0.5, self.check_links)
+        self.diag = Diagnostics(self, self.status, "sample loop", self.backend.hardware_id,
+                                rates=(("missed_ticks", "missed ticks", 0),
+                                       ("late_commands", "late commands", 0),
+                                       ("rejected", "malformed commands", 0),
+                                       ("limit_hits", "voltage or slew limit hits", 0)))
         self.on_state_change(self.sup.state, self.sup.reason, 0)
         if self.lock:
             self.tick(0, None, False)  # sample 0: the stage at rest
@@ -162,6 +175,8 @@ class StageDriver(Node):
         self.gate.publish(self.jpub, joint_state_cdr(ns, w, applied))
         if true is not None:
             self.gate.publish(self.tpub, point_cdr(ns, true))
+        if self.clock_pub is not None and j % self.clock_every == 0:
+            self.gate.publish(self.clock_pub, clock_msg(ns))
         self.stats["samples"] += 1
         if self.lock:
             self.step_times.append(time.perf_counter())
@@ -174,7 +189,7 @@ class StageDriver(Node):
     def done(self):
         if self.lock:
             if self.p["exit_done"] and not hasattr(self, "_exit_timer"):
-                self._exit_timer = self.create_timer(0.2, self.finish)
+                self._exit_timer = steady_timer(self, 0.2, self.finish)
         elif not self.shutdown_requested:
             self.request_shutdown()
 
@@ -252,7 +267,7 @@ class StageDriver(Node):
     def status(self):
         lag, late, ms = self.sched.arrival_lag, self.clock.late, 1e3
         s, st = self.stats, self.sup.state
-        level = 2 if st == "faulted" else 1 if st in ("disarmed", "arming") else 0
+        level = 2 if st == "faulted" else 0  # disarmed is a state asked for, not a fault
         values = {**s, "state": st, "reason": self.sup.reason, "backend": self.p["backend"],
                   "mode": self.p["mode"], "v_x_V": self.v["x"], "v_y_V": self.v["y"],
                   "tick_late_median_ms": late.percentile(50) * ms,

@@ -45,7 +45,9 @@ class Trajectory(Node):
         self.published = 0
         self.add_on_set_parameters_callback(self.on_set)
         self.publish(self.build(self.p))
-        Diagnostics(self, lambda: (0, "ok", {"published": self.published, **self.p}))
+        Diagnostics(self, lambda: (0, f"{self.published} trajectories published (last: "
+                                   f"{self.p.get('kind')})", {"published": self.published,
+                                                              **self.p}), "trajectory")
 
     def build(self, p):
         t, w = generate(p["kind"], p["duration_s"], p["dt_s"], p["frequency_hz"],
