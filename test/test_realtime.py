@@ -243,3 +243,55 @@ def test_controller_gains_and_feedback_are_live_and_read_only_ones_refused(tmp_p
         probe.close()
         proc.send_signal(signal.SIGINT)
         assert proc.wait(30) == 0
+
+
+LIVE = {"controller": {"kp", "ki", "kd", "feedback"},
+        "identifier": {"method", "structure", "auto_cycles"},
+        "recorder": {"batch_period_s"},
+        "trajectory": {"kind", "frequency_hz", "duration_s", "center_um", "amplitude_um",
+                       "dt_s", "csv_path", "excite_s", "excite_center_um",
+                       "excite_amplitude_um", "excite_y_hz"}}
+
+
+def test_every_parameter_of_every_node_is_live_or_read_only(tmp_path, domain):
+    """Asked of the running nodes from an outside node (as `ros2 param` does): the
+    writable parameters are exactly the live ones (plus rclpy's own use_sim_time);
+    every other one refuses a set as read-only; a live one takes effect (the node
+    reports the value it uses), and an unknown choice is refused with the reason."""
+    from rcl_interfaces.srv import DescribeParameters, ListParameters
+    from diagnostic_msgs.msg import DiagnosticArray
+    from ros_probe import _param_call_raw, set_params
+    d, env = domain
+    nodes = ["stage_driver", "feedforward", "controller", "trajectory", "identifier", "gap"]
+    launch = Launch(realtime_config(tmp_path), record=str(tmp_path / "bag"), env=env,
+                    nodes=nodes, arm=False)
+    launch.start()
+    probe = Probe(d)
+    seen = {}
+    probe.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: seen.update(
+        {status_node(st.name): {kv.key: kv.value for kv in st.values} for st in m.status}),
+        50)
+    try:
+        for node in nodes + ["recorder"]:
+            names = _param_call_raw(probe, f"/stage/{node}", "list_parameters",
+                                    ListParameters, names=[], depth=0).result.names
+            names = [n for n in names if not n.startswith("qos_overrides")]
+            descs = _param_call_raw(probe, f"/stage/{node}", "describe_parameters",
+                                    DescribeParameters, names=names).descriptors
+            writable = {x.name for x in descs if not x.read_only} - {"use_sim_time"}
+            assert writable == LIVE.get(node, set()), (node, writable)
+            ro = sorted({x.name for x in descs if x.read_only})
+            if ro:  # a read-only one refuses, saying so (its value's type kept)
+                from ros_probe import get_params
+                value = get_params(probe, f"/stage/{node}", ro[0])[0]
+                ok, why = set_params(probe, f"/stage/{node}", **{ro[0]: value})[0]
+                assert not ok and "read-only" in why.lower(), (node, ro[0], why)
+        assert set_params(probe, "/stage/identifier", method="afsa") == [(True, "")]
+        ok, why = set_params(probe, "/stage/identifier", method="bogus")[0]
+        assert not ok and "fast, afsa, afsa-bat" in why
+        assert set_params(probe, "/stage/recorder", batch_period_s=0.02) == [(True, "")]
+        assert probe.wait(lambda: seen.get("identifier", {}).get("method") == "afsa" and
+                          seen.get("recorder", {}).get("batch_period_s") == "0.02", 5.0), seen
+    finally:
+        probe.close()
+        launch.stop()

@@ -101,6 +101,22 @@ def _param_call(probe: Probe, node: str, call, *args, attempts: int = 3):
     raise TimeoutError(f"{node}: no answer to {call} after {attempts} attempts")
 
 
+def _param_call_raw(probe: Probe, node: str, service: str, srv_type, attempts: int = 3,
+                    **fields):
+    """A parameter service (``list_parameters``, ``describe_parameters``) called
+    directly, as `ros2 param list/describe` does -> its response."""
+    cli = probe.node.create_client(srv_type, f"{node}/{service}")
+    try:
+        assert cli.wait_for_service(10.0), node
+        for _ in range(attempts):
+            fut = cli.call_async(srv_type.Request(**fields))
+            if probe.wait(fut.done, 5.0):
+                return fut.result()
+        raise TimeoutError(f"{node}: no answer from {service} after {attempts} attempts")
+    finally:
+        probe.node.destroy_client(cli)
+
+
 def set_params(probe: Probe, node: str, **values):
     """Set parameters on another node as `ros2 param set` does -> [(ok, reason)]."""
     from rclpy.parameter import Parameter

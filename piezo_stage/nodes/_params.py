@@ -1,5 +1,7 @@
 """Node parameters: declared with a descriptor (units in the description, ranges,
-read_only), choices enforced at start and at run time."""
+read_only), choices enforced at start and at run time. A parameter is read-only unless
+it is declared ``live``: a `ros2 param set` either takes effect or is refused, never
+silently kept."""
 
 from __future__ import annotations
 
@@ -9,12 +11,22 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from piezo_stage.core.errors import ConfigError
 
 
-def declare(node, name, default, description, read_only=False, lo=None, hi=None,
-            choices=None):
+def declare(node, name, default, description, lo=None, hi=None, choices=None, live=None):
     """Declare a parameter with a descriptor (units in the description, ranges,
     read_only). Values outside ``choices`` are refused, at start (ConfigError) and when
-    set at run time (the set call fails with the reason)."""
+    set at run time (the set call fails with the reason).
+
+    ``live``: None, read-only (the default: the node reads it once); True, writable and
+    applied by the node's own on-set callback; a callable, writable and called with the
+    new value after a successful set."""
+    read_only = live is None
     d = ParameterDescriptor(description=description, read_only=read_only)
+    if callable(live):
+        if "_live" not in node.__dict__:
+            node._live = {}
+            node.add_post_set_parameters_callback(
+                lambda ps: [node._live[p.name](p.value) for p in ps if p.name in node._live])
+        node._live[name] = live
     if lo is not None and isinstance(default, float):
         d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi))]
     elif lo is not None and isinstance(default, int) and not isinstance(default, bool):

@@ -36,23 +36,25 @@ GAINS = ("kp", "ki", "kd")
 class Controller(Node):
     def __init__(self):
         super().__init__("controller")
-        rate = declare(self, "control_rate_hz", 1000.0, "control rate [Hz]", read_only=True,
+        rate = declare(self, "control_rate_hz", 1000.0, "control rate [Hz]",
                        lo=1.0, hi=1e5)
         self.dt_ns = int(round(1e9 / rate))
         self.gains = PIDGains(
-            kp=declare(self, "kp", 0.2, "proportional gain [V/um]", lo=0.0, hi=100.0),
-            ki=declare(self, "ki", 150.0, "integral gain [V/(um s)]", lo=0.0, hi=1e5),
-            kd=declare(self, "kd", 0.0, "derivative gain [V s/um]", lo=0.0, hi=10.0))
+            kp=declare(self, "kp", 0.2, "proportional gain [V/um]", lo=0.0, hi=100.0,
+                       live=True),
+            ki=declare(self, "ki", 150.0, "integral gain [V/(um s)]", lo=0.0, hi=1e5,
+                       live=True),
+            kd=declare(self, "kd", 0.0, "derivative gain [V s/um]", lo=0.0, hi=10.0,
+                       live=True))
         feedback = declare(self, "feedback", True, "PID on (false: feedforward only); "
-                           "switches bumplessly")
-        self.limits = tuple(declare(self, "voltage_limits_V", [0.0, 150.0], "clamp [V]",
-                                    read_only=True))
+                           "switches bumplessly", live=True)
+        self.limits = tuple(declare(self, "voltage_limits_V", [0.0, 150.0], "clamp [V]"))
         self.axes = {a: CompositeAxis(PID(self.gains, 1.0 / rate), self.limits, feedback)
                      for a in ("x", "y")}
         # the driver's announcements: taken before the data in each lean-loop pass
         self.driver = DriverState(self, self.dt_ns, declare(
             self, "thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
-            "scheduler alone; lockstep never changes it)", read_only=True, lo=0, hi=99))
+            "scheduler alone; lockstep never changes it)", lo=0, hi=99))
         self.sent = {}     # target stamp -> (desired um, command V): for t_k's check
         self.last_ns = -1
         self.stats = {"commands": 0, "clamped": 0, "bad_messages": 0, "late_dropped": 0,

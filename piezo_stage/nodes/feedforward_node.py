@@ -38,36 +38,33 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 class Feedforward(Node):
     def __init__(self):
         super().__init__("feedforward")
-        ro = {"read_only": True}
         self.dt_ns = int(round(1e9 / declare(self, "control_rate_hz", 1000.0, "control "
-                                             "rate [Hz]", lo=1.0, hi=1e5, **ro)))
+                                             "rate [Hz]", lo=1.0, hi=1e5)))
         model_file = declare(self, "model_file", "", "initial model YAML ('' = none until "
-                             "one arrives on model)", **ro)
+                             "one arrives on model)")
         self.gain = declare(self, "nominal_um_per_V", 0.5, "gain used before any model "
-                            "[um/V]", lo=0.01, hi=100.0, **ro)
+                            "[um/V]", lo=0.01, hi=100.0)
         self.use_c = declare(self, "use_coupling", True, "invert the coupling "
-                             "(decoupling)", **ro)
-        self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]", **ro)
+                             "(decoupling)")
+        self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]")
         self.hold_s = declare(self, "model_required_after_s", 0.0, "lockstep: hold the "
-                              "loop at this trajectory time until a model arrives (0: never)",
-                              **ro)
+                              "loop at this trajectory time until a model arrives (0: never)")
         self.max_points = declare(self, "max_trajectory_points", 200_000, "longer "
-                                  "trajectories are refused (memory, parse time)",
-                                  read_only=True, lo=2, hi=10_000_000)
+                                  "trajectories are refused (memory, parse time)", lo=2, hi=10_000_000)
         self.wait_traj = declare(self, "wait_for_trajectory", False, "lockstep: answer no "
-                                 "sample before a trajectory has arrived", **ro)
+                                 "sample before a trajectory has arrived")
         self.planner = ReferencePlanner(
             declare(self, "approach_speed_um_per_s", 200.0, "approach speed [um/s]",
-                    lo=0.1, hi=1e6, **ro),
+                    lo=0.1, hi=1e6),
             declare(self, "approach_accel_um_per_s2", 20000.0, "approach acceleration "
-                    "[um/s^2]", lo=1.0, hi=1e9, **ro))
+                    "[um/s^2]", lo=1.0, hi=1e9))
         self.limits = (0.0, 150.0)
         self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
         self.started = False  # the inverse has been put where the stage is
         # the driver's announcements: taken before the data in each lean-loop pass
         self.driver = DriverState(self, self.dt_ns, declare(
             self, "thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
-            "scheduler alone; lockstep never changes it)", read_only=True, lo=0, hi=99))
+            "scheduler alone; lockstep never changes it)", lo=0, hi=99))
         self.last_ns, self.ff, self.planned = -1, {"x": 0.0, "y": 0.0}, {}
         self.last_target = None
         self.driver.limits, self.last_rejection = None, ""

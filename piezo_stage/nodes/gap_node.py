@@ -26,10 +26,9 @@ from rclpy.node import Node
 class Gap(Node):
     def __init__(self):
         super().__init__("gap")
-        rate = declare(self, "control_rate_hz", 1000.0, "control rate [Hz]", read_only=True,
+        rate = declare(self, "control_rate_hz", 1000.0, "control rate [Hz]",
                        lo=1.0, hi=1e5)
-        path = declare(self, "model_file", "", "the twin's model ('' = config/stage_model.yaml)",
-                       read_only=True) or f"{default_config_dir()}/stage_model.yaml"
+        path = declare(self, "model_file", "", "the twin's model ('' = config/stage_model.yaml)") or f"{default_config_dir()}/stage_model.yaml"
         self.window = declare(self, "window", 1000, "samples in the rolling RMS", lo=10,
                               hi=10_000_000)
         model, effects = load_model(path)

@@ -30,12 +30,14 @@ from rclpy.node import Node
 class Identifier(Node):
     def __init__(self):
         super().__init__("identifier")
+        live = lambda attr: lambda v: setattr(self, attr, v)  # noqa: E731 - next fit uses it
         self.method = declare(self, "method", "fast", "fast | afsa | afsa-bat",
-                              choices=("fast", "afsa", "afsa-bat"))
+                              choices=("fast", "afsa", "afsa-bat"), live=live("method"))
         self.structure = declare(self, "structure", "segmented", "segmented | whole",
-                                 choices=("segmented", "whole"))
+                                 choices=("segmented", "whole"), live=live("structure"))
         self.auto_cycles = declare(self, "auto_cycles", 0, "identify after this many "
-                                   "complete cycles (0: on request only)", lo=0, hi=1000)
+                                   "complete cycles (0: on request only)", lo=0, hi=1000,
+                                   live=live("auto_cycles"))
         self.max_samples = declare(self, "max_samples", 200_000, "buffer length", lo=100,
                                    hi=10_000_000)
         # samples in stamp order, bounded: the oldest fall off the front (no re-sort)
@@ -54,8 +56,9 @@ class Identifier(Node):
     def status(self):
         err = self.stats["last_error"]
         return ((1, f"last identification failed: {err}") if err else
-                (0, f"{len(self.buf)} samples buffered")) + ({**self.stats,
-                                                            "buffered": len(self.buf)},)
+                (0, f"{len(self.buf)} samples buffered")) + ({
+                    **self.stats, "buffered": len(self.buf), "method": self.method,
+                    "structure": self.structure, "auto_cycles": self.auto_cycles},)
 
     def on_state(self, msg):
         try:

@@ -48,26 +48,25 @@ def msg_class(msgtype: str):
 class Recorder(Node):
     def __init__(self):
         super().__init__("recorder")
-        out = declare(self, "output", "", "bag directory ('' = bags/<timestamp>)",
-                      read_only=True) or new_bag_dir("bags")
+        out = declare(self, "output", "", "bag directory ('' = bags/<timestamp>)") or new_bag_dir("bags")
         meta = {}
         for key in ("config_file", "model_file"):
-            path = declare(self, key, "", f"{key.split('_')[0]} to store as metadata",
-                           read_only=True)
+            path = declare(self, key, "", f"{key.split('_')[0]} to store as metadata")
             if path and os.path.isfile(path):
                 meta["piezo_stage_" + key.split("_")[0]] = {"path": path,
                                                             "yaml": open(path).read()}
         self.bag = BagWriter(out, metadata=meta)
         # off the loop's critical path: take what arrived every few ms, not per message
         self.hot_batch_s = declare(self, "batch_period_s", 0.004, "wait between takes "
-                                   "[s]; queues hold 5000 samples per topic", lo=0.0, hi=60.0)
+                                   "[s]; queues hold 5000 samples per topic", lo=0.0, hi=60.0,
+                                   live=lambda v: setattr(self, "hot_batch_s", v))
         self.log_received = declare(self, "log_time", "stamp", "bag log time: stamp "
-                                    "(lockstep) | receive (real time)", read_only=True,
+                                    "(lockstep) | receive (real time)",
                                     choices=("stamp", "receive")) == "receive"
         prio = declare(self, "thread_priority", 40, "real-time recording (log_time "
                        "receive): SCHED_FIFO priority of the middleware's receiving threads "
                        "(the writing stays at normal priority; 0: leave the scheduler "
-                       "alone)", read_only=True, lo=0, hi=99)
+                       "alone)", lo=0, hi=99)
         if self.log_received:
             set_realtime_priority(prio, self.get_logger(), main_thread=False)
         self.get_logger().info(f"recording to {out}")
@@ -79,7 +78,8 @@ class Recorder(Node):
                                   lo=0.01, hi=60.0), self.bag.flush)
         Diagnostics(self, lambda: (0, f"recording to {out}: {sum(self.bag.counts.values())} "
                                    f"messages on {len(self.bag.counts)} topics",
-                                   {"bag": out, **self.bag.counts}), "recording")
+                                   {"bag": out, "batch_period_s": self.hot_batch_s,
+                                    **self.bag.counts}), "recording")
 
     def resolve_topic_name(self, rel):
         return rel if rel.startswith("/") else f"{self.get_namespace().rstrip('/')}/{rel}"

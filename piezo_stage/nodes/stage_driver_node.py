@@ -43,35 +43,32 @@ from rclpy.node import Node
 class StageDriver(Node):
     def __init__(self):
         super().__init__("stage_driver")
-        ro = {"read_only": True}
         d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
         p = self.p = {
-            "backend": d("backend", "sim", "stage backend", choices=("sim", "daq", "replay"),
-                         **ro),
+            "backend": d("backend", "sim", "stage backend", choices=("sim", "daq", "replay")),
             "mode": d("mode", "lockstep", "lockstep (sim, replay) | realtime",
-                      choices=("lockstep", "realtime"), **ro),
-            "rate": d("control_rate_hz", 1000.0, "sample rate [Hz]", lo=1.0, hi=1e5, **ro),
+                      choices=("lockstep", "realtime")),
+            "rate": d("control_rate_hz", 1000.0, "sample rate [Hz]", lo=1.0, hi=1e5),
             "lookahead": d("lookahead_s", 0.005, "real time: commands are computed this "
-                           "far ahead of the sample they answer [s]", lo=0.0, hi=1.0, **ro),
+                           "far ahead of the sample they answer [s]", lo=0.0, hi=1.0),
             "max_steps": d("max_steps", 0, "stop after this many samples (0: never)",
-                           lo=0, hi=2**31 - 1, **ro),
-            "exit_done": d("exit_after_max_steps", False, "exit (code 0) after max_steps",
-                           **ro),
+                           lo=0, hi=2**31 - 1),
+            "exit_done": d("exit_after_max_steps", False, "exit (code 0) after max_steps"),
             "min_subs": d("min_subscribers", 0, "lockstep: joint_states subscribers to "
-                          "wait for", lo=0, hi=100, **ro),
+                          "wait for", lo=0, hi=100),
             "min_rec": d("min_record_subscribers", 0, "lockstep: true_position "
-                         "subscribers to wait for (recorders)", lo=0, hi=100, **ro),
+                         "subscribers to wait for (recorders)", lo=0, hi=100),
             "clock": d("clock_period_s", 0.01, "lockstep: publish /clock (simulated time "
                        "for nodes on use_sim_time) every this much sample time [s]; 0: "
-                       "not at all", lo=0.0, hi=10.0, **ro),
+                       "not at all", lo=0.0, hi=10.0),
             "prio": d("thread_priority", 50, "real time: SCHED_FIFO priority of the "
-                      "sample loop (0: leave the scheduler alone)", lo=0, hi=99, **ro)}
+                      "sample loop (0: leave the scheduler alone)", lo=0, hi=99)}
         if p["backend"] == "daq" and p["mode"] != "realtime":
             raise DataError("backend daq runs in real time only (mode: realtime)")
         defaults = ArmingParams()
-        arm = ArmingParams(**{field: d(name, getattr(defaults, field), desc, **ro, **(
+        arm = ArmingParams(**{field: d(name, getattr(defaults, field), desc, **(
             {"lo": r[0], "hi": r[1]} if r else {})) for name, field, desc, r in ARMING})
-        bp = {k: d(k, default, desc, **ro) for k, default, desc in BACKEND_PARAMS}
+        bp = {k: d(k, default, desc) for k, default, desc in BACKEND_PARAMS}
         self.backend = make_backend(p["backend"], p["rate"], bp, arm.safe_V)
         self.lock = p["mode"] == "lockstep"
         self.dt_ns = int(round(1e9 / p["rate"]))

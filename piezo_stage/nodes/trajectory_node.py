@@ -38,7 +38,8 @@ PARAMS = {  # name: (default, description)
 class Trajectory(Node):
     def __init__(self):
         super().__init__("trajectory")
-        self.p = {k: declare(self, k, d, desc) for k, (d, desc) in PARAMS.items()}
+        # live: a set builds and publishes the new trajectory (or is refused with why)
+        self.p = {k: declare(self, k, d, desc, live=True) for k, (d, desc) in PARAMS.items()}
         self.pub = self.create_publisher(JointTrajectory, "trajectory", QOS_LATCHED)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 1,
                                                    "trajectory subscribers to wait for"))])
