@@ -100,6 +100,14 @@ class Launch:
     def command(self, node):
         cmd = [sys.executable, "-m", f"piezo_stage.nodes.{node}_node", "--ros-args",
                "-r", f"__ns:={self.ns}", "--params-file", self.config_path]
+        for k, v in self.node_params(node).items():
+            cmd += ["-p", f"{k}:={_fmt(v)}"]
+        return cmd
+
+    def node_params(self, node) -> dict:
+        """What the launcher sets on ``node`` beyond the parameter file: start-up
+        gating, the recorder's bag, one clock, the overrides (the ros2 launch file
+        passes the same)."""
         extra = dict(self._gates().get(node, {}))
         if node == "recorder":
             extra.update(output=os.path.abspath(self.record), config_file=self.config_path,
@@ -107,9 +115,7 @@ class Launch:
         if self.lockstep:  # one clock: the driver's samples (/clock), bags included
             extra["use_sim_time"] = True
         extra.update(self.overrides.get(node, {}))
-        for k, v in extra.items():
-            cmd += ["-p", f"{k}:={_fmt(v)}"]
-        return cmd
+        return extra
 
     def start(self):
         for n in self.nodes:
