@@ -12,7 +12,7 @@ from setuptools import find_packages, setup
 package_name = "piezo_stage"
 
 NODES = ["stage_driver", "identifier", "feedforward", "controller", "trajectory",
-         "recorder", "gap"]
+         "recorder", "gap", "live_view"]
 
 setup(
     name=package_name,
@@ -35,11 +35,14 @@ setup(
         "mcap>=1.1",
         "matplotlib>=3.7",
         "rosbags>=0.10",
+        "tqdm>=4.60",  # progress of the long commands, on a terminal only
     ],
     extras_require={
         # rclpy and the messages come from the ros-jazzy-* wheels; a full ROS install
         # provides them instead, so they are an extra rather than a hard requirement.
-        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
+        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces",
+                # the live view node, and the client bench liveview watches it with
+                "foxglove-sdk>=0.30", "websockets>=12"],
         "daq": ["nidaqmx>=1.0"],
         # the tests import the real nidaqmx (it installs without NI hardware) and run
         # the daq backend on it with only NI's driver layer replaced (the test double)

@@ -1,5 +1,5 @@
 """ros2 launch piezo_stage piezo_stage_launch.py [config:=FILE] [namespace:=stage]
-[record:=BAG_DIR] [arm:=true]   (full ROS 2 installs only).
+[record:=BAG_DIR] [arm:=true] [foxglove:=8765]   (full ROS 2 installs only).
 
 The same node set as `piezo-stage launch`, built by the same code: the nodes the
 parameter file configures (recorder when ``record`` is given, identifier and gap
@@ -24,7 +24,9 @@ def _nodes(context):
     ns = "/" + LaunchConfiguration("namespace").perform(context).strip("/")
     record = LaunchConfiguration("record").perform(context) or None
     arm = LaunchConfiguration("arm").perform(context).lower() in ("true", "1", "yes")
-    launch = Launch(cfg, record=record, namespace=ns, arm=arm)
+    port = LaunchConfiguration("foxglove").perform(context)
+    launch = Launch(cfg, record=record, namespace=ns, arm=arm,
+                    foxglove_port=int(port) if port else None)
     return [Node(package="piezo_stage", executable=n, name=n, namespace=ns,
                  parameters=[cfg, launch.node_params(n)], output="screen")
             for n in launch.nodes]
@@ -39,4 +41,6 @@ def generate_launch_description():
         DeclareLaunchArgument("record", default_value="",
                               description="bag directory ('' = no recorder)"),
         DeclareLaunchArgument("arm", default_value="true"),
+        DeclareLaunchArgument("foxglove", default_value="",
+                              description="live view WebSocket port ('' = none)"),
         OpaqueFunction(function=_nodes)])

@@ -236,9 +236,10 @@ def _cpu_ticks():
         return 0, 0
 
 
-def _loop_run(env, steps):
+def _loop_run(env, steps, foxglove_port=None):
     """One lockstep run with the recorder: (steps/s, median ms, p99 ms, lost per topic,
-    steal fraction), or (None, log tail) when the run failed."""
+    steal fraction), or (None, log tail) when the run failed. With ``foxglove_port``
+    the live view runs too (its client is the caller's)."""
     import contextlib
     import os
     import re
@@ -250,7 +251,8 @@ def _loop_run(env, steps):
     o = {"stage_driver": {"max_steps": steps, "exit_after_max_steps": True},
          "feedforward": {"model_file": default_config("stage_model.yaml")}}
     launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+                    foxglove_port=foxglove_port)
     log = tempfile.TemporaryFile("w+")
     c0 = _cpu_ticks()
     with contextlib.redirect_stderr(log):
@@ -266,7 +268,7 @@ def _loop_run(env, steps):
     m = re.search(r"done after (\d+) samples: (\d+) steps/s, step period median ([\d.]+) "
                   r"ms, p99 ([\d.]+) ms", text)
     if not m or rc != 0:
-        return None, text[-2000:]
+        return None, f"exit {rc}; {'; '.join(launch.failed)}\n{text[-2000:]}"
     counts = {}
     for topic, *_ in iter_messages(bag):
         counts[topic] = counts.get(topic, 0) + 1
@@ -326,13 +328,87 @@ def bench_loop(steps=3000, runs=3):
     return 0
 
 
+def _watched_loop_run(env, steps, port):
+    """A lockstep run with the live view and a client watching joint_states: the run's
+    figures, and (messages received, their rate per wall-clock second)."""
+    import threading
+    from piezo_stage.launch.foxglove_probe import connect, receive
+    done, got = threading.Event(), {}
+
+    def watch():
+        try:
+            with connect(port, timeout_s=120) as ws:
+                got["data"] = receive(ws, "/stage/joint_states", timeout_s=600,
+                                      stop=done.is_set)[1]
+        except Exception as e:  # noqa: BLE001 - reported with the run's figures
+            got["error"] = f"client: {type(e).__name__}: {e}"
+    client = threading.Thread(target=watch, daemon=True)
+    client.start()
+    res, err = _loop_run(env, steps, foxglove_port=port)
+    done.set()
+    client.join(10)
+    data = got.get("data", [])
+    err = err or got.get("error")
+    span = data[-1][2] - data[0][2] if len(data) > 1 else 0.0
+    return res, err, len(data), (len(data) - 1) / span if span > 0 else 0.0
+
+
+def bench_liveview(steps=6000, pairs=3):
+    """The lockstep loop with and without the live view and a watching client,
+    alternated in the same invocation (the host's load drifts): the slowdown, and
+    what the client receives."""
+    import os
+    import random
+    import socket
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    print(f"bench liveview: lockstep loop ({steps} steps, recorder on) without and with "
+          "the live view (Foxglove WebSocket) and a client watching joint_states, "
+          f"alternated, {pairs} pairs")
+    plain, watched, rates = [], [], []
+    for k in range(pairs):
+        res, err = _loop_run(env, steps)
+        if res is None:
+            print("  the loop run failed:\n" + err)
+            return 1
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        res_w, err, n, rate = _watched_loop_run(env, steps, port)
+        if res_w is None:
+            print("  the watched loop run failed:\n" + err)
+            return 1
+        plain.append(res[0])
+        watched.append(res_w[0])
+        rates.append(rate)
+        if n == 0:
+            print(f"  pair {k + 1}: the client received nothing ({err or 'no error'})")
+        if sum(res_w[3].values()):
+            print(f"  pair {k + 1}: messages lost in the watched run: {res_w[3]}")
+        print(f"  pair {k + 1}: without {res[0]} steps/s, with {res_w[0]} steps/s "
+              f"(ratio {res_w[0] / res[0]:.2f}); the client got {n} joint_states, "
+              f"{rate:.0f}/s; lost in the bag {sum(res_w[3].values())}")
+    med = lambda xs: sorted(xs)[len(xs) // 2]  # noqa: E731
+    slow = 1 - med(watched) / med(plain)
+    print(f"  median: without {med(plain)} steps/s, with {med(watched)} steps/s: the loop "
+          f"is {100 * slow:.1f} % slower; the client receives {med(rates):.0f} "
+          "joint_states/s (max_rate_hz 200)")
+    print(f"  target >= 100 joint_states/s to the client: "
+          f"{'met' if med(rates) >= 100 else 'NOT met'}; loop slowed <= 10 %: "
+          f"{'met' if slow <= 0.10 else 'NOT met'}")
+    return 0
+
+
 def bench_gap(seeds=3):
     import time
     from piezo_stage.core.gap import diagnose
     from piezo_stage.studies import gap_blind
     print("bench gap: blind suite, one unmodelled effect per record pair (FIT, HOLDOUT), "
           "diagnosis not told which; axis x, 1 kHz, ~31 s protocol records")
-    rows = gap_blind.run(seeds=seeds, progress=lambda m: None)
+    from piezo_stage.progress import bar, steps
+    with bar("bench gap: blind cases", total=2 * len(gap_blind.TRUTHS) * seeds,
+             unit=" cases") as b:
+        rows = gap_blind.run(seeds=seeds, progress=steps(b))
     for fam in ("own", "independent", None):
         labels, M = gap_blind.confusion(rows, fam)
         ok = sum(M[i, i] for i in range(len(gap_blind.TRUTHS)))
@@ -373,6 +449,8 @@ def main(args):
         return bench_loop()
     if args.what == "gap":
         return bench_gap()
+    if args.what == "liveview":
+        return bench_liveview()
     if args.what == "faults":
         from piezo_stage.bench_faults import bench_faults
         return bench_faults()

@@ -147,27 +147,6 @@ def cmd_loop(args):
 
 # -- identify ---------------------------------------------------------------------------
 
-class _Progress:
-    """Iteration and best objective on a terminal; silent otherwise."""
-
-    def __init__(self, stream=sys.stderr):
-        self.stream = stream
-        self.on = stream.isatty()
-        self._last = 0.0
-
-    def __call__(self, it, best, label=""):
-        import time
-        if not self.on or time.monotonic() - self._last < 0.2:
-            return
-        self._last = time.monotonic()
-        self.stream.write(f"\r  {self.axis} {label} iteration {it}: best {best:.5g} um   ")
-        self.stream.flush()
-
-    def done(self):
-        if self.on:
-            self.stream.write("\r" + " " * 70 + "\r")
-
-
 def cmd_identify(args):
     import json
     import os
@@ -190,12 +169,11 @@ def cmd_identify(args):
                            structure="whole" if args.whole else "segmented",
                            budget=args.budget, seed=args.seed, coupling=args.coupling,
                            n=args.n, m=args.m)
-    prog = _Progress()
+    from piezo_stage.progress import bar, best_so_far
     results, report = {}, {}
     for a in axes:
-        prog.axis = a
-        r = identify_axis(rec, a, opts, prog)
-        prog.done()
+        with bar(f"identify {a} ({opts.method})") as b:
+            r = identify_axis(rec, a, opts, best_so_far(b))
         results[a] = r
         report[a] = r.to_json()
         if val is not None:
@@ -225,13 +203,22 @@ def cmd_identify(args):
     if args.json:
         with atomic_write(args.json) as fh:
             json.dump(report, fh, indent=1)
+    plot = args.plot or (os.path.splitext(args.out)[0] + ".png" if args.out else None)
+    if plot:
+        from piezo_stage.core.identify.api import predict_axis
+        from piezo_stage.io.plots import identification_png
+        curves = {a: predict_axis(r, rec) for a, r in results.items()}
+        print(f"plot: {identification_png(plot, rec.t, curves)}")
     return 0
 
 
 def cmd_study(args):
     from piezo_stage.studies import identification
-    rep = identification.run(args.out, seeds=args.seeds, budget=args.budget,
-                             progress=lambda m: sys.stderr.write(m + "\n"))
+    from piezo_stage.progress import bar
+    with bar("study: identifications", total=2 + 3 * args.seeds, unit=" fits") as b:
+        rep = identification.run(args.out, seeds=args.seeds, budget=args.budget,
+                                 progress=lambda m: b.write(m, file=sys.stderr),
+                                 step=lambda: b.update(1))
     identification.print_report(rep)
     print(f"plots and study.json in {args.out}")
     return 0
@@ -260,8 +247,10 @@ def cmd_gap(args):
         base = load_model(args.model)[0]
     if hold is not None and set(fit.w) != set(hold.w):
         raise DataError(f"FIT has axes {sorted(fit.w)} but HOLDOUT has {sorted(hold.w)}")
-    res = diagnose(fit, hold, base_model=base,
-                   axes=None if args.axis == "both" else [args.axis])
+    from piezo_stage.progress import bar, steps
+    with bar("gap: candidate fits", unit=" fits") as b:
+        res = diagnose(fit, hold, base_model=base,
+                       axes=None if args.axis == "both" else [args.axis], progress=steps(b))
     per = res.pop("_diagnoses")
     print(f"verdict: {res['verdict']} ({res['reason']})")
     print(f"{'axis':>4} {'effect':>9} {'rms_before':>10} {'rms_after':>9} {'gap_before':>10} "
@@ -302,6 +291,17 @@ def cmd_gap(args):
     return 0
 
 
+def _port(text):
+    import argparse
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a TCP port (1-65535)")
+    return port
+
+
 def cmd_launch(args):
     from piezo_stage.paths import default_config
     from piezo_stage.io.bag import new_bag_dir
@@ -310,7 +310,11 @@ def cmd_launch(args):
     if record == "auto":
         record = new_bag_dir("bags")
     launch = Launch(args.config or default_config("stage.yaml"), record=record,
-                    namespace=args.namespace, arm=not args.no_arm)
+                    namespace=args.namespace, arm=not args.no_arm,
+                    foxglove_port=args.foxglove)
+    if args.foxglove is not None:
+        print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
+              "Foxglove WebSocket)", flush=True)
     rc = launch.run(args.duration)
     if record:
         print(f"bag: {record}")
@@ -398,6 +402,9 @@ def build_parser():
     s.add_argument("--namespace", default="/stage")
     s.add_argument("--no-arm", action="store_true", help="start disarmed and stay so "
                    "until armed on the arm service")
+    s.add_argument("--foxglove", type=_port, nargs="?", const=8765, metavar="PORT",
+                   help="serve the running topics to Foxglove over WebSocket (default "
+                   "port 8765)")
     s.set_defaults(fn=cmd_launch)
 
     s = sub.add_parser("demo", help="the main job: node set on the simulated stage")
@@ -448,6 +455,8 @@ def build_parser():
     s.add_argument("--m", type=int, default=2, help="degree of g (default 2)")
     s.add_argument("--out", metavar="MODEL.yaml", help="write the model file")
     s.add_argument("--json", metavar="FILE", help="write the full report as JSON")
+    s.add_argument("--plot", metavar="PNG", help="loop and fit-error figure (default: "
+                   "next to --out's model file, MODEL.png)")
     s.set_defaults(fn=cmd_identify)
 
     s = sub.add_parser("study", help="reproduce the seed's identification study")
@@ -459,7 +468,7 @@ def build_parser():
 
     s = sub.add_parser("bench", help="performance benchmarks (figures as ratios)")
     s.add_argument("what", choices=("plant", "identify", "loop", "gap", "realtime",
-                                           "faults"))
+                                    "faults", "liveview"))
     s.add_argument("--track", type=float, default=20.0, metavar="S",
                    help="realtime: seconds of the seed's trajectory")
     s.add_argument("--samples", type=int, default=2_000_000)
@@ -468,7 +477,7 @@ def build_parser():
 
 
 INPUTS = ("inp", "model", "config", "data", "validate", "fit", "holdout", "bag")
-FILE_OUTPUTS = ("json", "out_model")  # and "out" where it names a file (not a folder)
+FILE_OUTPUTS = ("json", "out_model", "plot")  # and "out" where it names a file (not a folder)
 DIR_COMMANDS = ("study", "demo", "launch")  # whose --out is a folder
 
 

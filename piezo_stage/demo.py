@@ -18,7 +18,8 @@ from piezo_stage.io.bag import deserialize, iter_messages, new_bag_dir
 
 
 def tracking_from_bag(bag, t_from_s):
-    """Desired (reference) and measured (joint_states) per stamp after t_from_s."""
+    """Desired (reference) and measured (joint_states) [um] per stamp after t_from_s:
+    (t [s], desired (n, 2), measured (n, 2), models handed over)."""
     ref, meas, models = {}, {}, 0
     for topic, msgtype, _, data in iter_messages(bag):
         if topic.endswith("/reference"):
@@ -32,7 +33,7 @@ def tracking_from_bag(bag, t_from_s):
     stamps = sorted(s for s in set(ref) & set(meas) if s >= t_from_s * 1e9)
     d = np.array([ref[s] for s in stamps]).reshape(-1, 2)
     w = np.array([meas[s] for s in stamps]).reshape(-1, 2)
-    return d, w, models
+    return np.array(stamps) * 1e-9, d, w, models
 
 
 def run_demo(args):
@@ -59,7 +60,7 @@ def run_demo(args):
     if rc != 0 or not os.path.isdir(bag):
         sys.stderr.write("piezo-stage demo: the node set failed\n")
         return 1
-    d, w, models = tracking_from_bag(bag, args.excite + 0.2 + 0.1)
+    t, d, w, models = tracking_from_bag(bag, args.excite + 0.2 + 0.1)
     if d.size == 0:
         sys.stderr.write("piezo-stage demo: no tracking samples in the bag\n")
         return 1
@@ -70,5 +71,7 @@ def run_demo(args):
     for i, a in enumerate(("x", "y")):
         rms = float(np.sqrt(np.mean(e[:, i] ** 2)))
         print(f"{a:>4} {rms:8.4f} {np.max(np.abs(e[:, i])):8.4f} {100 * rms / span[i]:8.3f}")
+    from piezo_stage.io.plots import tracking_png
+    print(f"plot: {tracking_png(os.path.join(bag, 'tracking.png'), t, d, w)}")
     print(f"bag: {bag}")
     return 0

@@ -22,7 +22,7 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from piezo_stage.nodes._common import QOS_DATA
-    from piezo_stage.nodes.recorder_node import msg_class
+    from piezo_stage.nodes._tap import msg_class
     from piezo_stage_msgs_adapters import clock_msg
     from rosgraph_msgs.msg import Clock
     rclpy.init()

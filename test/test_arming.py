@@ -220,9 +220,11 @@ def test_host_pauses_are_where_every_cpu_sentinel_stopped_at_once():
     # stopping one of them is not
     with HostPauseMonitor() as mon:
         time.sleep(0.3)
+        s0 = time.time_ns()
         os.kill(mon.procs[0].pid, signal.SIGSTOP)
         time.sleep(0.06)
         os.kill(mon.procs[0].pid, signal.SIGCONT)
+        s1 = time.time_ns()
         time.sleep(0.2)
         t0 = time.time_ns()
         for p in mon.procs:
@@ -232,7 +234,10 @@ def test_host_pauses_are_where_every_cpu_sentinel_stopped_at_once():
             os.kill(p.pid, signal.SIGCONT)
         t1 = time.time_ns()
         time.sleep(0.2)
-    if len(mon.procs) > 1:
-        assert len(mon.pauses) == 1, mon.pauses
-    a, b = mon.pauses[-1]
-    assert a >= t0 - 2_000_000 and b <= t1 + 2_000_000 and b - a > 40_000_000
+    # (a busy host adds real pauses of a few ms anywhere: only long ones are ours)
+    long = [(a, b) for a, b in mon.pauses if b - a > 40_000_000]
+    if len(mon.procs) > 1:  # one sentinel stopped alone is no pause
+        assert not [p for p in long if p[0] < s1 and p[1] > s0], mon.pauses
+    assert len(long) == 1, mon.pauses
+    a, b = long[0]
+    assert a >= t0 - 2_000_000 and b <= t1 + 2_000_000

@@ -176,6 +176,43 @@ def test_identify_command_writes_model_and_json(cfg, tmp_path):
     write_table(tmp_path / "v.csv", {"t": val.t, "vx": val.v["x"], "vy": val.v["y"]})
     r = _cli("simulate", "--in", tmp_path / "v.csv", "--out", sim, "--model", out)
     assert r.returncode == 0, r.stderr
+    # the loop and fit-error figure, next to the model by default
+    png = (tmp_path / "m.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+
+
+def test_identify_shows_progress_on_a_terminal_only(cfg, tmp_path):
+    """On a terminal (a pseudo-terminal here) a tqdm bar with the best objective so
+    far; to a pipe, nothing (checked above)."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+    fit = record(cfg, seed=1)
+    write_table(tmp_path / "fit.csv", {"t": fit.t, "vx": fit.v["x"], "wx": fit.w["x"]})
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # 100 cols
+    try:
+        p = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", "identify",
+                              tmp_path / "fit.csv", "--axis", "x", "--plot",
+                              tmp_path / "fit.png"], stdout=subprocess.DEVNULL,
+                             stderr=slave, cwd=ROOT, env=dict(os.environ, PYTHONPATH=ROOT))
+        os.close(slave)
+        seen = b""
+        while True:
+            try:
+                chunk = os.read(master, 4096)
+            except OSError:  # the child closed the terminal
+                break
+            if not chunk:
+                break
+            seen += chunk
+        assert p.wait(timeout=300) == 0
+    finally:
+        os.close(master)
+    text = seen.decode(errors="replace")
+    assert "identify x (fast)" in text and "best" in text and "um" in text
+    assert (tmp_path / "fit.png").stat().st_size > 20_000
 
 
 def test_identify_bad_input_and_failed_solver(cfg, tmp_path):

@@ -269,15 +269,18 @@ class AxisDiagnosis:
 
 
 def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
-                  base_model=None) -> AxisDiagnosis:
+                  base_model=None, progress=None) -> AxisDiagnosis:
     """Fit every candidate on FIT, score on HOLDOUT, decide. ``base_model`` (a
-    StageModel) replaces the FIT-identified Duhem model as the sim to compare with."""
+    StageModel) replaces the FIT-identified Duhem model as the sim to compare with.
+    ``progress(what)`` is called after each candidate is fitted."""
+    progress = progress or (lambda what="": None)
     for rec in (fit, holdout):
         if axis not in rec.v or axis not in rec.w:
             raise DataError(f"{rec.source}: no v{axis}/w{axis} for axis {axis}")
         check_identifiable(rec.v[axis], rec.source)
     notes = []
     base = fit_candidate(fit, axis, "none")
+    progress(f"{axis} none")
     cands = {"none": base}
     for e in effects:
         if e == "coupling":
@@ -286,6 +289,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
                 notes.append("coupling not tested: the other axis's voltage does not move")
                 continue
         cands[e] = fit_candidate(fit, axis, e, base)
+        progress(f"{axis} {e}")
     nf = noise_floor(holdout.w[axis])
     w_h = holdout.w[axis]
     sim = GivenModel(base_model) if base_model is not None and axis in base_model.axes \
@@ -338,8 +342,9 @@ def _decide(ranking, g_before, nf, fit, holdout, axis):
 
 
 def diagnose(fit: Record, holdout: Record | None = None, effects=EFFECTS, axes=None,
-             base_model=None) -> dict:
-    """The --json contract (see the module docstring and the README)."""
+             base_model=None, progress=None) -> dict:
+    """The --json contract (see the module docstring and the README). ``progress(what)``
+    is called after each candidate fit (from the axes' threads)."""
     t0 = time.perf_counter()
     holdout = holdout or fit
     axes = axes or [a for a in ("x", "y") if a in fit.w and a in holdout.w]
@@ -354,8 +359,8 @@ def diagnose(fit: Record, holdout: Record | None = None, effects=EFFECTS, axes=N
     # the GIL, so two threads use both cores
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
-        futures = {a: pool.submit(diagnose_axis, fit, holdout, a, effects, base_model)
-                   for a in axes}
+        futures = {a: pool.submit(diagnose_axis, fit, holdout, a, effects, base_model,
+                                  progress) for a in axes}
         per = {a: f.result() for a, f in futures.items()}
     worst = max(per.values(), key=lambda d: d.ranking[0]["gap_before_um"])
     out = {"verdict": worst.verdict, "reason": worst.reason, "ranking": worst.ranking,

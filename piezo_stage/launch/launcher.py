@@ -24,8 +24,8 @@ import yaml
 
 from piezo_stage.core.errors import ConfigError
 
-ORDER = ("recorder", "identifier", "gap", "controller", "feedforward", "trajectory",
-         "stage_driver")
+ORDER = ("recorder", "live_view", "identifier", "gap", "controller", "feedforward",
+         "trajectory", "stage_driver")
 
 
 def _params(config_path):
@@ -56,12 +56,17 @@ def _fmt(v):
 
 class Launch:
     def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
-                 nodes=None, env=None, arm=True):
+                 nodes=None, env=None, arm=True, foxglove_port=None):
         self.config_path = os.path.abspath(config_path)
         params = _params(self.config_path)
-        self.nodes = [n for n in ORDER if n in (nodes or params) and n != "recorder"]
+        # the recorder and the live view run when asked for (record, foxglove_port)
+        self.nodes = [n for n in ORDER if n in (nodes or params)
+                      and n not in ("recorder", "live_view")]
+        if foxglove_port is not None:
+            self.nodes.insert(0, "live_view")
         if record:
             self.nodes.insert(0, "recorder")
+        self.foxglove_port = foxglove_port
         self.ns = namespace
         self.record = record
         drv = {**params.get("stage_driver", {}), **(overrides or {}).get("stage_driver", {})}
@@ -112,6 +117,8 @@ class Launch:
         if node == "recorder":
             extra.update(output=os.path.abspath(self.record), config_file=self.config_path,
                          log_time="stamp" if self.lockstep else "receive")
+        if node == "live_view":
+            extra["port"] = int(self.foxglove_port or 0)
         if self.lockstep:  # one clock: the driver's samples (/clock), bags included
             extra["use_sim_time"] = True
         extra.update(self.overrides.get(node, {}))
@@ -125,8 +132,9 @@ class Launch:
     def stop(self, timeout=15.0):
         """SIGINT to the producers, then the driver (it ramps down and exits), then
         the recorder; escalate if a node hangs."""
-        producers = [n for n in reversed(self.nodes) if n not in ("recorder", "stage_driver")]
-        for group in (producers, ["stage_driver"], ["recorder"]):
+        producers = [n for n in reversed(self.nodes)
+                     if n not in ("recorder", "stage_driver", "live_view")]
+        for group in (producers, ["stage_driver"], ["recorder", "live_view"]):
             for n in group:
                 p = self.procs.get(n)
                 if p and p.poll() is None:

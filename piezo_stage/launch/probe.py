@@ -88,7 +88,7 @@ class Probe:
         rclpy.try_shutdown(context=self.ctx)
 
 
-def _param_call(probe: Probe, node: str, call, *args, attempts: int = 3):
+def _param_call(probe: Probe, node: str, call, *args, attempts: int = 5):
     """A parameter service call; a reply dropped because the new client was not yet
     discovered by the server (rmw: 'failed to send response') is asked again."""
     from rclpy.parameter_client import AsyncParameterClient
@@ -101,7 +101,7 @@ def _param_call(probe: Probe, node: str, call, *args, attempts: int = 3):
     raise TimeoutError(f"{node}: no answer to {call} after {attempts} attempts")
 
 
-def _param_call_raw(probe: Probe, node: str, service: str, srv_type, attempts: int = 3,
+def _param_call_raw(probe: Probe, node: str, service: str, srv_type, attempts: int = 5,
                     **fields):
     """A parameter service (``list_parameters``, ``describe_parameters``) called
     directly, as `ros2 param list/describe` does -> its response."""
@@ -110,7 +110,7 @@ def _param_call_raw(probe: Probe, node: str, service: str, srv_type, attempts: i
         assert cli.wait_for_service(10.0), node
         for _ in range(attempts):
             fut = cli.call_async(srv_type.Request(**fields))
-            if probe.wait(fut.done, 5.0):
+            if probe.wait(fut.done, 10.0):  # a busy host starves normal-priority nodes
                 return fut.result()
         raise TimeoutError(f"{node}: no answer from {service} after {attempts} attempts")
     finally:

@@ -8,41 +8,16 @@ SIGKILL loses at most that much; SIGINT finalises a complete bag. The run's conf
 model files go in as MCAP metadata.
 """
 
-import importlib
-import sys
 import os
-import struct
+import sys
 
 from piezo_stage.io.bag import BagWriter, new_bag_dir
-from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_EVENTS,
-                                       QOS_LATCHED, hot_subscription, run, steady_timer)
+from piezo_stage.nodes._common import run, steady_timer
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
+from piezo_stage.nodes._tap import TopicTap
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
-
-CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag)
-    # (the kind is what our publishers offer; the recorder subscribes volatile to
-    # trajectories, which outside nodes publish with any durability)
-    "joint_states": ("sensor_msgs/msg/JointState", "data"),
-    "sim/true_position": ("geometry_msgs/msg/PointStamped", "data"),
-    "reference": ("sensor_msgs/msg/JointState", "data"),
-    "command": ("geometry_msgs/msg/Vector3Stamped", "data"),
-    "setpoint": ("geometry_msgs/msg/PointStamped", "data"),
-    "gap/residual": ("geometry_msgs/msg/PointStamped", "data"),
-    "trajectory": ("trajectory_msgs/msg/JointTrajectory", "latched"),
-    "model": ("std_msgs/msg/String", "latched"),
-    "state": ("diagnostic_msgs/msg/DiagnosticArray", "events"),
-    "feedforward/phase": ("std_msgs/msg/String", "events"),
-    "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", "diag"),
-}
-STAMPED = {t for t, _ in CONTRACT.values()} - {"std_msgs/msg/String",
-                                               "trajectory_msgs/msg/JointTrajectory"}
-
-
-def msg_class(msgtype: str):
-    pkg, _, name = msgtype.split("/")
-    return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
 
 class Recorder(Node):
@@ -70,10 +45,7 @@ class Recorder(Node):
         if self.log_received:
             set_realtime_priority(prio, self.get_logger(), main_thread=False)
         self.get_logger().info(f"recording to {out}")
-        self.subs = {}
-        for rel, (msgtype, kind) in CONTRACT.items():
-            self.subscribe(self.resolve_topic_name(rel), msgtype, kind)
-        steady_timer(self, 1.0, self.discover)
+        self.tap = TopicTap(self, self.add_topic, self.write)
         steady_timer(self, declare(self, "flush_period_s", 0.5, "chunk flush period [s]",
                                   lo=0.01, hi=60.0), self.bag.flush)
         Diagnostics(self, lambda: (0, f"recording to {out}: {sum(self.bag.counts.values())} "
@@ -81,20 +53,8 @@ class Recorder(Node):
                                    {"bag": out, "batch_period_s": self.hot_batch_s,
                                     **self.bag.counts}), "recording")
 
-    def resolve_topic_name(self, rel):
-        return rel if rel.startswith("/") else f"{self.get_namespace().rstrip('/')}/{rel}"
-
-    def subscribe(self, topic, msgtype, kind="data"):
-        if topic in self.subs:
-            return
+    def add_topic(self, topic, msgtype, kind):
         self.bag.add_topic(topic, msgtype, self.offered(topic, kind))
-        stamped = msgtype in STAMPED
-        qos = {"latched": QOS_LATCHED, "events": QOS_EVENTS, "diag": QOS_DIAG}.get(
-            kind, QOS_DATA) if not topic.endswith("/trajectory") else QOS_DATA
-        self.subs[topic] = hot_subscription(  # everything recorded: the lean loop
-            self, msg_class(msgtype), topic,
-            lambda data, info: self.write(topic, data, stamped, info), qos, raw=True,
-            with_info=True)
 
     def offered(self, topic, kind):
         """The QoS the topic's publishers offer (as ``ros2 bag record`` stores it): asked
@@ -111,21 +71,11 @@ class Recorder(Node):
             return "data"
         return kind
 
-    def discover(self):
-        for topic, types in self.get_topic_names_and_types():
-            if topic not in self.subs and not topic.startswith("/rosout") \
-                    and not topic.startswith("/parameter_events"):
-                try:
-                    self.subscribe(topic, types[0], kind="found")
-                except (ImportError, AttributeError, KeyError):
-                    self.get_logger().warning(f"cannot record {topic}: unknown type {types[0]}")
-
-    def write(self, topic, data, stamped, info):
+    def write(self, topic, data, stamp_ns, info):
         if self.log_received:
             received = info.get("received_timestamp") or self.get_clock().now().nanoseconds
-        if stamped:  # CDR: 4-byte encapsulation, then header.stamp (int32 sec, uint32 ns)
-            sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
-            t = sec * 1_000_000_000 + nsec
+        if stamp_ns is not None:
+            t = stamp_ns
         else:  # lockstep: the set's clock (simulated time under use_sim_time)
             t = received if self.log_received else self.get_clock().now().nanoseconds
         # log time: when it arrived (real time), or its stamp (lockstep's simulated

@@ -36,7 +36,9 @@ def _record(cfg, freq, cycles, seed):
     return Record(t, {"x": v}, {"x": w["x"]}, source=f"sim {freq:g} Hz")
 
 
-def run(out_dir, seeds=5, budget=60_000, progress=print):
+def run(out_dir, seeds=5, budget=60_000, progress=print, step=lambda: None):
+    """The study; ``progress(line)`` gets a line per seed, ``step()`` is called after
+    each identification."""
     os.makedirs(out_dir, exist_ok=True)
     cfg = load_plant_config(default_plant_config_path())
     fit_rec = _record(cfg, 1.0, 2, seed=100)
@@ -49,6 +51,7 @@ def run(out_dir, seeds=5, budget=60_000, progress=print):
         opts = IdentifyOptions(method=method, structure=structure, seed=seed, budget=bud,
                                afsa=swarm if method != "fast" else {})
         r = identify_axis(fit_rec, "x", opts)
+        step()
         results.setdefault(label, []).append(r)
         return r
 

@@ -189,8 +189,10 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
                       noise_floor(w), evaluations, seconds, history, notes, branch)
 
 
-def validate_axis(res: AxisResult, rec: Record) -> dict:
-    """Error of an identified axis on another record (initial output re-estimated)."""
+def predict_axis(res: AxisResult, rec: Record):
+    """An identified axis's output over a record (initial output re-estimated; a
+    noisy voltage is made monotone per branch as for identification).
+    -> (v [V], measured w [um], model output [um])."""
     v, w = _axis_data(rec, res.axis)
     if not rec.voltage_exact and voltage_noise(v) > 1e-4 * np.ptp(v):
         v = branch_monotone(v)
@@ -198,7 +200,12 @@ def validate_axis(res: AxisResult, rec: Record) -> dict:
     if res.coupling is not None and v_other is None:
         raise DataError(f"{rec.source}: the model has coupling but the record has no "
                         f"v{OTHER[res.axis]}")
-    pred = simulate_axis(res.model, res.coupling, v, v_other, w_meas=w)
+    return v, w, simulate_axis(res.model, res.coupling, v, v_other, w_meas=w)
+
+
+def validate_axis(res: AxisResult, rec: Record) -> dict:
+    """Error of an identified axis on another record (initial output re-estimated)."""
+    _, w, pred = predict_axis(res, rec)
     fig = error_figures(w, pred)
     return {"validate_rms_um": fig["rms_um"], "validate_rms_pct": fig["rms_pct"],
             "validate_max_err_um": fig["max_err_um"], "validate_noise_floor_um": noise_floor(w)}

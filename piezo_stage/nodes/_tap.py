@@ -1,0 +1,99 @@
+"""Taking every topic of the set as raw CDR: what the recorder and the live view share.
+
+A ``TopicTap`` subscribes to the topic contract at start (so nothing of a lockstep run
+is missed) and to every other topic that discovery finds, through the lean loop, with
+the bytes as received (no deserialize/serialize round trip). For each topic it calls
+``on_topic(topic, msgtype, kind)`` once, then ``on_message(topic, data, stamp_ns,
+info)`` per message, with the header stamp of stamped types (None otherwise).
+"""
+
+from __future__ import annotations
+
+import importlib
+import struct
+
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_EVENTS, QOS_LATCHED,
+                                       hot_subscription, steady_timer)
+
+CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag)
+    # (the kind is what our publishers offer; the tap subscribes volatile to
+    # trajectories, which outside nodes publish with any durability)
+    "joint_states": ("sensor_msgs/msg/JointState", "data"),
+    "sim/true_position": ("geometry_msgs/msg/PointStamped", "data"),
+    "reference": ("sensor_msgs/msg/JointState", "data"),
+    "command": ("geometry_msgs/msg/Vector3Stamped", "data"),
+    "setpoint": ("geometry_msgs/msg/PointStamped", "data"),
+    "gap/residual": ("geometry_msgs/msg/PointStamped", "data"),
+    "trajectory": ("trajectory_msgs/msg/JointTrajectory", "latched"),
+    "model": ("std_msgs/msg/String", "latched"),
+    "state": ("diagnostic_msgs/msg/DiagnosticArray", "events"),
+    "feedforward/phase": ("std_msgs/msg/String", "events"),
+    "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", "diag"),
+}
+STAMPED = {t for t, _ in CONTRACT.values()} - {"std_msgs/msg/String",
+                                               "trajectory_msgs/msg/JointTrajectory"}
+
+
+def msg_class(msgtype: str):
+    pkg, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def header_stamp_ns(data: bytes) -> int:
+    """header.stamp of a stamped message's CDR bytes: a 4-byte encapsulation (its second
+    byte says the endianness), then int32 sec and uint32 nanosec."""
+    sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
+    return sec * 1_000_000_000 + nsec
+
+
+class TopicTap:
+    """See the module docstring. ``best_effort``: data topics are taken best-effort
+    (the live view: a slow viewer then costs the loop's publishers nothing; the
+    recorder keeps reliable, it must lose nothing)."""
+
+    def __init__(self, node, on_topic, on_message, best_effort=False, discover_s=1.0):
+        self.node, self.on_topic, self.on_message = node, on_topic, on_message
+        self.best_effort = best_effort
+        self.subs = {}
+        for rel, (msgtype, kind) in CONTRACT.items():
+            self.subscribe(self.resolve(rel), msgtype, kind)
+        steady_timer(node, discover_s, self.discover)
+
+    def resolve(self, rel: str) -> str:
+        return rel if rel.startswith("/") else \
+            f"{self.node.get_namespace().rstrip('/')}/{rel}"
+
+    def qos(self, topic: str, kind: str):
+        if topic.endswith("/trajectory") or kind not in ("latched", "events", "diag"):
+            if not self.best_effort:
+                return QOS_DATA
+            return QoSProfile(history=QOS_DATA.history, depth=QOS_DATA.depth,
+                              reliability=ReliabilityPolicy.BEST_EFFORT,
+                              durability=DurabilityPolicy.VOLATILE)
+        return {"latched": QOS_LATCHED, "events": QOS_EVENTS, "diag": QOS_DIAG}[kind]
+
+    def subscribe(self, topic: str, msgtype: str, kind: str = "data"):
+        if topic in self.subs:
+            return
+        cls = msg_class(msgtype)  # before on_topic: an unknown type raises here
+        self.on_topic(topic, msgtype, kind)
+        stamped = msgtype in STAMPED
+        on_message = self.on_message
+
+        def cb(data, info):
+            on_message(topic, data, header_stamp_ns(data) if stamped else None, info)
+        self.subs[topic] = hot_subscription(self.node, cls, topic, cb,
+                                            self.qos(topic, kind), raw=True, with_info=True)
+
+    def discover(self):
+        for topic, types in self.node.get_topic_names_and_types():
+            if topic not in self.subs and not topic.startswith("/rosout") \
+                    and not topic.startswith("/parameter_events"):
+                try:
+                    self.subscribe(topic, types[0], kind="found")
+                except (ImportError, AttributeError, KeyError, ValueError):
+                    self.subs[topic] = None  # said once, not every second
+                    self.node.get_logger().warning(f"cannot take {topic}: unknown type "
+                                                   f"{types[0]}")

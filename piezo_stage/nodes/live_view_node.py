@@ -1,0 +1,104 @@
+"""live_view: the running set's topics served to Foxglove over its WebSocket protocol.
+
+Every topic the recorder would take (the contract, plus whatever discovery finds) is
+offered as a Foxglove channel with its ros2msg schema and CDR encoding, so Foxglove
+(or any client of the foxglove.websocket.v1 protocol) decodes sensor_msgs/JointState
+and the rest as it does from a bag: no ROS install is needed on the viewing side, and
+the bytes go out as received (no deserialize/serialize round trip). Data topics are
+taken best-effort, so a slow viewer never holds up the loop's publishers; a topic
+nobody subscribes to costs only the take, and ``max_rate_hz`` thins what is sent per
+topic per wall-clock second (a 1 kHz loop is more than a plot needs). Messages carry their header stamp as
+log time (the set's one clock: simulated time in lockstep, wall clock in real time).
+"""
+
+import time
+
+from foxglove import Channel, Schema, start_server
+from foxglove.websocket import ServerListener
+
+from piezo_stage.io.bag import msgdef
+from piezo_stage.nodes._common import run
+from piezo_stage.nodes._loop import Diagnostics
+from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._tap import TopicTap
+from rclpy.node import Node
+
+
+class _Subscriptions(ServerListener):
+    """Which channels clients subscribe to (for /diagnostics)."""
+
+    def __init__(self):
+        self.active = {}
+
+    def on_subscribe(self, client, channel):
+        self.active[(client.id, channel.id)] = channel.topic
+
+    def on_unsubscribe(self, client, channel):
+        self.active.pop((client.id, channel.id), None)
+
+
+class LiveView(Node):
+    def __init__(self):
+        super().__init__("live_view")
+        host = declare(self, "host", "127.0.0.1", "address the WebSocket server binds "
+                       "(0.0.0.0: every interface; mind who can reach it)")
+        port = declare(self, "port", 8765, "WebSocket port (foxglove.websocket.v1)",
+                       lo=0, hi=65535)
+        self.min_gap_ns = 0
+        declare(self, "max_rate_hz", 200.0, "per topic, at most this many messages per "
+                "wall-clock second to the viewers (0: all)", lo=0.0, hi=1e6, live=self.set_rate)
+        self.set_rate(self.get_parameter("max_rate_hz").value)
+        self.hot_batch_s = declare(self, "batch_period_s", 0.01, "wait between takes [s] "
+                                   "(off the loop's path)", lo=0.0, hi=1.0,
+                                   live=lambda v: setattr(self, "hot_batch_s", v))
+        self.channels, self.last_ns, self.sent = {}, {}, 0
+        # the contract's channels exist before the server listens: a client's first
+        # subscription then never races a channel's registration (the SDK advertises a
+        # channel made while a client is connected a moment before it accepts it)
+        self.tap = TopicTap(self, self.add_topic, self.forward, best_effort=True)
+        self.listener = _Subscriptions()
+        self.server = start_server(name=f"piezo_stage {self.get_namespace()}", host=host,
+                                   port=port, server_listener=self.listener)
+        self.url = f"ws://{host}:{self.server.port}"
+        self.get_logger().info(f"live view on {self.url} (Foxglove: Open connection, "
+                               "Foxglove WebSocket)")
+        Diagnostics(self, self.status, "live view")
+
+    def set_rate(self, hz):
+        self.min_gap_ns = int(1e9 / hz) if hz > 0 else 0
+
+    def add_topic(self, topic, msgtype, kind):
+        self.channels[topic] = Channel(topic, message_encoding="cdr", schema=Schema(
+            name=msgtype, encoding="ros2msg", data=msgdef(msgtype).encode()))
+
+    def forward(self, topic, data, stamp_ns, info):
+        ch = self.channels[topic]
+        if not ch.has_sinks():
+            return  # nobody watches this topic
+        # thinned on the wall clock (the viewer's), whatever the set's clock runs at: by
+        # arrival time, since the messages of one batch are taken together
+        now = info.get("received_timestamp") or time.time_ns()
+        if self.min_gap_ns and now - self.last_ns.get(topic, -(2 ** 62)) < self.min_gap_ns:
+            return
+        self.last_ns[topic] = now
+        t = stamp_ns if stamp_ns is not None else self.get_clock().now().nanoseconds
+        ch.log(bytes(data), log_time=t)
+        self.sent += 1
+
+    def status(self):
+        watched = sorted(set(self.listener.active.values()))
+        return 0, (f"serving {len(self.channels)} topics on {self.url}; "
+                   f"{len(watched)} watched"), {
+            "url": self.url, "messages_sent": self.sent, "topics": len(self.channels),
+            "watched": ", ".join(watched)}
+
+    def close(self):
+        self.server.stop()
+
+
+def main(args=None):
+    return run(LiveView, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
