@@ -36,6 +36,7 @@ setup(
         "matplotlib>=3.7",
         "rosbags>=0.10",
         "tqdm>=4.60",  # progress of the long commands, on a terminal only
+        "threadpoolctl>=3",  # the gap diagnosis: one BLAS thread per axis thread
     ],
     extras_require={
         # rclpy and the messages come from the ros-jazzy-* wheels; a full ROS install

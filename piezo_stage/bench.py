@@ -430,13 +430,41 @@ def bench_gap(seeds=3):
         if r["verdict"] != r["truth"]:
             print(f"  miss: {r['family']}/{r['truth']} seed {r['seed']} -> {r['verdict']} "
                   f"({r['reason']})")
-    # the speed target: a 35 s record at 5 kHz, two axes
+    with bar("bench gap: two effects at once", total=len(gap_blind.PAIRS) * 2,
+             unit=" cases") as b:
+        multi = gap_blind.run_multi(seeds=2, progress=steps(b))
+    exact = sum(r["named"] == r["truth"] for r in multi)
+    print(f"\n  two effects at once (own simulator, 1 kHz, both axes): the named set exactly "
+          f"right on {exact}/{len(multi)} axis records = {100 * exact / len(multi):.0f} % "
+          f"(target >= 80 %)")
+    for r in multi:
+        if r["named"] != r["truth"]:
+            print(f"  miss: {'+'.join(sorted(r['truth']))} seed {r['seed']} axis {r['axis']}"
+                  f" -> {sorted(r['named']) or r['verdict']} ({r['reason']})")
+    # speed: a 35 s record at 5 kHz, two axes, against the code before this change
+    # measured on this machine (per axis 18.2 s with one effect; the 36 s per
+    # single-effect case)
     fit, hold = gap_blind.make_pair("creep", "own", 0, fs=5000.0)
     t0 = time.perf_counter()
     diagnose(fit, hold)
     dt = time.perf_counter() - t0
-    print(f"\n  speed: {fit.t[-1]:.1f} s record at 5 kHz, two axes: {dt:.1f} s "
-          f"(target <= 60 s: {'met' if dt <= 60 else 'NOT met'})")
+    print(f"\n  speed: {fit.t[-1]:.1f} s record at 5 kHz, two axes, one effect: {dt:.1f} s "
+          f"(target <= 10 s: {'met' if dt <= 10 else 'NOT met'})")
+    effects = {"creep": {"gamma": 0.04}, "delay": {"delay_s": 0.0008},
+               "dynamics": {"kind": "resonance", "fn_hz": 600.0, "zeta": 0.08}}
+    fit, hold = gap_blind.make_multi_pair(effects, 1, fs=5000.0, coupling=True)
+    t0 = time.perf_counter()
+    res = diagnose(fit, hold)
+    dt = time.perf_counter() - t0
+    print(f"  speed: the same with our stage's creep, 600 Hz resonance, 0.8 ms delay and "
+          f"coupling: {dt:.1f} s (target <= 20 s: {'met' if dt <= 20 else 'NOT met'})")
+    for a, d in res["axes"].items():
+        b = d["budget"]
+        print(f"    axis {a}: named " + ", then ".join(
+            s["effect"] + (f" (or {'/'.join(s['equally_well'])})" if s["equally_well"] else "")
+            for s in d["effects"]) + f"; held-out gap {b['gap_um']:.3f} -> "
+            f"{b['unexplained_um']:.3f} um ({100 * (1 - b['unexplained_um'] / b['gap_um']):.0f}"
+            " % shrink, target >= 80 %)")
     return 0
 
 

@@ -241,15 +241,15 @@ def cmd_gap(args):
     from piezo_stage.io.records import load_record
     fit = load_record(args.fit)
     hold = load_record(args.holdout) if args.holdout else None
-    base = None
+    base, base_effects = None, None
     if args.model:
         from piezo_stage.io.model_file import load_model
-        base = load_model(args.model)[0]
+        base, base_effects = load_model(args.model)
     if hold is not None and set(fit.w) != set(hold.w):
         raise DataError(f"FIT has axes {sorted(fit.w)} but HOLDOUT has {sorted(hold.w)}")
     from piezo_stage.progress import bar, steps
     with bar("gap: candidate fits", unit=" fits") as b:
-        res = diagnose(fit, hold, base_model=base,
+        res = diagnose(fit, hold, base_model=base, base_effects=base_effects,
                        axes=None if args.axis == "both" else [args.axis], progress=steps(b))
     per = res.pop("_diagnoses")
     print(f"verdict: {res['verdict']} ({res['reason']})")
@@ -262,6 +262,17 @@ def cmd_gap(args):
     print(f"where: axis {res['where']['axis']}, band {res['where']['band_hz'][0]:g}-"
           f"{res['where']['band_hz'][1]:g} Hz, segment {res['where']['segment']}; noise floor "
           f"{res['noise_floor_um']:.4f} um; {res['seconds']:.1f} s")
+    for a, d in per.items():
+        if d.effects:
+            print(f"effects {a} (in the order added): " + ", ".join(
+                f"{s['effect']} (gap {s['gap_after_um']:.4f} um)" for s in d.effects))
+        b = d.budget
+        expl = ", ".join(f"{k} {v:.4f}" for k, v in b["explained_um"].items()) or "nothing"
+        print(f"budget {a} [um]: residual {b['residual_rms_um']:.4f} = noise "
+              f"{b['noise_floor_um']:.4f} + input-locked {b['input_locked_um']:.4f} + not "
+              f"input-locked {b['not_input_locked_um']:.4f} in quadrature (closure "
+              f"{b['closure_pct']:+.1f} %); gap {b['gap_um']:.4f}: explained {expl}, "
+              f"unexplained {b['unexplained_um']:.4f}")
     if args.json:
         with atomic_write(args.json) as fh:
             json.dump(res, fh, indent=1, default=float)
@@ -272,22 +283,26 @@ def cmd_gap(args):
     if args.out_model:
         from piezo_stage.core.duhem import StageModel
         from piezo_stage.io.model_file import save_model
-        axes, coupling, effects = {}, {}, {}
+        axes, coupling, effects, weight = {}, {}, {}, {}
         for a, d in per.items():
-            c = d.candidates.get(d.verdict, d.candidates["none"])
+            c = d.model or d.candidates["none"]
             main, coup = c.reg.models(c.alphas, c.theta)
             axes[a] = main
             if coup is not None:
                 coupling[a] = coup
-            eff = c.model_effect()
-            if eff:
-                effects.setdefault(c.effect, {"axes": []})
-                effects[c.effect].update(eff)
-                effects[c.effect]["axes"].append(a)
+            # every kept effect; the file holds one parameter set per effect, so where
+            # both axes have it, the set of the axis where it explains the most
+            for name, params in c.model_effects().items():
+                e = effects.setdefault(name, {"axes": []})
+                e["axes"].append(a)
+                w = d.budget.get("explained_um", {}).get(name, 0.0)
+                if w >= weight.get(name, -1.0):
+                    weight[name] = w
+                    e.update(params)
         lim = (min(0.0, min(float(fit.v[a].min()) for a in axes)),
                max(150.0, max(float(fit.v[a].max()) for a in axes)))
         save_model(args.out_model, StageModel(axes, coupling, lim), effects=effects or None)
-        print(f"model with the found effect: {args.out_model}")
+        print(f"model with the found effects: {args.out_model}")
     return 0
 
 

@@ -373,7 +373,8 @@ def test_package_xml_declares_what_the_code_imports():
            "numba": "python3-numba", "matplotlib": "python3-matplotlib",
            "tqdm": "python3-tqdm", "mcap": "python3-mcap-pip",
            "rosbags": "python3-rosbags-pip", "nidaqmx": "python3-nidaqmx-pip",
-           "foxglove": "python3-foxglove-sdk-pip", "websockets": "python3-websockets"}
+           "foxglove": "python3-foxglove-sdk-pip", "websockets": "python3-websockets",
+           "threadpoolctl": "python3-threadpoolctl"}
     std = set(sys.stdlib_module_names) | {"piezo_stage", "piezo_stage_msgs_adapters"}
     files = [os.path.join(d, f) for base in ("piezo_stage", "piezo_stage_msgs_adapters",
                                              "launch")

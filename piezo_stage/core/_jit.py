@@ -364,3 +364,69 @@ def branch_rms_batch(v, w_meas, starts, stops, v_init, w_init, alpha, H, out):
                 vp = vk
         out[c] = np.sqrt(acc / max(cnt, 1)) if np.isfinite(acc) else 1e300
     return out
+
+
+@njit
+def iir_columns(b, a, X, out):
+    """Filter every column of X (N, p) from rest by b/a (a[0] = 1; direct form II
+    transposed, any low order): the effect operators on the regressors. scipy's
+    lfilter along axis 0 walks a row-major array with a stride; this walks it once."""
+    n, p = X.shape
+    order = max(b.shape[0], a.shape[0]) - 1
+    bb = np.zeros(order + 1)
+    aa = np.zeros(order + 1)
+    bb[:b.shape[0]] = b
+    aa[:a.shape[0]] = a
+    z = np.zeros((order + 1, p))
+    for k in range(n):
+        for j in range(p):
+            x = X[k, j]
+            y = bb[0] * x + z[0, j]
+            for i in range(1, order + 1):
+                z[i - 1, j] = bb[i] * x - aa[i] * y + z[i, j]
+            out[k, j] = y
+    return out
+
+
+@njit
+def lowpass_mean_columns(poles, X, out):
+    """The mean of first-order low-passes y = (1 - p) x + p y_prev over ``poles``, of
+    every column of X from rest, in one pass (the creep operator's slow part)."""
+    n, p = X.shape
+    m = poles.shape[0]
+    y = np.zeros((m, p))
+    for k in range(n):
+        for j in range(p):
+            x = X[k, j]
+            acc = 0.0
+            for i in range(m):
+                y[i, j] = (1.0 - poles[i]) * x + poles[i] * y[i, j]
+                acc += y[i, j]
+            out[k, j] = acc / m
+    return out
+
+
+@njit
+def hold_runs_kernel(v, tol, need, out):
+    """Stretches of at least ``need`` samples over which v stays within ``tol`` (its
+    whole excursion, not sample to sample): writes (start, stop) pairs to out (rows),
+    returns how many."""
+    n = v.shape[0]
+    count = 0
+    if n == 0:
+        return 0
+    start, lo, hi = 0, v[0], v[0]
+    for k in range(1, n + 1):
+        if k < n:
+            lo2 = min(lo, v[k])
+            hi2 = max(hi, v[k])
+            if hi2 - lo2 <= tol:
+                lo, hi = lo2, hi2
+                continue
+        if k - start >= need:
+            out[count, 0] = start
+            out[count, 1] = k
+            count += 1
+        if k < n:
+            start, lo, hi = k, v[k], v[k]
+    return count

@@ -32,9 +32,10 @@ from scipy.optimize import minimize, minimize_scalar
 from piezo_stage.core.duhem import OTHER
 from piezo_stage.core.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.identify.api import check_identifiable
+from piezo_stage.core.identify.api import check_identifiable, free_response
 from piezo_stage.core.identify.fast import fit_fast
-from piezo_stage.core.identify.regress import DuhemRegression
+from piezo_stage.core.identify.regress import (DuhemRegression, gram, gram_blocks,
+                                               solve_gram)
 from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.metrics import noise_floor, rms
 from piezo_stage.core.record import Record
@@ -44,8 +45,14 @@ CREEP_TAUS = (0.05, 0.5, 5.0, 50.0)
 MIN_HOLD_S = 1.0
 
 
+TRANSFORMS = ("creep", "dynamics", "delay")  # linear time-invariant: they commute
+
+
 @dataclass
 class Candidate:
+    """A fitted model: the Duhem base and ``effects`` [(name, params)] in the order
+    they were added (``effect`` is the last one, "none" for the base alone)."""
+
     effect: str
     params: dict
     alphas: np.ndarray
@@ -54,6 +61,8 @@ class Candidate:
     fit_rms_um: float
     op: object = None              # callable X -> E(X) (columns) or None
     drift_tau_s: float | None = None
+    effects: list = field(default_factory=list)
+    reg_fs: float = 0.0            # the rate of the record it was fitted on [Hz]
 
     def predict(self, rec: Record, axis: str):
         """Prediction on another record; initial state and offset re-estimated."""
@@ -64,20 +73,20 @@ class Candidate:
         st0 = main.initial.__class__(float(v[0]), 0.0)
         base, _ = main.simulate(v, st0)
         a, _ = main.kernel_params()
-        dv = np.diff(v, prepend=v[0])
-        free = np.cumprod(1.0 / (1.0 + np.where(dv >= 0, a[0], a[1]) * np.abs(dv)))
-        cols = [base, free]
+        cols = [base, free_response(v, a)]
         if coup is not None:
             # the coupling term from its fitted state (its constant part is tied to its
             # f_0), plus its own free response, re-estimated like the main one
             ac, _ = coup.kernel_params()
-            dvo = np.diff(v_other, prepend=v_other[0])
             cols[0] = base + coup.simulate(v_other, coup.initial.__class__(
                 float(v_other[0]), coup.initial.w))[0]
-            cols.append(np.cumprod(1.0 / (1.0 + np.where(dvo >= 0, ac[0], ac[1]) * np.abs(dvo))))
+            cols.append(free_response(v_other, ac))
         cols = np.column_stack(cols)
-        if self.op is not None:
-            cols = self.op(cols)
+        # the effects at the record's own rate (HOLDOUT need not share FIT's)
+        op = self.op if rec.fs_hz == self.reg_fs else _compose(
+            [effect_operator(n, rec.fs_hz, p) for n, p in self.effects if n in TRANSFORMS])
+        if op is not None:
+            cols = op(cols)
         fixed = cols[:, 0]
         if self.drift_tau_s is not None:
             k = len(self.theta) - 2
@@ -90,6 +99,11 @@ class Candidate:
         """The effect as model-file / plant parameters (None for none and coupling)."""
         return None if self.effect in ("none", "coupling") else dict(self.params)
 
+    def model_effects(self) -> dict:
+        """Every kept effect as model-file / plant parameters {name: params} (coupling
+        is in the Duhem model itself)."""
+        return {n: dict(p) for n, p in self.effects if n not in ("none", "coupling")}
+
 
 def _search_1d(f, lo, hi, n_grid=12, log=False):
     g = np.geomspace(lo, hi, n_grid) if log else np.linspace(lo, hi, n_grid)
@@ -100,95 +114,156 @@ def _search_1d(f, lo, hi, n_grid=12, log=False):
     return (r.x, r.fun) if r.fun <= vals[i] else (g[i], vals[i])
 
 
-def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = None):
-    """Fit the base model and one effect together on rec. Returns a Candidate."""
+def effect_operator(name: str, fs: float, params: dict):
+    """The column operator (X -> E(X)) of a transform effect with these parameters."""
+    if name == "creep":
+        return Creep(fs, gamma=params["gamma"], tau_s=params.get("tau_s", CREEP_TAUS)).apply
+    if name == "delay":
+        return Delay(fs, delay_s=params["delay_s"]).apply
+    if name == "dynamics":
+        return Dynamics(fs, **params).apply
+    raise ValueError(f"{name} is not a transform effect")
+
+
+def _compose(ops):
+    ops = [o for o in ops if o is not None]
+    if not ops:
+        return None
+    if len(ops) == 1:
+        return ops[0]
+
+    def op(X):
+        for o in ops:
+            X = o(X)
+        return X
+    return op
+
+
+def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = None,
+                  kept=()):
+    """Fit the Duhem model, the effects already ``kept`` ([(name, params)], their
+    parameters fixed) and ``effect`` (its parameters searched) together on rec. The
+    transform effects are linear and time invariant, so they commute: the new one is
+    searched on the kept ones' output. Returns a Candidate."""
     v, w = rec.v[axis], rec.w[axis]
     fs = rec.fs_hz
-    v_other = rec.v.get(OTHER[axis]) if effect == "coupling" else None
+    names = [n for n, _ in kept] + [effect]
+    v_other = rec.v.get(OTHER[axis]) if "coupling" in names else None
     reg = DuhemRegression(v, w, "segmented", v_other=v_other)
-    if effect in ("none", "coupling"):
-        if effect == "coupling":  # the base's alphas, plus one for the coupling term
-            x0 = np.append(base.alphas, base.alphas.mean())
-            alphas, fit, _ = fit_fast(reg, budget=60, x0=x0)
-        else:
-            alphas, fit, _ = fit_fast(reg, budget=100, grid=11)
-        return Candidate(effect, {}, alphas, fit.theta, reg, fit.rms)
-    alphas = base.alphas
-    params, op, tau = {}, None, None
-    if effect == "drift":
+    tau = None
+    if "drift" in names:
         tau = max(rec.t[-1] - rec.t[0], 1.0) / 3.0
         reg.extra = Drift.columns(len(v), fs, tau)
-    else:
-        def make(p):
-            if effect == "creep":
-                return Creep(fs, gamma=p, tau_s=CREEP_TAUS).apply
-            if effect == "delay":
-                return Delay(fs, delay_s=p).apply
-            raise AssertionError
+    fixed_op = _compose([effect_operator(n, fs, p) for n, p in kept if n in TRANSFORMS])
+    reg.transform = fixed_op
+    if effect == "none" or base is None:
+        alphas, fit, _ = fit_fast(reg, budget=100, grid=11)
+        return Candidate(effect, {}, alphas, fit.theta, reg, fit.rms, fixed_op, tau,
+                         _with_drift(list(kept), reg, fit.theta, tau), fs)
+    alphas = np.asarray(base.alphas, float)
+    params = {}
+    if effect == "coupling" and base.reg.v_other is None:
+        alphas = np.append(alphas, alphas.mean())
+    elif effect in TRANSFORMS:
+        # the kept operators applied once for these alphas; the new effect's parameter
+        # search then filters only what it must (creep: once in all)
+        KX = reg.design(alphas)
+        KX = fixed_op(KX) if fixed_op is not None else KX.copy()
+        extra = [] if reg.extra is None else [reg.extra]
 
-        def obj_for(mk):
-            def f(p):
-                try:
-                    reg.transform = mk(p)
-                except ValueError:
-                    return 1e300
-                return reg.solve(alphas).rms
-            return f
+        def solve(cols):
+            return solve_gram(*gram_blocks([cols] + extra, w), len(w)).rms
 
         if effect == "creep":
-            g, _ = _search_1d(obj_for(make), 0.0, 0.3)
-            params, op = {"gamma": float(g), "tau_s": list(CREEP_TAUS)}, make(g)
+            F = Creep(fs, tau_s=CREEP_TAUS).fast_part(KX)
+            g, _ = _search_1d(lambda g: solve(KX - g * F), 0.0, 0.3)
+            params = {"gamma": float(g), "tau_s": list(CREEP_TAUS)}
         elif effect == "delay":
-            d, _ = _search_1d(obj_for(make), 0.0, min(0.02, 50 / fs), n_grid=21)
-            params, op = {"delay_s": float(d)}, make(d)
-        else:  # dynamics: resonance or lag, keep the better
-            nyq = fs / 2
-            res_f = obj_for(lambda p: Dynamics(fs, "resonance", fn_hz=float(np.exp(p[0])),
-                                               zeta=float(np.exp(p[1]))).apply)
-            best = (np.inf, None)
-            for fn in np.geomspace(5.0, nyq / 1.25, 10):
-                for z in (0.03, 0.15, 0.6):
-                    val = res_f((np.log(fn), np.log(z)))
-                    if val < best[0]:
-                        best = (val, (np.log(fn), np.log(z)))
-            r = minimize(res_f, best[1], method="Nelder-Mead",
-                         options={"maxfev": 40, "xatol": 1e-3})
-            x = r.x if r.fun < best[0] else best[1]
-            fn, z = float(np.exp(x[0])), float(np.exp(x[1]))
-            if not fn < nyq / 1.01:
-                fn = nyq / 1.05
-            lag_f = obj_for(lambda tau: Dynamics(fs, "lag", tau_s=tau).apply)
-            tau_l, lag_val = _search_1d(lag_f, 0.2 / fs, 0.1, log=True)
-            if lag_val < min(r.fun, best[0]):
-                params = {"kind": "lag", "tau_s": float(tau_l)}
-                op = Dynamics(fs, "lag", tau_s=tau_l).apply
-            else:
-                params = {"kind": "resonance", "fn_hz": fn, "zeta": z}
-                op = Dynamics(fs, "resonance", fn_hz=fn, zeta=z).apply
-        reg.transform = op
-    # the alphas again, with the effect in place (base and effect fitted together)
-    alphas, fit, _ = fit_fast(reg, budget=25, x0=alphas, step=0.2)
-    if effect == "drift":
-        k = len(fit.theta) - 2
-        params = {"rate_um_per_s": float(fit.theta[k]), "amplitude_um": float(fit.theta[k + 1]),
-                  "tau_s": float(tau)}
-    return Candidate(effect, params, alphas, fit.theta, reg, fit.rms, op, tau)
+            d, _ = _search_1d(lambda d: solve(Delay(fs, delay_s=d).apply(KX)), 0.0,
+                              min(0.02, 50 / fs), n_grid=15)
+            params = {"delay_s": float(d)}
+        else:
+            params = _search_dynamics(fs, lambda p: solve(Dynamics(fs, **p).apply(KX)))
+        reg.transform = _compose([fixed_op, effect_operator(effect, fs, params)])
+    # the alphas again, with the effect in place (base and effects fitted together)
+    alphas, fit, _ = fit_fast(reg, budget=20, x0=alphas, step=0.2)
+    effects = _with_drift(list(kept) + [(effect, params)], reg, fit.theta, tau)
+    params = dict(effects[-1][1])
+    return Candidate(effect, params, alphas, fit.theta, reg, fit.rms, reg.transform, tau,
+                     effects, fs)
+
+
+def _with_drift(effects, reg, theta, tau):
+    """The drift's fitted rate and amplitude (its coefficients come last in theta)."""
+    out = []
+    for n, p in effects:
+        if n == "drift":
+            k = len(theta) - 2
+            p = {"rate_um_per_s": float(theta[k]), "amplitude_um": float(theta[k + 1]),
+                 "tau_s": float(tau)}
+        out.append((n, p))
+    return out
+
+
+def _search_dynamics(fs, cost):
+    """A resonance (fn, zeta) or a first-order lag (tau), whichever fits better."""
+    nyq = fs / 2
+
+    def res_f(x):
+        try:
+            return cost({"kind": "resonance", "fn_hz": float(np.exp(x[0])),
+                         "zeta": float(np.exp(x[1]))})
+        except ValueError:  # above Nyquist
+            return 1e300
+    best = (np.inf, None)
+    for fn in np.geomspace(5.0, nyq / 1.25, 8):
+        for z in (0.03, 0.15, 0.6):
+            val = res_f((np.log(fn), np.log(z)))
+            if val < best[0]:
+                best = (val, (np.log(fn), np.log(z)))
+    r = minimize(res_f, best[1], method="Nelder-Mead", options={"maxfev": 30, "xatol": 1e-3})
+    x = r.x if r.fun < best[0] else best[1]
+    fn, z = float(np.exp(x[0])), float(np.exp(x[1]))
+    if not fn < nyq / 1.01:
+        fn = nyq / 1.05
+    tau_l, lag_val = _search_1d(lambda tau: cost({"kind": "lag", "tau_s": tau}), 0.2 / fs,
+                                0.1, n_grid=9, log=True)
+    if lag_val < min(r.fun, best[0]):
+        return {"kind": "lag", "tau_s": float(tau_l)}
+    return {"kind": "resonance", "fn_hz": fn, "zeta": z}
 
 
 def _gap(r, nf):
     return float(np.sqrt(max(r * r - nf * nf, 0.0)))
 
 
+def hold_runs(v, fs, min_s=0.2, tol_frac=1e-3):
+    """The holds of ``v``: [(start, stop)] sample ranges of at least ``min_s`` seconds
+    over which the voltage stays within ``tol_frac`` of its span (the whole stretch,
+    not sample to sample: a slow sine's turning points and a staircase DAC output move
+    on, and are not holds)."""
+    from piezo_stage.core._jit import hold_runs_kernel
+    v = np.ascontiguousarray(v, dtype=float)
+    if v.size == 0:
+        return []
+    tol = tol_frac * max(float(np.ptp(v)), 1e-12)
+    need = max(int(round(min_s * fs)), 1)
+    out = np.empty((v.size // need + 1, 2), np.int64)
+    n = hold_runs_kernel(v, tol, need, out)
+    return [(int(a), int(b)) for a, b in out[:n]]
+
+
+def held(v, fs, min_s=0.2, tol_frac=1e-3):
+    """Mask of the samples inside holds (see ``hold_runs``)."""
+    mask = np.zeros(len(v), bool)
+    for a, b in hold_runs(v, fs, min_s, tol_frac):
+        mask[a:b] = True
+    return mask
+
+
 def holds(v, fs, min_s=MIN_HOLD_S):
-    """Lengths [s] of the stretches where the voltage stays put (within 0.1 % span)."""
-    dv = np.abs(np.diff(v))
-    still = dv <= 1e-3 * max(np.ptp(v), 1e-12)
-    out, run = [], 0
-    for s in still:
-        run = run + 1 if s else 0
-        if run == int(min_s * fs):
-            out.append(run)
-    return out
+    """Lengths [s] of the holds of at least ``min_s`` seconds (see ``hold_runs``)."""
+    return [(b - a) / fs for a, b in hold_runs(v, fs, min_s)]
 
 
 def where(rec: Record, axis: str, resid, nf):
@@ -220,8 +295,9 @@ def where(rec: Record, axis: str, resid, nf):
     except DataError:
         turn = np.zeros(len(v), bool)
         labels = np.sign(dv)
-    still = np.abs(dv) <= 1e-3 * max(np.ptp(v), 1e-12)
-    parts = {"ascending": (labels > 0) & ~turn & ~still, "descending": (labels < 0) & ~turn & ~still,
+    still = held(v, fs)
+    parts = {"ascending": (labels > 0) & ~turn & ~still,
+             "descending": (labels < 0) & ~turn & ~still,
              "turning_points": turn & ~still, "holds": still}
     seg_rms = {k: rms(resid[m]) for k, m in parts.items() if m.sum() > 10}
     out["segment_rms_um"] = seg_rms
@@ -266,12 +342,43 @@ class AxisDiagnosis:
     where: dict
     noise_floor_um: float
     candidates: dict = field(default_factory=dict)
+    effects: list = field(default_factory=list)    # forward selection: kept, in order
+    budget: dict = field(default_factory=dict)
+    model: Candidate | None = None                   # the model with every kept effect
+
+
+FIRST_SHRINK_PCT = 30.0  # the dominant effect must close this much of the held-out gap
+STEP_SHRINK_PCT = 15.0   # each further effect this much of what is left
+
+
+def _significant(rms_a, rms_b, nf, n):
+    """A held-out improvement counts when it is well above what chance gives on this
+    many samples (the MSE of white noise fluctuates by nf^2 sqrt(2/N))."""
+    return rms_a ** 2 - rms_b ** 2 > max(0.05 * nf ** 2, 10 * nf ** 2 * np.sqrt(2.0 / n))
+
+
+def _given_effects(base_model, base_effects, axis):
+    """What the user's model already has on this axis: never a candidate, and part of
+    every candidate's fit. -> [(name, params)]."""
+    out = []
+    if base_model is None or axis not in base_model.axes:
+        return out
+    if axis in base_model.coupling:
+        out.append(("coupling", {}))
+    for name, p in (base_effects or {}).items():
+        p = dict(p or {})
+        if axis in p.pop("axes", ["x", "y"]) and name in TRANSFORMS + ("drift",):
+            out.append((name, p))
+    return out
 
 
 def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
-                  base_model=None, progress=None) -> AxisDiagnosis:
-    """Fit every candidate on FIT, score on HOLDOUT, decide. ``base_model`` (a
-    StageModel) replaces the FIT-identified Duhem model as the sim to compare with.
+                  base_model=None, progress=None, base_effects=None) -> AxisDiagnosis:
+    """Fit every candidate on FIT, score on HOLDOUT, then add effects one at a time
+    (forward selection, each refitted jointly with the Duhem model and the effects
+    kept before it) while the held-out gap keeps shrinking clearly. ``base_model`` (a
+    StageModel, with ``base_effects`` from its file) replaces the FIT-identified Duhem
+    model as the sim to compare with; what it already has is not a candidate.
     ``progress(what)`` is called after each candidate is fitted."""
     progress = progress or (lambda what="": None)
     for rec in (fit, holdout):
@@ -279,70 +386,195 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
             raise DataError(f"{rec.source}: no v{axis}/w{axis} for axis {axis}")
         check_identifiable(rec.v[axis], rec.source)
     notes = []
-    base = fit_candidate(fit, axis, "none")
-    progress(f"{axis} none")
-    cands = {"none": base}
+    given = _given_effects(base_model, base_effects, axis)
+    testable = []
     for e in effects:
+        if e in [n for n, _ in given]:
+            continue  # the sim has it already
         if e == "coupling":
             vo_f, vo_h = fit.v.get(OTHER[axis]), holdout.v.get(OTHER[axis])
             if vo_f is None or vo_h is None or np.ptp(vo_f) < 1.0:
                 notes.append("coupling not tested: the other axis's voltage does not move")
                 continue
-        cands[e] = fit_candidate(fit, axis, e, base)
+        testable.append(e)
+    base = fit_candidate(fit, axis, "none", kept=given)
+    progress(f"{axis} none")
+    cands = {"none": base}
+    for e in testable:
+        cands[e] = fit_candidate(fit, axis, e, base, base.effects)
         progress(f"{axis} {e}")
     nf = noise_floor(holdout.w[axis])
     w_h = holdout.w[axis]
+    n = len(w_h)
     sim = GivenModel(base_model) if base_model is not None and axis in base_model.axes \
         else base
-    r_before = rms(sim.predict(holdout, axis) - w_h)
+    resid = sim.predict(holdout, axis) - w_h
+    r_before = rms(resid)
     g_before = _gap(r_before, nf)
+    scores = {e: rms(c.predict(holdout, axis) - w_h) for e, c in cands.items()}
     ranking = []
     for e, c in cands.items():
-        r_after = rms(c.predict(holdout, axis) - w_h)
-        g_after = _gap(r_after, nf)
-        ranking.append({"effect": e, "rms_before_um": r_before, "rms_after_um": r_after,
+        g_after = _gap(scores[e], nf)
+        ranking.append({"effect": e, "rms_before_um": r_before, "rms_after_um": scores[e],
                         "gap_before_um": g_before, "gap_after_um": g_after,
                         "shrink_pct": 100.0 * (1 - g_after / g_before) if g_before > 0 else 0.0,
                         "fit_rms_um": c.fit_rms_um, "params": c.params})
     ranking.sort(key=lambda r: r["gap_after_um"])
-    resid = sim.predict(holdout, axis) - w_h
+    # forward selection: the best candidate joins when it shrinks the held-out gap
+    # clearly; the rest are refitted with it in place and tried again
+    steps, model, r_cur = [], None, r_before
+    # an effect that explains nothing on its own (under 1 % of the base model's excess
+    # over the noise) is not refitted in later rounds: it stays in the ranking
+    g_none = _gap(scores["none"], nf)
+    pool = {e: cands[e] for e in testable
+            if g_none ** 2 - _gap(scores[e], nf) ** 2 > 0.01 * g_none ** 2}
+    while pool:
+        e, c = min(pool.items(), key=lambda kv: scores[kv[0]])
+        g_cur, g_new = _gap(r_cur, nf), _gap(scores[e], nf)
+        need = (50.0 if g_before <= 0.5 * nf else FIRST_SHRINK_PCT) if not steps \
+            else STEP_SHRINK_PCT
+        step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
+        if not (_significant(r_cur, scores[e], nf, n) and step >= need):
+            break
+        # what fits as well at this step (the excitation cannot tell them apart)
+        alike = [e2 for e2 in pool if e2 != e and _gap(scores[e2], nf) <=
+                 1.02 * g_new + 0.02 * (g_cur - g_new)]
+        steps.append({"effect": e, "params": c.params, "rms_after_um": scores[e],
+                      "gap_after_um": g_new, "step_shrink_pct": step,
+                      "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
+                      "equally_well": alike})
+        model, r_cur = c, scores[e]
+        del pool[e]
+        if g_new <= 0.5 * nf:
+            break  # at the noise floor: nothing left to explain
+        for e2 in list(pool):
+            pool[e2] = fit_candidate(fit, axis, e2, model, model.effects)
+            scores[e2] = rms(pool[e2].predict(holdout, axis) - w_h)
+            progress(f"{axis} {'+'.join(x['effect'] for x in steps)}+{e2}")
+    if model is not None:  # each effect's parameters as finally refitted (drift's)
+        final = dict(model.effects)
+        for st in steps:
+            st["params"] = final.get(st["effect"], st["params"])
     loc = where(holdout, axis, resid, nf)
-    verdict, reason = _decide(ranking, g_before, nf, fit, holdout, axis)
+    verdict, reason = _decide(ranking, steps, g_before, nf, fit, holdout, axis)
+    if verdict in ("none", "inconclusive"):
+        steps, model = [], None
     if notes:
         reason = (reason + "; " if reason else "") + "; ".join(notes)
-    return AxisDiagnosis(axis, verdict, reason, ranking, loc, nf, cands)
+    budget = gap_budget(holdout, axis, resid, nf, g_before, steps)
+    return AxisDiagnosis(axis, verdict, reason, ranking, loc, nf, cands, steps, budget,
+                         model)
 
 
-def _decide(ranking, g_before, nf, fit, holdout, axis):
+def _decide(ranking, steps, g_before, nf, fit, holdout, axis):
+    """The verdict: the first (dominant) effect forward selection kept, unless the
+    excitation cannot tell it from another."""
     eff = [r for r in ranking if r["effect"] != "none"]
     if not eff:
         return "inconclusive", "no candidate effect could be tested"
-    best = eff[0]
-    # a held-out improvement counts when it is well above what chance gives on this
-    # many samples (the MSE of white noise fluctuates by nf^2 sqrt(2/N))
-    n = len(holdout.t)
-    gain = best["rms_before_um"] ** 2 - best["rms_after_um"] ** 2
-    significant = gain > max(0.05 * nf ** 2, 10 * nf ** 2 * np.sqrt(2.0 / n))
-    if g_before <= 0.5 * nf and not (significant and best["shrink_pct"] >= 50.0):
-        return "none", f"the residual is at the noise floor (gap {g_before:.3g} um, " \
-                       f"noise {nf:.3g} um)"
-    if best["shrink_pct"] < 30.0:
+    if not steps:
+        if g_before <= 0.5 * nf:
+            return "none", f"the residual is at the noise floor (gap {g_before:.3g} um, " \
+                           f"noise {nf:.3g} um)"
+        best = eff[0]
         return "inconclusive", (f"no candidate closes the gap ({g_before:.3g} um): best "
                                 f"{best['effect']} shrinks it by {best['shrink_pct']:.0f} %")
-    if best["effect"] in ("creep", "drift"):
+    first = steps[0]["effect"]
+    if first in ("creep", "drift"):
         if not holds(fit.v[axis], fit.fs_hz) or not holds(holdout.v[axis], holdout.fs_hz):
             return "inconclusive", (f"no holds longer than {MIN_HOLD_S:g} s: creep cannot be "
                                     "separated from drift")
-    if len(eff) > 1 and eff[1]["gap_after_um"] <= best["gap_after_um"] * 1.02 + 1e-3 and \
-            eff[1]["shrink_pct"] >= 30.0:
-        return "inconclusive", (f"{best['effect']} and {eff[1]['effect']} explain the gap "
+    kept = [s["effect"] for s in steps]
+    if len(eff) > 1 and eff[1]["gap_after_um"] <= eff[0]["gap_after_um"] * 1.02 + 1e-3 and \
+            eff[1]["shrink_pct"] >= FIRST_SHRINK_PCT and eff[1]["effect"] not in kept:
+        return "inconclusive", (f"{eff[0]['effect']} and {eff[1]['effect']} explain the gap "
                                 "equally well on this excitation")
-    return best["effect"], f"{best['effect']} shrinks the held-out gap by " \
-                           f"{best['shrink_pct']:.0f} %"
+    said = ", then ".join(f"{s['effect']} to {s['gap_after_um']:.3g} um" + (
+        f" ({' or '.join(s['equally_well'])} as well: not separable on this excitation)"
+        if s["equally_well"] and i else "") for i, s in enumerate(steps))
+    return first, (f"{first} shrinks the held-out gap by {steps[0]['shrink_pct']:.0f} %"
+                   + (f"; with {said} ({steps[-1]['shrink_pct']:.0f} % in all)"
+                      if len(steps) > 1 else ""))
+
+
+# -- the gap budget ------------------------------------------------------------------
+
+LOCK_ALPHAS = (3e-3, 0.03, 0.3)       # 1/V: hysteretic operators of the input
+LOCK_TAUS = (0.003, 0.05, 1.0)         # s: their slow (creep-like, dynamic) responses
+RIDGES = (1e-6, 1e-4, 1e-2, 1.0)      # on unit-norm features, chosen by cross-validation
+
+
+def input_locked(v, v_other, fs, resid):
+    """The part of ``resid`` that a rich hysteretic and dynamic function of the inputs
+    (``v`` and ``v_other`` [V], sampled at ``fs``) predicts, two-fold cross-validated
+    on the record itself (fitted on one fold, predicted on the other), so it holds
+    what repeats with the input and not noise. -> that component (like resid)."""
+    from piezo_stage.core._jit import duhem_regressors, lowpass_mean_columns
+    from piezo_stage.core.identify.regress import _basis
+    cols = []
+    for u in (v, v_other):
+        if u is None or np.ptp(u) <= 0:
+            continue
+        u = np.ascontiguousarray(u, dtype=float)
+        B = _basis(u, float(u.min()), float(u.max()), 3)
+        for alpha in LOCK_ALPHAS:
+            X = duhem_regressors(u, float(u[0]), np.array([alpha, alpha]), B, B,
+                                 np.empty((len(u), 2 * 4 + 1)))
+            cols.append(X[:, :-1])
+        cols.append(B)
+    H = np.ascontiguousarray(np.hstack(cols))
+    slow = [lowpass_mean_columns(np.array([np.exp(-1.0 / (fs * tau))]), H,
+                                 np.empty_like(H)) for tau in LOCK_TAUS]
+    F = np.hstack([H] + slow + [np.ones((len(resid), 1))])
+    # folds of alternating 1 s blocks: both see every part of the excitation (each
+    # axis is driven alone in turn: halves would train on one and predict the other)
+    block = np.arange(len(resid)) // max(int(fs), 1) % 2 == 0
+    scale = np.sqrt(np.clip(np.einsum("ij,ij->j", F, F), 1e-30, None))
+    folds = [(gram(F[tr] / scale, resid[tr])[:2], tr) for tr in (block, ~block)]
+    # ridge: the features overlap (that is what makes them rich), and a fit meant to
+    # predict the other fold must not extrapolate along directions its own fold
+    # barely saw; its weight is the one that predicts the other fold best
+    best = (np.inf, None)
+    for ridge in RIDGES:
+        pred = np.empty_like(resid)
+        for (G, b), tr in folds:
+            pred[~tr] = (F[~tr] / scale) @ np.linalg.solve(G + ridge * np.eye(len(G)), b)
+        err = float(np.mean((resid - pred) ** 2))
+        if err < best[0]:
+            best = (err, pred)
+    return best[1]
+
+
+def gap_budget(holdout: Record, axis: str, resid, nf, g_before, steps) -> dict:
+    """Where the held-out residual goes [um]: the noise floor; the part locked to the
+    input (cross-validated, ``input_locked``) and the rest above the noise; what each
+    kept effect explains (the drop of the gap, in quadrature) and what is left. The
+    parts add in quadrature: noise^2 + locked^2 + not_locked^2 against residual^2
+    (``closure_pct`` says how closely), and explained^2 + unexplained^2 = gap^2."""
+    # the budget's split at <= 1 kHz: the hysteretic features do not depend on the
+    # rate and white noise keeps its per-sample level, so a subsampled record says the
+    # same at a fraction of the cost
+    k = max(1, int(holdout.fs_hz // 1000))
+    centred = (resid - resid.mean())[::k]
+    vo = holdout.v.get(OTHER[axis])
+    r = rms(centred)
+    rest = rms(centred - input_locked(holdout.v[axis][::k], None if vo is None else vo[::k],
+                                      holdout.fs_hz / k, centred))
+    il = float(np.sqrt(max(r * r - rest * rest, 0.0)))
+    nil = _gap(rest, nf)
+    explained, g_prev = {}, g_before
+    for s in steps:
+        explained[s["effect"]] = float(np.sqrt(max(g_prev ** 2 - s["gap_after_um"] ** 2, 0)))
+        g_prev = s["gap_after_um"]
+    total = np.sqrt(nf ** 2 + il ** 2 + nil ** 2)
+    return {"residual_rms_um": rms(resid), "noise_floor_um": nf, "gap_um": g_before,
+            "input_locked_um": il, "not_input_locked_um": nil,
+            "explained_um": explained, "unexplained_um": g_prev,
+            "closure_pct": 100.0 * (total / r - 1.0) if r > 0 else 0.0}
 
 
 def diagnose(fit: Record, holdout: Record | None = None, effects=EFFECTS, axes=None,
-             base_model=None, progress=None) -> dict:
+             base_model=None, progress=None, base_effects=None) -> dict:
     """The --json contract (see the module docstring and the README). ``progress(what)``
     is called after each candidate fit (from the axes' threads)."""
     t0 = time.perf_counter()
@@ -358,15 +590,21 @@ def diagnose(fit: Record, holdout: Record | None = None, effects=EFFECTS, axes=N
     # the axes are independent problems; the compiled loops, lfilter and BLAS release
     # the GIL, so two threads use both cores
     from concurrent.futures import ThreadPoolExecutor
-    with ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
+
+    from threadpoolctl import threadpool_limits
+    # one BLAS thread per axis thread: two of each on two cores fight (~20 % slower)
+    with threadpool_limits(1 if len(axes) > 1 else None), \
+            ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
         futures = {a: pool.submit(diagnose_axis, fit, holdout, a, effects, base_model,
-                                  progress) for a in axes}
+                                  progress, base_effects) for a in axes}
         per = {a: f.result() for a, f in futures.items()}
     worst = max(per.values(), key=lambda d: d.ranking[0]["gap_before_um"])
     out = {"verdict": worst.verdict, "reason": worst.reason, "ranking": worst.ranking,
            "where": worst.where, "noise_floor_um": worst.noise_floor_um,
+           "effects": worst.effects, "budget": worst.budget,
            "axes": {a: {"verdict": d.verdict, "reason": d.reason, "ranking": d.ranking,
-                        "where": d.where, "noise_floor_um": d.noise_floor_um}
+                        "where": d.where, "noise_floor_um": d.noise_floor_um,
+                        "effects": d.effects, "budget": d.budget}
                     for a, d in per.items()},
            "holdout_is_fit": holdout is fit,
            "seconds": time.perf_counter() - t0}

@@ -40,15 +40,37 @@ def write_report(out_dir, result, holdout):
                   ", ".join(f"{k} {v:.3f}" for k, v in wh['amplitude_rms_um'].items()) + " um" +
                   (f", correlation with the other axis's input {wh['corr_other_input']:.2f}"
                    if "corr_other_input" in wh else "") + ".", ""]
+        if d.effects:
+            lines += ["Effects kept, in the order added (each refitted with the ones "
+                      "before it, scored on the held-out record):", "",
+                      "| effect | gap after um | shrink of the whole gap % | parameters |",
+                      "|---|---|---|---|"]
+            for st in d.effects:
+                params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                   for k, v in st["params"].items())
+                lines.append(f"| {st['effect']} | {st['gap_after_um']:.4f} | "
+                             f"{st['shrink_pct']:.1f} | {params} |")
+            lines.append("")
+        b = d.budget
+        if b:
+            lines += ["Gap budget (um, parts add in quadrature):", "",
+                      f"- held-out residual {b['residual_rms_um']:.4f} = noise floor "
+                      f"{b['noise_floor_um']:.4f} + locked to the input "
+                      f"{b['input_locked_um']:.4f} + not locked to the input "
+                      f"{b['not_input_locked_um']:.4f} (closure {b['closure_pct']:+.1f} %)",
+                      f"- gap {b['gap_um']:.4f}: explained " + (", ".join(
+                          f"{k} {v:.4f}" for k, v in b["explained_um"].items()) or "nothing")
+                      + f"; unexplained {b['unexplained_um']:.4f}", ""]
         base = d.candidates["none"]
-        best = d.candidates.get(d.ranking[0]["effect"], base)
+        best = d.model or d.candidates.get(d.ranking[0]["effect"], base)
         w = holdout.w[axis]
         pb = base.predict(holdout, axis)
         pa = best.predict(holdout, axis)
         t = holdout.t
         fig, ax = plt.subplots(2, 2, figsize=(12, 7))
         ax[0, 0].plot(t, w - pb, lw=0.4, label="before (base model)")
-        ax[0, 0].plot(t, w - pa, lw=0.4, label=f"after ({best.effect})")
+        after = "+".join(n for n, _ in best.effects) or best.effect
+        ax[0, 0].plot(t, w - pa, lw=0.4, label=f"after ({after})")
         ax[0, 0].set(xlabel="time [s]", ylabel="measured - model [um]", title="residual")
         ax[0, 0].legend()
         for r, lab in ((w - pb, "before"), (w - pa, "after")):

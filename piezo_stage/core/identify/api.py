@@ -97,17 +97,20 @@ def check_identifiable(v, source="record"):
     return seg
 
 
+def free_response(v, alpha):
+    """The Duhem output's response to its initial value (w0 = 1): the running product
+    of 1 / (1 + alpha |dv|), alpha = (ascending, descending) [1/V]."""
+    dv = np.diff(v, prepend=v[0])
+    return np.cumprod(1.0 / (1.0 + np.where(dv >= 0, alpha[0], alpha[1]) * np.abs(dv)))
+
+
 def simulate_axis(model, coupling, v, v_other, w_meas=None):
     """Model output over a record; with w_meas, the initial output is re-estimated
     (the Duhem state is the output itself: one least-squares scalar)."""
     if w_meas is not None:
         st = DuhemState(float(v[0]), 0.0)
         base, _ = model.simulate(v, st)
-        # free response to w0 = 1: the product of 1/(1 + alpha |dv|)
-        alpha, _ = model.kernel_params()
-        dv = np.diff(v, prepend=v[0])
-        a = np.where(dv >= 0, alpha[0], alpha[1])
-        free = np.cumprod(1.0 / (1.0 + a * np.abs(dv)))
+        free = free_response(v, model.kernel_params()[0])
         wc = 0.0
         if coupling is not None:
             wc, _ = coupling.simulate(v_other)

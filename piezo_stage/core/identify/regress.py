@@ -42,7 +42,37 @@ def _to_power(c, lo, hi):
 class Fit:
     theta: np.ndarray
     rms: float
-    pred: np.ndarray
+
+
+def gram(X, w):
+    """(X'X, X'w, w'w): all a least-squares fit needs. One pass of BLAS over the tall
+    matrix; every later step is p x p."""
+    return X.T @ X, X.T @ w, float(w @ w)
+
+
+def gram_blocks(blocks, w):
+    """``gram`` of the columns side by side, without building the wide matrix."""
+    if len(blocks) == 1:
+        return gram(blocks[0], w)
+    rows = [[bi.T @ bj for bj in blocks] for bi in blocks]
+    return np.block(rows), np.concatenate([bi.T @ w for bi in blocks]), float(w @ w)
+
+
+def solve_gram(G, b, ww, n) -> Fit:
+    """The least-squares solution from the normal equations, on unit-norm columns (the
+    Legendre basis keeps them well conditioned); a minimum-norm solve of the small
+    system where they are not. RMS from r'r = w'w - 2 theta'b + theta'G theta."""
+    scale = np.sqrt(np.clip(np.diag(G), 0.0, None))
+    scale[scale == 0] = 1.0
+    Gs = G / np.outer(scale, scale)
+    bs = b / scale
+    if np.linalg.cond(Gs) < 1e12:
+        ts = np.linalg.solve(Gs, bs)
+    else:
+        ts = np.linalg.lstsq(Gs, bs, rcond=1e-13)[0]
+    theta = ts / scale
+    rr = ww - 2.0 * theta @ b + theta @ G @ theta
+    return Fit(theta, float(np.sqrt(max(rr, 0.0) / n)))
 
 
 class DuhemRegression:
@@ -91,6 +121,7 @@ class DuhemRegression:
         self._X = np.empty((self.v.size, 2 * (self.D + 1) + 1))
         if self.v_other is not None:
             self._Xo = np.empty((self.v.size, 2 * (self.cdeg + 1) + 1))
+            self._Xc = np.empty((self.v.size, 2 * (self.cdeg + 1) + self.cstate))
 
     @property
     def n_alpha(self):
@@ -99,54 +130,66 @@ class DuhemRegression:
     def _main_columns(self, a_asc, a_desc):
         X = duhem_regressors(self.v, self.v[0], np.array([a_asc, a_desc]), self.B, self.B,
                              self._X)
+        if self.structure != "whole":
+            return X  # already (ascending, descending, free): no copy
         d1 = self.D + 1
         Xa, Xd, free = X[:, :d1], X[:, d1:2 * d1], X[:, -1:]
-        if self.structure == "whole":
-            # theta = (f_0..f_n, g_0..g_m): rising sees f + g, falling g - f
-            cols = [Xa[:, :self.n + 1] - Xd[:, :self.n + 1], Xa[:, :self.m + 1] + Xd[:, :self.m + 1]]
-        else:
-            cols = [Xa, Xd]
-        return np.hstack(cols + [free])
+        # theta = (f_0..f_n, g_0..g_m): rising sees f + g, falling g - f
+        return np.hstack([Xa[:, :self.n + 1] - Xd[:, :self.n + 1],
+                          Xa[:, :self.m + 1] + Xd[:, :self.m + 1], free])
 
     def _coupling_columns(self, a_c):
         X = duhem_regressors(self.v_other, self.v_other[0], np.array([a_c, a_c]), self.Bo,
                              self.Bo, self._Xo)
         d1 = self.cdeg + 1
-        Xa, Xd, free = X[:, :d1], X[:, d1:2 * d1], X[:, -1:]
-        return np.hstack([Xa - Xd, Xa + Xd] + ([free] if self.cstate else []))
+        Xa, Xd = X[:, :d1], X[:, d1:2 * d1]
+        out = self._Xc
+        np.subtract(Xa, Xd, out=out[:, :d1])
+        np.add(Xa, Xd, out=out[:, d1:2 * d1])
+        if self.cstate:
+            out[:, -1] = X[:, -1]
+        return out
 
-    def design(self, alphas):
+    def blocks(self, alphas):
+        """The regressor columns for these alphas as blocks [main, coupling] (the main
+        block is a buffer reused by the next call: use or copy it before then)."""
         alphas = np.atleast_1d(np.asarray(alphas, float))
         if self.structure == "whole":
-            X = self._main_columns(alphas[0], alphas[0])
+            out = [self._main_columns(alphas[0], alphas[0])]
         else:
-            X = self._main_columns(alphas[0], alphas[1])
+            out = [self._main_columns(alphas[0], alphas[1])]
         if self.v_other is not None:
-            X = np.hstack([X, self._coupling_columns(alphas[-1])])
-        return X
+            out.append(self._coupling_columns(alphas[-1]))
+        return out
+
+    def design(self, alphas):
+        """The regressor columns (N, p) for these alphas."""
+        b = self.blocks(alphas)
+        return b[0] if len(b) == 1 else np.hstack(b)
+
+    def column_blocks(self, alphas):
+        """Every column of the fit for these alphas, in blocks: design blocks
+        transformed, then the extra columns."""
+        out = self.blocks(alphas)
+        if self.transform is not None:
+            out = [self.transform(b) for b in out]
+        if self.extra is not None:
+            out.append(self.extra)
+        return out
+
+    def columns(self, alphas):
+        """Every column of the fit for these alphas: design, transformed, extra."""
+        b = self.column_blocks(alphas)
+        return b[0] if len(b) == 1 else np.hstack(b)
 
     def solve(self, alphas) -> Fit:
         """Exact least squares in the coefficients for these alphas."""
         self.evaluations += 1
-        X = self.design(alphas)
-        if self.transform is not None:
-            X = self.transform(X)
-        if self.extra is not None:
-            X = np.hstack([X, self.extra])
-        scale = np.linalg.norm(X, axis=0)
-        scale[scale == 0] = 1.0
-        Xs = X / scale
-        # normal equations on unit-norm columns (Legendre basis: well conditioned, and
-        # 10x faster than a QR of the tall matrix); a QR solve when they are not
-        G = Xs.T @ Xs
-        if np.linalg.cond(G) < 1e12:
-            theta = np.linalg.solve(G, Xs.T @ self.w)
-        else:
-            theta, *_ = np.linalg.lstsq(Xs, self.w, rcond=None)
-        theta = theta / scale
-        pred = X @ theta
-        r = pred - self.w
-        return Fit(theta, float(np.sqrt(np.mean(r * r))), pred)
+        return solve_gram(*gram_blocks(self.column_blocks(alphas), self.w), len(self.w))
+
+    def predict(self, alphas, theta):
+        """The fitted output for these alphas and coefficients [um]."""
+        return self.columns(alphas) @ theta
 
     def models(self, alphas, theta):
         """(main DuhemModel, coupling DuhemModel or None) in power coefficients [V]."""
