@@ -273,6 +273,12 @@ def cmd_gap(args):
               f"input-locked {b['not_input_locked_um']:.4f} in quadrature (closure "
               f"{b['closure_pct']:+.1f} %); gap {b['gap_um']:.4f}: explained {expl}, "
               f"unexplained {b['unexplained_um']:.4f}")
+        if b.get("disturbance"):
+            x = b["disturbance"]
+            print(f"disturbance {a}: {x['rms_um']:.4f} um at {x['freq_hz']:.1f} Hz (band "
+                  f"{x['band_hz'][0]:.1f}-{x['band_hz'][1]:.1f} Hz), not caused by the "
+                  f"input; feedback bandwidth to reject it: >= "
+                  f"{x['feedback_bandwidth_hz']:.0f} Hz")
     if args.json:
         with atomic_write(args.json) as fh:
             json.dump(res, fh, indent=1, default=float)

@@ -1,23 +1,30 @@
 """Sim-to-real gap diagnosis: where the simulator and the stage disagree, which
-unmodelled effect causes it, and how far the gap shrinks once that effect is added.
+unmodelled effects cause it, and how far the gap shrinks once they are added.
 
 Base model ("the sim"): the segmented Duhem model per axis, identified on FIT (or
-given). Candidates, each a small physical operator from core/effects.py added to the
-sim and fitted on FIT *together with* the Duhem coefficients (the effect operator is
-linear, so E(X theta) = E(X) theta: for fixed alphas and effect parameters it is one
-least-squares problem; the effect's own parameters are searched):
+given: then what it has is not a candidate). Candidates, each a small physical
+operator from core/effects.py added to the sim and fitted on FIT *together with* the
+Duhem coefficients (the effect operator is linear, so E(X theta) = E(X) theta: for
+fixed alphas and effect parameters it is one least-squares problem; the effect's own
+parameters are searched):
 
-    creep     w = E_creep(H(v)), log-like relaxation bank, gamma searched
-    dynamics  w = G(s) H(v), resonance (fn, zeta) or lag (tau), the better of the two
-    delay     w(t) = H(v)(t - d), d searched
-    drift     w = H(v) + a t + b (1 - exp(-t / tau)), input independent
-    coupling  w = H(v) + H_c(v_other), a Duhem term driven by the other axis
-    none      the base model alone
+    creep      w = E_creep(H(v)), log-like relaxation bank, gamma searched
+    dynamics   w = G(s) H(v), resonance (fn, zeta) or lag (tau), the better of the two
+    delay      w(t) = H(v)(t - d), d searched
+    drift      w = H(v) + a t + b (1 - exp(-t / tau)), input independent
+    coupling   w = H(v) + H_c(v_other), a Duhem term driven by the other axis
+    structure  H with richer branch polynomials (the hysteresis's own shape)
+    none       the base model alone
 
 Every candidate is scored on HOLDOUT (a different record): the initial Duhem state
 and a constant sensor offset are re-estimated there, the same for all. The gap is the
-part of the residual above the noise floor, sqrt(max(rms^2 - nf^2, 0)); shrink =
-100 (1 - gap_after / gap_before).
+part of the residual above the floor (the noise, and a disturbance line if any),
+sqrt(max(rms^2 - floor^2, 0)); shrink = 100 (1 - gap_after / gap_before). Effects join
+one at a time (forward selection, each refitted with those before it) while the
+held-out gap keeps shrinking clearly. The budget splits the held-out residual into
+noise, input-locked and not input-locked parts, and the gap into what each kept
+effect explains and what is left; a disturbance (a line the input does not cause) is
+reported with the feedback bandwidth that rejects it.
 """
 
 from __future__ import annotations
@@ -40,7 +47,8 @@ from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.metrics import noise_floor, rms
 from piezo_stage.core.record import Record
 
-EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling")
+EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
+STRUCTURE_DEGREE = (5, 5)  # the richer branch polynomials of the "structure" class
 CREEP_TAUS = (0.05, 0.5, 5.0, 50.0)
 MIN_HOLD_S = 1.0
 
@@ -97,12 +105,14 @@ class Candidate:
 
     def model_effect(self):
         """The effect as model-file / plant parameters (None for none and coupling)."""
-        return None if self.effect in ("none", "coupling") else dict(self.params)
+        return None if self.effect in ("none", "coupling", "structure") \
+            else dict(self.params)
 
     def model_effects(self) -> dict:
         """Every kept effect as model-file / plant parameters {name: params} (coupling
         is in the Duhem model itself)."""
-        return {n: dict(p) for n, p in self.effects if n not in ("none", "coupling")}
+        return {n: dict(p) for n, p in self.effects
+                if n not in ("none", "coupling", "structure")}
 
 
 def _search_1d(f, lo, hi, n_grid=12, log=False):
@@ -149,7 +159,10 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     fs = rec.fs_hz
     names = [n for n, _ in kept] + [effect]
     v_other = rec.v.get(OTHER[axis]) if "coupling" in names else None
-    reg = DuhemRegression(v, w, "segmented", v_other=v_other)
+    # structure: the hysteresis itself needs a richer branch shape (more polynomial
+    # terms); the extra freedom is kept only if it pays on HOLDOUT, like any effect
+    deg = STRUCTURE_DEGREE if "structure" in names else (3, 2)
+    reg = DuhemRegression(v, w, "segmented", n=deg[0], m=deg[1], v_other=v_other)
     tau = None
     if "drift" in names:
         tau = max(rec.t[-1] - rec.t[0], 1.0) / 3.0
@@ -164,6 +177,8 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     params = {}
     if effect == "coupling" and base.reg.v_other is None:
         alphas = np.append(alphas, alphas.mean())
+    elif effect == "structure":
+        params = {"degree": STRUCTURE_DEGREE[0]}
     elif effect in TRANSFORMS:
         # the kept operators applied once for these alphas; the new effect's parameter
         # search then filters only what it must (creep: once in all)
@@ -349,6 +364,9 @@ class AxisDiagnosis:
 
 FIRST_SHRINK_PCT = 30.0  # the dominant effect must close this much of the held-out gap
 STEP_SHRINK_PCT = 15.0   # each further effect this much of what is left
+NOISE_STOP = 0.6         # a gap under this share of the noise floor is at the floor
+                         # (the residual within 17 % of the noise RMS, which is itself
+                         # estimated from the data)
 
 
 def _significant(rms_a, rms_b, nf, n):
@@ -386,6 +404,9 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
             raise DataError(f"{rec.source}: no v{axis}/w{axis} for axis {axis}")
         check_identifiable(rec.v[axis], rec.source)
     notes = []
+    if holdout is fit:
+        notes.append("no HOLDOUT: scored on FIT itself, where extra freedom is not "
+                     "penalised (record the excitation twice)")
     given = _given_effects(base_model, base_effects, axis)
     testable = []
     for e in effects:
@@ -410,11 +431,15 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
         else base
     resid = sim.predict(holdout, axis) - w_h
     r_before = rms(resid)
-    g_before = _gap(r_before, nf)
+    # a line the input does not cause (a floor vibration) is no model's to close: for
+    # choosing effects it counts with the noise (the gap is what a model could close)
+    dist0 = disturbance(holdout, axis, resid, nf)
+    floor = float(np.hypot(nf, dist0["rms_um"])) if dist0 else nf
+    g_before = _gap(r_before, floor)
     scores = {e: rms(c.predict(holdout, axis) - w_h) for e, c in cands.items()}
     ranking = []
     for e, c in cands.items():
-        g_after = _gap(scores[e], nf)
+        g_after = _gap(scores[e], floor)
         ranking.append({"effect": e, "rms_before_um": r_before, "rms_after_um": scores[e],
                         "gap_before_um": g_before, "gap_after_um": g_after,
                         "shrink_pct": 100.0 * (1 - g_after / g_before) if g_before > 0 else 0.0,
@@ -423,30 +448,41 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
     # forward selection: the best candidate joins when it shrinks the held-out gap
     # clearly; the rest are refitted with it in place and tried again
     steps, model, r_cur = [], None, r_before
-    # an effect that explains nothing on its own (under 1 % of the base model's excess
-    # over the noise) is not refitted in later rounds: it stays in the ranking
-    g_none = _gap(scores["none"], nf)
-    pool = {e: cands[e] for e in testable
-            if g_none ** 2 - _gap(scores[e], nf) ** 2 > 0.01 * g_none ** 2}
+    # (every candidate stays in: one that explains nothing on its own, as creep
+    # beside a larger coupling, can show once the larger one is modelled)
+    pool = {e: cands[e] for e in testable}
     while pool:
         e, c = min(pool.items(), key=lambda kv: scores[kv[0]])
-        g_cur, g_new = _gap(r_cur, nf), _gap(scores[e], nf)
-        need = (50.0 if g_before <= 0.5 * nf else FIRST_SHRINK_PCT) if not steps \
+        g_cur, g_new = _gap(r_cur, floor), _gap(scores[e], floor)
+        need = (50.0 if g_before <= 0.5 * floor else FIRST_SHRINK_PCT) if not steps \
             else STEP_SHRINK_PCT
         step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
-        if not (_significant(r_cur, scores[e], nf, n) and step >= need):
+        if not steps and step < need and len(pool) > 1 and g_before > 0.5 * floor:
+            # two effects of similar size: neither alone closes 30 %, the two best
+            # together may (each must then still earn its place as a later step)
+            e2 = sorted(pool, key=scores.get)[1]
+            pair = fit_candidate(fit, axis, e2, c, c.effects)
+            progress(f"{axis} {e}+{e2}")
+            r_pair = rms(pair.predict(holdout, axis) - w_h)
+            g_pair = _gap(r_pair, floor)
+            if 100.0 * (1 - g_pair / g_cur) >= need and _significant(r_cur, r_pair, floor, n) \
+                    and 100.0 * (1 - g_pair / g_new) >= STEP_SHRINK_PCT:
+                need = 0.0  # the first of a pair that closes the gap together
+        if not (_significant(r_cur, scores[e], floor, n) and step >= need):
             break
         # what fits as well at this step (the excitation cannot tell them apart)
-        alike = [e2 for e2 in pool if e2 != e and _gap(scores[e2], nf) <=
+        alike = [e2 for e2 in pool if e2 != e and _gap(scores[e2], floor) <=
                  1.02 * g_new + 0.02 * (g_cur - g_new)]
+        if steps and len(alike) >= 2 and len(alike) == len(pool) - 1:
+            break  # every candidate helps alike: the refit helps, not any one effect
         steps.append({"effect": e, "params": c.params, "rms_after_um": scores[e],
                       "gap_after_um": g_new, "step_shrink_pct": step,
                       "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
                       "equally_well": alike})
         model, r_cur = c, scores[e]
         del pool[e]
-        if g_new <= 0.5 * nf:
-            break  # at the noise floor: nothing left to explain
+        if g_new <= NOISE_STOP * floor:
+            break  # at the noise floor (itself estimated): nothing left to explain
         for e2 in list(pool):
             pool[e2] = fit_candidate(fit, axis, e2, model, model.effects)
             scores[e2] = rms(pool[e2].predict(holdout, axis) - w_h)
@@ -456,12 +492,25 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
         for st in steps:
             st["params"] = final.get(st["effect"], st["params"])
     loc = where(holdout, axis, resid, nf)
-    verdict, reason = _decide(ranking, steps, g_before, nf, fit, holdout, axis)
+    verdict, reason = _decide(ranking, steps, g_before, floor, fit, holdout, axis)
     if verdict in ("none", "inconclusive"):
         steps, model = [], None
     if notes:
         reason = (reason + "; " if reason else "") + "; ".join(notes)
+    final = (model.predict(holdout, axis) - w_h) if model is not None else resid
+    dist = disturbance(holdout, axis, final, nf)
     budget = gap_budget(holdout, axis, resid, nf, g_before, steps)
+    budget["disturbance"] = dist
+    g_left = budget["unexplained_um"]
+    if dist is not None and (not steps or dist["rms_um"] >= g_left):
+        # what is left is mostly a line no model of the input removes
+        said = (f"disturbance: {dist['rms_um']:.3g} um at {dist['freq_hz']:.1f} Hz, not "
+                f"caused by the input (reject it with >= {dist['feedback_bandwidth_hz']:.0f}"
+                " Hz of feedback bandwidth)")
+        if verdict == "none":
+            verdict, reason = "disturbance", said
+        else:
+            reason += "; what is left is a " + said
     return AxisDiagnosis(axis, verdict, reason, ranking, loc, nf, cands, steps, budget,
                          model)
 
@@ -543,6 +592,95 @@ def input_locked(v, v_other, fs, resid):
         if err < best[0]:
             best = (err, pred)
     return best[1]
+
+
+PEAK_RATIO = 20.0   # a narrowband line: this many times the residual's median PSD
+
+
+def disturbance(rec: Record, axis: str, resid, nf):
+    """Motion the input does not cause: the strongest narrow line in the residual's
+    spectrum away from where the inputs have power (their tones, harmonics and step
+    edges), when it stands clear of the residual's own floor. No model can remove it
+    on held-out data, so it is reported with its size and band and the feedback
+    bandwidth that would reject it (10x its frequency: |S| ~ f / f_bw, 20 dB).
+    -> {freq_hz, band_hz, rms_um, feedback_bandwidth_hz} or None."""
+    fs = rec.fs_hz
+    r = resid - resid.mean()
+    nper = int(min(len(r), 2 ** int(np.ceil(np.log2(max(fs * 4, 256))))))
+    f, P = signal.welch(r, fs=fs, nperseg=nper)
+    df = f[1] - f[0]
+    quiet = np.ones(len(f), bool)
+    for key in (axis, OTHER[axis]):
+        u = rec.v.get(key)
+        if u is None or np.ptp(u) <= 0:
+            continue
+        _, Pu = signal.welch(u - u.mean(), fs=fs, nperseg=nper)
+        quiet &= Pu < 1e-4 * Pu.max()  # where the input has (next to) no power
+        # and away from the harmonics of its tones (a hysteresis mismatch puts lines
+        # there, caused by the input though the input has no power at them)
+        # the input's tones, found at 1 Hz resolution (a tone played for a second or
+        # two is spread over many fine bins), then placed on the fine ones: +-5 %
+        # around each (the sidebands of a tone switched on and off) and +-1 % around
+        # its harmonics, where a hysteresis mismatch puts lines
+        fc, Pc = signal.welch(u - u.mean(), fs=fs, nperseg=int(min(len(u), fs)))
+        peaks, _ = signal.find_peaks(Pc, prominence=1e-3 * Pc.max())
+        for coarse in fc[peaks][fc[peaks] >= 0.5]:
+            near = np.abs(f - coarse) <= 1.0      # the tone, to the fine resolution
+            tone = float(f[near][np.argmax(Pu[near])])
+            quiet &= np.abs(f - tone) > max(0.05 * tone, 1.0)
+            for h in range(2, 11):
+                quiet &= np.abs(f - h * tone) > 3 * df + 0.01 * h * tone
+    quiet[f < 2.0] = False             # drift and creep live there
+    if quiet.sum() < 20:
+        return None
+    floor = float(np.median(P[quiet]))
+    low = f >= 2.0
+    # where both inputs are held the input causes no line at all: a line that is
+    # there too is a disturbance, whatever its frequency (so a vibration on a
+    # harmonic of the excitation is still found); without such holds, only lines
+    # away from the input's tones and harmonics are judged
+    segs = _joint_holds(rec, axis)
+    if segs:
+        cand = signal.find_peaks(np.where(low, P, 0.0), height=PEAK_RATIO * floor)[0]
+        cand = cand[np.argsort(P[cand])[::-1][:5]]
+    else:
+        cand = np.flatnonzero(quiet & (P > PEAK_RATIO * floor))
+        cand = cand[np.argsort(P[cand])[::-1][:1]]
+    for k in cand:
+        lo, hi = max(k - 3, 0), min(k + 4, len(f))
+        size = float(np.sqrt(np.sum(np.clip(P[lo:hi] - floor, 0, None)) * df))
+        if size < 0.1 * nf:
+            continue
+        if segs and _line_rms(r, fs, f[k], segs) < 0.5 * size:
+            continue  # absent while the inputs hold still: the input causes it
+        return {"freq_hz": float(f[k]), "band_hz": [float(f[lo]), float(f[hi - 1])],
+                "rms_um": size, "feedback_bandwidth_hz": 10.0 * float(f[k])}
+    return None
+
+
+def _joint_holds(rec: Record, axis: str, min_s=0.25, total_s=1.0):
+    """Sample ranges where both inputs are held (>= min_s each, >= total_s in all)."""
+    mask = held(rec.v[axis], rec.fs_hz, min_s)
+    vo = rec.v.get(OTHER[axis])
+    if vo is not None and np.ptp(vo) > 0:
+        mask &= held(vo, rec.fs_hz, min_s)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    segs = [(a, b) for a, b in zip(edges[::2], edges[1::2]) if b - a >= min_s * rec.fs_hz]
+    return segs if sum(b - a for a, b in segs) >= total_s * rec.fs_hz else []
+
+
+def _line_rms(r, fs, freq, segs):
+    """RMS of the sinusoid at freq in r over the segments (each fitted on its own:
+    the line's phase need not carry across)."""
+    power, n = 0.0, 0
+    for a, b in segs:
+        t = np.arange(b - a) / fs
+        A = np.column_stack([np.sin(2 * np.pi * freq * t), np.cos(2 * np.pi * freq * t),
+                             np.ones(b - a)])
+        c, *_ = np.linalg.lstsq(A, r[a:b], rcond=None)
+        power += (c[0] ** 2 + c[1] ** 2) / 2 * (b - a)
+        n += b - a
+    return float(np.sqrt(power / n))
 
 
 def gap_budget(holdout: Record, axis: str, resid, nf, g_before, steps) -> dict:

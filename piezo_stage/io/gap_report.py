@@ -60,7 +60,13 @@ def write_report(out_dir, result, holdout):
                       f"{b['not_input_locked_um']:.4f} (closure {b['closure_pct']:+.1f} %)",
                       f"- gap {b['gap_um']:.4f}: explained " + (", ".join(
                           f"{k} {v:.4f}" for k, v in b["explained_um"].items()) or "nothing")
-                      + f"; unexplained {b['unexplained_um']:.4f}", ""]
+                      + f"; unexplained {b['unexplained_um']:.4f}"]
+            if b.get("disturbance"):
+                x = b["disturbance"]
+                lines.append(f"- disturbance (not caused by the input): {x['rms_um']:.4f} "
+                             f"um at {x['freq_hz']:.1f} Hz; feedback bandwidth to reject "
+                             f"it >= {x['feedback_bandwidth_hz']:.0f} Hz")
+            lines.append("")
         base = d.candidates["none"]
         best = d.model or d.candidates.get(d.ranking[0]["effect"], base)
         w = holdout.w[axis]

@@ -100,7 +100,8 @@ def make_pair(kind, family, seed, fs=1000.0):
 # two effects at once (our simulator, magnitudes drawn as for one): the diagnosis
 # must name exactly both, on each axis
 PAIRS = (("creep", "coupling"), ("creep", "dynamics"), ("delay", "coupling"),
-         ("dynamics", "drift"), ("creep", "delay"))
+         ("dynamics", "drift"), ("creep", "delay"), ("creep", "disturbance"),
+         ("coupling", "disturbance"))
 
 
 def make_multi_pair(effects, seed, fs=1000.0, coupling=None, rng=None):
@@ -110,17 +111,23 @@ def make_multi_pair(effects, seed, fs=1000.0, coupling=None, rng=None):
     rng = rng or np.random.default_rng(5000 + seed)
     cfg = copy.deepcopy(load_plant_config(default_plant_config_path()))
     if not isinstance(effects, dict):
-        effects = {e: _own_effect(e, rng, fs) for e in effects if e != "coupling"} | (
-            {"coupling": None} if "coupling" in effects else {})
+        effects = {e: (None if e in ("coupling", "disturbance") else _own_effect(e, rng, fs))
+                   for e in effects}
     if not (coupling if coupling is not None else "coupling" in effects):
         cfg.model.coupling.clear()
-    cfg.effects = {e: p for e, p in effects.items() if e != "coupling"}
+    cfg.effects = {e: p for e, p in effects.items() if e not in ("coupling", "disturbance")}
+    # a floor vibration: one line the input does not cause, on both axes
+    line = (float(rng.uniform(40.0, 0.3 * fs)), float(rng.uniform(0.15, 0.4))) \
+        if "disturbance" in effects else None
     recs = []
     for k in range(2):
         cfg.seed = int(rng.integers(1 << 30))
         t, vx, vy = gap_protocol(fs, seed=cfg.seed)
-        recs.append(Record(t, {"x": vx, "y": vy}, Plant(cfg, fs).run(vx, vy),
-                           source=f"own/{'+'.join(effects)}/{k}"))
+        w = Plant(cfg, fs).run(vx, vy)
+        if line:
+            for a in w:
+                w[a] = w[a] + line[1] * np.sin(2 * np.pi * line[0] * t + rng.uniform(0, 7))
+        recs.append(Record(t, {"x": vx, "y": vy}, w, source=f"own/{'+'.join(effects)}/{k}"))
     return recs
 
 
@@ -134,7 +141,8 @@ def run_multi(seeds=2, fs=1000.0, progress=print):
             res = diagnose(fit, hold)
             for a, d in res["axes"].items():
                 rows.append({"truth": set(pair), "seed": s, "axis": a,
-                             "named": {x["effect"] for x in d["effects"]},
+                             "named": {x["effect"] for x in d["effects"]} | (
+                                 {"disturbance"} if d["budget"]["disturbance"] else set()),
                              "verdict": d["verdict"], "reason": d["reason"],
                              "seconds": time.perf_counter() - t0})
             progress(f"{'+'.join(pair)} seed {s}")
