@@ -227,6 +227,16 @@ def _ring_rate(env, steps=3000):
             p.wait()
 
 
+def _runs(items, desc):
+    """Iterate with a progress bar on a terminal (tqdm; silent otherwise)."""
+    from piezo_stage.progress import bar
+    items = list(items)
+    with bar(desc, total=len(items), unit=" runs") as b:
+        for x in items:
+            yield x
+            b.update(1)
+
+
 def _cpu_ticks():
     """(all, steal) CPU ticks of this machine so far (/proc/stat; zeros elsewhere)."""
     try:
@@ -302,7 +312,7 @@ def bench_loop(steps=3000, runs=3):
     print(f"  baseline ring (3 processes passing one message round, empty callbacks, the "
           f"nodes' lean wait set and raw CDR, no recorder): {ring:.0f} steps/s")
     results = []
-    for k in range(runs):
+    for k in _runs(range(runs), "bench loop: runs"):
         res, err = _loop_run(env, steps)
         if res is None:
             print("  the loop run failed:\n" + err)
@@ -366,7 +376,7 @@ def bench_liveview(steps=6000, pairs=3):
           "the live view (Foxglove WebSocket) and a client watching joint_states, "
           f"alternated, {pairs} pairs")
     plain, watched, rates = [], [], []
-    for k in range(pairs):
+    for k in _runs(range(pairs), "bench liveview: pairs"):
         res, err = _loop_run(env, steps)
         if res is None:
             print("  the loop run failed:\n" + err)

@@ -108,7 +108,8 @@ def bench_realtime(track_s: float = 20.0) -> int:
     print(f"bench realtime: the seed's 10 Hz trajectory for {track_s:g} s, driver (sim at "
           "1 kHz) + feedforward + controller + trajectory + recorder as separate processes")
     out = {}
-    for mode in ("realtime", "lockstep"):
+    from piezo_stage.bench import _runs
+    for mode in _runs(("realtime", "lockstep"), "bench realtime: runs"):
         run, steal, pauses = _run(mode, track_s, env, os.path.join(tmp, mode))
         out[mode] = figures(run, track_s, slew, pauses)
         out[mode]["steal"] = steal

@@ -39,6 +39,7 @@ def test_live_view_serves_decodable_joint_states(tmp_path):
             channel, got = receive(ws, "/stage/joint_states", want=50)
         assert channel is not None, "joint_states was never advertised"
         decode = decoder(channel)
+        check_parameters(env)
     finally:
         la.stop()
     assert not la.failed
@@ -60,6 +61,28 @@ def test_live_view_serves_decodable_joint_states(tmp_path):
     span_s = (stamps[-1] - stamps[0]) * 1e-9
     assert len(stamps) - 1 <= 200 * span_s * 1.1 + 2, (len(stamps), span_s)
     assert len(stamps) - 1 >= 1000 * span_s / 20  # thinned, not starved
+
+
+def check_parameters(env):
+    """From an outside node, as `ros2 param` does: only max_rate_hz and batch_period_s
+    are writable (and applied); the port refuses a set as read-only."""
+    from rcl_interfaces.srv import DescribeParameters, ListParameters
+    from piezo_stage.launch.probe import Probe, _param_call_raw, set_params
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # as the nodes'
+    probe = Probe(int(env["ROS_DOMAIN_ID"]))
+    try:
+        names = _param_call_raw(probe, "/stage/live_view", "list_parameters",
+                                ListParameters, names=[], depth=0).result.names
+        names = [n for n in names if not n.startswith("qos_overrides")]
+        descs = _param_call_raw(probe, "/stage/live_view", "describe_parameters",
+                                DescribeParameters, names=names).descriptors
+        assert {x.name for x in descs if not x.read_only} - {"use_sim_time"} == \
+            {"max_rate_hz", "batch_period_s"}
+        assert set_params(probe, "/stage/live_view", max_rate_hz=50.0) == [(True, "")]
+        ok, why = set_params(probe, "/stage/live_view", port=1)[0]
+        assert not ok and "read-only" in why.lower()
+    finally:
+        probe.close()
 
 
 def test_launch_refuses_a_bad_port():

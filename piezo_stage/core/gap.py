@@ -479,6 +479,16 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
                       "gap_after_um": g_new, "step_shrink_pct": step,
                       "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
                       "equally_well": alike})
+        # polish the kept model's alphas fully, so that what the next candidates earn
+        # is theirs and not a better alpha search riding along
+        alphas, fitted, _ = fit_fast(c.reg, budget=40, x0=c.alphas, step=0.1)
+        if fitted.rms < c.fit_rms_um:
+            c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
+            c.effects = _with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
+            scores[e] = rms(c.predict(holdout, axis) - w_h)
+            g_new = _gap(scores[e], floor)
+            steps[-1].update(rms_after_um=scores[e], gap_after_um=g_new,
+                             shrink_pct=100.0 * (1 - g_new / g_before) if g_before else 0.0)
         model, r_cur = c, scores[e]
         del pool[e]
         if g_new <= NOISE_STOP * floor:

@@ -140,19 +140,29 @@ def _drain(hot):
     """On shutdown, what had already arrived is still handed over (the recorder's last
     few milliseconds)."""
     try:
-        _take_all(hot)
+        _take_all(hot, limit=None)
     except Exception:  # noqa: BLE001 - the middleware may be gone already
         pass
 
 
-def _take_all(hot):
+TAKE_LIMIT = 256  # messages per subscription per pass of the lean loop
+
+
+def _take_all(hot, limit=TAKE_LIMIT):
+    """Dispatch what has arrived, at most ``limit`` messages per subscription (None:
+    all): a node that falls behind its input still gives the executor (services,
+    parameters, timers) and its tick their turn, instead of taking forever."""
     for h, msg_type, raw, callback, info in hot:
+        n = 0
         taken = h.take_message(msg_type, raw)
         while taken is not None:
             if info:
                 callback(taken[0], taken[1])
             else:
                 callback(taken[0])
+            n += 1
+            if limit is not None and n >= limit:
+                break
             taken = h.take_message(msg_type, raw)
 
 

@@ -19,7 +19,7 @@ from piezo_stage.io.plant_file import default_config_dir, enabled_effects
 from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics, Gate
-from piezo_stage_msgs_adapters import joint_state_to_um, point_msg
+from piezo_stage_msgs_adapters import joint_state_to_um, point_cdr
 from rclpy.node import Node
 
 
@@ -62,7 +62,7 @@ class Gap(Node):
         r = {a: r[a] - self.offset[a] for a in r}
         for a in r:
             self.res[a].append(r[a])
-        self.gate.publish(self.pub, point_msg(ns, r))
+        self.gate.publish(self.pub, point_cdr(ns, r))  # raw CDR: no message object
 
     def status(self):
         vals = {f"rms_{a}_um": float(np.sqrt(np.mean(np.square(x)))) if x else float("nan")
