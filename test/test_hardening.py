@@ -194,8 +194,9 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path):
             probe.spin(0.2)
         assert probe.wait(lambda: int(diag.get("feedforward", {}).get(
             "rejected_models", 0)) >= 3, 10), diag.get("feedforward")
+        # (a generous wait: on a loaded host the identifier may still be warming up)
         assert probe.wait(lambda: int(diag.get("identifier", {}).get("bad_messages", 0)) >= 2,
-                          10), sorted(diag.get("identifier", {}).items())
+                          60), sorted(diag.get("identifier", {}).items())
         ff = diag["feedforward"]
         assert probe.wait(lambda: int(diag["feedforward"]["rejected_trajectories"]) >= 2,
                           10)  # the ragged one and the one over max_trajectory_points
