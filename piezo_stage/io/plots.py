@@ -62,3 +62,30 @@ def tracking_png(path, t, desired, measured, axes=("x", "y")):
                            f"({100 * np.sqrt(np.mean(e ** 2)) / span:.3f} % of the range)")
     fig.tight_layout()
     return _save(fig, path)
+
+
+def experiment_png(path, evals):
+    """``evals``: [(case, evaluation)] from piezo_stage.experiments -> per case, the
+    desired and true position of each judged axis over its window, and the errors
+    against the true and the measured position (the seed's Figs. 17-25 layout)."""
+    plt = _pyplot()
+    n = len(evals)
+    fig, ax = plt.subplots(n, 2, figsize=(12, 2.4 * n), squeeze=False)
+    for row, (case, ev) in enumerate(evals):
+        t = ev["t"]
+        for a in case.judged:
+            i = "xy".index(a)
+            ax[row, 0].plot(t, ev["desired"][:, i], lw=1.0, label=f"{a} desired")
+            ax[row, 0].plot(t, ev["true"][:, i], lw=0.6, label=f"{a} true")
+            ax[row, 1].plot(t, ev["measured"][:, i] - ev["desired"][:, i], lw=0.4,
+                            color="0.7", label=f"{a} measured - desired")
+            ax[row, 1].plot(t, ev["true"][:, i] - ev["desired"][:, i], lw=0.7,
+                            label=f"{a} true - desired")
+        ax[row, 0].set(ylabel="um", title=case.name)
+        ax[row, 1].set(ylabel="error [um]", title=case.name + ": error")
+        ax[row, 0].legend(fontsize=7, loc="upper right")
+        ax[row, 1].legend(fontsize=7, loc="upper right")
+    ax[-1, 0].set(xlabel="time in the window [s]")
+    ax[-1, 1].set(xlabel="time in the window [s]")
+    fig.tight_layout()
+    return _save(fig, path)

@@ -45,7 +45,10 @@ class Controller(Node):
             ki=declare(self, "ki", 150.0, "integral gain [V/(um s)]", lo=0.0, hi=1e5,
                        live=True),
             kd=declare(self, "kd", 0.0, "derivative gain [V s/um]", lo=0.0, hi=10.0,
-                       live=True))
+                       live=True),
+            i_limit_V=declare(self, "integral_limit_V", 30.0, "|integral contribution| "
+                              "<= this [V] (feedback only: the whole voltage span)",
+                              lo=0.0, hi=1000.0))
         feedback = declare(self, "feedback", True, "PID on (false: feedforward only); "
                            "switches bumplessly", live=True)
         self.limits = tuple(declare(self, "voltage_limits_V", [0.0, 150.0], "clamp [V]"))

@@ -21,6 +21,7 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.arming import HOLD, ReferencePlanner
+from piezo_stage.core.compensation import EffectCompensator
 from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
@@ -46,6 +47,12 @@ class Feedforward(Node):
                             "[um/V]", lo=0.01, hi=100.0)
         self.use_c = declare(self, "use_coupling", True, "invert the coupling "
                              "(decoupling)")
+        self.use_ff = declare(self, "inverse_feedforward", True, "false: hold the "
+                              "feedforward at the voltage applied when enabled (feedback "
+                              "only)")
+        self.compensate = declare(self, "compensate_effects", True, "compensate the "
+                                  "model's unmodelled effects", live=self._set_compensate)
+        self.comp, self.ahead = None, {}  # effect compensator; lead samples by stamp
         self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]")
         self.hold_s = declare(self, "model_required_after_s", 0.0, "lockstep: hold the "
                               "loop at this trajectory time until a model arrives (0: never)")
@@ -69,11 +76,10 @@ class Feedforward(Node):
         self.last_target = None
         self.driver.limits, self.last_rejection = None, ""
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
-                      "rejected_models": 0,
-                      "saturated": 0, "bad_messages": 0, "late_dropped": 0}
+                                "rejected_models": 0, "saturated": 0, "bad_messages": 0, "late_dropped": 0}
         if model_file:
             from piezo_stage.io.model_file import load_model
-            self.set_model(load_model(model_file)[0], model_file)
+            self.set_model(*load_model(model_file), model_file)
         self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
         self.phase_pub = self.create_publisher(String, "feedforward/phase", QOS_EVENTS)
         self.phase_pub.publish(String(data=HOLD))
@@ -94,9 +100,11 @@ class Feedforward(Node):
                                  QOS_LATCHED, raw=True)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
-        Diagnostics(self, lambda: (0, f"{self.planner.phase}, model {self.model_name}" + (
+        Diagnostics(self, lambda: (0, f"{self.planner.phase}, model {self.model_name}, "
+                                   f"{self.effects_text()}" + (
             f" (last rejected: {self.last_rejection})" if self.last_rejection else ""), {
             **self.stats, "model": self.model_name, "phase": self.planner.phase,
+            "effects": self.effects_text(),
             "lookahead_ms": self.driver.lookahead_ns * 1e-6,
             "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
             "joint_states_lag_p99_ms": self.lag.percentile(99) * 1e3,
@@ -107,7 +115,15 @@ class Feedforward(Node):
                 "rejected_models", "rejected_trajectories", "rejected_setpoints",
                 "bad_messages", "late_dropped")])
 
-    def set_model(self, model, name):
+    def _set_compensate(self, on):
+        self.compensate = bool(on)
+
+    def effects_text(self):
+        if self.comp is None:
+            return "no effects in the model"
+        return self.comp.describe() + ("" if self.compensate else " (switched off)")
+
+    def set_model(self, model, effects, name):
         missing = {"x", "y"} - set(model.axes)
         if missing:
             raise PiezoStageError(f"{name} has no model for axis {', '.join(sorted(missing))}")
@@ -118,6 +134,8 @@ class Feedforward(Node):
                 raise PiezoStageError(f"{name}: voltage limits {list(model.voltage_limits)} "
                                       f"outside the driver's {self.driver.limits}")
             model = StageModel(model.axes, model.coupling, (lo, hi))
+        comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes))
+                if effects else None)
         inv = StageInverse(model, use_coupling=self.use_c)
         warm = StageInverse(model, use_coupling=self.use_c)  # compile the kernels now,
         warm.sync(*model.voltage_limits)                      # not at the first sample
@@ -125,6 +143,7 @@ class Feedforward(Node):
         if self.planner.desired is not None:
             inv.reset(v=self.ff, w=self.planner.desired)
         self.inv, self.model_name, self.limits = inv, name, model.voltage_limits
+        self.comp, self.ahead = comp, {}
         self.started = self.planner.desired is not None  # else: from the first sample
         self.stats["models"] += 1
         self.last_rejection = ""  # the warning clears with a good model
@@ -132,7 +151,7 @@ class Feedforward(Node):
 
     def on_model(self, msg):
         try:
-            self.set_model(model_from_msg(msg)[0], f"model message #{self.stats['models'] + 1}")
+            self.set_model(*model_from_msg(msg), f"model message #{self.stats['models'] + 1}")
         except PiezoStageError as e:  # the old model stays
             self.stats["rejected_models"] += 1
             self.last_rejection = str(e)
@@ -206,11 +225,14 @@ class Feedforward(Node):
         if not self.driver.enabled(target):
             self.planner.hold(self.inv.w if self.inv else w)
             desired, self.ff, self.planned = self.planner.desired, dict(applied), {}
+            self.ahead = {}
+            if self.comp is not None:
+                self.comp.reset(w)
         else:
-            desired = self.planner.sample(target)
-            self.planned[target] = desired
+            desired, h = self.plan(target)
+            self.planned[target] = h
             try:
-                self.ff = self.feedforward(ns, target, desired)
+                self.ff = self.feedforward(ns, target, h) if self.use_ff else self.ff
             except PiezoStageError as e:  # hold the last feedforward, say why, go on
                 self.stats["bad_messages"] += 1
                 self.get_logger().error(f"feedforward for {desired}: {e}",
@@ -225,6 +247,23 @@ class Feedforward(Node):
             self.stats["late_dropped"] += 1  # it could only reach the driver too late
             return
         self.gate.publish(self.pub, reference_cdr(target, desired, self.ff, w, applied))
+
+    def plan(self, target):
+        """(where the stage should be at target, the hysteresis target to command now):
+        with effects compensated, the planner runs the delay's whole periods ahead."""
+        comp = self.comp if self.compensate else None
+        preview = self.planner.traj is not None
+        if comp is None:
+            d = self.planner.sample(target)
+            return d, d
+        held = dict(self.planner.desired)
+        lead = comp.max_lead_ticks if preview else 0
+        self.ahead[target + lead * self.dt_ns] = self.planner.sample(target + lead * self.dt_ns)
+        wanted = {a: self.ahead.get(target + comp.lead_ticks[a] * self.dt_ns if preview
+                                    else target, held)[a] for a in held}
+        desired = self.ahead.get(target, held)
+        self.ahead = {t: d for t, d in self.ahead.items() if t >= target}
+        return desired, comp.step(wanted, preview)
 
     def feedforward(self, ns, target, desired):
         if self.inv is None:

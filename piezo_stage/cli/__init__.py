@@ -227,7 +227,10 @@ def cmd_study(args):
 def cmd_excite(args):
     from piezo_stage.core.excitation import gap_protocol
     from piezo_stage.io.csv_table import write_table
-    t, vx, vy = gap_protocol(args.rate, args.v_min, args.v_max, seed=args.seed)
+    if not 0 <= args.chirp <= 60:
+        raise DataError(f"--chirp {args.chirp:g}: give 0 (none) to 60 seconds")
+    t, vx, vy = gap_protocol(args.rate, args.v_min, args.v_max, seed=args.seed,
+                             chirp_s=args.chirp)
     write_table(args.out, {"t": t, "vx": vx, "vy": vy})
     print(f"{args.out}: {len(t)} samples, {t[-1]:.1f} s at {args.rate:g} Hz "
           f"(protocol {args.protocol}, seed {args.seed})")
@@ -330,9 +333,10 @@ def cmd_launch(args):
     record = args.record
     if record == "auto":
         record = new_bag_dir("bags")
+    from piezo_stage.cli.experiment import param_overrides
     launch = Launch(args.config or default_config("stage.yaml"), record=record,
                     namespace=args.namespace, arm=not args.no_arm,
-                    foxglove_port=args.foxglove)
+                    foxglove_port=args.foxglove, overrides=param_overrides(args.params))
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)
@@ -403,6 +407,9 @@ def build_parser():
     s.add_argument("--seed", type=int, default=0, help="varies amplitudes and step levels")
     s.add_argument("--v-min", type=float, default=0.0)
     s.add_argument("--v-max", type=float, default=150.0)
+    s.add_argument("--chirp", type=float, default=0.0, metavar="S", help="add a small "
+                   "chirp of S seconds per axis up to 0.4 x the rate (tells a resonance "
+                   "from a delay)")
     s.set_defaults(fn=cmd_excite)
 
     s = sub.add_parser("gap", help="diagnose the sim-to-real gap")
@@ -426,6 +433,8 @@ def build_parser():
     s.add_argument("--foxglove", type=_port, nargs="?", const=8765, metavar="PORT",
                    help="serve the running topics to Foxglove over WebSocket (default "
                    "port 8765)")
+    s.add_argument("--params", action="append", metavar="FILE",
+                   help="more node parameters over CONFIG's (e.g. from `tune`), may repeat")
     s.set_defaults(fn=cmd_launch)
 
     s = sub.add_parser("demo", help="the main job: node set on the simulated stage")
@@ -435,6 +444,9 @@ def build_parser():
                    "trajectory [s]")
     s.add_argument("--namespace", default="/stage")
     s.set_defaults(fn=cmd_demo)
+
+    from piezo_stage.cli.experiment import add_parsers
+    add_parsers(sub)
 
     s = sub.add_parser("replay", help="republish a recorded bag on its topics")
     s.add_argument("bag")
@@ -497,9 +509,9 @@ def build_parser():
     return p
 
 
-INPUTS = ("inp", "model", "config", "data", "validate", "fit", "holdout", "bag")
+INPUTS = ("inp", "model", "config", "data", "validate", "fit", "holdout", "bag", "plant")
 FILE_OUTPUTS = ("json", "out_model", "plot")  # and "out" where it names a file (not a folder)
-DIR_COMMANDS = ("study", "demo", "launch")  # whose --out is a folder
+DIR_COMMANDS = ("study", "demo", "launch", "experiment")  # whose --out is a folder
 
 
 def check_paths(args):

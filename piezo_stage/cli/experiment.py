@@ -1,0 +1,182 @@
+"""`piezo-stage experiment` and `piezo-stage tune`: argument parsing over
+piezo_stage.experiments and piezo_stage.core.tuning."""
+
+from __future__ import annotations
+
+import json
+import os
+
+
+
+
+def _floats(text):
+    import argparse
+    try:
+        out = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        out = ()
+    if not out or any(not 0 < f <= 200 for f in out):
+        raise argparse.ArgumentTypeError(f"{text!r}: give frequencies in (0, 200] Hz, "
+                                         "comma-separated")
+    return out
+
+
+def _controllers(text):
+    import argparse
+    from piezo_stage.experiments import CONTROLLERS
+    out = tuple(x.strip() for x in text.split(","))
+    bad = [c for c in out if c not in CONTROLLERS]
+    if bad or not out:
+        raise argparse.ArgumentTypeError(f"{text!r}: use {', '.join(CONTROLLERS)}")
+    return out
+
+
+def param_overrides(paths) -> dict:
+    """Node parameters from parameter files (as `tune` writes), later files win."""
+    from piezo_stage.launch.launcher import _params
+    out = {}
+    for p in paths or ():
+        for node, params in _params(p).items():
+            out.setdefault(node, {}).update(params)
+    return out
+
+
+def _check_inputs(args):
+    if args.plant:
+        from piezo_stage.io.plant_file import load_plant_config
+        load_plant_config(args.plant)  # ConfigError (exit 2) with where
+    if args.model:
+        from piezo_stage.io.model_file import load_model
+        load_model(args.model)
+
+
+def identify_first(out_dir, config, plant, mode, extra, namespace):
+    """No model given: the identifier identifies one through the node set (the demo's
+    excitation) and it is written to out_dir/identified_model.yaml."""
+    from piezo_stage.io.bag import deserialize, iter_messages
+    from piezo_stage.io.files import atomic_write
+    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.experiments import NODES, _merge
+    bag = os.path.join(out_dir, "identification")
+    drv = {"mode": mode}
+    if plant:
+        drv["plant_config"] = os.path.abspath(plant)
+    if mode == "lockstep":
+        drv.update(max_steps=5000, exit_after_max_steps=True)
+    o = _merge(extra or {}, {"stage_driver": drv,
+                             "trajectory": {"kind": "seed", "duration_s": 0.5, "excite_s": 4.0},
+                             "identifier": {"auto_cycles": 2},
+                             "feedforward": {"model_required_after_s": 4.0}})
+    launch = Launch(config, record=bag, overrides=o, namespace=namespace,
+                    nodes=list(NODES) + ["identifier"])
+    rc = launch.run(duration=7.0 if mode == "realtime" else 900.0)
+    if rc != 0:
+        raise RuntimeError(f"identification run failed: {'; '.join(launch.failed)}")
+    text = None
+    for topic, msgtype, _, data in iter_messages(bag, topics=None):
+        if topic.endswith("/model"):
+            text = deserialize(data, msgtype).data
+    if text is None:
+        raise RuntimeError("identification run: the identifier published no model")
+    path = os.path.join(out_dir, "identified_model.yaml")
+    with atomic_write(path) as fh:
+        fh.write(text)
+    return path
+
+
+def cmd_experiment(args):
+    import sys
+    from piezo_stage.experiments import run_experiment, table
+    from piezo_stage.io.bag import new_bag_dir
+    from piezo_stage.paths import default_config
+    _check_inputs(args)
+    extra = param_overrides(args.params)
+    config = args.config or default_config("stage.yaml")
+    out_dir = args.record or new_bag_dir("bags")
+    os.makedirs(out_dir, exist_ok=True)
+    model = args.model
+    try:
+        if model is None:
+            print("no --model: identifying one through the node set first", flush=True)
+            model = identify_first(out_dir, config, args.plant, args.mode, extra,
+                                   args.namespace)
+            print(f"identified model: {model}")
+        doc, evals = run_experiment(args.name, out_dir, config, args.plant, model, args.mode,
+                                    args.freqs, args.controllers, extra, args.namespace)
+    except RuntimeError as e:
+        sys.stderr.write(f"piezo-stage experiment: {e}\n")
+        return 1
+    print(table(doc))
+    text = json.dumps(doc, indent=2)
+    if args.json:
+        from piezo_stage.io.files import atomic_write
+        with atomic_write(args.json) as fh:
+            fh.write(text + "\n")
+        print(f"json: {args.json}")
+    if args.report:
+        from piezo_stage.io.plots import experiment_png
+        from piezo_stage.io.files import atomic_write
+        os.makedirs(args.report, exist_ok=True)
+        with atomic_write(os.path.join(args.report, f"{args.name}.json")) as fh:
+            fh.write(text + "\n")
+        with atomic_write(os.path.join(args.report, f"{args.name}.md")) as fh:
+            fh.write(f"# Experiment {args.name}\n\nplant: {doc['plant']}; model: {model}; "
+                     f"mode: {args.mode}\n\n```\n{table(doc)}\n```\n\n"
+                     f"![{args.name}]({args.name}.png)\n")
+        print(f"report: {experiment_png(os.path.join(args.report, args.name + '.png'), evals)}")
+    print(f"bags: {out_dir}")
+    return 0
+
+
+def cmd_tune(args):
+    from piezo_stage.core.tuning import tune
+    from piezo_stage.io.model_file import load_model
+    from piezo_stage.io.files import atomic_write
+    model, effects = load_model(args.model)
+    res = tune(model, effects, rate_hz=args.rate, phase_margin_deg=args.phase_margin,
+               gain_margin_db=args.gain_margin, latency_periods=args.latency)
+    print(res.summary())
+    if args.out:
+        with atomic_write(args.out) as fh:
+            fh.write(res.params_yaml())
+        print(f"parameters: {args.out} (piezo-stage launch CONFIG --params {args.out})")
+    return 0
+
+
+def add_parsers(sub):
+    from piezo_stage.experiments import CONTROLLERS, EXPERIMENTS, FREQS_HZ
+    s = sub.add_parser("experiment", help="the seed's control experiments through the "
+                       "node set")
+    s.add_argument("name", choices=EXPERIMENTS)
+    s.add_argument("--plant", metavar="CONFIG.yaml", help="simulated plant (default "
+                   "config/sim_stage.yaml)")
+    s.add_argument("--model", metavar="MODEL.yaml", help="the feedforward's model "
+                   "(default: identified through the node set first)")
+    s.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    s.add_argument("--config", help="node parameters YAML (default config/stage.yaml)")
+    s.add_argument("--params", action="append", metavar="FILE",
+                   help="more node parameters (e.g. from `tune`), may repeat")
+    s.add_argument("--freqs", type=_floats, default=FREQS_HZ, metavar="F1,F2",
+                   help="tracking: frequencies [Hz] (default 1,5,10,40)")
+    s.add_argument("--controllers", type=_controllers, default=CONTROLLERS,
+                   metavar="C1,C2", help="tracking: " + ", ".join(CONTROLLERS))
+    s.add_argument("--json", metavar="FILE")
+    s.add_argument("--record", metavar="DIR", help="where the bags go (default "
+                   "bags/<time>)")
+    s.add_argument("--report", metavar="DIR", help="table, JSON and PNG figure")
+    s.add_argument("--namespace", default="/stage")
+    s.set_defaults(fn=cmd_experiment)
+
+    s = sub.add_parser("tune", help="PID gains from the identified model")
+    s.add_argument("model", help="model file (its dynamics and delay are used when present)")
+    s.add_argument("--rate", type=float, default=1000.0, help="control rate [Hz]")
+    s.add_argument("--phase-margin", type=float, default=60.0, metavar="DEG")
+    s.add_argument("--gain-margin", type=float, default=10.0, metavar="DB")
+    s.add_argument("--latency", type=float, default=1.0, metavar="PERIODS",
+                   help="sample-to-applied latency of the loop [periods] (lockstep: 1)")
+    s.add_argument("--out", metavar="PARAMS.yaml", help="write a parameter file that "
+                   "`launch --params` and `experiment --params` take")
+    s.set_defaults(fn=cmd_tune)
+
+
+

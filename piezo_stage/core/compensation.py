@@ -1,0 +1,183 @@
+"""Effect compensation: the exact inverse of the unmodelled effects at the control rate.
+
+The plant acts on each axis's hysteresis output h (what the Duhem model gives for the
+applied voltage) with creep, then linear dynamics, then drift, then a transport delay
+(``core/plant.py``). A command is held over one control period, so at the control rate
+these operators are discrete and exactly invertible:
+
+* delay d = n T + delta: n whole periods are taken by previewing the known trajectory
+  n periods ahead; the fraction delta only moves the instant within the period at
+  which the dynamics' output is sampled (it is part of the dynamics' discrete model);
+* dynamics (resonance or lag) with the held input: x_m = Ad x_(m-1) + Bd u_m, sampled
+  y_m = C' x_(m-1) + D' u_m with C' = C Phi(T - delta), D' = C Gamma(T - delta); the
+  inverse u_m = (y_m - C' x_(m-1)) / D' is used when its own poles
+  (eig(Ad - Bd C' / D')) are inside the unit circle, i.e. the sampled plant is minimum
+  phase at this rate (checked; otherwise the dynamics are reported uncompensated);
+* creep, y = h - gamma (h - mean_i LP_i(h)) with first-order low-passes LP_i, is
+  solved for h sample by sample (its direct term is 1 - gamma + gamma mean(1 - p_i));
+* drift ignores the input: no feedforward can remove it (feedback does).
+
+A streamed setpoint cannot be previewed and steps: only creep is compensated for it
+(inverting the dynamics of a step would ask for an impulse).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.linalg import expm
+
+from piezo_stage.core.errors import ConfigError
+
+CREEP_TAUS_S = (0.05, 0.5, 5.0, 50.0)
+
+
+def _phi_gamma(A, B, tau):
+    """Phi(tau) = e^(A tau) and Gamma(tau) = int_0^tau e^(A s) ds B (one matrix exponential)."""
+    n = A.shape[0]
+    M = np.zeros((n + 1, n + 1))
+    M[:n, :n], M[:n, n:] = A * tau, B * tau
+    E = expm(M)
+    return E[:n, :n], E[:n, n:]
+
+
+class CreepInverse:
+    """h_k from the wanted creep output y_k (exact inverse of core.effects.Creep)."""
+
+    def __init__(self, rate_hz: float, gamma: float, tau_s=CREEP_TAUS_S):
+        self.gamma = float(gamma)
+        if not 0 <= self.gamma < 1:
+            raise ConfigError(f"creep gamma must be in [0, 1), got {gamma}")
+        self.p = np.exp(-1.0 / (rate_hz * np.asarray(tau_s, float)))
+        self.direct = 1 - self.gamma + self.gamma * float(np.mean(1 - self.p))
+        self.lp = np.zeros_like(self.p)
+
+    def reset(self, h0: float):
+        self.lp[:] = h0
+
+    def step(self, y: float) -> float:
+        h = (y - self.gamma * float(np.mean(self.p * self.lp))) / self.direct
+        self.lp = self.p * self.lp + (1 - self.p) * h
+        return h
+
+
+class DynamicsInverse:
+    """u_m from the wanted sampled output y_m of unit-DC dynamics whose output is
+    sampled ``delta_s`` before the end of the period the input is held in."""
+
+    def __init__(self, rate_hz: float, kind="resonance", fn_hz=800.0, zeta=0.05,
+                 tau_s=0.5e-3, delta_s=0.0):
+        T = 1.0 / rate_hz
+        if kind == "resonance":
+            wn = 2 * math.pi * float(fn_hz)
+            A = np.array([[0.0, 1.0], [-wn * wn, -2 * float(zeta) * wn]])
+            B = np.array([[0.0], [wn * wn]])
+        elif kind == "lag":
+            A, B = np.array([[-1.0 / tau_s]]), np.array([[1.0 / tau_s]])
+        else:
+            raise ConfigError(f"dynamics kind must be 'resonance' or 'lag', got {kind!r}")
+        C = np.zeros((1, A.shape[0]))
+        C[0, 0] = 1.0
+        self.Ad, self.Bd = _phi_gamma(A, B, T)
+        P, G = _phi_gamma(A, B, T - delta_s)
+        self.Cs, self.Ds = (C @ P).ravel(), float((C @ G)[0, 0])
+        self.ok = abs(self.Ds) > 1e-9
+        if self.ok:
+            inv_poles = np.linalg.eigvals(self.Ad - np.outer(self.Bd.ravel(), self.Cs) / self.Ds)
+            self.ok = bool(np.max(np.abs(inv_poles)) < 0.999)
+        self._steady = -np.linalg.solve(A, B).ravel()  # state per unit constant input
+        self.x = np.zeros(A.shape[0])
+
+    def reset(self, u0: float):
+        self.x = self._steady * u0
+
+    def step(self, y: float) -> float:
+        u = (y - float(self.Cs @ self.x)) / self.Ds
+        self.x = self.Ad @ self.x + self.Bd.ravel() * u
+        return u
+
+
+class EffectCompensator:
+    """Per axis, the hysteresis target that makes the effects chain give the desired
+    position: ``lead_ticks`` say how far ahead the desired position must be asked for
+    (the whole periods of the delay), ``step`` turns it into hysteresis targets.
+
+    ``effects`` is a model file's ``effects`` block ({name: {params..., axes: [...]}},
+    as ``gap --out-model`` writes it; ``enabled: false`` entries are skipped)."""
+
+    def __init__(self, effects: dict, rate_hz: float, axes=("x", "y")):
+        self.rate_hz = float(rate_hz)
+        T = 1.0 / self.rate_hz
+        self.creep, self.dynamics, self.lead_ticks = {}, {}, {a: 0 for a in axes}
+        self.compensated, self.uncompensated = set(), {}
+        for name, p in (effects or {}).items():
+            p = dict(p or {})
+            if not p.pop("enabled", True):
+                continue
+            on = [a for a in p.pop("axes", axes) if a in axes]
+            if name == "delay":
+                d = float(p["delay_s"])
+                for a in on:
+                    self.lead_ticks[a] = int(math.floor(d / T + 1e-9))
+            elif name == "creep":
+                for a in on:
+                    self.creep[a] = CreepInverse(self.rate_hz, p["gamma"],
+                                                 p.get("tau_s", CREEP_TAUS_S))
+            elif name == "dynamics":
+                pass  # below, once the delay's fraction is known
+            elif name == "drift":
+                self.uncompensated[name] = "ignores the input (left to the feedback)"
+                continue
+            else:
+                raise ConfigError(f"unknown effect {name!r} in the model's effects")
+            self.compensated.add(name)
+        dyn = dict((effects or {}).get("dynamics") or {})
+        if dyn and dyn.pop("enabled", True):
+            on = [a for a in dyn.pop("axes", axes) if a in axes]
+            delay = dict((effects or {}).get("delay") or {})
+            d = float(delay.get("delay_s", 0.0)) if delay.get("enabled", True) else 0.0
+            dl_axes = delay.get("axes", axes)
+            for a in on:
+                delta = (d - self.lead_ticks[a] * T) if a in dl_axes else 0.0
+                inv = DynamicsInverse(self.rate_hz, delta_s=delta, **dyn)
+                if inv.ok:
+                    self.dynamics[a] = inv
+                else:
+                    self.compensated.discard("dynamics")
+                    self.uncompensated["dynamics"] = (
+                        f"not minimum phase when sampled at {self.rate_hz:g} Hz")
+        self.axes = tuple(axes)
+
+    @property
+    def max_lead_ticks(self) -> int:
+        return max(self.lead_ticks.values(), default=0)
+
+    def reset(self, w0: dict):
+        """At rest at w0 [um] (everything settled)."""
+        for a, c in self.creep.items():
+            c.reset(w0[a])
+        for a, d in self.dynamics.items():
+            d.reset(w0[a])
+
+    def step(self, wanted: dict, preview: bool = True) -> dict:
+        """Hysteresis targets [um] for one period from the wanted positions (each
+        asked ``lead_ticks`` ahead). Without preview (a streamed setpoint) the dynamics
+        are not inverted."""
+        out = {}
+        for a in self.axes:
+            y = wanted[a]
+            d = self.dynamics.get(a)
+            if d is not None:
+                if preview:
+                    y = d.step(y)
+                else:
+                    d.reset(y)
+            c = self.creep.get(a)
+            out[a] = c.step(y) if c is not None else y
+        return out
+
+    def describe(self) -> str:
+        done = ", ".join(sorted(self.compensated)) or "none"
+        left = "; ".join(f"{k}: {v}" for k, v in sorted(self.uncompensated.items()))
+        return f"effects compensated: {done}" + (f" (not: {left})" if left else "")

@@ -1,0 +1,311 @@
+"""`piezo-stage experiment`: the seed's control experiments run through the node set.
+
+Every case is one run of the real node set (driver on the simulated stage or the DAQ,
+feedforward, controller, trajectory, recorder) on a trajectory written for it, recorded
+to its own bag; every figure is computed from the bags. Errors are against the true
+position (``/stage/sim/true_position``, simulated stages) and, separately, against the
+measured one, over the last ``EVAL_CYCLES`` cycles of the motion (the first cycles
+settle the hysteresis memory the approach left).
+
+Experiments (seed section 4):
+
+* ``decoupling``: one axis driven by a 1 Hz sine over most of the stroke, the other held
+  still; the held axis's motion is the coupling, with the feedforward's coupling
+  compensation off and on (seed Figs. 17-18), feedforward only so that the feedback
+  does not hide what the decoupling does;
+* ``tracking``: the seed's y(t) = 21 + 24 sin(2 pi f t - pi/2) um on both axes at 1, 5,
+  10 and 40 Hz with feedforward only, feedback only and composite (Figs. 19-20);
+* ``amplitude``: 1 Hz, constant 60 um and variable 60/40/20 um cycles (Figs. 22-25);
+  both start 1 um above the stage's 0 V rest (0 um is reachable only at exactly 0 V,
+  so a feedback correction below it would clamp);
+* ``noise``: no input, the stage at rest; the displacement shown (Fig. 21).
+
+With a model that has unmodelled effects (``gap --out-model``) the tracking cases are
+also run with the effect compensation off, so the table shows what it earns.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from piezo_stage.core.errors import ConfigError, DataError
+from piezo_stage.io.files import atomic_write
+
+EXPERIMENTS = ("decoupling", "tracking", "amplitude", "noise")
+CONTROLLERS = ("feedforward", "feedback", "composite")
+FREQS_HZ = (1.0, 5.0, 10.0, 40.0)
+RATE_HZ = 1000.0
+EVAL_CYCLES = 2
+LEAD_S, TAIL_S = 0.2, 0.3  # trajectory holds its first point, then its last
+NODES = ("stage_driver", "feedforward", "controller", "trajectory")
+
+
+@dataclass
+class Case:
+    """One run: a trajectory, a controller, what is judged."""
+    name: str
+    freq_hz: float
+    t: np.ndarray
+    w: dict                       # axis -> desired [um]
+    controller: str               # feedforward | feedback | composite | none
+    judged: tuple = ("x", "y")    # axes whose errors are figures
+    moving: str = "x"             # an axis that moves (the window is found on it)
+    eval_s: float = 2.0
+    params: dict = field(default_factory=dict)  # node -> extra parameters
+    group: str = ""               # decoupling: runs compared pairwise share a group
+    saturated: int = 0            # targets saturated to the stage's range
+
+
+def _traj(f_hz, cycles, wave):
+    """A trajectory at RATE_HZ: LEAD_S at its first point, ``cycles`` of ``wave(t)``
+    (t from 0), TAIL_S at its last point."""
+    dt = 1.0 / RATE_HZ
+    n_move = int(round(cycles / f_hz / dt))
+    tm = np.arange(n_move + 1) * dt
+    w = wave(tm)
+    lead = np.full(int(LEAD_S / dt), w[0])
+    tail = np.full(int(TAIL_S / dt), w[-1])
+    x = np.concatenate([lead, w, tail])
+    return np.arange(x.size) * dt, x
+
+
+def _seed_wave(f):
+    return lambda t: 21.0 + 24.0 * np.sin(2 * np.pi * f * t - np.pi / 2)
+
+
+def _controller_params(c):
+    ctl = {"feedback": c in ("feedback", "composite")}
+    if c == "feedback":  # the integral carries the whole voltage
+        ctl["integral_limit_V"] = 150.0
+    return {"feedforward": {"inverse_feedforward": c in ("feedforward", "composite")},
+            "controller": ctl}
+
+
+def _merge(*ds):
+    out = {}
+    for d in ds:
+        for node, p in d.items():
+            out.setdefault(node, {}).update(p)
+    return out
+
+
+def plan(name, freqs=FREQS_HZ, controllers=CONTROLLERS, with_effects=False):
+    """The cases of experiment ``name``."""
+    if name not in EXPERIMENTS:
+        raise ConfigError(f"unknown experiment {name!r}; use one of {', '.join(EXPERIMENTS)}")
+    cases = []
+    if name == "tracking":
+        for f in freqs:
+            cycles = max(EVAL_CYCLES + 1, int(np.ceil(1.0 * f)) + EVAL_CYCLES)
+            t, w = _traj(f, cycles, _seed_wave(f))
+            for c in controllers:
+                for comp in ((True, False) if with_effects else (True,)):
+                    tag = "" if comp else " (effects not compensated)"
+                    cases.append(Case(f"tracking {f:g} Hz {c}{tag}", f, t, {"x": w, "y": w}, c,
+                                      eval_s=EVAL_CYCLES / f,
+                                      params=_merge(_controller_params(c), {
+                                          "feedforward": {"compensate_effects": comp}})))
+    elif name == "decoupling":
+        f = 1.0
+        t, w = _traj(f, EVAL_CYCLES + 1, lambda t: 40.0 + 35.0 * np.sin(2 * np.pi * t - np.pi / 2))
+        for driven, held in (("x", "y"), ("y", "x")):
+            hold = np.full_like(w, 30.0)
+            for on in (False, True):
+                cases.append(Case(f"decoupling {driven} driven, compensation "
+                                  f"{'on' if on else 'off'}", f, t, {driven: w, held: hold},
+                                  "feedforward", judged=(held,), moving=driven,
+                                  eval_s=EVAL_CYCLES / f, group=f"{driven}->{held}",
+                                  params=_merge(_controller_params("feedforward"),
+                                                {"feedforward": {"use_coupling": on}})))
+    elif name == "amplitude":
+        f = 1.0
+        t, w = _traj(f, EVAL_CYCLES + 1, lambda t: 31.0 - 30.0 * np.cos(2 * np.pi * t))
+        cases.append(Case("amplitude constant 60 um", f, t, {"x": w, "y": w}, "composite",
+                          eval_s=EVAL_CYCLES / f, params=_controller_params("composite")))
+        peaks = np.array([60.0, 40.0, 20.0])
+        var = lambda t: 1.0 + peaks[np.floor(t).astype(int) % 3] / 2 * (  # noqa: E731
+            1 - np.cos(2 * np.pi * t))
+        t, w = _traj(f, 6, var)
+        cases.append(Case("amplitude variable 60/40/20 um", f, t, {"x": w, "y": w},
+                          "composite", eval_s=3.0, params=_controller_params("composite")))
+    else:  # noise: nothing moves; the stage rests where 0 V puts it
+        t = np.arange(int(3.0 * RATE_HZ)) / RATE_HZ
+        z = np.zeros_like(t)
+        cases.append(Case("noise at rest", 0.0, t, {"x": z, "y": z}, "none", moving="",
+                          eval_s=2.0, params=_controller_params("none")))
+    return cases
+
+
+def _write_csv(path, t, w):
+    with atomic_write(path) as fh:
+        fh.write("t,wx,wy\n")
+        for row in zip(t, w["x"], w["y"]):
+            fh.write("%.6f,%.9g,%.9g\n" % row)
+
+
+def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=None,
+             namespace="/stage", env=None):
+    """Run the node set for one case into ``bag``; returns the launcher's exit code and
+    what failed."""
+    from piezo_stage.launch.launcher import Launch
+    os.makedirs(os.path.dirname(os.path.abspath(bag)) or ".", exist_ok=True)
+    csv = os.path.abspath(bag) + ".trajectory.csv"
+    _write_csv(csv, case.t, case.w)
+    total_s = float(case.t[-1]) + 1.5  # + arming and the approach
+    drv = {"mode": mode}
+    if plant:
+        drv["plant_config"] = os.path.abspath(plant)
+    if mode == "lockstep":
+        drv.update(max_steps=int(total_s * RATE_HZ), exit_after_max_steps=True)
+    o = _merge(extra or {}, {"stage_driver": drv, "trajectory": {"kind": "csv",
+                                                                 "csv_path": csv}},
+               {"feedforward": {"model_file": os.path.abspath(model)}} if model else {},
+               case.params)
+    launch = Launch(config, record=bag, overrides=o, namespace=namespace, env=env,
+                    nodes=list(NODES))
+    rc = launch.run(duration=total_s + 2.0 if mode == "realtime" else 900.0)
+    return rc, launch.failed
+
+
+def _window(case, run):
+    """Stamps of the evaluation window: the last eval_s of the motion."""
+    ks = sorted(k for k in run.desired_um if k in run.true_um)
+    if len(ks) < 10:
+        raise DataError("no tracking samples in the bag")
+    i = "xy".index(case.moving) if case.moving else None
+    d = np.array([run.desired_um[k] for k in ks])
+    if i is None:
+        end = ks[-1]
+    else:
+        moved = np.nonzero(np.abs(np.diff(d[:, i])) > 1e-9)[0]
+        if moved.size == 0 or ks[moved[-1] + 1] > ks[-1] - int(0.5 * TAIL_S * 1e9):
+            raise DataError(f"{case.name}: the run ended before the trajectory did")
+        end = ks[moved[-1] + 1]
+    start = end - int(round(case.eval_s * 1e9))
+    if start < ks[0]:
+        raise DataError(f"{case.name}: the run is shorter than its evaluation window")
+    return [k for k in ks if start < k <= end]
+
+
+def evaluate(case, bag) -> dict:
+    """Per judged axis, the errors against the true and the measured position."""
+    from piezo_stage.io.run_bag import read_run
+    run = read_run(bag)
+    ks = _window(case, run)
+    meas = dict(zip(run.t_ns.tolist(), run.w_um))
+    ks = [k for k in ks if k in meas]
+    d = np.array([run.desired_um[k] for k in ks])
+    pos = {"true": np.array([run.true_um[k] for k in ks]),
+           "measured": np.array([meas[k] for k in ks])}
+    ff = run.diagnostics.get("feedforward", {})
+    out = {"t": (np.array(ks) - ks[0]) * 1e-9, "desired": d, **pos, "axes": {},
+           "saturated_voltages": int(float(ff.get("saturated", 0))),
+           "effects": ff.get("effects", "")}
+    for a in case.judged:
+        i = "xy".index(a)
+        span = float(np.ptp(d[:, "xy".index(case.moving)])) if case.moving else 0.0
+        for ref, w in pos.items():
+            e = w[:, i] - d[:, i]
+            if case.controller == "none":
+                e = e - e.mean()  # at rest: the displacement about where the stage rests
+            out["axes"][(a, ref)] = {
+                "max_err_um": float(np.max(np.abs(e))),
+                "rms_err_um": float(np.sqrt(np.mean(e ** 2))),
+                "mean_abs_err_pct_of_range": (float(100 * np.mean(np.abs(e)) / span)
+                                              if span > 0 else None)}
+    return out
+
+
+def saturate(cases, range_um, warn):
+    """Targets outside the stage's range are saturated to it (with a warning, counted
+    per case), never sent: the feedforward would refuse the whole trajectory."""
+    lo, hi = range_um
+    for c in cases:
+        n = sum(int(np.sum((w < lo) | (w > hi))) for w in c.w.values())
+        c.saturated = n
+        if n:
+            c.w = {a: np.clip(w, lo, hi) for a, w in c.w.items()}
+            warn(f"{c.name}: {n} target(s) outside the range {lo:g}..{hi:g} um saturated")
+    return cases
+
+
+def _range(config, extra):
+    from piezo_stage.launch.launcher import _params
+    r = {**_params(config).get("feedforward", {}),
+         **(extra or {}).get("feedforward", {})}.get("range_um", [-10.0, 90.0])
+    return float(r[0]), float(r[1])
+
+
+def run_experiment(name, out_dir, config, plant=None, model=None, mode="lockstep",
+                   freqs=FREQS_HZ, controllers=CONTROLLERS, extra=None, namespace="/stage",
+                   env=None, log=print, warn=None):
+    """Run every case of ``name``; bags under ``out_dir``. Returns the JSON document and
+    the per-case evaluations (for the plots)."""
+    import sys
+    from piezo_stage.io.model_file import load_model
+    from piezo_stage.progress import bar
+    effects = bool(load_model(model)[1]) if model else False
+    cases = saturate(plan(name, freqs, controllers, with_effects=effects),
+                     _range(config, extra),
+                     warn or (lambda m: sys.stderr.write(f"warning: {m}\n")))
+    doc = {"experiment": name, "plant": os.path.abspath(plant) if plant else "default",
+           "model": os.path.abspath(model) if model else None, "mode": mode, "cases": []}
+    evals = []
+    with bar(total=len(cases), desc=f"experiment {name}", unit="run") as pb:
+        for k, case in enumerate(cases):
+            bag = os.path.join(out_dir, f"{k:02d}_" + "".join(
+                c if c.isalnum() else "_" for c in case.name).strip("_"))
+            if os.path.exists(bag):
+                shutil.rmtree(bag)
+            rc, failed = run_case(case, bag, config, plant, model, mode, extra, namespace,
+                                  env)
+            if rc != 0:
+                raise RuntimeError(f"{case.name}: the node set failed: "
+                                   f"{'; '.join(failed) or f'exit {rc}'}")
+            ev = evaluate(case, bag)
+            evals.append((case, ev))
+            for (a, ref), fig in ev["axes"].items():
+                doc["cases"].append({"name": case.name, "axis": a, "freq_hz": case.freq_hz,
+                                     "controller": case.controller, "reference": ref,
+                                     **fig, "saturated_targets": case.saturated,
+                                     "saturated_voltages": ev["saturated_voltages"],
+                                     "effects": ev["effects"], "bag": os.path.abspath(bag)})
+            pb.update(1)
+            log(f"  {case.name}: " + ", ".join(
+                f"{a} {ref} rms {f['rms_err_um']:.4f} um" for (a, ref), f in ev["axes"].items()))
+    if name == "decoupling":
+        _reductions(doc)
+    return doc, evals
+
+
+def _reductions(doc):
+    """Decoupling: each 'on' case gets the coupling RMS before (off) and after (on)."""
+    by = {}
+    for c in doc["cases"]:
+        driven = c["name"].split()[1]
+        by.setdefault((driven, c["axis"], c["reference"]), {})[
+            "on" if c["name"].endswith("on") else "off"] = c
+    for pair in by.values():
+        if "on" in pair and "off" in pair:
+            before, after = pair["off"]["rms_err_um"], pair["on"]["rms_err_um"]
+            for c in pair.values():
+                c.update(coupling_rms_before_um=before, coupling_rms_after_um=after,
+                         reduction_pct=100.0 * (1 - after / before) if before > 0 else None)
+
+
+def table(doc) -> str:
+    """The cases as a fixed-width table (one line per case, axis and reference)."""
+    lines = [f"{'case':<52} {'axis':>4} {'ref':>8} {'max_um':>8} {'rms_um':>8} "
+             f"{'mean_pct':>8} {'reduction':>9}"]
+    for c in doc["cases"]:
+        pct = c["mean_abs_err_pct_of_range"]
+        red = c.get("reduction_pct")
+        lines.append(f"{c['name']:<52} {c['axis']:>4} {c['reference']:>8} "
+                     f"{c['max_err_um']:8.4f} {c['rms_err_um']:8.4f} "
+                     f"{'-' if pct is None else f'{pct:.3f}':>8} "
+                     f"{'' if red is None else f'{red:.1f} %':>9}")
+    return "\n".join(lines)

@@ -1,0 +1,89 @@
+"""`tune` (core/tuning.py): the margins it states are the loop's, checked by running
+the discrete loop itself; a model it cannot tune from is refused."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from piezo_stage.core.duhem import StageModel
+from piezo_stage.core.errors import ModelError
+from piezo_stage.core.tuning import model_gain, tune
+from piezo_stage.io.model_file import load_model
+from piezo_stage.paths import default_config
+
+MODEL = default_config("stage_model.yaml")
+
+
+def _closed_loop_step(kp, ki, k, n=3000, T=1e-3, latency=1, effects=None):
+    """The controller's own PID law (core.control.PID) around a plant of static gain k
+    with ``latency`` periods: the measured response to a 1 um step of the asked
+    position."""
+    from piezo_stage.core.control import PID, PIDGains
+    pid = PID(PIDGains(kp=kp, ki=ki, kd=0.0, i_limit_V=1e9), T)
+    u = [0.0] * latency
+    y = np.zeros(n)
+    for i in range(1, n):
+        y[i] = k * u[-latency]  # the command from sample i - latency
+        u.append(pid.update(1.0 - y[i]))
+    return y
+
+
+def test_margins_hold_in_the_running_loop():
+    model, _ = load_model(MODEL)
+    r = tune(model, rate_hz=1000.0, phase_margin_deg=60.0, gain_margin_db=10.0)
+    assert r.phase_margin_deg >= 60.0 and r.gain_margin_db >= 10.0 and r.noise_gain <= 0.3
+    assert 5.0 < r.bandwidth_hz < 500.0
+    k = r.gains_um_per_V["x"][0]
+    y = _closed_loop_step(r.kp, r.ki, k)
+    assert abs(y[-1] - 1.0) < 1e-6             # integral action: no steady error
+    assert y.max() < 1.10                      # 60 deg of phase margin: little overshoot
+    # the stated gain margin is real: above it the same loop diverges, below it not
+    gm = 10 ** (r.gain_margin_db / 20)
+    assert np.isfinite(_closed_loop_step(r.kp, r.ki, k * gm * 0.9)[-1])
+    assert abs(_closed_loop_step(r.kp, r.ki, k * gm * 0.9)[-1] - 1) < 1e-3
+    assert np.max(np.abs(_closed_loop_step(r.kp, r.ki, k * gm * 1.1))) > 1e3
+
+
+def test_a_delay_in_the_model_lowers_the_bandwidth():
+    model, _ = load_model(MODEL)
+    plain = tune(model, max_noise_gain=1.0)
+    slow = tune(model, {"delay": {"delay_s": 0.003}}, max_noise_gain=1.0)
+    assert slow.crossover_hz < 0.7 * plain.crossover_hz
+    assert slow.phase_margin_deg >= 60.0
+
+
+def test_model_gain_is_the_branch_slope():
+    model, _ = load_model(MODEL)
+    hi, md = model_gain(model, "x")
+    # ~81 um over 150 V on average; the steepest part of a branch is steeper
+    assert 0.4 < md < hi < 1.5
+
+
+def test_a_model_without_a_positive_gain_is_refused(tmp_path):
+    model, _ = load_model(MODEL)
+    flat = StageModel({a: m for a, m in model.axes.items()}, model.coupling, (0.0, 0.0001))
+    with pytest.raises(ModelError):
+        tune(flat)
+    bad = tmp_path / "flat.yaml"
+    text = open(MODEL).read().replace("f: [-0.33, 0.0165, 1.8e-5], g: [0.36, 0.0006]",
+                                      "f: [0.0], g: [-0.5]")
+    bad.write_text(text)
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "tune", str(bad)],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "not enough data to tune from" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_tune_writes_a_parameter_file_launch_takes(tmp_path):
+    out = tmp_path / "gains.yaml"
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "tune", MODEL, "--out",
+                        str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "crossover" in r.stdout and "bandwidth" in r.stdout
+    from piezo_stage.cli.experiment import param_overrides
+    p = param_overrides([str(out)])
+    assert set(p) == {"controller"} and p["controller"]["ki"] > 0
+    assert math.isfinite(p["controller"]["kp"])
