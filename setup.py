@@ -11,8 +11,17 @@ from setuptools import find_packages, setup
 
 package_name = "piezo_stage"
 
-NODES = ["stage_driver", "identifier", "feedforward", "controller", "trajectory",
-         "recorder", "gap", "live_view"]
+def _nodes():
+    """piezo_stage.nodes.NODES, read without importing the package (it needs rclpy)."""
+    import ast
+    tree = ast.parse(open("piezo_stage/nodes/__init__.py").read())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and node.targets[0].id == "NODES":
+            return list(ast.literal_eval(node.value))
+    raise RuntimeError("piezo_stage/nodes/__init__.py has no NODES")
+
+
+NODES = _nodes()
 
 setup(
     name=package_name,
@@ -47,7 +56,8 @@ setup(
         "daq": ["nidaqmx>=1.0"],
         # the tests import the real nidaqmx (it installs without NI hardware) and run
         # the daq backend on it with only NI's driver layer replaced (the test double)
-        "test": ["pytest>=7", "nidaqmx>=1.0"],
+        # (and ruff: the suite runs the linters, test/test_lint.py)
+        "test": ["pytest>=7", "nidaqmx>=1.0", "ruff>=0.5"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",

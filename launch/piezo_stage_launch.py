@@ -11,11 +11,11 @@ installable (wheels-only environments) use `piezo-stage launch`.
 import os
 
 from ament_index_python.packages import get_package_share_directory
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+from launch import LaunchDescription
 from piezo_stage.launch.launcher import Launch
 
 

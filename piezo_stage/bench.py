@@ -85,6 +85,7 @@ def _baseline_least_squares(rec, x0_model):
     """Generic output-error fit of all parameters at once (scipy least_squares, TRF),
     started from the same shared-alpha grid guess the fast solver starts from."""
     from scipy.optimize import least_squares
+
     from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
     v, w = rec.v["x"], rec.w["x"]
     s = 150.0
@@ -104,6 +105,7 @@ def _baseline_least_squares(rec, x0_model):
 
 def bench_identify():
     import time
+
     from piezo_stage.core.identify import IdentifyOptions, identify_axis
     from piezo_stage.core.identify.fast import fit_fast
     from piezo_stage.core.identify.regress import DuhemRegression
@@ -159,7 +161,8 @@ else:
     import numpy as np
     pub = n.create_publisher(Header, '/bench/ping', QOS_DATA)
     got = []
-    n.create_subscription(Header, '/bench/pong', lambda m: got.append(time.perf_counter()), QOS_DATA)
+    n.create_subscription(Header, '/bench/pong', lambda m: got.append(time.perf_counter()),
+                          QOS_DATA)
     while pub.get_subscription_count() < 1 or n.count_publishers('/bench/pong') < 1:
         rclpy.spin_once(n, timeout_sec=0.05)
     time.sleep(0.5)
@@ -254,9 +257,10 @@ def _loop_run(env, steps, foxglove_port=None):
     import os
     import re
     import tempfile
-    from piezo_stage.paths import default_config
+
     from piezo_stage.io.bag import iter_messages
     from piezo_stage.launch.launcher import Launch
+    from piezo_stage.paths import default_config
     bag = os.path.join(tempfile.mkdtemp(), "bench")
     o = {"stage_driver": {"max_steps": steps, "exit_after_max_steps": True},
          "feedforward": {"model_file": default_config("stage_model.yaml")}}
@@ -342,6 +346,7 @@ def _watched_loop_run(env, steps, port):
     """A lockstep run with the live view and a client watching joint_states: the run's
     figures, and (messages received, their rate per wall-clock second)."""
     import threading
+
     from piezo_stage.launch.foxglove_probe import connect, receive
     done, got = threading.Event(), {}
 
@@ -411,6 +416,7 @@ def bench_liveview(steps=6000, pairs=3):
 
 def bench_gap(seeds=3):
     import time
+
     from piezo_stage.core.gap import diagnose
     from piezo_stage.studies import gap_blind
     print("bench gap: blind suite, one unmodelled effect per record pair (FIT, HOLDOUT), "

@@ -58,10 +58,10 @@ FAULTS = ("controller killed", "controller stopped 1 s", "feedforward killed",
 
 
 def bench_faults() -> int:
+    from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     from piezo_stage.launch.launcher import Launch
     from piezo_stage.launch.probe import Probe
     from piezo_stage.paths import default_config
-    from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     slew = load_plant_config(default_plant_config_path()).slew_V_per_s
     d = random.randint(101, 200)
     env = dict(os.environ, ROS_DOMAIN_ID=str(d), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")

@@ -24,7 +24,8 @@ def tracking_from_bag(bag, t_from_s):
     for topic, msgtype, _, data in iter_messages(bag):
         if topic.endswith("/reference"):
             m = deserialize(data, msgtype)
-            ref[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = np.array(m.position[:2]) * 1e6
+            ns = m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+            ref[ns] = np.array(m.position[:2]) * 1e6
         elif topic.endswith("/joint_states"):
             m = deserialize(data, msgtype)
             meas[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = np.array(m.position) * 1e6
@@ -37,8 +38,8 @@ def tracking_from_bag(bag, t_from_s):
 
 
 def run_demo(args):
-    from piezo_stage.paths import default_config
     from piezo_stage.launch.launcher import Launch
+    from piezo_stage.paths import default_config
     bag = args.out or new_bag_dir("bags")
     rate = 1000.0
     total = args.excite + 0.2 + args.track + 0.2  # + arming and the approach

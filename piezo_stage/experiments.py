@@ -159,21 +159,31 @@ def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=N
     drv = {"mode": mode}
     if plant:
         drv["plant_config"] = os.path.abspath(plant)
-    if mode == "lockstep":
-        drv.update(max_steps=int(total_s * RATE_HZ), exit_after_max_steps=True)
+    # the driver counts its own samples (in real time from when its clock starts, once
+    # the set listens), so both modes end right after the trajectory and its tail
+    drv.update(max_steps=int(total_s * RATE_HZ), exit_after_max_steps=True)
     o = _merge(extra or {}, {"stage_driver": drv, "trajectory": {"kind": "csv",
                                                                  "csv_path": csv}},
                {"feedforward": {"model_file": os.path.abspath(model)}} if model else {},
                case.params)
     launch = Launch(config, record=bag, overrides=o, namespace=namespace, env=env,
                     nodes=list(NODES))
-    rc = launch.run(duration=total_s + 2.0 if mode == "realtime" else 900.0)
+    rc = launch.run(duration=900.0)
     return rc, launch.failed
 
 
 def _window(case, run):
     """Stamps of the evaluation window: the last eval_s of the motion."""
     ks = sorted(k for k in run.desired_um if k in run.true_um)
+    # only while armed: at the end of a real-time run the driver disarms and the
+    # feedforward then holds where the stage is (which moves with the noise)
+    armed = [(since, state) for since, state in sorted(run.states)]
+    starts = [i for i, (_, st) in enumerate(armed) if st == "armed"]
+    if starts:
+        i = starts[-1]
+        a0 = armed[i][0]
+        a1 = armed[i + 1][0] if i + 1 < len(armed) else float("inf")
+        ks = [k for k in ks if a0 <= k < a1]
     if len(ks) < 10:
         raise DataError("no tracking samples in the bag")
     i = "xy".index(case.moving) if case.moving else None
@@ -246,6 +256,7 @@ def run_experiment(name, out_dir, config, plant=None, model=None, mode="lockstep
     """Run every case of ``name``; bags under ``out_dir``. Returns the JSON document and
     the per-case evaluations (for the plots)."""
     import sys
+
     from piezo_stage.io.model_file import load_model
     from piezo_stage.progress import bar
     effects = bool(load_model(model)[1]) if model else False

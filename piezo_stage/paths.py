@@ -21,8 +21,7 @@ def share_dir() -> str:
             os.path.isdir(os.path.join(root, "config")):
         return root
     try:
-        from ament_index_python.packages import (PackageNotFoundError,
-                                                 get_package_share_directory)
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
         try:
             return get_package_share_directory(PACKAGE)
         except (PackageNotFoundError, KeyError, LookupError, EnvironmentError):

@@ -21,10 +21,11 @@ SKIP = ("/diagnostics", "/model", "/rosout", "/parameter_events", "/clock")
 def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
+    from rosgraph_msgs.msg import Clock
+
     from piezo_stage.nodes._common import QOS_DATA
     from piezo_stage.nodes._tap import msg_class
     from piezo_stage_msgs_adapters import clock_msg
-    from rosgraph_msgs.msg import Clock
     rclpy.init()
     node = rclpy.create_node("replay")
     pubs, n = {}, 0

@@ -1,4 +1,3 @@
 """The tests' outside node: piezo_stage.launch.probe."""
 
-from piezo_stage.launch.probe import (Probe, _param_call_raw, get_params,  # noqa: F401
-                                      set_params)
+from piezo_stage.launch.probe import Probe, _param_call_raw, get_params, set_params  # noqa: F401

@@ -53,6 +53,7 @@ def test_reference_and_setpoint_and_model():
     with pytest.raises(DataError):
         A.setpoint_from_msg(A.point_msg(1, {"x": 500.0, "y": 0.0}), (-10, 90))
     import os
+
     from conftest import CONFIG
     text = open(os.path.join(CONFIG, "stage_model.yaml")).read()
     model, _ = A.model_from_msg(A.model_msg(text))
@@ -88,8 +89,9 @@ def test_cdr_encoders_give_the_messages_rclpy_reads():
     for typed, raw, cls in _typed_and_raw():
         assert deserialize_message(raw, cls) == typed, cls.__name__
     # other layouts (odd name lengths, velocity only, long frame) use their own templates
-    from piezo_stage_msgs_adapters import cdr
     from sensor_msgs.msg import JointState
+
+    from piezo_stage_msgs_adapters import cdr
     for names, pos, vel, eff, frame in ((["a", "bb", "ccc"], [1.0, 2.0, 3.0],
                                          [4.0, 5.0, 6.0], [], "f"),
                                         (["x"], [], [], [7.5], "a_longer_frame_id_")):
@@ -120,6 +122,7 @@ def test_cdr_decoders_read_what_rclpy_writes():
 
 def test_cdr_big_endian_and_xcdr2_are_read():
     import struct
+
     from piezo_stage_msgs_adapters import cdr
     # Vector3Stamped, big-endian XCDR1: stamp, frame "s", pad to 8, three doubles
     be = b"\x00\x00\x00\x00" + struct.pack(">iI", 1, 2) + struct.pack(">I", 2) + b"s\x00" \

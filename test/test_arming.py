@@ -6,10 +6,22 @@ import math
 import numpy as np
 import pytest
 
-from piezo_stage.core.arming import (APPROACH, APPROACHING, ARMED, ARMING, DISARMED,
-                                     FAULTED, HOLD, TRACK, Approach, ArmingParams,
-                                     ArmingSupervisor, CommandSchedule, ReferencePlanner,
-                                     StateTimeline)
+from piezo_stage.core.arming import (
+    APPROACH,
+    APPROACHING,
+    ARMED,
+    ARMING,
+    DISARMED,
+    FAULTED,
+    HOLD,
+    TRACK,
+    Approach,
+    ArmingParams,
+    ArmingSupervisor,
+    CommandSchedule,
+    ReferencePlanner,
+    StateTimeline,
+)
 from piezo_stage.core.control import PID, CompositeAxis, PIDGains, clamp_slew
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.metrics import LatencyHistogram
@@ -210,6 +222,7 @@ def test_host_pauses_are_where_every_cpu_sentinel_stopped_at_once():
     import os
     import signal
     import time
+
     from piezo_stage.launch.host_pauses import HostPauseMonitor, inside, overlap
     # the overlap logic: only what every CPU shares, longer than the floor
     assert overlap([[(0, 10), (20, 30)], [(5, 25)]]) == [(5, 10), (20, 25)]

@@ -10,9 +10,16 @@ import pytest
 from conftest import ROOT
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.record import Record
-from piezo_stage.io.bag import (BagWriter, iter_messages, mcap_path, read_bag_record,
-                               read_metadata,
-                                new_bag_dir, write_record_bag)
+from piezo_stage.io.bag import (
+    BagWriter,
+    iter_messages,
+    mcap_path,
+    new_bag_dir,
+    read_bag_record,
+    read_metadata,
+    scan_bag,
+    write_record_bag,
+)
 
 
 def _rec(n=3000, fs=1000.0):
@@ -62,13 +69,20 @@ def test_never_overwritten(tmp_path):
 
 
 def test_finish_twice_is_safe(tmp_path):
+    """A second finish changes nothing: the bag stays complete and readable."""
     b = BagWriter(tmp_path / "b")
+    b.add_topic("/stage/joint_states", "sensor_msgs/msg/JointState")
     b.finish()
+    files = sorted(p.name for p in (tmp_path / "b").iterdir())
+    before = {n: (tmp_path / "b" / n).read_bytes() for n in files}
     b.finish()
+    assert sorted(p.name for p in (tmp_path / "b").iterdir()) == files
+    assert {n: (tmp_path / "b" / n).read_bytes() for n in files} == before
+    scan = scan_bag(mcap_path(tmp_path / "b"))
+    assert "metadata.yaml" in files and scan.complete and scan.damage() == ""
 
 
 def test_truncated_bag_readable_up_to_last_flushed_chunk(tmp_path):
-    rec = _rec(2000)
     path = tmp_path / "kill"
     code = f"""
 import os, signal, numpy as np
@@ -99,7 +113,7 @@ def test_unreadable_bag(tmp_path, content):
 
 
 def test_bag_without_needed_topics(tmp_path):
-    from piezo_stage.io.bag import serialize, _typestore
+    from piezo_stage.io.bag import _typestore, serialize
     S = _typestore().types["std_msgs/msg/String"]
     with BagWriter(tmp_path / "b") as b:
         b.add_topic("/chatter", "std_msgs/msg/String")
@@ -176,8 +190,10 @@ def test_nothing_usable_is_an_error(tmp_path):
 def test_bag_repair_makes_a_killed_writers_bag_readable_by_standard_readers(tmp_path):
     import subprocess
     import sys
+
     from mcap.reader import make_reader
     from rosbags.rosbag2 import Reader
+
     from conftest import ROOT
     p = _chunked_bag(tmp_path / "k")
     d = open(p, "rb").read()

@@ -47,5 +47,9 @@ def test_core_sources_do_not_import_ros():
         for f in files:
             if f.endswith(".py"):
                 src = open(os.path.join(dirpath, f)).read()
-                for bad in ("import rclpy", "from rclpy", "_msgs", "piezo_stage.nodes"):
+                # layers point down: the core imports no io, cli, launch, drivers, nodes,
+                # messages or ROS
+                for bad in ("import rclpy", "from rclpy", "_msgs", "piezo_stage.nodes",
+                            "piezo_stage.io", "piezo_stage.cli", "piezo_stage.launch",
+                            "piezo_stage.drivers", "piezo_stage.experiments"):
                     assert bad not in src, (f, bad)

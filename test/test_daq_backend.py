@@ -19,7 +19,7 @@ import ni_driver_double as dd  # noqa: E402
 
 from piezo_stage.drivers import BACKEND_PARAMS  # noqa: E402
 from piezo_stage.drivers.daq import DaqBackend  # noqa: E402
-from piezo_stage.io.run_bag import status_node
+from piezo_stage.io.run_bag import status_node  # noqa: E402
 
 PARAMS = {k: v for k, v, _ in BACKEND_PARAMS}
 
@@ -47,9 +47,9 @@ def test_every_nidaqmx_call_the_backend_makes_exists_with_that_signature():
     from nidaqmx.stream_writers import AnalogMultiChannelWriter
     from nidaqmx.system.watchdog import AOExpirationState, WatchdogTask
     from nidaqmx.task import Task
-    from nidaqmx.task.collections import AIChannelCollection, AOChannelCollection
     from nidaqmx.task._in_stream import InStream
     from nidaqmx.task._timing import Timing
+    from nidaqmx.task.collections import AIChannelCollection, AOChannelCollection
 
     def binds(fn, *a, **k):
         inspect.signature(fn).bind(None, *a, **k)
@@ -71,7 +71,8 @@ def test_every_nidaqmx_call_the_backend_makes_exists_with_that_signature():
     assert isinstance(AnalogMultiChannelReader.verify_array_shape, property)
     assert AOExpirationState._fields == ("physical_channel", "expiration_state", "output_type")
     assert WatchdogAOExpirState.VOLTAGE and "DIFF" in TerminalConfiguration.__members__
-    assert isinstance(DaqError.error_code, property) and isinstance(DaqWarning.error_code, property)
+    assert isinstance(DaqError.error_code, property)
+    assert isinstance(DaqWarning.error_code, property)
     assert not hasattr(Task, "wait_for_next_sample_clock")  # what the old backend called
 
 

@@ -96,3 +96,17 @@ def test_bad_inputs_exit_2_with_one_line(tmp_path, env):
         r = _experiment(env, *args, timeout=60)
         assert r.returncode == 2, (args, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1 or "usage" in r.stderr
+
+
+def test_a_real_time_experiment_ends_by_itself(tmp_path, env):
+    """In real time the driver stops after its samples: it ramps to the safe voltage and
+    exits, the command ends, and the window is judged while the set was armed."""
+    out = tmp_path / "noise.json"
+    r = _experiment(env, "noise", "--model", MODEL, "--mode", "realtime", "--record",
+                    tmp_path / "bags", "--json", out, timeout=180)
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads(out.read_text())
+    assert doc["mode"] == "realtime"
+    meas = [c for c in doc["cases"] if c["reference"] == "measured"]
+    # the sensor's 0.1 um noise, and nothing else, at rest
+    assert all(0.05 < c["rms_err_um"] < 0.2 for c in meas), meas

@@ -86,7 +86,8 @@ def test_gap_command_report_and_closing_the_loop(tmp_path):
     import yaml
     doc = yaml.safe_load((tmp_path / "m.yaml").read_text())
     assert "delay" in doc["effects"]
-    assert doc["effects"]["delay"]["delay_s"] == pytest.approx(j["ranking"][0]["params"]["delay_s"])
+    found = j["ranking"][0]["params"]["delay_s"]
+    assert doc["effects"]["delay"]["delay_s"] == pytest.approx(found)
     sim = read_table(tmp_path / "sim.csv", ["wx"])["wx"]
     doc["effects"] = {}
     with open(tmp_path / "m0.yaml", "w") as fh:
@@ -216,6 +217,7 @@ def test_a_richer_hysteresis_shape_is_the_structure_class():
     quintic term): the structure candidate (degree-5 branches), chosen on HOLDOUT,
     closes the gap, and no effect is named for it."""
     import copy
+
     from piezo_stage.core.duhem import DuhemBranch, DuhemModel
     from piezo_stage.core.excitation import gap_protocol
     from piezo_stage.core.plant import Plant

@@ -127,6 +127,7 @@ def test_trajectory_messages_are_checked_point_by_point():
     pytest.importorskip("trajectory_msgs")
     from builtin_interfaces.msg import Duration
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
     import piezo_stage_msgs_adapters as A
 
     def traj(names, points):
@@ -151,6 +152,7 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path):
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
     from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED
     from ros_probe import Probe
     d = random.randint(150, 200)  # Fast DDS takes domain ids up to 232

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from conftest import ROOT
-from piezo_stage.core.duhem import DuhemModel, DuhemState
+from piezo_stage.core.duhem import DuhemModel
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.identify import IdentifyOptions, identify_axis, validate_axis
 from piezo_stage.core.identify.segmentation import segment

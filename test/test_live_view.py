@@ -67,6 +67,7 @@ def check_parameters(env):
     """From an outside node, as `ros2 param` does: only max_rate_hz and batch_period_s
     are writable (and applied); the port refuses a set as read-only."""
     from rcl_interfaces.srv import DescribeParameters, ListParameters
+
     from piezo_stage.launch.probe import Probe, _param_call_raw, set_params
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # as the nodes'
     probe = Probe(int(env["ROS_DOMAIN_ID"]))

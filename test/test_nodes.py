@@ -263,7 +263,9 @@ def test_replay_honours_rate_on_the_bags_time_and_publishes_clock(tmp_path, env)
     least half its duration, never less (the rate is honoured), and /clock carries the
     bag's time in order, so a node on use_sim_time follows the replay."""
     import threading
+
     from rosgraph_msgs.msg import Clock
+
     from piezo_stage.core.record import Record
     from piezo_stage.io.bag import write_record_bag
     from ros_probe import Probe

@@ -18,10 +18,12 @@ import pytest
 
 pytest.importorskip("rclpy")
 from conftest import CONFIG, ROOT  # noqa: E402
-from piezo_stage.io.run_bag import read_run  # noqa: E402
+from piezo_stage.io.run_bag import (
+    read_run,  # noqa: E402
+    status_node,
+)
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 from ros_probe import Probe  # noqa: E402
-from piezo_stage.io.run_bag import status_node
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
 SLEW_V_PER_S = 1.0e5  # config/sim_stage.yaml's amplifier slew limit
@@ -87,6 +89,7 @@ def test_arming_is_refused_with_the_missing_link_and_e_stop_stays_latched(tmp_pa
         # latency reported (it cannot be previewed): the look-ahead plus under a period
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PointStamped
+
         from piezo_stage.nodes._common import QOS_DATA
         diag = {}
         probe.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diag.update(
@@ -275,6 +278,7 @@ def test_controller_gains_and_feedback_are_live_and_read_only_ones_refused(tmp_p
 
 
 LIVE = {"controller": {"kp", "ki", "kd", "feedback"},
+        "feedforward": {"compensate_effects"},
         "identifier": {"method", "structure", "auto_cycles"},
         "recorder": {"batch_period_s"},
         "live_view": {"max_rate_hz", "batch_period_s"},
@@ -288,8 +292,9 @@ def test_every_parameter_of_every_node_is_live_or_read_only(tmp_path, domain):
     writable parameters are exactly the live ones (plus rclpy's own use_sim_time);
     every other one refuses a set as read-only; a live one takes effect (the node
     reports the value it uses), and an unknown choice is refused with the reason."""
-    from rcl_interfaces.srv import DescribeParameters, ListParameters
     from diagnostic_msgs.msg import DiagnosticArray
+    from rcl_interfaces.srv import DescribeParameters, ListParameters
+
     from ros_probe import _param_call_raw, set_params
     d, env = domain
     nodes = ["stage_driver", "feedforward", "controller", "trajectory", "identifier", "gap"]

@@ -33,8 +33,11 @@ def _die(msg: str, code: int = EXIT_USAGE):
 def _load_plant(args, rate_hz):
     from piezo_stage.core.plant import PlantConfig
     from piezo_stage.io.model_file import load_model
-    from piezo_stage.io.plant_file import (default_plant_config_path, enabled_effects,
-                                           load_plant_config)
+    from piezo_stage.io.plant_file import (
+        default_plant_config_path,
+        enabled_effects,
+        load_plant_config,
+    )
     if args.model:
         model, effects = load_model(args.model)
         cfg = PlantConfig.exact(model, rate_hz)
@@ -61,8 +64,8 @@ def _check_voltages(rec, limits, source):
 
 def cmd_simulate(args):
     from piezo_stage.core.plant import Plant
-    from piezo_stage.io.csv_table import read_table, write_table
     from piezo_stage.core.record import Record
+    from piezo_stage.io.csv_table import read_table, write_table
     cols = read_table(args.inp, ["t", "vx", "vy"])
     rec = Record(cols["t"], {"x": cols["vx"], "y": cols["vy"]}, source=args.inp)
     cfg = _load_plant(args, rec.fs_hz)
@@ -150,6 +153,7 @@ def cmd_loop(args):
 def cmd_identify(args):
     import json
     import os
+
     from piezo_stage.core.duhem import StageModel
     from piezo_stage.core.identify import IdentifyOptions, identify_axis, validate_axis
     from piezo_stage.io.files import atomic_write
@@ -213,8 +217,8 @@ def cmd_identify(args):
 
 
 def cmd_study(args):
-    from piezo_stage.studies import identification
     from piezo_stage.progress import bar
+    from piezo_stage.studies import identification
     with bar("study: identifications", total=2 + 3 * args.seeds, unit=" fits") as b:
         rep = identification.run(args.out, seeds=args.seeds, budget=args.budget,
                                  progress=lambda m: b.write(m, file=sys.stderr),
@@ -239,6 +243,7 @@ def cmd_excite(args):
 
 def cmd_gap(args):
     import json
+
     from piezo_stage.core.gap import diagnose
     from piezo_stage.io.files import atomic_write
     from piezo_stage.io.records import load_record
@@ -327,9 +332,9 @@ def _port(text):
 
 
 def cmd_launch(args):
-    from piezo_stage.paths import default_config
     from piezo_stage.io.bag import new_bag_dir
     from piezo_stage.launch.launcher import Launch
+    from piezo_stage.paths import default_config
     record = args.record
     if record == "auto":
         record = new_bag_dir("bags")
@@ -353,6 +358,7 @@ def cmd_demo(args):
 
 def cmd_replay(args):
     import math
+
     from piezo_stage.replay import replay
     if not (math.isfinite(args.rate) and args.rate >= 0):
         raise DataError(f"--rate {args.rate}: must be a finite number >= 0 (0: as fast as "

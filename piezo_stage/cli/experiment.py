@@ -7,8 +7,6 @@ import json
 import os
 
 
-
-
 def _floats(text):
     import argparse
     try:
@@ -23,6 +21,7 @@ def _floats(text):
 
 def _controllers(text):
     import argparse
+
     from piezo_stage.experiments import CONTROLLERS
     out = tuple(x.strip() for x in text.split(","))
     bad = [c for c in out if c not in CONTROLLERS]
@@ -53,10 +52,10 @@ def _check_inputs(args):
 def identify_first(out_dir, config, plant, mode, extra, namespace):
     """No model given: the identifier identifies one through the node set (the demo's
     excitation) and it is written to out_dir/identified_model.yaml."""
+    from piezo_stage.experiments import NODES, _merge
     from piezo_stage.io.bag import deserialize, iter_messages
     from piezo_stage.io.files import atomic_write
     from piezo_stage.launch.launcher import Launch
-    from piezo_stage.experiments import NODES, _merge
     bag = os.path.join(out_dir, "identification")
     drv = {"mode": mode}
     if plant:
@@ -86,6 +85,7 @@ def identify_first(out_dir, config, plant, mode, extra, namespace):
 
 def cmd_experiment(args):
     import sys
+
     from piezo_stage.experiments import run_experiment, table
     from piezo_stage.io.bag import new_bag_dir
     from piezo_stage.paths import default_config
@@ -114,8 +114,8 @@ def cmd_experiment(args):
             fh.write(text + "\n")
         print(f"json: {args.json}")
     if args.report:
-        from piezo_stage.io.plots import experiment_png
         from piezo_stage.io.files import atomic_write
+        from piezo_stage.io.plots import experiment_png
         os.makedirs(args.report, exist_ok=True)
         with atomic_write(os.path.join(args.report, f"{args.name}.json")) as fh:
             fh.write(text + "\n")
@@ -130,8 +130,8 @@ def cmd_experiment(args):
 
 def cmd_tune(args):
     from piezo_stage.core.tuning import tune
-    from piezo_stage.io.model_file import load_model
     from piezo_stage.io.files import atomic_write
+    from piezo_stage.io.model_file import load_model
     model, effects = load_model(args.model)
     res = tune(model, effects, rate_hz=args.rate, phase_margin_deg=args.phase_margin,
                gain_margin_db=args.gain_margin, latency_periods=args.latency)

@@ -1,5 +1,10 @@
 """Pure numerical core: numpy, scipy and (optionally) numba only; never rclpy or messages."""
 
-from piezo_stage.core.errors import (  # noqa: F401
-    PiezoStageError, DataError, ModelError, ConfigError, SolverError)
 from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState  # noqa: F401
+from piezo_stage.core.errors import (  # noqa: F401
+    ConfigError,
+    DataError,
+    ModelError,
+    PiezoStageError,
+    SolverError,
+)

@@ -41,8 +41,7 @@ from piezo_stage.core.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.identify.api import check_identifiable, free_response
 from piezo_stage.core.identify.fast import fit_fast
-from piezo_stage.core.identify.regress import (DuhemRegression, gram, gram_blocks,
-                                               solve_gram)
+from piezo_stage.core.identify.regress import DuhemRegression, gram, gram_blocks, solve_gram
 from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.metrics import noise_floor, rms
 from piezo_stage.core.record import Record

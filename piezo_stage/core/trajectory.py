@@ -16,14 +16,17 @@ KINDS = ("sine", "variable_sine", "steps", "triangle", "seed", "csv")
 
 def generate(kind="seed", duration_s=1.0, dt_s=1e-3, frequency_hz=10.0, center_um=21.0,
              amplitude_um=24.0, axes=("x", "y"), step_levels_um=(10.0, 40.0, 25.0, 55.0),
-             csv_path=None):
-    """Returns (t [s], {axis: w [um]}) sampled every dt_s over duration_s."""
+             table=None):
+    """Returns (t [s], {axis: w [um]}) sampled every dt_s over duration_s. Kind ``csv``
+    takes ``table``: {"t", "wx", "wy"} arrays, as the caller read them (io.csv_table)."""
     if kind not in KINDS:
         raise ConfigError(f"unknown trajectory kind {kind!r}; use one of {', '.join(KINDS)}")
     if kind == "csv":
-        from piezo_stage.io.csv_table import read_table
-        cols = read_table(csv_path, ["t", "wx", "wy"])
-        return cols["t"] - cols["t"][0], {"x": cols["wx"], "y": cols["wy"]}
+        if table is None:
+            raise ConfigError("trajectory kind csv needs a table (t, wx, wy)")
+        t = np.asarray(table["t"], float)
+        return t - t[0], {"x": np.asarray(table["wx"], float),
+                          "y": np.asarray(table["wy"], float)}
     if not (duration_s > 0 and dt_s > 0 and frequency_hz > 0):
         raise ConfigError("duration_s, dt_s and frequency_hz must be > 0")
     t = np.arange(int(round(duration_s / dt_s)) + 1) * dt_s

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import glob
 import os
-from dataclasses import dataclass, field
 import time
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import yaml
@@ -33,8 +33,14 @@ QOS_KINDS = {"data": (5000, False), "latched": (1, True), "events": (20, True),
 def offered_qos(kind: str = "data") -> list[dict]:
     """A topic's offered QoS profiles in rosbag2's version-9 form (a list of mappings
     with lower-case policy names), made with rosbags' own metadata writer."""
-    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
-                                    QosReliability, QosTime)
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
     from rosbags.rosbag2.metadata import dump_qos_v9
     depth, latched = QOS_KINDS[kind]
     zero = QosTime(0, 0)  # "not set": infinite deadline, lifespan and lease
@@ -242,6 +248,7 @@ def scan_bag(path) -> BagScan:
     message index says it held), a cut-off tail is noted, and reading goes on past both.
     """
     import io
+
     from mcap.exceptions import EndOfFile, McapError
     from mcap.records import Channel, Message, MessageIndex, Metadata, Schema
     from mcap.stream_reader import MAGIC_SIZE, StreamReader
@@ -396,6 +403,7 @@ def read_bag_record(path, namespace=None):
     that sample in ``effort`` (volts), as the stage driver publishes them.
     """
     import numpy as np
+
     from piezo_stage.core.record import Record
     pos, volt = {}, {}
     seen = set()

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
 from scipy import signal
 
 from piezo_stage.io.files import atomic_write
@@ -20,7 +19,8 @@ def write_report(out_dir, result, holdout):
     lines = ["# Sim-to-real gap report", "",
              f"**Verdict: {result['verdict']}** — {result['reason']}", "",
              f"Noise floor (from the data): {result['noise_floor_um']:.4f} um. "
-             f"Scored on {'the FIT record itself (no holdout given)' if result['holdout_is_fit'] else 'the HOLDOUT record'}. "
+             "Scored on " + ("the FIT record itself (no holdout given)"
+                             if result["holdout_is_fit"] else "the HOLDOUT record") + ". "
              f"Run time {result['seconds']:.1f} s.", ""]
     for axis, d in result["_diagnoses"].items():
         lines += [f"## Axis {axis}: {d.verdict}", "", d.reason, "",

@@ -23,14 +23,13 @@ import time
 import yaml
 
 from piezo_stage.core.errors import ConfigError
-
-ORDER = ("recorder", "live_view", "identifier", "gap", "controller", "feedforward",
-         "trajectory", "stage_driver")
+from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
 
 
 def _params(config_path):
     try:
-        doc = yaml.safe_load(open(config_path)) or {}
+        with open(config_path) as fh:
+            doc = yaml.safe_load(fh) or {}
     except FileNotFoundError:
         raise ConfigError(f"{config_path}: no such config file") from None
     except yaml.YAMLError:

@@ -1,1 +1,10 @@
-"""ROS 2 nodes: one per file, each a thin shell over the core (see README: topics)."""
+"""ROS 2 nodes: one per file, each a thin shell over the core (see README: topics).
+
+``NODES`` is the one list of the set's nodes, in start order (the recorder and the live
+view first, so they listen before anything is published; the driver last, so its first
+sample finds everyone): the launcher, the ros2 launch file and setup.py's console
+scripts all read it.
+"""
+
+NODES = ("recorder", "live_view", "identifier", "gap", "controller", "feedforward",
+         "trajectory", "stage_driver")

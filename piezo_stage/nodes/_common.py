@@ -11,7 +11,6 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-
 # Loop and record topics: reliable with a deep queue, so a briefly slow subscriber (the
 # recorder) catches up instead of losing samples.
 QOS_DATA = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000,
@@ -80,6 +79,7 @@ def _spin(node):
     ``on_lean_tick()``, which the loop calls once the deadline has passed, right after
     taking what has arrived. The loop sleeps in the wait set until then."""
     from contextlib import ExitStack
+
     from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
     executor = rclpy.executors.SingleThreadedExecutor(context=node.context)
     executor.add_node(node)

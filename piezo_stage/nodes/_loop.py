@@ -55,6 +55,7 @@ class DriverState:
 
     def __init__(self, node, dt_ns, prio):
         from diagnostic_msgs.msg import DiagnosticArray
+
         from piezo_stage.core.arming import StateTimeline
         self.node, self.prio = node, prio
         self.timeline, self.lookahead_ns, self.dt_ns = StateTimeline(), dt_ns, dt_ns

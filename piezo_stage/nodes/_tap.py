@@ -14,8 +14,14 @@ import struct
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from piezo_stage.nodes._common import (QOS_DATA, QOS_DIAG, QOS_EVENTS, QOS_LATCHED,
-                                       hot_subscription, steady_timer)
+from piezo_stage.nodes._common import (
+    QOS_DATA,
+    QOS_DIAG,
+    QOS_EVENTS,
+    QOS_LATCHED,
+    hot_subscription,
+    steady_timer,
+)
 
 CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag)
     # (the kind is what our publishers offer; the tap subscribes volatile to

@@ -20,15 +20,15 @@ import time
 
 from geometry_msgs.msg import Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from piezo_stage.core.control import PID, CompositeAxis, PIDGains
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
-from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
+from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
-from rclpy.node import Node
 
 GAINS = ("kp", "ki", "kd")
 

@@ -16,6 +16,8 @@ the inverse without a restart. Without any model the feedforward is a nominal ga
 import time
 
 from geometry_msgs.msg import PointStamped
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
@@ -27,13 +29,15 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED, hot_subscription, run
-from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
-from piezo_stage_msgs_adapters import (joint_state_to_um,
-                                       model_from_msg, reference_cdr, setpoint_from_msg,
-                                       trajectory_from_cdr)
-from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from piezo_stage.nodes._params import declare
+from piezo_stage_msgs_adapters import (
+    joint_state_to_um,
+    model_from_msg,
+    reference_cdr,
+    setpoint_from_msg,
+    trajectory_from_cdr,
+)
 
 
 class Feedforward(Node):
@@ -57,7 +61,8 @@ class Feedforward(Node):
         self.hold_s = declare(self, "model_required_after_s", 0.0, "lockstep: hold the "
                               "loop at this trajectory time until a model arrives (0: never)")
         self.max_points = declare(self, "max_trajectory_points", 200_000, "longer "
-                                  "trajectories are refused (memory, parse time)", lo=2, hi=10_000_000)
+                                  "trajectories are refused (memory, parse time)", lo=2,
+                                  hi=10_000_000)
         self.wait_traj = declare(self, "wait_for_trajectory", False, "lockstep: answer no "
                                  "sample before a trajectory has arrived")
         self.planner = ReferencePlanner(
@@ -76,7 +81,8 @@ class Feedforward(Node):
         self.last_target = None
         self.driver.limits, self.last_rejection = None, ""
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
-                                "rejected_models": 0, "saturated": 0, "bad_messages": 0, "late_dropped": 0}
+                                "rejected_models": 0, "saturated": 0, "bad_messages": 0,
+                                "late_dropped": 0}
         if model_file:
             from piezo_stage.io.model_file import load_model
             self.set_model(*load_model(model_file), model_file)

@@ -10,17 +10,17 @@ from collections import deque
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
+from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from piezo_stage.core.plant import Plant, PlantConfig
 from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.plant import Plant, PlantConfig
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir, enabled_effects
 from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
-from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics, Gate
+from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import joint_state_to_um, point_cdr
-from rclpy.node import Node
 
 
 class Gap(Node):
@@ -28,7 +28,9 @@ class Gap(Node):
         super().__init__("gap")
         rate = declare(self, "control_rate_hz", 1000.0, "control rate [Hz]",
                        lo=1.0, hi=1e5)
-        path = declare(self, "model_file", "", "the twin's model ('' = config/stage_model.yaml)") or f"{default_config_dir()}/stage_model.yaml"
+        path = (declare(self, "model_file", "", "the twin's model ('' = "
+                        "config/stage_model.yaml)")
+                or f"{default_config_dir()}/stage_model.yaml")
         self.window = declare(self, "window", 1000, "samples in the rolling RMS", lo=10,
                               hi=10_000_000)
         model, effects = load_model(path)

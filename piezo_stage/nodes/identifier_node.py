@@ -10,6 +10,7 @@ from collections import deque
 
 import numpy as np
 import yaml
+from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -21,10 +22,9 @@ from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.record import Record
 from piezo_stage.io.model_file import model_to_dict
 from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, hot_subscription, run, steady_timer
-from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics
+from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
-from rclpy.node import Node
 
 
 class Identifier(Node):

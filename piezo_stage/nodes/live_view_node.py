@@ -7,21 +7,22 @@ and the rest as it does from a bag: no ROS install is needed on the viewing side
 the bytes go out as received (no deserialize/serialize round trip). Data topics are
 taken best-effort, so a slow viewer never holds up the loop's publishers; a topic
 nobody subscribes to costs only the take, and ``max_rate_hz`` thins what is sent per
-topic per wall-clock second (a 1 kHz loop is more than a plot needs). Messages carry their header stamp as
-log time (the set's one clock: simulated time in lockstep, wall clock in real time).
+topic per wall-clock second (a 1 kHz loop is more than a plot needs). Messages carry
+their header stamp as log time (the set's one clock: simulated time in lockstep, wall
+clock in real time).
 """
 
 import time
 
 from foxglove import Channel, Schema, start_server
 from foxglove.websocket import ServerListener
+from rclpy.node import Node
 
 from piezo_stage.io.bag import msgdef
 from piezo_stage.nodes._common import run
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._tap import TopicTap
-from rclpy.node import Node
 
 
 class _Subscriptions(ServerListener):

@@ -11,19 +11,21 @@ model files go in as MCAP metadata.
 import os
 import sys
 
-from piezo_stage.io.bag import BagWriter, new_bag_dir
-from piezo_stage.nodes._common import run, steady_timer
-from piezo_stage.nodes._params import declare
-from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
-from piezo_stage.nodes._tap import TopicTap
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
+
+from piezo_stage.io.bag import BagWriter, new_bag_dir
+from piezo_stage.nodes._common import run, steady_timer
+from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
+from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._tap import TopicTap
 
 
 class Recorder(Node):
     def __init__(self):
         super().__init__("recorder")
-        out = declare(self, "output", "", "bag directory ('' = bags/<timestamp>)") or new_bag_dir("bags")
+        out = (declare(self, "output", "", "bag directory ('' = bags/<timestamp>)")
+               or new_bag_dir("bags"))
         meta = {}
         for key in ("config_file", "model_file"):
             path = declare(self, key, "", f"{key.split('_')[0]} to store as metadata")

@@ -16,28 +16,37 @@ voltage limits and the slew limit. State: latched ``state`` topic and /diagnosti
 import time
 from collections import deque
 
+import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, Vector3Stamped
+from rclpy.duration import Duration
+from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
+from piezo_stage.core.arming import (
+    ENABLED,
+    ArmingParams,
+    ArmingSupervisor,
+    CommandSchedule,
+    SampleClock,
+)
 from piezo_stage.core.arming import PARAMETERS as ARMING
-from piezo_stage.core.arming import (ENABLED, ArmingParams, ArmingSupervisor,
-                                     CommandSchedule, SampleClock)
 from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import DataError
 from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
-from piezo_stage.nodes._common import (QOS_DATA, QOS_EVENTS, hot_subscription, run,
-                                       steady_timer)
-from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, hot_subscription, run, steady_timer
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
-from piezo_stage_msgs_adapters import (arming_state_msg, clock_msg, joint_state_cdr,
-                                       point_cdr, voltage_from_msg)
-import rclpy
-from rclpy.duration import Duration
-from rclpy.node import Node
+from piezo_stage.nodes._params import declare
+from piezo_stage_msgs_adapters import (
+    arming_state_msg,
+    clock_msg,
+    joint_state_cdr,
+    point_cdr,
+    voltage_from_msg,
+)
 
 
 class StageDriver(Node):
@@ -152,9 +161,11 @@ class StageDriver(Node):
 
     # -- one sample -----------------------------------------------------------------------
     def tick(self, j, cmd, on_time, missed=0):
-        if self.p["max_steps"] and j > self.p["max_steps"] or \
-                getattr(self.backend, "exhausted", False):
+        if getattr(self.backend, "exhausted", False) or (
+                self.lock and self.p["max_steps"] and j > self.p["max_steps"]):
             return self.done()
+        if self.p["max_steps"] and j > self.p["max_steps"] and not self.shutdown_requested:
+            self.request_shutdown()  # real time: ramp to the safe voltage, then exit
         now = self.stamp(j) if self.lock else self.get_clock().now().nanoseconds
         target = self.sup.tick(self.stamp(j), now, cmd, on_time, self.link, missed + 1)
         v, hit = clamp_slew(target, self.v, self.backend.limits,

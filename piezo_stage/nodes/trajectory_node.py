@@ -9,15 +9,15 @@ starts. Published once its consumers listen, again on a parameter change.
 
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.trajectory import KINDS, generate
 from piezo_stage.nodes._common import QOS_LATCHED, run
-from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._loop import Diagnostics, Gate
+from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import trajectory_msg
-from rclpy.node import Node
 
 PARAMS = {  # name: (default, description)
     "kind": ("seed", "one of: " + ", ".join(KINDS)),
@@ -51,8 +51,12 @@ class Trajectory(Node):
                                                               **self.p}), "trajectory")
 
     def build(self, p):
+        table = None
+        if p["kind"] == "csv":
+            from piezo_stage.io.csv_table import read_table
+            table = read_table(p["csv_path"], ["t", "wx", "wy"])
         t, w = generate(p["kind"], p["duration_s"], p["dt_s"], p["frequency_hz"],
-                        p["center_um"], p["amplitude_um"], csv_path=p["csv_path"])
+                        p["center_um"], p["amplitude_um"], table=table)
         if p["excite_s"] > 0:
             te, we = generate("sine", p["excite_s"], p["dt_s"], 1.0, p["excite_center_um"],
                               p["excite_amplitude_um"])

@@ -61,7 +61,8 @@ def _independent(kind, w, vo, fs, rng):
         n = int(rng.integers(1, 4)) * max(1, int(fs / 1000))
         return np.concatenate([np.full(n, w[0]), w[:-n]])
     if kind == "drift":
-        return w + rng.choice([-1, 1]) * rng.uniform(0.01, 0.03) * t + rng.uniform(0.2, 0.6) * np.sin(
+        return w + rng.choice([-1, 1]) * rng.uniform(0.01, 0.03) * t + rng.uniform(
+            0.2, 0.6) * np.sin(
             2 * np.pi * t / rng.uniform(60, 200))
     if kind == "coupling":
         c1, c2 = rng.uniform(0.006, 0.015), rng.uniform(-2e-5, 2e-5)

@@ -61,12 +61,14 @@ def run(out_dir, seeds=5, budget=60_000, progress=print, step=lambda: None):
         add("afsa-bat whole", "afsa-bat", "whole", s, budget // 2)
         add("afsa-bat segmented", "afsa-bat", "segmented", s, budget)
         add("afsa segmented", "afsa", "segmented", s, budget)
-        progress(f"  seed {s}: afsa-bat seg {results['afsa-bat segmented'][-1].fit['rms_um']:.4f} um, "
+        last = results['afsa-bat segmented'][-1].fit['rms_um']
+        progress(f"  seed {s}: afsa-bat seg {last:.4f} um, "
                  f"afsa seg {results['afsa segmented'][-1].fit['rms_um']:.4f} um")
     for label, rs in results.items():
         rms = np.array([r.fit["rms_um"] for r in rs])
         rows.append({"model": label, "runs": len(rs), "rms_um_mean": float(rms.mean()),
-                     "rms_um_sd": float(rms.std()), "rms_pct_mean": float(np.mean([r.fit["rms_pct"] for r in rs])),
+                     "rms_um_sd": float(rms.std()),
+                     "rms_pct_mean": float(np.mean([r.fit["rms_pct"] for r in rs])),
                      "max_err_um_mean": float(np.mean([r.fit["max_err_um"] for r in rs])),
                      "evaluations_mean": float(np.mean([r.evaluations for r in rs])),
                      "seconds_mean": float(np.mean([r.seconds for r in rs]))})
@@ -86,10 +88,9 @@ def run(out_dir, seeds=5, budget=60_000, progress=print, step=lambda: None):
     validation = []
     for stage_name, c in (("default stage", cfg), ("stage + 300 Hz resonance", dyn)):
         fit = _record(c, 1.0, 2, seed=100)
-        models = {m: identify_axis(fit, "x", IdentifyOptions(method=m, seed=0,
-                                                              afsa=swarm if m != "fast" else {},
-                                                              budget=None if m == "fast" else budget))
-                  for m in ("fast", "afsa-bat")}
+        models = {m: identify_axis(fit, "x", IdentifyOptions(
+            method=m, seed=0, afsa=swarm if m != "fast" else {},
+            budget=None if m == "fast" else budget)) for m in ("fast", "afsa-bat")}
         for f in (1.0, 5.0, 10.0, 40.0):
             rec = _record(c, f, 3 if f > 1 else 2, seed=200 + int(f))
             for m, r in models.items():
@@ -112,6 +113,7 @@ def _plots(out_dir, rec, results):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     from piezo_stage.core.identify.api import simulate_axis
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))

@@ -6,4 +6,9 @@ standard artificial fish swarm) and ``afsa-bat`` (the seed's bat-improved swarm)
 """
 
 from piezo_stage.core.identify.api import (  # noqa: F401
-    IdentifyOptions, AxisResult, identify_axis, validate_axis, METHODS)
+    METHODS,
+    AxisResult,
+    IdentifyOptions,
+    identify_axis,
+    validate_axis,
+)

@@ -9,10 +9,10 @@ import numpy as np
 
 from piezo_stage.core.duhem import OTHER, DuhemModel, DuhemState
 from piezo_stage.core.errors import DataError, SolverError
-from piezo_stage.core.metrics import error_figures, noise_floor
-from piezo_stage.core.record import Record
 from piezo_stage.core.identify.regress import DuhemRegression
 from piezo_stage.core.identify.segmentation import branch_monotone, segment, voltage_noise
+from piezo_stage.core.metrics import error_figures, noise_floor
+from piezo_stage.core.record import Record
 
 METHODS = ("fast", "afsa", "afsa-bat")
 MIN_BRANCH_SAMPLES = 20
@@ -59,7 +59,8 @@ class AxisResult:
         m = self.model
         params = {"structure": m.structure, "initial_state": {"v_V": m.initial.v,
                                                               "w_um": m.initial.w}}
-        for name, b, asc in (("ascending", m.ascending, True), ("descending", m.descending, False)):
+        for name, b, asc in (("ascending", m.ascending, True),
+                             ("descending", m.descending, False)):
             if m.structure == "whole":
                 params.update(alpha=b.alpha, f=b.f.tolist(), g=b.g.tolist())
                 break

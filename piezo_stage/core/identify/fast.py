@@ -2,8 +2,9 @@
 
 The search runs on log(alpha) in [1e-5, 10] 1/V (a coupling term's: see below): a
 coarse grid over a shared alpha, then Nelder-Mead over all alphas (one per branch, plus
-one for a coupling term) from the best grid point. Each evaluation is one compiled regressor pass and one small
-least-squares solve, so the whole fit of 10,000 samples takes a fraction of a second.
+one for a coupling term) from the best grid point. Each evaluation is one compiled
+regressor pass and one small least-squares solve, so the whole fit of 10,000 samples
+takes a fraction of a second.
 """
 
 from __future__ import annotations

@@ -21,8 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.polynomial import Legendre, Polynomial
 from numpy.polynomial import legendre as L
-from numpy.polynomial import Polynomial, Legendre
 
 from piezo_stage.core._jit import as_f64, duhem_regressors
 from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
