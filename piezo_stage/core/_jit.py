@@ -1,9 +1,11 @@
 """Compiled loops for the sequential recursions (Duhem, slew limiter, inverse).
 
 The Duhem recursion is sequential in time, so numpy cannot vectorise it; numba compiles
-these loops to machine code. Each kernel keeps its plain-Python original as
-``kernel.py_func`` (numba's attribute), which the benchmark uses as its baseline and
-which runs unchanged when numba is missing.
+these loops to machine code. One kernel per formula: ``horner`` (polynomials),
+``branch_step`` / ``duhem_step`` (seed eq. 6), ``amplifier_step`` (clamp, then slew);
+the batch runs, the plant's single step, the inverse and the identification objectives
+call them. With numba switched off (``NUMBA_DISABLE_JIT=1``, or numba missing) every
+kernel runs as its plain-Python original: ``bench plant`` times that as its baseline.
 """
 
 import numpy as np
@@ -33,14 +35,19 @@ def horner(c, x):
 
 
 @njit
-def duhem_step(v_prev, w_prev, vk, alpha, H):
-    """One step of seed eq. 6 from (v_prev, w_prev) to voltage vk; H is (2, D)."""
+def branch_step(v_prev, w_prev, vk, alpha_b, h):
+    """One step of seed eq. 6 on one branch, the one formula of the Duhem step:
+    w_k = (w_{k-1} + dv h(v_k)) / (1 + alpha |dv|), h's coefficients lowest power first."""
     dv = vk - v_prev
-    b = 0 if dv >= 0.0 else 1
-    h = 0.0
-    for i in range(H.shape[1] - 1, -1, -1):
-        h = h * vk + H[b, i]
-    return (w_prev + dv * h) / (1.0 + alpha[b] * abs(dv))
+    return (w_prev + dv * horner(h, vk)) / (1.0 + alpha_b * abs(dv))
+
+
+@njit
+def duhem_step(v_prev, w_prev, vk, alpha, H):
+    """One step of seed eq. 6 from (v_prev, w_prev) to voltage vk, on the branch the
+    step's sign picks (H is (2, D): ascending, descending)."""
+    b = 0 if vk >= v_prev else 1
+    return branch_step(v_prev, w_prev, vk, alpha[b], H[b])
 
 
 @njit
@@ -148,11 +155,7 @@ def plant_step(vx, vy, vstate, dstate, alpha, H, present, substeps, v_min, v_max
 def _branch_residual(dv, vp, wp, wt, alpha, H):
     # r(dv) = (w_prev + dv H(v_prev+dv)) - (1 + alpha |dv|) w_target: zero where the
     # forward step from (v_prev, w_prev) lands exactly on w_target.
-    v = vp + dv
-    h = 0.0
-    for i in range(H.shape[0] - 1, -1, -1):
-        h = h * v + H[i]
-    return wp + dv * h - (1.0 + alpha * abs(dv)) * wt
+    return wp + dv * horner(H, vp + dv) - (1.0 + alpha * abs(dv)) * wt
 
 
 @njit
@@ -344,7 +347,6 @@ def branch_rms_batch(v, w_meas, starts, stops, v_init, w_init, alpha, H, out):
     each branch can be identified on its own (seed section 3.2).
     alpha: (K,), H: (K, D).
     """
-    D = H.shape[1]
     for c in range(alpha.shape[0]):
         acc = 0.0
         cnt = 0
@@ -352,16 +354,11 @@ def branch_rms_batch(v, w_meas, starts, stops, v_init, w_init, alpha, H, out):
             vp = v_init[j]
             wp = w_init[j]
             for k in range(starts[j], stops[j]):
-                vk = v[k]
-                dv = vk - vp
-                h = 0.0
-                for i in range(D - 1, -1, -1):
-                    h = h * vk + H[c, i]
-                wp = (wp + dv * h) / (1.0 + alpha[c] * abs(dv))
+                wp = branch_step(vp, wp, v[k], alpha[c], H[c])
                 e = wp - w_meas[k]
                 acc += e * e
                 cnt += 1
-                vp = vk
+                vp = v[k]
         out[c] = np.sqrt(acc / max(cnt, 1)) if np.isfinite(acc) else 1e300
     return out
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from piezo_stage.core._jit import as_f64, duhem_run
+from piezo_stage.core._jit import as_f64, duhem_run, duhem_step
 from piezo_stage.core.errors import ModelError
 
 
@@ -160,15 +160,14 @@ class DuhemModel:
 class DuhemHysteresis:
     """Stateful per-sample Duhem operator (explicit state, ``reset``, ``step``).
 
-    One step costs a few microseconds in plain Python, which is what a real-time node
-    needs; ``run`` hands a whole array to the compiled loop and keeps the state.
+    One step is the compiled ``duhem_step`` (the same formula as every batch path),
+    called per sample; ``run`` hands a whole array to the compiled loop and keeps the
+    state.
     """
 
     def __init__(self, model: DuhemModel):
         self.model = model
         self._alpha, self._H = model.kernel_params()
-        self._ha = [float(c) for c in self._H[0]][::-1]
-        self._hd = [float(c) for c in self._H[1]][::-1]
         self.reset()
 
     def reset(self, state: DuhemState | None = None):
@@ -180,16 +179,8 @@ class DuhemHysteresis:
         return DuhemState(self.v, self.w)
 
     def step(self, v: float) -> float:
-        dv = v - self.v
-        if dv >= 0.0:
-            coeffs, alpha = self._ha, self._alpha[0]
-        else:
-            coeffs, alpha = self._hd, self._alpha[1]
-        h = 0.0
-        for c in coeffs:
-            h = h * v + c
-        self.w = (self.w + dv * h) / (1.0 + alpha * abs(dv))
-        self.v = v
+        self.w = duhem_step(self.v, self.w, float(v), self._alpha, self._H)
+        self.v = float(v)
         return self.w
 
     def run(self, v) -> np.ndarray:
