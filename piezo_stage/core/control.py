@@ -120,12 +120,12 @@ def clamp_slew(v: dict, prev: dict, limits, max_step) -> tuple[dict, bool]:
     hi)}), then move it from ``prev`` by at most ``max_step`` (V, or per axis).
     Returns (voltages, whether anything was limited). The driver's last line of
     defence, and the supervisor's ramp to the safe voltage."""
+    from piezo_stage.core._jit import amplifier_step  # the one clamp-and-slew formula
     out, hit = {}, False
     for a, x in v.items():
         lo, hi = limits[a] if isinstance(limits, dict) else limits
         step = max_step[a] if isinstance(max_step, dict) else max_step
-        y = min(max(x, lo), hi)
-        y = min(max(y, prev[a] - step), prev[a] + step)
-        hit |= y != x
-        out[a] = y
+        out[a], h = amplifier_step(float(x), float(prev[a]), float(lo), float(hi),
+                                   float(step))
+        hit |= bool(h)
     return out, hit

@@ -29,10 +29,10 @@ over the whole record. Evaluations are batched and compiled; all runs are seeded
 from __future__ import annotations
 
 import numpy as np
-from numpy.polynomial import Legendre, Polynomial
 
 from piezo_stage.core._jit import as_f64, branch_rms_batch, duhem_rms_batch
 from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
+from piezo_stage.core.identify.regress import legendre_to_power
 
 DEFAULTS = {"fish": 30, "iterations": 200, "visual": 0.3, "step": 0.1, "delta": 0.618,
             "try_number": 5, "f_min": 0.0, "f_max": 0.9,
@@ -40,11 +40,10 @@ DEFAULTS = {"fish": 30, "iterations": 200, "visual": 0.3, "step": 0.1, "delta": 
 
 
 def _leg2pow_matrix(lo, hi, deg):
+    """The basis change as a matrix: column i is Legendre P_i on [lo, hi] in powers."""
     T = np.zeros((deg + 1, deg + 1))
-    for i in range(deg + 1):
-        c = np.zeros(deg + 1)
-        c[i] = 1.0
-        p = Legendre(c, domain=[lo, hi]).convert(kind=Polynomial).coef
+    for i, c in enumerate(np.eye(deg + 1)):
+        p = legendre_to_power(c, lo, hi)
         T[:p.size, i] = p
     return T
 

@@ -33,7 +33,7 @@ def _basis(v, lo, hi, deg):
     return np.ascontiguousarray(L.legvander(x, deg))
 
 
-def _to_power(c, lo, hi):
+def legendre_to_power(c, lo, hi):
     """Legendre coefficients on [lo, hi] -> power coefficients in v."""
     return Legendre(c, domain=[lo, hi]).convert(kind=Polynomial).coef
 
@@ -197,14 +197,14 @@ class DuhemRegression:
         d1 = self.D + 1
         if self.structure == "whole":
             nf, ng = self.n + 1, self.m + 1
-            f = _to_power(theta[:nf], self.lo, self.hi)
-            g = _to_power(theta[nf:nf + ng], self.lo, self.hi)
+            f = legendre_to_power(theta[:nf], self.lo, self.hi)
+            g = legendre_to_power(theta[nf:nf + ng], self.lo, self.hi)
             k = nf + ng
             w0 = theta[k]
             main = DuhemModel.whole(alphas[0], f, g, DuhemState(self.v[0], w0))
         else:
-            ha = _to_power(theta[:d1], self.lo, self.hi)
-            hd = _to_power(theta[d1:2 * d1], self.lo, self.hi)
+            ha = legendre_to_power(theta[:d1], self.lo, self.hi)
+            hd = legendre_to_power(theta[d1:2 * d1], self.lo, self.hi)
             k = 2 * d1
             w0 = theta[k]
             main = DuhemModel(DuhemBranch.from_h(alphas[0], ha),
@@ -213,8 +213,8 @@ class DuhemRegression:
         if self.v_other is not None:
             c1 = self.cdeg + 1
             o = theta[k + 1:k + 1 + 2 * c1 + self.cstate]  # extra columns come after
-            fc = _to_power(o[:c1], self.olo, self.ohi)
-            gc = _to_power(o[c1:2 * c1], self.olo, self.ohi)
+            fc = legendre_to_power(o[:c1], self.olo, self.ohi)
+            gc = legendre_to_power(o[c1:2 * c1], self.olo, self.ohi)
             w0c = float(o[2 * c1]) if self.cstate else 0.0
             coupling = DuhemModel.whole(alphas[-1], fc, gc, DuhemState(self.v_other[0], w0c))
         return main, coupling
