@@ -48,42 +48,43 @@ from piezo_stage_msgs_adapters import (
     voltage_from_msg,
 )
 
+PARAMS = (  # name (one name: the parameter's), default, description, limits
+    ("backend", "sim", "stage backend", {"choices": ("sim", "daq", "replay")}),
+    ("mode", "lockstep", "lockstep (sim, replay) | realtime",
+     {"choices": ("lockstep", "realtime")}),
+    ("control_rate_hz", 1000.0, "sample rate [Hz]", {"lo": 1.0, "hi": 1e5}),
+    ("lookahead_s", 0.005, "real time: commands are computed this far ahead of the "
+     "sample they answer [s]", {"lo": 0.0, "hi": 1.0}),
+    ("max_steps", 0, "stop after this many samples (0: never)", {"lo": 0, "hi": 2**31 - 1}),
+    ("exit_after_max_steps", False, "exit (code 0) after max_steps", {}),
+    ("min_subscribers", 0, "lockstep: joint_states subscribers to wait for",
+     {"lo": 0, "hi": 100}),
+    ("min_record_subscribers", 0, "lockstep: true_position subscribers to wait for "
+     "(recorders)", {"lo": 0, "hi": 100}),
+    ("clock_period_s", 0.01, "lockstep: publish /clock (simulated time for nodes on "
+     "use_sim_time) every this much sample time [s]; 0: not at all", {"lo": 0.0, "hi": 10.0}),
+    ("thread_priority", 50, "real time: SCHED_FIFO priority of the sample loop (0: leave "
+     "the scheduler alone)", {"lo": 0, "hi": 99}),
+)
+
 
 class StageDriver(Node):
     def __init__(self):
         super().__init__("stage_driver")
         d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
-        p = self.p = {
-            "backend": d("backend", "sim", "stage backend", choices=("sim", "daq", "replay")),
-            "mode": d("mode", "lockstep", "lockstep (sim, replay) | realtime",
-                      choices=("lockstep", "realtime")),
-            "rate": d("control_rate_hz", 1000.0, "sample rate [Hz]", lo=1.0, hi=1e5),
-            "lookahead": d("lookahead_s", 0.005, "real time: commands are computed this "
-                           "far ahead of the sample they answer [s]", lo=0.0, hi=1.0),
-            "max_steps": d("max_steps", 0, "stop after this many samples (0: never)",
-                           lo=0, hi=2**31 - 1),
-            "exit_done": d("exit_after_max_steps", False, "exit (code 0) after max_steps"),
-            "min_subs": d("min_subscribers", 0, "lockstep: joint_states subscribers to "
-                          "wait for", lo=0, hi=100),
-            "min_rec": d("min_record_subscribers", 0, "lockstep: true_position "
-                         "subscribers to wait for (recorders)", lo=0, hi=100),
-            "clock": d("clock_period_s", 0.01, "lockstep: publish /clock (simulated time "
-                       "for nodes on use_sim_time) every this much sample time [s]; 0: "
-                       "not at all", lo=0.0, hi=10.0),
-            "prio": d("thread_priority", 50, "real time: SCHED_FIFO priority of the "
-                      "sample loop (0: leave the scheduler alone)", lo=0, hi=99)}
+        p = self.p = {name: d(name, default, desc, **kw) for name, default, desc, kw in PARAMS}
         if p["backend"] == "daq" and p["mode"] != "realtime":
             raise DataError("backend daq runs in real time only (mode: realtime)")
         defaults = ArmingParams()
         arm = ArmingParams(**{field: d(name, getattr(defaults, field), desc, **(
             {"lo": r[0], "hi": r[1]} if r else {})) for name, field, desc, r in ARMING})
         bp = {k: d(k, default, desc) for k, default, desc in BACKEND_PARAMS}
-        self.backend = make_backend(p["backend"], p["rate"], bp, arm.safe_V)
+        self.backend = make_backend(p["backend"], p["control_rate_hz"], bp, arm.safe_V)
         self.lock = p["mode"] == "lockstep"
-        self.dt_ns = int(round(1e9 / p["rate"]))
+        self.dt_ns = int(round(1e9 / p["control_rate_hz"]))
         self.lookahead_ns = self.dt_ns if self.lock else max(
-            self.dt_ns, int(round(p["lookahead"] * 1e9)))
-        self.max_step = {a: s / p["rate"] for a, s in self.backend.slew_V_per_s.items()}
+            self.dt_ns, int(round(p["lookahead_s"] * 1e9)))
+        self.max_step = {a: s / p["control_rate_hz"] for a, s in self.backend.slew_V_per_s.items()}
         self.v = {"x": arm.safe_V, "y": arm.safe_V}
         self.j, self.t0_ns = -1, 0
         self.stats = {"samples": 0, "rejected": 0, "limit_hits": 0, "unexpected_stamp": 0,
@@ -95,17 +96,19 @@ class StageDriver(Node):
         self.spub = self.create_publisher(DiagnosticArray, "state", QOS_EVENTS)
         # lockstep: the sample clock is the set's clock (a bag then has one time base)
         self.clock_pub = self.create_publisher(Clock, "/clock", 10) \
-            if self.lock and p["clock"] > 0 else None
-        self.clock_every = max(1, int(round(p["clock"] * p["rate"]))) if p["clock"] else 0
-        self.sup = ArmingSupervisor(arm, self.v, 1.0 / p["rate"],
+            if self.lock and p["clock_period_s"] > 0 else None
+        self.clock_every = (max(1, int(round(p["clock_period_s"] * p["control_rate_hz"])))
+                            if p["clock_period_s"] else 0)
+        self.sup = ArmingSupervisor(arm, self.v, 1.0 / p["control_rate_hz"],
                                     3 * self.dt_ns if self.lock else max(
                                         3 * self.dt_ns, 20_000_000), self.on_state_change)
         self.sched = CommandSchedule(0, self.dt_ns, self.lookahead_ns)
         self.clock = SampleClock(self.dt_ns * 1e-9, self.backend.paced)
         # lockstep: nothing is published before every consumer listens; real time: the
         # sample clock starts then (the first publishes to new readers are slow)
-        self.gate = Gate(self, [(self.jpub, p["min_subs"]),
-                                (self.tpub, p["min_rec"] * (p["backend"] == "sim"))])
+        self.gate = Gate(self, [(self.jpub, p["min_subscribers"]),
+                                (self.tpub,
+                                 p["min_record_subscribers"] * (p["backend"] == "sim"))])
         hot_subscription(self, Vector3Stamped, "command", self.on_command, QOS_DATA,
                          raw=True, with_info=True)
         self.create_subscription(String, "feedforward/phase", self.on_phase, QOS_EVENTS)
@@ -122,7 +125,7 @@ class StageDriver(Node):
             self.tick(0, None, False)  # sample 0: the stage at rest
         else:
             self.lean_deadline = 0.0   # the first real-time tick: now
-            self.rt_priority = set_realtime_priority(p["prio"], self.get_logger())
+            self.rt_priority = set_realtime_priority(p["thread_priority"], self.get_logger())
 
     # -- time -------------------------------------------------------------------------
     def stamp(self, j):
@@ -196,7 +199,7 @@ class StageDriver(Node):
 
     def done(self):
         if self.lock:
-            if self.p["exit_done"] and not hasattr(self, "_exit_timer"):
+            if self.p["exit_after_max_steps"] and not hasattr(self, "_exit_timer"):
                 self._exit_timer = steady_timer(self, 0.2, self.finish)
         elif not self.shutdown_requested:
             self.request_shutdown()
@@ -230,7 +233,8 @@ class StageDriver(Node):
     # -- arming ---------------------------------------------------------------------------
     def on_state_change(self, state, reason, since_ns):
         lim = self.backend.limits
-        values = {"lookahead_s": self.lookahead_ns * 1e-9, "control_rate_hz": self.p["rate"],
+        values = {"lookahead_s": self.lookahead_ns * 1e-9,
+                  "control_rate_hz": self.p["control_rate_hz"],
                   "mode": self.p["mode"], "voltage_limits_V": [
                       max(lo for lo, _ in lim.values()), min(hi for _, hi in lim.values())]}
         # announced a few samples ahead of when it applies, and before the next sample
