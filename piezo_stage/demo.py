@@ -14,27 +14,20 @@ import sys
 
 import numpy as np
 
-from piezo_stage.io.bag import deserialize, iter_messages, new_bag_dir
+from piezo_stage.io.bag import new_bag_dir
 
 
 def tracking_from_bag(bag, t_from_s):
     """Desired (reference) and measured (joint_states) [um] per stamp after t_from_s:
-    (t [s], desired (n, 2), measured (n, 2), models handed over)."""
-    ref, meas, models = {}, {}, 0
-    for topic, msgtype, _, data in iter_messages(bag):
-        if topic.endswith("/reference"):
-            m = deserialize(data, msgtype)
-            ns = m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
-            ref[ns] = np.array(m.position[:2]) * 1e6
-        elif topic.endswith("/joint_states"):
-            m = deserialize(data, msgtype)
-            meas[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = np.array(m.position) * 1e6
-        elif topic.endswith("/model"):
-            models += 1
-    stamps = sorted(s for s in set(ref) & set(meas) if s >= t_from_s * 1e9)
-    d = np.array([ref[s] for s in stamps]).reshape(-1, 2)
-    w = np.array([meas[s] for s in stamps]).reshape(-1, 2)
-    return np.array(stamps) * 1e-9, d, w, models
+    (t [s], desired (n, 2), measured (n, 2), models handed over). Read with
+    io.run_bag.read_run, the one reader of a recorded run."""
+    from piezo_stage.io.run_bag import read_run
+    run = read_run(bag)
+    meas = dict(zip(run.t_ns.tolist(), run.w_um))
+    stamps = sorted(k for k in run.desired_um if k in meas and k >= t_from_s * 1e9)
+    d = np.array([run.desired_um[k] for k in stamps]).reshape(-1, 2)
+    w = np.array([meas[k] for k in stamps]).reshape(-1, 2)
+    return np.array(stamps) * 1e-9, d, w, run.models
 
 
 def run_demo(args):

@@ -33,6 +33,7 @@ class Run:
     states: list = field(default_factory=list)        # (since ns, state)
     driver: dict = field(default_factory=dict)        # last driver diagnostics
     diagnostics: dict = field(default_factory=dict)   # node name -> its last ones
+    models: int = 0                                   # models handed over (on model)
 
     def state_times(self, name: str) -> list:
         return [s for s, n in self.states if n == name]
@@ -54,7 +55,7 @@ def status_node(name: str) -> str:
 
 
 def read_run(bag) -> Run:
-    t, w, v, recv, true, ref, states, diags = [], [], [], [], {}, {}, [], {}
+    t, w, v, recv, true, ref, states, diags, models = [], [], [], [], {}, {}, [], {}, 0
     for topic, msgtype, log_ns, data in iter_messages(bag):
         if topic.endswith("/joint_states"):
             m = deserialize(data, msgtype)
@@ -71,6 +72,8 @@ def read_run(bag) -> Run:
         elif topic.endswith("/state") and msgtype.endswith("DiagnosticArray"):
             m = deserialize(data, msgtype)
             states.append((_ns(m), m.status[0].message))
+        elif topic.endswith("/model"):
+            models += 1
         elif topic == "/diagnostics":
             m = deserialize(data, msgtype)
             for st in m.status:
@@ -80,4 +83,4 @@ def read_run(bag) -> Run:
     order = np.argsort(t, kind="stable")
     arr = lambda x, shape: np.array(x).reshape(shape)[order]  # noqa: E731
     return Run(arr(t, -1), arr(w, (-1, 2)), arr(v, (-1, 2)), arr(recv, -1), true, ref,
-               states, diags.get("stage_driver", {}), diags)
+               states, diags.get("stage_driver", {}), diags, models)
