@@ -12,21 +12,6 @@ import numpy as np
 from piezo_stage.core.plant import Plant
 from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
 
-_PLAIN = """
-import sys, time, numpy as np
-from piezo_stage.core.plant import Plant
-from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
-n, fs, out = int(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
-t = np.arange(n) / fs
-vx = 75 - 75 * np.cos(2 * np.pi * 1.0 * t)
-vy = 75 - 75 * np.cos(2 * np.pi * 1.3 * t + 0.4)
-plant = Plant(load_plant_config(default_plant_config_path()), fs)
-t0 = time.perf_counter()
-w = plant.run(vx, vy)
-print(time.perf_counter() - t0)
-np.save(out, np.stack([w["x"], w["y"]]))
-"""
-
 
 def _plain_python_plant(n: int, fs: float):
     """The same Plant.run with numba switched off (NUMBA_DISABLE_JIT=1): every kernel
@@ -38,7 +23,8 @@ def _plain_python_plant(n: int, fs: float):
     import tempfile
     with tempfile.TemporaryDirectory() as d:
         out = os.path.join(d, "w.npy")
-        r = subprocess.run([sys.executable, "-c", _PLAIN, str(n), str(fs), out],
+        r = subprocess.run([sys.executable, "-m", "piezo_stage.bench_procs", "plain",
+                            str(n), str(fs), out],
                            env=dict(os.environ, NUMBA_DISABLE_JIT="1"), capture_output=True,
                            text=True, check=True)
         w = np.load(out)
@@ -148,85 +134,16 @@ def bench_identify():
     return 0
 
 
-PING = r"""
-import sys, time, rclpy
-from rclpy.node import Node
-from std_msgs.msg import Header
-from piezo_stage.nodes._common import QOS_DATA
-rclpy.init()
-n = Node(sys.argv[1])
-if sys.argv[1] == 'pong':
-    pub = n.create_publisher(Header, '/bench/pong', QOS_DATA)
-    n.create_subscription(Header, '/bench/ping', pub.publish, QOS_DATA)
-    try:
-        rclpy.spin(n)
-    except Exception:
-        pass
-else:
-    import numpy as np
-    pub = n.create_publisher(Header, '/bench/ping', QOS_DATA)
-    got = []
-    n.create_subscription(Header, '/bench/pong', lambda m: got.append(time.perf_counter()),
-                          QOS_DATA)
-    while pub.get_subscription_count() < 1 or n.count_publishers('/bench/pong') < 1:
-        rclpy.spin_once(n, timeout_sec=0.05)
-    time.sleep(0.5)
-    t = []
-    for k in range(int(sys.argv[2])):
-        t0 = time.perf_counter(); pub.publish(Header(frame_id=str(k)))
-        while len(got) <= k:
-            rclpy.spin_once(n, timeout_sec=1.0)
-        t.append(got[k] - t0)
-    print(np.median(t), np.percentile(t, 99))
-n.destroy_node(); rclpy.try_shutdown()
-"""
-
-
-RING = r"""
-import sys, time, rclpy
-from rclpy.node import Node
-from std_msgs.msg import Header
-from rclpy.serialization import serialize_message
-from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
-me, nxt, n_steps = sys.argv[1], sys.argv[2], int(sys.argv[3])
-class Ring(Node):
-    # the loop nodes' own transport path (lean wait set, raw CDR) with empty callbacks
-    def __init__(self):
-        super().__init__('ring_' + me)
-        self.pub = self.create_publisher(Header, '/bench/ring_' + nxt, QOS_DATA)
-        self.n, self.t0 = 0, 0.0
-        hot_subscription(self, Header, '/bench/ring_' + me, self.cb, QOS_DATA, raw=True)
-        if me == 'a':
-            self.create_timer(0.05, self.kick)
-    def kick(self):
-        if self.n == 0 and self.pub.get_subscription_count() >= 1 \
-                and self.count_publishers('/bench/ring_a') >= 1:
-            time.sleep(1.0)
-            self.pub.publish(serialize_message(Header()))
-            self.n = -1
-    def cb(self, data):
-        if me == 'a':
-            self.n = max(self.n, 0) + 1
-            if self.n == 1:
-                self.t0 = time.perf_counter()
-            if self.n == n_steps:
-                print((n_steps - 1) / (time.perf_counter() - self.t0), flush=True)
-                rclpy.try_shutdown()
-                return
-        self.pub.publish(data)
-run(Ring)
-"""
-
-
 def _ring_rate(env, steps=3000):
     """Steps/s of a bare 3-process ring with empty callbacks on the loop nodes' own
     transport path: the ceiling of any three-hop lockstep loop with it on this host."""
     import subprocess
     import sys
-    others = [subprocess.Popen([sys.executable, "-c", RING, a, b, str(steps)], env=env)
+    ring = [sys.executable, "-m", "piezo_stage.bench_procs", "ring"]
+    others = [subprocess.Popen(ring + [a, b, str(steps)], env=env)
               for a, b in (("b", "c"), ("c", "a"))]
     try:
-        r = subprocess.run([sys.executable, "-c", RING, "a", "b", str(steps)], env=env,
+        r = subprocess.run(ring + ["a", "b", str(steps)], env=env,
                            capture_output=True, text=True, timeout=300)
         return float(r.stdout.split()[0])
     finally:
@@ -305,9 +222,10 @@ def bench_loop(steps=3000, runs=3):
     import sys
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    pong = subprocess.Popen([sys.executable, "-c", PING, "pong"], env=env)
+    ping = [sys.executable, "-m", "piezo_stage.bench_procs", "ping"]
+    pong = subprocess.Popen(ping + ["pong"], env=env)
     try:
-        r = subprocess.run([sys.executable, "-c", PING, "ping", "2000"], env=env,
+        r = subprocess.run(ping + ["ping", "2000"], env=env,
                            capture_output=True, text=True, timeout=300)
     finally:
         pong.terminate()

@@ -1,0 +1,118 @@
+"""The benchmarks' helper processes, as a module: ``python -m piezo_stage.bench_procs
+WHAT ARGS...`` runs one of them (bench.py starts them; each prints its figure).
+
+* ``plain N FS OUT``: the simulated stage's ``Plant.run`` over N samples, timed; run
+  with NUMBA_DISABLE_JIT=1 it is the kernels' plain-Python baseline (OUT: the output).
+* ``ping pong`` / ``ping ping N``: a two-process round trip through rclpy's stock path.
+* ``ring ME NEXT N``: one node of a 3-process ring on the loop nodes' own transport path
+  (lean wait set, raw CDR) with empty callbacks; node ``a`` prints the steps/s.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+
+def plain(n: int, fs: float, out: str):
+    from piezo_stage.core.plant import Plant
+    from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
+    t = np.arange(n) / fs
+    vx = 75 - 75 * np.cos(2 * np.pi * 1.0 * t)
+    vy = 75 - 75 * np.cos(2 * np.pi * 1.3 * t + 0.4)
+    plant = Plant(load_plant_config(default_plant_config_path()), fs)
+    t0 = time.perf_counter()
+    w = plant.run(vx, vy)
+    print(time.perf_counter() - t0)
+    np.save(out, np.stack([w["x"], w["y"]]))
+
+
+def ping(role: str, n: int = 0):
+    import rclpy
+    from rclpy.node import Node
+    from std_msgs.msg import Header
+
+    from piezo_stage.nodes._common import QOS_DATA
+    rclpy.init()
+    node = Node(role)
+    if role == "pong":
+        pub = node.create_publisher(Header, "/bench/pong", QOS_DATA)
+        node.create_subscription(Header, "/bench/ping", pub.publish, QOS_DATA)
+        try:
+            rclpy.spin(node)
+        except Exception:  # killed by the benchmark when it is done
+            pass
+    else:
+        pub = node.create_publisher(Header, "/bench/ping", QOS_DATA)
+        got = []
+        node.create_subscription(Header, "/bench/pong",
+                                 lambda m: got.append(time.perf_counter()), QOS_DATA)
+        while pub.get_subscription_count() < 1 or node.count_publishers("/bench/pong") < 1:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        time.sleep(0.5)
+        t = []
+        for k in range(n):
+            t0 = time.perf_counter()
+            pub.publish(Header(frame_id=str(k)))
+            while len(got) <= k:
+                rclpy.spin_once(node, timeout_sec=1.0)
+            t.append(got[k] - t0)
+        print(np.median(t), np.percentile(t, 99))
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def ring(me: str, nxt: str, n_steps: int):
+    from rclpy.node import Node
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Header
+
+    from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
+
+    class Ring(Node):
+        def __init__(self):
+            super().__init__("ring_" + me)
+            self.pub = self.create_publisher(Header, "/bench/ring_" + nxt, QOS_DATA)
+            self.n, self.t0 = 0, 0.0
+            hot_subscription(self, Header, "/bench/ring_" + me, self.cb, QOS_DATA, raw=True)
+            if me == "a":
+                self.create_timer(0.05, self.kick)
+
+        def kick(self):
+            if self.n == 0 and self.pub.get_subscription_count() >= 1 \
+                    and self.count_publishers("/bench/ring_a") >= 1:
+                time.sleep(1.0)
+                self.pub.publish(serialize_message(Header()))
+                self.n = -1
+
+        def cb(self, data):
+            import rclpy
+            if me == "a":
+                self.n = max(self.n, 0) + 1
+                if self.n == 1:
+                    self.t0 = time.perf_counter()
+                if self.n == n_steps:
+                    print((n_steps - 1) / (time.perf_counter() - self.t0), flush=True)
+                    rclpy.try_shutdown()
+                    return
+            self.pub.publish(data)
+
+    return run(Ring)
+
+
+def main(argv):
+    what, args = argv[0], argv[1:]
+    if what == "plain":
+        return plain(int(args[0]), float(args[1]), args[2])
+    if what == "ping":
+        return ping(args[0], int(args[1]) if len(args) > 1 else 0)
+    if what == "ring":
+        return ring(args[0], args[1], int(args[2]))
+    sys.stderr.write(f"bench_procs: unknown helper {what!r}\n")
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]) or 0)
