@@ -31,14 +31,16 @@ def _run(mode: str, track_s: float, env: dict, bag: str):
     o = {"stage_driver": {"mode": mode},
          "feedforward": {"model_file": default_config("stage_model.yaml")},
          "trajectory": {"kind": "seed", "frequency_hz": 10.0, "duration_s": track_s}}
-    if mode == "lockstep":
-        o["stage_driver"].update(max_steps=int((track_s + 1.5) * 1000),
-                                 exit_after_max_steps=True)
+    # both modes end on the driver's own count of samples (in real time it then ramps
+    # to the safe voltage and exits): the tracking window never overlaps the shutdown,
+    # however long the processes took to start
+    o["stage_driver"].update(max_steps=int((track_s + 6.0) * 1000),
+                             exit_after_max_steps=True)
     launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"])
     c0 = _cpu_ticks()
     with HostPauseMonitor() as mon:
-        rc = launch.run(duration=track_s + 3.0 if mode == "realtime" else 900.0)
+        rc = launch.run(duration=900.0)
     c1 = _cpu_ticks()
     if rc != 0:
         raise RuntimeError(f"the {mode} run failed: {launch.failed}")
