@@ -14,7 +14,10 @@ package_name = "piezo_stage"
 def _nodes():
     """piezo_stage.nodes.NODES, read without importing the package (it needs rclpy)."""
     import ast
-    tree = ast.parse(open("piezo_stage/nodes/__init__.py").read())
+    import os
+    here = os.path.dirname(os.path.abspath(__file__))
+    with open(os.path.join(here, "piezo_stage", "nodes", "__init__.py")) as fh:
+        tree = ast.parse(fh.read())
     for node in tree.body:
         if isinstance(node, ast.Assign) and node.targets[0].id == "NODES":
             return list(ast.literal_eval(node.value))
