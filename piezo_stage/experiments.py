@@ -9,8 +9,8 @@ settle the hysteresis memory the approach left).
 
 Experiments (seed section 4):
 
-* ``decoupling``: one axis driven by a 1 Hz sine over most of the stroke, the other held
-  still; the held axis's motion is the coupling, with the feedforward's coupling
+* ``decoupling``: one axis driven by a 1 Hz sine over 5-65 um, the other held at
+  30 um; the held axis's motion is the coupling, with the feedforward's coupling
   compensation off and on (seed Figs. 17-18), feedforward only so that the feedback
   does not hide what the decoupling does;
 * ``tracking``: the seed's y(t) = 21 + 24 sin(2 pi f t - pi/2) um on both axes at 1, 5,
@@ -111,7 +111,8 @@ def plan(name, freqs=FREQS_HZ, controllers=CONTROLLERS, with_effects=False):
                                           "feedforward": {"compensate_effects": comp}})))
     elif name == "decoupling":
         f = 1.0
-        t, w = _traj(f, EVAL_CYCLES + 1, lambda t: 40.0 + 35.0 * np.sin(2 * np.pi * t - np.pi / 2))
+        # 5-65 um: most of the stroke, within both axes' reach at 150 V (y: ~71 um)
+        t, w = _traj(f, EVAL_CYCLES + 1, lambda t: 35.0 + 30.0 * np.sin(2 * np.pi * t - np.pi / 2))
         for driven, held in (("x", "y"), ("y", "x")):
             hold = np.full_like(w, 30.0)
             for on in (False, True):
