@@ -259,7 +259,7 @@ def cmd_gap(args):
     with bar("gap: candidate fits", unit=" fits") as b:
         res = diagnose(fit, hold, base_model=base, base_effects=base_effects,
                        axes=None if args.axis == "both" else [args.axis], progress=steps(b))
-    per = res.pop("_diagnoses")
+    per = res.per_axis
     print(f"verdict: {res['verdict']} ({res['reason']})")
     print(f"{'axis':>4} {'effect':>9} {'rms_before':>10} {'rms_after':>9} {'gap_before':>10} "
           f"{'gap_after':>9} {'shrink_pct':>10}")
@@ -289,33 +289,14 @@ def cmd_gap(args):
                   f"{x['feedback_bandwidth_hz']:.0f} Hz")
     if args.json:
         with atomic_write(args.json) as fh:
-            json.dump(res, fh, indent=1, default=float)
+            json.dump(res.json, fh, indent=1, default=float)
     if args.report:
         from piezo_stage.io.gap_report import write_report
-        res["_diagnoses"] = per
         print(f"report: {write_report(args.report, res, hold or fit)}")
     if args.out_model:
-        from piezo_stage.core.duhem import StageModel
         from piezo_stage.io.model_file import save_model
-        axes, coupling, effects, weight = {}, {}, {}, {}
-        for a, d in per.items():
-            c = d.model or d.candidates["none"]
-            main, coup = c.reg.models(c.alphas, c.theta)
-            axes[a] = main
-            if coup is not None:
-                coupling[a] = coup
-            # every kept effect; the file holds one parameter set per effect, so where
-            # both axes have it, the set of the axis where it explains the most
-            for name, params in c.model_effects().items():
-                e = effects.setdefault(name, {"axes": []})
-                e["axes"].append(a)
-                w = d.budget.get("explained_um", {}).get(name, 0.0)
-                if w >= weight.get(name, -1.0):
-                    weight[name] = w
-                    e.update(params)
-        lim = (min(0.0, min(float(fit.v[a].min()) for a in axes)),
-               max(150.0, max(float(fit.v[a].max()) for a in axes)))
-        save_model(args.out_model, StageModel(axes, coupling, lim), effects=effects or None)
+        model, effects = res.model(fit)
+        save_model(args.out_model, model, effects=effects or None)
         print(f"model with the found effects: {args.out_model}")
     return 0
 

@@ -720,10 +720,50 @@ def gap_budget(holdout: Record, axis: str, resid, nf, g_before, steps) -> dict:
             "closure_pct": 100.0 * (total / r - 1.0) if r > 0 else 0.0}
 
 
+@dataclass
+class Diagnosis:
+    """What ``diagnose`` found: ``json``, the --json contract (see the module docstring
+    and the README; ``diagnosis["verdict"]`` reads it), and ``per_axis``, each axis's
+    full diagnosis (its kept model and candidates: for reports and ``model``)."""
+
+    json: dict
+    per_axis: dict
+
+    def __getitem__(self, key):
+        return self.json[key]
+
+    def __contains__(self, key):
+        return key in self.json
+
+    def model(self, fit: Record):
+        """The model with every kept effect, as ``gap --out-model`` writes it: (StageModel,
+        effects). Each axis's Duhem model (and coupling) from its kept fit; the model
+        file holds one parameter set per effect, so where both axes have one, the set of
+        the axis where it explains the most. Voltage limits: 0-150 V widened to FIT's."""
+        from piezo_stage.core.duhem import StageModel
+        axes, coupling, effects, weight = {}, {}, {}, {}
+        for a, d in self.per_axis.items():
+            c = d.model or d.candidates["none"]
+            main, coup = c.reg.models(c.alphas, c.theta)
+            axes[a] = main
+            if coup is not None:
+                coupling[a] = coup
+            for name, params in c.model_effects().items():
+                e = effects.setdefault(name, {"axes": []})
+                e["axes"].append(a)
+                w = d.budget.get("explained_um", {}).get(name, 0.0)
+                if w >= weight.get(name, -1.0):
+                    weight[name] = w
+                    e.update(params)
+        lim = (min(0.0, min(float(fit.v[a].min()) for a in axes)),
+               max(150.0, max(float(fit.v[a].max()) for a in axes)))
+        return StageModel(axes, coupling, lim), effects
+
+
 def diagnose(fit: Record, holdout: Record | None = None, effects=EFFECTS, axes=None,
-             base_model=None, progress=None, base_effects=None) -> dict:
-    """The --json contract (see the module docstring and the README). ``progress(what)``
-    is called after each candidate fit (from the axes' threads)."""
+             base_model=None, progress=None, base_effects=None) -> Diagnosis:
+    """Diagnose the gap on every axis (see the module docstring). ``progress(what)`` is
+    called after each candidate fit (from the axes' threads)."""
     t0 = time.perf_counter()
     holdout = holdout or fit
     axes = axes or [a for a in ("x", "y") if a in fit.w and a in holdout.w]
@@ -755,5 +795,4 @@ def diagnose(fit: Record, holdout: Record | None = None, effects=EFFECTS, axes=N
                     for a, d in per.items()},
            "holdout_is_fit": holdout is fit,
            "seconds": time.perf_counter() - t0}
-    out["_diagnoses"] = per  # for report writing; dropped from the JSON
-    return out
+    return Diagnosis(out, per)

@@ -22,7 +22,7 @@ def write_report(out_dir, result, holdout):
              "Scored on " + ("the FIT record itself (no holdout given)"
                              if result["holdout_is_fit"] else "the HOLDOUT record") + ". "
              f"Run time {result['seconds']:.1f} s.", ""]
-    for axis, d in result["_diagnoses"].items():
+    for axis, d in result.per_axis.items():
         lines += [f"## Axis {axis}: {d.verdict}", "", d.reason, "",
                   "| effect | rms before um | rms after um | gap before um | gap after um | "
                   "shrink % | parameters |", "|---|---|---|---|---|---|---|"]
