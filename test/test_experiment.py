@@ -31,9 +31,14 @@ def _experiment(env, *args, timeout=600):
 
 
 def test_decoupling_cuts_the_coupling(tmp_path, env):
+    """Also: the node set takes the gains `tune` wrote (a typed parameter file)."""
+    gains = tmp_path / "gains.yaml"
+    t = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "tune", MODEL, "--out",
+                        gains], capture_output=True, text=True, env=env, timeout=120)
+    assert t.returncode == 0, t.stderr
     out = tmp_path / "dec.json"
     r = _experiment(env, "decoupling", "--model", MODEL, "--record", tmp_path / "bags",
-                    "--json", out, "--report", tmp_path / "rep")
+                    "--json", out, "--report", tmp_path / "rep", "--params", gains)
     assert r.returncode == 0, r.stderr[-2000:]
     doc = json.loads(out.read_text())
     assert doc["experiment"] == "decoupling" and doc["mode"] == "lockstep"

@@ -87,3 +87,8 @@ def test_tune_writes_a_parameter_file_launch_takes(tmp_path):
     p = param_overrides([str(out)])
     assert set(p) == {"controller"} and p["controller"]["ki"] > 0
     assert math.isfinite(p["controller"]["kp"])
+    # ROS parameters are typed: every gain must read back as a double, 0 included
+    assert all(type(v) is float for v in p["controller"].values()), p
+    from piezo_stage.core.tuning import Tuning
+    zero = Tuning(0.0, 150.0, 0.0, 1.0, 1.0, 60.0, 10.0, 0.1).params_yaml()
+    assert "kp: 0.0" in zero and "kd: 0.0" in zero

@@ -100,8 +100,14 @@ class Tuning:
         return (f"# PID gains from `piezo-stage tune` ({self.source})\n# {self.method}\n"
                 f"# crossover {self.crossover_hz:.1f} Hz, bandwidth {self.bandwidth_hz:.1f} "
                 f"Hz, PM {self.phase_margin_deg:.1f} deg, GM {self.gain_margin_db:.1f} dB\n"
-                f"/**/controller:\n  ros__parameters:\n    kp: {self.kp:.6g}\n"
-                f"    ki: {self.ki:.6g}\n    kd: {self.kd:.6g}\n")
+                f"/**/controller:\n  ros__parameters:\n    kp: {_double(self.kp)}\n"
+                f"    ki: {_double(self.ki)}\n    kd: {_double(self.kd)}\n")
+
+
+def _double(x: float) -> str:
+    """A YAML float that stays a float (ROS parameters are typed: ``0`` would be an
+    integer, which a double parameter refuses)."""
+    return repr(float(f"{x:.6g}"))
 
 
 def _margins(Lw, w):
