@@ -83,6 +83,7 @@ class Approach:
         return min(max(s / self._dist, 0.0), 1.0)
 
     def at(self, tau: float) -> dict:
+        """The position [um] ``tau`` seconds into the approach."""
         f = self.fraction(tau)
         return {a: self.start[a] + f * (self.end[a] - self.start[a]) for a in self.start}
 
@@ -115,11 +116,13 @@ class ReferencePlanner:
         self._track_ns = None      # trajectory clock origin [ns]
 
     def set_trajectory(self, t, w: dict):
+        """A new trajectory (t [s], {axis: um}): approached from where the stage is asked to be."""
         self.traj, self.setpoint = (np.asarray(t, float), {a: np.asarray(x, float)
                                                           for a, x in w.items()}), None
         self._restart()
 
     def set_setpoint(self, w: dict):
+        """A new streamed setpoint {axis: um}: approached, then held."""
         self.setpoint, self.traj = dict(w), None
         self._restart()
 
@@ -176,6 +179,7 @@ class ReferencePlanner:
 
 @dataclass
 class ArmingParams:
+    """The arming supervisor's parameters (safe voltage, ramps, timeouts, tolerances)."""
     safe_V: float = 0.0              # where disarmed and faulted outputs go
     ramp_V_per_s: float = 500.0      # how fast they go there
     stale_s: float = 0.05            # armed: no fresh command for this long is a fault
@@ -234,6 +238,7 @@ class ArmingSupervisor:
 
     # requests --------------------------------------------------------------------
     def request_arm(self, now_ns: int) -> tuple[bool, str]:
+        """Ask to arm; refused with the reason while a link of the loop is not closed."""
         if self.estop:
             return False, "e-stop is latched: disarm first, then arm"
         if self.state in ENABLED:
@@ -245,20 +250,24 @@ class ArmingSupervisor:
         return True, "arming: approaching the first point"
 
     def request_disarm(self, now_ns: int) -> tuple[bool, str]:
+        """Disarm at ``ns``: the outputs ramp to the safe voltage."""
         self.arm_requested = False
         self.estop = False
         self._set(DISARMED, "disarmed on request", now_ns)
         return True, "disarmed: holding the safe voltage"
 
     def trigger_estop(self, now_ns: int):
+        """Emergency stop: latched until disarm and re-arm."""
         self.estop, self.arm_requested = True, False
         self._set(FAULTED, "e-stop (latched until disarm and re-arm)", now_ns)
 
     def fault(self, reason: str, now_ns: int):
+        """Fault with ``reason``: ramp to the safe voltage and stay there."""
         self.counts["faults"] += 1
         self._set(FAULTED, reason, now_ns)
 
     def set_tracking(self, tracking: bool, now_ns: int):
+        """The feedforward reports the approach ended: the state becomes armed."""
         self.tracking = bool(tracking)
         if self.state == APPROACHING and tracking:
             self._set(ARMED, "tracking", now_ns)
@@ -367,9 +376,11 @@ class CommandSchedule:
         self.arrival_lag = LatencyHistogram()  # sample taken -> its command arrived [s]
 
     def tick_of(self, stamp_ns: int) -> int:
+        """The sample tick a command stamped ``ns`` is for."""
         return (int(stamp_ns) - self.t0 + self.dt // 2) // self.dt
 
     def add(self, stamp_ns: int, v: dict, recv_ns: int, last_tick: int):
+        """Keep a command for its tick (late ones are counted, not kept)."""
         j = self.tick_of(stamp_ns)
         self.received += 1
         self.arrival_lag.add((int(recv_ns) - (int(stamp_ns) - self.lookahead)) * 1e-9)
@@ -406,16 +417,19 @@ class StateTimeline:
         self.keep = keep
 
     def add(self, since_ns: int, state: str):
+        """The state ``state`` applies from stamp ``since_ns`` on."""
         self.entries = [e for e in self.entries if e[0] < since_ns][-self.keep:]
         self.entries.append((int(since_ns), state))
 
     def at(self, ns: int) -> str:
+        """The state at stamp ``ns``."""
         for since, state in reversed(self.entries):
             if since <= ns:
                 return state
         return self.entries[0][1]
 
     def enabled(self, ns: int) -> bool:
+        """Whether the driver applies commands at stamp ``ns``."""
         return self.at(ns) in ENABLED
 
 

@@ -54,9 +54,11 @@ class CreepInverse:
         self.lp = np.zeros_like(self.p)
 
     def reset(self, h0: float):
+        """At rest at ``h0``."""
         self.lp[:] = h0
 
     def step(self, y: float) -> float:
+        """The hysteresis output that makes the creep output ``y``."""
         h = (y - self.gamma * float(np.mean(self.p * self.lp))) / self.direct
         self.lp = self.p * self.lp + (1 - self.p) * h
         return h
@@ -90,9 +92,11 @@ class DynamicsInverse:
         self.x = np.zeros(A.shape[0])
 
     def reset(self, u0: float):
+        """At rest with input and output at ``u0``."""
         self.x = self._steady * u0
 
     def step(self, y: float) -> float:
+        """The input that makes the sampled output ``y``."""
         u = (y - float(self.Cs @ self.x)) / self.Ds
         self.x = self.Ad @ self.x + self.Bd.ravel() * u
         return u
@@ -151,6 +155,7 @@ class EffectCompensator:
 
     @property
     def max_lead_ticks(self) -> int:
+        """The longest preview any axis needs [periods]."""
         return max(self.lead_ticks.values(), default=0)
 
     def reset(self, w0: dict):
@@ -178,6 +183,7 @@ class EffectCompensator:
         return out
 
     def describe(self) -> str:
+        """One line: which effects are compensated, which not and why."""
         done = ", ".join(sorted(self.compensated)) or "none"
         left = "; ".join(f"{k}: {v}" for k, v in sorted(self.uncompensated.items()))
         return f"effects compensated: {done}" + (f" (not: {left})" if left else "")

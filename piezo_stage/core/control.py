@@ -17,6 +17,7 @@ from piezo_stage.core.errors import ConfigError
 
 @dataclass
 class PIDGains:
+    """PID gains and the derivative filter and integral limit."""
     kp: float = 0.2        # V/um
     ki: float = 150.0      # V/(um s)
     kd: float = 0.0        # V s/um
@@ -43,11 +44,13 @@ class PID:
         self.reset()
 
     def reset(self):
+        """Forget the integral and the derivative's memory."""
         self.integral = 0.0
         self.prev_e = None
         self.d = 0.0
 
     def update(self, e: float, hold_integral: bool = False) -> float:
+        """The PID output [V] for error ``e`` [um]; the integral holds when asked."""
         g = self.g
         if not hold_integral:
             self.integral += g.ki * e * self.dt
@@ -81,6 +84,7 @@ class CompositeAxis:
         self._bump_e = None     # switch-on: take the first error without a step
 
     def set_feedback(self, on: bool):
+        """Switch the feedback on or off, bumplessly."""
         on = bool(on)
         if on and not self.feedback:
             self.pid.reset()

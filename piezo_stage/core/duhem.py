@@ -114,11 +114,13 @@ class DuhemModel:
 
     @classmethod
     def whole(cls, alpha, f, g, initial=None):
+        """A whole-curve model: one (alpha, f, g) for both branches."""
         b = DuhemBranch(alpha, f, g)
         return cls(b, b, initial or DuhemState())
 
     @property
     def structure(self) -> str:
+        """'whole' or 'segmented'."""
         return "whole" if self.ascending == self.descending else "segmented"
 
     def kernel_params(self):
@@ -154,6 +156,7 @@ class DuhemModel:
         return out, DuhemState(float(vp), float(wp))
 
     def with_initial(self, state: DuhemState) -> "DuhemModel":
+        """The same model starting from another state."""
         return DuhemModel(self.ascending, self.descending, state)
 
 
@@ -171,19 +174,23 @@ class DuhemHysteresis:
         self.reset()
 
     def reset(self, state: DuhemState | None = None):
+        """Back to ``state`` (default: the model's initial state)."""
         st = state or self.model.initial
         self.v, self.w = float(st.v), float(st.w)
 
     @property
     def state(self) -> DuhemState:
+        """The current (v, w)."""
         return DuhemState(self.v, self.w)
 
     def step(self, v: float) -> float:
+        """Apply voltage ``v`` [V]; returns the displacement [um]."""
         self.w = duhem_step(self.v, self.w, float(v), self._alpha, self._H)
         self.v = float(v)
         return self.w
 
     def run(self, v) -> np.ndarray:
+        """Apply a voltage array (the compiled loop); returns the displacements."""
         w, st = self.model.simulate(v, self.state)
         self.v, self.w = st.v, st.w
         return w

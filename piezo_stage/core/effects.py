@@ -83,10 +83,12 @@ class Creep:
             self._lps.append(_LinearFilter([1 - p], [1, -p]))
 
     def reset(self, x0=0.0):
+        """At rest with input and output at ``x0``."""
         for lp in self._lps:
             lp.reset(x0)
 
     def process(self, x):
+        """The next chunk of the signal through the operator (state carried)."""
         x = np.asarray(x, float)
         slow = sum(lp.process(x) for lp in self._lps) / len(self._lps)
         return x - self.gamma * (x - slow)
@@ -137,12 +139,15 @@ class Dynamics:
         self._f = _LinearFilter(bd[1:], ad)
 
     def reset(self, x0=0.0):
+        """At rest with input and output at ``x0``."""
         self._f.reset(x0)
 
     def process(self, x):
+        """The next chunk of the signal through the filter (state carried)."""
         return self._f.process(np.asarray(x, float))
 
     def apply(self, X):
+        """The filter on the columns of X from rest (for the gap diagnosis)."""
         return _lfilter_cols(self._f.b, self._f.a, X)
 
 
@@ -159,9 +164,11 @@ class Delay:
         self.reset()
 
     def reset(self, x0=0.0):
+        """The delay line filled with ``x0``."""
         self._buf = np.full(self._n + 1, float(x0))
 
     def process(self, x):
+        """The next chunk of the signal, delayed (state carried)."""
         x = np.asarray(x, float)
         ext = np.concatenate([self._buf, x])
         m = x.size
@@ -172,6 +179,7 @@ class Delay:
         return y
 
     def apply(self, X):
+        """The delay on the columns of X, zeros before the start."""
         X = np.asarray(X, float)
         n, fr = self._n, self._frac
         out = np.zeros_like(X)
@@ -193,9 +201,11 @@ class Drift:
         self.reset()
 
     def reset(self, x0=0.0):
+        """Back to t = 0."""
         self._k = 0
 
     def process(self, x):
+        """The next chunk of the signal plus the drift over its time span."""
         x = np.asarray(x, float)
         t = (self._k + np.arange(x.size)) * self.dt
         self._k += x.size

@@ -336,6 +336,7 @@ class GivenModel:
         self.model = stage_model
 
     def predict(self, rec: Record, axis: str):
+        """The given model's prediction on a record (no fit)."""
         from piezo_stage.core.identify.api import simulate_axis
         m = self.model.axes[axis]
         c = self.model.coupling.get(axis)
@@ -349,6 +350,7 @@ class GivenModel:
 
 @dataclass
 class AxisDiagnosis:
+    """One axis's diagnosis: verdict, ranking, kept effects, budget, models."""
     axis: str
     verdict: str
     reason: str

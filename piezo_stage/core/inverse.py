@@ -47,6 +47,7 @@ class InverseResult:
 
     @property
     def n_saturated(self) -> int:
+        """Samples whose target was out of reach (saturated at a voltage limit)."""
         return int(np.count_nonzero(self.saturated))
 
 
@@ -182,6 +183,7 @@ class StageInverse:
 
     @property
     def v(self):
+        """The voltages [V] of the inverse's current state, per axis."""
         return {"x": float(self.vp[0]), "y": float(self.vp[1])}
 
     @property
@@ -196,6 +198,7 @@ class StageInverse:
         return self.vp.copy(), self.wp.copy(), self.cvp.copy(), self.cwp.copy()
 
     def restore(self, snap):
+        """Go back to a state taken with ``snapshot``."""
         self.vp[:], self.wp[:], self.cvp[:], self.cwp[:] = snap
 
     def step_ahead(self, in_flight, wx: float, wy: float):

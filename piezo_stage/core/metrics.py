@@ -6,6 +6,7 @@ import numpy as np
 
 
 def rms(x) -> float:
+    """Root mean square of ``x`` (0 for an empty array)."""
     x = np.asarray(x, float)
     return float(np.sqrt(np.mean(x * x))) if x.size else float("nan")
 
@@ -74,6 +75,7 @@ class LatencyHistogram:
         self.n, self.max_s = 0, 0.0
 
     def add(self, x_s: float):
+        """Count one latency ``x_s`` [s] (negative counts as 0)."""
         k = int(x_s / self.bin) if x_s > 0 else 0
         self.counts[min(k, len(self.counts) - 1)] += 1
         self.n += 1

@@ -53,16 +53,19 @@ class Record:
 
     @property
     def fs_hz(self) -> float:
+        """Sample rate [Hz] (from the uniform time base)."""
         return 1.0 / self.dt
 
     @property
     def dt(self) -> float:
+        """Sample period [s]."""
         return float((self.t[-1] - self.t[0]) / (self.t.size - 1))
 
     def __len__(self):
         return self.t.size
 
     def slice(self, start: int, stop: int) -> "Record":
+        """The samples start..stop-1 as a new record (time kept)."""
         return Record(self.t[start:stop], {a: x[start:stop] for a, x in self.v.items()},
                       {a: x[start:stop] for a, x in self.w.items()}, self.source,
                       self.voltage_exact)

@@ -73,6 +73,7 @@ def effects_response(effects: dict, axis: str, rate_hz: float, z: np.ndarray):
 
 @dataclass
 class Tuning:
+    """Gains from ``tune`` with the loop's figures and the method used."""
     kp: float
     ki: float
     kd: float
@@ -86,6 +87,7 @@ class Tuning:
     source: str = ""
 
     def summary(self) -> str:
+        """The gains, crossover, bandwidth and margins as printed lines."""
         g = ", ".join(f"{a} {hi:.3f} (median {md:.3f})"
                       for a, (hi, md) in self.gains_um_per_V.items())
         return (f"method: {self.method}\nmodel gain dw/dv [um/V]: {g}\n"
@@ -97,6 +99,7 @@ class Tuning:
                 f"passed to the true position: {self.noise_gain:.2f} x its RMS")
 
     def params_yaml(self) -> str:
+        """A node parameter file with the gains (doubles), for ``launch --params``."""
         return (f"# PID gains from `piezo-stage tune` ({self.source})\n# {self.method}\n"
                 f"# crossover {self.crossover_hz:.1f} Hz, bandwidth {self.bandwidth_hz:.1f} "
                 f"Hz, PM {self.phase_margin_deg:.1f} deg, GM {self.gain_margin_db:.1f} dB\n"

@@ -42,6 +42,7 @@ class IdentifyOptions:
 
 @dataclass
 class AxisResult:
+    """One axis's identification: model, fit figures, solver history."""
     axis: str
     method: str
     structure: str
@@ -56,6 +57,7 @@ class AxisResult:
     branch_rms_um: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
+        """The result as the --json report's dict."""
         m = self.model
         params = {"structure": m.structure, "initial_state": {"v_V": m.initial.v,
                                                               "w_um": m.initial.w}}

@@ -40,6 +40,7 @@ def legendre_to_power(c, lo, hi):
 
 @dataclass
 class Fit:
+    """A least-squares fit: coefficients and the RMS of its residual."""
     theta: np.ndarray
     rms: float
 
@@ -125,6 +126,7 @@ class DuhemRegression:
 
     @property
     def n_alpha(self):
+        """How many alphas the regression's model has."""
         return (1 if self.structure == "whole" else 2) + (self.v_other is not None)
 
     def _main_columns(self, a_asc, a_desc):

@@ -26,9 +26,11 @@ class Segmentation:
     threshold_V: float
 
     def mask(self, ascending: bool) -> np.ndarray:
+        """Boolean mask of the samples on branch ``asc``."""
         return self.labels == (1 if ascending else -1)
 
     def count(self, ascending: bool) -> int:
+        """How many samples are on branch ``asc``."""
         return int(np.count_nonzero(self.mask(ascending)))
 
 
