@@ -46,8 +46,8 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01) -> int:
         for topic, _, log_ns, data in msgs:
             if rate > 0:
                 due = t0_wall + (log_ns - t0_log) * 1e-9 / rate
-                while time.monotonic() < due:
-                    time.sleep(min(0.001, due - time.monotonic()))
+                while (left := due - time.monotonic()) > 0:  # one reading per check:
+                    time.sleep(min(0.001, left))  # never a negative sleep
             if clock_period_s > 0 and (next_clock is None or log_ns >= next_clock):
                 clock.publish(clock_msg(log_ns))
                 next_clock = log_ns + int(clock_period_s * 1e9)

@@ -92,3 +92,32 @@ def test_a_streamed_setpoint_gets_no_dynamics_inversion():
     assert c.step({"x": 10.0, "y": 0.0}, preview=False)["x"] == 10.0
     c.reset({"x": 0.0, "y": 0.0})
     assert abs(c.step({"x": 10.0, "y": 0.0}, preview=True)["x"]) > 10.0
+
+
+def test_previewed_reference_runs_the_planner_ahead_by_the_delay():
+    """With a 2-period delay the planner is sampled 2 periods ahead: the hysteresis
+    target commanded at a tick is what the stage should be 2 ticks later, and the
+    desired position reported for a tick is the planner's value for that tick (its
+    clock started when it was first asked, 2 ticks earlier than without the lead)."""
+    from piezo_stage.core.arming import ReferencePlanner
+    from piezo_stage.core.compensation import PreviewedReference
+    dt = 1_000_000
+    t = np.arange(200) * 1e-3
+    traj = {"x": 10 + 5 * np.sin(2 * np.pi * 5 * t), "y": np.full_like(t, 3.0)}
+
+    def run(effects, on=True):
+        p = ReferencePlanner(1e6, 1e12)  # an immediate approach
+        ref = PreviewedReference(p, dt)
+        ref.set_compensator(EffectCompensator(effects, FS) if effects else None)
+        ref.on = on
+        ref.hold({"x": 10.0, "y": 3.0}, {"x": 10.0, "y": 3.0})
+        p.set_trajectory(t, traj)
+        return [ref.sample(k * dt) for k in range(100)]
+
+    plain = run(None)
+    lead = run({"delay": {"delay_s": 0.002}})
+    off = run({"delay": {"delay_s": 0.002}}, on=False)
+    for k in range(10, 98):
+        assert lead[k][1]["x"] == pytest.approx(lead[k + 2][0]["x"])  # asked 2 ahead
+        assert lead[k][0] == pytest.approx(plain[k - 2][0])           # same path
+        assert off[k] == plain[k]                                      # switched off

@@ -187,3 +187,54 @@ class EffectCompensator:
         done = ", ".join(sorted(self.compensated)) or "none"
         left = "; ".join(f"{k}: {v}" for k, v in sorted(self.uncompensated.items()))
         return f"effects compensated: {done}" + (f" (not: {left})" if left else "")
+
+
+class PreviewedReference:
+    """The reference planner with the model's effects compensated: what the stage should
+    be at each target tick, and the hysteresis target to command for it.
+
+    With a compensator the planner runs the delay's whole periods ahead (the trajectory
+    is known), its samples are kept until their own tick comes (that is where the stage
+    should be then), and the wanted positions go through ``EffectCompensator.step``.
+    Without one (or switched off) it is the planner itself. ``hold`` is the disabled
+    path: the planner holds, the lead samples are dropped, the compensator rests at the
+    measured position.
+    """
+
+    def __init__(self, planner, dt_ns: int):
+        self.planner, self.dt_ns = planner, int(dt_ns)
+        self.comp, self.on, self.ahead = None, True, {}
+
+    def set_compensator(self, comp):
+        """A new model's compensator (None: no effects)."""
+        self.comp, self.ahead = comp, {}
+
+    def describe(self) -> str:
+        """The diagnostics' line: what is compensated, or that nothing is."""
+        if self.comp is None:
+            return "no effects in the model"
+        return self.comp.describe() + ("" if self.on else " (switched off)")
+
+    def hold(self, w_hold: dict, w_measured: dict):
+        """Disabled: the planner holds ``w_hold``; the compensator rests at the stage."""
+        self.planner.hold(w_hold)
+        self.ahead = {}
+        if self.comp is not None:
+            self.comp.reset(w_measured)
+
+    def sample(self, target_ns: int):
+        """(where the stage should be at target_ns, the hysteresis target for it)."""
+        comp = self.comp if self.on else None
+        if comp is None:
+            d = self.planner.sample(target_ns)
+            return d, d
+        preview = self.planner.traj is not None
+        held = dict(self.planner.desired)
+        lead = comp.max_lead_ticks if preview else 0
+        t_lead = target_ns + lead * self.dt_ns
+        self.ahead[t_lead] = self.planner.sample(t_lead)
+        wanted = {a: self.ahead.get(target_ns + comp.lead_ticks[a] * self.dt_ns if preview
+                                    else target_ns, held)[a] for a in held}
+        desired = self.ahead.get(target_ns, held)
+        self.ahead = {t: d for t, d in self.ahead.items() if t >= target_ns}
+        return desired, comp.step(wanted, preview)

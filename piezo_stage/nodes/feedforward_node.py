@@ -23,7 +23,7 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.arming import HOLD, ReferencePlanner
-from piezo_stage.core.compensation import EffectCompensator
+from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
 from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
@@ -54,9 +54,6 @@ class Feedforward(Node):
         self.use_ff = declare(self, "inverse_feedforward", True, "false: hold the "
                               "feedforward at the voltage applied when enabled (feedback "
                               "only)")
-        self.compensate = declare(self, "compensate_effects", True, "compensate the "
-                                  "model's unmodelled effects", live=self._set_compensate)
-        self.comp, self.ahead = None, {}  # effect compensator; lead samples by stamp
         self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]")
         self.hold_s = declare(self, "model_required_after_s", 0.0, "lockstep: hold the "
                               "loop at this trajectory time until a model arrives (0: never)")
@@ -70,6 +67,10 @@ class Feedforward(Node):
                     lo=0.1, hi=1e6),
             declare(self, "approach_accel_um_per_s2", 20000.0, "approach acceleration "
                     "[um/s^2]", lo=1.0, hi=1e9))
+        self.ref = PreviewedReference(self.planner, self.dt_ns)  # effects compensated
+        self.ref.on = declare(self, "compensate_effects", True, "compensate the model's "
+                              "unmodelled effects", live=lambda on: setattr(self.ref, "on",
+                                                                            bool(on)))
         self.limits = (0.0, 150.0)
         self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
         self.started = False  # the inverse has been put where the stage is
@@ -107,10 +108,10 @@ class Feedforward(Node):
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
         Diagnostics(self, lambda: (0, f"{self.planner.phase}, model {self.model_name}, "
-                                   f"{self.effects_text()}" + (
+                                   f"{self.ref.describe()}" + (
             f" (last rejected: {self.last_rejection})" if self.last_rejection else ""), {
             **self.stats, "model": self.model_name, "phase": self.planner.phase,
-            "effects": self.effects_text(),
+            "effects": self.ref.describe(),
             "lookahead_ms": self.driver.lookahead_ns * 1e-6,
             "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
             "joint_states_lag_p99_ms": self.lag.percentile(99) * 1e3,
@@ -120,14 +121,6 @@ class Feedforward(Node):
             rates=[(k, k.replace("_", " "), 0) for k in (
                 "rejected_models", "rejected_trajectories", "rejected_setpoints",
                 "bad_messages", "late_dropped")])
-
-    def _set_compensate(self, on):
-        self.compensate = bool(on)
-
-    def effects_text(self):
-        if self.comp is None:
-            return "no effects in the model"
-        return self.comp.describe() + ("" if self.compensate else " (switched off)")
 
     def set_model(self, model, effects, name):
         missing = {"x", "y"} - set(model.axes)
@@ -149,7 +142,7 @@ class Feedforward(Node):
         if self.planner.desired is not None:
             inv.reset(v=self.ff, w=self.planner.desired)
         self.inv, self.model_name, self.limits = inv, name, model.voltage_limits
-        self.comp, self.ahead = comp, {}
+        self.ref.set_compensator(comp)
         self.started = self.planner.desired is not None  # else: from the first sample
         self.stats["models"] += 1
         self.last_rejection = ""  # the warning clears with a good model
@@ -229,13 +222,10 @@ class Feedforward(Node):
     def answer(self, ns, target, w, applied):
         phase = self.planner.phase
         if not self.driver.enabled(target):
-            self.planner.hold(self.inv.w if self.inv else w)
+            self.ref.hold(self.inv.w if self.inv else w, w)
             desired, self.ff, self.planned = self.planner.desired, dict(applied), {}
-            self.ahead = {}
-            if self.comp is not None:
-                self.comp.reset(w)
         else:
-            desired, h = self.plan(target)
+            desired, h = self.ref.sample(target)
             self.planned[target] = h
             try:
                 self.ff = self.feedforward(ns, target, h) if self.use_ff else self.ff
@@ -253,23 +243,6 @@ class Feedforward(Node):
             self.stats["late_dropped"] += 1  # it could only reach the driver too late
             return
         self.gate.publish(self.pub, reference_cdr(target, desired, self.ff, w, applied))
-
-    def plan(self, target):
-        """(where the stage should be at target, the hysteresis target to command now):
-        with effects compensated, the planner runs the delay's whole periods ahead."""
-        comp = self.comp if self.compensate else None
-        preview = self.planner.traj is not None
-        if comp is None:
-            d = self.planner.sample(target)
-            return d, d
-        held = dict(self.planner.desired)
-        lead = comp.max_lead_ticks if preview else 0
-        self.ahead[target + lead * self.dt_ns] = self.planner.sample(target + lead * self.dt_ns)
-        wanted = {a: self.ahead.get(target + comp.lead_ticks[a] * self.dt_ns if preview
-                                    else target, held)[a] for a in held}
-        desired = self.ahead.get(target, held)
-        self.ahead = {t: d for t, d in self.ahead.items() if t >= target}
-        return desired, comp.step(wanted, preview)
 
     def feedforward(self, ns, target, desired):
         if self.inv is None:
