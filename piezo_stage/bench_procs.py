@@ -65,11 +65,13 @@ def ping(role: str, n: int = 0):
 
 
 def ring(me: str, nxt: str, n_steps: int):
+    import rclpy
     from rclpy.node import Node
     from rclpy.serialization import serialize_message
     from std_msgs.msg import Header
 
-    from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
+    from piezo_stage.nodes._common import QOS_DATA
+    from piezo_stage.nodes._executor import LeanExecutor, hot_subscription, quiet_sigint
 
     class Ring(Node):
         def __init__(self):
@@ -88,7 +90,6 @@ def ring(me: str, nxt: str, n_steps: int):
                 self.n = -1
 
         def cb(self, data):
-            import rclpy
             if me == "a":
                 self.n = max(self.n, 0) + 1
                 if self.n == 1:
@@ -99,7 +100,17 @@ def ring(me: str, nxt: str, n_steps: int):
                     return
             self.pub.publish(data)
 
-    return run(Ring)
+    quiet_sigint()
+    rclpy.init()
+    node = Ring()
+    try:
+        LeanExecutor(node).spin()
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 def main(argv):

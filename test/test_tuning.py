@@ -83,7 +83,7 @@ def test_tune_writes_a_parameter_file_launch_takes(tmp_path):
                         str(out)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "crossover" in r.stdout and "bandwidth" in r.stdout
-    from piezo_stage.cli.experiment import param_overrides
+    from piezo_stage.cli._common import param_overrides
     p = param_overrides([str(out)])
     assert set(p) == {"controller"} and p["controller"]["ki"] > 0
     assert math.isfinite(p["controller"]["kp"])

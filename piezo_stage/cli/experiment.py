@@ -1,10 +1,35 @@
-"""`piezo-stage experiment` and `piezo-stage tune`: argument parsing over
-piezo_stage.experiments and piezo_stage.core.tuning."""
+"""`piezo-stage experiment`: the seed's control experiments through the node set."""
 
 from __future__ import annotations
 
 import json
 import os
+
+from piezo_stage.cli._common import param_overrides
+
+HELP = "the seed's control experiments through the node set"
+
+
+def add_arguments(s):
+    from piezo_stage.experiments import CONTROLLERS, EXPERIMENTS, FREQS_HZ
+    s.add_argument("name", choices=EXPERIMENTS)
+    s.add_argument("--plant", metavar="CONFIG.yaml", help="simulated plant (default "
+                   "config/sim_stage.yaml)")
+    s.add_argument("--model", metavar="MODEL.yaml", help="the feedforward's model "
+                   "(default: identified through the node set first)")
+    s.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    s.add_argument("--config", help="node parameters YAML (default config/stage.yaml)")
+    s.add_argument("--params", action="append", metavar="FILE",
+                   help="more node parameters (e.g. from `tune`), may repeat")
+    s.add_argument("--freqs", type=_floats, default=FREQS_HZ, metavar="F1,F2",
+                   help="tracking: frequencies [Hz] (default 1,5,10,40)")
+    s.add_argument("--controllers", type=_controllers, default=CONTROLLERS,
+                   metavar="C1,C2", help="tracking: " + ", ".join(CONTROLLERS))
+    s.add_argument("--json", metavar="FILE")
+    s.add_argument("--record", metavar="DIR", help="where the bags go (default "
+                   "bags/<time>)")
+    s.add_argument("--report", metavar="DIR", help="table, JSON and PNG figure")
+    s.add_argument("--namespace", default="/stage")
 
 
 def _floats(text):
@@ -27,16 +52,6 @@ def _controllers(text):
     bad = [c for c in out if c not in CONTROLLERS]
     if bad or not out:
         raise argparse.ArgumentTypeError(f"{text!r}: use {', '.join(CONTROLLERS)}")
-    return out
-
-
-def param_overrides(paths) -> dict:
-    """Node parameters from parameter files (as `tune` writes), later files win."""
-    from piezo_stage.launch.launcher import _params
-    out = {}
-    for p in paths or ():
-        for node, params in _params(p).items():
-            out.setdefault(node, {}).update(params)
     return out
 
 
@@ -83,7 +98,7 @@ def identify_first(out_dir, config, plant, mode, extra, namespace):
     return path
 
 
-def cmd_experiment(args):
+def main(args):
     import sys
 
     from piezo_stage.experiments import run_experiment, table
@@ -126,57 +141,3 @@ def cmd_experiment(args):
         print(f"report: {experiment_png(os.path.join(args.report, args.name + '.png'), evals)}")
     print(f"bags: {out_dir}")
     return 0
-
-
-def cmd_tune(args):
-    from piezo_stage.core.tuning import tune
-    from piezo_stage.io.files import atomic_write
-    from piezo_stage.io.model_file import load_model
-    model, effects = load_model(args.model)
-    res = tune(model, effects, rate_hz=args.rate, phase_margin_deg=args.phase_margin,
-               gain_margin_db=args.gain_margin, latency_periods=args.latency)
-    print(res.summary())
-    if args.out:
-        with atomic_write(args.out) as fh:
-            fh.write(res.params_yaml())
-        print(f"parameters: {args.out} (piezo-stage launch CONFIG --params {args.out})")
-    return 0
-
-
-def add_parsers(sub):
-    from piezo_stage.experiments import CONTROLLERS, EXPERIMENTS, FREQS_HZ
-    s = sub.add_parser("experiment", help="the seed's control experiments through the "
-                       "node set")
-    s.add_argument("name", choices=EXPERIMENTS)
-    s.add_argument("--plant", metavar="CONFIG.yaml", help="simulated plant (default "
-                   "config/sim_stage.yaml)")
-    s.add_argument("--model", metavar="MODEL.yaml", help="the feedforward's model "
-                   "(default: identified through the node set first)")
-    s.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
-    s.add_argument("--config", help="node parameters YAML (default config/stage.yaml)")
-    s.add_argument("--params", action="append", metavar="FILE",
-                   help="more node parameters (e.g. from `tune`), may repeat")
-    s.add_argument("--freqs", type=_floats, default=FREQS_HZ, metavar="F1,F2",
-                   help="tracking: frequencies [Hz] (default 1,5,10,40)")
-    s.add_argument("--controllers", type=_controllers, default=CONTROLLERS,
-                   metavar="C1,C2", help="tracking: " + ", ".join(CONTROLLERS))
-    s.add_argument("--json", metavar="FILE")
-    s.add_argument("--record", metavar="DIR", help="where the bags go (default "
-                   "bags/<time>)")
-    s.add_argument("--report", metavar="DIR", help="table, JSON and PNG figure")
-    s.add_argument("--namespace", default="/stage")
-    s.set_defaults(fn=cmd_experiment)
-
-    s = sub.add_parser("tune", help="PID gains from the identified model")
-    s.add_argument("model", help="model file (its dynamics and delay are used when present)")
-    s.add_argument("--rate", type=float, default=1000.0, help="control rate [Hz]")
-    s.add_argument("--phase-margin", type=float, default=60.0, metavar="DEG")
-    s.add_argument("--gain-margin", type=float, default=10.0, metavar="DB")
-    s.add_argument("--latency", type=float, default=1.0, metavar="PERIODS",
-                   help="sample-to-applied latency of the loop [periods] (lockstep: 1)")
-    s.add_argument("--out", metavar="PARAMS.yaml", help="write a parameter file that "
-                   "`launch --params` and `experiment --params` take")
-    s.set_defaults(fn=cmd_tune)
-
-
-

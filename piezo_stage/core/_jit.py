@@ -3,7 +3,7 @@
 The Duhem recursion is sequential in time, so numpy cannot vectorise it; numba compiles
 these loops to machine code. One kernel per formula: ``horner`` (polynomials),
 ``branch_step`` / ``duhem_step`` (seed eq. 6), ``amplifier_step`` (clamp, then slew);
-the batch runs, the plant's single step, the inverse and the identification objectives
+the batch runs, the plant (``plant_run``), the inverse and the identification objectives
 call them. With numba switched off (``NUMBA_DISABLE_JIT=1``, or numba missing) every
 kernel runs as its plain-Python original: ``bench plant`` times that as its baseline.
 """
@@ -103,52 +103,58 @@ def amplifier_step(x, v_prev, v_min, v_max, max_step):
 
 
 @njit
-def plant_step(vx, vy, vstate, dstate, alpha, H, present, substeps, v_min, v_max,
-               max_step, noise, noise_rms, quant, out):
-    """One command period of the effect-free plant, compiled (``Plant.step``).
+def plant_run(vx, vy, substeps, vstate, dstate, alpha, H, present, v_min, v_max, max_step,
+              applied, w):
+    """The plant's hysteresis path over the commands ``vx``, ``vy`` [V] (zero-order
+    hold, ``substeps`` samples per command): per sample the amplifier (clamp, then
+    slew) and the Duhem steps of the models x, y, coupling into x (driven by y),
+    coupling into y (driven by x). The one arithmetic of ``Plant.run`` and
+    ``Plant.step``.
 
-    Same arithmetic, in the same order, as ``Plant.run`` on one command: per substep
-    the amplifier (clamp, then slew, as ``slew_clamp_run``) and the Duhem steps of the
-    models x, y, coupling into x (driven by y), coupling into y (driven by x); then the
-    sensor. ``vstate[2]`` amplifier outputs; ``dstate[4, 2]`` (v, w) per model;
-    ``alpha[4, 2]``, ``H[4, 2, D]``; ``present[4]``. Writes ``out[6]`` = measured x, y,
-    true x, y, applied x, y; returns the number of substeps that hit a limit.
+    State, updated in place: ``vstate[2]`` amplifier outputs, ``dstate[4, 2]`` (v, w)
+    per model; ``alpha[4, 2]``, ``H[4, 2, D]``, ``present[4]``. Writes
+    ``applied[2, n * substeps]`` [V] and ``w[2, n * substeps]`` [um] (0 on an axis
+    without a model); returns the number of samples that hit a limit.
     """
     hits = 0
-    wx = 0.0
-    wy = 0.0
-    for _ in range(substeps):
-        for a in range(2):
-            x, hit = amplifier_step(vx if a == 0 else vy, vstate[a], v_min, v_max, max_step)
-            if hit:
-                hits += 1
-            vstate[a] = x
-        for a in range(2):
-            w = 0.0
-            if present[a]:
-                w = duhem_step(dstate[a, 0], dstate[a, 1], vstate[a], alpha[a], H[a])
-                dstate[a, 0] = vstate[a]
-                dstate[a, 1] = w
-                c = 2 + a
-                if present[c]:
-                    wc = duhem_step(dstate[c, 0], dstate[c, 1], vstate[1 - a], alpha[c],
-                                    H[c])
-                    dstate[c, 0] = vstate[1 - a]
-                    dstate[c, 1] = wc
-                    w = w + wc
-            if a == 0:
-                wx = w
-            else:
-                wy = w
-    out[2] = wx
-    out[3] = wy
-    for a in range(2):
-        m = out[2 + a] + noise_rms * noise[a]
-        if quant > 0.0:
-            m = np.round(m / quant) * quant
-        out[a] = m
-        out[4 + a] = vstate[a]
+    k = 0
+    for i in range(vx.shape[0]):
+        for _ in range(substeps):
+            for a in range(2):
+                x, hit = amplifier_step(vx[i] if a == 0 else vy[i], vstate[a], v_min, v_max,
+                                        max_step)
+                if hit:
+                    hits += 1
+                vstate[a] = x
+                applied[a, k] = x
+            for a in range(2):
+                wa = 0.0
+                if present[a]:
+                    wa = duhem_step(dstate[a, 0], dstate[a, 1], vstate[a], alpha[a], H[a])
+                    dstate[a, 0] = vstate[a]
+                    dstate[a, 1] = wa
+                    c = 2 + a
+                    if present[c]:
+                        wc = duhem_step(dstate[c, 0], dstate[c, 1], vstate[1 - a], alpha[c],
+                                        H[c])
+                        dstate[c, 0] = vstate[1 - a]
+                        dstate[c, 1] = wc
+                        wa = wa + wc
+                w[a, k] = wa
+            k += 1
     return hits
+
+
+@njit
+def sensor_run(true, noise, noise_rms, quant, out):
+    """The sensor on ``true[2, n]`` [um]: white noise (``noise[n, 2]`` standard normal,
+    times ``noise_rms``), then quantisation to ``quant`` (0: none). Writes ``out``."""
+    for i in range(true.shape[1]):
+        for a in range(2):
+            m = true[a, i] + noise_rms * noise[i, a]
+            if quant > 0.0:
+                m = np.round(m / quant) * quant
+            out[a, i] = m
 
 
 @njit

@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from piezo_stage.core._jit import as_f64, plant_step, slew_clamp_run
-from piezo_stage.core.duhem import AXES, DuhemState, StageModel
+from piezo_stage.core._jit import as_f64, plant_run, sensor_run
+from piezo_stage.core.duhem import AXES, StageModel
 from piezo_stage.core.effects import EFFECTS, make_effect
 from piezo_stage.core.errors import ConfigError
 
@@ -106,17 +106,37 @@ class Plant:
                 if a not in AXES:
                     raise ConfigError(f"effect {name}: unknown axis {a!r}")
                 self._effects[a].append(make_effect(name, self.fs_hz, params))
+        self._kernel_params()
         self.reset()
+
+    # the compiled plant's models, in its order: axis x, axis y, coupling into x (driven
+    # by y), coupling into y (driven by x)
+    _MODELS = (("x", "axis"), ("y", "axis"), ("x", "coupling"), ("y", "coupling"))
+
+    def _kernel_params(self):
+        """The models as ``plant_run`` takes them, and the plant's state arrays."""
+        model = self.config.model
+        self._models = [model.axes.get(a) if kind == "axis" else
+                        (model.coupling.get(a) if a in model.axes else None)
+                        for a, kind in self._MODELS]
+        kp = [m.kernel_params() if m is not None else None for m in self._models]
+        d = max([p[1].shape[1] for p in kp if p is not None] or [1])
+        self._alpha, self._H = np.zeros((4, 2)), np.zeros((4, 2, d))
+        self._present = np.array([p is not None for p in kp])
+        for i, p in enumerate(kp):
+            if p is not None:  # zero high-order padding leaves Horner's sums exact
+                self._alpha[i] = p[0]
+                self._H[i, :, :p[1].shape[1]] = p[1]
+        self._vstate, self._dstate = np.zeros(2), np.zeros((4, 2))
+        self._has_effects = any(self._effects[a] for a in AXES)
+        self._one = np.zeros((2, 1))  # step's command buffer
 
     def reset(self):
         """Back to rest: initial hysteresis states, 0 V applied, effects at rest."""
         model = self.config.model
-        self._states = {}
-        for a, m in model.axes.items():
-            self._states[a] = m.initial
-            if a in model.coupling:
-                self._states["c" + a] = model.coupling[a].initial
-        self._v = {a: max(self.v_limits[0], min(self.v_limits[1], 0.0)) for a in AXES}
+        self._vstate[:] = max(self.v_limits[0], min(self.v_limits[1], 0.0))
+        for i, m in enumerate(self._models):
+            self._dstate[i] = (m.initial.v, m.initial.w) if m is not None else (0.0, 0.0)
         for a in AXES:
             x0 = model.axes[a].initial.w if a in model.axes else 0.0
             for e in self._effects[a]:
@@ -124,7 +144,6 @@ class Plant:
         self._rng = np.random.default_rng(self.config.seed)
         self.limit_hits = 0
         self.samples = 0
-        self._live = False  # True while the compiled step's arrays hold the state
         self.last_true = {a: np.zeros(0) for a in AXES}
         self.last_applied = {a: np.zeros(0) for a in AXES}
 
@@ -136,104 +155,44 @@ class Plant:
         dict axis -> ndarray [um]
             Measured displacement at the end of each command period.
         """
-        if self._live:
-            self._from_arrays()
         vx = np.atleast_1d(as_f64(vx))
         vy = np.atleast_1d(as_f64(vy))
         if vx.shape != vy.shape:
             raise ConfigError("vx and vy must have the same length")
-        n = vx.size
-        R = self.substeps
-        applied = {}
-        for a, v in (("x", vx), ("y", vy)):
-            up = np.repeat(v, R) if R > 1 else v
-            out = np.empty_like(up)
-            self._v[a], hits = slew_clamp_run(up, self._v[a], self.v_limits[0],
-                                              self.v_limits[1], self._max_step, out)
-            self.limit_hits += hits
-            applied[a] = out
-        w, self._states = self.config.model.simulate(applied["x"], applied["y"],
-                                                     self._states)
-        cfg = self.config
-        noise = self._rng.standard_normal((n, 2)) if cfg.noise_rms_um > 0 else None
-        meas, true = {}, {}
-        for i, a in enumerate(AXES):
-            y = w.get(a, np.zeros(n * R))
-            for e in self._effects[a]:
-                y = e.process(y)
-            y = y[R - 1::R]
-            true[a] = y
-            m = y + cfg.noise_rms_um * noise[:, i] if noise is not None else y.copy()
-            if cfg.quantization_um > 0:
-                m = np.round(m / cfg.quantization_um) * cfg.quantization_um
-            meas[a] = m
-        self.samples += n
-        self.last_true = true
-        self.last_applied = {a: applied[a][R - 1::R] for a in AXES}
-        return meas
+        meas = self._advance(vx, vy)
+        return {a: meas[i] for i, a in enumerate(AXES)}
 
     def step(self, vx: float, vy: float):
-        """One command period; returns (wx, wy) measured [um]. Without effects this
-        runs one compiled kernel (a few us, what the lockstep driver needs per
-        sample) with exactly the arithmetic of ``run``; with effects it is ``run``."""
-        k = self._kernel()
-        if k is None:
-            m = self.run([vx], [vy])
-            return float(m["x"][0]), float(m["y"][0])
-        if not self._live:
-            self._to_arrays()
+        """One command period; returns (wx, wy) measured [um]: ``run`` on one command,
+        through buffers kept for it (the lockstep driver calls this per sample)."""
+        c = self._one
+        c[0, 0], c[1, 0] = vx, vy
+        meas = self._advance(c[0], c[1])
+        return float(meas[0, 0]), float(meas[1, 0])
+
+    def _advance(self, vx, vy):
+        """The plant over commands vx, vy: hysteresis path, effects, sensor; returns the
+        measured (2, n) [um] and keeps the true and applied values of the call."""
+        n, R = vx.size, self.substeps
+        applied, w = np.empty((2, n * R)), np.empty((2, n * R))
+        self.limit_hits += plant_run(vx, vy, R, self._vstate, self._dstate, self._alpha,
+                                     self._H, self._present, self.v_limits[0],
+                                     self.v_limits[1], self._max_step, applied, w)
+        if self._has_effects:
+            true = np.empty((2, n))
+            for i, a in enumerate(AXES):
+                y = w[i]
+                for e in self._effects[a]:
+                    y = e.process(y)
+                true[i] = y[R - 1::R]
+        else:
+            true = w[:, R - 1::R]
         cfg = self.config
-        noise = self._rng.standard_normal(2) if cfg.noise_rms_um > 0 else k["zero"]
-        out = k["out"]
-        self.limit_hits += plant_step(float(vx), float(vy), k["v"], k["d"], k["alpha"],
-                                      k["H"], k["present"], self.substeps,
-                                      self.v_limits[0], self.v_limits[1], self._max_step,
-                                      noise, cfg.noise_rms_um, cfg.quantization_um, out)
-        self.samples += 1
-        self.last_true = {"x": out[2:3].copy(), "y": out[3:4].copy()}
-        self.last_applied = {"x": out[4:5].copy(), "y": out[5:6].copy()}
-        return float(out[0]), float(out[1])
-
-    _MODELS = (("x", "axis"), ("y", "axis"), ("cx", "coupling"), ("cy", "coupling"))
-
-    def _kernel(self):
-        """Parameters of the compiled step (None when an effect is on), built once."""
-        k = self.__dict__.get("_k", False)
-        if k is not False:
-            return k
-        k = None
-        if not any(self._effects[a] for a in AXES):
-            model = self.config.model
-            ms = [model.axes.get(n) if kind == "axis" else
-                  (model.coupling.get(n[1]) if n[1] in model.axes else None)
-                  for n, kind in self._MODELS]
-            kp = [m.kernel_params() if m is not None else None for m in ms]
-            d = max([p[1].shape[1] for p in kp if p is not None] or [1])
-            k = {"alpha": np.zeros((4, 2)), "H": np.zeros((4, 2, d)),
-                 "present": np.array([p is not None for p in kp]), "v": np.zeros(2),
-                 "d": np.zeros((4, 2)), "out": np.zeros(6), "zero": np.zeros(2)}
-            for i, p in enumerate(kp):
-                if p is not None:  # zero high-order padding leaves Horner's sums exact
-                    k["alpha"][i] = p[0]
-                    k["H"][i, :, :p[1].shape[1]] = p[1]
-        self._k = k
-        return k
-
-    def _to_arrays(self):
-        k = self._k
-        for i, a in enumerate(AXES):
-            k["v"][i] = self._v[a]
-        for i, (n, _) in enumerate(self._MODELS):
-            st = self._states.get(n)
-            if st is not None:
-                k["d"][i] = (st.v, st.w)
-        self._live = True
-
-    def _from_arrays(self):
-        k = self._k
-        for i, a in enumerate(AXES):
-            self._v[a] = float(k["v"][i])
-        for i, (n, _) in enumerate(self._MODELS):
-            if n in self._states:
-                self._states[n] = DuhemState(float(k["d"][i, 0]), float(k["d"][i, 1]))
-        self._live = False
+        noise = (self._rng.standard_normal((n, 2)) if cfg.noise_rms_um > 0 else
+                 np.zeros((n, 2)))
+        meas = np.empty((2, n))
+        sensor_run(true, noise, cfg.noise_rms_um, cfg.quantization_um, meas)
+        self.samples += n
+        self.last_true = {"x": true[0], "y": true[1]}
+        self.last_applied = {"x": applied[0, R - 1::R], "y": applied[1, R - 1::R]}
+        return meas

@@ -7,7 +7,8 @@ from __future__ import annotations
 import time
 
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.nodes._common import QOS_DIAG, QOS_EVENTS, hot_subscription, steady_timer
+from piezo_stage.nodes._common import QOS_DIAG, QOS_EVENTS, steady_timer
+from piezo_stage.nodes._executor import hot_subscription
 from piezo_stage_msgs_adapters import diagnostic_array
 
 

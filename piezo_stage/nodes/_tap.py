@@ -19,9 +19,9 @@ from piezo_stage.nodes._common import (
     QOS_DIAG,
     QOS_EVENTS,
     QOS_LATCHED,
-    hot_subscription,
     steady_timer,
 )
+from piezo_stage.nodes._executor import hot_subscription
 
 CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag)
     # (the kind is what our publishers offer; the tap subscribes volatile to

@@ -18,14 +18,17 @@ kp, ki, kd and feedback take effect at run time (feedback switches bumplessly).
 import math
 import time
 
+import rclpy
 from geometry_msgs.msg import Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from piezo_stage.core.control import PID, CompositeAxis, PIDGains
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
+from piezo_stage.nodes._common import QOS_DATA
+from piezo_stage.nodes._executor import LeanExecutor, fatal, hot_subscription, quiet_sigint
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
@@ -131,7 +134,22 @@ class Controller(Node):
 
 
 def main(args=None):
-    return run(Controller, args)
+    """Run the controller (the Jazzy form)."""
+    quiet_sigint()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = Controller()
+        LeanExecutor(node).spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        return fatal(node, e, args)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

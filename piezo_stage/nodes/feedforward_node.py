@@ -15,7 +15,9 @@ the inverse without a restart. Without any model the feedforward is a nominal ga
 
 import time
 
+import rclpy
 from geometry_msgs.msg import PointStamped
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -28,7 +30,8 @@ from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
-from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED, hot_subscription, run
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
+from piezo_stage.nodes._executor import LeanExecutor, fatal, hot_subscription, quiet_sigint
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import (
@@ -255,7 +258,22 @@ class Feedforward(Node):
         return v
 
 def main(args=None):
-    return run(Feedforward, args)
+    """Run the feedforward (the Jazzy form)."""
+    quiet_sigint()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = Feedforward()
+        LeanExecutor(node).spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        return fatal(node, e, args)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

@@ -9,7 +9,9 @@ twin on ``gap/residual`` (geometry_msgs/PointStamped, metres) and its rolling RM
 from collections import deque
 
 import numpy as np
+import rclpy
 from geometry_msgs.msg import PointStamped
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
@@ -17,7 +19,8 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.plant import Plant, PlantConfig
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir, enabled_effects
-from piezo_stage.nodes._common import QOS_DATA, hot_subscription, run
+from piezo_stage.nodes._common import QOS_DATA
+from piezo_stage.nodes._executor import LeanExecutor, fatal, hot_subscription, quiet_sigint
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import joint_state_to_um, point_cdr
@@ -75,7 +78,22 @@ class Gap(Node):
 
 
 def main(args=None):
-    return run(Gap, args)
+    """Run the gap monitor (the Jazzy form)."""
+    quiet_sigint()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = Gap()
+        LeanExecutor(node).spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        return fatal(node, e, args)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

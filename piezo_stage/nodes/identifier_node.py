@@ -9,7 +9,9 @@ hands the model to the feedforward on ``model``
 from collections import deque
 
 import numpy as np
+import rclpy
 import yaml
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -21,7 +23,8 @@ from piezo_stage.core.identify import IdentifyOptions, identify_axis
 from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.record import Record
 from piezo_stage.io.model_file import model_to_dict
-from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, hot_subscription, run, steady_timer
+from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
+from piezo_stage.nodes._executor import LeanExecutor, fatal, hot_subscription, quiet_sigint
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
@@ -132,7 +135,22 @@ class Identifier(Node):
 
 
 def main(args=None):
-    return run(Identifier, args)
+    """Run the identifier (the Jazzy form)."""
+    quiet_sigint()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = Identifier()
+        LeanExecutor(node).spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        return fatal(node, e, args)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

@@ -14,12 +14,14 @@ clock in real time).
 
 import time
 
+import rclpy
 from foxglove import Channel, Schema, start_server
 from foxglove.websocket import ServerListener
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from piezo_stage.io.bag import msgdef
-from piezo_stage.nodes._common import run
+from piezo_stage.nodes._executor import LeanExecutor, fatal, quiet_sigint
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._tap import TopicTap
@@ -49,9 +51,9 @@ class LiveView(Node):
         declare(self, "max_rate_hz", 200.0, "per topic, at most this many messages per "
                 "wall-clock second to the viewers (0: all)", lo=0.0, hi=1e6, live=self.set_rate)
         self.set_rate(self.get_parameter("max_rate_hz").value)
-        self.hot_batch_s = declare(self, "batch_period_s", 0.01, "wait between takes [s] "
+        self.lean_batch_s = declare(self, "batch_period_s", 0.01, "wait between takes [s] "
                                    "(off the loop's path)", lo=0.0, hi=1.0,
-                                   live=lambda v: setattr(self, "hot_batch_s", v))
+                                   live=lambda v: setattr(self, "lean_batch_s", v))
         self.channels, self.last_ns, self.sent = {}, {}, 0
         # the contract's channels exist before the server listens: a client's first
         # subscription then never races a channel's registration (the SDK advertises a
@@ -93,12 +95,29 @@ class LiveView(Node):
             "url": self.url, "messages_sent": self.sent, "topics": len(self.channels),
             "watched": ", ".join(watched)}
 
-    def close(self):
+    def destroy_node(self):
+        """The WebSocket server stops, then the node goes."""
         self.server.stop()
+        super().destroy_node()
 
 
 def main(args=None):
-    return run(LiveView, args)
+    """Run the live view (the Jazzy form)."""
+    quiet_sigint()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = LiveView()
+        LeanExecutor(node).spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        return fatal(node, e, args)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

@@ -11,11 +11,14 @@ model files go in as MCAP metadata.
 import os
 import sys
 
+import rclpy
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
 
 from piezo_stage.io.bag import BagWriter, new_bag_dir
-from piezo_stage.nodes._common import run, steady_timer
+from piezo_stage.nodes._common import steady_timer
+from piezo_stage.nodes._executor import LeanExecutor, fatal, quiet_sigint
 from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._tap import TopicTap
@@ -34,9 +37,9 @@ class Recorder(Node):
                                                             "yaml": open(path).read()}
         self.bag = BagWriter(out, metadata=meta)
         # off the loop's critical path: take what arrived every few ms, not per message
-        self.hot_batch_s = declare(self, "batch_period_s", 0.004, "wait between takes "
+        self.lean_batch_s = declare(self, "batch_period_s", 0.004, "wait between takes "
                                    "[s]; queues hold 5000 samples per topic", lo=0.0, hi=60.0,
-                                   live=lambda v: setattr(self, "hot_batch_s", v))
+                                   live=lambda v: setattr(self, "lean_batch_s", v))
         self.log_received = declare(self, "log_time", "stamp", "bag log time: stamp "
                                     "(lockstep) | receive (real time)",
                                     choices=("stamp", "receive")) == "receive"
@@ -52,7 +55,7 @@ class Recorder(Node):
                                   lo=0.01, hi=60.0), self.bag.flush)
         Diagnostics(self, lambda: (0, f"recording to {out}: {sum(self.bag.counts.values())} "
                                    f"messages on {len(self.bag.counts)} topics",
-                                   {"bag": out, "batch_period_s": self.hot_batch_s,
+                                   {"bag": out, "batch_period_s": self.lean_batch_s,
                                     **self.bag.counts}), "recording")
 
     def add_topic(self, topic, msgtype, kind):
@@ -84,14 +87,31 @@ class Recorder(Node):
         # time, so reruns are identical); publish time: its stamp
         self.bag.write(topic, data, received if self.log_received else t, t)
 
-    def close(self):
+    def destroy_node(self):
+        """The bag is finished (its summary and index written), then the node goes."""
         self.bag.finish()
         # the ROS context may already be shut down here: plain stderr, not the logger
         sys.stderr.write(f"[recorder] bag complete: {dict(self.bag.counts)}\n")
+        super().destroy_node()
 
 
 def main(args=None):
-    return run(Recorder, args)
+    """Run the recorder (the Jazzy form)."""
+    quiet_sigint()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = Recorder()
+        LeanExecutor(node).spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        return fatal(node, e, args)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

@@ -20,7 +20,9 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -37,7 +39,8 @@ from piezo_stage.core.arming import PARAMETERS as ARMING
 from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import DataError
 from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
-from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, hot_subscription, run, steady_timer
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
+from piezo_stage.nodes._executor import LeanExecutor, fatal, graceful_signals, hot_subscription
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import (
@@ -294,12 +297,30 @@ class StageDriver(Node):
                   "thread_priority": getattr(self, "rt_priority", 0), **self.sup.counts}
         return level, f"{st}: {self.sup.reason}", values
 
-    def close(self):
+    def destroy_node(self):
+        """The backend ramps to the safe voltage and closes, then the node goes."""
         self.backend.close(self.sup.p.safe_V, self.sup.p.ramp_V_per_s)
+        super().destroy_node()
 
 
 def main(args=None):
-    return run(StageDriver, args, graceful=True)
+    """Run the stage driver (the Jazzy form). SIGINT or SIGTERM first ramps the stage to its
+    safe voltage; a second one stops at once."""
+    node = None
+    graceful_signals(lambda: node)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        node = StageDriver()
+        LeanExecutor(node).spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        return fatal(node, e, args)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

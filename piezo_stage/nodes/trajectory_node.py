@@ -8,13 +8,16 @@ starts. Published once its consumers listen, again on a parameter change.
 """
 
 import numpy as np
+import rclpy
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.trajectory import KINDS, generate
-from piezo_stage.nodes._common import QOS_LATCHED, run
+from piezo_stage.nodes._common import QOS_LATCHED
+from piezo_stage.nodes._executor import LeanExecutor, fatal, quiet_sigint
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import trajectory_msg
@@ -87,7 +90,22 @@ class Trajectory(Node):
 
 
 def main(args=None):
-    return run(Trajectory, args)
+    """Run the trajectory node (the Jazzy form)."""
+    quiet_sigint()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = Trajectory()
+        LeanExecutor(node).spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        return fatal(node, e, args)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

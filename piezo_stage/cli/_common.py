@@ -1,0 +1,84 @@
+"""What the ``piezo-stage`` commands share: exit codes, the one-line error, the plant a
+command simulates, voltage and port checks, parameter files."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from piezo_stage.core.errors import DataError
+
+EXIT_USAGE = 2
+EXIT_SOLVER = 3
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line and exit 2."""
+
+    def error(self, message):  # argparse would print the usage as well
+        sys.stderr.write(f"{self.prog}: error: {message}\n")
+        sys.exit(EXIT_USAGE)
+
+
+def die(msg: str, code: int = EXIT_USAGE):
+    """One line on stderr, then exit with ``code``."""
+    sys.stderr.write(f"piezo-stage: error: {msg}\n")
+    sys.exit(code)
+
+
+def load_plant(args, rate_hz):
+    """The plant a command simulates: --model exactly (with its effects), else the
+    plant config (--config or the default); --no-noise, --seed applied."""
+    from piezo_stage.core.plant import PlantConfig
+    from piezo_stage.io.model_file import load_model
+    from piezo_stage.io.plant_file import (
+        default_plant_config_path,
+        enabled_effects,
+        load_plant_config,
+    )
+    if args.model:
+        model, effects = load_model(args.model)
+        cfg = PlantConfig.exact(model, rate_hz)
+        cfg.effects = enabled_effects(effects)
+    else:
+        cfg = load_plant_config(args.config or default_plant_config_path())
+    if getattr(args, "no_noise", False):
+        cfg.noise_rms_um = 0.0
+        cfg.quantization_um = 0.0
+    if getattr(args, "seed", None) is not None:
+        cfg.seed = args.seed
+    return cfg
+
+
+def check_voltages(rec, limits, source):
+    """DataError naming the first line of ``rec`` outside the voltage limits."""
+    lo, hi = limits
+    for a, v in rec.v.items():
+        bad = np.flatnonzero((v < lo) | (v > hi))
+        if bad.size:
+            i = int(bad[0])
+            raise DataError(f"{source}: v{a} = {v[i]:g} V at line {i + 2} is outside "
+                                  f"the voltage limits [{lo:g}, {hi:g}] V")
+
+
+def port(text):
+    """argparse type: a TCP port."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a TCP port (1-65535)")
+    return port
+
+
+def param_overrides(paths) -> dict:
+    """Node parameters from parameter files (as `tune` writes), later files win."""
+    from piezo_stage.launch.launcher import _params
+    out = {}
+    for p in paths or ():
+        for node, params in _params(p).items():
+            out.setdefault(node, {}).update(params)
+    return out

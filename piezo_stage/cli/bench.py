@@ -1,0 +1,18 @@
+"""`piezo-stage bench`: the performance benchmarks (figures as ratios)."""
+
+from __future__ import annotations
+
+HELP = "performance benchmarks (figures as ratios)"
+
+
+def add_arguments(s):
+    s.add_argument("what", choices=("plant", "identify", "loop", "gap", "realtime",
+                                    "faults", "liveview"))
+    s.add_argument("--track", type=float, default=20.0, metavar="S",
+                   help="realtime: seconds of the seed's trajectory")
+    s.add_argument("--samples", type=int, default=2_000_000)
+
+
+def main(args):
+    from piezo_stage import bench
+    return bench.main(args)

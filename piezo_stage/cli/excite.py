@@ -1,0 +1,32 @@
+"""`piezo-stage excite`: a diagnostic excitation (t, vx, vy)."""
+
+from __future__ import annotations
+
+from piezo_stage.core.errors import DataError
+
+HELP = "write a diagnostic excitation (t,vx,vy)"
+
+
+def add_arguments(s):
+    s.add_argument("--protocol", choices=("gap",), default="gap")
+    s.add_argument("--out", default="excite_gap.csv")
+    s.add_argument("--rate", type=float, default=5000.0, help="sample rate [Hz]")
+    s.add_argument("--seed", type=int, default=0, help="varies amplitudes and step levels")
+    s.add_argument("--v-min", type=float, default=0.0)
+    s.add_argument("--v-max", type=float, default=150.0)
+    s.add_argument("--chirp", type=float, default=0.0, metavar="S", help="add a small "
+                   "chirp of S seconds per axis up to 0.4 x the rate (tells a resonance "
+                   "from a delay)")
+
+
+def main(args):
+    from piezo_stage.core.excitation import gap_protocol
+    from piezo_stage.io.csv_table import write_table
+    if not 0 <= args.chirp <= 60:
+        raise DataError(f"--chirp {args.chirp:g}: give 0 (none) to 60 seconds")
+    t, vx, vy = gap_protocol(args.rate, args.v_min, args.v_max, seed=args.seed,
+                             chirp_s=args.chirp)
+    write_table(args.out, {"t": t, "vx": vx, "vy": vy})
+    print(f"{args.out}: {len(t)} samples, {t[-1]:.1f} s at {args.rate:g} Hz "
+          f"(protocol {args.protocol}, seed {args.seed})")
+    return 0

@@ -1,0 +1,78 @@
+"""`piezo-stage gap`: the sim-to-real gap diagnosis of a record."""
+
+from __future__ import annotations
+
+from piezo_stage.core.errors import DataError
+
+HELP = "diagnose the sim-to-real gap"
+
+
+def add_arguments(s):
+    s.add_argument("fit", help="record to fit on (CSV t,vx,vy,wx,wy or bag)")
+    s.add_argument("--holdout", help="a different record to score on")
+    s.add_argument("--model", help="the sim's model (default: identified from FIT)")
+    s.add_argument("--axis", choices=("x", "y", "both"), default="both")
+    s.add_argument("--json", metavar="FILE")
+    s.add_argument("--report", metavar="DIR", help="Markdown report with PNG plots")
+    s.add_argument("--out-model", metavar="MODEL.yaml",
+                   help="write the model with the found effect (simulate --model uses it)")
+
+
+def main(args):
+    import json
+
+    from piezo_stage.core.gap import diagnose
+    from piezo_stage.io.files import atomic_write
+    from piezo_stage.io.records import load_record
+    fit = load_record(args.fit)
+    hold = load_record(args.holdout) if args.holdout else None
+    base, base_effects = None, None
+    if args.model:
+        from piezo_stage.io.model_file import load_model
+        base, base_effects = load_model(args.model)
+    if hold is not None and set(fit.w) != set(hold.w):
+        raise DataError(f"FIT has axes {sorted(fit.w)} but HOLDOUT has {sorted(hold.w)}")
+    from piezo_stage.progress import bar, steps
+    with bar("gap: candidate fits", unit=" fits") as b:
+        res = diagnose(fit, hold, base_model=base, base_effects=base_effects,
+                       axes=None if args.axis == "both" else [args.axis], progress=steps(b))
+    per = res.per_axis
+    print(f"verdict: {res['verdict']} ({res['reason']})")
+    print(f"{'axis':>4} {'effect':>9} {'rms_before':>10} {'rms_after':>9} {'gap_before':>10} "
+          f"{'gap_after':>9} {'shrink_pct':>10}")
+    for a, d in per.items():
+        for r in d.ranking:
+            print(f"{a:>4} {r['effect']:>9} {r['rms_before_um']:10.4f} {r['rms_after_um']:9.4f} "
+                  f"{r['gap_before_um']:10.4f} {r['gap_after_um']:9.4f} {r['shrink_pct']:10.1f}")
+    print(f"where: axis {res['where']['axis']}, band {res['where']['band_hz'][0]:g}-"
+          f"{res['where']['band_hz'][1]:g} Hz, segment {res['where']['segment']}; noise floor "
+          f"{res['noise_floor_um']:.4f} um; {res['seconds']:.1f} s")
+    for a, d in per.items():
+        if d.effects:
+            print(f"effects {a} (in the order added): " + ", ".join(
+                f"{s['effect']} (gap {s['gap_after_um']:.4f} um)" for s in d.effects))
+        b = d.budget
+        expl = ", ".join(f"{k} {v:.4f}" for k, v in b["explained_um"].items()) or "nothing"
+        print(f"budget {a} [um]: residual {b['residual_rms_um']:.4f} = noise "
+              f"{b['noise_floor_um']:.4f} + input-locked {b['input_locked_um']:.4f} + not "
+              f"input-locked {b['not_input_locked_um']:.4f} in quadrature (closure "
+              f"{b['closure_pct']:+.1f} %); gap {b['gap_um']:.4f}: explained {expl}, "
+              f"unexplained {b['unexplained_um']:.4f}")
+        if b.get("disturbance"):
+            x = b["disturbance"]
+            print(f"disturbance {a}: {x['rms_um']:.4f} um at {x['freq_hz']:.1f} Hz (band "
+                  f"{x['band_hz'][0]:.1f}-{x['band_hz'][1]:.1f} Hz), not caused by the "
+                  f"input; feedback bandwidth to reject it: >= "
+                  f"{x['feedback_bandwidth_hz']:.0f} Hz")
+    if args.json:
+        with atomic_write(args.json) as fh:
+            json.dump(res.json, fh, indent=1, default=float)
+    if args.report:
+        from piezo_stage.io.gap_report import write_report
+        print(f"report: {write_report(args.report, res, hold or fit)}")
+    if args.out_model:
+        from piezo_stage.io.model_file import save_model
+        model, effects = res.model(fit)
+        save_model(args.out_model, model, effects=effects or None)
+        print(f"model with the found effects: {args.out_model}")
+    return 0

@@ -1,0 +1,98 @@
+"""`piezo-stage identify`: the Duhem model of a record."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from piezo_stage.core.errors import DataError
+
+HELP = "identify the Duhem model from a record"
+
+
+def add_arguments(s):
+    s.add_argument("data", help="record: CSV (t,vx,vy,wx,wy or one axis) or a bag")
+    s.add_argument("--axis", choices=("x", "y", "both"), default="both")
+    s.add_argument("--method", choices=("fast", "afsa", "afsa-bat"), default="fast")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--whole", action="store_true", help="one parameter set for both branches")
+    g.add_argument("--segmented", action="store_true", help="a set per branch (default)")
+    s.add_argument("--validate", metavar="DATA2", help="held-out record to validate on")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--budget", type=int, metavar="EVALS", help="objective evaluations")
+    s.add_argument("--coupling", choices=("auto", "on", "off"), default="auto",
+                   help="fit cross-coupling from the other axis (fast only)")
+    s.add_argument("--voltage", choices=("auto", "exact"), default="auto",
+                   help="exact: v is what the actuator got (never cleaned); auto: a noisy "
+                   "(measured) v has its in-branch micro-reversals removed (bags: exact)")
+    s.add_argument("--n", type=int, default=3, help="degree of f (default 3)")
+    s.add_argument("--m", type=int, default=2, help="degree of g (default 2)")
+    s.add_argument("--out", metavar="MODEL.yaml", help="write the model file")
+    s.add_argument("--json", metavar="FILE", help="write the full report as JSON")
+    s.add_argument("--plot", metavar="PNG", help="loop and fit-error figure (default: "
+                   "next to --out's model file, MODEL.png)")
+
+
+def main(args):
+    import json
+    import os
+
+    from piezo_stage.core.duhem import StageModel
+    from piezo_stage.core.identify import IdentifyOptions, identify_axis, validate_axis
+    from piezo_stage.io.files import atomic_write
+    from piezo_stage.io.model_file import save_model
+    from piezo_stage.io.records import load_record
+    rec = load_record(args.data)
+    val = load_record(args.validate) if args.validate else None
+    if args.voltage == "exact":
+        rec.voltage_exact = True
+        if val is not None:
+            val.voltage_exact = True
+    axes = ["x", "y"] if args.axis == "both" else [args.axis]
+    axes = [a for a in axes if a in rec.v and a in rec.w]
+    if not axes:
+        raise DataError(f"{args.data}: no complete axis ({args.axis}) in the record")
+    opts = IdentifyOptions(method=args.method,
+                           structure="whole" if args.whole else "segmented",
+                           budget=args.budget, seed=args.seed, coupling=args.coupling,
+                           n=args.n, m=args.m)
+    from piezo_stage.progress import bar, best_so_far
+    results, report = {}, {}
+    for a in axes:
+        with bar(f"identify {a} ({opts.method})") as b:
+            r = identify_axis(rec, a, opts, best_so_far(b))
+        results[a] = r
+        report[a] = r.to_json()
+        if val is not None:
+            report[a].update(validate_axis(r, val))
+    print(f"{'axis':>4} {'method':>8} {'structure':>9} {'fit_rms_um':>10} {'fit_pct':>8} "
+          f"{'max_err_um':>10} {'noise_um':>8} {'val_rms_um':>10} {'val_pct':>8} "
+          f"{'evals':>7} {'seconds':>7}")
+    for a, j in report.items():
+        vr = j.get("validate_rms_um", float("nan"))
+        vp = j.get("validate_rms_pct", float("nan"))
+        print(f"{a:>4} {j['method']:>8} {j['structure']:>9} {j['fit_rms_um']:10.4f} "
+              f"{j['fit_rms_pct']:8.4f} {j['max_err_um']:10.4f} {j['noise_floor_um']:8.4f} "
+              f"{vr:10.4f} {vp:8.4f} {j['evaluations']:7d} {j['seconds']:7.2f}")
+    for note in {n for r in results.values() for n in r.notes}:
+        print(f"note: {note}")
+    if args.out:
+        v_all = np.concatenate([rec.v[a] for a in rec.v])
+        limits = (float(np.floor(min(0.0, v_all.min()))), float(np.ceil(max(v_all.max(), 1.0))))
+        model = StageModel({a: r.model for a, r in results.items()},
+                           {a: r.coupling for a, r in results.items() if r.coupling},
+                           limits)
+        meta = {"identification": {a: {k: report[a][k] for k in report[a]
+                                        if k not in ("history", "parameters")}
+                                   for a in report}}
+        meta["identification"]["source"] = os.fspath(args.data)
+        save_model(args.out, model, extra=meta)
+    if args.json:
+        with atomic_write(args.json) as fh:
+            json.dump(report, fh, indent=1)
+    plot = args.plot or (os.path.splitext(args.out)[0] + ".png" if args.out else None)
+    if plot:
+        from piezo_stage.core.identify.api import predict_axis
+        from piezo_stage.io.plots import identification_png
+        curves = {a: predict_axis(r, rec) for a, r in results.items()}
+        print(f"plot: {identification_png(plot, rec.t, curves)}")
+    return 0

@@ -1,0 +1,40 @@
+"""`piezo-stage launch`: the ROS 2 node set (our launcher)."""
+
+from __future__ import annotations
+
+from piezo_stage.cli._common import param_overrides, port
+
+HELP = "start the ROS 2 node set"
+
+
+def add_arguments(s):
+    s.add_argument("config", nargs="?", help="node parameters YAML (default config/stage.yaml)")
+    s.add_argument("--record", metavar="DIR", help="record a bag to DIR ('auto': bags/<time>)")
+    s.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    s.add_argument("--namespace", default="/stage")
+    s.add_argument("--no-arm", action="store_true", help="start disarmed and stay so "
+                   "until armed on the arm service")
+    s.add_argument("--foxglove", type=port, nargs="?", const=8765, metavar="PORT",
+                   help="serve the running topics to Foxglove over WebSocket (default "
+                   "port 8765)")
+    s.add_argument("--params", action="append", metavar="FILE",
+                   help="more node parameters over CONFIG's (e.g. from `tune`), may repeat")
+
+
+def main(args):
+    from piezo_stage.io.bag import new_bag_dir
+    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.paths import default_config
+    record = args.record
+    if record == "auto":
+        record = new_bag_dir("bags")
+    launch = Launch(args.config or default_config("stage.yaml"), record=record,
+                    namespace=args.namespace, arm=not args.no_arm,
+                    foxglove_port=args.foxglove, overrides=param_overrides(args.params))
+    if args.foxglove is not None:
+        print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
+              "Foxglove WebSocket)", flush=True)
+    rc = launch.run(args.duration)
+    if record:
+        print(f"bag: {record}")
+    return rc

@@ -1,0 +1,24 @@
+"""`piezo-stage replay`: a recorded bag republished on its topics."""
+
+from __future__ import annotations
+
+from piezo_stage.core.errors import DataError
+
+HELP = "republish a recorded bag on its topics"
+
+
+def add_arguments(s):
+    s.add_argument("bag")
+    s.add_argument("--rate", type=float, default=1.0,
+                   help="playback speed (1: original timing; 0: as fast as possible)")
+    s.add_argument("--namespace", default=None, help="replace the recorded namespace")
+
+
+def main(args):
+    import math
+
+    from piezo_stage.replay import replay
+    if not (math.isfinite(args.rate) and args.rate >= 0):
+        raise DataError(f"--rate {args.rate}: must be a finite number >= 0 (0: as fast as "
+                        "possible)")
+    return replay(args.bag, args.rate, args.namespace)
