@@ -9,6 +9,10 @@ kernel runs as its plain-Python original: ``bench plant`` times that as its base
 """
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+F64 = NDArray[np.float64]  # float64 arrays: what every kernel takes
+I64 = NDArray[np.int64]
 
 try:  # numba is a declared dependency; the fallback keeps the core importable without it
     from numba import njit as _njit
@@ -26,7 +30,7 @@ except ImportError:  # pragma: no cover - exercised only on installs without num
 
 
 @njit
-def horner(c, x):
+def horner(c: F64, x: float) -> float:
     """Evaluate sum_i c[i] x**i."""
     acc = 0.0
     for i in range(c.shape[0] - 1, -1, -1):
@@ -35,7 +39,7 @@ def horner(c, x):
 
 
 @njit
-def branch_step(v_prev, w_prev, vk, alpha_b, h):
+def branch_step(v_prev: float, w_prev: float, vk: float, alpha_b: float, h: F64) -> float:
     """One step of seed eq. 6 on one branch, the one formula of the Duhem step:
     w_k = (w_{k-1} + dv h(v_k)) / (1 + alpha |dv|), h's coefficients lowest power first."""
     dv = vk - v_prev
@@ -43,7 +47,7 @@ def branch_step(v_prev, w_prev, vk, alpha_b, h):
 
 
 @njit
-def duhem_step(v_prev, w_prev, vk, alpha, H):
+def duhem_step(v_prev: float, w_prev: float, vk: float, alpha: F64, H: F64) -> float:
     """One step of seed eq. 6 from (v_prev, w_prev) to voltage vk, on the branch the
     step's sign picks (H is (2, D): ascending, descending)."""
     b = 0 if vk >= v_prev else 1
@@ -51,7 +55,8 @@ def duhem_step(v_prev, w_prev, vk, alpha, H):
 
 
 @njit
-def duhem_run(v, v_prev, w_prev, alpha, H, out):
+def duhem_run(v: F64, v_prev: float, w_prev: float, alpha: F64, H: F64,
+              out: F64) -> tuple[float, float]:
     """Run the discrete Duhem recursion (seed eq. 6) over ``v``.
 
     w_k = (w_{k-1} + dv_k * H_b(v_k)) / (1 + alpha_b |dv_k|),  dv_k = v_k - v_{k-1},
@@ -66,7 +71,8 @@ def duhem_run(v, v_prev, w_prev, alpha, H, out):
 
 
 @njit
-def slew_clamp_run(v, v_prev, v_min, v_max, max_step, out):
+def slew_clamp_run(v: F64, v_prev: float, v_min: float, v_max: float, max_step: float,
+                   out: F64) -> tuple[float, int]:
     """Amplifier: clamp to [v_min, v_max], then limit |v_k - v_{k-1}| to max_step.
 
     Returns (final voltage, number of samples that hit a limit).
@@ -82,7 +88,8 @@ def slew_clamp_run(v, v_prev, v_min, v_max, max_step, out):
 
 
 @njit
-def amplifier_step(x, v_prev, v_min, v_max, max_step):
+def amplifier_step(x: float, v_prev: float, v_min: float, v_max: float,
+                   max_step: float) -> tuple[float, bool]:
     """One amplifier sample: clamp to [v_min, v_max], then limit the step from v_prev.
     Returns (output, whether a limit was hit)."""
     hit = False
@@ -103,8 +110,9 @@ def amplifier_step(x, v_prev, v_min, v_max, max_step):
 
 
 @njit
-def plant_run(vx, vy, substeps, vstate, dstate, alpha, H, present, v_min, v_max, max_step,
-              applied, w):
+def plant_run(vx: F64, vy: F64, substeps: int, vstate: F64, dstate: F64, alpha: F64, H: F64,
+              present: NDArray[np.bool_], v_min: float, v_max: float, max_step: float,
+              applied: F64, w: F64) -> int:
     """The plant's hysteresis path over the commands ``vx``, ``vy`` [V] (zero-order
     hold, ``substeps`` samples per command): per sample the amplifier (clamp, then
     slew) and the Duhem steps of the models x, y, coupling into x (driven by y),
@@ -146,7 +154,7 @@ def plant_run(vx, vy, substeps, vstate, dstate, alpha, H, present, v_min, v_max,
 
 
 @njit
-def sensor_run(true, noise, noise_rms, quant, out):
+def sensor_run(true: F64, noise: F64, noise_rms: float, quant: float, out: F64) -> None:
     """The sensor on ``true[2, n]`` [um]: white noise (``noise[n, 2]`` standard normal,
     times ``noise_rms``), then quantisation to ``quant`` (0: none). Writes ``out``."""
     for i in range(true.shape[1]):
@@ -158,14 +166,16 @@ def sensor_run(true, noise, noise_rms, quant, out):
 
 
 @njit
-def _branch_residual(dv, vp, wp, wt, alpha, H):
+def _branch_residual(dv: float, vp: float, wp: float, wt: float, alpha: float,
+                     H: F64) -> float:
     # r(dv) = (w_prev + dv H(v_prev+dv)) - (1 + alpha |dv|) w_target: zero where the
     # forward step from (v_prev, w_prev) lands exactly on w_target.
     return wp + dv * horner(H, vp + dv) - (1.0 + alpha * abs(dv)) * wt
 
 
 @njit
-def _first_root(vp, wp, wt, alpha, H, span, n_scan):
+def _first_root(vp: float, wp: float, wt: float, alpha: float, H: F64, span: float,
+                n_scan: int) -> tuple[float, bool]:
     # Smallest |dv| in (0, span] (span signed) where the residual changes sign: scan,
     # then bisect-polish the first bracket to machine precision. Returns (dv, found).
     r0 = _branch_residual(0.0, vp, wp, wt, alpha, H)
@@ -203,7 +213,8 @@ def _first_root(vp, wp, wt, alpha, H, span, n_scan):
 
 
 @njit
-def inverse_one(wt, v_prev, w_prev, alpha, H, v_min, v_max, n_scan):
+def inverse_one(wt: float, v_prev: float, w_prev: float, alpha: F64, H: F64, v_min: float,
+                v_max: float, n_scan: int) -> tuple[float, float, bool]:
     """Exact inverse for one sample: (v, w after v, saturated) from (v_prev, w_prev).
 
     Picks the branch by the sign of the requested change, finds the voltage nearest to
@@ -224,8 +235,9 @@ def inverse_one(wt, v_prev, w_prev, alpha, H, v_min, v_max, n_scan):
 
 
 @njit
-def duhem_inverse_run(w_target, v_prev, w_prev, alpha, H, v_min, v_max, n_scan,
-                      out_v, out_w, out_sat):
+def duhem_inverse_run(w_target: F64, v_prev: float, w_prev: float, alpha: F64, H: F64,
+                      v_min: float, v_max: float, n_scan: int, out_v: F64, out_w: F64,
+                      out_sat: NDArray[np.int8]) -> tuple[float, float]:
     """Exact per-sample inverse of :func:`duhem_run` over a target sequence; the state
     follows what the model really does at the chosen (possibly saturated) voltage."""
     for k in range(w_target.shape[0]):
@@ -238,7 +250,8 @@ def duhem_inverse_run(w_target, v_prev, w_prev, alpha, H, v_min, v_max, n_scan,
 
 
 @njit
-def stage_sync(vx, vy, vp, wp, alpha, H, cvp, cwp, calpha, cH):
+def stage_sync(vx: float, vy: float, vp: F64, wp: F64, alpha: F64, H: F64, cvp: F64,
+               cwp: F64, calpha: F64, cH: F64) -> None:
     """Advance a 2-axis model (direct and coupling parts) by the applied voltages."""
     for a in range(2):
         va = vx if a == 0 else vy
@@ -250,8 +263,9 @@ def stage_sync(vx, vy, vp, wp, alpha, H, cvp, cwp, calpha, cH):
 
 
 @njit
-def stage_inverse_step(target, vp, wp, alpha, H, cvp, cwp, calpha, cH, use_c, v_min,
-                       v_max, sweeps, n_scan, out):
+def stage_inverse_step(target: F64, vp: F64, wp: F64, alpha: F64, H: F64, cvp: F64,
+                       cwp: F64, calpha: F64, cH: F64, use_c: bool, v_min: float,
+                       v_max: float, sweeps: int, n_scan: int, out: F64) -> F64:
     """Joint inverse of a 2-axis model with coupling for one sample (axis 0 = x, 1 = y).
 
     w_a = H_aa(v_a) + H_ab(v_b): Gauss-Seidel sweeps, each solving one axis exactly for
@@ -278,7 +292,8 @@ def stage_inverse_step(target, vp, wp, alpha, H, cvp, cwp, calpha, cH, use_c, v_
 
 
 @njit
-def duhem_regressors(v, v_prev, alpha, basis_asc, basis_desc, out):
+def duhem_regressors(v: F64, v_prev: float, alpha: F64, basis_asc: F64, basis_desc: F64,
+                     out: F64) -> F64:
     """Columns of the output-error regression for fixed alphas.
 
     For fixed alpha_b the recursion w_k = a_k w_{k-1} + a_k dv_k H_b(v_k), with
@@ -317,13 +332,14 @@ def duhem_regressors(v, v_prev, alpha, basis_asc, basis_desc, out):
     return out
 
 
-def as_f64(x):
+def as_f64(x: ArrayLike) -> F64:
     """Contiguous float64 view/copy for the kernels."""
     return np.ascontiguousarray(x, dtype=np.float64)
 
 
 @njit
-def duhem_rms_batch(v, w_meas, v0, w0, alpha, H, out):
+def duhem_rms_batch(v: F64, w_meas: F64, v0: float, w0: float, alpha: F64, H: F64,
+                    out: F64) -> F64:
     """RMS output error [um] of K candidate models over one record (seed eq. 9 without
     its 1/sqrt(N) factor, which does not change the minimiser).
 
@@ -345,7 +361,8 @@ def duhem_rms_batch(v, w_meas, v0, w0, alpha, H, out):
 
 
 @njit
-def branch_rms_batch(v, w_meas, starts, stops, v_init, w_init, alpha, H, out):
+def branch_rms_batch(v: F64, w_meas: F64, starts: I64, stops: I64, v_init: F64,
+                     w_init: F64, alpha: F64, H: F64, out: F64) -> F64:
     """RMS error of K single-branch candidates over that branch's segments only.
 
     Segment j runs over samples starts[j]..stops[j]-1 from the state
@@ -370,7 +387,7 @@ def branch_rms_batch(v, w_meas, starts, stops, v_init, w_init, alpha, H, out):
 
 
 @njit
-def iir_columns(b, a, X, out):
+def iir_columns(b: F64, a: F64, X: F64, out: F64) -> F64:
     """Filter every column of X (N, p) from rest by b/a (a[0] = 1; direct form II
     transposed, any low order): the effect operators on the regressors. scipy's
     lfilter along axis 0 walks a row-major array with a stride; this walks it once."""
@@ -392,7 +409,7 @@ def iir_columns(b, a, X, out):
 
 
 @njit
-def lowpass_mean_columns(poles, X, out):
+def lowpass_mean_columns(poles: F64, X: F64, out: F64) -> F64:
     """The mean of first-order low-passes y = (1 - p) x + p y_prev over ``poles``, of
     every column of X from rest, in one pass (the creep operator's slow part)."""
     n, p = X.shape
@@ -410,7 +427,7 @@ def lowpass_mean_columns(poles, X, out):
 
 
 @njit
-def hold_runs_kernel(v, tol, need, out):
+def hold_runs_kernel(v: F64, tol: float, need: int, out: I64) -> int:
     """Stretches of at least ``need`` samples over which v stays within ``tol`` (its
     whole excursion, not sample to sample): writes (start, stop) pairs to out (rows),
     returns how many."""
