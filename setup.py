@@ -59,8 +59,8 @@ setup(
         "daq": ["nidaqmx>=1.0"],
         # the tests import the real nidaqmx (it installs without NI hardware) and run
         # the daq backend on it with only NI's driver layer replaced (the test double)
-        # (and ruff: the suite runs the linters, test/test_lint.py)
-        "test": ["pytest>=7", "nidaqmx>=1.0", "ruff>=0.5"],
+        # (and ruff and numpydoc: the suite runs the linters, test/test_lint.py)
+        "test": ["pytest>=7", "nidaqmx>=1.0", "ruff>=0.5", "numpydoc>=1.6"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",

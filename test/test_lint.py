@@ -38,3 +38,90 @@ def test_every_module_says_what_it_holds():
         if len(first.split()) < 4:
             short.append(os.path.relpath(path, ROOT))
     assert not short, f"modules whose first docstring line does not say what they hold: {short}"
+
+
+# -- the core's public API: typed, and numpydoc-valid --------------------------------
+
+def _core_public_functions():
+    """(module path, qualified name, FunctionDef, TYPE_CHECKING-only names) of every
+    public function and method of the core's public modules and of its kernels."""
+    core = os.path.join(ROOT, "piezo_stage", "core")
+    for dirpath, _, files in os.walk(core):
+        for f in sorted(files):
+            if not f.endswith(".py") or (f.startswith("_") and f not in ("__init__.py",
+                                                                         "_jit.py")):
+                continue
+            path = os.path.join(dirpath, f)
+            tree = ast.parse(open(path).read())
+            checking = {a.asname or a.name.split(".")[0]
+                        for n in ast.walk(tree) if isinstance(n, ast.If)
+                        and "TYPE_CHECKING" in ast.dump(n.test)
+                        for s in n.body if isinstance(s, (ast.Import, ast.ImportFrom))
+                        for a in s.names}
+
+            def visit(node, prefix, private):
+                for n in ast.iter_child_nodes(node):
+                    if isinstance(n, ast.ClassDef):
+                        yield from visit(n, prefix + n.name + ".",
+                                         private or n.name.startswith("_"))
+                    elif isinstance(n, ast.FunctionDef):
+                        dunder = n.name.startswith("__") and n.name.endswith("__")
+                        if not private and (dunder or not n.name.startswith("_")):
+                            yield path, prefix + n.name, n, checking
+            yield from visit(tree, "", False)
+
+
+def test_core_public_api_and_kernels_are_typed():
+    """Every parameter and every result (dunders' results aside) is annotated, and
+    every name an annotation uses exists in its module (or is imported for type
+    checking only): a typo in a string annotation fails here."""
+    import builtins
+    import importlib
+    missing, unknown = [], []
+    for path, name, fn, checking in _core_public_functions():
+        rel = os.path.relpath(path, ROOT)
+        mod = importlib.import_module(rel[:-3].replace(os.sep, ".").removesuffix(".__init__"))
+        a = fn.args
+        params = [p for p in a.posonlyargs + a.args + a.kwonlyargs
+                  + [x for x in (a.vararg, a.kwarg) if x] if p.arg not in ("self", "cls")]
+        missing += [f"{rel}:{name}({p.arg})" for p in params if p.annotation is None]
+        dunder = fn.name.startswith("__") and fn.name.endswith("__")
+        if fn.returns is None and not dunder:
+            missing.append(f"{rel}:{name} -> ?")
+        for ann in [p.annotation for p in params] + [fn.returns]:
+            for n in ast.walk(ann) if ann is not None else ():
+                if isinstance(n, ast.Name) and not (hasattr(mod, n.id) or n.id in checking
+                                                    or hasattr(builtins, n.id)):
+                    unknown.append(f"{rel}:{name}: {n.id}")
+    assert not missing, f"unannotated: {missing}"
+    assert not unknown, f"annotations naming what the module does not have: {unknown}"
+
+
+# numpydoc's checks that every docstring of ours must pass: a docstring with a summary
+# starting with a capital letter and ending with a period, and Parameters / Returns
+# sections, where a docstring has them, that name real parameters in order with a type
+# and a description. Not required: a section for every parameter and result, examples,
+# see-also, one-line summaries (PR01, RT01, EX01, SA01, ES01, SS06, GL02), and SS05,
+# whose "no third person" heuristic flags noun summaries ("Voltages for ...").
+NUMPYDOC_CHECKS = ("GL08", "SS01", "SS02", "SS03", "PR02", "PR03", "PR04", "PR05", "PR06",
+                   "PR07", "PR08", "PR09", "PR10", "RT02", "RT03", "RT04", "RT05", "GL01")
+
+
+def test_core_public_docstrings_pass_numpydoc():
+    from numpydoc.validate import validate
+    found = []
+    names = set()
+    for path, name, fn, _ in _core_public_functions():
+        rel = os.path.relpath(path, ROOT)[:-3].replace(os.sep, ".").removesuffix(".__init__")
+        if not name.split(".")[-1].startswith("__"):
+            names.add(f"{rel}.{name}")
+        if "." in name:  # the class itself
+            names.add(f"{rel}.{name.rsplit('.', 1)[0]}")
+        names.update(f"{rel}.{c.name}" for c in ast.parse(open(path).read()).body
+                     if isinstance(c, ast.ClassDef) and not c.name.startswith("_"))
+    for full in sorted(names):
+        for code, msg in validate(full)["errors"]:
+            if code in NUMPYDOC_CHECKS:
+                found.append(f"{full}: {code} {msg}")
+    assert len(names) > 150  # the walk found the API
+    assert not found, "\n".join(found)

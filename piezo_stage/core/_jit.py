@@ -18,11 +18,13 @@ try:  # numba is a declared dependency; the fallback keeps the core importable w
     from numba import njit as _njit
 
     def njit(fn):
+        """Compile ``fn`` (cached on disk, releasing the GIL)."""
         return _njit(cache=True, nogil=True)(fn)
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - exercised only on installs without numba
     def njit(fn):
+        """Without numba: ``fn`` itself, as its plain-Python original."""
         fn.py_func = fn
         return fn
 

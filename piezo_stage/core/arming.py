@@ -23,9 +23,11 @@ in um.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import ConfigError
@@ -115,13 +117,13 @@ class ReferencePlanner:
         self._approach = None      # (Approach, start ns)
         self._track_ns = None      # trajectory clock origin [ns]
 
-    def set_trajectory(self, t, w: dict):
+    def set_trajectory(self, t: ArrayLike, w: dict) -> None:
         """A new trajectory (t [s], {axis: um}): approached from where the stage is asked to be."""
         self.traj, self.setpoint = (np.asarray(t, float), {a: np.asarray(x, float)
                                                           for a, x in w.items()}), None
         self._restart()
 
-    def set_setpoint(self, w: dict):
+    def set_setpoint(self, w: dict) -> None:
         """A new streamed setpoint {axis: um}: approached, then held."""
         self.setpoint, self.traj = dict(w), None
         self._restart()
@@ -130,12 +132,12 @@ class ReferencePlanner:
         if self.phase != HOLD:
             self.phase, self._approach, self._track_ns = APPROACH, None, None
 
-    def hold(self, w_now: dict):
+    def hold(self, w_now: dict) -> None:
         """Disabled: ask for where the stage is; the next enable starts over."""
         self.phase, self._approach, self._track_ns = HOLD, None, None
         self.desired = dict(w_now)
 
-    def clock_s(self, target_ns: int):
+    def clock_s(self, target_ns: int) -> float | None:
         """Seconds the trajectory clock will have run at target_ns (None: not running)."""
         if self.phase != TRACK or self._track_ns is None:
             return None
@@ -220,7 +222,7 @@ class ArmingSupervisor:
     """
 
     def __init__(self, params: ArmingParams, v0: dict, dt_s: float, lead_ns: int,
-                 on_change=None):
+                 on_change: Callable[[str, str, int], None] | None = None):
         self.p = params
         self.ramp_step_V = params.ramp_V_per_s * dt_s  # per tick
         self.lead_ns = int(lead_ns)     # an enable takes effect this far ahead
@@ -256,17 +258,17 @@ class ArmingSupervisor:
         self._set(DISARMED, "disarmed on request", now_ns)
         return True, "disarmed: holding the safe voltage"
 
-    def trigger_estop(self, now_ns: int):
+    def trigger_estop(self, now_ns: int) -> None:
         """Emergency stop: latched until disarm and re-arm."""
         self.estop, self.arm_requested = True, False
         self._set(FAULTED, "e-stop (latched until disarm and re-arm)", now_ns)
 
-    def fault(self, reason: str, now_ns: int):
+    def fault(self, reason: str, now_ns: int) -> None:
         """Fault with ``reason``: ramp to the safe voltage and stay there."""
         self.counts["faults"] += 1
         self._set(FAULTED, reason, now_ns)
 
-    def set_tracking(self, tracking: bool, now_ns: int):
+    def set_tracking(self, tracking: bool, now_ns: int) -> None:
         """The feedforward reports the approach ended: the state becomes armed."""
         self.tracking = bool(tracking)
         if self.state == APPROACHING and tracking:
@@ -275,11 +277,11 @@ class ArmingSupervisor:
             self._set(APPROACHING, "approaching a new goal", now_ns)
 
     # per tick --------------------------------------------------------------------
-    def note_command(self, recv_ns: int):
+    def note_command(self, recv_ns: int) -> None:
         """A valid (finite) command arrived: the controller is alive."""
         self.last_fresh_ns = recv_ns
 
-    def tick(self, stamp_ns: int, now_ns: int, cmd, on_time: bool, link: str = "",
+    def tick(self, stamp_ns: int, now_ns: int, cmd: dict | None, on_time: bool, link: str = "",
              periods: int = 1) -> dict:
         """Target voltages for the sample stamped ``stamp_ns`` (driver time), ``now_ns``
         the receipt clock of ``note_command``. ``cmd``: the command due for this sample
@@ -324,7 +326,7 @@ class ArmingSupervisor:
                                if not at_safe else f"waiting for the loop: {self.link}")
         return target
 
-    def applied(self, v: dict):
+    def applied(self, v: dict) -> None:
         """The voltage really applied this tick (after clamp and slew)."""
         self.v = dict(v)
 
@@ -379,7 +381,7 @@ class CommandSchedule:
         """The sample tick a command stamped ``ns`` is for."""
         return (int(stamp_ns) - self.t0 + self.dt // 2) // self.dt
 
-    def add(self, stamp_ns: int, v: dict, recv_ns: int, last_tick: int):
+    def add(self, stamp_ns: int, v: dict, recv_ns: int, last_tick: int) -> None:
         """Keep a command for its tick (late ones are counted, not kept)."""
         j = self.tick_of(stamp_ns)
         self.received += 1
@@ -391,7 +393,7 @@ class CommandSchedule:
             return
         self.pending[j] = dict(v)
 
-    def due(self, j: int, count_held: bool = True):
+    def due(self, j: int, count_held: bool = True) -> tuple[dict | None, bool]:
         """-> (voltages or None, exactly on time for tick j). With ``count_held`` (the
         stage is applying commands), a tick with no command stamped for it counts as
         held (``held_ticks``)."""
@@ -416,7 +418,7 @@ class StateTimeline:
         self.entries = [(-(2 ** 63), initial)]
         self.keep = keep
 
-    def add(self, since_ns: int, state: str):
+    def add(self, since_ns: int, state: str) -> None:
         """The state ``state`` applies from stamp ``since_ns`` on."""
         self.entries = [e for e in self.entries if e[0] < since_ns][-self.keep:]
         self.entries.append((int(since_ns), state))

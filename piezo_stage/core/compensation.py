@@ -24,11 +24,16 @@ A streamed setpoint cannot be previewed and steps: only creep is compensated for
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.linalg import expm
 
 from piezo_stage.core.errors import ConfigError
+
+if TYPE_CHECKING:
+    from piezo_stage.core.arming import ReferencePlanner
 
 CREEP_TAUS_S = (0.05, 0.5, 5.0, 50.0)
 
@@ -43,9 +48,9 @@ def _phi_gamma(A, B, tau):
 
 
 class CreepInverse:
-    """h_k from the wanted creep output y_k (exact inverse of core.effects.Creep)."""
+    """The exact inverse of core.effects.Creep: h_k from the wanted creep output y_k."""
 
-    def __init__(self, rate_hz: float, gamma: float, tau_s=CREEP_TAUS_S):
+    def __init__(self, rate_hz: float, gamma: float, tau_s: Sequence[float] = CREEP_TAUS_S):
         self.gamma = float(gamma)
         if not 0 <= self.gamma < 1:
             raise ConfigError(f"creep gamma must be in [0, 1), got {gamma}")
@@ -53,7 +58,7 @@ class CreepInverse:
         self.direct = 1 - self.gamma + self.gamma * float(np.mean(1 - self.p))
         self.lp = np.zeros_like(self.p)
 
-    def reset(self, h0: float):
+    def reset(self, h0: float) -> None:
         """At rest at ``h0``."""
         self.lp[:] = h0
 
@@ -65,11 +70,12 @@ class CreepInverse:
 
 
 class DynamicsInverse:
-    """u_m from the wanted sampled output y_m of unit-DC dynamics whose output is
-    sampled ``delta_s`` before the end of the period the input is held in."""
+    """The inverse of unit-DC dynamics at the control rate: u_m from the wanted sampled
+    output y_m, the output sampled ``delta_s`` before the end of the period the input
+    is held in."""
 
-    def __init__(self, rate_hz: float, kind="resonance", fn_hz=800.0, zeta=0.05,
-                 tau_s=0.5e-3, delta_s=0.0):
+    def __init__(self, rate_hz: float, kind: str = "resonance", fn_hz: float = 800.0,
+                 zeta: float = 0.05, tau_s: float = 0.5e-3, delta_s: float = 0.0):
         T = 1.0 / rate_hz
         if kind == "resonance":
             wn = 2 * math.pi * float(fn_hz)
@@ -91,7 +97,7 @@ class DynamicsInverse:
         self._steady = -np.linalg.solve(A, B).ravel()  # state per unit constant input
         self.x = np.zeros(A.shape[0])
 
-    def reset(self, u0: float):
+    def reset(self, u0: float) -> None:
         """At rest with input and output at ``u0``."""
         self.x = self._steady * u0
 
@@ -110,7 +116,7 @@ class EffectCompensator:
     ``effects`` is a model file's ``effects`` block ({name: {params..., axes: [...]}},
     as ``gap --out-model`` writes it; ``enabled: false`` entries are skipped)."""
 
-    def __init__(self, effects: dict, rate_hz: float, axes=("x", "y")):
+    def __init__(self, effects: dict, rate_hz: float, axes: Sequence[str] = ("x", "y")):
         self.rate_hz = float(rate_hz)
         T = 1.0 / self.rate_hz
         self.creep, self.dynamics, self.lead_ticks = {}, {}, {a: 0 for a in axes}
@@ -158,7 +164,7 @@ class EffectCompensator:
         """The longest preview any axis needs [periods]."""
         return max(self.lead_ticks.values(), default=0)
 
-    def reset(self, w0: dict):
+    def reset(self, w0: dict) -> None:
         """At rest at w0 [um] (everything settled)."""
         for a, c in self.creep.items():
             c.reset(w0[a])
@@ -201,11 +207,11 @@ class PreviewedReference:
     measured position.
     """
 
-    def __init__(self, planner, dt_ns: int):
+    def __init__(self, planner: ReferencePlanner, dt_ns: int):
         self.planner, self.dt_ns = planner, int(dt_ns)
         self.comp, self.on, self.ahead = None, True, {}
 
-    def set_compensator(self, comp):
+    def set_compensator(self, comp: EffectCompensator | None) -> None:
         """A new model's compensator (None: no effects)."""
         self.comp, self.ahead = comp, {}
 
@@ -215,14 +221,14 @@ class PreviewedReference:
             return "no effects in the model"
         return self.comp.describe() + ("" if self.on else " (switched off)")
 
-    def hold(self, w_hold: dict, w_measured: dict):
+    def hold(self, w_hold: dict, w_measured: dict) -> None:
         """Disabled: the planner holds ``w_hold``; the compensator rests at the stage."""
         self.planner.hold(w_hold)
         self.ahead = {}
         if self.comp is not None:
             self.comp.reset(w_measured)
 
-    def sample(self, target_ns: int):
+    def sample(self, target_ns: int) -> tuple[dict, dict]:
         """(where the stage should be at target_ns, the hysteresis target for it)."""
         comp = self.comp if self.on else None
         if comp is None:

@@ -43,7 +43,7 @@ class PID:
         self.dt = float(dt)
         self.reset()
 
-    def reset(self):
+    def reset(self) -> None:
         """Forget the integral and the derivative's memory."""
         self.integral = 0.0
         self.prev_e = None
@@ -75,7 +75,8 @@ class CompositeAxis:
     integral so that the output does not jump (bumpless transfer both ways).
     """
 
-    def __init__(self, pid: PID, limits=(0.0, 150.0), feedback=True, fade_s=0.05):
+    def __init__(self, pid: PID, limits: tuple[float, float] = (0.0, 150.0),
+                 feedback: bool = True, fade_s: float = 0.05):
         self.pid, self.limits = pid, tuple(limits)
         self.feedback = bool(feedback)
         self.fade = math.exp(-pid.dt / fade_s) if fade_s > 0 else 0.0
@@ -83,7 +84,7 @@ class CompositeAxis:
         self.last_fb = 0.0      # the feedback contribution of the last update [V]
         self._bump_e = None     # switch-on: take the first error without a step
 
-    def set_feedback(self, on: bool):
+    def set_feedback(self, on: bool) -> None:
         """Switch the feedback on or off, bumplessly."""
         on = bool(on)
         if on and not self.feedback:
@@ -94,7 +95,7 @@ class CompositeAxis:
             self.last_fb = 0.0
         self.feedback = on
 
-    def reset(self):
+    def reset(self) -> None:
         """Loop opened (disarmed, faulted, stale): forget the integral and the fade."""
         self.pid.reset()
         self.carry = self.last_fb = 0.0
@@ -119,7 +120,8 @@ class CompositeAxis:
         return min(max(u, lo), hi), (u > hi or u < lo)
 
 
-def clamp_slew(v: dict, prev: dict, limits, max_step) -> tuple[dict, bool]:
+def clamp_slew(v: dict, prev: dict, limits: tuple[float, float] | dict,
+               max_step: float | dict) -> tuple[dict, bool]:
     """Clamp each axis's voltage to ``limits`` (V: (lo, hi), or per axis {axis: (lo,
     hi)}), then move it from ``prev`` by at most ``max_step`` (V, or per axis).
     Returns (voltages, whether anything was limited). The driver's last line of

@@ -27,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, duhem_run, duhem_step
 from piezo_stage.core.errors import ModelError
@@ -69,7 +70,7 @@ class DuhemBranch:
         object.__setattr__(self, "g", _coeffs(self.g, "g"))
 
     @classmethod
-    def from_h(cls, alpha, h):
+    def from_h(cls, alpha: float, h: ArrayLike) -> DuhemBranch:
         """A branch known only by its identifiable polynomial h (f = 0, g = h)."""
         h = _coeffs(h, "h")
         return cls(alpha, np.zeros(1), h, reduced=True)
@@ -81,7 +82,7 @@ class DuhemBranch:
         g = np.pad(self.g, (0, d - self.g.size))
         return g + f if ascending else g - f
 
-    def __eq__(self, other):
+    def __eq__(self, other: object) -> bool:
         return (isinstance(other, DuhemBranch) and self.alpha == other.alpha
                 and np.array_equal(self.f, other.f) and np.array_equal(self.g, other.g))
 
@@ -113,7 +114,8 @@ class DuhemModel:
     initial: DuhemState = field(default_factory=DuhemState)
 
     @classmethod
-    def whole(cls, alpha, f, g, initial=None):
+    def whole(cls, alpha: float, f: ArrayLike, g: ArrayLike,
+              initial: DuhemState | None = None) -> DuhemModel:
         """A whole-curve model: one (alpha, f, g) for both branches."""
         b = DuhemBranch(alpha, f, g)
         return cls(b, b, initial or DuhemState())
@@ -123,7 +125,7 @@ class DuhemModel:
         """'whole' or 'segmented'."""
         return "whole" if self.ascending == self.descending else "segmented"
 
-    def kernel_params(self):
+    def kernel_params(self) -> tuple[np.ndarray, np.ndarray]:
         """(alpha[2], H[2, D]) as the compiled loops take them (computed once)."""
         cached = self.__dict__.get("_kp")
         if cached is not None:
@@ -138,7 +140,8 @@ class DuhemModel:
         object.__setattr__(self, "_kp", (alpha, H))  # frozen: cache through the back door
         return alpha, H
 
-    def simulate(self, v, state: DuhemState | None = None):
+    def simulate(self, v: ArrayLike,
+                 state: DuhemState | None = None) -> tuple[np.ndarray, DuhemState]:
         """Batch response to the voltage sequence ``v`` [V].
 
         Returns
@@ -173,7 +176,7 @@ class DuhemHysteresis:
         self._alpha, self._H = model.kernel_params()
         self.reset()
 
-    def reset(self, state: DuhemState | None = None):
+    def reset(self, state: DuhemState | None = None) -> None:
         """Back to ``state`` (default: the model's initial state)."""
         st = state or self.model.initial
         self.v, self.w = float(st.v), float(st.w)
@@ -189,7 +192,7 @@ class DuhemHysteresis:
         self.v = float(v)
         return self.w
 
-    def run(self, v) -> np.ndarray:
+    def run(self, v: ArrayLike) -> np.ndarray:
         """Apply a voltage array (the compiled loop); returns the displacements."""
         w, st = self.model.simulate(v, self.state)
         self.v, self.w = st.v, st.w
@@ -221,7 +224,8 @@ class StageModel:
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise ModelError(f"voltage limits must be finite with min < max, got {lo}, {hi}")
 
-    def simulate(self, vx, vy, states=None):
+    def simulate(self, vx: ArrayLike, vy: ArrayLike,
+                 states: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
         """Noise-free response [um] of each modelled axis to voltages [V].
 
         ``states`` maps 'x', 'y', 'cx', 'cy' to DuhemState; returns (w dict, states).

@@ -19,7 +19,10 @@ Coupling (displacement caused by the other axis) is part of the hysteresis model
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import signal
 
 from piezo_stage.core.errors import ConfigError
@@ -46,7 +49,7 @@ class _LinearFilter:
         # start at rest with input and output at x0 (steady state of a unit-DC filter)
         self.zi = signal.lfilter_zi(self.b, self.a) * x0
 
-    def process(self, x):
+    def process(self, x: ArrayLike) -> np.ndarray:
         y, self.zi = signal.lfilter(self.b, self.a, x, zi=self.zi)
         return y
 
@@ -71,7 +74,8 @@ class Creep:
     the log(t) signature of piezo creep. gamma is the creep fraction (0.01 .. 0.1).
     """
 
-    def __init__(self, fs_hz, gamma=0.03, tau_s=(0.05, 0.5, 5.0, 50.0)):
+    def __init__(self, fs_hz: float, gamma: float = 0.03,
+                 tau_s: Sequence[float] = (0.05, 0.5, 5.0, 50.0)):
         self.gamma = float(gamma)
         if not 0 <= self.gamma < 1:
             raise ConfigError(f"creep gamma must be in [0, 1), got {gamma}")
@@ -82,22 +86,22 @@ class Creep:
             p = np.exp(-dt / tau)
             self._lps.append(_LinearFilter([1 - p], [1, -p]))
 
-    def reset(self, x0=0.0):
+    def reset(self, x0: float = 0.0) -> None:
         """At rest with input and output at ``x0``."""
         for lp in self._lps:
             lp.reset(x0)
 
-    def process(self, x):
+    def process(self, x: ArrayLike) -> np.ndarray:
         """The next chunk of the signal through the operator (state carried)."""
         x = np.asarray(x, float)
         slow = sum(lp.process(x) for lp in self._lps) / len(self._lps)
         return x - self.gamma * (x - slow)
 
-    def apply(self, X):
+    def apply(self, X: np.ndarray) -> np.ndarray:
         """The operator on columns of X from rest (linear: E(X theta) = E(X) theta)."""
         return X - self.gamma * self.fast_part(X)
 
-    def fast_part(self, X):
+    def fast_part(self, X: np.ndarray) -> np.ndarray:
         """X - mean of the low-passes of X: the operator is X - gamma * fast_part(X),
         so a search over gamma filters once."""
         from piezo_stage.core._jit import lowpass_mean_columns
@@ -115,7 +119,8 @@ class Dynamics:
     kind='lag':       1 / (tau_s s + 1).
     """
 
-    def __init__(self, fs_hz, kind="resonance", fn_hz=800.0, zeta=0.05, tau_s=0.5e-3):
+    def __init__(self, fs_hz: float, kind: str = "resonance", fn_hz: float = 800.0,
+                 zeta: float = 0.05, tau_s: float = 0.5e-3):
         self.kind = kind
         dt = 1.0 / fs_hz
         if kind == "resonance":
@@ -138,15 +143,15 @@ class Dynamics:
         assert abs(bd[0]) < 1e-12
         self._f = _LinearFilter(bd[1:], ad)
 
-    def reset(self, x0=0.0):
+    def reset(self, x0: float = 0.0) -> None:
         """At rest with input and output at ``x0``."""
         self._f.reset(x0)
 
-    def process(self, x):
+    def process(self, x: ArrayLike) -> np.ndarray:
         """The next chunk of the signal through the filter (state carried)."""
         return self._f.process(np.asarray(x, float))
 
-    def apply(self, X):
+    def apply(self, X: np.ndarray) -> np.ndarray:
         """The filter on the columns of X from rest (for the gap diagnosis)."""
         return _lfilter_cols(self._f.b, self._f.a, X)
 
@@ -154,7 +159,7 @@ class Dynamics:
 class Delay:
     """Pure delay of ``delay_s`` seconds (fractional samples by linear interpolation)."""
 
-    def __init__(self, fs_hz, delay_s=0.5e-3):
+    def __init__(self, fs_hz: float, delay_s: float = 0.5e-3):
         self.delay_s = float(delay_s)
         if not np.isfinite(self.delay_s) or self.delay_s < 0:
             raise ConfigError(f"delay_s must be >= 0, got {delay_s}")
@@ -163,11 +168,11 @@ class Delay:
         self._frac = d - self._n
         self.reset()
 
-    def reset(self, x0=0.0):
+    def reset(self, x0: float = 0.0) -> None:
         """The delay line filled with ``x0``."""
         self._buf = np.full(self._n + 1, float(x0))
 
-    def process(self, x):
+    def process(self, x: ArrayLike) -> np.ndarray:
         """The next chunk of the signal, delayed (state carried)."""
         x = np.asarray(x, float)
         ext = np.concatenate([self._buf, x])
@@ -178,7 +183,7 @@ class Delay:
         self._buf = ext[-(self._n + 1):].copy()
         return y
 
-    def apply(self, X):
+    def apply(self, X: np.ndarray) -> np.ndarray:
         """The delay on the columns of X, zeros before the start."""
         X = np.asarray(X, float)
         n, fr = self._n, self._frac
@@ -193,18 +198,19 @@ class Delay:
 class Drift:
     """Thermal drift independent of the input: rate * t + amplitude * (1 - exp(-t/tau))."""
 
-    def __init__(self, fs_hz, rate_um_per_s=0.01, amplitude_um=0.5, tau_s=60.0):
+    def __init__(self, fs_hz: float, rate_um_per_s: float = 0.01, amplitude_um: float = 0.5,
+                 tau_s: float = 60.0):
         self.dt = 1.0 / fs_hz
         self.rate = float(rate_um_per_s)
         self.amplitude = float(amplitude_um)
         self.tau_s = _positive("drift tau_s", tau_s)
         self.reset()
 
-    def reset(self, x0=0.0):
+    def reset(self, x0: float = 0.0) -> None:
         """Back to t = 0."""
         self._k = 0
 
-    def process(self, x):
+    def process(self, x: ArrayLike) -> np.ndarray:
         """The next chunk of the signal plus the drift over its time span."""
         x = np.asarray(x, float)
         t = (self._k + np.arange(x.size)) * self.dt
@@ -212,7 +218,7 @@ class Drift:
         return x + self.rate * t + self.amplitude * (1 - np.exp(-t / self.tau_s))
 
     @staticmethod
-    def columns(n, fs_hz, tau_s):
+    def columns(n: int, fs_hz: float, tau_s: float) -> np.ndarray:
         """The drift's two shapes over n samples: t [s] and 1 - exp(-t / tau)."""
         t = np.arange(n) / fs_hz
         return np.column_stack([t, 1 - np.exp(-t / tau_s)])
@@ -227,7 +233,7 @@ _PARAMS = {
 }
 
 
-def make_effect(name: str, fs_hz: float, params: dict):
+def make_effect(name: str, fs_hz: float, params: dict) -> Creep | Dynamics | Delay | Drift:
     """Build effect ``name`` from a parameter dict (unknown keys are an error)."""
     if name not in _CLASSES:
         raise ConfigError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")

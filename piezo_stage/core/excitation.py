@@ -19,8 +19,9 @@ import numpy as np
 SINES = ((1.0, 2, 1.0), (5.0, 5, 0.7), (20.0, 10, 0.5), (80.0, 16, 0.25))  # Hz, cycles, amp
 
 
-def gap_protocol(fs_hz=5000.0, lo=0.0, hi=150.0, seed=0, hold_s=3.0, chirp_s=0.0,
-                 chirp_frac=0.015):
+def gap_protocol(fs_hz: float = 5000.0, lo: float = 0.0, hi: float = 150.0, seed: int = 0,
+                 hold_s: float = 3.0, chirp_s: float = 0.0,
+                 chirp_frac: float = 0.015) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (t [s], vx [V], vy [V]); about 35 s at the defaults (plus 2 x (chirp_s
     + 0.2 s) with a chirp of +-chirp_frac of the span)."""
     rng = np.random.default_rng(seed)

@@ -30,13 +30,15 @@ reported with the feedback bandwidth that rejects it.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import signal
 from scipy.optimize import minimize, minimize_scalar
 
-from piezo_stage.core.duhem import OTHER
+from piezo_stage.core.duhem import OTHER, StageModel
 from piezo_stage.core.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.identify.api import check_identifiable, free_response
@@ -71,7 +73,7 @@ class Candidate:
     effects: list = field(default_factory=list)
     reg_fs: float = 0.0            # the rate of the record it was fitted on [Hz]
 
-    def predict(self, rec: Record, axis: str):
+    def predict(self, rec: Record, axis: str) -> np.ndarray:
         """Prediction on another record; initial state and offset re-estimated."""
         v = rec.v[axis]
         v_other = rec.v.get(OTHER[axis])
@@ -102,7 +104,7 @@ class Candidate:
         coef, *_ = np.linalg.lstsq(A, rec.w[axis] - fixed, rcond=None)
         return fixed + A @ coef
 
-    def model_effect(self):
+    def model_effect(self) -> tuple[str, dict] | None:
         """The effect as model-file / plant parameters (None for none and coupling)."""
         return None if self.effect in ("none", "coupling", "structure") \
             else dict(self.params)
@@ -123,7 +125,7 @@ def _search_1d(f, lo, hi, n_grid=12, log=False):
     return (r.x, r.fun) if r.fun <= vals[i] else (g[i], vals[i])
 
 
-def effect_operator(name: str, fs: float, params: dict):
+def effect_operator(name: str, fs: float, params: dict) -> Callable[[np.ndarray], np.ndarray]:
     """The column operator (X -> E(X)) of a transform effect with these parameters."""
     if name == "creep":
         return Creep(fs, gamma=params["gamma"], tau_s=params.get("tau_s", CREEP_TAUS)).apply
@@ -149,7 +151,7 @@ def _compose(ops):
 
 
 def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = None,
-                  kept=()):
+                  kept: Sequence[tuple[str, dict]] = ()) -> Candidate:
     """Fit the Duhem model, the effects already ``kept`` ([(name, params)], their
     parameters fixed) and ``effect`` (its parameters searched) together on rec. The
     transform effects are linear and time invariant, so they commute: the new one is
@@ -251,7 +253,8 @@ def _gap(r, nf):
     return float(np.sqrt(max(r * r - nf * nf, 0.0)))
 
 
-def hold_runs(v, fs, min_s=0.2, tol_frac=1e-3):
+def hold_runs(v: ArrayLike, fs: float, min_s: float = 0.2,
+              tol_frac: float = 1e-3) -> list[tuple[int, int]]:
     """The holds of ``v``: [(start, stop)] sample ranges of at least ``min_s`` seconds
     over which the voltage stays within ``tol_frac`` of its span (the whole stretch,
     not sample to sample: a slow sine's turning points and a staircase DAC output move
@@ -267,7 +270,7 @@ def hold_runs(v, fs, min_s=0.2, tol_frac=1e-3):
     return [(int(a), int(b)) for a, b in out[:n]]
 
 
-def held(v, fs, min_s=0.2, tol_frac=1e-3):
+def held(v: ArrayLike, fs: float, min_s: float = 0.2, tol_frac: float = 1e-3) -> np.ndarray:
     """Mask of the samples inside holds (see ``hold_runs``)."""
     mask = np.zeros(len(v), bool)
     for a, b in hold_runs(v, fs, min_s, tol_frac):
@@ -275,12 +278,12 @@ def held(v, fs, min_s=0.2, tol_frac=1e-3):
     return mask
 
 
-def holds(v, fs, min_s=MIN_HOLD_S):
+def holds(v: ArrayLike, fs: float, min_s: float = MIN_HOLD_S) -> list[float]:
     """Lengths [s] of the holds of at least ``min_s`` seconds (see ``hold_runs``)."""
     return [(b - a) / fs for a, b in hold_runs(v, fs, min_s)]
 
 
-def where(rec: Record, axis: str, resid, nf):
+def where(rec: Record, axis: str, resid: np.ndarray, nf: float) -> dict:
     """Localise the residual: band, segment, amplitude, correlation with the other axis."""
     v = rec.v[axis]
     fs = rec.fs_hz
@@ -332,10 +335,10 @@ class GivenModel:
     effect = "given"
     params: dict = {}
 
-    def __init__(self, stage_model):
+    def __init__(self, stage_model: StageModel):
         self.model = stage_model
 
-    def predict(self, rec: Record, axis: str):
+    def predict(self, rec: Record, axis: str) -> np.ndarray:
         """The given model's prediction on a record (no fit)."""
         from piezo_stage.core.identify.api import simulate_axis
         m = self.model.axes[axis]
@@ -391,8 +394,10 @@ def _given_effects(base_model, base_effects, axis):
     return out
 
 
-def diagnose_axis(fit: Record, holdout: Record, axis: str, effects=EFFECTS,
-                  base_model=None, progress=None, base_effects=None) -> AxisDiagnosis:
+def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str] = EFFECTS,
+                  base_model: StageModel | None = None,
+                  progress: Callable[[str], None] | None = None,
+                  base_effects: dict | None = None) -> AxisDiagnosis:
     """Fit every candidate on FIT, score on HOLDOUT, then add effects one at a time
     (forward selection, each refitted jointly with the Duhem model and the effects
     kept before it) while the held-out gap keeps shrinking clearly. ``base_model`` (a
@@ -564,7 +569,8 @@ LOCK_TAUS = (0.003, 0.05, 1.0)         # s: their slow (creep-like, dynamic) res
 RIDGES = (1e-6, 1e-4, 1e-2, 1.0)      # on unit-norm features, chosen by cross-validation
 
 
-def input_locked(v, v_other, fs, resid):
+def input_locked(v: np.ndarray, v_other: np.ndarray, fs: float,
+                 resid: np.ndarray) -> np.ndarray:
     """The part of ``resid`` that a rich hysteretic and dynamic function of the inputs
     (``v`` and ``v_other`` [V], sampled at ``fs``) predicts, two-fold cross-validated
     on the record itself (fitted on one fold, predicted on the other), so it holds
@@ -608,7 +614,7 @@ def input_locked(v, v_other, fs, resid):
 PEAK_RATIO = 20.0   # a narrowband line: this many times the residual's median PSD
 
 
-def disturbance(rec: Record, axis: str, resid, nf):
+def disturbance(rec: Record, axis: str, resid: np.ndarray, nf: float) -> dict | None:
     """Motion the input does not cause: the strongest narrow line in the residual's
     spectrum away from where the inputs have power (their tones, harmonics and step
     edges), when it stands clear of the residual's own floor. No model can remove it
@@ -694,7 +700,8 @@ def _line_rms(r, fs, freq, segs):
     return float(np.sqrt(power / n))
 
 
-def gap_budget(holdout: Record, axis: str, resid, nf, g_before, steps) -> dict:
+def gap_budget(holdout: Record, axis: str, resid: np.ndarray, nf: float, g_before: float,
+               steps: list[dict]) -> dict:
     """Where the held-out residual goes [um]: the noise floor; the part locked to the
     input (cross-validated, ``input_locked``) and the rest above the noise; what each
     kept effect explains (the drop of the gap, in quadrature) and what is left. The
@@ -731,13 +738,13 @@ class Diagnosis:
     json: dict
     per_axis: dict
 
-    def __getitem__(self, key):
+    def __getitem__(self, key: str) -> object:
         return self.json[key]
 
-    def __contains__(self, key):
+    def __contains__(self, key: str) -> bool:
         return key in self.json
 
-    def model(self, fit: Record):
+    def model(self, fit: Record) -> tuple[StageModel, dict]:
         """The model with every kept effect, as ``gap --out-model`` writes it: (StageModel,
         effects). Each axis's Duhem model (and coupling) from its kept fit; the model
         file holds one parameter set per effect, so where both axes have one, the set of
@@ -762,8 +769,10 @@ class Diagnosis:
         return StageModel(axes, coupling, lim), effects
 
 
-def diagnose(fit: Record, holdout: Record | None = None, effects=EFFECTS, axes=None,
-             base_model=None, progress=None, base_effects=None) -> Diagnosis:
+def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] = EFFECTS,
+             axes: Sequence[str] | None = None, base_model: StageModel | None = None,
+             progress: Callable[[str], None] | None = None,
+             base_effects: dict | None = None) -> Diagnosis:
     """Diagnose the gap on every axis (see the module docstring). ``progress(what)`` is
     called after each candidate fit (from the axes' threads)."""
     t0 = time.perf_counter()

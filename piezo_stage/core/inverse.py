@@ -23,9 +23,11 @@ Seed eq. 12 (for comparison)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, duhem_inverse_run, stage_inverse_step, stage_sync
 from piezo_stage.core.duhem import AXES, OTHER, DuhemModel, DuhemState, StageModel
@@ -51,7 +53,8 @@ class InverseResult:
         return int(np.count_nonzero(self.saturated))
 
 
-def invert(model: DuhemModel, w_target, v_limits=(0.0, 150.0), state=None) -> InverseResult:
+def invert(model: DuhemModel, w_target: ArrayLike, v_limits: tuple[float, float] = (0.0, 150.0),
+           state: DuhemState | None = None) -> InverseResult:
     """Exact inverse of one axis's Duhem model over a target sequence [um]."""
     wt = as_f64(w_target)
     if not np.all(np.isfinite(wt)):
@@ -65,8 +68,9 @@ def invert(model: DuhemModel, w_target, v_limits=(0.0, 150.0), state=None) -> In
     return InverseResult(v, w, sat.astype(bool), DuhemState(float(vp), float(wp)))
 
 
-def invert_seed_eq12(model: DuhemModel, w_target, v_limits=(0.0, 150.0),
-                     state=None) -> InverseResult:
+def invert_seed_eq12(model: DuhemModel, w_target: ArrayLike,
+                     v_limits: tuple[float, float] = (0.0, 150.0),
+                     state: DuhemState | None = None) -> InverseResult:
     """Seed eq. 12 (explicit slope inverse, signs made consistent with eq. 6)."""
     wt = as_f64(w_target)
     st = state or model.initial
@@ -94,7 +98,8 @@ def invert_seed_eq12(model: DuhemModel, w_target, v_limits=(0.0, 150.0),
     return InverseResult(v, w, sat, DuhemState(vp, wp))
 
 
-def invert_stage(model: StageModel, wx, wy, states=None, tol_V=1e-10, max_iter=50):
+def invert_stage(model: StageModel, wx: ArrayLike, wy: ArrayLike, states: dict | None = None,
+                 tol_V: float = 1e-10, max_iter: int = 50) -> dict[str, InverseResult]:
     """Joint inverse of a 2-axis model with coupling.
 
     w_x = H_xx(v_x) + H_xy(v_y) and w_y = H_yy(v_y) + H_yx(v_x): Gauss-Seidel on whole
@@ -138,7 +143,7 @@ class StageInverse:
     targets. An axis absent from the model is held at the lower voltage limit.
     """
 
-    def __init__(self, model: StageModel, use_coupling=True, sweeps=4):
+    def __init__(self, model: StageModel, use_coupling: bool = True, sweeps: int = 4):
         self.model = model
         self.use_coupling = bool(use_coupling and model.coupling)
         self.sweeps = sweeps if self.use_coupling else 1
@@ -165,7 +170,7 @@ class StageInverse:
         self.saturated = 0
         self.reset()
 
-    def reset(self, v=None, w=None):
+    def reset(self, v: dict | None = None, w: dict | None = None) -> None:
         """Back to the model's initial states, or to voltages v / outputs w (dicts)."""
         init = [self.model.axes[a].initial if a in self.model.axes else DuhemState(
             self.limits[0], 0.0) for a in AXES]
@@ -182,26 +187,27 @@ class StageInverse:
             self.cwp = np.zeros(2)
 
     @property
-    def v(self):
+    def v(self) -> dict[str, float]:
         """The voltages [V] of the inverse's current state, per axis."""
         return {"x": float(self.vp[0]), "y": float(self.vp[1])}
 
     @property
-    def w(self):
+    def w(self) -> dict[str, float]:
         """The model's present output [um] per axis (main term plus the coupling the
         inverse compensates)."""
         w = self.wp + self.cwp if self.use_coupling else self.wp
         return {"x": float(w[0]), "y": float(w[1])}
 
-    def snapshot(self):
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """A copy of the hysteresis state (for stepping ahead and coming back)."""
         return self.vp.copy(), self.wp.copy(), self.cvp.copy(), self.cwp.copy()
 
-    def restore(self, snap):
+    def restore(self, snap: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> None:
         """Go back to a state taken with ``snapshot``."""
         self.vp[:], self.wp[:], self.cvp[:], self.cwp[:] = snap
 
-    def step_ahead(self, in_flight, wx: float, wy: float):
+    def step_ahead(self, in_flight: Sequence[dict[str, float]], wx: float,
+                   wy: float) -> dict[str, float]:
         """Voltages for the target (wx, wy) [um] reached after the targets still in
         flight (a list of {axis: um}, oldest first: commands computed but not yet
         applied), from the present (synced) state, which is left as it was. Raises
@@ -216,14 +222,15 @@ class StageInverse:
             raise ModelError("the inverse gave a non-finite voltage")
         return {"x": vx, "y": vy}
 
-    def sync(self, vx: float, vy: float):
+    def sync(self, vx: float, vy: float) -> None:
         """Advance the model with the voltages really applied (feedforward plus
         feedback, after the driver's limits), so the next inverse starts from the
         state the stage is actually in rather than from the feedforward's own output."""
         stage_sync(float(vx), float(vy), self.vp, self.wp, self._alpha, self._H, self.cvp,
                    self.cwp, self._calpha, self._cH)
 
-    def step(self, wx: float, wy: float, commit: bool = True):
+    def step(self, wx: float, wy: float,
+             commit: bool = True) -> tuple[float, float, dict[str, bool]]:
         """Voltages for the targets; ``commit=False`` leaves the state for ``sync``."""
         t = self._target
         t[0], t[1] = wx, wy

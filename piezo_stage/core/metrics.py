@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
-def rms(x) -> float:
+def rms(x: ArrayLike) -> float:
     """Root mean square of ``x`` (0 for an empty array)."""
     x = np.asarray(x, float)
     return float(np.sqrt(np.mean(x * x))) if x.size else float("nan")
 
 
-def error_figures(w_meas, w_model) -> dict:
+def error_figures(w_meas: ArrayLike, w_model: ArrayLike) -> dict:
     """RMS and max error [um], and RMS as % of the measured displacement range."""
     e = np.asarray(w_model, float) - np.asarray(w_meas, float)
     span = float(np.ptp(w_meas)) if np.size(w_meas) else 0.0
@@ -20,7 +21,7 @@ def error_figures(w_meas, w_model) -> dict:
             "rms_pct": 100.0 * r / span if span > 0 else float("nan"), "range_um": span}
 
 
-def noise_floor(w) -> float:
+def noise_floor(w: ArrayLike) -> float:
     """White-noise RMS [um] estimated from the data alone.
 
     Third differences of a smooth signal sampled finely are tiny, while those of white
@@ -36,7 +37,7 @@ def noise_floor(w) -> float:
     return float(1.4826 * mad / np.sqrt(20.0))
 
 
-def loop_figures(v, w) -> dict:
+def loop_figures(v: ArrayLike, w: ArrayLike) -> dict:
     """Shape of one periodic hysteresis loop (pass exactly one cycle).
 
     Returns range, the widest vertical opening between the branches (and as % of the
@@ -74,7 +75,7 @@ class LatencyHistogram:
         self.counts = [0] * (int(top_s / bin_s) + 1)
         self.n, self.max_s = 0, 0.0
 
-    def add(self, x_s: float):
+    def add(self, x_s: float) -> None:
         """Count one latency ``x_s`` [s] (negative counts as 0)."""
         k = int(x_s / self.bin) if x_s > 0 else 0
         self.counts[min(k, len(self.counts) - 1)] += 1

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, plant_run, sensor_run
 from piezo_stage.core.duhem import AXES, StageModel
@@ -131,7 +132,7 @@ class Plant:
         self._has_effects = any(self._effects[a] for a in AXES)
         self._one = np.zeros((2, 1))  # step's command buffer
 
-    def reset(self):
+    def reset(self) -> None:
         """Back to rest: initial hysteresis states, 0 V applied, effects at rest."""
         model = self.config.model
         self._vstate[:] = max(self.v_limits[0], min(self.v_limits[1], 0.0))
@@ -147,7 +148,7 @@ class Plant:
         self.last_true = {a: np.zeros(0) for a in AXES}
         self.last_applied = {a: np.zeros(0) for a in AXES}
 
-    def run(self, vx, vy):
+    def run(self, vx: ArrayLike, vy: ArrayLike) -> dict[str, np.ndarray]:
         """Apply command arrays [V] (one element per command period).
 
         Returns
@@ -162,7 +163,7 @@ class Plant:
         meas = self._advance(vx, vy)
         return {a: meas[i] for i, a in enumerate(AXES)}
 
-    def step(self, vx: float, vy: float):
+    def step(self, vx: float, vy: float) -> tuple[float, float]:
         """One command period; returns (wx, wy) measured [um]: ``run`` on one command,
         through buffers kept for it (the lockstep driver calls this per sample)."""
         c = self._one

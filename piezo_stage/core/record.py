@@ -71,7 +71,7 @@ class Record:
                       self.voltage_exact)
 
 
-def check_time(t, source="record"):
+def check_time(t: np.ndarray, source: str = "record") -> float:
     """Time must be finite, strictly increasing and uniformly sampled."""
     t = np.asarray(t, float)
     if t.ndim != 1 or t.size < 2:

@@ -7,6 +7,8 @@ both axes (seed section 4.3, f = 10 Hz by default).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from piezo_stage.core.errors import ConfigError
@@ -14,9 +16,11 @@ from piezo_stage.core.errors import ConfigError
 KINDS = ("sine", "variable_sine", "steps", "triangle", "seed", "csv")
 
 
-def generate(kind="seed", duration_s=1.0, dt_s=1e-3, frequency_hz=10.0, center_um=21.0,
-             amplitude_um=24.0, axes=("x", "y"), step_levels_um=(10.0, 40.0, 25.0, 55.0),
-             table=None):
+def generate(kind: str = "seed", duration_s: float = 1.0, dt_s: float = 1e-3,
+             frequency_hz: float = 10.0, center_um: float = 21.0, amplitude_um: float = 24.0,
+             axes: Sequence[str] = ("x", "y"),
+             step_levels_um: Sequence[float] = (10.0, 40.0, 25.0, 55.0),
+             table: dict | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Returns (t [s], {axis: w [um]}) sampled every dt_s over duration_s. Kind ``csv``
     takes ``table``: {"t", "wx", "wy"} arrays, as the caller read them (io.csv_table)."""
     if kind not in KINDS:

@@ -30,7 +30,7 @@ from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import ModelError
 
 
-def model_gain(model: StageModel, axis: str, n: int = 2001):
+def model_gain(model: StageModel, axis: str, n: int = 2001) -> tuple[float, float]:
     """(largest, median) incremental gain dw/dv [um/V] of ``axis`` over a full
     up-and-down sweep of the voltage range (coupling input held at the low limit)."""
     lo, hi = model.voltage_limits
@@ -46,7 +46,8 @@ def model_gain(model: StageModel, axis: str, n: int = 2001):
     return float(np.max(slope)), float(np.median(slope))
 
 
-def effects_response(effects: dict, axis: str, rate_hz: float, z: np.ndarray):
+def effects_response(effects: dict, axis: str, rate_hz: float,
+                     z: np.ndarray) -> tuple[np.ndarray, int]:
     """The unmodelled effects' frequency response at z = e^(j w T) for ``axis``, and
     the whole periods of its delay."""
     T = 1.0 / rate_hz
@@ -133,9 +134,10 @@ def _margins(Lw, w):
     return pm, gm, w[cross[0]]
 
 
-def tune(model: StageModel, effects=None, rate_hz=1000.0, phase_margin_deg=60.0,
-         gain_margin_db=10.0, latency_periods=1.0, max_noise_gain=0.3,
-         source="model") -> Tuning:
+def tune(model: StageModel, effects: dict | None = None, rate_hz: float = 1000.0,
+         phase_margin_deg: float = 60.0, gain_margin_db: float = 10.0,
+         latency_periods: float = 1.0, max_noise_gain: float = 0.3,
+         source: str = "model") -> Tuning:
     """See the module docstring. ModelError when the model cannot be tuned from."""
     if not (rate_hz > 0 and 0 < phase_margin_deg < 90 and gain_margin_db > 0
             and latency_periods >= 0):

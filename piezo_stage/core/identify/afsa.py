@@ -28,11 +28,18 @@ over the whole record. Evaluations are batched and compiled; all runs are seeded
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from piezo_stage.core._jit import as_f64, branch_rms_batch, duhem_rms_batch
 from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
 from piezo_stage.core.identify.regress import legendre_to_power
+
+if TYPE_CHECKING:  # annotations only (api imports this module)
+    from piezo_stage.core.identify.api import IdentifyOptions
+    from piezo_stage.core.identify.segmentation import Segmentation
 
 DEFAULTS = {"fish": 30, "iterations": 200, "visual": 0.3, "step": 0.1, "delta": 0.618,
             "try_number": 5, "f_min": 0.0, "f_max": 0.9,
@@ -122,7 +129,10 @@ class _WholeProblem(_Problem):
         return duhem_rms_batch(self.v, self.w, self.v[0], self.w0, A, H, out)
 
 
-def swarm_minimize(J, dim, rng, bat=False, budget=None, progress=None, label="", **kw):
+def swarm_minimize(J: Callable[[np.ndarray], np.ndarray], dim: int, rng: np.random.Generator,
+                   bat: bool = False, budget: int | None = None,
+                   progress: Callable[..., None] | None = None, label: str = "",
+                   **kw: float) -> tuple[np.ndarray, float, dict]:
     """Minimise J over [0, 1]^dim. Returns (best x, best value, history).
 
     history: {"best": best value per iteration, "evaluations": cumulative count}.
@@ -209,14 +219,15 @@ def swarm_minimize(J, dim, rng, bat=False, budget=None, progress=None, label="",
     return best_x, best_y, hist
 
 
-def coefficient_bound(v, w, alpha_hi):
+def coefficient_bound(v: np.ndarray, w: np.ndarray, alpha_hi: float) -> float:
     """Box half-width for the Legendre coefficients [um/V]: H = dw/dv + alpha w
     (ascending; - alpha w descending) is at most alpha_hi max|w| + a few slopes."""
     slope = np.ptp(w) / max(np.ptp(v), 1e-12)
     return 1.5 * (alpha_hi * np.max(np.abs(w)) + 3 * slope)
 
 
-def fit_swarm(v, w, seg, opts, progress=None):
+def fit_swarm(v: np.ndarray, w: np.ndarray, seg: Segmentation, opts: IdentifyOptions,
+              progress: Callable[..., None] | None = None) -> tuple[DuhemModel, int, dict]:
     """Identify one axis with afsa or afsa-bat; returns (DuhemModel, evaluations, history)."""
     v, w = as_f64(v), as_f64(w)
     kw = {**DEFAULTS, **(opts.afsa or {})}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -10,7 +11,12 @@ import numpy as np
 from piezo_stage.core.duhem import OTHER, DuhemModel, DuhemState
 from piezo_stage.core.errors import DataError, SolverError
 from piezo_stage.core.identify.regress import DuhemRegression
-from piezo_stage.core.identify.segmentation import branch_monotone, segment, voltage_noise
+from piezo_stage.core.identify.segmentation import (
+    Segmentation,
+    branch_monotone,
+    segment,
+    voltage_noise,
+)
 from piezo_stage.core.metrics import error_figures, noise_floor
 from piezo_stage.core.record import Record
 
@@ -25,10 +31,12 @@ COLLINEAR = 0.99
 
 @dataclass
 class IdentifyOptions:
-    """method: fast | afsa | afsa-bat; structure: whole | segmented; n, m: degrees of f
-    and g; coupling: 'auto' (fit a coupling term when the other axis's voltage moves
-    and the method is fast), 'on' or 'off'; budget: objective evaluations (None for
-    the method's default); seed for the swarms; afsa: swarm settings."""
+    """How to identify an axis.
+
+    method: fast | afsa | afsa-bat; structure: whole | segmented; n, m: degrees of f and
+    g; coupling: 'auto' (fit a coupling term when the other axis's voltage moves and the
+    method is fast), 'on' or 'off'; budget: objective evaluations (None for the method's
+    default); seed for the swarms; afsa: swarm settings."""
 
     method: str = "fast"
     structure: str = "segmented"
@@ -86,7 +94,7 @@ def _axis_data(rec: Record, axis: str):
     return rec.v[axis], rec.w[axis]
 
 
-def check_identifiable(v, source="record"):
+def check_identifiable(v: np.ndarray, source: str = "record") -> Segmentation:
     """Segment the voltage and refuse records that cannot support a fit."""
     seg = segment(v)
     if len(seg.turning_points) == 0:
@@ -100,14 +108,15 @@ def check_identifiable(v, source="record"):
     return seg
 
 
-def free_response(v, alpha):
+def free_response(v: np.ndarray, alpha: Sequence[float]) -> np.ndarray:
     """The Duhem output's response to its initial value (w0 = 1): the running product
     of 1 / (1 + alpha |dv|), alpha = (ascending, descending) [1/V]."""
     dv = np.diff(v, prepend=v[0])
     return np.cumprod(1.0 / (1.0 + np.where(dv >= 0, alpha[0], alpha[1]) * np.abs(dv)))
 
 
-def simulate_axis(model, coupling, v, v_other, w_meas=None):
+def simulate_axis(model: DuhemModel, coupling: DuhemModel | None, v: np.ndarray,
+                  v_other: np.ndarray | None, w_meas: np.ndarray | None = None) -> np.ndarray:
     """Model output over a record; with w_meas, the initial output is re-estimated
     (the Duhem state is the output itself: one least-squares scalar)."""
     if w_meas is not None:
@@ -127,7 +136,7 @@ def simulate_axis(model, coupling, v, v_other, w_meas=None):
 
 
 def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
-                  progress=None) -> AxisResult:
+                  progress: Callable[..., None] | None = None) -> AxisResult:
     """Identify one axis of a record. Raises DataError on unusable data and
     SolverError when the solver does not improve on its starting point."""
     opts = opts or IdentifyOptions()
@@ -195,7 +204,8 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
                       noise_floor(w), evaluations, seconds, history, notes, branch)
 
 
-def predict_axis(res: AxisResult, rec: Record):
+def predict_axis(res: AxisResult,
+                 rec: Record) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An identified axis's output over a record (initial output re-estimated; a
     noisy voltage is made monotone per branch as for identification).
     -> (v [V], measured w [um], model output [um])."""

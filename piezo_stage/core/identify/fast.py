@@ -9,10 +9,12 @@ takes a fraction of a second.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+
 import numpy as np
 from scipy.optimize import minimize
 
-from piezo_stage.core.identify.regress import DuhemRegression
+from piezo_stage.core.identify.regress import DuhemRegression, Fit
 
 LOG_ALPHA_BOUNDS = (np.log(1e-5), np.log(10.0))
 # A coupling term's alpha stays above 1e-3 1/V and above a third of the smallest branch
@@ -25,8 +27,10 @@ COUPLING_ALPHA_SPAN = np.log(3.0)
 GRID = 21
 
 
-def fit_fast(reg: DuhemRegression, budget: int | None = None, progress=None, x0=None,
-             grid=GRID, step=0.7):
+def fit_fast(reg: DuhemRegression, budget: int | None = None,
+             progress: Callable[[int, float], None] | None = None,
+             x0: Sequence[float] | None = None, grid: int = GRID,
+             step: float = 0.7) -> tuple[np.ndarray, Fit, list[float]]:
     """Returns (alphas, Fit, history) where history is the best RMS after each evaluation.
 
     ``x0`` (alphas) skips the grid and polishes from there with a simplex of ``step``

@@ -18,11 +18,13 @@ Parameterisations (honest about identifiability):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.polynomial import Legendre, Polynomial
 from numpy.polynomial import legendre as L
+from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, duhem_regressors
 from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
@@ -33,7 +35,7 @@ def _basis(v, lo, hi, deg):
     return np.ascontiguousarray(L.legvander(x, deg))
 
 
-def legendre_to_power(c, lo, hi):
+def legendre_to_power(c: ArrayLike, lo: float, hi: float) -> np.ndarray:
     """Legendre coefficients on [lo, hi] -> power coefficients in v."""
     return Legendre(c, domain=[lo, hi]).convert(kind=Polynomial).coef
 
@@ -45,13 +47,14 @@ class Fit:
     rms: float
 
 
-def gram(X, w):
+def gram(X: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """(X'X, X'w, w'w): all a least-squares fit needs. One pass of BLAS over the tall
     matrix; every later step is p x p."""
     return X.T @ X, X.T @ w, float(w @ w)
 
 
-def gram_blocks(blocks, w):
+def gram_blocks(blocks: Sequence[np.ndarray],
+                w: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """``gram`` of the columns side by side, without building the wide matrix."""
     if len(blocks) == 1:
         return gram(blocks[0], w)
@@ -59,7 +62,7 @@ def gram_blocks(blocks, w):
     return np.block(rows), np.concatenate([bi.T @ w for bi in blocks]), float(w @ w)
 
 
-def solve_gram(G, b, ww, n) -> Fit:
+def solve_gram(G: np.ndarray, b: np.ndarray, ww: float, n: int) -> Fit:
     """The least-squares solution from the normal equations, on unit-norm columns (the
     Legendre basis keeps them well conditioned); a minimum-norm solve of the small
     system where they are not. RMS from r'r = w'w - 2 theta'b + theta'G theta."""
@@ -83,21 +86,29 @@ class DuhemRegression:
     ----------
     v, w : arrays (N,)
         Voltage [V] and measured displacement [um].
-    structure : 'whole' or 'segmented'
+    structure : {'whole', 'segmented'}
+        One (alpha, f, g) for both branches, or one per branch.
     n, m : int
         Degrees of f and g.
     v_other : array (N,) or None
         The other axis's voltage, to fit a coupling term (whole, degrees 1 and 1).
+    coupling_deg : int
+        Degree of the coupling term's polynomial.
+    coupling_state : bool
+        Whether the coupling term's initial output is a free coefficient.
 
-    Attributes ``transform`` (a linear operator on the columns, X -> E X: an
+    Notes
+    -----
+    The attributes ``transform`` (a linear operator on the columns, X to E X: an
     unmodelled effect such as creep or dynamics acting after the hysteresis) and
     ``extra`` (fixed extra columns, e.g. a drift trend, appended after the transform)
     keep the fit one linear least-squares problem for fixed alphas; their
     coefficients come last in theta.
     """
 
-    def __init__(self, v, w, structure="segmented", n=3, m=2, v_other=None,
-                 coupling_deg=1, coupling_state=True):
+    def __init__(self, v: ArrayLike, w: ArrayLike, structure: str = "segmented", n: int = 3,
+                 m: int = 2, v_other: ArrayLike | None = None, coupling_deg: int = 1,
+                 coupling_state: bool = True):
         self.v = as_f64(v)
         self.w = as_f64(w)
         self.structure = structure
@@ -125,7 +136,7 @@ class DuhemRegression:
             self._Xc = np.empty((self.v.size, 2 * (self.cdeg + 1) + self.cstate))
 
     @property
-    def n_alpha(self):
+    def n_alpha(self) -> int:
         """How many alphas the regression's model has."""
         return (1 if self.structure == "whole" else 2) + (self.v_other is not None)
 
@@ -152,7 +163,7 @@ class DuhemRegression:
             out[:, -1] = X[:, -1]
         return out
 
-    def blocks(self, alphas):
+    def blocks(self, alphas: Sequence[float]) -> list[np.ndarray]:
         """The regressor columns for these alphas as blocks [main, coupling] (the main
         block is a buffer reused by the next call: use or copy it before then)."""
         alphas = np.atleast_1d(np.asarray(alphas, float))
@@ -164,12 +175,12 @@ class DuhemRegression:
             out.append(self._coupling_columns(alphas[-1]))
         return out
 
-    def design(self, alphas):
+    def design(self, alphas: Sequence[float]) -> np.ndarray:
         """The regressor columns (N, p) for these alphas."""
         b = self.blocks(alphas)
         return b[0] if len(b) == 1 else np.hstack(b)
 
-    def column_blocks(self, alphas):
+    def column_blocks(self, alphas: Sequence[float]) -> list[np.ndarray]:
         """Every column of the fit for these alphas, in blocks: design blocks
         transformed, then the extra columns."""
         out = self.blocks(alphas)
@@ -179,21 +190,22 @@ class DuhemRegression:
             out.append(self.extra)
         return out
 
-    def columns(self, alphas):
+    def columns(self, alphas: Sequence[float]) -> np.ndarray:
         """Every column of the fit for these alphas: design, transformed, extra."""
         b = self.column_blocks(alphas)
         return b[0] if len(b) == 1 else np.hstack(b)
 
-    def solve(self, alphas) -> Fit:
+    def solve(self, alphas: Sequence[float]) -> Fit:
         """Exact least squares in the coefficients for these alphas."""
         self.evaluations += 1
         return solve_gram(*gram_blocks(self.column_blocks(alphas), self.w), len(self.w))
 
-    def predict(self, alphas, theta):
+    def predict(self, alphas: Sequence[float], theta: np.ndarray) -> np.ndarray:
         """The fitted output for these alphas and coefficients [um]."""
         return self.columns(alphas) @ theta
 
-    def models(self, alphas, theta):
+    def models(self, alphas: Sequence[float],
+               theta: np.ndarray) -> tuple[DuhemModel, DuhemModel | None]:
         """(main DuhemModel, coupling DuhemModel or None) in power coefficients [V]."""
         alphas = np.atleast_1d(np.asarray(alphas, float))
         d1 = self.D + 1

@@ -12,13 +12,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import DataError
 
 
 @dataclass
 class Segmentation:
-    """labels[k] = +1 (ascending) or -1 (descending); segments as (start, stop, sign)."""
+    """A record split by branch: labels[k] = +1 (ascending) or -1 (descending); segments
+    as (start, stop, sign)."""
 
     labels: np.ndarray
     segments: list
@@ -34,7 +36,7 @@ class Segmentation:
         return int(np.count_nonzero(self.mask(ascending)))
 
 
-def voltage_noise(v) -> float:
+def voltage_noise(v: ArrayLike) -> float:
     """Robust white-noise RMS of a voltage record [V] (third differences, MAD)."""
     d3 = np.diff(np.asarray(v, float), 3)
     if d3.size == 0:
@@ -42,7 +44,7 @@ def voltage_noise(v) -> float:
     return float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / np.sqrt(20.0))
 
 
-def segment(v, threshold_V: float | None = None) -> Segmentation:
+def segment(v: ArrayLike, threshold_V: float | None = None) -> Segmentation:
     """Label each sample of ``v`` [V] by branch; see the module docstring."""
     v = np.asarray(v, float)
     if v.size < 3:
@@ -82,7 +84,7 @@ def segment(v, threshold_V: float | None = None) -> Segmentation:
     return Segmentation(labels, segments, np.asarray(turning, int), float(thr))
 
 
-def branch_monotone(v, seg: Segmentation | None = None):
+def branch_monotone(v: ArrayLike, seg: Segmentation | None = None) -> np.ndarray:
     """The voltage with noise-driven micro-reversals removed inside each branch.
 
     The discrete Duhem law accumulates |dv|: sensor noise on a *measured* voltage adds
