@@ -92,8 +92,9 @@ def test_gap_command_report_and_closing_the_loop(tmp_path):
     doc["effects"] = {}
     with open(tmp_path / "m0.yaml", "w") as fh:
         yaml.safe_dump(doc, fh)
-    _cli("simulate", "--in", tmp_path / "v.csv", "--out", tmp_path / "sim0.csv", "--model",
-         tmp_path / "m0.yaml")
+    r0 = _cli("simulate", "--in", tmp_path / "v.csv", "--out", tmp_path / "sim0.csv",
+              "--model", tmp_path / "m0.yaml")
+    assert r0.returncode == 0, r0.stderr
     sim0 = read_table(tmp_path / "sim0.csv", ["wx"])["wx"]
     e = lambda s: np.sqrt(np.mean((s - hold.w["x"] - np.mean(s - hold.w["x"])) ** 2))  # noqa
     assert e(sim) < 0.7 * e(sim0)
