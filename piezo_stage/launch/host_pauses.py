@@ -8,7 +8,9 @@ pinned to it at SCHED_FIFO 99, that sleeps ``period_s`` at a time and records ev
 wake-up later than ``threshold_s`` as a gap ``(start_ns, end_ns)`` on the system clock
 (the ROS wall clock). A host pause is where the gaps of *all* CPUs overlap: a CPU busy
 with a higher-priority task cannot delay a FIFO-99 sentinel, and a single stolen CPU
-does not stop the others. Cost: about 2,000 short wake-ups per second per CPU.
+does not stop the others. Cost: about 1,000 short wake-ups per second per CPU (each
+sentinel used 7-9 % of a CPU at 2,000; on a 2-core machine whose real-time loop
+already needs most of both, the instrument must not take what it measures).
 
 Run as ``python -m piezo_stage.launch.host_pauses CPU PERIOD THRESHOLD``: sleeps until
 stdin closes, then prints its gaps (one ``start end`` pair of ns per line).
@@ -62,7 +64,7 @@ def overlap(per_cpu: list[list[tuple[int, int]]], min_ns: int = 0) -> list[tuple
 class HostPauseMonitor:
     """Context manager: sentinels on every CPU while the block runs; ``pauses`` after."""
 
-    def __init__(self, period_s: float = 0.0005, threshold_s: float = 0.0015):
+    def __init__(self, period_s: float = 0.001, threshold_s: float = 0.0015):
         self.period_s, self.threshold_s = period_s, threshold_s
         self.procs, self.pauses, self.per_cpu = [], [], []
 
