@@ -411,6 +411,33 @@ def iir_columns(b: F64, a: F64, X: F64, out: F64) -> F64:
 
 
 @njit
+def delay_columns(X: F64, n: int, fr: float, out: F64) -> F64:
+    """The fractional delay y_k = (1 - fr) x_{k-n} + fr x_{k-n-1} of every column of
+    X (N, p), zeros before the start: the delay effect's one formula (its streaming
+    form runs it over the delay line's state followed by the new samples)."""
+    for k in range(X.shape[0]):
+        for j in range(X.shape[1]):
+            a = X[k - n, j] if k >= n else 0.0
+            b = X[k - n - 1, j] if k >= n + 1 else 0.0
+            out[k, j] = (1.0 - fr) * a + fr * b
+    return out
+
+
+@njit
+def fold_branches(X: F64, d1: int, free: bool, out: F64) -> F64:
+    """Whole-curve columns from per-branch regressors X = [ascending (d1), descending
+    (d1), free response]: f sees ascending - descending, g ascending + descending
+    (rising sees f + g, falling g - f); the free response last when ``free``."""
+    for k in range(X.shape[0]):
+        for j in range(d1):
+            out[k, j] = X[k, j] - X[k, d1 + j]
+            out[k, d1 + j] = X[k, j] + X[k, d1 + j]
+        if free:
+            out[k, 2 * d1] = X[k, X.shape[1] - 1]
+    return out
+
+
+@njit
 def lowpass_mean_columns(poles: F64, X: F64, out: F64) -> F64:
     """The mean of first-order low-passes y = (1 - p) x + p y_prev over ``poles``, of
     every column of X from rest, in one pass (the creep operator's slow part)."""

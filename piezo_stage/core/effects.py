@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import signal
 
+from piezo_stage.core._jit import delay_columns
 from piezo_stage.core.errors import ConfigError
 
 EFFECTS = ("creep", "dynamics", "delay", "drift")
@@ -174,25 +175,20 @@ class Delay:
 
     def process(self, x: ArrayLike) -> np.ndarray:
         """The next chunk of the signal, delayed (state carried)."""
-        x = np.asarray(x, float)
-        ext = np.concatenate([self._buf, x])
-        m = x.size
-        # y_k = (1-fr) x_{k-n} + fr x_{k-n-1}; ext index of x_k is k + n + 1
-        k = np.arange(m) + 1
-        y = (1 - self._frac) * ext[k] + self._frac * ext[k - 1]
-        self._buf = ext[-(self._n + 1):].copy()
+        ext = np.concatenate([self._buf, np.asarray(x, float)])[:, None]
+        # the column formula over the line's state and the new samples: x_k sits at
+        # index k + n + 1 of ext, so its output is row k + n + 1
+        y = delay_columns(ext, self._n, self._frac, np.empty_like(ext))[self._n + 1:, 0]
+        self._buf = ext[-(self._n + 1):, 0].copy()
         return y
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """The delay on the columns of X, zeros before the start."""
         X = np.asarray(X, float)
-        n, fr = self._n, self._frac
-        out = np.zeros_like(X)
-        if n < X.shape[0]:  # y_k = (1-fr) x_{k-n} + fr x_{k-n-1}, zeros before the start
-            out[n:] = (1 - fr) * X[:X.shape[0] - n]
-        if fr and n + 1 < X.shape[0]:
-            out[n + 1:] += fr * X[:X.shape[0] - n - 1]
-        return out
+        flat = X.ndim == 1
+        X2 = np.ascontiguousarray(X[:, None] if flat else X)
+        out = delay_columns(X2, self._n, self._frac, np.empty_like(X2))
+        return out[:, 0] if flat else out
 
 
 class Drift:

@@ -26,7 +26,7 @@ from numpy.polynomial import Legendre, Polynomial
 from numpy.polynomial import legendre as L
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import as_f64, duhem_regressors
+from piezo_stage.core._jit import as_f64, duhem_regressors, fold_branches
 from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
 
 
@@ -154,14 +154,7 @@ class DuhemRegression:
     def _coupling_columns(self, a_c):
         X = duhem_regressors(self.v_other, self.v_other[0], np.array([a_c, a_c]), self.Bo,
                              self.Bo, self._Xo)
-        d1 = self.cdeg + 1
-        Xa, Xd = X[:, :d1], X[:, d1:2 * d1]
-        out = self._Xc
-        np.subtract(Xa, Xd, out=out[:, :d1])
-        np.add(Xa, Xd, out=out[:, d1:2 * d1])
-        if self.cstate:
-            out[:, -1] = X[:, -1]
-        return out
+        return fold_branches(X, self.cdeg + 1, self.cstate, self._Xc)
 
     def blocks(self, alphas: Sequence[float]) -> list[np.ndarray]:
         """The regressor columns for these alphas as blocks [main, coupling] (the main
