@@ -49,7 +49,7 @@ def missing_links(node) -> str:
 
 class DriverState:
     """What a loop node knows of the driver, from its announcements on ``state``
-    (taken in the lean loop before the node's data, so lockstep stays deterministic):
+    (taken by LeanExecutor before the node's data, so lockstep stays deterministic):
     the state by sample stamp (``timeline``), the look-ahead, whether the set runs in
     real time (the node then takes its real-time priority ``prio``), the driver's
     voltage limits. ``bad`` counts malformed announcements."""

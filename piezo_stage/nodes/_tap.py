@@ -1,7 +1,7 @@
 """Taking every topic of the set as raw CDR: what the recorder and the live view share.
 
 A ``TopicTap`` subscribes to the topic contract at start (so nothing of a lockstep run
-is missed) and to every other topic that discovery finds, through the lean loop, with
+is missed) and to every other topic that discovery finds, through LeanExecutor, with
 the bytes as received (no deserialize/serialize round trip). For each topic it calls
 ``on_topic(topic, msgtype, kind)`` once, then ``on_message(topic, data, stamp_ns,
 info)`` per message, with the header stamp of stamped types (None otherwise).
