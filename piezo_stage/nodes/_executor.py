@@ -73,6 +73,11 @@ class LeanExecutor(Executor):
       blocks in it; None or absent: no tick, as in lockstep). The executor calls the
       tick once the deadline has passed, right after taking what has arrived, and gives
       the base executor its turn right after a tick, where the period's slack is.
+    - ``lean_take_at_tick``: True while a tick is scheduled: the executor does not
+      wake for each per-sample message but sleeps to the deadline and takes what
+      arrived just before the tick (the driver in real time: commands are stamped for
+      a later tick, so one wake per sample instead of two; their middleware reception
+      time is still in the message info).
     - ``lean_batch_s``: a node off the loop's critical path (the recorder, the live
       view) waits that long between passes and takes what arrived in one go.
 
@@ -148,7 +153,10 @@ class LeanExecutor(Executor):
         deadline = getattr(node, "lean_deadline", None) if self.ticking else None
         if deadline is not None:
             timeout = min(timeout, max(0.0, deadline - time.monotonic()))
-        if self._ws is not None:
+        if deadline is not None and getattr(node, "lean_take_at_tick", False):
+            if timeout > 0:
+                time.sleep(timeout)
+        elif self._ws is not None:
             self._ws.clear_entities()
             for h, *_ in self._hot:
                 self._ws.add_subscription(h)

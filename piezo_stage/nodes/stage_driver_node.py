@@ -128,6 +128,7 @@ class StageDriver(Node):
             self.tick(0, None, False)  # sample 0: the stage at rest
         else:
             self.lean_deadline = 0.0   # the first real-time tick: now
+            self.lean_take_at_tick = True  # commands are due at a later tick: no wake each
             self.rt_priority = set_realtime_priority(p["thread_priority"], self.get_logger())
 
     # -- time -------------------------------------------------------------------------
