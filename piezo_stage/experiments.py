@@ -321,3 +321,65 @@ def table(doc) -> str:
                      f"{'-' if pct is None else f'{pct:.3f}':>8} "
                      f"{'' if red is None else f'{red:.1f} %':>9}")
     return "\n".join(lines)
+
+
+# -- the relay experiment of `piezo-stage tune --relay` ------------------------------------
+def relay_case(setpoint_um: float = 30.0, duration_s: float = 3.0, amplitude_V: float = 2.0,
+               hysteresis_um: float = 0.0) -> Case:
+    """Both axes held at ``setpoint_um`` with the feedforward's hold voltage, the
+    controller's feedback a relay (core.control.Relay) of ``amplitude_V``."""
+    t = np.arange(int(round(duration_s * RATE_HZ)) + 1) / RATE_HZ
+    w = np.full_like(t, float(setpoint_um))
+    return Case("relay", 0.0, t, {"x": w, "y": w.copy()}, "relay", moving="",
+                eval_s=duration_s, params={
+                    "feedforward": {"inverse_feedforward": True},
+                    "controller": {"feedback": True, "relay_amplitude_V": float(amplitude_V),
+                                   "relay_hysteresis_um": float(hysteresis_um)}})
+
+
+def relay_points(bag, amplitude_V: float, settle_s: float = 1.0) -> dict:
+    """Each axis's ultimate point (core.tuning.relay_point) from a relay run's bag: the
+    samples of the first armed stretch from ``settle_s`` after arming to the end of the
+    held trajectory, on the driver's sample grid (a missed tick holds its voltage and
+    its position is interpolated); the latency is the driver's look-ahead."""
+    from piezo_stage.core.tuning import relay_point
+    from piezo_stage.io.run_bag import read_run
+    run = read_run(bag)
+    states = sorted(run.states)
+    starts = [i for i, (_, st) in enumerate(states) if st == "armed"]
+    if not starts:
+        raise DataError("relay run: the set never armed")
+    i = starts[0]
+    a0 = states[i][0] + int(settle_s * 1e9)
+    a1 = states[i + 1][0] if i + 1 < len(states) else float("inf")
+    ref = [k for k in run.desired_um if a0 <= k < a1]
+    if not ref:
+        raise DataError("relay run: no samples after the settling time")
+    dt_ns = int(round(1e9 / RATE_HZ))
+    sel = (run.t_ns >= a0) & (run.t_ns <= max(ref))
+    t, v, w = run.t_ns[sel], run.v_V[sel], run.w_um[sel]
+    if t.size < 50:
+        raise DataError(f"relay run: {t.size} samples after settling; run it longer")
+    grid = np.arange(int(t[0]), int(t[-1]) + 1, dt_ns)
+    idx = np.searchsorted(t, grid, side="right") - 1          # the voltage held
+    lookahead_ms = float(run.driver.get("lookahead_ms", 1e3 / RATE_HZ))
+    latency = max(1, int(round(lookahead_ms * 1e6 / dt_ns)))
+    out = {}
+    for j, a in enumerate("xy"):
+        y = np.interp(grid, t, w[:, j])
+        out[a] = relay_point(v[idx, j], y, RATE_HZ, amplitude_V, latency)
+    return out
+
+
+def run_relay(bag, config, plant=None, model=None, mode="lockstep", setpoint_um=30.0,
+              duration_s=3.0, amplitude_V=2.0, hysteresis_um=0.0, settle_s=1.0, extra=None,
+              namespace="/stage", env=None) -> dict:
+    """Run the relay experiment through the node set into ``bag``; each axis's
+    ultimate point. RuntimeError when the node set fails."""
+    if not settle_s + 0.5 < duration_s:
+        raise ConfigError("relay: the duration must exceed the settling time by 0.5 s")
+    case = relay_case(setpoint_um, duration_s, amplitude_V, hysteresis_um)
+    rc, failed = run_case(case, bag, config, plant, model, mode, extra, namespace, env)
+    if rc != 0:
+        raise RuntimeError(f"the relay run failed: {'; '.join(failed) or f'exit {rc}'}")
+    return relay_points(bag, amplitude_V, settle_s)

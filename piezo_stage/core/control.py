@@ -120,6 +120,51 @@ class CompositeAxis:
         return min(max(u, lo), hi), (u > hi or u < lo)
 
 
+class Relay:
+    """Relay feedback for an autotuning experiment (Astrom and Hagglund): the output is
+    ``bias + amplitude`` while the error is above ``+hysteresis`` and ``bias -
+    amplitude`` below ``-hysteresis`` (it keeps its side in between, so sensor noise
+    does not chatter it). A loop closed through it oscillates where its phase is -180
+    deg (less asin(hysteresis / error amplitude)): the ultimate point.
+
+    The bias adapts, so the oscillation straddles the asked position however far off
+    the feedforward's hold voltage is: it integrates the error slowly (``bias_gain``
+    [V/(um s)]: centres the oscillation) plus the relay's own side (``bias_rate`` [1/s]:
+    moves by bias_rate x amplitude V/s towards the side the relay dwells on). The error
+    term alone approaches zero error from one side without ever crossing it (the
+    relay would never switch) and can rest inside the hysteresis band; the side term
+    keeps moving until the relay switches, as long as bias_gain x hysteresis <
+    bias_rate x amplitude. Both act over many oscillation periods, so they barely move
+    the point measured."""
+
+    def __init__(self, amplitude_V: float, hysteresis_um: float, dt: float,
+                 bias_gain: float = 20.0, bias_rate: float = 5.0,
+                 bias_limit_V: float = 150.0):
+        if not (amplitude_V > 0 and hysteresis_um >= 0 and dt > 0 and bias_gain >= 0
+                and bias_rate > 0):
+            raise ConfigError("relay: amplitude > 0 V, hysteresis >= 0 um, dt > 0, "
+                              "bias gain >= 0, bias rate > 0")
+        self.d, self.eps, self.dt = float(amplitude_V), float(hysteresis_um), float(dt)
+        self.bias_gain, self.bias_rate = float(bias_gain), float(bias_rate)
+        self.bias_limit = float(bias_limit_V)
+        self.reset()
+
+    def reset(self) -> None:
+        """Start again on the upper side with no bias."""
+        self.side = 1.0
+        self.bias = 0.0
+
+    def update(self, e_um: float) -> float:
+        """The relay's output [V] (added to the feedforward) for error ``e_um``."""
+        if e_um > self.eps:
+            self.side = 1.0
+        elif e_um < -self.eps:
+            self.side = -1.0
+        self.bias += (self.bias_gain * e_um + self.bias_rate * self.side * self.d) * self.dt
+        self.bias = max(-self.bias_limit, min(self.bias_limit, self.bias))
+        return self.bias + self.side * self.d
+
+
 def clamp_slew(v: dict, prev: dict, limits: tuple[float, float] | dict,
                max_step: float | dict) -> tuple[dict, bool]:
     """Clamp each axis's voltage to ``limits`` (V: (lo, hi), or per axis {axis: (lo,

@@ -86,17 +86,22 @@ class Tuning:
     gains_um_per_V: dict = field(default_factory=dict)
     method: str = ""
     source: str = ""
+    notes: str = ""
 
     def summary(self) -> str:
         """The gains, crossover, bandwidth and margins as printed lines."""
-        g = ", ".join(f"{a} {hi:.3f} (median {md:.3f})"
+        g = ", ".join(f"{a} {hi:.3f}" + (f" (median {md:.3f})" if md != hi else "")
                       for a, (hi, md) in self.gains_um_per_V.items())
-        return (f"method: {self.method}\nmodel gain dw/dv [um/V]: {g}\n"
+        what = "model gain dw/dv" if self.source == "model" else "measured loop gain"
+        return ((self.notes + "\n" if self.notes else "") +
+                f"method: {self.method}\n{what} [um/V]: {g}\n"
                 f"gains: kp {self.kp:.4g} V/um, ki {self.ki:.4g} V/(um s), kd {self.kd:g}\n"
                 f"crossover {self.crossover_hz:.1f} Hz, expected closed-loop bandwidth "
                 f"{self.bandwidth_hz:.1f} Hz (-3 dB), phase margin "
                 f"{self.phase_margin_deg:.1f} deg, gain margin {self.gain_margin_db:.1f} dB "
-                "(worst axis, at the steepest point of the branches); sensor noise "
+                + ("(worst axis, at the steepest point of the branches)"
+                   if self.source == "model" else "(worst axis, at the measured gain)")
+                + "; sensor noise "
                 f"passed to the true position: {self.noise_gain:.2f} x its RMS")
 
     def params_yaml(self) -> str:
@@ -161,6 +166,22 @@ def tune(model: StageModel, effects: dict | None = None, rate_hz: float = 1000.0
         plants[a] = hi * H * z ** (-L)
     if not plants:
         raise ModelError("tune: the model has no axes")
+    method = (f"discrete loop shaping: the largest crossover with phase margin >= "
+              f"{phase_margin_deg:g} deg and gain margin >= {gain_margin_db:g} dB on both "
+              f"axes, PI on the steepest model gain, {L} period(s) of latency, the model's "
+              f"effects at {rate_hz:g} Hz, white sensor noise passed to the true position "
+              f"at most {max_noise_gain:g} x its RMS")
+    return _shape(plants, w, T, phase_margin_deg, gain_margin_db, max_noise_gain, gains,
+                  method, source)
+
+
+def _shape(plants: dict, w: np.ndarray, T: float, phase_margin_deg: float,
+           gain_margin_db: float, max_noise_gain: float, gains: dict, method: str,
+           source: str, notes: str = "") -> Tuning:
+    """The PI search both tunings share: on a log grid of (kp, ki), the largest
+    crossover whose loop meets the margins and the noise bound on every axis's plant
+    response ``plants[axis]`` (at z = e^(j w))."""
+    z = np.exp(1j * w)
     integ = T * z / (z - 1)
     best = None
     for ki in np.geomspace(1.0, 1e5, 161):
@@ -177,18 +198,107 @@ def tune(model: StageModel, effects: dict | None = None, rate_hz: float = 1000.0
             if best is None or worst[2] > best[2][2]:
                 best = (kp, ki, worst)
     if best is None:
-        raise ModelError("tune: no PI gains meet the margins on this model")
+        raise ModelError("tune: no PI gains meet the margins on this "
+                         f"{'model' if source == 'model' else 'loop'}")
     kp, ki, (pm, gm, wc) = best
     C = kp + ki * integ
     bw = min(_bandwidth(C * P, w) for P in plants.values())
     noise = max(_noise_gain(C * P, w) for P in plants.values())
-    method = (f"discrete loop shaping: the largest crossover with phase margin >= "
-              f"{phase_margin_deg:g} deg and gain margin >= {gain_margin_db:g} dB on both "
-              f"axes, PI on the steepest model gain, {L} period(s) of latency, the model's "
-              f"effects at {rate_hz:g} Hz, white sensor noise passed to the true position "
-              f"at most {max_noise_gain:g} x its RMS")
     return Tuning(float(kp), float(ki), 0.0, wc / (2 * math.pi * T), bw / (2 * math.pi * T),
-                  pm, gm, noise, gains, method, source)
+                  pm, gm, noise, gains, method, source, notes)
+
+
+@dataclass
+class RelayPoint:
+    """One axis's ultimate point from a relay experiment: the loop's response where
+    it oscillates (from the controller's command to the measured position, the loop's
+    latency included), as measured."""
+    freq_hz: float             # oscillation frequency
+    gain_um_per_V: float       # |G| there (1 / the ultimate gain)
+    phase_deg: float           # arg G there, unwrapped (-180, or -180 - n x 360)
+    amplitude_um: float        # first-harmonic amplitude of the measured position
+    cycles: int                # whole cycles the figures come from
+    latency_periods: int       # command-to-application latency included in G
+
+    @property
+    def ultimate_gain(self) -> float:
+        """Ku [V/um]."""
+        return 1.0 / self.gain_um_per_V
+
+    @property
+    def ultimate_period_s(self) -> float:
+        """Tu [s]."""
+        return 1.0 / self.freq_hz
+
+
+def relay_point(u_V: np.ndarray, y_um: np.ndarray, rate_hz: float, amplitude_V: float,
+                latency_periods: int = 1, min_cycles: int = 5) -> RelayPoint:
+    """The ultimate point of one axis from a relay experiment's samples: ``u_V`` the
+    voltage applied at each sample, ``y_um`` the position measured at it (uniformly
+    sampled at ``rate_hz``, the oscillation settled), ``amplitude_V`` the relay's.
+    The period is the mean spacing of the relay's upward switches; G = Y1 / U1, the
+    ratio of the first harmonics over the whole cycles between the first and the last
+    upward switch, times the latency's e^(-j w L T) (a command is computed L periods
+    before it applies; the phase is kept unwrapped). ModelError when there is no
+    sustained oscillation."""
+    u, y = np.asarray(u_V, float), np.asarray(y_um, float)
+    if u.shape != y.shape or u.ndim != 1 or not np.all(np.isfinite(u) & np.isfinite(y)):
+        raise ModelError("relay: voltage and position must be finite, one sample each")
+    up = np.nonzero(np.diff(u) > amplitude_V)[0] + 1   # a switch moves by 2 x amplitude
+    if up.size < min_cycles + 1:
+        raise ModelError(f"relay: {max(up.size - 1, 0)} oscillation cycle(s), need "
+                         f"{min_cycles}: no sustained oscillation (relay amplitude too "
+                         "small for the sensor noise, or the loop is not closed)")
+    n = int(up[-1] - up[0])
+    m = int(up.size - 1)
+    k = np.arange(n)
+    omega = 2 * math.pi * m / n                       # rad per sample
+    basis = np.exp(-1j * omega * k)
+    U1 = np.dot(u[up[0]:up[-1]] - u[up[0]:up[-1]].mean(), basis)
+    Y1 = np.dot(y[up[0]:up[-1]] - y[up[0]:up[-1]].mean(), basis)
+    if abs(U1) == 0 or abs(Y1) == 0:
+        raise ModelError("relay: no first harmonic in the oscillation")
+    G = Y1 / U1  # the stage's own response, applied voltage to measured position
+    # the loop's phase: the stage's (a lag within a turn) and the latency's, unwrapped:
+    # with a latency of L periods the relay can also settle in an odd harmonic mode
+    # (period 2L / (2n + 1)), where the loop's phase is -180 - n x 360 deg
+    phase = math.degrees(math.atan2(G.imag, G.real)) - math.degrees(omega * latency_periods)
+    return RelayPoint(omega * rate_hz / (2 * math.pi), float(abs(G)), phase,
+                      float(2 * abs(Y1) / n), m, int(latency_periods))
+
+
+def tune_relay(points: dict, rate_hz: float = 1000.0, phase_margin_deg: float = 60.0,
+               gain_margin_db: float = 10.0, max_noise_gain: float = 0.3,
+               source: str = "relay experiment") -> Tuning:
+    """PI gains from relay experiments (``points``: axis -> RelayPoint). Each axis's
+    loop is modelled as a gain with a pure delay, |G| e^(-j w tau), through its
+    measured ultimate point (tau = -arg G / w_u), then tuned by the same discrete loop
+    shaping as ``tune``. The gain is the small-signal gain at the experiment's
+    operating point; the gain margin covers branches steeper than that."""
+    if not points:
+        raise ModelError("tune: no relay point")
+    if not (rate_hz > 0 and 0 < phase_margin_deg < 90 and gain_margin_db > 0):
+        raise ModelError("tune: rate > 0, 0 < phase margin < 90 deg and gain margin > 0 dB")
+    T = 1.0 / rate_hz
+    w = np.concatenate([np.geomspace(1e-4, math.pi * 0.999, 1500), [math.pi]])
+    plants, gains, lines = {}, {}, []
+    for a, p in sorted(points.items()):
+        wu = 2 * math.pi * p.freq_hz * T
+        tau = -math.radians(p.phase_deg) / wu        # periods
+        plants[a] = p.gain_um_per_V * np.exp(-1j * w * tau)
+        gains[a] = (p.gain_um_per_V, p.gain_um_per_V)
+        lines.append(f"relay {a}: oscillation {p.freq_hz:.1f} Hz (Tu {1e3 / p.freq_hz:.2f} "
+                     f"ms) over {p.cycles} cycles, amplitude {p.amplitude_um:.3f} um, "
+                     f"Ku {p.ultimate_gain:.3f} V/um, loop phase {p.phase_deg:.1f} deg "
+                     f"with {p.latency_periods} period(s) of latency: modelled as "
+                     f"{p.gain_um_per_V:.3f} um/V with a {tau:.2f}-period delay")
+    method = (f"relay experiment (Astrom-Hagglund ultimate point per axis, loop modelled "
+              f"as gain + delay through it), then discrete loop shaping: the largest "
+              f"crossover with phase margin >= {phase_margin_deg:g} deg and gain margin >= "
+              f"{gain_margin_db:g} dB on both axes, white sensor noise passed to the true "
+              f"position at most {max_noise_gain:g} x its RMS")
+    return _shape(plants, w, T, phase_margin_deg, gain_margin_db, max_noise_gain, gains,
+                  method, source, "\n".join(lines))
 
 
 def _noise_gain(Lw, w):

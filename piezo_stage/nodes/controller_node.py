@@ -13,6 +13,9 @@ t_k (the loop is not closed), while the output is clamped, and it restarts after
 in the references (a stall). In real time a reference whose target has already passed
 is dropped: its command could only arrive late. A non-finite result is never sent.
 kp, ki, kd and feedback take effect at run time (feedback switches bumplessly).
+With ``relay_amplitude_V`` > 0 the feedback is a relay instead of the PID (core.control
+Relay: the autotuning experiment of ``piezo-stage tune --relay``), under the same
+arming, clamping and staleness rules.
 """
 
 import math
@@ -25,7 +28,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from piezo_stage.core.control import PID, CompositeAxis, PIDGains
+from piezo_stage.core.control import PID, CompositeAxis, PIDGains, Relay
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.nodes._common import QOS_DATA
 from piezo_stage.nodes._executor import LeanExecutor, fatal, hot_subscription, quiet_sigint
@@ -57,6 +60,14 @@ class Controller(Node):
         self.limits = tuple(declare(self, "voltage_limits_V", [0.0, 150.0], "clamp [V]"))
         self.axes = {a: CompositeAxis(PID(self.gains, 1.0 / rate), self.limits, feedback)
                      for a in ("x", "y")}
+        relay_V = declare(self, "relay_amplitude_V", 0.0, "relay experiment (tune --relay): "
+                          "the feedback is a relay of this amplitude [V]; 0: PID", lo=0.0,
+                          hi=75.0)
+        relay_eps = declare(self, "relay_hysteresis_um", 0.0, "relay experiment: its "
+                            "hysteresis band [um] (0 unless noise makes it chatter)",
+                            lo=0.0, hi=50.0)
+        self.relays = {a: Relay(relay_V, relay_eps, 1.0 / rate) for a in self.axes} \
+            if relay_V > 0 else {}
         # the driver's announcements: taken before the data in each lean-loop pass
         self.driver = DriverState(self, self.dt_ns, declare(
             self, "thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
@@ -70,7 +81,8 @@ class Controller(Node):
                                                    "command subscribers to wait for"))])
         hot_subscription(self, JointState, "reference", self.on_reference, QOS_DATA, raw=True)
         self.add_on_set_parameters_callback(self.on_set)
-        Diagnostics(self, lambda: (0, ("composite (feedback on)" if self.axes["x"].feedback
+        Diagnostics(self, lambda: (0, ("relay experiment" if self.relays else
+                                       "composite (feedback on)" if self.axes["x"].feedback
                                        else "feedforward only (feedback off)") +
                                    ", kp {kp:g} ki {ki:g} kd {kd:g}".format(**vars(self.gains)),
                                    {**self.stats, "feedback": self.axes["x"].feedback,
@@ -115,8 +127,13 @@ class Controller(Node):
         closed = sent is not None and all(abs(sent[a] - applied[a]) < 1e-6 for a in sent)
         self.stats["not_closed"] += enabled and not closed
         v = {}
+        lo, hi = self.limits
         for a, ax in self.axes.items():
-            v[a], clamped = ax.update(ff[a], asked[a] - w[a], enabled, hold=not closed)
+            if self.relays and enabled:
+                u = ff[a] + self.relays[a].update(asked[a] - w[a])
+                v[a], clamped = min(max(u, lo), hi), (u > hi or u < lo)
+            else:
+                v[a], clamped = ax.update(ff[a], asked[a] - w[a], enabled, hold=not closed)
             self.stats["clamped"] += clamped
         if not all(math.isfinite(x) for x in v.values()):
             self.stats["non_finite"] += 1
@@ -129,7 +146,7 @@ class Controller(Node):
 
     def restart(self, count=True):
         self.stats["restarts"] += count
-        for ax in self.axes.values():
+        for ax in (*self.axes.values(), *self.relays.values()):
             ax.reset()
 
 
