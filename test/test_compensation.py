@@ -121,3 +121,15 @@ def test_previewed_reference_runs_the_planner_ahead_by_the_delay():
         assert lead[k][1]["x"] == pytest.approx(lead[k + 2][0]["x"])  # asked 2 ahead
         assert lead[k][0] == pytest.approx(plain[k - 2][0])           # same path
         assert off[k] == plain[k]                                      # switched off
+
+
+def test_a_resonance_above_the_limit_is_taken_as_its_group_delay():
+    dyn = {"kind": "resonance", "fn_hz": 800.0, "zeta": 0.05}
+    inverted = EffectCompensator({"dynamics": dyn, "delay": {"delay_s": 0.5e-3}}, FS)
+    assert "dynamics" in inverted.compensated and "x" in inverted.dynamics
+    limited = EffectCompensator({"dynamics": dyn, "delay": {"delay_s": 0.99e-3}}, FS,
+                                max_resonance_hz=500.0)
+    # not inverted; its group delay 2 zeta / wn = 19.9 us pushes 0.99 ms over a period
+    assert limited.dynamics == {} and "dynamics" not in limited.compensated
+    assert "group delay of 20 us" in limited.uncompensated["dynamics"]
+    assert limited.lead_ticks == {"x": 1, "y": 1}

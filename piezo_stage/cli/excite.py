@@ -16,7 +16,7 @@ def add_arguments(s):
     s.add_argument("--v-max", type=float, default=150.0)
     s.add_argument("--chirp", type=float, default=0.0, metavar="S", help="add a small "
                    "chirp of S seconds per axis up to 0.4 x the rate (tells a resonance "
-                   "from a delay)")
+                   "from a delay: 2 s does)")
 
 
 def main(args):

@@ -113,15 +113,40 @@ class Creep:
         return (cols - slow).reshape(X.shape)
 
 
+def _sampled_late(num, den, dt, delta):
+    """(b, a) of continuous dynamics num/den driven by an input held over each period,
+    its output read ``delta`` before the period's end (a transport delay's fraction of
+    a period, the whole periods being a plain shift): with the state x_k at the end of
+    period k, x_k = Phi(T) x_(k-1) + Gamma(T) u_k and y_k = C Phi(T - delta) x_(k-1) +
+    C Gamma(T - delta) u_k (the modified z-transform; delta = 0 is the ZOH form)."""
+    from scipy.linalg import expm
+    A, B, C, _ = signal.tf2ss(num, den)
+    n = A.shape[0]
+
+    def phi_gamma(tau):
+        M = np.zeros((n + 1, n + 1))
+        M[:n, :n], M[:n, n:] = A * tau, B * tau
+        E = expm(M)
+        return E[:n, :n], E[:n, n:]
+    P, G = phi_gamma(dt)
+    P2, G2 = phi_gamma(dt - delta)
+    b, a = signal.ss2tf(P, G, C @ P2, C @ G2)
+    return np.ravel(b), np.ravel(a)
+
+
 class Dynamics:
     """Linear dynamics with unit DC gain, discretised with a zero-order hold.
 
     kind='resonance': wn^2 / (s^2 + 2 zeta wn s + wn^2), wn = 2 pi fn_hz.
     kind='lag':       1 / (tau_s s + 1).
+
+    ``delay_frac_s`` > 0: the output is read that long before the end of the hold
+    period (a transport delay's fraction of a sample; the gap diagnosis pairs it with
+    the delay's whole samples, the exact sampled form of dynamics followed by a delay).
     """
 
     def __init__(self, fs_hz: float, kind: str = "resonance", fn_hz: float = 800.0,
-                 zeta: float = 0.05, tau_s: float = 0.5e-3):
+                 zeta: float = 0.05, tau_s: float = 0.5e-3, delay_frac_s: float = 0.0):
         self.kind = kind
         dt = 1.0 / fs_hz
         if kind == "resonance":
@@ -136,6 +161,12 @@ class Dynamics:
             num, den = [1.0], [self.tau_s, 1.0]
         else:
             raise ConfigError(f"dynamics kind must be 'resonance' or 'lag', got {kind!r}")
+        if not 0.0 <= delay_frac_s < dt:
+            raise ConfigError(f"dynamics delay_frac_s must be in [0, {dt:g}) s, got "
+                              f"{delay_frac_s}")
+        if delay_frac_s > 0.0:
+            self._f = _LinearFilter(*_sampled_late(num, den, dt, delay_frac_s))
+            return
         bd, ad, _ = signal.cont2discrete((num, den), dt, method="zoh")
         # ZOH discretisation gives y at the *start* of the next hold interval (b[0] = 0);
         # the plant reads its sensor at the *end* of the interval in which the input

@@ -6,10 +6,11 @@ step's sign, drift does not), variable amplitudes (minor loops); then the other 
 alone (coupling shows on the idle axis). Voltages in [lo, hi]; the seed varies the
 amplitudes and step levels so FIT and HOLDOUT can be two different records.
 
-``chirp_s`` > 0 adds, per axis, a small linear chirp about mid-stroke from 20 Hz to
-0.4 x the sample rate: the slow blocks cannot tell a resonance above the control
-rate from a pure delay (both only lag the slow motion), the chirp passes through the
-resonance and shows its peak.
+``chirp_s`` > 0 (``excite --chirp 2``) adds, per axis, a small linear chirp about
+mid-stroke from 20 Hz to 0.4 x the sample rate: the slow blocks cannot tell a
+resonance above the control rate from a pure delay (both only lag the slow motion),
+the chirp passes through the resonance and shows its peak (the gap diagnosis seeds
+its resonance search there).
 """
 
 from __future__ import annotations

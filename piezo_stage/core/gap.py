@@ -29,6 +29,7 @@ reported with the feedback bandwidth that rejects it.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -92,8 +93,7 @@ class Candidate:
             cols.append(free_response(v_other, ac))
         cols = np.column_stack(cols)
         # the effects at the record's own rate (HOLDOUT need not share FIT's)
-        op = self.op if rec.fs_hz == self.reg_fs else _compose(
-            [effect_operator(n, rec.fs_hz, p) for n, p in self.effects if n in TRANSFORMS])
+        op = self.op if rec.fs_hz == self.reg_fs else transform_ops(self.effects, rec.fs_hz)
         if op is not None:
             cols = op(cols)
         fixed = cols[:, 0]
@@ -136,6 +136,26 @@ def effect_operator(name: str, fs: float, params: dict) -> Callable[[np.ndarray]
     raise ValueError(f"{name} is not a transform effect")
 
 
+def transform_ops(effects: Sequence[tuple[str, dict]],
+                  fs: float) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The column operator of the transform effects among ``effects`` [(name, params)]
+    (None: none). With both dynamics and a delay, the delay shifts by its whole samples
+    and its fraction goes into the dynamics' sampling (Dynamics ``delay_frac_s``): the
+    exact sampled form of dynamics then a delay for an input held over each sample,
+    which linear interpolation of the fraction only approximates (it biased the
+    resonance and the delay found: 824 Hz and 0.62 ms for 800 Hz and 0.5 ms)."""
+    eff = [(n, dict(p)) for n, p in effects if n in TRANSFORMS]
+    names = [n for n, _ in eff]
+    if "delay" in names and "dynamics" in names:
+        d = float(dict(eff)["delay"]["delay_s"])
+        whole = math.floor(d * fs + 1e-9)
+        frac = max(0.0, d - whole / fs)
+        frac = frac if frac < 1.0 / fs * (1 - 1e-9) else 0.0
+        eff = [(n, {"delay_s": whole / fs} if n == "delay" else
+                ({**p, "delay_frac_s": frac} if n == "dynamics" else p)) for n, p in eff]
+    return _compose([effect_operator(n, fs, p) for n, p in eff])
+
+
 def _compose(ops):
     ops = [o for o in ops if o is not None]
     if not ops:
@@ -168,7 +188,7 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     if "drift" in names:
         tau = max(rec.t[-1] - rec.t[0], 1.0) / 3.0
         reg.extra = Drift.columns(len(v), fs, tau)
-    fixed_op = _compose([effect_operator(n, fs, p) for n, p in kept if n in TRANSFORMS])
+    fixed_op = transform_ops(kept, fs)
     reg.transform = fixed_op
     if effect == "none" or base is None:
         alphas, fit, _ = fit_fast(reg, budget=100, grid=11)
@@ -195,18 +215,68 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
             g, _ = _search_1d(lambda g: solve(KX - g * F), 0.0, 0.3)
             params = {"gamma": float(g), "tau_s": list(CREEP_TAUS)}
         elif effect == "delay":
-            d, _ = _search_1d(lambda d: solve(Delay(fs, delay_s=d).apply(KX)), 0.0,
-                              min(0.02, 50 / fs), n_grid=15)
+            if "dynamics" in dict(kept):  # the pair's exact sampled form
+                dyn = dict(kept)["dynamics"]
+                KB = _without(reg, alphas, kept, ("delay", "dynamics"), fs)
+                cost = lambda d: solve(  # noqa: E731
+                    transform_ops([("dynamics", dyn), ("delay", {"delay_s": d})], fs)(KB))
+            else:
+                cost = lambda d: solve(Delay(fs, delay_s=d).apply(KX))  # noqa: E731
+            d, _ = _search_1d(cost, 0.0, min(0.02, 50 / fs), n_grid=15)
             params = {"delay_s": float(d)}
         else:
-            params = _search_dynamics(fs, lambda p: solve(Dynamics(fs, **p).apply(KX)))
-        reg.transform = _compose([fixed_op, effect_operator(effect, fs, params)])
+            seeds = _resonance_seeds(KX, w, fs, extra)
+            if "delay" in dict(kept):
+                d0 = dict(kept)["delay"]
+                KB = _without(reg, alphas, kept, ("delay",), fs)
+
+                def dyn_cost(p):
+                    return solve(transform_ops([("dynamics", p), ("delay", d0)], fs)(KB))
+            else:
+                def dyn_cost(p):
+                    return solve(Dynamics(fs, **p).apply(KX))
+            params = _search_dynamics(fs, dyn_cost, seeds)
+            if seeds and "delay" in dict(kept) and params["kind"] == "resonance":
+                # a delay fitted before the resonance took the resonance's phase as
+                # well (on a record whose chirp excites it): the resonance and the
+                # delay polished together
+                params, d = _polish_pair(params, float(d0["delay_s"]), KB, fs, solve)
+                kept = [(n, {**p, "delay_s": d} if n == "delay" else p) for n, p in kept]
+        reg.transform = transform_ops(list(kept) + [(effect, params)], fs)
     # the alphas again, with the effect in place (base and effects fitted together)
-    alphas, fit, _ = fit_fast(reg, budget=20, x0=alphas, step=0.2)
+    alphas, fit, _ = fit_fast(reg, budget=TRIAL_BUDGET, x0=alphas, step=0.2)
     effects = _with_drift(list(kept) + [(effect, params)], reg, fit.theta, tau)
     params = dict(effects[-1][1])
     return Candidate(effect, params, alphas, fit.theta, reg, fit.rms, reg.transform, tau,
                      effects, fs)
+
+
+def _without(reg, alphas, kept, names, fs):
+    """The design for these alphas with the kept transform effects applied, except
+    ``names``."""
+    op = transform_ops([(n, p) for n, p in kept if n not in names], fs)
+    KX = reg.design(alphas)
+    return op(KX) if op is not None else KX
+
+
+def _polish_pair(dyn, d0, KB, fs, solve, maxfev=40):
+    """A resonance and a delay searched together (Nelder-Mead over log fn, log zeta and
+    the delay, from where the separate searches ended) on ``KB``, the design with every
+    other kept effect applied: separately, each takes part of the other's phase (found
+    824 Hz and 0.62 ms for 800 Hz and 0.5 ms). Returns (dynamics params, delay_s)."""
+    def cost(x):
+        fn, z, d = float(np.exp(x[0])), float(np.exp(x[1])), float(x[2])
+        if not (fn < fs / 2.02 and 0 <= d <= 0.02):
+            return 1e300
+        dyn_p = {"kind": "resonance", "fn_hz": fn, "zeta": z}
+        return solve(transform_ops([("dynamics", dyn_p), ("delay", {"delay_s": d})], fs)(KB))
+    x0 = np.array([np.log(dyn["fn_hz"]), np.log(dyn["zeta"]), d0])
+    simplex = [x0, x0 + [0.03, 0, 0], x0 + [0, 0.2, 0], x0 + [0, 0, 0.5 / fs]]
+    r = minimize(cost, x0, method="Nelder-Mead",
+                 options={"maxfev": maxfev, "xatol": 1e-4, "initial_simplex": simplex})
+    x = r.x if r.fun <= cost(x0) else x0
+    return ({"kind": "resonance", "fn_hz": float(np.exp(x[0])), "zeta": float(np.exp(x[1]))},
+            float(x[2]))
 
 
 def _with_drift(effects, reg, theta, tau):
@@ -221,8 +291,40 @@ def _with_drift(effects, reg, theta, tau):
     return out
 
 
-def _search_dynamics(fs, cost):
-    """A resonance (fn, zeta) or a first-order lag (tau), whichever fits better."""
+def _resonance_seeds(KX, w, fs, extra=(), min_coherence=0.9, min_peak=1.3, min_bins=20):
+    """Where a resonance shows in the data, as starting points for its search: the
+    frequency response from the model's prediction without dynamics (KX theta) to the
+    measured position (Welch's H1 estimate), where the excitation has broadband content
+    (a chirp: coherence >= ``min_coherence`` above 50 Hz in at least ``min_bins`` of
+    its ~10 Hz bins, which a few tones and their harmonics never give), peaks at the
+    resonance with height about 1 / (2 zeta). [] when the record has no such content
+    or no peak of at least ``min_peak``: the coarse grid alone then searches (a
+    resonance far above the excitation cannot be told from a delay anyway)."""
+    theta = solve_gram(*gram_blocks([KX] + list(extra), w), len(w)).theta
+    p = KX @ theta[:KX.shape[1]]
+    nper = int(min(len(w), 2 ** round(np.log2(fs / 10.0))))  # ~10 Hz resolution
+    if nper < 64:
+        return []
+    f, pxy = signal.csd(p, w, fs=fs, nperseg=nper)
+    _, pxx = signal.welch(p, fs=fs, nperseg=nper)
+    _, pyy = signal.welch(w, fs=fs, nperseg=nper)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        coh = np.abs(pxy) ** 2 / (pxx * pyy)
+        H = np.abs(pxy / pxx)
+    ok = (f > 50.0) & (f < 0.45 * fs) & np.isfinite(coh) & (coh >= min_coherence)
+    if ok.sum() < min_bins:  # a few tones and their harmonics are not broadband
+        return []
+    i = np.argmax(np.where(ok, H, 0.0))
+    peak = float(H[i])
+    if peak < min_peak:
+        return []
+    zeta = float(np.clip(1.0 / (2.0 * peak), 0.01, 0.5))
+    return [(float(f[i]) * k, zeta) for k in (0.97, 1.0, 1.03)]
+
+
+def _search_dynamics(fs, cost, seeds=()):
+    """A resonance (fn, zeta) or a first-order lag (tau), whichever fits better; the
+    coarse grid plus ``seeds`` [(fn, zeta)] found in the data start the search."""
     nyq = fs / 2
 
     def res_f(x):
@@ -232,16 +334,22 @@ def _search_dynamics(fs, cost):
         except ValueError:  # above Nyquist
             return 1e300
     best = (np.inf, None)
-    for fn in np.geomspace(5.0, nyq / 1.25, 8):
-        for z in (0.03, 0.15, 0.6):
-            val = res_f((np.log(fn), np.log(z)))
-            if val < best[0]:
-                best = (val, (np.log(fn), np.log(z)))
-    r = minimize(res_f, best[1], method="Nelder-Mead", options={"maxfev": 30, "xatol": 1e-3})
+    seeds = [s for s in seeds if s[0] < nyq / 1.01]
+    # a peak in the data says where the resonance is: the coarse grid only without one
+    grid = [] if seeds else [(fn, z) for fn in np.geomspace(5.0, nyq / 1.25, 8)
+                             for z in (0.03, 0.15, 0.6)]
+    for fn, z in grid + seeds:
+        val = res_f((np.log(fn), np.log(z)))
+        if val < best[0]:
+            best = (val, (np.log(fn), np.log(z)))
+    r = minimize(res_f, best[1], method="Nelder-Mead",
+                 options={"maxfev": 20 if seeds else 30, "xatol": 1e-3})
     x = r.x if r.fun < best[0] else best[1]
     fn, z = float(np.exp(x[0])), float(np.exp(x[1]))
     if not fn < nyq / 1.01:
         fn = nyq / 1.05
+    if seeds:  # a resonance peak: not a lag
+        return {"kind": "resonance", "fn_hz": fn, "zeta": z}
     tau_l, lag_val = _search_1d(lambda tau: cost({"kind": "lag", "tau_s": tau}), 0.2 / fs,
                                 0.1, n_grid=9, log=True)
     if lag_val < min(r.fun, best[0]):
@@ -368,6 +476,8 @@ class AxisDiagnosis:
 
 FIRST_SHRINK_PCT = 30.0  # the dominant effect must close this much of the held-out gap
 STEP_SHRINK_PCT = 15.0   # each further effect this much of what is left
+PAIR_POOL = 3           # no single effect closes the first 30 %: pairs among these best
+TRIAL_BUDGET = 8         # alpha evaluations per candidate fit (a kept one is polished with 40)
 NOISE_STOP = 0.6         # a gap under this share of the noise floor is at the floor
                          # (the residual within 17 % of the noise RMS, which is itself
                          # estimated from the data)
@@ -464,15 +574,29 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
             else STEP_SHRINK_PCT
         step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
         if not steps and step < need and len(pool) > 1 and g_before > 0.5 * floor:
-            # two effects of similar size: neither alone closes 30 %, the two best
-            # together may (each must then still earn its place as a later step)
-            e2 = sorted(pool, key=scores.get)[1]
-            pair = fit_candidate(fit, axis, e2, c, c.effects)
-            progress(f"{axis} {e}+{e2}")
-            r_pair = rms(pair.predict(holdout, axis) - w_h)
-            g_pair = _gap(r_pair, floor)
-            if 100.0 * (1 - g_pair / g_cur) >= need and _significant(r_cur, r_pair, floor, n) \
-                    and 100.0 * (1 - g_pair / g_new) >= STEP_SHRINK_PCT:
+            # effects of similar size: none alone closes 30 %, two of the three best
+            # together may (the better one of the best such pair joins first; the other
+            # must then still earn its place as a later step)
+            top = sorted(pool, key=scores.get)[:PAIR_POOL]
+            pairs = [(a, b) for i, a in enumerate(top) for b in top[i + 1:]]
+            if "delay" in pool and "dynamics" in pool and not {"delay", "dynamics"} <= set(top):
+                # a resonance seen through a delay: neither alone may fit at all
+                pairs.append(tuple(sorted(("delay", "dynamics"), key=scores.get)))
+            best_pair = None
+            for a, b in pairs:
+                pair = fit_candidate(fit, axis, b, pool[a], pool[a].effects)
+                progress(f"{axis} {a}+{b}")
+                r_pair = rms(pair.predict(holdout, axis) - w_h)
+                g_pair, g_a = _gap(r_pair, floor), _gap(scores[a], floor)
+                if 100.0 * (1 - g_pair / g_cur) >= need \
+                        and _significant(r_cur, r_pair, floor, n) \
+                        and 100.0 * (1 - g_pair / g_a) >= STEP_SHRINK_PCT \
+                        and (best_pair is None or g_pair < best_pair[0]):
+                    best_pair = (g_pair, a)
+            if best_pair is not None:
+                e = best_pair[1]
+                c, g_new = pool[e], _gap(scores[e], floor)
+                step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
                 need = 0.0  # the first of a pair that closes the gap together
         if not (_significant(r_cur, scores[e], floor, n) and step >= need):
             break
@@ -567,6 +691,8 @@ def _decide(ranking, steps, g_before, nf, fit, holdout, axis):
 LOCK_ALPHAS = (3e-3, 0.03, 0.3)       # 1/V: hysteretic operators of the input
 LOCK_TAUS = (0.003, 0.05, 1.0)         # s: their slow (creep-like, dynamic) responses
 RIDGES = (1e-6, 1e-4, 1e-2, 1.0)      # on unit-norm features, chosen by cross-validation
+LOCK_RES_N, LOCK_RES_MAX, LOCK_RES_ZETA = 6, 0.4, 0.15  # resonators: 50 Hz .. 0.4 fs
+LOCK_BLOCK_S = 0.2                    # cross-validation folds: alternating blocks
 
 
 def input_locked(v: np.ndarray, v_other: np.ndarray, fs: float,
@@ -588,13 +714,19 @@ def input_locked(v: np.ndarray, v_other: np.ndarray, fs: float,
                                  np.empty((len(u), 2 * 4 + 1)))
             cols.append(X[:, :-1])
         cols.append(B)
+        # fast dynamics (a resonance rung by a chirp): the input through a bank of
+        # damped resonators, in two phases (the output and its one-sample lag)
+        for fn in np.geomspace(50.0, LOCK_RES_MAX * fs, LOCK_RES_N):
+            Y = Dynamics(fs, "resonance", float(fn), LOCK_RES_ZETA).apply(B[:, 1:]) - B[:, 1:]
+            cols += [Y, np.vstack([Y[:1], Y[:-1]])]
     H = np.ascontiguousarray(np.hstack(cols))
     slow = [lowpass_mean_columns(np.array([np.exp(-1.0 / (fs * tau))]), H,
                                  np.empty_like(H)) for tau in LOCK_TAUS]
     F = np.hstack([H] + slow + [np.ones((len(resid), 1))])
-    # folds of alternating 1 s blocks: both see every part of the excitation (each
-    # axis is driven alone in turn: halves would train on one and predict the other)
-    block = np.arange(len(resid)) // max(int(fs), 1) % 2 == 0
+    # folds of alternating 0.2 s blocks: both see every part of the excitation (each
+    # axis is driven alone in turn: halves would train on one and predict the other;
+    # a chirp sweeps ~40 Hz in a block, so both see every part of its band too)
+    block = np.arange(len(resid)) // max(int(LOCK_BLOCK_S * fs), 1) % 2 == 0
     scale = np.sqrt(np.clip(np.einsum("ij,ij->j", F, F), 1e-30, None))
     folds = [(gram(F[tr] / scale, resid[tr])[:2], tr) for tr in (block, ~block)]
     # ridge: the features overlap (that is what makes them rich), and a fit meant to

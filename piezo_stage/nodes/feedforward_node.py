@@ -74,6 +74,9 @@ class Feedforward(Node):
         self.ref.on = declare(self, "compensate_effects", True, "compensate the model's "
                               "unmodelled effects", live=lambda on: setattr(self.ref, "on",
                                                                             bool(on)))
+        self.max_res_hz = declare(self, "max_resonance_inverse_hz", 0.0, "a model's "
+                                  "resonance above this is taken as its group delay, not "
+                                  "inverted (0: no limit)", lo=0.0, hi=1e6)
         self.limits = (0.0, 150.0)
         self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
         self.started = False  # the inverse has been put where the stage is
@@ -136,8 +139,8 @@ class Feedforward(Node):
                 raise PiezoStageError(f"{name}: voltage limits {list(model.voltage_limits)} "
                                       f"outside the driver's {self.driver.limits}")
             model = StageModel(model.axes, model.coupling, (lo, hi))
-        comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes))
-                if effects else None)
+        comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes),
+                                  self.max_res_hz) if effects else None)
         inv = StageInverse(model, use_coupling=self.use_c)
         warm = StageInverse(model, use_coupling=self.use_c)  # compile the kernels now,
         warm.sync(*model.voltage_limits)                      # not at the first sample

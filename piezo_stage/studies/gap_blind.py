@@ -105,10 +105,11 @@ PAIRS = (("creep", "coupling"), ("creep", "dynamics"), ("delay", "coupling"),
          ("coupling", "disturbance"))
 
 
-def make_multi_pair(effects, seed, fs=1000.0, coupling=None, rng=None):
+def make_multi_pair(effects, seed, fs=1000.0, coupling=None, rng=None, chirp_s=0.0):
     """(FIT, HOLDOUT) from our simulator with several effects on: ``effects`` names
     (magnitudes drawn from ``rng``) or {name: params}; ``coupling`` keeps the stage's
-    hysteretic coupling (default: when "coupling" is named)."""
+    hysteretic coupling (default: when "coupling" is named); ``chirp_s``: the
+    protocol's chirp (``excite --chirp``)."""
     rng = rng or np.random.default_rng(5000 + seed)
     cfg = copy.deepcopy(load_plant_config(default_plant_config_path()))
     if not isinstance(effects, dict):
@@ -123,7 +124,7 @@ def make_multi_pair(effects, seed, fs=1000.0, coupling=None, rng=None):
     recs = []
     for k in range(2):
         cfg.seed = int(rng.integers(1 << 30))
-        t, vx, vy = gap_protocol(fs, seed=cfg.seed)
+        t, vx, vy = gap_protocol(fs, seed=cfg.seed, chirp_s=chirp_s)
         w = Plant(cfg, fs).run(vx, vy)
         if line:
             for a in w:
