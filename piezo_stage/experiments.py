@@ -4,8 +4,9 @@ Every case is one run of the real node set (driver on the simulated stage or the
 feedforward, controller, trajectory, recorder) on a trajectory written for it, recorded
 to its own bag; every figure is computed from the bags. Errors are against the true
 position (``/stage/sim/true_position``, simulated stages) and, separately, against the
-measured one, over the last ``EVAL_CYCLES`` cycles of the motion (the first cycles
-settle the hysteresis memory the approach left).
+measured one, over the last ``EVAL_CYCLES`` cycles of the motion, and at least
+``EVAL_MIN_S`` (tracking at 5 Hz and above: 2 cycles at 40 Hz are only 50 samples)
+(the first cycles settle the hysteresis memory the approach left).
 
 Experiments (seed section 4):
 
@@ -40,6 +41,7 @@ CONTROLLERS = ("feedforward", "feedback", "composite")
 FREQS_HZ = (1.0, 5.0, 10.0, 40.0)
 RATE_HZ = 1000.0
 EVAL_CYCLES = 2
+EVAL_MIN_S = 0.5   # tracking: at least this long (40 Hz: 20 cycles, not 2 = 50 samples)
 LEAD_S, TAIL_S = 0.2, 0.3  # trajectory holds its first point, then its last
 NODES = ("stage_driver", "feedforward", "controller", "trajectory")
 
@@ -100,13 +102,14 @@ def plan(name, freqs=FREQS_HZ, controllers=CONTROLLERS, with_effects=False):
     cases = []
     if name == "tracking":
         for f in freqs:
-            cycles = max(EVAL_CYCLES + 1, int(np.ceil(1.0 * f)) + EVAL_CYCLES)
+            n_eval = max(EVAL_CYCLES, int(np.ceil(EVAL_MIN_S * f)))
+            cycles = max(n_eval + 1, int(np.ceil(1.0 * f)) + n_eval)
             t, w = _traj(f, cycles, _seed_wave(f))
             for c in controllers:
                 for comp in ((True, False) if with_effects else (True,)):
                     tag = "" if comp else " (effects not compensated)"
                     cases.append(Case(f"tracking {f:g} Hz {c}{tag}", f, t, {"x": w, "y": w}, c,
-                                      eval_s=EVAL_CYCLES / f,
+                                      eval_s=n_eval / f,
                                       params=_merge(_controller_params(c), {
                                           "feedforward": {"compensate_effects": comp}})))
     elif name == "decoupling":
