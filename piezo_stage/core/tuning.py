@@ -166,11 +166,8 @@ def tune(model: StageModel, effects: dict | None = None, rate_hz: float = 1000.0
         plants[a] = hi * H * z ** (-L)
     if not plants:
         raise ModelError("tune: the model has no axes")
-    method = (f"discrete loop shaping: the largest crossover with phase margin >= "
-              f"{phase_margin_deg:g} deg and gain margin >= {gain_margin_db:g} dB on both "
-              f"axes, PI on the steepest model gain, {L} period(s) of latency, the model's "
-              f"effects at {rate_hz:g} Hz, white sensor noise passed to the true position "
-              f"at most {max_noise_gain:g} x its RMS")
+    method = (f"PI on the steepest model gain, {L} period(s) of latency, the model's "
+              f"effects at {rate_hz:g} Hz")
     return _shape(plants, w, T, phase_margin_deg, gain_margin_db, max_noise_gain, gains,
                   method, source)
 
@@ -180,7 +177,7 @@ def _shape(plants: dict, w: np.ndarray, T: float, phase_margin_deg: float,
            source: str, notes: str = "") -> Tuning:
     """The PI search both tunings share: on a log grid of (kp, ki), the largest
     crossover whose loop meets the margins and the noise bound on every axis's plant
-    response ``plants[axis]`` (at z = e^(j w))."""
+    response ``plants[axis]`` (at z = e^(j w)); ``method`` says what the plants are."""
     z = np.exp(1j * w)
     integ = T * z / (z - 1)
     best = None
@@ -197,6 +194,10 @@ def _shape(plants: dict, w: np.ndarray, T: float, phase_margin_deg: float,
                 continue
             if best is None or worst[2] > best[2][2]:
                 best = (kp, ki, worst)
+    method = (f"discrete loop shaping: the largest crossover with phase margin >= "
+              f"{phase_margin_deg:g} deg and gain margin >= {gain_margin_db:g} dB on both "
+              f"axes, white sensor noise passed to the true position at most "
+              f"{max_noise_gain:g} x its RMS; {method}")
     if best is None:
         raise ModelError("tune: no PI gains meet the margins on this "
                          f"{'model' if source == 'model' else 'loop'}")
@@ -292,11 +293,8 @@ def tune_relay(points: dict, rate_hz: float = 1000.0, phase_margin_deg: float = 
                      f"Ku {p.ultimate_gain:.3f} V/um, loop phase {p.phase_deg:.1f} deg "
                      f"with {p.latency_periods} period(s) of latency: modelled as "
                      f"{p.gain_um_per_V:.3f} um/V with a {tau:.2f}-period delay")
-    method = (f"relay experiment (Astrom-Hagglund ultimate point per axis, loop modelled "
-              f"as gain + delay through it), then discrete loop shaping: the largest "
-              f"crossover with phase margin >= {phase_margin_deg:g} deg and gain margin >= "
-              f"{gain_margin_db:g} dB on both axes, white sensor noise passed to the true "
-              f"position at most {max_noise_gain:g} x its RMS")
+    method = ("PI on a relay experiment (Astrom-Hagglund ultimate point per axis, the "
+              "loop modelled as gain + delay through it)")
     return _shape(plants, w, T, phase_margin_deg, gain_margin_db, max_noise_gain, gains,
                   method, source, "\n".join(lines))
 
