@@ -285,3 +285,15 @@ def test_a_resonance_and_a_delay_are_both_found_with_the_chirp():
     assert got["dynamics"]["zeta"] == pytest.approx(0.06, rel=0.25)
     assert got["delay"]["delay_s"] == pytest.approx(0.0015, abs=0.1e-3)
     assert res["budget"]["unexplained_um"] < 0.2 * res["budget"]["gap_um"]
+    assert "excite --chirp" not in res["reason"]  # it had the excitation
+
+
+def test_a_delay_on_a_record_without_a_chirp_says_what_would_separate_it():
+    from piezo_stage.core.excitation import gap_protocol
+    from piezo_stage.core.gap import broadband
+    fit, hold = make_pair("delay", "own", 0)
+    res = diagnose(fit, hold, axes=["x"])
+    assert res["verdict"] == "delay"
+    assert "excite --chirp 2" in res["reason"]
+    t, vx, _ = gap_protocol(1000.0, seed=1, chirp_s=2.0)
+    assert broadband(vx, 1000.0) and not broadband(fit.v["x"], 1000.0)

@@ -291,6 +291,20 @@ def _with_drift(effects, reg, theta, tau):
     return out
 
 
+def broadband(v: ArrayLike, fs: float, lo_hz: float = 100.0, rel: float = 1e-6) -> bool:
+    """Whether the voltage excites a band, not just tones: the median of its Welch
+    spectrum between ``lo_hz`` and 0.4 fs is at least ``rel`` of the spectrum's peak.
+    The protocol's chirp gives 3e-5 to 1e-4 at 1 and 5 kHz; its sines and steps alone
+    7e-8 and 2e-11."""
+    v = np.asarray(v, float)
+    if len(v) < 64 or 0.4 * fs <= lo_hz:
+        return False
+    nper = int(min(len(v), 2 ** round(np.log2(max(fs / 10.0, 64)))))
+    f, p = signal.welch(v - v.mean(), fs=fs, nperseg=nper)
+    band = (f >= lo_hz) & (f <= 0.4 * fs)
+    return bool(band.any() and p.max() > 0 and np.median(p[band]) >= rel * p.max())
+
+
 def _resonance_seeds(KX, w, fs, extra=(), min_coherence=0.9, min_peak=1.3, min_bins=20):
     """Where a resonance shows in the data, as starting points for its search: the
     frequency response from the model's prediction without dynamics (KX theta) to the
@@ -534,6 +548,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 notes.append("coupling not tested: the other axis's voltage does not move")
                 continue
         testable.append(e)
+    no_band = "dynamics" in testable and "delay" in testable and not broadband(
+        fit.v[axis], fit.fs_hz)
     base = fit_candidate(fit, axis, "none", kept=given)
     progress(f"{axis} none")
     cands = {"none": base}
@@ -635,6 +651,11 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     verdict, reason = _decide(ranking, steps, g_before, floor, fit, holdout, axis)
     if verdict in ("none", "inconclusive"):
         steps, model = [], None
+    if no_band and ({"delay", "dynamics"} & {st["effect"] for st in steps}
+                    or "delay and dynamics" in reason or "dynamics and delay" in reason):
+        notes.append("no broadband excitation (no chirp): a resonance above the "
+                     "excitation's tones cannot be told from a delay (record with "
+                     "`excite --chirp 2`)")
     if notes:
         reason = (reason + "; " if reason else "") + "; ".join(notes)
     final = (model.predict(holdout, axis) - w_h) if model is not None else resid
