@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.excitation import CHIRP_S
 
 HELP = "write a diagnostic excitation (t,vx,vy)"
 
@@ -14,9 +15,9 @@ def add_arguments(s):
     s.add_argument("--seed", type=int, default=0, help="varies amplitudes and step levels")
     s.add_argument("--v-min", type=float, default=0.0)
     s.add_argument("--v-max", type=float, default=150.0)
-    s.add_argument("--chirp", type=float, default=0.0, metavar="S", help="add a small "
-                   "chirp of S seconds per axis up to 0.4 x the rate (tells a resonance "
-                   "from a delay: 2 s does)")
+    s.add_argument("--chirp", type=float, default=CHIRP_S, metavar="S", help="the small "
+                   "chirp per axis up to 0.4 x the rate, S seconds (tells a resonance from "
+                   "a delay; default %(default)g, 0: none)")
 
 
 def main(args):

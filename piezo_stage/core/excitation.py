@@ -6,11 +6,11 @@ step's sign, drift does not), variable amplitudes (minor loops); then the other 
 alone (coupling shows on the idle axis). Voltages in [lo, hi]; the seed varies the
 amplitudes and step levels so FIT and HOLDOUT can be two different records.
 
-``chirp_s`` > 0 (``excite --chirp 2``) adds, per axis, a small linear chirp about
-mid-stroke from 20 Hz to 0.4 x the sample rate: the slow blocks cannot tell a
-resonance above the control rate from a pure delay (both only lag the slow motion),
-the chirp passes through the resonance and shows its peak (the gap diagnosis seeds
-its resonance search there).
+The protocol ends each axis's sines with a small linear chirp about mid-stroke, from
+20 Hz to 0.4 x the sample rate, ``chirp_s`` long (CHIRP_S by default; 0 leaves it out:
+``excite --chirp 0``): the slow blocks cannot tell a resonance above the control rate
+from a pure delay (both only lag the slow motion), the chirp passes through the
+resonance and shows its peak (the gap diagnosis seeds its resonance search there).
 """
 
 from __future__ import annotations
@@ -18,13 +18,14 @@ from __future__ import annotations
 import numpy as np
 
 SINES = ((1.0, 2, 1.0), (5.0, 5, 0.7), (20.0, 10, 0.5), (80.0, 16, 0.25))  # Hz, cycles, amp
+CHIRP_S = 2.0  # s per axis: enough to resolve a resonance's peak (0.8 kHz, zeta 0.05)
 
 
 def gap_protocol(fs_hz: float = 5000.0, lo: float = 0.0, hi: float = 150.0, seed: int = 0,
-                 hold_s: float = 3.0, chirp_s: float = 0.0,
+                 hold_s: float = 3.0, chirp_s: float = CHIRP_S,
                  chirp_frac: float = 0.015) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Returns (t [s], vx [V], vy [V]); about 35 s at the defaults (plus 2 x (chirp_s
-    + 0.2 s) with a chirp of +-chirp_frac of the span)."""
+    """Returns (t [s], vx [V], vy [V]); about 36 s at the defaults (31.6 s, plus
+    2 x (chirp_s + 0.2 s) for the chirps of +-chirp_frac of the span)."""
     rng = np.random.default_rng(seed)
     span = hi - lo
     dt = 1.0 / fs_hz
@@ -52,7 +53,11 @@ def gap_protocol(fs_hz: float = 5000.0, lo: float = 0.0, hi: float = 150.0, seed
                                        rng.uniform(0.8, 0.95), 0.0])
         cur = lo
         for L in levels:
-            parts.append(ramp_to(cur, L, 0.02))
+            # 50 ms edges: a full-stroke step asks ~5 kV/s at most, under the 80 Hz
+            # sine's 9 kV/s (20 ms asked 12 kV/s: a command step of 10.5 V per 1 ms
+            # sample, which a 1e5 V/s amplifier spreads over two of its own steps, and
+            # the hysteresis path with it: a shape the sampled model cannot follow)
+            parts.append(ramp_to(cur, L, 0.05))
             parts.append(np.full(int(hold_s * fs_hz), L))
             cur = L
         return np.concatenate(parts)

@@ -156,18 +156,24 @@ def transform_ops(effects: Sequence[tuple[str, dict]],
     return _compose([effect_operator(n, fs, p) for n, p in eff])
 
 
+class _Chain:
+    """Operators applied in turn (a class, not a closure: a diagnosis crosses a process
+    boundary, see ``diagnose``)."""
+
+    def __init__(self, ops):
+        self.ops = ops
+
+    def __call__(self, X):
+        for o in self.ops:
+            X = o(X)
+        return X
+
+
 def _compose(ops):
     ops = [o for o in ops if o is not None]
     if not ops:
         return None
-    if len(ops) == 1:
-        return ops[0]
-
-    def op(X):
-        for o in ops:
-            X = o(X)
-        return X
-    return op
+    return ops[0] if len(ops) == 1 else _Chain(ops)
 
 
 def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = None,
@@ -232,8 +238,10 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
         else:
             seeds = _resonance_seeds(KX, w, fs, extra)
 
-            def search(cost, p0):
-                return _search_dynamics(fs, cost, seeds)
+            def search(cost, p0):  # from the data's peak and the last alternation's end
+                last = [(p0["fn_hz"], p0["zeta"])] if p0 and p0["kind"] == "resonance" \
+                    else []
+                return _search_dynamics(fs, cost, seeds + last if seeds else seeds)
             if "delay" in dict(kept):
                 d0 = dict(kept)["delay"]
                 KB = _without(reg, alphas, kept, ("delay",), fs)
@@ -420,7 +428,7 @@ def _search_dynamics(fs, cost, seeds=()):
         if val < best[0]:
             best = (val, (np.log(fn), np.log(z)))
     r = minimize(res_f, best[1], method="Nelder-Mead",
-                 options={"maxfev": 20 if seeds else 30, "xatol": 1e-3})
+                 options={"maxfev": 60, "xatol": 1e-3})
     x = r.x if r.fun < best[0] else best[1]
     fn, z = float(np.exp(x[0])), float(np.exp(x[1]))
     if not fn < nyq / 1.01:
@@ -724,8 +732,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     if no_band and ({"delay", "dynamics"} & {st["effect"] for st in steps}
                     or "delay and dynamics" in reason or "dynamics and delay" in reason):
         notes.append("no broadband excitation (no chirp): a resonance above the "
-                     "excitation's tones cannot be told from a delay (record with "
-                     "`excite --chirp 2`)")
+                     "excitation's tones cannot be told from a delay (record the "
+                     "protocol with its chirp: `excite` without `--chirp 0`)")
     if notes:
         reason = (reason + "; " if reason else "") + "; ".join(notes)
     final = (model.predict(holdout, axis) - w_h) if model is not None else resid
@@ -992,12 +1000,73 @@ class Diagnosis:
         return StageModel(axes, coupling, lim), effects
 
 
+def _axis_child(conn, fit, holdout, axis, args):
+    effects, base_model, base_effects = args
+    try:
+        d = diagnose_axis(fit, holdout, axis, effects, base_model,
+                          lambda what: conn.send(("progress", what)), base_effects)
+        conn.send(("done", d))
+    except BaseException as e:  # noqa: BLE001 -- re-raised in the parent
+        conn.send(("error", e))
+    finally:
+        conn.close()
+
+
+def _axes_apart(fit, holdout, axes, args, progress):
+    """Each axis's diagnosis in a process of its own (forked: the records are not
+    copied), progress relayed from them. Processes, not threads: the many small steps
+    of the parameter searches hold the GIL, and two axes in two threads took 19 s
+    where two processes take 12 s (the 35 s, 5 kHz record with four effects). One
+    axis, or no fork (not Linux): in this process / in threads."""
+    import multiprocessing as mp
+    import sys
+    if len(axes) == 1 or not sys.platform.startswith("linux"):
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
+            futures = {a: pool.submit(diagnose_axis, fit, holdout, a, args[0], args[1],
+                                      progress, args[2]) for a in axes}
+            return {a: f.result() for a, f in futures.items()}
+    from multiprocessing.connection import wait
+    ctx = mp.get_context("fork")
+    procs, conns, per = {}, {}, {}
+    try:
+        for a in axes:
+            r, w = ctx.Pipe(duplex=False)
+            p = ctx.Process(target=_axis_child, args=(w, fit, holdout, a, args), daemon=True)
+            p.start()
+            w.close()
+            procs[a], conns[r] = p, a
+        while conns:
+            for r in wait(list(conns)):
+                a = conns[r]
+                try:
+                    kind, val = r.recv()
+                except EOFError:
+                    procs[a].join(5)
+                    raise RuntimeError(f"axis {a}: its diagnosis process ended without a "
+                                       f"result (exit code {procs[a].exitcode})") from None
+                if kind == "progress":
+                    progress(val)
+                    continue
+                del conns[r]
+                r.close()
+                if kind == "error":
+                    raise val
+                per[a] = val
+    finally:
+        for p in procs.values():
+            if p.is_alive() and p.pid is not None and conns:
+                p.terminate()
+            p.join(5)
+    return {a: per[a] for a in axes}
+
+
 def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] = EFFECTS,
              axes: Sequence[str] | None = None, base_model: StageModel | None = None,
              progress: Callable[[str], None] | None = None,
              base_effects: dict | None = None) -> Diagnosis:
     """Diagnose the gap on every axis (see the module docstring). ``progress(what)`` is
-    called after each candidate fit (from the axes' threads)."""
+    called after each candidate fit (in this thread: relayed from the axes' processes)."""
     t0 = time.perf_counter()
     holdout = holdout or fit
     axes = axes or [a for a in ("x", "y") if a in fit.w and a in holdout.w]
@@ -1008,17 +1077,12 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
             raise DataError(f"FIT and HOLDOUT have different channels (axis {a})")
     if len(fit.t) < 200 or len(holdout.t) < 200:
         raise DataError("records too short for a gap diagnosis (need >= 200 samples)")
-    # the axes are independent problems; the compiled loops, lfilter and BLAS release
-    # the GIL, so two threads use both cores
-    from concurrent.futures import ThreadPoolExecutor
-
     from threadpoolctl import threadpool_limits
-    # one BLAS thread per axis thread: two of each on two cores fight (~20 % slower)
-    with threadpool_limits(1 if len(axes) > 1 else None), \
-            ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
-        futures = {a: pool.submit(diagnose_axis, fit, holdout, a, effects, base_model,
-                                  progress, base_effects) for a in axes}
-        per = {a: f.result() for a, f in futures.items()}
+    # the axes are independent problems, one per core; one BLAS thread each (two of
+    # each on two cores fight, ~20 % slower)
+    args = (effects, base_model, base_effects)
+    with threadpool_limits(1 if len(axes) > 1 else None):
+        per = _axes_apart(fit, holdout, axes, args, progress or (lambda what: None))
     worst = max(per.values(), key=lambda d: d.ranking[0]["gap_before_um"])
     out = {"verdict": worst.verdict, "reason": worst.reason, "ranking": worst.ranking,
            "where": worst.where, "noise_floor_um": worst.noise_floor_um,

@@ -18,7 +18,7 @@ import time
 import numpy as np
 from scipy import signal
 
-from piezo_stage.core.excitation import gap_protocol
+from piezo_stage.core.excitation import CHIRP_S, gap_protocol
 from piezo_stage.core.gap import diagnose
 from piezo_stage.core.plant import Plant
 from piezo_stage.core.record import Record
@@ -70,7 +70,7 @@ def _independent(kind, w, vo, fs, rng):
     return w
 
 
-def make_pair(kind, family, seed, fs=1000.0):
+def make_pair(kind, family, seed, fs=1000.0, chirp_s=CHIRP_S):
     """(FIT, HOLDOUT) records of axis x (and y), one effect ``kind`` switched on."""
     rng = np.random.default_rng(1000 + seed * 7 + TRUTHS.index(kind))
     cfg = load_plant_config(default_plant_config_path())
@@ -86,7 +86,7 @@ def make_pair(kind, family, seed, fs=1000.0):
     for k in range(2):
         s = int(rng.integers(1 << 30))
         cfg.seed = s
-        t, vx, vy = gap_protocol(fs, seed=s)
+        t, vx, vy = gap_protocol(fs, seed=s, chirp_s=chirp_s)
         plant = Plant(cfg, fs)
         w = plant.run(vx, vy)
         if family == "independent" and kind != "none":
@@ -105,11 +105,11 @@ PAIRS = (("creep", "coupling"), ("creep", "dynamics"), ("delay", "coupling"),
          ("coupling", "disturbance"))
 
 
-def make_multi_pair(effects, seed, fs=1000.0, coupling=None, rng=None, chirp_s=0.0):
+def make_multi_pair(effects, seed, fs=1000.0, coupling=None, rng=None, chirp_s=CHIRP_S):
     """(FIT, HOLDOUT) from our simulator with several effects on: ``effects`` names
     (magnitudes drawn from ``rng``) or {name: params}; ``coupling`` keeps the stage's
     hysteretic coupling (default: when "coupling" is named); ``chirp_s``: the
-    protocol's chirp (``excite --chirp``)."""
+    protocol's chirp (``excite --chirp``; 0: none)."""
     rng = rng or np.random.default_rng(5000 + seed)
     cfg = copy.deepcopy(load_plant_config(default_plant_config_path()))
     if not isinstance(effects, dict):

@@ -135,6 +135,21 @@ class DuhemRegression:
             self._Xo = np.empty((self.v.size, 2 * (self.cdeg + 1) + 1))
             self._Xc = np.empty((self.v.size, 2 * (self.cdeg + 1) + self.cstate))
 
+    def __getstate__(self):
+        # the bases and work buffers follow from v (a fit's regression crosses a process
+        # boundary in the gap diagnosis: without them it is the data and the settings)
+        return {k: v for k, v in self.__dict__.items()
+                if k not in ("B", "Bo", "_X", "_Xo", "_Xc")}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self.B = _basis(self.v, self.lo, self.hi, self.D)
+        self._X = np.empty((self.v.size, 2 * (self.D + 1) + 1))
+        if self.v_other is not None:
+            self.Bo = _basis(self.v_other, self.olo, self.ohi, self.cdeg)
+            self._Xo = np.empty((self.v.size, 2 * (self.cdeg + 1) + 1))
+            self._Xc = np.empty((self.v.size, 2 * (self.cdeg + 1) + self.cstate))
+
     @property
     def n_alpha(self) -> int:
         """How many alphas the regression's model has."""
