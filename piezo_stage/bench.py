@@ -343,7 +343,8 @@ def bench_gap(seeds=3):
     from piezo_stage.core.gap import diagnose
     from piezo_stage.studies import gap_blind
     print("bench gap: blind suite, one unmodelled effect per record pair (FIT, HOLDOUT), "
-          "diagnosis not told which; axis x, 1 kHz, ~31 s protocol records")
+          "diagnosis not told which; axis x, 1 kHz, ~36 s protocol records (its chirp "
+          "included)")
     from piezo_stage.progress import bar, steps
     with bar("bench gap: blind cases", total=2 * len(gap_blind.TRUTHS) * seeds,
              unit=" cases") as b:

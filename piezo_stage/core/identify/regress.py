@@ -135,13 +135,13 @@ class DuhemRegression:
             self._Xo = np.empty((self.v.size, 2 * (self.cdeg + 1) + 1))
             self._Xc = np.empty((self.v.size, 2 * (self.cdeg + 1) + self.cstate))
 
-    def __getstate__(self):
+    def __getstate__(self) -> dict:
         # the bases and work buffers follow from v (a fit's regression crosses a process
         # boundary in the gap diagnosis: without them it is the data and the settings)
         return {k: v for k, v in self.__dict__.items()
                 if k not in ("B", "Bo", "_X", "_Xo", "_Xc")}
 
-    def __setstate__(self, state):
+    def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         self.B = _basis(self.v, self.lo, self.hi, self.D)
         self._X = np.empty((self.v.size, 2 * (self.D + 1) + 1))
