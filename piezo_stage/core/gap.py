@@ -307,6 +307,11 @@ def _identity(X):
 
 
 ALTERNATIONS = 4  # profile searches per effect fit, at most
+# The two speed-ups of the diagnosis, switchable so that ``bench gap`` measures the path
+# without them in the same run: the one-column searches (False: every search step
+# filters every column, the exact cost) and the axes in processes (False: threads)
+ONE_COLUMN_SEARCH = True
+AXES_IN_PROCESSES = True
 
 
 def _alternate(B, extra, w, search, p0, make_op, start=None):
@@ -330,6 +335,8 @@ def _alternate(B, extra, w, search, p0, make_op, start=None):
         r = w - E @ fit.theta[k:] if E is not None else w
         return fit.rms, p, r
 
+    if not ONE_COLUMN_SEARCH:
+        return search(lambda q: refit(make_op(q))[0], p0)
     best, p, r = refit(start if start is not None else make_op(p0))
     params = p0
     for _ in range(ALTERNATIONS):
@@ -1020,7 +1027,7 @@ def _axes_apart(fit, holdout, axes, args, progress):
     axis, or no fork (not Linux): in this process / in threads."""
     import multiprocessing as mp
     import sys
-    if len(axes) == 1 or not sys.platform.startswith("linux"):
+    if len(axes) == 1 or not (AXES_IN_PROCESSES and sys.platform.startswith("linux")):
         from concurrent.futures import ThreadPoolExecutor
         with ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
             futures = {a: pool.submit(diagnose_axis, fit, holdout, a, args[0], args[1],
