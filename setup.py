@@ -60,7 +60,10 @@ setup(
         # the tests import the real nidaqmx (it installs without NI hardware) and run
         # the daq backend on it with only NI's driver layer replaced (the test double)
         # (and ruff and numpydoc: the suite runs the linters, test/test_lint.py)
-        "test": ["pytest>=7", "nidaqmx>=1.0", "ruff>=0.5", "numpydoc>=1.6"],
+        # (pytest-xdist: two workers, each test on its own ROS domain; pytest-timeout: a
+        # hung test fails with every thread's stack instead of hanging the suite)
+        "test": ["pytest>=7", "pytest-xdist>=3.5", "pytest-timeout>=2.2", "nidaqmx>=1.0",
+                 "ruff>=0.5", "numpydoc>=1.6"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",
@@ -68,7 +71,7 @@ setup(
     description="Duhem hysteresis identification and control of 2-axis piezo stages",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": ["piezo-stage = piezo_stage.cli:main"]
+        "console_scripts": ["piezo-stage = piezo_stage.__main__:main"]
         + [f"{n} = piezo_stage.nodes.{n}_node:main" for n in NODES],
     },
 )

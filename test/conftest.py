@@ -23,3 +23,39 @@ def plant_config_path():
 def sine_v(freq, fs, cycles, lo=0.0, hi=150.0, phase=0.0):
     t = np.arange(int(round(cycles * fs / freq))) / fs
     return t, lo + (hi - lo) / 2 * (1 - np.cos(2 * np.pi * freq * t + phase))
+
+
+# -- ROS domains: each test its own, never shared between parallel workers ------------
+# Fast DDS takes domain ids 0-232; 0 is left to the user's own graph. With pytest-xdist
+# each worker has its own slice of 1-230 and hands its ids out in turn, so no two tests
+# running at the same time ever share a domain (random ids did, now and then).
+_DOMAINS = {"next": 0}
+
+
+def _domain_slice():
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
+    size = 230 // max(1, workers)
+    return 1 + index * size, size
+
+
+@pytest.fixture
+def ros_domains():
+    """``take(n)``: the first of ``n`` consecutive domain ids for this test alone."""
+    def take(n=1):
+        lo, size = _domain_slice()
+        if _DOMAINS["next"] + n > size:
+            _DOMAINS["next"] = 0
+        d = lo + _DOMAINS["next"]
+        _DOMAINS["next"] += n
+        return d
+    return take
+
+
+@pytest.fixture
+def ros_env(ros_domains):
+    """The environment for this test's node processes: its own domain, on this host."""
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # in-process probes too
+    return dict(os.environ, ROS_DOMAIN_ID=str(ros_domains()),
+                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONPATH=ROOT)

@@ -4,7 +4,6 @@ by the TEST DOUBLE (test/hardware_double/ni_driver_double.py)."""
 import inspect
 import json
 import os
-import random
 import sys
 
 import numpy as np
@@ -145,16 +144,14 @@ def test_bad_daq_configuration_is_refused(device):
         DaqBackend(1000.0, PARAMS, safe_V=-5.0)
 
 
-def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp_path):
+def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp_path, ros_env):
     """Real time on the wall-clock double, every 250th read two periods late: the set
     arms and tracks as on the sim, the stamps show the missed clocks, diagnostics count
     them, and the outputs end at the safe voltage."""
     pytest.importorskip("rclpy")
     from piezo_stage.io.bag import deserialize, iter_messages
     from piezo_stage.launch.launcher import Launch
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONPATH=os.pathsep.join([DOUBLE, ROOT]),
+    env = dict(ros_env, PYTHONPATH=os.pathsep.join([DOUBLE, ROOT]),
                PIEZO_STAGE_NI_DOUBLE=json.dumps({"clock": "wall", "lag_every": 250}))
     cfg = tmp_path / "daq.yaml"
     cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    backend: daq\n"

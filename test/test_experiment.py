@@ -4,7 +4,6 @@ set that cannot start ends the command with the reason."""
 
 import json
 import os
-import random
 import subprocess
 import sys
 
@@ -19,9 +18,8 @@ MODEL = os.path.join(CONFIG, "stage_model.yaml")
 
 
 @pytest.fixture
-def env():
-    return dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 100)),
-                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONPATH=ROOT)
+def env(ros_env):
+    return ros_env
 
 
 def _experiment(env, *args, timeout=600):

@@ -3,7 +3,6 @@ WebSocket client speaking Foxglove's protocol (launch/foxglove_probe.py): it dec
 what it receives using only the schema the server advertised, as Foxglove does."""
 
 import os
-import random
 import socket
 import subprocess
 import sys
@@ -24,10 +23,9 @@ def free_port():
         return s.getsockname()[1]
 
 
-def test_live_view_serves_decodable_joint_states(tmp_path):
+def test_live_view_serves_decodable_joint_states(tmp_path, ros_env):
     port = free_port()
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 100)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONPATH=ROOT)
+    env = ros_env
     # a real-time driver on the sim, disarmed: it samples the stage at 1 kHz
     la = Launch(os.path.join(CONFIG, "stage.yaml"), nodes=["stage_driver"], env=env,
                 arm=False, foxglove_port=port,

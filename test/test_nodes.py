@@ -4,7 +4,6 @@ Every test runs on its own random ROS_DOMAIN_ID with discovery kept on this host
 nothing depends on wall-clock speed (lockstep runs wait for each other)."""
 
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -23,10 +22,8 @@ MODEL = os.path.join(CONFIG, "stage_model.yaml")
 
 
 @pytest.fixture
-def env():
-    e = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 100)),
-             ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONPATH=ROOT)
-    return e
+def env(ros_env):
+    return ros_env
 
 
 def topic_data(bag, suffix):
@@ -248,7 +245,7 @@ n.destroy_node(); rclpy.try_shutdown()
     try:
         assert pub.stdout.readline().strip() == "True"  # all 300 in the recorder's reader
         rec.send_signal(signal.SIGINT)
-        assert rec.wait(30) == 0
+        assert rec.wait(30) == 130
     finally:
         pub.communicate("\n", timeout=30)
         if rec.poll() is None:

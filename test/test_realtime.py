@@ -8,7 +8,6 @@ without a jump."""
 
 import math
 import os
-import random
 import signal
 import subprocess
 import time
@@ -17,7 +16,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
-from conftest import CONFIG, ROOT  # noqa: E402
+from conftest import CONFIG  # noqa: E402
 from piezo_stage.io.run_bag import (
     read_run,  # noqa: E402
     status_node,
@@ -31,12 +30,8 @@ RAMP, STALE = 500.0, 0.05
 
 
 @pytest.fixture
-def domain():
-    d = random.randint(201, 230)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(d), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONPATH=ROOT)
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    return d, env
+def domain(ros_env):
+    return int(ros_env["ROS_DOMAIN_ID"]), ros_env
 
 
 def realtime_config(tmp_path, extra=""):
@@ -122,7 +117,7 @@ def test_arming_is_refused_with_the_missing_link_and_e_stop_stays_latched(tmp_pa
         for p in others + [drv]:
             p.send_signal(signal.SIGINT)
         for p in others + [drv]:
-            assert p.wait(30) == 0
+            assert p.wait(30) == 130
 
 
 def test_faults_ramp_to_safe_and_the_set_re_arms_through_the_approach(tmp_path, domain):
@@ -175,7 +170,7 @@ def _faults_run(tmp_path, domain):
     finally:
         probe.close()
         launch.stop()
-    assert all(p.returncode == 0 for n, p in launch.procs.items()
+    assert all(launch.stopped_cleanly(n) for n in launch.procs
                if n != "controller" and n != "feedforward")
     run = read_run(bag)
     t, v, true, states, ref = run.t_ns, run.v_V, run.true_um, run.states, run.desired_um
@@ -233,7 +228,7 @@ def test_a_node_dying_under_launch_ends_the_run_at_the_safe_voltage(tmp_path, do
         probe.close()
         launch.stop()
     assert any("controller" in f for f in launch.failed)
-    assert launch.procs["stage_driver"].returncode == 0
+    assert launch.stopped_cleanly("stage_driver")
     run = read_run(bag)
     t, v, states = run.t_ns, run.v_V, run.states
     assert_never_beyond_slew(t, v)
@@ -274,7 +269,7 @@ def test_controller_gains_and_feedback_are_live_and_read_only_ones_refused(tmp_p
     finally:
         probe.close()
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(30) == 0
+        assert proc.wait(30) == 130
 
 
 LIVE = {"controller": {"kp", "ki", "kd", "feedback"},

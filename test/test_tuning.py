@@ -157,11 +157,8 @@ def test_no_sustained_oscillation_is_refused():
         relay_point(u, y, 1000.0, 2.0, 1)
 
 
-def test_tune_relay_runs_the_node_set_and_writes_gains(tmp_path):
-    import os
-    import random
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(231, 232)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+def test_tune_relay_runs_the_node_set_and_writes_gains(tmp_path, ros_env):
+    env = ros_env
     out = tmp_path / "gains.yaml"
     r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "tune", "--relay",
                         "--record", str(tmp_path), "--out", str(out)],

@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import sys
 
+from piezo_stage import stopping
 from piezo_stage.cli._common import EXIT_SOLVER, Parser, die
 from piezo_stage.core.errors import DataError, PiezoStageError, SolverError
 
@@ -56,8 +57,9 @@ def check_paths(args):
 
 
 def main(argv=None):
-    args = build_parser().parse_args(argv)
+    stopping.running()  # SIGTERM and SIGHUP stop a command as Ctrl-C does
     try:
+        args = build_parser().parse_args(argv)
         check_paths(args)
         return args.fn(args) or 0
     except SolverError as e:  # the data were fine; the solver did not deliver
@@ -65,7 +67,9 @@ def main(argv=None):
     except PiezoStageError as e:
         die(str(e))
     except KeyboardInterrupt:
-        return 130
+        line, code = stopping.stopped_line()
+        sys.stderr.write(line + "\n")
+        return code
 
 
 if __name__ == "__main__":

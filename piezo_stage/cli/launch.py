@@ -36,5 +36,7 @@ def main(args):
               "Foxglove WebSocket)", flush=True)
     rc = launch.run(args.duration)
     if record:
-        print(f"bag: {record}")
+        import os
+        print(f"bag: {record}" if os.path.isdir(record) else
+              f"no bag: the recorder was stopped before it opened {record}")
     return rc

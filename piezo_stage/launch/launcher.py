@@ -4,11 +4,13 @@ Each node runs as ``python -m piezo_stage.nodes.<node>_node --ros-args -r
 __ns:=<namespace> --params-file CONFIG [-p name:=value ...]``, exactly what
 ``ros2 run`` would pass. In lockstep the launcher tells each publisher how many
 subscribers to wait for (the set it started, recorder included), so no sample is
-published before everyone listens. Ctrl-C (SIGINT) is forwarded: producers first,
-then the driver (which ramps the stage to its safe voltage before it exits; the
-launcher waits for it), the recorder last, so the bag holds everything, the ramp
-included. A node that exits 0 by itself (the driver after max_steps) ends the run
-cleanly; one that dies ends it with exit 1. The set starts disarmed and the driver arms
+published before everyone listens. SIGINT, SIGTERM and SIGHUP to the launcher stop
+the set in a safe order: the driver first (it disarms, which is no fault, and ramps the
+stage to its safe voltage before it exits; the launcher waits for it), then the
+producers, the recorder last, so the bag holds everything, the ramp included. No node
+is left behind, even if the launcher is SIGKILLed (nodes/_signals.py). A node that exits
+0 by itself (the driver after max_steps) ends the run cleanly; one that dies, or that
+someone else stopped, ends it with exit 1. The set starts disarmed and the driver arms
 itself once the loop is closed (``auto_arm``), unless ``arm=False``.
 """
 
@@ -24,6 +26,12 @@ import yaml
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
+# how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
+# down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
+STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
 
 
 def _params(config_path):
@@ -82,6 +90,8 @@ class Launch:
             self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         self.procs = {}
         self.failed = []
+        self.signalled = set()   # the nodes this launcher sent SIGINT
+        self.stopped_by = None   # the signal that told the launcher to stop
 
     def _gates(self):
         has = set(self.nodes)
@@ -124,21 +134,40 @@ class Launch:
         return extra
 
     def start(self):
+        """Start the nodes in order. Each starts with SIGINT and SIGTERM blocked (the
+        mask survives exec; the node unblocks them once its handlers are in place, so a
+        stop sent at any moment is delivered, never lost or met by a traceback) and
+        with the launcher's pid, so that it stops when the launcher dies (even by
+        SIGKILL: see nodes/_signals.py). A signal to the launcher while it starts them
+        ends the starting; the nodes started so far are stopped in order."""
+        env = dict(self.env, **{LAUNCHER_PID_ENV: str(os.getpid())})
         for n in self.nodes:
-            self.procs[n] = subprocess.Popen(self.command(n), env=self.env,
-                                             start_new_session=True)
+            if self.stopped_by is not None:  # told to stop while starting
+                return
+            old = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+            try:
+                self.procs[n] = subprocess.Popen(self.command(n), env=env,
+                                                 start_new_session=True)
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
-    def stop(self, timeout=15.0):
-        """SIGINT to the producers, then the driver (it ramps down and exits), then
-        the recorder; escalate if a node hangs."""
+    def stop(self, grace_s=STOP_GRACE_S):
+        """Stop the set in its safe order: the driver first (it disarms, which is no
+        fault, and ramps the stage to its safe voltage before it exits; the launcher
+        waits for it), then the producers, then the recorder and the live view, so the
+        bag holds everything, the ramp included. A node that has not stopped by its
+        grace is killed, and that is a failure."""
         producers = [n for n in reversed(self.nodes)
                      if n not in ("recorder", "stage_driver", "live_view")]
-        for group in (producers, ["stage_driver"], ["recorder", "live_view"]):
+        for group, grace in ((["stage_driver"], grace_s["stage_driver"]),
+                             (producers, grace_s["producers"]),
+                             (["recorder", "live_view"], grace_s["recorder"])):
             for n in group:
                 p = self.procs.get(n)
                 if p and p.poll() is None:
                     p.send_signal(signal.SIGINT)
-            deadline = time.monotonic() + timeout
+                    self.signalled.add(n)
+            deadline = time.monotonic() + grace
             for n in group:
                 p = self.procs.get(n)
                 if not p:
@@ -148,10 +177,12 @@ class Launch:
                 except subprocess.TimeoutExpired:
                     p.kill()
                     p.wait()
-                    self.failed.append(f"{n} did not stop on SIGINT (killed)")
+                    self.failed.append(f"{n} did not stop within {grace:g} s of SIGINT "
+                                       "(killed)")
 
     def wait(self, duration=None):
-        """Run until duration [s] passes, Ctrl-C, a node exits 0 (done) or one dies."""
+        """Run until duration [s] passes, a node exits 0 (done) or one dies, or a
+        signal comes (SIGINT, SIGTERM, SIGHUP: see run)."""
         t_end = None if duration is None else time.monotonic() + duration
         try:
             while True:
@@ -159,25 +190,65 @@ class Launch:
                     rc = p.poll()
                     if rc is not None:
                         if rc != 0:
-                            self.failed.append(f"{n} died with exit code {rc}")
+                            self.failed.append(f"{n} {_ended(rc)}")
                         return
                 if t_end is not None and time.monotonic() >= t_end:
                     return
+                if self.stopped_by is not None:
+                    return
                 time.sleep(0.05)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt:  # wait() used without run(): Ctrl-C as usual
             return
 
+    def stopped_cleanly(self, node) -> bool:
+        """The node ended by itself (exit 0), or on this launcher's SIGINT (130)."""
+        rc = self.procs[node].returncode
+        return rc == 0 or (node in self.signalled and rc == 128 + signal.SIGINT)
+
+    def _on_signal(self, signum, frame):
+        """Only noted: start() and wait() look at it every 50 ms at most. Raising here
+        could cut the orderly stop short and leave nodes behind."""
+        if self.stopped_by is None:
+            self.stopped_by = signum
+
     def run(self, duration=None) -> int:
-        old = signal.signal(signal.SIGINT, signal.default_int_handler)
+        """Start, wait, stop in order; the exit code: 0 for a run that ended by
+        ``duration`` or by its driver finishing, 128 + the signal's number for one the
+        launcher was told to stop (every node stopped in order), 1 when a node failed
+        (died, was stopped by someone else, or had to be killed)."""
+        old = {s: signal.signal(s, self._on_signal) for s in STOP_SIGNALS + (signal.SIGHUP,)}
         try:
-            self.start()
-            self.wait(duration)
+            try:
+                self.start()
+                self.wait(duration)
+            finally:
+                self.stop()
         finally:
-            self.stop()
-            signal.signal(signal.SIGINT, old)
+            for s, h in old.items():
+                signal.signal(s, h)
         for n, p in self.procs.items():
-            if p.returncode not in (0, None) and not any(f.startswith(n) for f in self.failed):
-                self.failed.append(f"{n} exited with code {p.returncode}")
+            if not self.stopped_cleanly(n) and not any(f.startswith(n + " ")
+                                                       for f in self.failed):
+                self.failed.append(f"{n} {_ended(p.returncode)}")
         for f in self.failed:
             sys.stderr.write(f"piezo-stage launch: {f}\n")
-        return 1 if self.failed else 0
+        if self.failed:
+            return 1
+        if self.stopped_by is not None:
+            sys.stderr.write(f"piezo-stage launch: stopped by "
+                             f"{signal.Signals(self.stopped_by).name}: every node stopped "
+                             "in order (the driver first, at its safe voltage)\n")
+            return 128 + self.stopped_by
+        return 0
+
+
+def _ended(rc) -> str:
+    """How a node ended, in words, from its exit code."""
+    if rc is None:
+        return "did not end"
+    if rc < 0:
+        return f"was killed by {signal.Signals(-rc).name}"
+    if rc > 128 and rc - 128 in {s.value for s in signal.Signals}:
+        return (f"was stopped by {signal.Signals(rc - 128).name} from outside the "
+                "launcher")
+    return f"died with exit code {rc}"

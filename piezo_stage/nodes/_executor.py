@@ -29,6 +29,9 @@ from rclpy.executors import (
     ShutdownException,
     TimeoutException,
 )
+from rclpy.signals import SignalHandlerOptions
+
+from piezo_stage.nodes import _signals
 
 SLOW_PERIOD_S = 0.05  # the base executor's turn (timers, services, other topics)
 IDLE_WAKE_S = 0.002   # with nothing arriving, the loop still wakes this often
@@ -174,7 +177,7 @@ class LeanExecutor(Executor):
         batch = getattr(node, "lean_batch_s", 0.0)
         if batch:
             t_end = now + batch
-            while self.context.ok() and time.monotonic() < t_end:
+            while self.context.ok() and not _signals.count() and time.monotonic() < t_end:
                 time.sleep(min(batch, 0.02))
 
     def spin(self) -> None:
@@ -184,7 +187,12 @@ class LeanExecutor(Executor):
         gc.collect()
         gc.freeze()
         try:
+            seen = 0
             while self.context.ok() and not self._is_shutdown:
+                if _signals.count() > seen:  # a stop signal came (see _signals)
+                    seen = _signals.count()
+                    if not self._stop_requested(seen):
+                        break
                 try:
                     self.spin_once()
                 except Exception:
@@ -200,33 +208,54 @@ class LeanExecutor(Executor):
             gc.unfreeze()  # teardown as usual: the middleware's objects are collected
         raise ExternalShutdownException()
 
+    def _stop_requested(self, n: int) -> bool:
+        """A stop signal (the ``n``-th): True to keep spinning. A node with
+        ``request_shutdown()`` (the driver: it ramps the stage to its safe voltage, still
+        publishing, then shuts the context down itself) is asked once; a second signal
+        ends the spin at once, as it does for every other node on the first."""
+        request = getattr(self.node, "request_shutdown", None)
+        if request is None or n > 1:
+            return False
+        if not getattr(self.node, "shutdown_requested", False):
+            request()
+        return True
 
-# -- the pieces of a node's main() ------------------------------------------------------
-def _no_keyboard_interrupt(signum, frame):
-    """SIGINT: rclpy's own handler (installed by init, chained to this one) has already
-    shut the context down; the spin loop sees that and returns. Raising
-    KeyboardInterrupt here instead would unwind from an arbitrary point inside the
-    executor, which on rare occasions left a node hanging or crashing at teardown."""
 
+# -- a node's main() ----------------------------------------------------------------------
+def run_node(factory, args=None) -> int:
+    """Run one node the Jazzy way (init / spin / except / finally destroy, try_shutdown)
+    with the stops of :mod:`piezo_stage.nodes._signals`: rclpy installs no signal
+    handler of its own (``SignalHandlerOptions.NO``), ours work from the first import.
 
-def quiet_sigint() -> None:
-    """Before ``rclpy.init``: SIGINT shuts the context down and nothing else."""
-    signal.signal(signal.SIGINT, _no_keyboard_interrupt)
-
-
-def graceful_signals(get_node) -> None:
-    """Before ``rclpy.init(..., signal_handler_options=SignalHandlerOptions.NO)``:
-    SIGINT and SIGTERM call the node's ``request_shutdown()`` (the driver first ramps
-    the stage to its safe voltage, still publishing, then shuts the context down
-    itself); a second signal, or one before the node exists, shuts down at once."""
-    def on_signal(signum, frame):
-        node = get_node()
-        if node is None or getattr(node, "shutdown_requested", False):
-            rclpy.try_shutdown()
-        else:
-            node.request_shutdown()
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    Returns the exit code: 0 when the node ended by itself, 128 + the signal's number
+    when a signal stopped it (an ended run, not a success: the launcher accepts it only
+    from the nodes it signalled itself), 1 when it could not run (one line on stderr)."""
+    node, code = None, 0
+    try:
+        _signals.set_phase("building")
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        node = factory()
+        _signals.set_phase("running", node.get_fully_qualified_name())
+        LeanExecutor(node).spin()
+    except (_signals.Stopped, KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as e:  # a node that cannot run says why and exits non-zero
+        code = fatal(node, e, args)
+    finally:
+        phase = _signals.STATE.phase
+        _signals.set_phase("stopping")
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    signum = _signals.requested()
+    if signum is None:
+        return code
+    where = "while running" if phase == "running" else "during start-up"
+    did = getattr(node, "stop_summary", None)
+    sys.stderr.write(f"{_signals.STATE.name or _node_name(args)}: stopped by "
+                     f"{signal.Signals(signum).name} {where}"
+                     f"{': ' + did() if callable(did) else ''}\n")
+    return 128 + signum
 
 
 def fatal(node, error: BaseException, args=None) -> int:

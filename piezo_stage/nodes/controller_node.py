@@ -18,20 +18,23 @@ Relay: the autotuning experiment of ``piezo-stage tune --relay``), under the sam
 arming, clamping and staleness rules.
 """
 
+# first, before the heavy imports: stop signals work from here on (see _signals)
+from piezo_stage.nodes import _signals  # noqa: F401, I001
+
+# isort: split
+
 import math
 import time
 
-import rclpy
 from geometry_msgs.msg import Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from piezo_stage.core.control import PID, CompositeAxis, PIDGains, Relay
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.nodes._common import QOS_DATA
-from piezo_stage.nodes._executor import LeanExecutor, fatal, hot_subscription, quiet_sigint
+from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
@@ -152,21 +155,7 @@ class Controller(Node):
 
 def main(args=None):
     """Run the controller (the Jazzy form)."""
-    quiet_sigint()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Controller()
-        LeanExecutor(node).spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # a node that cannot run says why and exits non-zero
-        return fatal(node, e, args)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(Controller, args)
 
 
 if __name__ == "__main__":

@@ -13,11 +13,14 @@ commands still in flight before computing the next. A new model on ``model`` rep
 the inverse without a restart. Without any model the feedforward is a nominal gain.
 """
 
+# first, before the heavy imports: stop signals work from here on (see _signals)
+from piezo_stage.nodes import _signals  # noqa: F401, I001
+
+# isort: split
+
 import time
 
-import rclpy
 from geometry_msgs.msg import PointStamped
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -31,7 +34,8 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
-from piezo_stage.nodes._executor import LeanExecutor, fatal, hot_subscription, quiet_sigint
+from piezo_stage.nodes._executor import hot_subscription, run_node
+from piezo_stage.nodes._latched import LatchedFetch
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import (
@@ -103,14 +107,14 @@ class Feedforward(Node):
         self.lag = LatencyHistogram()  # sample stamp -> its arrival here
         self.sp_latency, self.setpoint_arrival = LatencyHistogram(), None
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        # volatile: any publisher matches; transient local: a restarted feedforward gets
-        # the latched trajectory too (the same message twice is taken once)
+        # volatile: every publisher matches, none warns; a latched publisher's trajectory
+        # sent before we matched (a restarted feedforward) comes by a brief
+        # transient-local fetch (_latched.py); the same message twice is taken once
         # (raw: checked for size, then decoded straight from the bytes, so a long
         # trajectory does not stall the loop in per-point message objects)
         self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable,
                                  raw=True)
-        self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory,
-                                 QOS_LATCHED, raw=True)
+        self.latched = LatchedFetch(self, JointTrajectory, "trajectory", self.on_trajectory)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
         Diagnostics(self, lambda: (0, f"{self.planner.phase}, model {self.model_name}, "
@@ -262,21 +266,7 @@ class Feedforward(Node):
 
 def main(args=None):
     """Run the feedforward (the Jazzy form)."""
-    quiet_sigint()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Feedforward()
-        LeanExecutor(node).spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # a node that cannot run says why and exits non-zero
-        return fatal(node, e, args)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(Feedforward, args)
 
 
 if __name__ == "__main__":

@@ -6,12 +6,15 @@ twin on ``gap/residual`` (geometry_msgs/PointStamped, metres) and its rolling RM
 /diagnostics, so a lab user sees the sim-to-real gap while running.
 """
 
+# first, before the heavy imports: stop signals work from here on (see _signals)
+from piezo_stage.nodes import _signals  # noqa: F401, I001
+
+# isort: split
+
 from collections import deque
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PointStamped
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
@@ -20,7 +23,7 @@ from piezo_stage.core.plant import Plant, PlantConfig
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir, enabled_effects
 from piezo_stage.nodes._common import QOS_DATA
-from piezo_stage.nodes._executor import LeanExecutor, fatal, hot_subscription, quiet_sigint
+from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import joint_state_to_um, point_cdr
@@ -79,21 +82,7 @@ class Gap(Node):
 
 def main(args=None):
     """Run the gap monitor (the Jazzy form)."""
-    quiet_sigint()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Gap()
-        LeanExecutor(node).spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # a node that cannot run says why and exits non-zero
-        return fatal(node, e, args)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(Gap, args)
 
 
 if __name__ == "__main__":

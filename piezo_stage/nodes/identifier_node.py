@@ -6,12 +6,15 @@ hands the model to the feedforward on ``model``
 (std_msgs/String holding the model file's YAML, transient local: late joiners get it).
 """
 
+# first, before the heavy imports: stop signals work from here on (see _signals)
+from piezo_stage.nodes import _signals  # noqa: I001
+
+# isort: split
+
 from collections import deque
 
 import numpy as np
-import rclpy
 import yaml
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -24,7 +27,7 @@ from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.record import Record
 from piezo_stage.io.model_file import model_to_dict
 from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
-from piezo_stage.nodes._executor import LeanExecutor, fatal, hot_subscription, quiet_sigint
+from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
@@ -91,7 +94,8 @@ class Identifier(Node):
         res, skipped = {}, []
         for a in ("x", "y"):
             try:
-                res[a] = identify_axis(rec, a, opts)
+                with _signals.interruptible():  # a long swarm search still stops in time
+                    res[a] = identify_axis(rec, a, opts)
             except PiezoStageError as e:  # an axis that was not excited
                 skipped.append(f"{a}: {e}")
         if not res:
@@ -136,21 +140,7 @@ class Identifier(Node):
 
 def main(args=None):
     """Run the identifier (the Jazzy form)."""
-    quiet_sigint()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Identifier()
-        LeanExecutor(node).spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # a node that cannot run says why and exits non-zero
-        return fatal(node, e, args)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(Identifier, args)
 
 
 if __name__ == "__main__":

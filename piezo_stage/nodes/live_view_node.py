@@ -12,16 +12,19 @@ their header stamp as log time (the set's one clock: simulated time in lockstep,
 clock in real time).
 """
 
+# first, before the heavy imports: stop signals work from here on (see _signals)
+from piezo_stage.nodes import _signals  # noqa: F401, I001
+
+# isort: split
+
 import time
 
-import rclpy
 from foxglove import Channel, Schema, start_server
 from foxglove.websocket import ServerListener
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from piezo_stage.io.bag import msgdef
-from piezo_stage.nodes._executor import LeanExecutor, fatal, quiet_sigint
+from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._tap import TopicTap
@@ -103,21 +106,7 @@ class LiveView(Node):
 
 def main(args=None):
     """Run the live view (the Jazzy form)."""
-    quiet_sigint()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = LiveView()
-        LeanExecutor(node).spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # a node that cannot run says why and exits non-zero
-        return fatal(node, e, args)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(LiveView, args)
 
 
 if __name__ == "__main__":

@@ -8,17 +8,20 @@ SIGKILL loses at most that much; SIGINT finalises a complete bag. The run's conf
 model files go in as MCAP metadata.
 """
 
+# first, before the heavy imports: stop signals work from here on (see _signals)
+from piezo_stage.nodes import _signals  # noqa: F401, I001
+
+# isort: split
+
 import os
 import sys
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
 
 from piezo_stage.io.bag import BagWriter, new_bag_dir
 from piezo_stage.nodes._common import steady_timer
-from piezo_stage.nodes._executor import LeanExecutor, fatal, quiet_sigint
+from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
 from piezo_stage.nodes._params import declare
 from piezo_stage.nodes._tap import TopicTap
@@ -87,6 +90,10 @@ class Recorder(Node):
         # time, so reruns are identical); publish time: its stamp
         self.bag.write(topic, data, received if self.log_received else t, t)
 
+    def stop_summary(self) -> str:
+        """What a stop left (run_node prints it)."""
+        return f"bag {self.bag.path} finished, {sum(self.bag.counts.values())} messages"
+
     def destroy_node(self):
         """The bag is finished (its summary and index written), then the node goes."""
         self.bag.finish()
@@ -97,21 +104,7 @@ class Recorder(Node):
 
 def main(args=None):
     """Run the recorder (the Jazzy form)."""
-    quiet_sigint()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Recorder()
-        LeanExecutor(node).spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # a node that cannot run says why and exits non-zero
-        return fatal(node, e, args)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(Recorder, args)
 
 
 if __name__ == "__main__":

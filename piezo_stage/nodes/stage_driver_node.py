@@ -13,6 +13,11 @@ voltage limits and the slew limit. State: latched ``state`` topic and /diagnosti
 ``arm`` (std_srvs/SetBool) arms and disarms; ``estop`` (std_srvs/Trigger).
 """
 
+# first, before the heavy imports: stop signals work from here on (see _signals)
+from piezo_stage.nodes import _signals  # noqa: F401, I001
+
+# isort: split
+
 import time
 from collections import deque
 
@@ -20,9 +25,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -40,7 +43,7 @@ from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import DataError
 from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
-from piezo_stage.nodes._executor import LeanExecutor, fatal, graceful_signals, hot_subscription
+from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import (
@@ -298,6 +301,12 @@ class StageDriver(Node):
                   "thread_priority": getattr(self, "rt_priority", 0), **self.sup.counts}
         return level, f"{st}: {self.sup.reason}", values
 
+    def stop_summary(self) -> str:
+        """What a stop left the stage at (run_node prints it)."""
+        return (f"{self.sup.state}, x {self.v['x']:.3f} V, y {self.v['y']:.3f} V (safe "
+                f"{self.sup.p.safe_V:g} V) after {self.stats['samples']} samples; the "
+                "backend then ramps to safe and closes")
+
     def destroy_node(self):
         """The backend ramps to the safe voltage and closes, then the node goes."""
         self.backend.close(self.sup.p.safe_V, self.sup.p.ramp_V_per_s)
@@ -307,21 +316,7 @@ class StageDriver(Node):
 def main(args=None):
     """Run the stage driver (the Jazzy form). SIGINT or SIGTERM first ramps the stage to its
     safe voltage; a second one stops at once."""
-    node = None
-    graceful_signals(lambda: node)
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = StageDriver()
-        LeanExecutor(node).spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # a node that cannot run says why and exits non-zero
-        return fatal(node, e, args)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(StageDriver, args)
 
 
 if __name__ == "__main__":

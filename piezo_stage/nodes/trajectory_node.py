@@ -7,17 +7,20 @@ has loops to learn from, and can tell each axis from its coupling, before the tr
 starts. Published once its consumers listen, again on a parameter change.
 """
 
+# first, before the heavy imports: stop signals work from here on (see _signals)
+from piezo_stage.nodes import _signals  # noqa: F401, I001
+
+# isort: split
+
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.trajectory import KINDS, generate
 from piezo_stage.nodes._common import QOS_LATCHED
-from piezo_stage.nodes._executor import LeanExecutor, fatal, quiet_sigint
+from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import trajectory_msg
@@ -91,21 +94,7 @@ class Trajectory(Node):
 
 def main(args=None):
     """Run the trajectory node (the Jazzy form)."""
-    quiet_sigint()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Trajectory()
-        LeanExecutor(node).spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception as e:  # a node that cannot run says why and exits non-zero
-        return fatal(node, e, args)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(Trajectory, args)
 
 
 if __name__ == "__main__":

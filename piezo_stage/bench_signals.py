@@ -1,0 +1,174 @@
+"""Stop signals at random moments: every node kind and the launcher, started as a lab
+starts them and sent SIGINT or SIGTERM 0-3 s later (during imports, ``rclpy.init``,
+discovery, spinning), some under CPU load. Counts hangs, tracebacks, wrong exit codes,
+missing stop lines and nodes a launcher left behind.
+
+``piezo-stage bench signals`` prints the counts; the test suite runs a short form of
+the same trials (test/test_signals.py)."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+from piezo_stage.nodes import NODES
+from piezo_stage.paths import default_config
+
+KINDS = NODES + ("launcher",)
+HANG_S = 10.0  # a stop not done by then is a hang (the process is then killed)
+
+
+@dataclass
+class Trial:
+    """One process signalled once: what it was, when, and how it ended."""
+
+    kind: str
+    delay_s: float
+    signum: int
+    loaded: bool
+    rc: int | None = None
+    stop_s: float = float("nan")   # from the signal to the process's exit
+    traceback: bool = False
+    said: str = ""                 # the line that says what the stop did
+    left_behind: int = 0           # launcher: nodes still running after it exited
+
+    @property
+    def hung(self) -> bool:
+        return self.rc is None
+
+    @property
+    def ok(self) -> bool:
+        return (not self.hung and not self.traceback and bool(self.said)
+                and self.rc == 128 + self.signum and self.left_behind == 0)
+
+
+def _command(kind: str, ns: str, out_dir: str) -> list[str]:
+    cfg = default_config("stage.yaml")
+    if kind == "launcher":
+        return [sys.executable, "-m", "piezo_stage", "launch", cfg, "--namespace", ns,
+                "--duration", "60", "--record", os.path.join(out_dir, "bag")]
+    cmd = [sys.executable, "-m", f"piezo_stage.nodes.{kind}_node", "--ros-args",
+           "-r", f"__ns:={ns}", "--params-file", cfg]
+    if kind == "recorder":
+        cmd += ["-p", f"output:={os.path.join(out_dir, 'bag')}"]
+    if kind == "live_view":
+        cmd += ["-p", "port:=0"]
+    return cmd
+
+
+def left_behind(ns: str) -> list[int]:
+    """Processes still running whose command line names this trial's namespace."""
+    pids = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/cmdline", "rb") as fh:
+                cmd = fh.read().split(b"\0")
+            with open(f"/proc/{d}/stat") as fh:
+                state = fh.read().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if f"__ns:={ns}".encode() in cmd and state != "Z":
+            pids.append(int(d))
+    return pids
+
+
+def run_trial(trial: Trial, domain: int, index: int) -> Trial:
+    """Start the process, signal it after ``trial.delay_s``, judge its stop."""
+    ns = f"/sigtrial{index}"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    with tempfile.TemporaryDirectory() as d:
+        err_path = os.path.join(d, "stderr")
+        with open(err_path, "w") as err:
+            p = subprocess.Popen(_command(trial.kind, ns, d), env=env,
+                                 stdout=subprocess.DEVNULL, stderr=err)
+            time.sleep(trial.delay_s)
+            p.send_signal(trial.signum)
+            t0 = time.monotonic()
+            try:
+                trial.rc = p.wait(HANG_S)
+                trial.stop_s = time.monotonic() - t0
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        with open(err_path, errors="replace") as fh:
+            text = fh.read()
+        if trial.kind == "launcher":
+            time.sleep(0.2)
+            stray = left_behind(ns)
+            trial.left_behind = len(stray)
+            for pid in stray:  # never leave a trial's node running on the machine
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+    trial.traceback = "Traceback" in text
+    name = signal.Signals(trial.signum).name
+    lines = [ln for ln in text.splitlines() if f"stopped by {name}" in ln]
+    trial.said = lines[-1].strip() if lines else ""
+    return trial
+
+
+def stress(n: int, parallel: int = 2, loaded_share: float = 0.3, seed: int = 0,
+           kinds=KINDS, max_delay_s: float = 3.0, domain0: int = 150) -> list[Trial]:
+    """``n`` trials over ``kinds`` in turn, random delays up to ``max_delay_s``, SIGINT
+    and SIGTERM alternately; the last ``loaded_share`` of them with every core kept
+    busy by other processes. ``parallel`` trials at once, each on its own domain."""
+    rng = random.Random(seed)
+    trials = [Trial(kinds[i % len(kinds)], rng.uniform(0.0, max_delay_s),
+                    (signal.SIGINT, signal.SIGTERM)[(i // len(kinds)) % 2],
+                    i >= n * (1 - loaded_share)) for i in range(n)]
+    burners: list[subprocess.Popen] = []
+    done: list[Trial] = []
+    try:
+        for loaded in (False, True):
+            batch = [t for t in trials if t.loaded == loaded]
+            if loaded and batch:
+                burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                           for _ in range(os.cpu_count() or 2)]
+            with ThreadPoolExecutor(parallel) as pool:
+                futs = [pool.submit(run_trial, t, domain0 + (len(done) + i) % parallel,
+                                    len(done) + i) for i, t in enumerate(batch)]
+                done += [f.result() for f in futs]
+    finally:
+        for b in burners:
+            b.kill()
+            b.wait()
+    return done
+
+
+def main(n: int = 108) -> int:
+    """``piezo-stage bench signals``: the stress run, counts per kind."""
+    t0 = time.monotonic()
+    trials = stress(n)
+    print(f"bench signals: {len(trials)} processes signalled 0-3 s after start "
+          f"({sum(t.loaded for t in trials)} under CPU load), {time.monotonic() - t0:.0f} s")
+    print(f"  {'kind':<13}{'trials':>7}{'hangs':>7}{'tracebacks':>11}{'bad exit':>9}"
+          f"{'no line':>8}{'left':>6}{'stop s median/max':>20}")
+    for k in KINDS:
+        ts = [t for t in trials if t.kind == k]
+        if not ts:
+            continue
+        stops = sorted(t.stop_s for t in ts if not t.hung)
+        med = stops[len(stops) // 2] if stops else float("nan")
+        print(f"  {k:<13}{len(ts):>7}{sum(t.hung for t in ts):>7}"
+              f"{sum(t.traceback for t in ts):>11}"
+              f"{sum(not t.hung and t.rc != 128 + t.signum for t in ts):>9}"
+              f"{sum(not t.said for t in ts):>8}{sum(t.left_behind for t in ts):>6}"
+              f"{med:>11.2f} / {max(stops, default=float('nan')):.2f}")
+    bad = [t for t in trials if not t.ok]
+    for t in bad[:10]:
+        print(f"  not clean: {t}")
+    slow = [t for t in trials if t.kind != "launcher" and t.stop_s > 2.0]
+    print(f"  all clean: {len(trials) - len(bad)}/{len(trials)}; node stops over 2 s: "
+          f"{len(slow)}")
+    return 0 if not bad else 1

@@ -1,0 +1,57 @@
+"""Taking latched messages without offending volatile publishers.
+
+A topic like ``trajectory`` has publishers of both kinds: latched ones (reliable,
+transient local, depth 1: our trajectory node, the recommended outside publisher) and
+default-QoS ones (volatile). A subscriber that asks for transient local gets the
+latched message a publisher sent before the two matched (a restarted feedforward gets
+the running trajectory), but it is incompatible with every volatile publisher: both
+sides then log "incompatible QoS" warnings, and a lab user reads "No messages will be
+sent" as a failure. A volatile subscriber matches everyone but never gets history.
+
+So the node keeps one volatile subscription for everything live, and ``LatchedFetch``
+opens a transient-local one only for a moment (``open_s``), when the graph shows a
+latched publisher it has not fetched from yet and no volatile publisher is on the
+topic; the history arrives, the fetch closes. The callback may then see one message
+twice (live and fetched): callers take a message once by its content.
+"""
+
+from __future__ import annotations
+
+import time
+
+from rclpy.qos import DurabilityPolicy
+
+from piezo_stage.nodes._common import QOS_LATCHED, steady_timer
+
+
+class LatchedFetch:
+    """See the module docstring. ``callback(data)`` gets the raw CDR bytes."""
+
+    def __init__(self, node, msg_type, topic: str, callback, poll_s: float = 0.25,
+                 open_s: float = 1.0):
+        self.node, self.msg_type, self.topic, self.callback = node, msg_type, topic, callback
+        self.open_s = open_s
+        self.fetched: set[bytes] = set()   # gids of the latched publishers fetched from
+        self.sub, self.opened_at = None, 0.0
+        self.fetches = 0
+        steady_timer(node, poll_s, self.poll)
+
+    def poll(self) -> None:
+        """Open a fetch for new latched publishers; close it when its time is up or a
+        volatile publisher appears."""
+        infos = self.node.get_publishers_info_by_topic(self.topic)
+        latched = {bytes(i.endpoint_gid) for i in infos
+                   if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL}
+        volatile = any(i.qos_profile.durability != DurabilityPolicy.TRANSIENT_LOCAL
+                       for i in infos)
+        if self.sub is not None and (volatile
+                                     or time.monotonic() - self.opened_at > self.open_s):
+            self.node.destroy_subscription(self.sub)
+            self.sub = None
+        new = latched - self.fetched
+        if new and not volatile and self.sub is None:
+            self.fetched |= new
+            self.sub = self.node.create_subscription(self.msg_type, self.topic,
+                                                     self.callback, QOS_LATCHED, raw=True)
+            self.opened_at = time.monotonic()
+            self.fetches += 1

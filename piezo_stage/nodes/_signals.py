@@ -1,0 +1,133 @@
+"""How a node stops: SIGINT and SIGTERM work at every moment of a node's life.
+
+A node module imports this module before anything else, so the handlers are in place
+before the heavy imports (numpy, scipy, rclpy take 1-2 s). What a signal does depends on
+where the node is (``phase``):
+
+- ``starting`` (imports, before ``rclpy.init``): nothing is open yet (no middleware
+  participant, no hardware), so the process says so on one line and exits at once with
+  128 + the signal's number. No KeyboardInterrupt traceback.
+- ``building`` (``rclpy.init`` and the node's constructor): :class:`Stopped` is raised
+  where the node is; ``run_node`` destroys what exists and exits.
+- ``running`` (spinning): the signal is only noted; the executor polls
+  :func:`requested` every pass (at least every 50 ms) and ends the spin, or asks the
+  node's ``request_shutdown()`` (the driver ramps the stage to its safe voltage first; a
+  second signal stops it at once). Raising from an arbitrary point of the executor
+  instead once left nodes hanging at teardown.
+- inside :func:`interruptible` (a long fit in a callback): :class:`Stopped` is raised.
+- ``stopping`` (teardown): noted, nothing else.
+
+Started by the launcher, a node begins with SIGINT and SIGTERM blocked (the launcher
+blocks them around the fork, and the mask survives exec): a signal sent before this
+module is imported waits, and is delivered the moment :func:`install` unblocks it. The
+launcher also passes its pid (``PIEZO_STAGE_LAUNCHER_PID``): the node asks the kernel
+for a SIGTERM when the launcher dies (``PR_SET_PDEATHSIG``), so even a SIGKILLed
+launcher leaves no node behind, the driver included (it ramps down as for any SIGTERM).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from contextlib import contextmanager
+
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"
+_PR_SET_PDEATHSIG = 1
+
+
+class Stopped(BaseException):
+    """A stop signal, raised where the node was (start-up, a long fit). A BaseException,
+    as KeyboardInterrupt is, so ``except Exception`` handlers do not swallow it."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+class _State:
+    phase = "starting"
+    signum: int | None = None  # the first stop signal
+    count = 0                  # how many have come
+    name = ""                  # the node's name, for the one line a stop prints
+    raise_depth = 0            # > 0 inside interruptible()
+
+
+STATE = _State()
+
+
+def _name() -> str:
+    if STATE.name:
+        return STATE.name
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    mod = spec.name if spec is not None else os.path.basename(sys.argv[0] or "node")
+    return mod.rsplit(".", 1)[-1].removesuffix(".py").removesuffix("_node")
+
+
+def _on_signal(signum, frame):
+    STATE.count += 1
+    if STATE.signum is None:
+        STATE.signum = signum
+    if STATE.phase == "starting":
+        sys.stderr.write(f"{_name()}: stopped by {signal.Signals(signum).name} during "
+                         "start-up (nothing was open yet)\n")
+        sys.stderr.flush()
+        os._exit(128 + signum)
+    if STATE.phase == "building" or STATE.raise_depth > 0:
+        raise Stopped(signum)
+
+
+def install() -> None:
+    """Take SIGINT and SIGTERM, unblock them (a launcher-started node begins with them
+    blocked), and ask for a SIGTERM when the launcher that started us dies."""
+    for s in SIGNALS:
+        signal.signal(s, _on_signal)
+    parent = os.environ.pop(LAUNCHER_PID_ENV, "")
+    if parent.isdigit() and sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+        if os.getppid() != int(parent):  # it died before we asked: stop now
+            os.kill(os.getpid(), signal.SIGTERM)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, SIGNALS)
+
+
+def set_phase(phase: str, name: str | None = None) -> None:
+    """Move to ``building``, ``running`` or ``stopping``; a signal that came while
+    building is raised as soon as the node gets there."""
+    if name:
+        STATE.name = name
+    STATE.phase = phase
+    if phase == "building" and STATE.signum is not None:
+        raise Stopped(STATE.signum)
+
+
+def requested() -> int | None:
+    """The first stop signal's number, or None."""
+    return STATE.signum
+
+
+def count() -> int:
+    """How many stop signals have come."""
+    return STATE.count
+
+
+@contextmanager
+def interruptible():
+    """A long computation in a callback (an identification): a stop signal raises
+    :class:`Stopped` inside it instead of waiting for it to end."""
+    if STATE.signum is not None:
+        raise Stopped(STATE.signum)
+    STATE.raise_depth += 1
+    try:
+        yield
+    finally:
+        STATE.raise_depth -= 1
+
+
+install()

@@ -1,0 +1,123 @@
+"""Stops: every node kind and the launcher stop on SIGINT and SIGTERM at any moment of
+their life, say what they did, and leave nothing behind; a default-QoS publisher meets
+no QoS warning on either side. Real processes, each run on its own ROS_DOMAIN_ID.
+
+``piezo-stage bench signals`` runs the long form (over 100 trials, some under load)."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+pytest.importorskip("rclpy")
+from conftest import CONFIG  # noqa: E402
+from piezo_stage import bench_signals  # noqa: E402
+
+pytestmark = pytest.mark.slow
+STAGE = os.path.join(CONFIG, "stage.yaml")
+
+
+def test_every_node_and_the_launcher_stop_at_random_moments(ros_domains):
+    """Each kind twice (SIGINT, then SIGTERM), signalled 0-3 s after start: during
+    imports, rclpy.init, discovery or spinning."""
+    n = 2 * len(bench_signals.KINDS)
+    trials = bench_signals.stress(n, parallel=2, loaded_share=0.0, seed=7,
+                                  domain0=ros_domains(2))
+    bad = [t for t in trials if not t.ok]
+    assert not bad, "\n".join(map(str, bad))
+    # a start-up stop and a running stop both happened, and each said so
+    assert any("start-up" in t.said for t in trials)
+    assert any("while running" in t.said or "in order" in t.said for t in trials)
+
+
+def test_a_killed_launcher_leaves_no_node_behind(tmp_path, ros_env):
+    """SIGKILL cannot be caught: the nodes' parent-death signal stops them (each as on
+    SIGTERM: the recorder finishes its bag)."""
+    bag = tmp_path / "bag"
+    la = subprocess.Popen([sys.executable, "-m", "piezo_stage", "launch", STAGE,
+                           "--namespace", "/killed", "--duration", "60", "--record",
+                           str(bag)], env=ros_env, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in la.stderr:
+            if "armed: tracking" in line:
+                break
+        assert len(bench_signals.left_behind("/killed")) == 6
+        la.kill()
+        la.wait()
+        deadline = time.monotonic() + 10
+        while bench_signals.left_behind("/killed") and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert bench_signals.left_behind("/killed") == []
+    finally:
+        for pid in bench_signals.left_behind("/killed"):
+            os.kill(pid, signal.SIGKILL)
+    from piezo_stage.io.bag import iter_messages
+    assert sum(1 for t, *_ in iter_messages(str(bag)) if t.endswith("/joint_states")) > 0
+
+
+OUTSIDE = r"""
+import sys, time, rclpy
+from rclpy.node import Node
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+rclpy.init()
+n = Node('lab_default_qos')
+pub = n.create_publisher(JointTrajectory, '/stage/trajectory', 10)  # default QoS
+t0 = time.monotonic()
+while pub.get_subscription_count() < 1 and time.monotonic() - t0 < 20:
+    rclpy.spin_once(n, timeout_sec=0.05)
+m = JointTrajectory(); m.joint_names = ['x', 'y']
+for k in range(5):
+    p = JointTrajectoryPoint(); p.positions = [20e-6 + k * 1e-6, 20e-6]
+    p.time_from_start.nanosec = k * 1_000_000; m.points.append(p)
+pub.publish(m)
+t0 = time.monotonic()
+while time.monotonic() - t0 < 1.5:
+    rclpy.spin_once(n, timeout_sec=0.05)
+n.destroy_node(); rclpy.try_shutdown()
+"""
+
+
+def _node(kind, env, log):
+    return subprocess.Popen([sys.executable, "-m", f"piezo_stage.nodes.{kind}_node",
+                             "--ros-args", "-r", "__ns:=/stage", "--params-file", STAGE],
+                            env=env, stderr=log, stdout=log)
+
+
+def _wait_for(path, text, timeout=30.0, count=1):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with open(path) as fh:
+            if fh.read().count(text) >= count:
+                return True
+        time.sleep(0.1)
+    return False
+
+
+def test_default_qos_publisher_works_without_warnings_and_a_restart_gets_the_latched(
+        tmp_path, ros_env):
+    ff_log, tr_log = tmp_path / "ff.log", tmp_path / "tr.log"
+    with open(ff_log, "w") as ffh, open(tr_log, "w") as trh:
+        traj = _node("trajectory", ros_env, trh)
+        ff = _node("feedforward", ros_env, ffh)
+        try:
+            # the built-in node's latched trajectory (1001 points), then the lab's
+            assert _wait_for(ff_log, "trajectory of 1001 points accepted")
+            out = subprocess.run([sys.executable, "-c", OUTSIDE], env=ros_env,
+                                 capture_output=True, text=True, timeout=60)
+            assert out.returncode == 0, out.stderr
+            assert "incompatible" not in out.stderr.lower(), out.stderr
+            assert _wait_for(ff_log, "trajectory of 5 points accepted")
+            # a restarted feedforward gets the latched trajectory again
+            ff.send_signal(signal.SIGINT)
+            assert ff.wait(30) == 130
+            ff = _node("feedforward", ros_env, ffh)
+            assert _wait_for(ff_log, "trajectory of 1001 points accepted", count=2)
+        finally:
+            for p in (ff, traj):
+                p.send_signal(signal.SIGINT)
+                p.wait(30)
+    for log in (ff_log, tr_log):
+        assert "incompatible" not in log.read_text().lower(), log.read_text()
