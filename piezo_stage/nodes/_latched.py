@@ -11,7 +11,8 @@ sent" as a failure. A volatile subscriber matches everyone but never gets histor
 So the node keeps one volatile subscription for everything live, and ``LatchedFetch``
 opens a transient-local one only for a moment (``open_s``), when the graph shows a
 latched publisher it has not fetched from yet and no volatile publisher is on the
-topic; the history arrives, the fetch closes. The callback may then see one message
+topic; it closes once each of those publishers' message has come (or after ``open_s``),
+so the moment in which a volatile publisher joining could see it is short. The callback may then see one message
 twice (live and fetched): callers take a message once by its content.
 """
 
@@ -33,8 +34,12 @@ class LatchedFetch:
         self.open_s = open_s
         self.fetched: set[bytes] = set()   # gids of the latched publishers fetched from
         self.sub, self.opened_at = None, 0.0
-        self.fetches = 0
+        self.fetches, self.expected, self.got = 0, 0, 0
         steady_timer(node, poll_s, self.poll)
+
+    def _take(self, data) -> None:
+        self.got += 1
+        self.callback(data)
 
     def poll(self) -> None:
         """Open a fetch for new latched publishers; close it when its time is up or a
@@ -44,14 +49,15 @@ class LatchedFetch:
                    if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL}
         volatile = any(i.qos_profile.durability != DurabilityPolicy.TRANSIENT_LOCAL
                        for i in infos)
-        if self.sub is not None and (volatile
+        if self.sub is not None and (volatile or self.got >= self.expected
                                      or time.monotonic() - self.opened_at > self.open_s):
             self.node.destroy_subscription(self.sub)
             self.sub = None
         new = latched - self.fetched
         if new and not volatile and self.sub is None:
             self.fetched |= new
-            self.sub = self.node.create_subscription(self.msg_type, self.topic,
-                                                     self.callback, QOS_LATCHED, raw=True)
+            self.expected, self.got = len(new), 0
+            self.sub = self.node.create_subscription(self.msg_type, self.topic, self._take,
+                                                     QOS_LATCHED, raw=True)
             self.opened_at = time.monotonic()
             self.fetches += 1
