@@ -11,9 +11,10 @@ sent" as a failure. A volatile subscriber matches everyone but never gets histor
 So the node keeps one volatile subscription for everything live, and ``LatchedFetch``
 opens a transient-local one only for a moment (``open_s``), when the graph shows a
 latched publisher it has not fetched from yet and no volatile publisher is on the
-topic; it closes once each of those publishers' message has come (or after ``open_s``),
-so the moment in which a volatile publisher joining could see it is short. The callback may then see one message
-twice (live and fetched): callers take a message once by its content.
+topic; it closes once each of those publishers' message has come (or after
+``open_s``), so the moment in which a volatile publisher joining could see it is short.
+The callback may then see one message twice (live and fetched): callers take a message
+once by its content.
 """
 
 from __future__ import annotations
