@@ -68,10 +68,11 @@ def ring(me: str, nxt: str, n_steps: int):
     import rclpy
     from rclpy.node import Node
     from rclpy.serialization import serialize_message
+    from rclpy.signals import SignalHandlerOptions
     from std_msgs.msg import Header
 
     from piezo_stage.nodes._common import QOS_DATA
-    from piezo_stage.nodes._executor import LeanExecutor, hot_subscription, quiet_sigint
+    from piezo_stage.nodes._executor import LeanExecutor, hot_subscription
 
     class Ring(Node):
         def __init__(self):
@@ -100,8 +101,7 @@ def ring(me: str, nxt: str, n_steps: int):
                     return
             self.pub.publish(data)
 
-    quiet_sigint()
-    rclpy.init()
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # _signals: stops
     node = Ring()
     try:
         LeanExecutor(node).spin()
