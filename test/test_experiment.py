@@ -12,6 +12,8 @@ import yaml
 
 pytest.importorskip("rclpy")
 
+pytestmark = pytest.mark.slow  # real node processes: -m "not slow" leaves them out
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = os.path.join(ROOT, "config")
 MODEL = os.path.join(CONFIG, "stage_model.yaml")

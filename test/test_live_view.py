@@ -16,6 +16,7 @@ from conftest import CONFIG, ROOT  # noqa: E402
 from piezo_stage.launch.foxglove_probe import connect, decoder, receive  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 
+pytestmark = pytest.mark.slow  # real node processes: -m "not slow" leaves them out
 
 def free_port():
     with socket.socket() as s:

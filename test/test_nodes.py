@@ -17,6 +17,8 @@ from conftest import CONFIG, ROOT  # noqa: E402
 from piezo_stage.io.bag import deserialize, iter_messages, read_bag_record  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 
+pytestmark = pytest.mark.slow  # real node processes: -m "not slow" leaves them out
+
 STAGE = os.path.join(CONFIG, "stage.yaml")
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
 
