@@ -105,6 +105,7 @@ def test_default_qos_publisher_works_without_warnings_and_a_restart_gets_the_lat
         try:
             # the built-in node's latched trajectory (1001 points), then the lab's
             assert _wait_for(ff_log, "trajectory of 1001 points accepted")
+            time.sleep(1.0)  # a lab node joining later, not in the fetch's moment
             out = subprocess.run([sys.executable, "-c", OUTSIDE], env=ros_env,
                                  capture_output=True, text=True, timeout=60)
             assert out.returncode == 0, out.stderr

@@ -11,8 +11,11 @@ sent" as a failure. A volatile subscriber matches everyone but never gets histor
 So the node keeps one volatile subscription for everything live, and ``LatchedFetch``
 opens a transient-local one only for a moment (``open_s``), when the graph shows a
 latched publisher it has not fetched from yet and no volatile publisher is on the
-topic; it closes once each of those publishers' message has come (or after
-``open_s``), so the moment in which a volatile publisher joining could see it is short.
+topic; it closes the moment each of those publishers' message has come (or after
+``open_s``). What is left: a default-QoS publisher that joins in that moment (a few
+milliseconds after a latched publisher appears, or after this node starts) may see the
+fetch and log one incompatible-QoS warning; it is still matched by the volatile
+subscription and its messages are taken.
 The callback may then see one message twice (live and fetched): callers take a message
 once by its content.
 """
@@ -41,6 +44,13 @@ class LatchedFetch:
     def _take(self, data) -> None:
         self.got += 1
         self.callback(data)
+        if self.got >= self.expected:  # the history it opened for: close at once
+            self._close()
+
+    def _close(self) -> None:
+        if self.sub is not None:
+            self.node.destroy_subscription(self.sub)
+            self.sub = None
 
     def poll(self) -> None:
         """Open a fetch for new latched publishers; close it when its time is up or a
@@ -50,10 +60,8 @@ class LatchedFetch:
                    if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL}
         volatile = any(i.qos_profile.durability != DurabilityPolicy.TRANSIENT_LOCAL
                        for i in infos)
-        if self.sub is not None and (volatile or self.got >= self.expected
-                                     or time.monotonic() - self.opened_at > self.open_s):
-            self.node.destroy_subscription(self.sub)
-            self.sub = None
+        if volatile or time.monotonic() - self.opened_at > self.open_s:
+            self._close()
         new = latched - self.fetched
         if new and not volatile and self.sub is None:
             self.fetched |= new
