@@ -458,4 +458,7 @@ def main(args):
     if args.what == "realtime":
         from piezo_stage.bench_realtime import bench_realtime
         return bench_realtime(args.track)
+    if args.what == "signals":
+        from piezo_stage.bench_signals import main as bench_signals
+        return bench_signals(args.trials)
     raise SystemExit(f"unknown benchmark {args.what}")

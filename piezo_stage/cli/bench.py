@@ -7,10 +7,12 @@ HELP = "performance benchmarks (figures as ratios)"
 
 def add_arguments(s):
     s.add_argument("what", choices=("plant", "identify", "loop", "gap", "realtime",
-                                    "faults", "liveview"))
+                                    "faults", "liveview", "signals"))
     s.add_argument("--track", type=float, default=20.0, metavar="S",
                    help="realtime: seconds of the seed's trajectory")
     s.add_argument("--samples", type=int, default=2_000_000)
+    s.add_argument("--trials", type=int, default=108, metavar="N",
+                   help="signals: processes to start and signal (each kind in turn)")
 
 
 def main(args):

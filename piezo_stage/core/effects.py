@@ -260,6 +260,96 @@ _PARAMS = {
 }
 
 
+# What a model or plant file (or a model message) may say of each effect: every key
+# known, every number finite and within what a piezo stage can physically show. A 1e9 s
+# delay, a negative damping or a 1e-9 Hz resonance is refused here, once, for every
+# consumer (plant, feedforward, gap, the model topic). Ranges: [lo, hi] inclusive.
+EFFECT_RANGES = {
+    "creep": {"gamma": (0.0, 0.5), "tau_s": (1e-4, 1e5)},
+    "dynamics": {"fn_hz": (1.0, 1e6), "zeta": (1e-3, 10.0), "tau_s": (1e-7, 10.0)},
+    "delay": {"delay_s": (0.0, 0.1)},
+    "drift": {"rate_um_per_s": (-100.0, 100.0), "amplitude_um": (-1000.0, 1000.0),
+              "tau_s": (1e-3, 1e7)},
+}
+MAX_CREEP_TAUS = 8
+
+
+def _in_range(where: str, x, lo: float, hi: float) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float, str)):
+        raise ConfigError(f"{where}: expected a number, got {x!r}")
+    try:
+        v = float(x)
+    except ValueError:
+        raise ConfigError(f"{where}: expected a number, got {x!r}") from None
+    if not np.isfinite(v) or not lo <= v <= hi:
+        raise ConfigError(f"{where} = {v:g} is outside [{lo:g}, {hi:g}]")
+    return v
+
+
+def validate_effects(effects, where: str = "effects") -> dict:
+    """The ``effects`` block of a model or plant file, checked and normalised.
+
+    Each effect a mapping with only its own parameters (``EFFECT_RANGES``, ``kind``
+    for dynamics) and the common ``enabled`` (a boolean) and ``axes`` (a list of x/y);
+    every number finite and in its range. Raises ConfigError naming the key.
+
+    Parameters
+    ----------
+    effects : dict or None
+        {name: {param: value, ...}} as in a model or plant file.
+    where : str
+        What to call the block in an error.
+
+    Returns
+    -------
+    dict
+        The same block with numbers as floats (creep ``tau_s`` as a list).
+    """
+    if effects is None:
+        return {}
+    if not isinstance(effects, dict):
+        raise ConfigError(f"{where} must be a mapping")
+    out = {}
+    for name, p in effects.items():
+        w = f"{where}.{name}"
+        if name not in EFFECT_RANGES:
+            raise ConfigError(f"{where}: unknown effect {name!r}; known: {', '.join(EFFECTS)}")
+        if p is None:
+            p = {}
+        if not isinstance(p, dict):
+            raise ConfigError(f"{w} must be a mapping")
+        ranges = EFFECT_RANGES[name]
+        known = set(ranges) | {"enabled", "axes"} | ({"kind"} if name == "dynamics" else set())
+        unknown = sorted(str(k) for k in p if k not in known)
+        if unknown:
+            raise ConfigError(f"{w}: unknown parameter(s) {unknown}; known: "
+                              f"{', '.join(sorted(known))}")
+        q = {}
+        for k, x in p.items():
+            if k == "enabled":
+                if not isinstance(x, bool):
+                    raise ConfigError(f"{w}.enabled must be true or false, got {x!r}")
+                q[k] = x
+            elif k == "axes":
+                if not isinstance(x, (list, tuple)) or not x or \
+                        not all(a in ("x", "y") for a in x):
+                    raise ConfigError(f"{w}.axes must be a list of x and/or y, got {x!r}")
+                q[k] = list(x)
+            elif k == "kind":
+                if x not in ("resonance", "lag"):
+                    raise ConfigError(f"{w}.kind must be resonance or lag, got {x!r}")
+                q[k] = x
+            elif name == "creep" and k == "tau_s":
+                taus = list(x) if isinstance(x, (list, tuple)) else [x]
+                if not 1 <= len(taus) <= MAX_CREEP_TAUS:
+                    raise ConfigError(f"{w}.tau_s: 1 to {MAX_CREEP_TAUS} time constants")
+                q[k] = [_in_range(f"{w}.tau_s", t, *ranges[k]) for t in taus]
+            else:
+                q[k] = _in_range(f"{w}.{k}", x, *ranges[k])
+        out[name] = q
+    return out
+
+
 def make_effect(name: str, fs_hz: float, params: dict) -> Creep | Dynamics | Delay | Drift:
     """Build effect ``name`` from a parameter dict (unknown keys are an error)."""
     if name not in _CLASSES:

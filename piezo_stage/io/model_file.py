@@ -32,7 +32,8 @@ import numpy as np
 import yaml
 
 from piezo_stage.core.duhem import AXES, DuhemBranch, DuhemModel, DuhemState, StageModel
-from piezo_stage.core.errors import ModelError
+from piezo_stage.core.effects import validate_effects
+from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.io.files import atomic_write
 
 SCHEMA_KEY = "piezo_stage_model"
@@ -40,6 +41,7 @@ SCHEMA_VERSION = 1
 
 
 MAX_YAML_BYTES = 1_000_000  # a model or plant file is a few kB; this is generous
+MAX_YAML_DEPTH = 32         # ours nest 5 deep; PyYAML's composer recurses per level
 
 
 class _NoAliasLoader(yaml.SafeLoader):
@@ -60,6 +62,18 @@ def parse_yaml(text, source="YAML", max_bytes=MAX_YAML_BYTES):
     if len(text) > max_bytes:
         raise ModelError(f"{source}: {len(text)} bytes, more than the {max_bytes} accepted")
     try:
+        # the nesting first, from the parser's events (an iterative state machine): the
+        # composer recurses once per level, and 20,000 '[' would exhaust the stack
+        depth = 0
+        for event in yaml.parse(text, Loader=yaml.SafeLoader):
+            if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+                depth += 1
+                if depth > MAX_YAML_DEPTH:
+                    mark = event.start_mark
+                    raise ModelError(f"{source}: nested deeper than {MAX_YAML_DEPTH} levels "
+                                     f"at line {mark.line + 1}")
+            elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+                depth -= 1
         return yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
@@ -186,9 +200,10 @@ def model_from_dict(doc, source="model") -> tuple[StageModel, dict]:
         raise ModelError(f"{source}: voltage_limits_V {list(lim)} must have min < max "
                          f"within +-{MAX_VOLTS:g} V")
     _check_magnitudes(axes, coupling, lim, source)
-    effects = doc.get("effects") or {}
-    if not isinstance(effects, dict):
-        raise ModelError(f"{source}: effects must be a mapping")
+    try:  # every effect key known, every value in a physical range (core/effects.py)
+        effects = validate_effects(doc.get("effects"), f"{source}: effects")
+    except ConfigError as e:
+        raise ModelError(str(e)) from None
     return StageModel(axes, coupling, lim), effects
 
 

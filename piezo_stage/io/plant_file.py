@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import os
 
+from piezo_stage.core.effects import validate_effects
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.core.plant import PlantConfig
 from piezo_stage.io.model_file import as_number, load_model, load_yaml
@@ -37,34 +38,13 @@ def _num(d, key, default, where, lo=-math.inf, hi=math.inf):
     return float(x)
 
 
-EFFECT_LIMITS = {"delay_s": (0.0, 1.0)}  # else: finite, |x| <= 1e6
-
-
-def _numeric(x) -> bool:
-    try:
-        float(x)
-        return isinstance(x, str)
-    except (TypeError, ValueError):
-        return False
-
-
 def enabled_effects(effects: dict, where="effects") -> dict:
     """Keep the effects with enabled: true (default true when the key is absent);
-    their numbers must be finite and in range, ``enabled`` a boolean."""
-    if not isinstance(effects, dict):
-        raise ConfigError(f"{where} must be a mapping")
+    the block checked by the one validation every model and plant file shares
+    (core/effects.py validate_effects)."""
     out = {}
-    for name, p in effects.items():
-        if p is not None and not isinstance(p, dict):
-            raise ConfigError(f"{where}.{name} must be a mapping")
-        p = dict(p or {})
-        on = p.pop("enabled", True)
-        if not isinstance(on, bool):
-            raise ConfigError(f"{where}.{name}.enabled must be true or false, got {on!r}")
-        for k, x in list(p.items()):
-            if isinstance(x, (bool, int, float)) or _numeric(x):
-                p[k] = _num(p, k, 0.0, f"{where}.{name}", *EFFECT_LIMITS.get(k, (-1e6, 1e6)))
-        if on:
+    for name, p in validate_effects(effects, where).items():
+        if p.pop("enabled", True):
             out[name] = p
     return out
 

@@ -22,9 +22,8 @@ import subprocess
 import sys
 import time
 
-import yaml
-
-from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.errors import ConfigError, ModelError
+from piezo_stage.io.model_file import load_yaml
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -35,13 +34,10 @@ STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
 
 
 def _params(config_path):
-    try:
-        with open(config_path) as fh:
-            doc = yaml.safe_load(fh) or {}
-    except FileNotFoundError:
-        raise ConfigError(f"{config_path}: no such config file") from None
-    except yaml.YAMLError:
-        raise ConfigError(f"{config_path}: malformed YAML") from None
+    try:  # bounded: size, nesting, no aliases (the one YAML reader, io/model_file.py)
+        doc = load_yaml(config_path, "config file") or {}
+    except ModelError as e:
+        raise ConfigError(str(e)) from None
     if not isinstance(doc, dict):
         raise ConfigError(f"{config_path}: expected '<node>: ros__parameters:' sections")
     out = {}
