@@ -62,8 +62,9 @@ setup(
         # (and ruff and numpydoc: the suite runs the linters, test/test_lint.py)
         # (pytest-xdist: two workers, each test on its own ROS domain; pytest-timeout: a
         # hung test fails with every thread's stack instead of hanging the suite)
+        # (hypothesis: the trajectory decoder against rclpy's own, on generated messages)
         "test": ["pytest>=7", "pytest-xdist>=3.5", "pytest-timeout>=2.2", "nidaqmx>=1.0",
-                 "ruff>=0.5", "numpydoc>=1.6"],
+                 "ruff>=0.5", "numpydoc>=1.6", "hypothesis>=6.90"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",

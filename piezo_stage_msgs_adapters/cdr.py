@@ -179,23 +179,32 @@ encode_vector3_stamped = encode_point_stamped
 decode_vector3_stamped = decode_point_stamped
 
 
-def decode_joint_trajectory(data: bytes):
+def decode_joint_trajectory(data: bytes, max_points: int | None = None):
     """trajectory_msgs/JointTrajectory bytes -> (joint names, t [s] array, positions
     array (points, joints) [m]) without building a Python object per point: when every
     point has the same layout (positions only, or the same array lengths, as planners
-    send), the points are one strided view of the buffer. Returns None for a layout
-    this does not cover (the caller then deserializes the ordinary way)."""
+    send), the points are one strided view of the buffer. The layout is proved, not
+    guessed: every point's four counts are read (strided too) and must equal the first
+    point's. Returns None for a layout this does not cover (the caller then
+    deserializes the ordinary way). More than ``max_points`` points: DataError before
+    anything else is decoded."""
     import numpy as np
     r = CdrReader(data)
     r.stamp()
     r.string()                      # header.frame_id
     names = [r.string() for _ in range(r.count(5))]
     n = r.count(4 * 6)              # each point: 4 counts and a duration at least
+    if max_points is not None and n > max_points:
+        raise DataError(f"trajectory: {n} points, more than the {max_points} accepted "
+                        "(max_trajectory_points)")
+    count_offs = []                 # of each point: where its 4 counts are
 
     def point(r):
         """(offset of positions, their count, offset of time_from_start) of one point."""
-        counts, offs = [], []
+        counts, offs, co = [], [], []
         for _ in range(4):          # positions, velocities, accelerations, effort
+            r.pos += -(r.pos - 4) % 4
+            co.append(r.pos)
             k = r.count(8)
             if k:  # (an empty sequence has no element to align)
                 r.pos += -(r.pos - 4) % r.a8
@@ -203,6 +212,7 @@ def decode_joint_trajectory(data: bytes):
             counts.append(k)
             r.pos += 8 * k
         r._take("iI", 8, 4)
+        count_offs.append(co)
         return offs[0], counts, r.pos - 8
     if n == 0:
         return names, np.zeros(0), np.zeros((0, len(names)))
@@ -222,9 +232,17 @@ def decode_joint_trajectory(data: bytes):
     k = first[0][1][0]
     if k != len(names):
         return None
+    f8, i4, u4 = (np.dtype(r.end + c) for c in ("f8", "i4", "u4"))
+    for par in (0, 1):  # every point's counts are the first point's: the layout holds
+        m = (n - par + 1) // 2
+        if m == 0 or par >= len(count_offs):
+            continue
+        for j, off in enumerate(count_offs[par]):
+            c = np.ndarray((m,), u4, buffer=data, offset=off, strides=(period,))
+            if np.any(c != first[0][1][j]):
+                return None
     pos = np.zeros((n, k))
     t = np.zeros(n)
-    f8, i4, u4 = (np.dtype(r.end + c) for c in ("f8", "i4", "u4"))
     for par in (0, 1):
         m = (n - par + 1) // 2
         if m == 0:

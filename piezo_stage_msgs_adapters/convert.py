@@ -224,11 +224,14 @@ def trajectory_from_cdr(data: bytes, range_um=None, max_points=None):
     if max_points is not None and len(data) > 256 * max_points + 65536:
         raise DataError(f"trajectory: {len(data)} bytes, more than {max_points} points "
                         "take (max_trajectory_points)")
-    out = cdr.decode_joint_trajectory(data)
+    out = cdr.decode_joint_trajectory(data, max_points)
     if out is None:  # points of different layouts: the ordinary way
         from rclpy.serialization import deserialize_message
-        return trajectory_from_msg(deserialize_message(data, JointTrajectory), range_um,
-                                   max_points)
+        try:
+            msg = deserialize_message(data, JointTrajectory)
+        except Exception as e:  # noqa: BLE001 - rclpy's error types vary by cause
+            raise DataError(f"trajectory: not a valid JointTrajectory ({e})") from None
+        return trajectory_from_msg(msg, range_um, max_points)
     names, t, pos = out
     unknown = [n for n in names if n not in JOINTS]
     if unknown or not names:

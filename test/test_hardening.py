@@ -29,6 +29,21 @@ def one_line_exit_2(r):
     assert "Traceback" not in r.stderr
 
 
+def _scaled(text, k):
+    """The model with every f and g scaled by k (as the issue's 0.001 and -1)."""
+    import yaml
+    doc = yaml.safe_load(text)
+
+    def walk(d):
+        for key, v in d.items():
+            if key in ("f", "g"):
+                d[key] = [k * float(c) for c in v]
+            elif isinstance(v, dict):
+                walk(v)
+    walk(doc["axes"])
+    return yaml.safe_dump(doc, sort_keys=False)
+
+
 BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
     f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
     for p, c in zip("abcdefgh", "bcdefghi"))
@@ -191,17 +206,28 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path, ros_env
         import yaml
         xonly = yaml.safe_load(GOOD)
         del xonly["axes"]["y"]
-        for text in (BOMB, yaml.safe_dump(xonly),
-                     GOOD.replace("g: [0.36, 0.0006]", "g: [1.0e300, 0.0006]")):
+        from rclpy.serialization import serialize_message
+        whole = serialize_message(A.trajectory_msg(np.arange(50) * 1e-3,
+                                                   {"x": np.full(50, 10.0),
+                                                    "y": np.full(50, 10.0)}))
+        tr.publish(whole[:len(whole) // 2])  # truncated CDR: refused, not fatal
+        hostile = [BOMB, yaml.safe_dump(xonly),
+                   GOOD.replace("g: [0.36, 0.0006]", "g: [1.0e300, 0.0006]"),
+                   "[" * 20000 + "]" * 20000,                       # nested 20,000 deep
+                   GOOD + "effects: {dynamics: {f_hz: 1.0e-9, zeta: -1}}\n",
+                   GOOD + "effects: {delay: {delay_s: 1.0e9}}\n",
+                   GOOD + "effects: {dynamics: {kind: resonance, fn_hz: 800, zeta: -1}}\n",
+                   _scaled(GOOD, 0.001), _scaled(GOOD, -1.0)]
+        for text in hostile:
             mo.publish(String(data=text))
             probe.spin(0.2)
         assert probe.wait(lambda: int(diag.get("feedforward", {}).get(
-            "rejected_models", 0)) >= 3, 10), diag.get("feedforward")
+            "rejected_models", 0)) >= len(hostile), 10), diag.get("feedforward")
         assert probe.wait(lambda: int(diag.get("identifier", {}).get("bad_messages", 0)) >= 2,
                           30), sorted(diag.get("identifier", {}).items())
         ff = diag["feedforward"]
-        assert probe.wait(lambda: int(diag["feedforward"]["rejected_trajectories"]) >= 2,
-                          10)  # the ragged one and the one over max_trajectory_points
+        assert probe.wait(lambda: int(diag["feedforward"]["rejected_trajectories"]) >= 3,
+                          10)  # ragged, over max_trajectory_points, truncated
         assert int(diag["identifier"]["bad_messages"]) >= 3  # the repeated joint too
         ff = diag["feedforward"]
         assert ff["model"] == MODEL
@@ -233,3 +259,52 @@ def test_a_bad_parameter_is_refused_at_start_naming_the_node(ros_env):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 1
     assert "/stage/stage_driver: fatal:" in r.stderr and "bogus" in r.stderr
+
+
+@pytest.mark.parametrize("effects, why", [
+    ({"dynamics": {"f_hz": 1e-9, "zeta": -1}}, "unknown parameter"),
+    ({"delay": {"delay_s": 1e9}}, "delay_s"),
+    ({"dynamics": {"kind": "resonance", "fn_hz": 800, "zeta": -1}}, "zeta"),
+    ({"creep": {"gamma": 0.03, "tau_s": [0.1] * 20}}, "time constants"),
+    ({"warp": {}}, "unknown effect"),
+    ({"delay": {"delay_s": 1e-3, "axes": ["z"]}}, "axes"),
+])
+def test_every_effect_key_and_range_is_checked(effects, why):
+    import yaml
+
+    from piezo_stage.core.errors import ModelError
+    from piezo_stage.io.model_file import model_from_dict
+    doc = yaml.safe_load(GOOD)
+    doc["effects"] = effects
+    with pytest.raises(ModelError, match=why):
+        model_from_dict(doc)
+
+
+@pytest.mark.parametrize("k", [0.001, -1.0, 2.5])
+def test_an_implausible_model_change_is_refused(k):
+    import yaml
+
+    from piezo_stage.core.duhem import check_model_change
+    from piezo_stage.core.errors import ModelError
+    from piezo_stage.io.model_file import model_from_dict
+    running, _ = model_from_dict(yaml.safe_load(GOOD))
+    new, _ = model_from_dict(yaml.safe_load(_scaled(GOOD, k)))
+    with pytest.raises(ModelError, match="stroke"):
+        check_model_change(new, running, 100.0)
+    check_model_change(running, running, 100.0)  # the same stage again: fine
+    same, _ = model_from_dict(yaml.safe_load(_scaled(GOOD, 1.2)))
+    check_model_change(same, running, 100.0)  # a refit 20 % off: fine
+
+
+def test_deeply_nested_yaml_is_one_line_exit_2(tmp_path):
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("[" * 20000 + "]" * 20000)
+    inp = tmp_path / "v.csv"
+    inp.write_text("t,vx,vy\n0,0,0\n0.001,1,1\n")
+    out = tmp_path / "w.csv"
+    for args in (["simulate", "--in", inp, "--out", out, "--model", deep],
+                 ["simulate", "--in", inp, "--out", out, "--config", deep],
+                 ["launch", deep, "--duration", "1"]):
+        r = cli(*args)
+        assert r.returncode == 2, (args, r.stderr[-300:])
+        assert "nested deeper" in r.stderr and len(r.stderr.strip().splitlines()) == 1

@@ -241,3 +241,67 @@ class StageModel:
                 w = w + wc
             out[a] = w
         return out, states
+
+
+def stroke_um(model: DuhemModel, limits: tuple[float, float], n: int = 301) -> float:
+    """The displacement one slow full stroke gives: settled on a sweep down to
+    ``limits[0]``, then swept up to ``limits[1]`` [um]. Positive for a stage that
+    expands with voltage.
+
+    Parameters
+    ----------
+    model : DuhemModel
+        One axis's hysteresis.
+    limits : tuple of float
+        (lo, hi) voltage range [V].
+    n : int
+        Samples per sweep.
+
+    Returns
+    -------
+    float
+        w(hi) - w(lo) on the ascending sweep [um] (nan if the model diverges).
+    """
+    lo, hi = float(limits[0]), float(limits[1])
+    v = np.concatenate([np.linspace(hi, lo, n), np.linspace(lo, hi, n)])
+    with np.errstate(all="ignore"):
+        w, _ = model.simulate(v, DuhemState(hi, 0.0))
+    return float(w[-1] - w[n - 1])
+
+
+def check_model_change(new: StageModel, old: StageModel | None = None,
+                       span_um: float | None = None, max_ratio: float = 2.0) -> None:
+    """Refuse a model that would move the stage wrongly (ModelError, saying why).
+
+    Each axis's full stroke (``stroke_um`` over the new model's voltage limits) must
+    be finite and positive (a stage expands with voltage: a model scaled by -1 would
+    drive it to the far limit), within ``max_ratio`` of the running model's stroke when
+    there is one, else within a factor of 10 of ``span_um`` (the positions the stage is
+    asked to reach), when given. A model scaled by 0.001 asks 1000 times the voltage: the
+    inverse then saturates and swings between the limits.
+
+    Parameters
+    ----------
+    new : StageModel
+        The model that would replace the running one.
+    old : StageModel or None
+        The running model (None: none yet).
+    span_um : float or None
+        The width of the position range the stage serves [um].
+    max_ratio : float
+        How far the stroke may change from the running model's (either way).
+    """
+    for a, m in new.axes.items():
+        s = stroke_um(m, new.voltage_limits)
+        if not np.isfinite(s) or s <= 0:
+            raise ModelError(f"axis {a}: a full stroke gives {s:.3g} um; a stage expands "
+                             "with voltage (is the model's sign or scale wrong?)")
+        if old is not None and a in old.axes:
+            s0 = stroke_um(old.axes[a], old.voltage_limits)
+            if s0 > 0 and not s0 / max_ratio <= s <= s0 * max_ratio:
+                raise ModelError(f"axis {a}: a full stroke gives {s:.4g} um, the running "
+                                 f"model {s0:.4g} um (more than x{max_ratio:g} apart)")
+        elif span_um:
+            if not span_um / 10 <= s <= span_um * 10:
+                raise ModelError(f"axis {a}: a full stroke gives {s:.4g} um for a "
+                                 f"{span_um:g} um range (more than x10 apart)")

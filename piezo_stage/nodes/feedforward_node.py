@@ -29,7 +29,8 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.arming import HOLD, ReferencePlanner
 from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
-from piezo_stage.core.duhem import StageModel
+from piezo_stage.core.control import clamp_slew
+from piezo_stage.core.duhem import StageModel, check_model_change
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
@@ -46,6 +47,7 @@ from piezo_stage_msgs_adapters import (
     trajectory_from_cdr,
 )
 
+HANDOVER_V_PER_TICK = 1.0  # a new model while armed: the output moves 1 V a tick at most
 
 class Feedforward(Node):
     def __init__(self):
@@ -83,6 +85,7 @@ class Feedforward(Node):
                                   "inverted (0: no limit)", lo=0.0, hi=1e6)
         self.limits = (0.0, 150.0)
         self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
+        self.model, self.handover = None, False  # the running model; easing into a new one
         self.started = False  # the inverse has been put where the stage is
         # the driver's announcements: taken before the data in each lean-loop pass
         self.driver = DriverState(self, self.dt_ns, declare(
@@ -143,6 +146,9 @@ class Feedforward(Node):
                 raise PiezoStageError(f"{name}: voltage limits {list(model.voltage_limits)} "
                                       f"outside the driver's {self.driver.limits}")
             model = StageModel(model.axes, model.coupling, (lo, hi))
+        # gain sign and size against the running model (or the range served): a model
+        # scaled by -1 or 0.001 would drive the stage to its limits
+        check_model_change(model, self.model, self.range[1] - self.range[0])
         comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes),
                                   self.max_res_hz) if effects else None)
         inv = StageInverse(model, use_coupling=self.use_c)
@@ -151,7 +157,10 @@ class Feedforward(Node):
         warm.step(0.0, 0.0)
         if self.planner.desired is not None:
             inv.reset(v=self.ff, w=self.planner.desired)
+        # armed: the output eases from the old model's answer into the new one's
+        self.handover = self.inv is not None and self.driver.enabled(self.last_ns)
         self.inv, self.model_name, self.limits = inv, name, model.voltage_limits
+        self.model = model
         self.ref.set_compensator(comp)
         self.started = self.planner.desired is not None  # else: from the first sample
         self.stats["models"] += 1
@@ -262,6 +271,10 @@ class Feedforward(Node):
         self.planned = {t: d for t, d in self.planned.items() if t > ns}
         v = self.inv.step_ahead(ahead, desired["x"], desired["y"])
         self.stats["saturated"] = self.inv.saturated
+        if self.handover:  # at most HANDOVER_V_PER_TICK from the last answer per tick
+            eased, _ = clamp_slew(v, self.ff, self.limits, HANDOVER_V_PER_TICK)
+            self.handover = eased != v
+            v = eased
         return v
 
 def main(args=None):
