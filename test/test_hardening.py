@@ -175,7 +175,8 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path, ros_env
                                "--ros-args", "-r", "__ns:=/stage", *extra], env=env)
              for n, extra in (("feedforward", ["-p", f"model_file:={MODEL}", "-p",
                                                "max_trajectory_points:=1000"]),
-                              ("identifier", []))]
+                              ("identifier", []),
+                              ("recorder", ["-p", f"output:={tmp_path / 'bag'}"]))]
     probe = Probe(d)
     try:
         diag = {}
@@ -203,6 +204,10 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path, ros_env
                                                              "y": np.full(5000, 10.0)}))
         js.publish(JointState(name=["x", "y", "x"], position=[1e-6, 1e-6, 9e-6],
                               effort=[1.0, 1.0, 1.0]))
+        for sec in (-1, 10 ** 6):  # before 1970; 10^15 ns ahead: counted, nobody dies
+            m = JointState(name=["x", "y"], position=[1e-6, 1e-6], effort=[1.0, 1.0])
+            m.header.stamp.sec = sec
+            js.publish(m)
         import yaml
         xonly = yaml.safe_load(GOOD)
         del xonly["axes"]["y"]
@@ -231,6 +236,8 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path, ros_env
         assert int(diag["identifier"]["bad_messages"]) >= 3  # the repeated joint too
         ff = diag["feedforward"]
         assert ff["model"] == MODEL
+        assert probe.wait(lambda: int(diag.get("recorder", {}).get("bad_stamps", 0)) >= 1,
+                          10), diag.get("recorder")
         assert all(p.poll() is None for p in procs)  # nobody died
     finally:
         probe.close()

@@ -33,6 +33,7 @@ from sensor_msgs.msg import JointState
 
 from piezo_stage.core.control import PID, CompositeAxis, PIDGains, Relay
 from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
@@ -77,8 +78,9 @@ class Controller(Node):
             "scheduler alone; lockstep never changes it)", lo=0, hi=99))
         self.sent = {}     # target stamp -> (desired um, command V): for t_k's check
         self.last_ns = -1
+        self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
         self.stats = {"commands": 0, "clamped": 0, "bad_messages": 0, "late_dropped": 0,
-                      "not_closed": 0, "non_finite": 0, "restarts": 0}
+                      "not_closed": 0, "non_finite": 0, "restarts": 0, "stray_stamps": 0}
         self.pub = self.create_publisher(Vector3Stamped, "command", QOS_DATA)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
                                                    "command subscribers to wait for"))])
@@ -114,8 +116,9 @@ class Controller(Node):
         except PiezoStageError:
             self.stats["bad_messages"] += 1
             return
-        if ns <= self.last_ns:
-            return  # a duplicate changes nothing
+        if not self.stamps.accept(ns):
+            self.stats["stray_stamps"] = self.stamps.dropped
+            return  # a duplicate changes nothing; a stray stamp is counted
         if self.driver.realtime and ns < time.time_ns():
             self.stats["late_dropped"] += 1  # its command would arrive after its tick
             return

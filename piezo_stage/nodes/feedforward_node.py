@@ -34,6 +34,7 @@ from piezo_stage.core.duhem import StageModel, check_model_change
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
+from piezo_stage.core.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._latched import LatchedFetch
@@ -92,11 +93,12 @@ class Feedforward(Node):
             self, "thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
             "scheduler alone; lockstep never changes it)", lo=0, hi=99))
         self.last_ns, self.ff, self.planned = -1, {"x": 0.0, "y": 0.0}, {}
+        self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
         self.last_target = None
         self.driver.limits, self.last_rejection = None, ""
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
                                 "rejected_models": 0, "saturated": 0, "bad_messages": 0,
-                                "late_dropped": 0}
+                                "late_dropped": 0, "stray_stamps": 0}
         if model_file:
             from piezo_stage.io.model_file import load_model
             self.set_model(*load_model(model_file), model_file)
@@ -180,7 +182,7 @@ class Feedforward(Node):
         """Lockstep: answer the sample the loop was held at, once what it waited for is here."""
         if self.pending is not None:
             msg, self.pending = self.pending, None
-            self.on_state(msg)
+            self.on_state(msg, resumed=True)
 
     def on_trajectory(self, msg):
         try:
@@ -204,14 +206,15 @@ class Feedforward(Node):
             self.stats["rejected_setpoints"] += 1
             self.get_logger().warning(f"setpoint rejected: {e}")
 
-    def on_state(self, msg, info=None):
+    def on_state(self, msg, info=None, resumed=False):
         try:
             ns, w, v_applied = joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:
             self.stats["bad_messages"] += 1
             return
-        if ns <= self.last_ns:
-            return  # duplicates change nothing
+        if not resumed and not self.stamps.accept(ns):
+            self.stats["stray_stamps"] = self.stamps.dropped
+            return  # a duplicate changes nothing; a stray stamp is counted
         if self.driver.realtime and info:
             self.lag.add((info["received_timestamp"] - ns) * 1e-9)
         target = ns + self.driver.lookahead_ns

@@ -25,6 +25,7 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.identify import IdentifyOptions, identify_axis
 from piezo_stage.core.identify.segmentation import segment
 from piezo_stage.core.record import Record
+from piezo_stage.core.stamps import StampGuard
 from piezo_stage.io.model_file import model_to_dict
 from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node
@@ -48,6 +49,7 @@ class Identifier(Node):
                                    hi=10_000_000)
         # samples in stamp order, bounded: the oldest fall off the front (no re-sort)
         self.buf, self.done_auto = deque(maxlen=self.max_samples), False
+        self.stamps = StampGuard()  # one stray stamp must not make every later sample old
         self.stats = {"samples": 0, "identifications": 0, "last_fit_rms_um": float("nan"),
                       "last_error": "", "bad_messages": 0, "out_of_order": 0}
         self.pub = self.create_publisher(String, "model", QOS_LATCHED)
@@ -74,7 +76,7 @@ class Identifier(Node):
             return
         if v is None:  # a driver that does not report the applied voltage
             return
-        if self.buf and ns <= self.buf[-1][0]:
+        if not self.stamps.accept(ns):  # old, repeated, or a stray stamp
             self.stats["out_of_order"] += 1
             return
         self.buf.append((ns, w["x"], w["y"], v["x"], v["y"]))

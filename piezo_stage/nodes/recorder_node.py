@@ -19,6 +19,7 @@ import sys
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
 
+from piezo_stage.core.stamps import MAX_STAMP_NS
 from piezo_stage.io.bag import BagWriter, new_bag_dir
 from piezo_stage.nodes._common import steady_timer
 from piezo_stage.nodes._executor import run_node
@@ -53,12 +54,14 @@ class Recorder(Node):
         if self.log_received:
             set_realtime_priority(prio, self.get_logger(), main_thread=False)
         self.get_logger().info(f"recording to {out}")
+        self.bad_stamps = 0
         self.tap = TopicTap(self, self.add_topic, self.write)
         steady_timer(self, declare(self, "flush_period_s", 0.5, "chunk flush period [s]",
                                   lo=0.01, hi=60.0), self.bag.flush)
         Diagnostics(self, lambda: (0, f"recording to {out}: {sum(self.bag.counts.values())} "
                                    f"messages on {len(self.bag.counts)} topics",
                                    {"bag": out, "batch_period_s": self.lean_batch_s,
+                                    "bad_stamps": self.bad_stamps,
                                     **self.bag.counts}), "recording")
 
     def add_topic(self, topic, msgtype, kind):
@@ -80,6 +83,11 @@ class Recorder(Node):
         return kind
 
     def write(self, topic, data, stamp_ns, info):
+        if stamp_ns is not None and not 0 <= stamp_ns <= MAX_STAMP_NS:
+            # a negative stamp (sec = -1) cannot be an MCAP time: the message is kept,
+            # logged at its arrival, and counted
+            self.bad_stamps += 1
+            stamp_ns = None
         if self.log_received:
             received = info.get("received_timestamp") or self.get_clock().now().nanoseconds
         if stamp_ns is not None:

@@ -74,6 +74,10 @@ PARAMS = (  # name (one name: the parameter's), default, description, limits
 )
 
 
+# real time: a command stamped further than this from its arrival is no command of this
+# loop (the look-ahead is milliseconds); taking it would poison the schedule
+COMMAND_WINDOW_NS = 1_000_000_000
+
 class StageDriver(Node):
     def __init__(self):
         super().__init__("stage_driver")
@@ -165,6 +169,9 @@ class StageDriver(Node):
             self.tick(self.j + 1, v, True)
             return
         recv = info.get("received_timestamp") or self.get_clock().now().nanoseconds
+        if abs(ns - recv) > COMMAND_WINDOW_NS:  # a stray stamp: never scheduled
+            self.stats["unexpected_stamp"] += 1
+            return
         self.sup.note_command(recv)
         self.sched.add(ns, v, recv, self.j)
         self.stats["late_commands"] = self.sched.late
