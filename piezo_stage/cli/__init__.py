@@ -39,6 +39,12 @@ DIR_COMMANDS = ("study", "demo", "launch", "experiment")  # whose --out is a fol
 def check_paths(args):
     """Outputs never overwrite an input, and can be written: else DataError (exit 2)."""
     import os
+
+    from piezo_stage.io.files import check_input, check_output
+    for k in INPUTS:  # a file input is a regular, bounded file (bags are folders)
+        p = getattr(args, k, None)
+        if isinstance(p, str) and os.path.exists(p) and not os.path.isdir(p):
+            check_input(p)
     ins = {os.path.realpath(p) for k in INPUTS if isinstance(p := getattr(args, k, None), str)}
     outs = [(k, p) for k in FILE_OUTPUTS + ("out", "report")
             if isinstance(p := getattr(args, k, None), str)]
@@ -49,6 +55,7 @@ def check_paths(args):
         if k in FILE_OUTPUTS or (k == "out" and args.cmd not in DIR_COMMANDS):
             if os.path.isdir(p):
                 raise DataError(f"{flag} {p} is a directory; give a file name")
+            check_output(p)
             parent = os.path.dirname(os.path.abspath(p))
             while not os.path.exists(parent):
                 parent = os.path.dirname(parent)

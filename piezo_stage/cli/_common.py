@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from piezo_stage.core.errors import DataError
+from piezo_stage.core.errors import DataError, printable
 
 EXIT_USAGE = 2
 EXIT_SOLVER = 3
@@ -23,8 +23,9 @@ class Parser(argparse.ArgumentParser):
 
 
 def die(msg: str, code: int = EXIT_USAGE):
-    """One line on stderr, then exit with ``code``."""
-    sys.stderr.write(f"piezo-stage: error: {msg}\n")
+    """One line on stderr (control characters escaped, at most 500 characters), then
+    exit with ``code``."""
+    sys.stderr.write(f"piezo-stage: error: {printable(msg, 500)}\n")
     sys.exit(code)
 
 
@@ -61,6 +62,23 @@ def check_voltages(rec, limits, source):
             i = int(bad[0])
             raise DataError(f"{source}: v{a} = {v[i]:g} V at line {i + 2} is outside "
                                   f"the voltage limits [{lo:g}, {hi:g}] V")
+
+
+def number(lo: float, hi: float, integer: bool = False, lo_open: bool = False):
+    """argparse type: a finite number in [lo, hi] (``lo_open``: (lo, hi]), an integer
+    when ``integer``; anything else is a one-line usage error (exit 2)."""
+    def parse(text):
+        try:
+            x = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{printable(text, 40)!s} is not {'a whole number' if integer else 'a number'}"
+            ) from None
+        if not np.isfinite(x) or x < lo or x > hi or (lo_open and x == lo):
+            raise argparse.ArgumentTypeError(
+                f"{printable(text, 40)!s} is outside {'(' if lo_open else '['}{lo:g}, {hi:g}]")
+        return x
+    return parse
 
 
 def port(text):

@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+from piezo_stage.cli._common import number
+
 HELP = "performance benchmarks (figures as ratios)"
 
 
 def add_arguments(s):
     s.add_argument("what", choices=("plant", "identify", "loop", "gap", "realtime",
                                     "faults", "liveview", "signals"))
-    s.add_argument("--track", type=float, default=20.0, metavar="S",
+    s.add_argument("--track", type=number(0, 3600, lo_open=True), default=20.0, metavar="S",
                    help="realtime: seconds of the seed's trajectory")
-    s.add_argument("--samples", type=int, default=2_000_000)
-    s.add_argument("--trials", type=int, default=108, metavar="N",
+    s.add_argument("--samples", type=number(1000, 10**9, integer=True), default=2_000_000)
+    s.add_argument("--trials", type=number(1, 10000, integer=True), default=108, metavar="N",
                    help="signals: processes to start and signal (each kind in turn)")
 
 

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from piezo_stage.cli._common import number
+
 HELP = "the main job: node set on the simulated stage"
 
 
 def add_arguments(s):
     s.add_argument("--out", help="bag directory (default bags/<timestamp>)")
-    s.add_argument("--excite", type=float, default=3.0, help="excitation before tracking [s]")
-    s.add_argument("--track", type=float, default=1.0, help="tracking of the seed's 10 Hz "
+    s.add_argument("--excite", type=number(0, 600), default=3.0,
+                   help="excitation before tracking [s]")
+    s.add_argument("--track", type=number(0, 600, lo_open=True), default=1.0,
+                   help="tracking of the seed's 10 Hz "
                    "trajectory [s]")
     s.add_argument("--namespace", default="/stage")
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from piezo_stage.cli._common import number
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.excitation import CHIRP_S
 
@@ -11,11 +12,12 @@ HELP = "write a diagnostic excitation (t,vx,vy)"
 def add_arguments(s):
     s.add_argument("--protocol", choices=("gap",), default="gap")
     s.add_argument("--out", default="excite_gap.csv")
-    s.add_argument("--rate", type=float, default=5000.0, help="sample rate [Hz]")
-    s.add_argument("--seed", type=int, default=0, help="varies amplitudes and step levels")
-    s.add_argument("--v-min", type=float, default=0.0)
-    s.add_argument("--v-max", type=float, default=150.0)
-    s.add_argument("--chirp", type=float, default=CHIRP_S, metavar="S", help="the small "
+    s.add_argument("--rate", type=number(10, 200_000), default=5000.0, help="sample rate [Hz]")
+    s.add_argument("--seed", type=number(0, 2**32 - 1, integer=True), default=0,
+                   help="varies amplitudes and step levels")
+    s.add_argument("--v-min", type=number(-1000, 1000), default=0.0)
+    s.add_argument("--v-max", type=number(-1000, 1000), default=150.0)
+    s.add_argument("--chirp", type=number(0, 60), default=CHIRP_S, metavar="S", help="the small "
                    "chirp per axis up to 0.4 x the rate, S seconds (tells a resonance from "
                    "a delay; default %(default)g, 0: none)")
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from piezo_stage.cli._common import number
 from piezo_stage.core.errors import DataError
 
 HELP = "identify the Duhem model from a record"
@@ -17,15 +18,18 @@ def add_arguments(s):
     g.add_argument("--whole", action="store_true", help="one parameter set for both branches")
     g.add_argument("--segmented", action="store_true", help="a set per branch (default)")
     s.add_argument("--validate", metavar="DATA2", help="held-out record to validate on")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--budget", type=int, metavar="EVALS", help="objective evaluations")
+    s.add_argument("--seed", type=number(0, 2**32 - 1, integer=True), default=0)
+    s.add_argument("--budget", type=number(1, 10**8, integer=True), metavar="EVALS",
+                   help="objective evaluations")
     s.add_argument("--coupling", choices=("auto", "on", "off"), default="auto",
                    help="fit cross-coupling from the other axis (fast only)")
     s.add_argument("--voltage", choices=("auto", "exact"), default="auto",
                    help="exact: v is what the actuator got (never cleaned); auto: a noisy "
                    "(measured) v has its in-branch micro-reversals removed (bags: exact)")
-    s.add_argument("--n", type=int, default=3, help="degree of f (default 3)")
-    s.add_argument("--m", type=int, default=2, help="degree of g (default 2)")
+    s.add_argument("--n", type=number(0, 12, integer=True), default=3,
+                   help="degree of f (default 3)")
+    s.add_argument("--m", type=number(0, 12, integer=True), default=2,
+                   help="degree of g (default 2)")
     s.add_argument("--out", metavar="MODEL.yaml", help="write the model file")
     s.add_argument("--json", metavar="FILE", help="write the full report as JSON")
     s.add_argument("--plot", metavar="PNG", help="loop and fit-error figure (default: "

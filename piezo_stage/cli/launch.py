@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from piezo_stage.cli._common import param_overrides, port
+from piezo_stage.cli._common import number, param_overrides, port
 
 HELP = "start the ROS 2 node set"
 
@@ -10,7 +10,8 @@ HELP = "start the ROS 2 node set"
 def add_arguments(s):
     s.add_argument("config", nargs="?", help="node parameters YAML (default config/stage.yaml)")
     s.add_argument("--record", metavar="DIR", help="record a bag to DIR ('auto': bags/<time>)")
-    s.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    s.add_argument("--duration", type=number(0, 10**7, lo_open=True), metavar="S",
+                   help="stop after S seconds")
     s.add_argument("--namespace", default="/stage")
     s.add_argument("--no-arm", action="store_true", help="start disarmed and stay so "
                    "until armed on the arm service")

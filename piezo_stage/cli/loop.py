@@ -4,17 +4,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from piezo_stage.cli._common import load_plant
+from piezo_stage.cli._common import load_plant, number
 
 HELP = "hysteresis loop figures of the simulated stage"
 
 
 def add_arguments(s):
     s.add_argument("--config", help="plant config YAML")
-    s.add_argument("--freq", type=float, default=1.0, help="sine frequency [Hz]")
-    s.add_argument("--amplitude", type=float, default=150.0, help="peak-peak [V]")
-    s.add_argument("--cycles", type=int, default=3)
-    s.add_argument("--rate", type=float, default=10_000.0, help="sample rate [Hz]")
+    s.add_argument("--freq", type=number(0, 10_000, lo_open=True), default=1.0,
+                   help="sine frequency [Hz]")
+    s.add_argument("--amplitude", type=number(0, 1000, lo_open=True), default=150.0,
+                   help="peak-peak [V]")
+    s.add_argument("--cycles", type=number(1, 10_000, integer=True), default=3)
+    s.add_argument("--rate", type=number(1, 1_000_000), default=10_000.0, help="sample rate [Hz]")
     s.set_defaults(model=None, no_noise=False, seed=None)
 
 

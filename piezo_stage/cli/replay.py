@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from piezo_stage.cli._common import number
 from piezo_stage.core.errors import DataError
 
 HELP = "republish a recorded bag on its topics"
@@ -9,7 +10,7 @@ HELP = "republish a recorded bag on its topics"
 
 def add_arguments(s):
     s.add_argument("bag")
-    s.add_argument("--rate", type=float, default=1.0,
+    s.add_argument("--rate", type=number(0, 1000, lo_open=True), default=1.0,
                    help="playback speed (1: original timing; 0: as fast as possible)")
     s.add_argument("--namespace", default=None, help="replace the recorded namespace")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from piezo_stage.cli._common import check_voltages, load_plant
+from piezo_stage.cli._common import check_voltages, load_plant, number
 from piezo_stage.core.errors import DataError
 
 HELP = "run a voltage record through the simulated stage"
@@ -17,7 +17,8 @@ def add_arguments(s):
     g.add_argument("--config", help="plant config YAML (default config/sim_stage.yaml)")
     g.add_argument("--model", help="model file: the plant is exactly this model, nothing else")
     s.add_argument("--no-noise", action="store_true", help="no sensor noise or quantisation")
-    s.add_argument("--seed", type=int, help="noise seed (overrides the config)")
+    s.add_argument("--seed", type=number(0, 2**32 - 1, integer=True),
+                   help="noise seed (overrides the config)")
 
 
 def main(args):

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import sys
 
+from piezo_stage.cli._common import number
+
 HELP = "reproduce the seed's identification study"
 
 
 def add_arguments(s):
     s.add_argument("what", choices=("identification",))
     s.add_argument("--out", default="out/identification_study", help="output folder")
-    s.add_argument("--seeds", type=int, default=5)
-    s.add_argument("--budget", type=int, default=60_000, help="evaluations per swarm run")
+    s.add_argument("--seeds", type=number(1, 1000, integer=True), default=5)
+    s.add_argument("--budget", type=number(1, 10**8, integer=True), default=60_000,
+                   help="evaluations per swarm run")
 
 
 def main(args):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 import sys
 
-from piezo_stage.cli._common import die, param_overrides
+from piezo_stage.cli._common import die, number, param_overrides
 
 HELP = "PID gains from the identified model or a relay experiment"
 
@@ -14,10 +14,10 @@ HELP = "PID gains from the identified model or a relay experiment"
 def add_arguments(s):
     s.add_argument("model", nargs="?", help="model file to tune from (its dynamics and "
                    "delay are used when present); not with --relay")
-    s.add_argument("--rate", type=float, default=1000.0, help="control rate [Hz]")
-    s.add_argument("--phase-margin", type=float, default=60.0, metavar="DEG")
-    s.add_argument("--gain-margin", type=float, default=10.0, metavar="DB")
-    s.add_argument("--latency", type=float, default=1.0, metavar="PERIODS",
+    s.add_argument("--rate", type=number(1, 1_000_000), default=1000.0, help="control rate [Hz]")
+    s.add_argument("--phase-margin", type=number(0, 90, lo_open=True), default=60.0, metavar="DEG")
+    s.add_argument("--gain-margin", type=number(0, 60, lo_open=True), default=10.0, metavar="DB")
+    s.add_argument("--latency", type=number(0, 100), default=1.0, metavar="PERIODS",
                    help="model: sample-to-applied latency of the loop [periods] (lockstep: "
                    "1; a relay experiment measures it)")
     s.add_argument("--out", metavar="PARAMS.yaml", help="write a parameter file that "
@@ -33,11 +33,12 @@ def add_arguments(s):
     r.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
     r.add_argument("--params", action="append", metavar="FILE",
                    help="more node parameters, may repeat")
-    r.add_argument("--relay-amplitude", type=float, default=2.0, metavar="V")
-    r.add_argument("--relay-hysteresis", type=float, default=0.0, metavar="UM",
+    r.add_argument("--relay-amplitude", type=number(0, 150, lo_open=True), default=2.0,
+                   metavar="V")
+    r.add_argument("--relay-hysteresis", type=number(0, 100), default=0.0, metavar="UM",
                    help="0 unless the sensor noise makes the relay chatter")
-    r.add_argument("--setpoint", type=float, default=30.0, metavar="UM")
-    r.add_argument("--duration", type=float, default=3.0, metavar="S")
+    r.add_argument("--setpoint", type=number(-1000, 1000), default=30.0, metavar="UM")
+    r.add_argument("--duration", type=number(0, 3600, lo_open=True), default=3.0, metavar="S")
     r.add_argument("--record", metavar="DIR", help="keep the relay run's bag here")
 
 

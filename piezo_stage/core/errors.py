@@ -23,3 +23,24 @@ class ConfigError(PiezoStageError, ValueError):
 
 class SolverError(PiezoStageError, RuntimeError):
     """An identification solver failed to produce a usable model."""
+
+
+def printable(text: object, limit: int = 200) -> str:
+    """``text`` safe to echo in a one-line message: control characters (a terminal's
+    escape sequences, NULs, newlines) written as escapes, cut to ``limit`` characters.
+
+    Parameters
+    ----------
+    text : object
+        What to echo (converted with str).
+    limit : int
+        The most characters kept.
+
+    Returns
+    -------
+    str
+        One line of printable text.
+    """
+    s = "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii")
+                for c in str(text)[:limit + 1])
+    return s if len(s) <= limit else s[:limit] + "..."

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from piezo_stage.core.errors import DataError
+from piezo_stage.core.errors import DataError, printable
 from piezo_stage.core.record import Record
-from piezo_stage.io.files import atomic_write
+from piezo_stage.io.files import atomic_write, check_input
 
 
 def read_table(path, required, optional=()) -> dict:
@@ -15,24 +15,19 @@ def read_table(path, required, optional=()) -> dict:
     Raises DataError (one line) for a missing file, missing or misnamed columns,
     non-numeric cells, ragged rows, NaN or inf.
     """
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:  # a BOM is not a name
-            header = fh.readline()
-            body = fh.read()
-    except FileNotFoundError:
-        raise DataError(f"{path}: no such file") from None
-    except (IsADirectoryError, UnicodeDecodeError, PermissionError) as e:
-        raise DataError(f"{path}: cannot read ({type(e).__name__})") from None
+    header, body = _read_text(path)
     # comma-separated; a semicolon-separated file (a spreadsheet's export in locales
     # with a decimal comma) is read the same way when its header has no comma
     sep = ";" if ";" in header and "," not in header else ","
     names = [h.strip() for h in header.strip().split(sep)]
+    shown = printable(", ".join(names))  # a header is echoed escaped and cut
+    path = printable(path)
     if not header.strip():
         raise DataError(f"{path}: empty file (expected a header row)")
     missing = [c for c in required if c not in names]
     if missing:
         raise DataError(f"{path}: missing column(s) {', '.join(missing)}; header has "
-                        f"{', '.join(names)} (expected {', '.join(required)})")
+                        f"{shown} (expected {', '.join(required)})")
     if len(set(names)) != len(names):
         raise DataError(f"{path}: duplicate column names in header")
     rows = [r for r in body.splitlines() if r.strip()]
@@ -56,6 +51,25 @@ def read_table(path, required, optional=()) -> dict:
     return cols
 
 
+MAX_HEADER_CHARS = 65536
+
+
+def _read_text(path) -> tuple[str, str]:
+    """(header line, the rest) of a regular, bounded UTF-8 file; DataError otherwise."""
+    check_input(path, what="CSV")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # a BOM is not a name
+            header = fh.readline(MAX_HEADER_CHARS + 1)
+            if len(header) > MAX_HEADER_CHARS:
+                raise DataError(f"{printable(path)}: no header line in the first "
+                                f"{MAX_HEADER_CHARS} characters: not a CSV")
+            body = fh.read()
+    except (UnicodeDecodeError, PermissionError) as e:
+        raise DataError(f"{printable(path)}: cannot read as UTF-8 text "
+                        f"({type(e).__name__})") from None
+    return header, body
+
+
 def write_table(path, columns: dict, fmt="%.10g"):
     """Write named columns (equal length) with a header row, atomically."""
     names = list(columns)
@@ -70,17 +84,14 @@ def read_record(path, axes=("x", "y"), need_w=True) -> Record:
 
     Axes whose columns are absent are skipped; at least one complete axis is needed.
     """
-    try:
-        with open(path) as fh:
-            names = [h.strip() for h in fh.readline().strip().split(",")]
-    except (FileNotFoundError, IsADirectoryError, UnicodeDecodeError, PermissionError):
-        raise DataError(f"{path}: no such file or not a readable CSV") from None
+    header, _ = _read_text(path)
+    names = [h.strip() for h in header.strip().split(",")]
     present = [a for a in axes if f"v{a}" in names and (not need_w or f"w{a}" in names)]
     if "t" not in names or not present:
         want = "t,vx,vy,wx,wy" if need_w else "t,vx,vy"
         raise DataError(f"{path}: missing columns: need t and, for at least one axis, "
                         f"v<axis>{',w<axis>' if need_w else ''} (e.g. {want}); header has "
-                        f"{', '.join(names)}")
+                        f"{printable(', '.join(names))}")
     req = ["t"] + [f"v{a}" for a in present] + ([f"w{a}" for a in present] if need_w else [])
     cols = read_table(path, req)
     return Record(cols["t"], {a: cols[f"v{a}"] for a in present},

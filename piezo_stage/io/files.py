@@ -1,10 +1,47 @@
-"""Atomic file writing: write to a temporary file beside the target, then rename."""
+"""Files: inputs that must be regular and bounded, atomic writing (a temporary file
+beside the target, then a rename)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
+
+from piezo_stage.core.errors import DataError, printable
+
+MAX_INPUT_BYTES = 2 * 1024 ** 3  # a 5 kHz two-axis CSV of 24 h is about 0.5 GB
+
+
+def check_input(path, max_bytes: int = MAX_INPUT_BYTES, what: str = "input") -> None:
+    """DataError unless ``path`` is a regular file of at most ``max_bytes`` (a device
+    such as /dev/zero never ends, a FIFO may never answer)."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise DataError(f"{printable(path)}: no such file") from None
+    except OSError as e:
+        raise DataError(f"{printable(path)}: cannot read ({type(e).__name__})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise DataError(f"{printable(path)}: is a directory, not a {what} file")
+    if not stat.S_ISREG(st.st_mode):
+        raise DataError(f"{printable(path)}: not a regular file (a device or a pipe); "
+                        f"give the {what} as a file")
+    if st.st_size > max_bytes:
+        raise DataError(f"{printable(path)}: {st.st_size} bytes, more than the "
+                        f"{max_bytes} accepted")
+
+
+def check_output(path) -> None:
+    """DataError if ``path`` exists and is not a regular file: renaming a temporary
+    file over a device (/dev/null, run as root) would replace the device."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return
+    if not stat.S_ISREG(st.st_mode):
+        raise DataError(f"{printable(path)}: exists and is not a regular file; outputs "
+                        "are written to a temporary file and renamed over the target")
 
 
 @contextlib.contextmanager
@@ -15,6 +52,7 @@ def atomic_write(path, mode="w", **kw):
     a reader never sees a half-written output.
     """
     path = os.fspath(path)
+    check_output(path)
     d = os.path.dirname(os.path.abspath(path))
     os.makedirs(d, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=d)
