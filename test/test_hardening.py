@@ -351,3 +351,26 @@ def test_echoed_text_is_escaped_and_cut(tmp_path):
     r = cli("simulate", "--in", binary, "--out", tmp_path / "o.csv")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert len(r.stderr) < 700, len(r.stderr)
+
+
+def test_trajectory_parameters_the_loop_cannot_follow_are_refused():
+    from piezo_stage.core.errors import ConfigError
+    from piezo_stage.core.trajectory import generate
+    with pytest.raises(ConfigError, match="Nyquist"):
+        generate("sine", 1.0, 1e-3, 1e9)
+    with pytest.raises(ConfigError, match="points"):
+        generate("sine", 1e6, 1e-3, 10.0)
+    t, w = generate("sine", 1.0, 1e-3, 500.0)  # two points a period: still taken
+    assert len(t) == 1001
+
+
+def test_use_sim_time_on_a_real_time_set_is_refused(tmp_path):
+    from piezo_stage.core.errors import ConfigError
+    from piezo_stage.launch.launcher import Launch
+    cfg = tmp_path / "rt.yaml"
+    cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n"
+                   "/**/controller:\n  ros__parameters:\n    use_sim_time: true\n")
+    with pytest.raises(ConfigError, match="use_sim_time on controller"):
+        Launch(str(cfg))
+    r = cli("launch", cfg, "--duration", "1")
+    assert r.returncode == 2 and "use_sim_time" in r.stderr

@@ -16,6 +16,9 @@ from piezo_stage.core.errors import ConfigError
 KINDS = ("sine", "variable_sine", "steps", "triangle", "seed", "csv")
 
 
+MAX_POINTS = 200_000  # the feedforward's max_trajectory_points default
+
+
 def generate(kind: str = "seed", duration_s: float = 1.0, dt_s: float = 1e-3,
              frequency_hz: float = 10.0, center_um: float = 21.0, amplitude_um: float = 24.0,
              axes: Sequence[str] = ("x", "y"),
@@ -33,6 +36,14 @@ def generate(kind: str = "seed", duration_s: float = 1.0, dt_s: float = 1e-3,
                           "y": np.asarray(table["wy"], float)}
     if not (duration_s > 0 and dt_s > 0 and frequency_hz > 0):
         raise ConfigError("duration_s, dt_s and frequency_hz must be > 0")
+    # what a sampled loop can follow: two points a period at least, and a trajectory
+    # the feedforward takes (its max_trajectory_points default)
+    if frequency_hz * dt_s > 0.5:
+        raise ConfigError(f"frequency_hz {frequency_hz:g} is above the point rate's "
+                          f"Nyquist frequency {0.5 / dt_s:g} Hz (dt_s {dt_s:g} s)")
+    if duration_s / dt_s > MAX_POINTS:
+        raise ConfigError(f"{duration_s:g} s at dt_s {dt_s:g} s is "
+                          f"{duration_s / dt_s:.0f} points, more than {MAX_POINTS}")
     t = np.arange(int(round(duration_s / dt_s)) + 1) * dt_s
     ph = 2 * np.pi * frequency_hz * t
     if kind == "seed":

@@ -78,6 +78,12 @@ class Launch:
             raise ConfigError(f"{config_path}: stage_driver mode {mode!r}: use lockstep "
                               "or realtime")
         self.lockstep = mode == "lockstep"
+        sim_time = [n for n in ORDER if (params.get(n, {}).get("use_sim_time") or (
+            overrides or {}).get(n, {}).get("use_sim_time"))]
+        if not self.lockstep and sim_time:
+            raise ConfigError(f"{config_path}: use_sim_time on {', '.join(sim_time)} in a "
+                              "real-time set: simulated time is lockstep's (the driver's "
+                              "samples); leave it out")
         self.arm = bool(arm)
         self.backend = drv.get("backend", "sim")
         self.overrides = {n: dict(o) for n, o in (overrides or {}).items()}

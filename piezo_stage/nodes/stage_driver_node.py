@@ -85,6 +85,9 @@ class StageDriver(Node):
         p = self.p = {name: d(name, default, desc, **kw) for name, default, desc, kw in PARAMS}
         if p["backend"] == "daq" and p["mode"] != "realtime":
             raise DataError("backend daq runs in real time only (mode: realtime)")
+        if p["mode"] == "realtime" and self.get_parameter("use_sim_time").value:
+            raise DataError("use_sim_time is for lockstep (the driver's samples are the "
+                            "clock); in real time the nodes run on the system clock")
         defaults = ArmingParams()
         arm = ArmingParams(**{field: d(name, getattr(defaults, field), desc, **(
             {"lo": r[0], "hi": r[1]} if r else {})) for name, field, desc, r in ARMING})
