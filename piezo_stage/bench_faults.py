@@ -53,6 +53,93 @@ def _inject(launch, probe, env, name):
         probe.wait(lambda: probe.arm(True).success, 10)
 
 
+def hostile_inputs(good_model: str) -> dict:
+    """What an outside node may send, per surface: {surface: [(what, payload)]}. The
+    payload is the message's text (model), a message object, or raw CDR bytes. Each is
+    to be refused with a count, never to kill a node or step the stage."""
+    import yaml
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    import piezo_stage_msgs_adapters as A
+
+    def scaled(k):
+        doc = yaml.safe_load(good_model)
+
+        def walk(d):
+            for key, v in d.items():
+                if key in ("f", "g"):
+                    d[key] = [k * float(c) for c in v]
+                elif isinstance(v, dict):
+                    walk(v)
+        walk(doc["axes"])
+        return yaml.safe_dump(doc, sort_keys=False)
+    bomb = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+        for p, c in zip("abcdefgh", "bcdefghi"))
+    models = [("alias bomb", bomb), ("nested 20,000 deep", "[" * 20000 + "]" * 20000),
+              ("not YAML", "{{{"), ("f, g x 0.001", scaled(0.001)), ("f, g x -1", scaled(-1.0)),
+              ("f, g x 3", scaled(3.0)),
+              ("unknown effect key", good_model + "effects: {dynamics: {f_hz: 1.0e-9}}\n"),
+              ("delay 1e9 s", good_model + "effects: {delay: {delay_s: 1.0e9}}\n"),
+              ("negative damping", good_model +
+               "effects: {dynamics: {kind: resonance, fn_hz: 800, zeta: -1}}\n"),
+              ("1e300 coefficient", good_model.replace("g: [0.36, 0.0006]",
+                                                       "g: [1.0e300, 0.0006]"))]
+    t = np.arange(50) * 1e-3
+    whole = serialize_message(A.trajectory_msg(t, {"x": np.full(50, 20.0),
+                                                   "y": np.full(50, 20.0)}))
+    ragged = JointTrajectory(joint_names=["x", "y"],
+                             points=[JointTrajectoryPoint(positions=[1e-6])])
+    odd = JointTrajectory(joint_names=["x", "y"])
+    for i in range(4):  # later points with velocities: once misread
+        pt = JointTrajectoryPoint(positions=[20e-6, 20e-6])
+        pt.velocities = [0.0, 0.0] if i == 3 else []
+        pt.time_from_start.nanosec = i * 1_000_000
+        odd.points.append(pt)
+    big = JointTrajectory(joint_names=["x", "y"],
+                          points=[JointTrajectoryPoint(positions=[2e-5, 2e-5])] * 200_001)
+    trajectories = [("truncated CDR", whole[:len(whole) // 2]), ("ragged point", ragged),
+                    ("200,001 points", serialize_message(big)),
+                    ("out of range", A.trajectory_msg(t, {"x": np.full(50, 500.0),
+                                                          "y": np.full(50, 20.0)})),
+                    ("unknown joint", JointTrajectory(joint_names=["q"])),
+                    ("velocities on a late point (valid)", odd)]
+    states = []
+    for what, sec, names in (("stamp sec -1", -1, ["x", "y"]),
+                             ("stamp 10^15 ns ahead", 10 ** 6, ["x", "y"]),
+                             ("foreign joints", 0, ["a", "b"]),
+                             ("repeated joint", 0, ["x", "x"])):
+        m = JointState(name=names, position=[1e-6, 1e-6], effort=[1.0, 1.0])
+        m.header.stamp.sec = sec
+        states.append((what, m))
+    return {"model": models, "trajectory": trajectories, "joint_states": states}
+
+
+def _send_hostile(probe, good_model: str) -> dict:
+    """Publish every hostile input (a little apart); {surface: count sent}."""
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+    from trajectory_msgs.msg import JointTrajectory
+
+    from piezo_stage.nodes._common import QOS_DATA
+    pubs = {"model": probe.node.create_publisher(String, "/stage/model", 10),
+            "trajectory": probe.node.create_publisher(JointTrajectory, "/stage/trajectory",
+                                                      10),
+            "joint_states": probe.node.create_publisher(JointState, "/stage/joint_states",
+                                                        QOS_DATA)}
+    probe.wait(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 10)
+    probe.spin(0.5)
+    sent = {}
+    for surface, items in hostile_inputs(good_model).items():
+        for _, payload in items:
+            pubs[surface].publish(String(data=payload) if surface == "model" else payload)
+            probe.spin(0.3)
+        sent[surface] = len(items)
+    return sent
+
+
 FAULTS = ("controller killed", "controller stopped 1 s", "feedforward killed",
           "NaN command flood 0.2 s", "e-stop, then disarm and arm")
 
@@ -90,6 +177,14 @@ def bench_faults() -> int:
                 any(s[0] != "armed" for s in probe.states[n:]) else True
             probe.spin(0.5)
             marks.append((name, t0, time.time_ns(), rearmed))
+        probe.spin(1.5)
+        n, t0 = len(probe.states), time.time_ns()
+        with open(default_config("stage_model.yaml")) as fh:
+            sent = _send_hostile(probe, fh.read())
+        probe.spin(1.0)
+        rearmed = all(s[0] == "armed" for s in probe.states[n:])  # never disarmed
+        marks.append(("hostile inputs (below)", t0, time.time_ns(), rearmed))
+        deaths = [k for k, p in launch.procs.items() if p.poll() is not None]
     finally:
         probe.close()
         launch.stop()
@@ -119,11 +214,17 @@ def bench_faults() -> int:
             ok_all &= to_safe <= bound
         else:
             safe_txt, bound_txt = f"{'never':>9}", f"{'-':>8}"
-            ok_all &= name.startswith("NaN")  # a NaN flood must not disarm anything
+            # a NaN flood or hostile inputs must not disarm anything
+            ok_all &= name.startswith(("NaN", "hostile"))
         ok_all &= ratio <= 1.0 and bool(rearmed)
         print(f"  {name:<30} {step:10.2f} {ratio:7.2f} {err:10.3f} {safe_txt} {bound_txt} "
               f"{'yes' if rearmed else 'NO':>9}")
+    print("  hostile inputs sent by an outside node while armed: "
+          + ", ".join(f"{k} {v}" for k, v in sent.items())
+          + f" ({sum(sent.values())} in all); node deaths {len(deaths)}"
+          + (f" ({', '.join(deaths)})" if deaths else ""))
+    ok_all &= not deaths
     print(f"  targets (no step beyond the slew limit; safe within stale + V/ramp; NaN "
-          f"never disarms or moves the stage; every fault recovered): "
+          f"and hostile inputs never disarm or kill a node; every fault recovered): "
           f"{'met' if ok_all else 'NOT met'}")
     return 0
