@@ -53,11 +53,31 @@ def _inject(launch, probe, env, name):
         probe.wait(lambda: probe.arm(True).success, 10)
 
 
+ALIAS_BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+    for p, c in zip("abcdefgh", "bcdefghi"))  # 1 kB of YAML that expands to 10^9 items
+
+
+def scaled_model(text: str, k: float) -> str:
+    """A model file's text with every f and g scaled by ``k`` (0.001, -1: models that
+    would drive the stage to its limits)."""
+    import yaml
+    doc = yaml.safe_load(text)
+
+    def walk(d):
+        for key, v in d.items():
+            if key in ("f", "g"):
+                d[key] = [k * float(c) for c in v]
+            elif isinstance(v, dict):
+                walk(v)
+    walk(doc["axes"])
+    return yaml.safe_dump(doc, sort_keys=False)
+
+
 def hostile_inputs(good_model: str) -> dict:
     """What an outside node may send, per surface: {surface: [(what, payload)]}. The
     payload is the message's text (model), a message object, or raw CDR bytes. Each is
     to be refused with a count, never to kill a node or step the stage."""
-    import yaml
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
@@ -65,20 +85,8 @@ def hostile_inputs(good_model: str) -> dict:
     import piezo_stage_msgs_adapters as A
 
     def scaled(k):
-        doc = yaml.safe_load(good_model)
-
-        def walk(d):
-            for key, v in d.items():
-                if key in ("f", "g"):
-                    d[key] = [k * float(c) for c in v]
-                elif isinstance(v, dict):
-                    walk(v)
-        walk(doc["axes"])
-        return yaml.safe_dump(doc, sort_keys=False)
-    bomb = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
-        f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
-        for p, c in zip("abcdefgh", "bcdefghi"))
-    models = [("alias bomb", bomb), ("nested 20,000 deep", "[" * 20000 + "]" * 20000),
+        return scaled_model(good_model, k)
+    models = [("alias bomb", ALIAS_BOMB), ("nested 20,000 deep", "[" * 20000 + "]" * 20000),
               ("not YAML", "{{{"), ("f, g x 0.001", scaled(0.001)), ("f, g x -1", scaled(-1.0)),
               ("f, g x 3", scaled(3.0)),
               ("unknown effect key", good_model + "effects: {dynamics: {f_hz: 1.0e-9}}\n"),

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import CONFIG, ROOT
+from piezo_stage.bench_faults import ALIAS_BOMB, scaled_model
 from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.io.model_file import load_model, parse_yaml
 from piezo_stage.io.run_bag import status_node
@@ -29,24 +30,7 @@ def one_line_exit_2(r):
     assert "Traceback" not in r.stderr
 
 
-def _scaled(text, k):
-    """The model with every f and g scaled by k (as the issue's 0.001 and -1)."""
-    import yaml
-    doc = yaml.safe_load(text)
-
-    def walk(d):
-        for key, v in d.items():
-            if key in ("f", "g"):
-                d[key] = [k * float(c) for c in v]
-            elif isinstance(v, dict):
-                walk(v)
-    walk(doc["axes"])
-    return yaml.safe_dump(doc, sort_keys=False)
-
-
-BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
-    f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
-    for p, c in zip("abcdefgh", "bcdefghi"))
+BOMB = ALIAS_BOMB
 
 
 def test_yaml_alias_bomb_is_refused_at_once(tmp_path):
@@ -222,7 +206,7 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path, ros_env
                    GOOD + "effects: {dynamics: {f_hz: 1.0e-9, zeta: -1}}\n",
                    GOOD + "effects: {delay: {delay_s: 1.0e9}}\n",
                    GOOD + "effects: {dynamics: {kind: resonance, fn_hz: 800, zeta: -1}}\n",
-                   _scaled(GOOD, 0.001), _scaled(GOOD, -1.0)]
+                   scaled_model(GOOD, 0.001), scaled_model(GOOD, -1.0)]
         for text in hostile:
             mo.publish(String(data=text))
             probe.spin(0.2)
@@ -295,11 +279,11 @@ def test_an_implausible_model_change_is_refused(k):
     from piezo_stage.core.errors import ModelError
     from piezo_stage.io.model_file import model_from_dict
     running, _ = model_from_dict(yaml.safe_load(GOOD))
-    new, _ = model_from_dict(yaml.safe_load(_scaled(GOOD, k)))
+    new, _ = model_from_dict(yaml.safe_load(scaled_model(GOOD, k)))
     with pytest.raises(ModelError, match="stroke"):
         check_model_change(new, running, 100.0)
     check_model_change(running, running, 100.0)  # the same stage again: fine
-    same, _ = model_from_dict(yaml.safe_load(_scaled(GOOD, 1.2)))
+    same, _ = model_from_dict(yaml.safe_load(scaled_model(GOOD, 1.2)))
     check_model_change(same, running, 100.0)  # a refit 20 % off: fine
 
 

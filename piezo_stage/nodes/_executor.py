@@ -31,7 +31,7 @@ from rclpy.executors import (
 )
 from rclpy.signals import SignalHandlerOptions
 
-from piezo_stage.nodes import _signals
+import piezo_stage.nodes._signals as signals
 
 SLOW_PERIOD_S = 0.05  # the base executor's turn (timers, services, other topics)
 IDLE_WAKE_S = 0.002   # with nothing arriving, the loop still wakes this often
@@ -181,7 +181,7 @@ class LeanExecutor(Executor):
         batch = getattr(node, "lean_batch_s", 0.0)
         if batch:
             t_end = now + batch
-            while self.context.ok() and not _signals.count() and time.monotonic() < t_end:
+            while self.context.ok() and not signals.count() and time.monotonic() < t_end:
                 time.sleep(min(batch, 0.02))
 
     def spin(self) -> None:
@@ -193,8 +193,8 @@ class LeanExecutor(Executor):
         try:
             seen = 0
             while self.context.ok() and not self._is_shutdown:
-                if _signals.count() > seen:  # a stop signal came (see _signals)
-                    seen = _signals.count()
+                if signals.count() > seen:  # a stop signal came (see _signals)
+                    seen = signals.count()
                     if not self._stop_requested(seen):
                         break
                 try:
@@ -236,27 +236,27 @@ def run_node(factory, args=None) -> int:
     from the nodes it signalled itself), 1 when it could not run (one line on stderr)."""
     node, code = None, 0
     try:
-        _signals.set_phase("building")
+        signals.set_phase("building")
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         node = factory()
-        _signals.set_phase("running", node.get_fully_qualified_name())
+        signals.set_phase("running", node.get_fully_qualified_name())
         LeanExecutor(node).spin()
-    except (_signals.Stopped, KeyboardInterrupt, ExternalShutdownException):
+    except (signals.Stopped, KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as e:  # a node that cannot run says why and exits non-zero
         code = fatal(node, e, args)
     finally:
-        phase = _signals.STATE.phase
-        _signals.set_phase("stopping")
+        phase = signals.STATE.phase
+        signals.set_phase("stopping")
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-    signum = _signals.requested()
+    signum = signals.requested()
     if signum is None:
         return code
     where = "while running" if phase == "running" else "during start-up"
     did = getattr(node, "stop_summary", None)
-    sys.stderr.write(f"{_signals.STATE.name or _node_name(args)}: stopped by "
+    sys.stderr.write(f"{signals.STATE.name or _node_name(args)}: stopped by "
                      f"{signal.Signals(signum).name} {where}"
                      f"{': ' + did() if callable(did) else ''}\n")
     return 128 + signum

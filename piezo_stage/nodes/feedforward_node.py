@@ -14,7 +14,7 @@ the inverse without a restart. Without any model the feedforward is a nominal ga
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
-from piezo_stage.nodes import _signals  # noqa: F401, I001
+import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
 

@@ -7,7 +7,7 @@ twin on ``gap/residual`` (geometry_msgs/PointStamped, metres) and its rolling RM
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
-from piezo_stage.nodes import _signals  # noqa: F401, I001
+import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
 

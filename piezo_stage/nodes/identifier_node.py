@@ -7,7 +7,7 @@ hands the model to the feedforward on ``model``
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
-from piezo_stage.nodes import _signals  # noqa: I001
+import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
 
@@ -31,6 +31,7 @@ from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._signals import interruptible
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
 
 
@@ -96,7 +97,7 @@ class Identifier(Node):
         res, skipped = {}, []
         for a in ("x", "y"):
             try:
-                with _signals.interruptible():  # a long swarm search still stops in time
+                with interruptible():  # a long swarm search still stops in time
                     res[a] = identify_axis(rec, a, opts)
             except PiezoStageError as e:  # an axis that was not excited
                 skipped.append(f"{a}: {e}")

@@ -8,7 +8,7 @@ starts. Published once its consumers listen, again on a parameter change.
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
-from piezo_stage.nodes import _signals  # noqa: F401, I001
+import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
 
