@@ -260,7 +260,8 @@ def stroke_um(model: DuhemModel, limits: tuple[float, float], n: int = 301) -> f
     Returns
     -------
     float
-        w(hi) - w(lo) on the ascending sweep [um] (nan if the model diverges).
+        The displacement w(hi) - w(lo) on the ascending sweep [um] (nan if the model
+        diverges).
     """
     lo, hi = float(limits[0]), float(limits[1])
     v = np.concatenate([np.linspace(hi, lo, n), np.linspace(lo, hi, n)])

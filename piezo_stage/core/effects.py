@@ -286,7 +286,7 @@ def _in_range(where: str, x, lo: float, hi: float) -> float:
     return v
 
 
-def validate_effects(effects, where: str = "effects") -> dict:
+def validate_effects(effects: dict | None, where: str = "effects") -> dict:
     """The ``effects`` block of a model or plant file, checked and normalised.
 
     Each effect a mapping with only its own parameters (``EFFECT_RANGES``, ``kind``
