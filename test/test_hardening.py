@@ -151,7 +151,7 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path, ros_env
     from std_msgs.msg import String
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-    from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED
+    from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS
     from ros_probe import Probe
     env = ros_env
     d = int(env["ROS_DOMAIN_ID"])
@@ -169,7 +169,8 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path, ros_env
              for st in m.status}), 10)
         js = probe.node.create_publisher(JointState, "/stage/joint_states", QOS_DATA)
         tr = probe.node.create_publisher(JointTrajectory, "/stage/trajectory", 10)
-        mo = probe.node.create_publisher(String, "/stage/model", QOS_LATCHED)
+        # (keep last 20: nine models a little apart, none overwritten before it is taken)
+        mo = probe.node.create_publisher(String, "/stage/model", QOS_EVENTS)
         # both nodes up (their diagnostics) and matched: the count alone can be reached
         # by the feedforward's own subscriptions before the identifier's has matched
         assert probe.wait(lambda: js.get_subscription_count() >= 2 and
