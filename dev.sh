@@ -28,7 +28,14 @@ fi
 cmd=${1:-demo}
 [ $# -gt 0 ] && shift
 case "$cmd" in
-  test) exec .venv/bin/python -m pytest "$@" ;;
+  test)
+    # with no test selection: everything on two workers, then the real-time tests alone
+    # (their timing does not survive a second worker's CPU load on a 2-core machine)
+    if [ $# -eq 0 ] || [ "$*" = "-q" ]; then
+      .venv/bin/python -m pytest "$@" -m "not realtime"
+      exec .venv/bin/python -m pytest "$@" -m realtime -n 0
+    fi
+    exec .venv/bin/python -m pytest "$@" ;;
   demo) exec .venv/bin/piezo-stage demo "$@" ;;
   *)    exec .venv/bin/piezo-stage "$cmd" "$@" ;;
 esac

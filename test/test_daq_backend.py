@@ -144,6 +144,7 @@ def test_bad_daq_configuration_is_refused(device):
         DaqBackend(1000.0, PARAMS, safe_V=-5.0)
 
 
+@pytest.mark.realtime
 def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp_path, ros_env):
     """Real time on the wall-clock double, every 250th read two periods late: the set
     arms and tracks as on the sim, the stamps show the missed clocks, diagnostics count

@@ -103,6 +103,7 @@ def test_bad_inputs_exit_2_with_one_line(tmp_path, env):
         assert len(r.stderr.strip().splitlines()) == 1 or "usage" in r.stderr
 
 
+@pytest.mark.realtime
 def test_a_real_time_experiment_ends_by_itself(tmp_path, env):
     """In real time the driver stops after its samples: it ramps to the safe voltage and
     exits, the command ends, and the window is judged while the set was armed."""

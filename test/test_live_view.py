@@ -16,7 +16,9 @@ from conftest import CONFIG, ROOT  # noqa: E402
 from piezo_stage.launch.foxglove_probe import connect, decoder, receive  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 
-pytestmark = pytest.mark.slow  # real node processes: -m "not slow" leaves them out
+# real node processes in real time: -m "not slow" leaves them out, and ./dev.sh test
+# runs them alone after the rest
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
 def free_port():
     with socket.socket() as s:

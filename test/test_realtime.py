@@ -24,7 +24,9 @@ from piezo_stage.io.run_bag import (
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 from ros_probe import Probe  # noqa: E402
 
-pytestmark = pytest.mark.slow  # real node processes: -m "not slow" leaves them out
+# real node processes in real time: -m "not slow" leaves them out, and ./dev.sh test
+# runs them alone after the rest
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
 SLEW_V_PER_S = 1.0e5  # config/sim_stage.yaml's amplifier slew limit
