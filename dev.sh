@@ -29,11 +29,12 @@ cmd=${1:-demo}
 [ $# -gt 0 ] && shift
 case "$cmd" in
   test)
-    # with no test selection: everything on two workers, then the real-time tests alone
-    # (their timing does not survive a second worker's CPU load on a 2-core machine)
+    # with no test selection: the tests that start no node process on two workers, then
+    # those that do (marked slow or realtime) one at a time: a node set's timing does not
+    # survive a second worker's CPU load on a 2-core machine
     if [ $# -eq 0 ] || [ "$*" = "-q" ]; then
-      .venv/bin/python -m pytest "$@" -m "not realtime"
-      exec .venv/bin/python -m pytest "$@" -m realtime -n 0
+      .venv/bin/python -m pytest "$@" -m "not slow and not realtime"
+      exec .venv/bin/python -m pytest "$@" -m "slow or realtime" -n 0
     fi
     exec .venv/bin/python -m pytest "$@" ;;
   demo) exec .venv/bin/piezo-stage demo "$@" ;;

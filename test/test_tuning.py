@@ -157,6 +157,7 @@ def test_no_sustained_oscillation_is_refused():
         relay_point(u, y, 1000.0, 2.0, 1)
 
 
+@pytest.mark.slow
 def test_tune_relay_runs_the_node_set_and_writes_gains(tmp_path, ros_env):
     env = ros_env
     out = tmp_path / "gains.yaml"
