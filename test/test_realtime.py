@@ -124,7 +124,8 @@ def test_arming_is_refused_with_the_missing_link_and_e_stop_stays_latched(tmp_pa
             assert p.wait(30) == 130
 
 
-def test_faults_ramp_to_safe_and_the_set_re_arms_through_the_approach(tmp_path, domain):
+def test_faults_ramp_to_safe_and_the_set_re_arms_through_the_approach(tmp_path, domain,
+                                                                       ros_domains):
     """Controller killed, controller stopped 1 s, feedforward killed, NaN commands while
     faulted; then the launcher's shutdown. The bag is the judge. Real time on a shared
     2-core VM: a run the host stalls (it stops the whole guest for up to tens of ms,
@@ -132,8 +133,9 @@ def test_faults_ramp_to_safe_and_the_set_re_arms_through_the_approach(tmp_path, 
     try:
         _faults_run(tmp_path / "first", domain)
     except AssertionError as e:
-        print(f"first real-time run failed ({e}); running it again")
-        _faults_run(tmp_path / "second", domain)
+        print(f"first real-time run failed ({e}); running it again on a fresh domain")
+        d = ros_domains()
+        _faults_run(tmp_path / "second", (d, dict(domain[1], ROS_DOMAIN_ID=str(d))))
 
 
 def _faults_run(tmp_path, domain):
