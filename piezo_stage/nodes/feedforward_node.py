@@ -29,7 +29,6 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.arming import HOLD, ReferencePlanner
 from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
-from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.duhem import StageModel, check_model_change
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.inverse import StageInverse
@@ -48,7 +47,7 @@ from piezo_stage_msgs_adapters import (
     trajectory_from_cdr,
 )
 
-HANDOVER_V_PER_TICK = 1.0  # a new model while armed: the output moves 1 V a tick at most
+HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
 
 class Feedforward(Node):
     def __init__(self):
@@ -86,7 +85,7 @@ class Feedforward(Node):
                                   "inverted (0: no limit)", lo=0.0, hi=1e6)
         self.limits = (0.0, 150.0)
         self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
-        self.model, self.handover = None, False  # the running model; easing into a new one
+        self.model, self.handover = None, None  # the running model; easing into a new one
         self.started = False  # the inverse has been put where the stage is
         # the driver's announcements: taken before the data in each lean-loop pass
         self.driver = DriverState(self, self.dt_ns, declare(
@@ -159,8 +158,9 @@ class Feedforward(Node):
         warm.step(0.0, 0.0)
         if self.planner.desired is not None:
             inv.reset(v=self.ff, w=self.planner.desired)
-        # armed: the output eases from the old model's answer into the new one's
-        self.handover = self.inv is not None and self.driver.enabled(self.last_ns)
+        # armed: the jump between the old model's answer and the new one's is eased out
+        self.handover = {} if self.inv is not None and self.driver.enabled(self.last_ns) \
+            else None
         self.inv, self.model_name, self.limits = inv, name, model.voltage_limits
         self.model = model
         self.ref.set_compensator(comp)
@@ -274,10 +274,12 @@ class Feedforward(Node):
         self.planned = {t: d for t, d in self.planned.items() if t > ns}
         v = self.inv.step_ahead(ahead, desired["x"], desired["y"])
         self.stats["saturated"] = self.inv.saturated
-        if self.handover:  # at most HANDOVER_V_PER_TICK from the last answer per tick
-            eased, _ = clamp_slew(v, self.ff, self.limits, HANDOVER_V_PER_TICK)
-            self.handover = eased != v
-            v = eased
+        if self.handover is not None:  # the offset to the old answer shrinks 1 V a tick
+            off = self.handover or {a: self.ff[a] - v[a] for a in v}
+            h = HANDOVER_V_PER_TICK
+            off = {a: o - max(-h, min(h, o)) for a, o in off.items()}  # toward 0 by h
+            v = {a: min(max(v[a] + off[a], self.limits[0]), self.limits[1]) for a in v}
+            self.handover = off if any(off.values()) else None
         return v
 
 def main(args=None):
