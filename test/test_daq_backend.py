@@ -92,8 +92,9 @@ def test_hardware_timed_single_point_scaling_and_safe_close(device):
     timing = [c for c in calls if c[0] == "timing"]
     assert [c[3] for c in timing] == ["HW_TIMED_SINGLE_POINT"] * 2
     assert timing[1][2] == "/Dev1/ai/SampleClock"                 # outputs on the AI clock
-    assert calls.index(("write", (0.0, 0.0))) < calls.index(("start", "ao"))
+    assert ("start", "ao") not in calls                           # started by the 1st step
     out = [b.step(100.0, 30.0) for _ in range(50)]
+    assert calls.index(("write", (0.0, 0.0))) < calls.index(("start", "ao"))
     assert ("write", (100.0 / 15.0, 2.0)) in calls                # volts / amplifier gain
     w, true, applied, index = out[-1]
     assert true is None and applied == {"x": 100.0, "y": 30.0}
@@ -118,6 +119,27 @@ def test_late_samples_are_counted_and_show_in_the_sample_index(device, late):
     gaps = np.diff(idx)
     assert (gaps > 1).sum() >= 3 and gaps.min() >= 1              # misses visible, in order
     b.close(0.0, 500.0)
+
+
+def test_the_sample_clock_and_the_watchdog_start_at_the_first_step(device):
+    """A driver waits for its readers (seconds, on a loaded host) between building the
+    backend and its first tick: that wait is neither missed samples nor a watchdog
+    expiry. Started when built, the first index was ~300 and the watchdog had fired."""
+    import time
+    dd.install(clock="wall")
+    b = DaqBackend(1000.0, {**PARAMS, "watchdog_timeout_s": 0.05}, safe_V=0.0)
+    time.sleep(0.3)
+    idx = [b.step(30.0, 30.0)[3] for _ in range(5)]
+    assert idx[0] <= 1 and idx[-1] <= 6 and b.late == 0
+    assert not dd.DEVICE.get("watchdog_expired") and dd.device_outputs() == [2.0, 2.0]
+    b.close(0.0, 500.0)
+
+
+def test_a_backend_never_stepped_closes_without_touching_the_outputs(device):
+    b = DaqBackend(1000.0, PARAMS, safe_V=0.0)
+    b.close(0.0, 500.0)
+    assert not [c for c in dd.CALLS if c[0] in ("write", "start")]
+    assert [c for c in dd.CALLS if c[0] == "clear"] == [("clear", "ao"), ("clear", "ai")]
 
 
 def test_watchdog_drives_the_outputs_safe_when_the_loop_stops(device):
@@ -146,14 +168,16 @@ def test_bad_daq_configuration_is_refused(device):
 
 @pytest.mark.realtime
 def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp_path, ros_env):
-    """Real time on the wall-clock double, every 250th read two periods late: the set
-    arms and tracks as on the sim, the stamps show the missed clocks, diagnostics count
+    """Real time on the wall-clock double, every 250th read two periods late and a
+    device 0.3 s slow to start (the stamps map the clock after it): the set arms and
+    tracks as on the sim, the stamps show the missed clocks, diagnostics count
     them, and the outputs end at the safe voltage."""
     pytest.importorskip("rclpy")
     from piezo_stage.io.bag import deserialize, iter_messages
     from piezo_stage.launch.launcher import Launch
     env = dict(ros_env, PYTHONPATH=os.pathsep.join([DOUBLE, ROOT]),
-               PIEZO_STAGE_NI_DOUBLE=json.dumps({"clock": "wall", "lag_every": 250}))
+               PIEZO_STAGE_NI_DOUBLE=json.dumps({"clock": "wall", "lag_every": 250,
+                                                 "start_latency_s": 0.3}))
     cfg = tmp_path / "daq.yaml"
     cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    backend: daq\n"
                    "    mode: realtime\n    watchdog_timeout_s: 0.5\n"

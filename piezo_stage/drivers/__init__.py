@@ -4,7 +4,9 @@ Each backend has ``rate_hz``, ``limits`` ({axis: (lo, hi)} V), ``slew_V_per_s``
 ({axis: V/s}), ``hardware_id`` (what /diagnostics names), ``paced`` (True when
 ``step`` itself waits for the hardware's sample clock), ``step(vx, vy) -> (measured
 {axis: um}, true {axis: um} or None, applied {axis: V}, sample index or None)``,
-advancing one sample period with the voltages held, and ``close(safe_V,
+advancing one sample period with the voltages held, ``start()``, which starts the
+hardware's sample clock (the driver calls it just before its first tick and maps its
+stamps after it; ``step`` starts a backend not yet started), and ``close(safe_V,
 ramp_V_per_s)``, which leaves the outputs at the safe voltage.
 """
 
@@ -53,6 +55,9 @@ class SimBackend:
         true = {a: float(x[0]) for a, x in self.plant.last_true.items()}
         return {"x": mx, "y": my}, true, {"x": vx, "y": vy}, None
 
+    def start(self):
+        pass  # the driver paces the simulation
+
     def close(self, safe_V=0.0, ramp_V_per_s=0.0):
         pass  # nothing stays energised
 
@@ -80,6 +85,9 @@ class ReplayBackend:
         w = {a: float(x[k]) for a, x in self.rec.w.items()}
         v = {a: float(self.rec.v.get(a, [0.0] * len(self.rec))[k]) for a in ("x", "y")}
         return {"x": w.get("x", 0.0), "y": w.get("y", 0.0)}, None, v, None
+
+    def start(self):
+        pass
 
     def close(self, safe_V=0.0, ramp_V_per_s=0.0):
         pass

@@ -19,6 +19,9 @@ code: for that the backend arms the device's watchdog timer (``WatchdogTask``, w
 ``watchdog_timeout_s`` > 0) whose expiration state is the safe voltage; every step
 resets it, so if the process dies or hangs the hardware drives the outputs to the safe
 voltage by itself (devices without a watchdog refuse it; the backend then says so).
+The sample clock and the watchdog start at the first step, not when the backend is
+built, so the time a driver spends waiting for its readers is neither counted as
+missed samples nor long enough to expire the watchdog.
 
 Per axis (x, y) parameters: physical channels, AI terminal configuration and range,
 amplifier gain [V/V], sensor scale [um/V] and offset [um], output limits [V] and slew
@@ -116,17 +119,26 @@ class DaqBackend:
             self.raw_in = np.zeros(2)
             self.raw_out = np.zeros(2)
             self.v = {"x": float(safe_V), "y": float(safe_V)}
-            self._write(self.v)                  # HWTSP: the first sample before start
-            self.ao.start()                      # waits for the AI sample clock
-            self.ai.start()
             timeout = float(params["watchdog_timeout_s"])
             if timeout > 0:
-                self._arm_watchdog(ao, safe_V, timeout)
+                self._make_watchdog(ao, safe_V, timeout)
         except Exception:
             self._close_tasks()
             raise
+        self.started = False
 
-    def _arm_watchdog(self, ao, safe_V, timeout):
+    def start(self):
+        """Start the sample clock and the watchdog at the first step, not when built: a
+        driver may wait seconds for its readers, and a clock started then would count
+        those seconds as missed samples and the watchdog would expire before the loop."""
+        self.started = True
+        self._write(self.v)                      # HWTSP: the first sample before start
+        self.ao.start()                          # waits for the AI sample clock
+        self.ai.start()
+        if self.wd is not None:
+            self.wd.start()
+
+    def _make_watchdog(self, ao, safe_V, timeout):
         from nidaqmx.constants import WatchdogAOExpirState
         from nidaqmx.errors import DaqError
         from nidaqmx.system.watchdog import AOExpirationState, WatchdogTask
@@ -135,7 +147,6 @@ class DaqBackend:
             self.wd.cfg_watchdog_ao_expir_states([
                 AOExpirationState(ch, safe_V / g, WatchdogAOExpirState.VOLTAGE)
                 for ch, g in zip(ao, self.gain)])
-            self.wd.start()
         except DaqError as e:
             raise ConfigError(f"{self.device}: hardware watchdog unavailable ({e.error_code}); "
                               "set watchdog_timeout_s: 0 to run without it") from None
@@ -169,6 +180,8 @@ class DaqBackend:
     def step(self, vx, vy):
         """Write the voltages for the next sample clock, read that clock's sample.
         -> (measured {axis: um}, None, applied {axis: V}, sample index)."""
+        if not self.started:
+            self.start()
         self.v = {"x": vx, "y": vy}
         self._late_call(self._write, self.v)
         while not self._late_call(self.reader.read_one_sample, self.raw_in):
@@ -187,6 +200,8 @@ class DaqBackend:
         Safe to call twice."""
         if self.ai is None:
             return
+        if not self.started:  # never started: nothing was written, nothing to ramp
+            return self._close_tasks()
         try:
             step = ramp_V_per_s / self.rate_hz
             v = dict(self.v)

@@ -151,6 +151,7 @@ class StageDriver(Node):
             self.lean_deadline = time.monotonic() + 0.01  # consumers still matching
             return
         if self.clock.mono0 is None:  # map the sample clock to ROS time once
+            self.backend.start()  # the hardware clock starts now, not when built
             self.t0_ns = self.sched.t0 = self.get_clock().now().nanoseconds
         j = self.clock.tick(time.monotonic(), self.j)
         cmd, on_time = self.sched.due(j, count_held=self.sup.state in ENABLED)

@@ -38,8 +38,9 @@ from nidaqmx.errors import DaqError, DaqReadError, DaqWarning
 
 CALLS = []
 DEVICE = {}
-OPTIONS = {"clock": "wall", "late": "warning", "lag_every": 0, "gain": 15.0,
-           "um_per_V": 10.0}
+DEFAULTS = {"clock": "wall", "late": "warning", "lag_every": 0, "gain": 15.0,
+            "um_per_V": 10.0, "start_latency_s": 0.0}
+OPTIONS = dict(DEFAULTS)
 
 TASK_CHANNELS = 0x1273          # task: channel names
 READ_CHANNELS_TO_READ = 0x1823  # read: channels to read
@@ -69,8 +70,9 @@ def _plant():
             os.path.abspath(__file__)))))
         from piezo_stage.core.plant import Plant
         from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
-        DEVICE["plant"] = Plant(load_plant_config(default_plant_config_path()),
-                                DEVICE.get("rate", 1000.0))
+        cfg, rate = load_plant_config(default_plant_config_path()), DEVICE.get("rate", 1000.0)
+        Plant(cfg, rate).run([0.0], [0.0])  # compile the kernels now, not at a clock edge
+        DEVICE["plant"] = Plant(cfg, rate)
         DEVICE.setdefault("ao", [0.0, 0.0])
     return DEVICE["plant"]
 
@@ -115,6 +117,8 @@ class SimulatedDriver(BaseInterpreter):
         t = self.tasks[task]
         t.rate, t.mode, t.source = rate, sample_mode, source
         DEVICE["rate"] = rate
+        if t.kind == "ai":
+            _plant()  # the device exists before its clock starts
 
     def start_task(self, task):
         t = self.tasks[task]
@@ -122,6 +126,7 @@ class SimulatedDriver(BaseInterpreter):
         t.running = True
         if t.kind == "ai":
             _plant()
+            time.sleep(OPTIONS["start_latency_s"])  # a device that takes a while to start
             t.t0 = time.monotonic()
         if t.watchdog is not None:
             t.watchdog["last"] = time.monotonic()
@@ -289,7 +294,8 @@ def device_outputs():
 def install(**options):
     """Put the simulated driver under the real nidaqmx package (fresh device)."""
     import nidaqmx._library_interpreter as li
-    OPTIONS.update(options)
+    OPTIONS.clear()
+    OPTIONS.update(DEFAULTS, **options)
     CALLS.clear()
     DEVICE.clear()
     SimulatedDriver.tasks = {}
