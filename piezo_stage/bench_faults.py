@@ -125,8 +125,8 @@ def hostile_inputs(good_model: str) -> dict:
     return {"model": models, "trajectory": trajectories, "joint_states": states}
 
 
-def _send_hostile(probe, good_model: str) -> dict:
-    """Publish every hostile input (a little apart); {surface: count sent}."""
+def _send_hostile(probe, good_model: str) -> list:
+    """Publish every hostile input (a little apart); [(surface, what, sent at ns)]."""
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
     from trajectory_msgs.msg import JointTrajectory
@@ -139,13 +139,26 @@ def _send_hostile(probe, good_model: str) -> dict:
                                                         QOS_DATA)}
     probe.wait(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 10)
     probe.spin(0.5)
-    sent = {}
+    sent = []
     for surface, items in hostile_inputs(good_model).items():
-        for _, payload in items:
+        for what, payload in items:
+            sent.append((surface, what, time.time_ns()))
             pubs[surface].publish(String(data=payload) if surface == "model" else payload)
             probe.spin(0.3)
-        sent[surface] = len(items)
     return sent
+
+
+def _largest_step(t, v, sent, end_ns):
+    """The largest one-tick voltage step after each hostile input, up to the next one:
+    (step V, 'surface: what') of the largest."""
+    best = (0.0, "none")
+    for i, (surface, what, a) in enumerate(sent):
+        b = sent[i + 1][2] if i + 1 < len(sent) else end_ns
+        k = (t[1:] >= a) & (t[1:] < b)
+        if k.any():
+            step = float(np.abs(np.diff(v, axis=0))[k].max())
+            best = max(best, (step, f"{surface}: {what}"))
+    return best
 
 
 FAULTS = ("controller killed", "controller stopped 1 s", "feedforward killed",
@@ -227,10 +240,15 @@ def bench_faults() -> int:
         ok_all &= ratio <= 1.0 and bool(rearmed)
         print(f"  {name:<30} {step:10.2f} {ratio:7.2f} {err:10.3f} {safe_txt} {bound_txt} "
               f"{'yes' if rearmed else 'NO':>9}")
+    counts = {}
+    for surface, _, _ in sent:
+        counts[surface] = counts.get(surface, 0) + 1
+    step, after = _largest_step(t, v, sent, marks[-1][2])
     print("  hostile inputs sent by an outside node while armed: "
-          + ", ".join(f"{k} {v}" for k, v in sent.items())
-          + f" ({sum(sent.values())} in all); node deaths {len(deaths)}"
-          + (f" ({', '.join(deaths)})" if deaths else ""))
+          + ", ".join(f"{k} {n}" for k, n in counts.items())
+          + f" ({len(sent)} in all); node deaths {len(deaths)}"
+          + (f" ({', '.join(deaths)})" if deaths else "")
+          + f"; the largest step, {step:.2f} V, came after '{after}'")
     ok_all &= not deaths
     print(f"  targets (no step beyond the slew limit; safe within stale + V/ramp; NaN "
           f"and hostile inputs never disarm or kill a node; every fault recovered): "

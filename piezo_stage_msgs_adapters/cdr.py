@@ -183,11 +183,16 @@ def decode_joint_trajectory(data: bytes, max_points: int | None = None):
     """trajectory_msgs/JointTrajectory bytes -> (joint names, t [s] array, positions
     array (points, joints) [m]) without building a Python object per point: when every
     point has the same layout (positions only, or the same array lengths, as planners
-    send), the points are one strided view of the buffer. The layout is proved, not
+    send), the points are strided views of the buffer. The layout is proved, not
     guessed: every point's four counts are read (strided too) and must equal the first
     point's. Returns None for a layout this does not cover (the caller then
     deserializes the ordinary way). More than ``max_points`` points: DataError before
-    anything else is decoded."""
+    anything else is decoded.
+
+    Alignment: point 0 may carry padding the others do not (it starts wherever the
+    joint names ended); from point 1 on, the padding repeats every two points (a point's
+    padding depends only on where it starts, modulo 8). So point 0 is read on its own
+    and points 1, 3, 5... and 2, 4, 6... are two strided views."""
     import numpy as np
     r = CdrReader(data)
     r.stamp()
@@ -197,61 +202,60 @@ def decode_joint_trajectory(data: bytes, max_points: int | None = None):
     if max_points is not None and n > max_points:
         raise DataError(f"trajectory: {n} points, more than the {max_points} accepted "
                         "(max_trajectory_points)")
-    count_offs = []                 # of each point: where its 4 counts are
 
-    def point(r):
-        """(offset of positions, their count, offset of time_from_start) of one point."""
-        counts, offs, co = [], [], []
-        for _ in range(4):          # positions, velocities, accelerations, effort
+    def point():
+        """One point: (offsets of its 4 counts, the counts, offset of its positions,
+        offset of its time_from_start)."""
+        counts, co, p_off = [], [], 0
+        for j in range(4):          # positions, velocities, accelerations, effort
             r.pos += -(r.pos - 4) % 4
             co.append(r.pos)
             k = r.count(8)
             if k:  # (an empty sequence has no element to align)
                 r.pos += -(r.pos - 4) % r.a8
-            offs.append(r.pos)
+            if j == 0:
+                p_off = r.pos
             counts.append(k)
             r.pos += 8 * k
         r._take("iI", 8, 4)
-        count_offs.append(co)
-        return offs[0], counts, r.pos - 8
+        return co, counts, p_off, r.pos - 8
     if n == 0:
         return names, np.zeros(0), np.zeros((0, len(names)))
-    # 8-byte alignment makes the padding alternate: the layout repeats every 2 points
-    start = r.pos
-    first = [point(r) for _ in range(min(n, 3))]
+    first = [point()]
+    ends = [r.pos]                  # where each point read one by one ends
+    for _ in range(min(n, 3) - 1):
+        first.append(point())
+        ends.append(r.pos)
     if any(f[1] != first[0][1] for f in first):
         return None  # points with different array lengths
-    period = (first[2][0] - first[0][0]) if n > 2 else r.pos - start
-    ends = {1: r.pos} if n == 1 else {}
-    if n > 2 and (first[2][2] - first[0][2] != period):
-        return None
-    total = start + (n // 2) * period + (n % 2) * (first[0][2] + 8 - start)
-    # (the serialized buffer may carry a few bytes past the message's end)
-    if n > 1 and total > len(data) or n == 1 and ends[1] > len(data):
-        return None  # not one repeating layout: let the caller deserialize
     k = first[0][1][0]
     if k != len(names):
         return None
+    period = ends[2] - ends[0] if n > 2 else 0   # two points, from point 1 on
+    m = {1: n // 2, 2: (n - 1) // 2}             # points 1, 3, 5... and 2, 4, 6...
+    last = ends[0] + (m[2] * period if n > 2 else 0) + (
+        (ends[1] - ends[0]) if n % 2 == 0 else 0)  # the end of point n - 1
+    # (the serialized buffer may carry a few bytes past the message's end)
+    if last > len(data):
+        return None  # not one repeating layout: let the caller deserialize
     f8, i4, u4 = (np.dtype(r.end + c) for c in ("f8", "i4", "u4"))
-    for par in (0, 1):  # every point's counts are the first point's: the layout holds
-        m = (n - par + 1) // 2
-        if m == 0 or par >= len(count_offs):
+    for par in (1, 2):  # every point's counts are the first point's: the layout holds
+        if m[par] < 1 or par >= len(first):
             continue
-        for j, off in enumerate(count_offs[par]):
-            c = np.ndarray((m,), u4, buffer=data, offset=off, strides=(period,))
+        for j, off in enumerate(first[par][0]):
+            c = np.ndarray((m[par],), u4, buffer=data, offset=off, strides=(period,))
             if np.any(c != first[0][1][j]):
                 return None
     pos = np.zeros((n, k))
     t = np.zeros(n)
-    for par in (0, 1):
-        m = (n - par + 1) // 2
-        if m == 0:
-            continue
-        p_off, _, d_off = first[par]
+    for par, (_, _, p_off, d_off) in enumerate(first):
+        cnt = 1 if par == 0 else m[par]
+        step = period or 8
+        rows = slice(0, 1) if par == 0 else slice(par, None, 2)
         if k:
-            pos[par::2] = np.ndarray((m, k), f8, buffer=data, offset=p_off,
-                                     strides=(period, 8))
-        sec = np.ndarray((m,), i4, buffer=data, offset=d_off, strides=(period,))
-        nsec = np.ndarray((m,), u4, buffer=data, offset=d_off + 4, strides=(period,))
-        t[par::2] = sec + nsec * 1e-9
+            pos[rows] = np.ndarray((cnt, k), f8, buffer=data, offset=p_off,
+                                   strides=(step, 8))
+        sec = np.ndarray((cnt,), i4, buffer=data, offset=d_off, strides=(step,))
+        nsec = np.ndarray((cnt,), u4, buffer=data, offset=d_off + 4, strides=(step,))
+        t[rows] = sec + nsec * 1e-9
     return names, t, pos

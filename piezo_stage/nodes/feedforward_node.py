@@ -185,11 +185,11 @@ class Feedforward(Node):
             self.on_state(msg, resumed=True)
 
     def on_trajectory(self, msg):
+        key = hash(bytes(msg))  # ~1 ms for 60,000 points, before any decoding
+        if key == self.traj_key:
+            return  # the same trajectory again (volatile and latched delivery)
         try:
             t, w = trajectory_from_cdr(msg, self.range, self.max_points)
-            key = hash((t.tobytes(), *(w[a].tobytes() for a in sorted(w))))
-            if key == self.traj_key:
-                return  # the same trajectory again (volatile and latched delivery)
             self.traj_key = key
             self.planner.set_trajectory(t, w)
             self.get_logger().info(f"trajectory of {len(t)} points accepted")
