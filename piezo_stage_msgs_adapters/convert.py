@@ -21,7 +21,8 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "reference_from_msg", "point_msg", "joint_state_cdr", "voltage_cdr",
            "reference_cdr", "point_cdr", "setpoint_from_msg", "trajectory_msg",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
-           "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr", "clock_msg"]
+           "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr", "clock_msg",
+           "check_trajectory_size"]
 
 JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
@@ -217,13 +218,20 @@ def trajectory_from_msg(msg: JointTrajectory, range_um=None, max_points=None):
     return _trajectory(names, t, pos, range_um)
 
 
+def check_trajectory_size(data: bytes, max_points=None) -> None:
+    """DataError when a trajectory's CDR bytes are more than ``max_points`` points can
+    take (256 bytes a point, velocities, accelerations and efforts included), from its
+    length alone."""
+    if max_points is not None and len(data) > 256 * max_points + 65536:
+        raise DataError(f"trajectory: {len(data)} bytes, more than {max_points} points "
+                        "take (max_trajectory_points)")
+
+
 def trajectory_from_cdr(data: bytes, range_um=None, max_points=None):
     """The same as ``trajectory_from_msg`` from the message's CDR bytes, without a
     Python object per point (a 200,000-point trajectory in milliseconds, not seconds),
     and with the size checked before anything is decoded."""
-    if max_points is not None and len(data) > 256 * max_points + 65536:
-        raise DataError(f"trajectory: {len(data)} bytes, more than {max_points} points "
-                        "take (max_trajectory_points)")
+    check_trajectory_size(data, max_points)
     out = cdr.decode_joint_trajectory(data, max_points)
     if out is None:  # points of different layouts: the ordinary way
         from rclpy.serialization import deserialize_message

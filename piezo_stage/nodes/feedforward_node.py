@@ -40,6 +40,7 @@ from piezo_stage.nodes._latched import LatchedFetch
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import (
+    check_trajectory_size,
     joint_state_to_um,
     model_from_msg,
     reference_cdr,
@@ -185,10 +186,11 @@ class Feedforward(Node):
             self.on_state(msg, resumed=True)
 
     def on_trajectory(self, msg):
-        key = hash(bytes(msg))  # ~1 ms for 60,000 points, before any decoding
-        if key == self.traj_key:
-            return  # the same trajectory again (volatile and latched delivery)
         try:
+            check_trajectory_size(msg, self.max_points)  # before anything else
+            key = hash(bytes(msg))  # ~1 ms for 60,000 points, before any decoding
+            if key == self.traj_key:
+                return  # the same trajectory again (volatile and latched delivery)
             t, w = trajectory_from_cdr(msg, self.range, self.max_points)
             self.traj_key = key
             self.planner.set_trajectory(t, w)
