@@ -407,3 +407,59 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
     assert after.sum() > 500 and before.sum() > 500
     assert jump[after].max() <= jump[before].max() + 1.2, (jump[after].max(),
                                                            jump[before].max())
+
+
+def test_nodes_joining_and_a_second_stage_never_stall_the_loop(tmp_path, domain):
+    """While the set tracks in real time, ten outside nodes join and leave (latched and
+    default-QoS trajectory publishers, joint_states subscribers, plain nodes) and a
+    second stage starts and stops in /stage2 on the same domain: 0 faults, and the
+    launcher's stop by duration is a disarm, never a fault. (Before: "stale commands:
+    none for 0.334 s" whenever a latched trajectory publisher appeared: the feedforward
+    fetched the running trajectory again and decoded its 60,001 points the slow way.)"""
+    import rclpy
+    from rclpy.context import Context
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectory
+
+    from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED
+    d, env = domain
+    bag = str(tmp_path / "joined")
+    cfg = realtime_config(tmp_path)
+    launch = Launch(cfg, record=bag, env=env,
+                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+    second = Launch(cfg, namespace="/stage2", env=env,
+                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+    probe = Probe(d)
+    try:
+        launch.start()
+        assert probe.wait_state("armed", 60)
+        armed_at = len(probe.states) - 1
+        for k in range(10):
+            ctx = Context()
+            rclpy.init(context=ctx, domain_id=d)
+            node = rclpy.create_node(f"lab_node_{k}", context=ctx)
+            if k % 3 == 0:
+                node.create_publisher(JointTrajectory, "/stage/trajectory", QOS_LATCHED)
+            elif k % 3 == 1:
+                node.create_publisher(JointTrajectory, "/stage/trajectory", 10)
+            else:
+                node.create_subscription(JointState, "/stage/joint_states", lambda m: None,
+                                         QOS_DATA)
+            probe.spin(0.4)
+            node.destroy_node()
+            rclpy.try_shutdown(context=ctx)
+        second.start()
+        probe.spin(4.0)  # its nodes start (imports, discovery), arm and track
+        second.stop()
+        probe.spin(1.0)
+        assert [s[0] for s in probe.states[armed_at:]] == ["armed"], probe.states[armed_at:]
+    finally:
+        probe.close()
+        second.stop()
+        launch.stop()
+    run = read_run(bag)
+    assert [s for _, s in run.states].count("faulted") == 0, run.states
+    assert run.states[-1][1] == "disarmed" and list(run.v_V[-1]) == [0.0, 0.0]
+    from piezo_stage.io.bag import iter_messages
+    topics = {topic for topic, _, _, _ in iter_messages(bag)}
+    assert not any(t.startswith("/stage2/") for t in topics), topics  # its own set only
