@@ -252,8 +252,43 @@ def test_a_bad_parameter_is_refused_at_start_naming_the_node(ros_env):
     r = subprocess.run([sys.executable, "-m", "piezo_stage.nodes.stage_driver_node",
                         "--ros-args", "-r", "__ns:=/stage", "-p", "mode:=bogus"], env=env,
                        capture_output=True, text=True, timeout=60)
-    assert r.returncode == 1
+    assert r.returncode == 2  # a configuration error
     assert "/stage/stage_driver: fatal:" in r.stderr and "bogus" in r.stderr
+
+
+@pytest.mark.slow
+def test_a_misspelled_parameter_is_refused_by_name_and_an_integer_is_a_float(tmp_path,
+                                                                            ros_env):
+    """kP and frequncy_hz were ignored without a word (exit 0); `kp: 1` killed the
+    controller with a type error. Now the node refuses the unknown name, suggesting the
+    declared one, and takes 1 as 1.0; the launcher checks the whole file first."""
+    pytest.importorskip("rclpy")
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.nodes.controller_node",
+                        "--ros-args", "-r", "__ns:=/stage", "-p", "kP:=0.3"], env=ros_env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == \
+        "/stage/controller: fatal: unknown parameter 'kP' (did you mean 'kp'?)"
+    cfg = tmp_path / "kp.yaml"
+    cfg.write_text("/**/controller:\n  ros__parameters:\n    kp: 1\n"
+                   "    voltage_limits_V: [0, 150]\n")
+    p = subprocess.Popen([sys.executable, "-m", "piezo_stage.nodes.controller_node",
+                          "--ros-args", "-r", "__ns:=/stage", "--params-file", str(cfg)],
+                         env=ros_env, stderr=subprocess.PIPE, text=True)
+    try:
+        with pytest.raises(subprocess.TimeoutExpired):  # it runs
+            p.wait(8)
+    finally:
+        p.send_signal(signal.SIGINT)
+        err = p.communicate(timeout=30)[1]
+    assert p.returncode == 130 and "fatal" not in err, err
+    bad = tmp_path / "typo.yaml"
+    bad.write_text("/**/trajectory:\n  ros__parameters:\n    frequncy_hz: 3.0\n")
+    r = cli("launch", str(bad), "--duration", "5")
+    one_line_exit_2(r)
+    assert "trajectory: unknown parameter 'frequncy_hz' (did you mean 'frequency_hz'?)" \
+        in r.stderr
+    assert "stage_driver" not in r.stderr  # refused before any node started
 
 
 @pytest.mark.parametrize("effects, why", [

@@ -76,6 +76,8 @@ def check_parameters(env):
         names = _param_call_raw(probe, "/stage/live_view", "list_parameters",
                                 ListParameters, names=[], depth=0).result.names
         names = [n for n in names if not n.startswith("qos_overrides")]
+        from piezo_stage.launch.declared import DECLARED, RCLPY_OWN
+        assert set(names) - RCLPY_OWN == DECLARED["live_view"]  # the launcher's table
         descs = _param_call_raw(probe, "/stage/live_view", "describe_parameters",
                                 DescribeParameters, names=names).descriptors
         assert {x.name for x in descs if not x.read_only} - {"use_sim_time"} == \

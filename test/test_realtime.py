@@ -296,6 +296,7 @@ def test_every_parameter_of_every_node_is_live_or_read_only(tmp_path, domain):
     from diagnostic_msgs.msg import DiagnosticArray
     from rcl_interfaces.srv import DescribeParameters, ListParameters
 
+    from piezo_stage.launch.declared import DECLARED, RCLPY_OWN
     from ros_probe import _param_call_raw, set_params
     d, env = domain
     nodes = ["stage_driver", "feedforward", "controller", "trajectory", "identifier", "gap"]
@@ -316,6 +317,7 @@ def test_every_parameter_of_every_node_is_live_or_read_only(tmp_path, domain):
             names = _param_call_raw(probe, f"/stage/{node}", "list_parameters",
                                     ListParameters, names=[], depth=0).result.names
             names = [n for n in names if not n.startswith("qos_overrides")]
+            assert set(names) - RCLPY_OWN == DECLARED[node], node  # the launcher's table
             descs = _param_call_raw(probe, f"/stage/{node}", "describe_parameters",
                                     DescribeParameters, names=names).descriptors
             writable = {x.name for x in descs if not x.read_only} - {"use_sim_time"}

@@ -24,6 +24,7 @@ import time
 
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.io.model_file import load_yaml
+from piezo_stage.launch.declared import DECLARED, RCLPY_OWN, unknown_parameter
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -46,6 +47,13 @@ def _params(config_path):
         if node not in ORDER:
             raise ConfigError(f"{config_path}: unknown node {node!r}; known: {', '.join(ORDER)}")
         out[node] = (sec or {}).get("ros__parameters", {}) or {}
+        if not isinstance(out[node], dict):
+            raise ConfigError(f"{config_path}: {node}: ros__parameters must be a mapping")
+        for name in out[node]:  # the whole file, before any node starts
+            if name not in DECLARED[node] and name not in RCLPY_OWN and \
+                    not str(name).startswith("qos_overrides"):
+                raise ConfigError(f"{config_path}: {node}: "
+                                  f"{unknown_parameter(str(name), DECLARED[node])}")
     return out
 
 

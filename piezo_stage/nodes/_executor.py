@@ -32,6 +32,8 @@ from rclpy.executors import (
 from rclpy.signals import SignalHandlerOptions
 
 import piezo_stage.nodes._signals as signals
+from piezo_stage.core.errors import ConfigError, DataError
+from piezo_stage.nodes._params import check_overrides
 
 SLOW_PERIOD_S = 0.05  # the base executor's turn (timers, services, other topics)
 IDLE_WAKE_S = 0.002   # with nothing arriving, the loop still wakes this often
@@ -239,6 +241,7 @@ def run_node(factory, args=None) -> int:
         signals.set_phase("building")
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         node = factory()
+        check_overrides(node)  # a misspelled parameter is refused, not ignored
         signals.set_phase("running", node.get_fully_qualified_name())
         LeanExecutor(node).spin()
     except (signals.Stopped, KeyboardInterrupt, ExternalShutdownException):
@@ -263,13 +266,14 @@ def run_node(factory, args=None) -> int:
 
 
 def fatal(node, error: BaseException, args=None) -> int:
-    """A node that cannot run says why on one line of stderr; the exit code (1, or 0
-    when the error only raced with a SIGINT's shutdown: rcl calls fail from then on)."""
+    """A node that cannot run says why on one line of stderr; the exit code (2 for a
+    configuration or data error, 1 otherwise, or 0 when the error only raced with a
+    SIGINT's shutdown: rcl calls fail from then on)."""
     if not rclpy.ok():
         return 0
     name = node.get_fully_qualified_name() if node is not None else _node_name(args)
     sys.stderr.write(f"{name}: fatal: {error}\n")
-    return 1
+    return 2 if isinstance(error, (ConfigError, DataError)) else 1
 
 
 def _node_name(args) -> str:

@@ -41,7 +41,12 @@ def declare(node, name, default, description, lo=None, hi=None, choices=None, li
             node._choices = {}
             node.add_on_set_parameters_callback(lambda ps: _check_choices(node, ps))
         node._choices[name] = tuple(choices)
-    value = node.declare_parameter(name, default, d).value
+    _float_override(node, name, default)
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+    try:
+        value = node.declare_parameter(name, default, d).value
+    except (InvalidParameterTypeException, InvalidParameterValueException) as e:
+        raise ConfigError(f"parameter {name}: {e}") from None  # a configuration error
     if choices and value not in choices:
         raise ConfigError(f"parameter {name} = {value!r}: must be one of "
                           f"{', '.join(choices)}")
@@ -55,3 +60,34 @@ def _check_choices(node, params):
             return SetParametersResult(successful=False,
                                        reason=f"{p.name} must be one of {', '.join(ch)}")
     return SetParametersResult(successful=True)
+
+
+def _float_override(node, name, default) -> None:
+    """``kp: 1`` where a float is declared: taken as 1.0 (people write it so; rclpy
+    would refuse the type and the node would not start). Lists of numbers alike."""
+    from rclpy.parameter import Parameter
+    over = node._parameter_overrides.get(name)  # rclpy keeps the file's and -p values here
+    if over is None:
+        return
+    if isinstance(default, float) and over.type_ == Parameter.Type.INTEGER:
+        node._parameter_overrides[name] = Parameter(name, Parameter.Type.DOUBLE,
+                                                    float(over.value))
+    elif (isinstance(default, (list, tuple)) and default and
+          all(isinstance(x, float) for x in default) and
+          over.type_ == Parameter.Type.INTEGER_ARRAY):
+        node._parameter_overrides[name] = Parameter(name, Parameter.Type.DOUBLE_ARRAY,
+                                                    [float(x) for x in over.value])
+
+
+def check_overrides(node) -> None:
+    """Refuse a parameter the node was given but does not declare (a misspelling such as
+    ``kP`` would otherwise be ignored without a word): ConfigError naming the key and
+    the closest declared one."""
+    from piezo_stage.launch.declared import RCLPY_OWN, unknown_parameter
+    declared = set(node._parameters)
+    unknown = sorted(k for k in node._parameter_overrides
+                     if k not in declared and k not in RCLPY_OWN
+                     and not k.startswith("qos_overrides."))
+    if unknown:
+        raise ConfigError(unknown_parameter(unknown[0], declared - RCLPY_OWN))
+

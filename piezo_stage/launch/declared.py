@@ -1,0 +1,45 @@
+"""The parameters each node declares, for the launcher to check a whole parameter file
+before it starts any node (each node also refuses an undeclared name itself:
+``nodes/_params.check_overrides``). The suite compares this table with what the
+running nodes list (test_realtime.py), so it cannot drift. rclpy's own parameters
+(``use_sim_time``, ``start_type_description_service``, ``qos_overrides.*``) are
+taken by every node."""
+
+from __future__ import annotations
+
+RCLPY_OWN = frozenset({"use_sim_time", "start_type_description_service"})
+
+DECLARED = {
+    "stage_driver": frozenset({"ai_channels", "ai_range_V", "ai_terminal_config",
+        "amplifier_gain", "ao_channels", "arm_confirm_ticks", "arm_tolerance_V",
+        "auto_arm", "backend", "clock_period_s", "control_rate_hz", "exit_after_max_steps",
+        "lookahead_s", "max_steps", "min_record_subscribers", "min_subscribers", "mode",
+        "output_limits_V", "plant_config", "replay_bag", "safe_ramp_V_per_s",
+        "safe_voltage_V", "seed", "sensor_offset_um", "sensor_um_per_V", "slew_V_per_s",
+        "stale_timeout_s", "thread_priority", "watchdog_timeout_s"}),
+    "feedforward": frozenset({"approach_accel_um_per_s2", "approach_speed_um_per_s",
+        "compensate_effects", "control_rate_hz", "inverse_feedforward",
+        "max_resonance_inverse_hz", "max_trajectory_points", "min_subscribers",
+        "model_file", "model_required_after_s", "nominal_um_per_V", "range_um",
+        "thread_priority", "use_coupling", "wait_for_trajectory"}),
+    "controller": frozenset({"control_rate_hz", "feedback", "integral_limit_V", "kd", "ki",
+        "kp", "min_subscribers", "relay_amplitude_V", "relay_hysteresis_um",
+        "thread_priority", "voltage_limits_V"}),
+    "trajectory": frozenset({"amplitude_um", "center_um", "csv_path", "dt_s", "duration_s",
+        "excite_amplitude_um", "excite_center_um", "excite_s", "excite_y_hz",
+        "frequency_hz", "kind", "min_subscribers"}),
+    "identifier": frozenset({"auto_cycles", "max_samples", "method", "structure"}),
+    "gap": frozenset({"control_rate_hz", "min_subscribers", "model_file", "window"}),
+    "recorder": frozenset({"batch_period_s", "config_file", "flush_period_s", "log_time",
+        "model_file", "output", "thread_priority"}),
+    "live_view": frozenset({"batch_period_s", "host", "max_rate_hz", "port"}),
+}
+
+
+def unknown_parameter(key: str, declared) -> str:
+    """"unknown parameter 'kP' (did you mean 'kp'?)"; the nearest by spelling, any case."""
+    import difflib
+    by_lower = {d.lower(): d for d in declared}
+    near = difflib.get_close_matches(key.lower(), list(by_lower), n=1, cutoff=0.6)
+    hint = f" (did you mean {by_lower[near[0]]!r}?)" if near else ""
+    return f"unknown parameter {key!r}{hint}"
