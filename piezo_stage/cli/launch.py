@@ -15,6 +15,10 @@ def add_arguments(s):
     s.add_argument("--namespace", default="/stage")
     s.add_argument("--no-arm", action="store_true", help="start disarmed and stay so "
                    "until armed on the arm service")
+    s.add_argument("--no-trajectory", action="store_true",
+                   help="leave the built-in trajectory node out: the set arms, holds "
+                   "position and follows trajectories published by other nodes (the same "
+                   "as 'kind: none' in the trajectory node's parameters)")
     s.add_argument("--foxglove", type=port, nargs="?", const=8765, metavar="PORT",
                    help="serve the running topics to Foxglove over WebSocket (default "
                    "port 8765)")
@@ -31,7 +35,8 @@ def main(args):
         record = new_bag_dir("bags")
     launch = Launch(args.config or default_config("stage.yaml"), record=record,
                     namespace=args.namespace, arm=not args.no_arm,
-                    foxglove_port=args.foxglove, overrides=param_overrides(args.params))
+                    foxglove_port=args.foxglove, overrides=param_overrides(args.params),
+                    trajectory=not args.no_trajectory)
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)

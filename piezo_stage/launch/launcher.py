@@ -67,12 +67,19 @@ def _fmt(v):
 
 class Launch:
     def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
-                 nodes=None, env=None, arm=True, foxglove_port=None):
+                 nodes=None, env=None, arm=True, foxglove_port=None, trajectory=True,
+                 exclusive=True):
         self.config_path = os.path.abspath(config_path)
         params = _params(self.config_path)
+        # outside trajectories only (--no-trajectory, or the trajectory node's kind: none):
+        # the set arms, holds position and takes trajectories from other nodes
+        kind = {**params.get("trajectory", {}),
+                **(overrides or {}).get("trajectory", {})}.get("kind")
+        self.outside_trajectories = not trajectory or kind == "none"
         # the recorder and the live view run when asked for (record, foxglove_port)
         self.nodes = [n for n in ORDER if n in (nodes or params)
-                      and n not in ("recorder", "live_view")]
+                      and n not in ("recorder", "live_view")
+                      and not (n == "trajectory" and self.outside_trajectories)]
         if foxglove_port is not None:
             self.nodes.insert(0, "live_view")
         if record:
@@ -93,6 +100,7 @@ class Launch:
                               "real-time set: simulated time is lockstep's (the driver's "
                               "samples); leave it out")
         self.arm = bool(arm)
+        self.exclusive = bool(exclusive)  # refuse a namespace where a set runs already
         self.backend = drv.get("backend", "sim")
         self.overrides = {n: dict(o) for n, o in (overrides or {}).items()}
         self.env = dict(os.environ if env is None else env)
@@ -150,6 +158,12 @@ class Launch:
         with the launcher's pid, so that it stops when the launcher dies (even by
         SIGKILL: see nodes/_signals.py). A signal to the launcher while it starts them
         ends the starting; the nodes started so far are stopped in order."""
+        if self.exclusive:  # one set per namespace (launch/running.py)
+            from piezo_stage.launch.running import running_set
+            who = running_set(self.ns, int(self.env.get("ROS_DOMAIN_ID") or 0))
+            if who:
+                raise ConfigError(f"{self.ns} is already running ({who}): use "
+                                  "--namespace or stop it")
         env = dict(self.env, **{LAUNCHER_PID_ENV: str(os.getpid())})
         for n in self.nodes:
             if self.stopped_by is not None:  # told to stop while starting

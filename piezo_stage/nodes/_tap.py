@@ -1,7 +1,8 @@
 """Taking every topic of the set as raw CDR: what the recorder and the live view share.
 
 A ``TopicTap`` subscribes to the topic contract at start (so nothing of a lockstep run
-is missed) and to every other topic that discovery finds, through LeanExecutor, with
+is missed) and to every other topic that discovery finds in its namespace (another
+stage's topics are its own bag's), through LeanExecutor, with
 the bytes as received (no deserialize/serialize round trip). For each topic it calls
 ``on_topic(topic, msgtype, kind)`` once, then ``on_message(topic, data, stamp_ns,
 info)`` per message, with the header stamp of stamped types (None otherwise).
@@ -94,9 +95,11 @@ class TopicTap:
                                             self.qos(topic, kind), raw=True, with_info=True)
 
     def discover(self):
+        # the set's own namespace only: a second stage on the domain (/stage2) is its
+        # own bag's, and subscribing to its topics loads both sets
+        ns = self.node.get_namespace().rstrip("/") + "/"
         for topic, types in self.node.get_topic_names_and_types():
-            if topic not in self.subs and not topic.startswith("/rosout") \
-                    and not topic.startswith("/parameter_events"):
+            if topic not in self.subs and topic.startswith(ns) and ns != "/":
                 try:
                     self.subscribe(topic, types[0], kind="found")
                 except (ImportError, AttributeError, KeyError, ValueError):

@@ -18,6 +18,8 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
 
+import os
+import socket
 import time
 from collections import deque
 
@@ -254,7 +256,10 @@ class StageDriver(Node):
         values = {"lookahead_s": self.lookahead_ns * 1e-9,
                   "control_rate_hz": self.p["control_rate_hz"],
                   "mode": self.p["mode"], "voltage_limits_V": [
-                      max(lo for lo, _ in lim.values()), min(hi for _, hi in lim.values())]}
+                      max(lo for lo, _ in lim.values()), min(hi for _, hi in lim.values())],
+                  # whose set this is (a second launch on this namespace names it)
+                  "host": socket.gethostname(),
+                  "pid": str(os.getppid())}  # the launcher (or the shell) that started it
         # announced a few samples ahead of when it applies, and before the next sample
         # is published: the loop nodes take `state` before their data in every pass, so
         # in lockstep each has it before the sample it must act on (reruns identical)
