@@ -22,7 +22,7 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "reference_cdr", "point_cdr", "setpoint_from_msg", "trajectory_msg",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
            "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr", "clock_msg",
-           "check_trajectory_size"]
+           "check_trajectory_size", "trajectory_stamp_ns"]
 
 JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
@@ -225,6 +225,11 @@ def check_trajectory_size(data: bytes, max_points=None) -> None:
     if max_points is not None and len(data) > 256 * max_points + 65536:
         raise DataError(f"trajectory: {len(data)} bytes, more than {max_points} points "
                         "take (max_trajectory_points)")
+
+
+def trajectory_stamp_ns(data: bytes) -> int:
+    """A trajectory's header.stamp [ns] from its CDR bytes (0: start now)."""
+    return cdr.CdrReader(data).stamp()
 
 
 def trajectory_from_cdr(data: bytes, range_um=None, max_points=None):

@@ -254,3 +254,21 @@ def test_host_pauses_are_where_every_cpu_sentinel_stopped_at_once():
     assert len(long) == 1, mon.pauses
     a, b = long[0]
     assert a >= t0 - 2_000_000 and b <= t1 + 2_000_000
+
+
+def test_a_trajectory_starts_at_its_stamp_and_ends_done():
+    """A future start time holds the first point after the approach until then; past
+    the last point the phase is done and the last point is held."""
+    from piezo_stage.core.arming import DONE, TRACK, ReferencePlanner
+    p = ReferencePlanner()
+    p.hold({"x": 10.0, "y": 10.0})
+    t = np.array([0.0, 0.1])
+    p.set_trajectory(t, {"x": np.array([10.0, 20.0]), "y": np.array([10.0, 10.0])},
+                     start_ns=500_000_000)
+    assert p.sample(1_000_000)["x"] == 10.0            # at the goal already: approach ends
+    assert p.sample(400_000_000)["x"] == 10.0 and p.phase == TRACK  # waits for 0.5 s
+    assert abs(p.sample(550_000_000)["x"] - 15.0) < 1e-9           # half way at 0.55 s
+    assert p.sample(600_000_000)["x"] == 20.0 and p.phase == TRACK
+    assert p.sample(601_000_000)["x"] == 20.0 and p.phase == DONE  # the last point held
+    p.set_trajectory(t, {"x": np.array([20.0, 20.0]), "y": np.array([10.0, 10.0])})
+    assert p.phase != DONE                                          # a new one restarts

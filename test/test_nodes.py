@@ -390,3 +390,41 @@ def test_package_xml_declares_what_the_code_imports():
                 used.add(node.module.split(".")[0])
     missing = sorted(m for m in used - std if key.get(m, m) not in deps)
     assert not missing, missing
+
+
+def test_recorder_takes_a_latched_trajectory_sent_before_it_started_once(tmp_path, env):
+    """A trajectory a latched publisher sent before the recorder came up is in the bag
+    (the recorder was volatile on /stage/trajectory and lost it), once, although it
+    then arrives both by the latched fetch and live; a later one from a default-QoS
+    publisher is recorded too."""
+    from rclpy.qos import QoSProfile
+    from trajectory_msgs.msg import JointTrajectory
+
+    import piezo_stage_msgs_adapters as A
+    from piezo_stage.launch.probe import Probe
+    from piezo_stage.nodes._common import QOS_LATCHED
+    probe = Probe(int(env["ROS_DOMAIN_ID"]))
+    t = np.arange(0, 0.1, 1e-3)
+    latched = probe.node.create_publisher(JointTrajectory, "/stage/trajectory", QOS_LATCHED)
+    latched.publish(A.trajectory_msg(t, {"x": np.full(t.size, 5.0), "y": np.full(t.size, 5.0)}))
+    bag = tmp_path / "early"
+    rec = subprocess.Popen([sys.executable, "-m", "piezo_stage.nodes.recorder_node",
+                            "--ros-args", "-r", "__ns:=/stage", "-p", f"output:={bag}"],
+                           env=env)
+    try:
+        assert probe.wait(lambda: latched.get_subscription_count() >= 1, 30)
+        probe.spin(2.0)
+        plain = probe.node.create_publisher(JointTrajectory, "/stage/trajectory",
+                                            QoSProfile(depth=10))
+        assert probe.wait(lambda: plain.get_subscription_count() >= 1, 10)
+        probe.spin(0.5)
+        plain.publish(A.trajectory_msg(t, {"x": np.full(t.size, 7.0),
+                                           "y": np.full(t.size, 7.0)}))
+        probe.spin(1.5)
+    finally:
+        probe.close()
+        rec.send_signal(signal.SIGINT)
+        assert rec.wait(30) == 130
+    got = [deserialize(data, "trajectory_msgs/msg/JointTrajectory").points[0].positions[0]
+           for _, data in topic_data(str(bag), "/stage/trajectory")]
+    assert [round(p * 1e6, 6) for p in got] == [5.0, 7.0]

@@ -487,7 +487,9 @@ def test_nodes_joining_never_fault_and_a_namespace_holds_one_set(tmp_path, domai
 def test_no_trajectory_set_holds_and_follows_outside_publishers(tmp_path, domain, capfd):
     """`launch --no-trajectory`: the set arms and holds position with no trajectory node;
     a latched publisher and then a default-QoS one, both joining mid-run, are followed;
-    no QoS warning on any side, no fault, and the bag holds both trajectories."""
+    one stamped in the past is refused with the reason; examples/publish_trajectory.py
+    (a future stamp) runs to its end and exits 0; no QoS warning on any side, no fault,
+    and the bag holds all four trajectories."""
     from rclpy.qos import QoSProfile
     from trajectory_msgs.msg import JointTrajectory
 
@@ -514,14 +516,27 @@ def test_no_trajectory_set_holds_and_follows_outside_publishers(tmp_path, domain
             probe.spin(2.5)  # the approach, then the 1 s trajectory; its last point held
             ends.append((time.time_ns(), um))
             assert probe.state == "armed", probe.states[-3:]
+        # one stamped 5 s ago: refused with the reason (the stage stays where it is)
+        old = A.trajectory_msg(t, {"x": np.full(t.size, 35.0), "y": np.full(t.size, 35.0)})
+        old.header.stamp.sec = time.time_ns() // 10**9 - 5
+        pub.publish(old)
+        probe.spin(0.5)
+        # the example outside node: rclpy and common_interfaces only, waits for the end
+        r = subprocess.run([sys.executable, os.path.join(CONFIG, "..", "examples",
+                                                         "publish_trajectory.py")],
+                           env=env, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, (r.stdout, r.stderr)
+        assert "final error x" in r.stdout, r.stdout
     finally:
         probe.close()
         launch.stop()
     run = read_run(bag)
     assert [s for _, s in run.states].count("faulted") == 0, run.states
-    assert sum(topic == "/stage/trajectory" for topic, _, _, _ in iter_messages(bag)) == 2
+    assert sum(topic == "/stage/trajectory" for topic, _, _, _ in iter_messages(bag)) == 4
+    assert int(run.diagnostics["feedforward"]["rejected_trajectories"]) == 1
     for end_ns, um in ends:  # the 0.3 s before each end: at that trajectory's point
         k = (run.t_ns > end_ns - 300_000_000) & (run.t_ns < end_ns)
         assert k.sum() > 100 and np.abs(run.w_um[k] - um).max() < 1.0, (um, run.w_um[k][-1])
     err = capfd.readouterr().err
     assert "incompatible" not in err.lower(), err[-2000:]
+    assert "s in the past" in err

@@ -92,7 +92,7 @@ class Approach:
 
 # -- the feedforward's reference planner -------------------------------------------------
 
-HOLD, APPROACH, TRACK = "holding", "approaching", "tracking"
+HOLD, APPROACH, TRACK, DONE = "holding", "approaching", "tracking", "done"
 
 
 class ReferencePlanner:
@@ -101,7 +101,9 @@ class ReferencePlanner:
     Disabled (the driver holds its safe voltage): *holding* where the stage is.
     Enabled: an approach from the held position to the goal (the trajectory's first
     point, or a streamed setpoint), then *tracking*: the trajectory clock starts when
-    the approach ends. A new trajectory or setpoint while enabled is approached from the
+    the approach ends, or at the trajectory's start time if that is later (its first
+    point held until then); past its last point the phase is *done* and the last point
+    is held. A new trajectory or setpoint while enabled is approached from the
     present desired position; a re-enable after a fault restarts the trajectory from
     its beginning, through the approach. Pure and deterministic: times are the target
     stamps [ns] the caller asks for.
@@ -116,11 +118,15 @@ class ReferencePlanner:
         self.desired = None        # {axis: um}: last position asked for
         self._approach = None      # (Approach, start ns)
         self._track_ns = None      # trajectory clock origin [ns]
+        self.start_ns = None       # the trajectory's own start time, if it asked for one
 
-    def set_trajectory(self, t: ArrayLike, w: dict) -> None:
-        """A new trajectory (t [s], {axis: um}): approached from where the stage is asked to be."""
+    def set_trajectory(self, t: ArrayLike, w: dict, start_ns: int | None = None) -> None:
+        """A new trajectory (t [s], {axis: um}): approached from where the stage is
+        asked to be; its clock starts when the approach ends, or at ``start_ns`` if
+        that is later."""
         self.traj, self.setpoint = (np.asarray(t, float), {a: np.asarray(x, float)
                                                           for a, x in w.items()}), None
+        self.start_ns = None if start_ns is None else int(start_ns)
         self._restart()
 
     def set_setpoint(self, w: dict) -> None:
@@ -139,7 +145,7 @@ class ReferencePlanner:
 
     def clock_s(self, target_ns: int) -> float | None:
         """Seconds the trajectory clock will have run at target_ns (None: not running)."""
-        if self.phase != TRACK or self._track_ns is None:
+        if self.phase not in (TRACK, DONE) or self._track_ns is None:
             return None
         return (target_ns - self._track_ns) * 1e-9
 
@@ -166,12 +172,15 @@ class ReferencePlanner:
             if tau < ap.duration_s:
                 self.desired = ap.at(tau)
                 return dict(self.desired)
-            self.phase, self._track_ns = TRACK, t0 + int(round(ap.duration_s * 1e9))
+            self.phase, self._track_ns = TRACK, max(t0 + int(round(ap.duration_s * 1e9)),
+                                                    self.start_ns or 0)
         if self.traj is not None:
             t, w = self.traj
             tau = (target_ns - self._track_ns) * 1e-9
             self.desired = {a: float(np.interp(tau, t, w[a])) if a in w else self.desired[a]
                             for a in self.desired}
+            if tau > t[-1]:
+                self.phase = DONE  # the last point, held
         elif self.setpoint is not None:
             self.desired = {a: self.setpoint.get(a, self.desired[a]) for a in self.desired}
         return dict(self.desired)

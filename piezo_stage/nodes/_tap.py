@@ -23,10 +23,12 @@ from piezo_stage.nodes._common import (
     steady_timer,
 )
 from piezo_stage.nodes._executor import hot_subscription
+from piezo_stage.nodes._latched import LatchedFetch
 
 CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag)
     # (the kind is what our publishers offer; the tap subscribes volatile to
-    # trajectories, which outside nodes publish with any durability)
+    # trajectories, which outside nodes publish with any durability, and fetches the
+    # latched ones' history briefly: nodes/_latched.py)
     "joint_states": ("sensor_msgs/msg/JointState", "data"),
     "sim/true_position": ("geometry_msgs/msg/PointStamped", "data"),
     "reference": ("sensor_msgs/msg/JointState", "data"),
@@ -66,7 +68,24 @@ class TopicTap:
         self.subs = {}
         for rel, (msgtype, kind) in CONTRACT.items():
             self.subscribe(self.resolve(rel), msgtype, kind)
+        # trajectories: taken live (volatile: every publisher matches) and, from latched
+        # publishers, also their message sent before this node matched (a trajectory
+        # published before the recorder started is in the bag); each one once
+        topic = self.resolve("trajectory")
+        self._seen = {}  # topic -> hashes of the trajectories taken
+        self._fetch = LatchedFetch(node, msg_class(CONTRACT["trajectory"][0]), topic,
+                                   lambda data: self._once(topic, data, {}))
         steady_timer(node, discover_s, self.discover)
+
+    def _once(self, topic, data, info):
+        """A trajectory once, whether it came live or by the latched fetch."""
+        seen = self._seen.setdefault(topic, [])
+        key = hash(bytes(data))
+        if key in seen:
+            return
+        seen.append(key)
+        del seen[:-64]
+        self.on_message(topic, data, None, info)
 
     def resolve(self, rel: str) -> str:
         return rel if rel.startswith("/") else \
@@ -91,6 +110,9 @@ class TopicTap:
 
         def cb(data, info):
             on_message(topic, data, header_stamp_ns(data) if stamped else None, info)
+        if topic == self.resolve("trajectory"):
+            def cb(data, info):  # noqa: F811 - the trajectory: once (see __init__)
+                self._once(topic, data, info)
         self.subs[topic] = hot_subscription(self.node, cls, topic, cb,
                                             self.qos(topic, kind), raw=True, with_info=True)
 

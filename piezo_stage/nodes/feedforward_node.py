@@ -30,7 +30,7 @@ from trajectory_msgs.msg import JointTrajectory
 from piezo_stage.core.arming import HOLD, ReferencePlanner
 from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
 from piezo_stage.core.duhem import StageModel, check_model_change
-from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.errors import DataError, PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.core.stamps import StampGuard
@@ -46,8 +46,10 @@ from piezo_stage_msgs_adapters import (
     reference_cdr,
     setpoint_from_msg,
     trajectory_from_cdr,
+    trajectory_stamp_ns,
 )
 
+PAST_TRAJECTORY_NS = 1_000_000_000  # a trajectory stamped up to 1 s ago: start now
 HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
 
 class Feedforward(Node):
@@ -86,6 +88,7 @@ class Feedforward(Node):
                                   "inverted (0: no limit)", lo=0.0, hi=1e6)
         self.limits = (0.0, 150.0)
         self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
+        self.traj_text = ""
         self.model, self.handover = None, None  # the running model; easing into a new one
         self.started = False  # the inverse has been put where the stage is
         # the driver's announcements: taken before the data in each lean-loop pass
@@ -192,13 +195,29 @@ class Feedforward(Node):
             if key == self.traj_key:
                 return  # the same trajectory again (volatile and latched delivery)
             t, w = trajectory_from_cdr(msg, self.range, self.max_points)
+            stamp, now = trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
+            if 0 < stamp < now - PAST_TRAJECTORY_NS:  # (the clock: wall or simulated)
+                raise DataError(f"trajectory: stamped {(now - stamp) * 1e-9:.3f} s in the "
+                                "past (0: start now; a future stamp: start then)")
             self.traj_key = key
-            self.planner.set_trajectory(t, w)
-            self.get_logger().info(f"trajectory of {len(t)} points accepted")
+            self.planner.set_trajectory(t, w, start_ns=stamp if stamp > now else None)
+            self.traj_text = f"trajectory of {len(t)} points stamped {stamp}"
+            self.get_logger().info(f"{self.traj_text} accepted" + (
+                f", starts in {(stamp - now) * 1e-9:.3f} s" if stamp > now else ""))
+            self.publish_phase()
         except PiezoStageError as e:
             self.stats["rejected_trajectories"] += 1
             self.get_logger().warning(f"trajectory rejected: {e}")
         self.resume()
+
+    def publish_phase(self):
+        """The planner's phase, and which trajectory runs: "tracking: trajectory of 1000
+        points stamped 1795...", "done: ..." once its last point is reached (the driver
+        relays it on /stage/state, so an outside node can wait for the end)."""
+        what = self.traj_text if self.planner.traj is not None else (
+            "setpoint" if self.planner.setpoint is not None else "")
+        self.phase_pub.publish(String(data=f"{self.planner.phase}: {what}" if what else
+                                      self.planner.phase))
 
     def on_setpoint(self, msg):
         try:
@@ -258,7 +277,7 @@ class Feedforward(Node):
                 self.get_logger().error(f"feedforward for {desired}: {e}",
                                         throttle_duration_sec=1.0)
         if self.planner.phase != phase:
-            self.phase_pub.publish(String(data=self.planner.phase))
+            self.publish_phase()
         if self.setpoint_arrival and self.driver.realtime and self.driver.enabled(target):
             # a streamed setpoint cannot be previewed: it starts at this target tick
             self.sp_latency.add((target - self.setpoint_arrival) * 1e-9)

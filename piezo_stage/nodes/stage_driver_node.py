@@ -106,6 +106,7 @@ class StageDriver(Node):
                       "missed_ticks": 0, "late_commands": 0}
         self.step_times = deque(maxlen=1_000_000)     # lockstep: the loop's pace
         self.link, self.shutdown_requested, self.shutdown_by = "", False, None
+        self.ff_phase = ""  # what the feedforward last said (relayed on state)
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
         self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
         self.spub = self.create_publisher(DiagnosticArray, "state", QOS_EVENTS)
@@ -251,7 +252,7 @@ class StageDriver(Node):
         self.shutdown_by = time.monotonic() + span / self.sup.p.ramp_V_per_s + 1.0
 
     # -- arming ---------------------------------------------------------------------------
-    def on_state_change(self, state, reason, since_ns):
+    def on_state_change(self, state, reason, since_ns, log=True):
         lim = self.backend.limits
         values = {"lookahead_s": self.lookahead_ns * 1e-9,
                   "control_rate_hz": self.p["control_rate_hz"],
@@ -259,12 +260,15 @@ class StageDriver(Node):
                       max(lo for lo, _ in lim.values()), min(hi for _, hi in lim.values())],
                   # whose set this is (a second launch on this namespace names it)
                   "host": socket.gethostname(),
-                  "pid": str(os.getppid())}  # the launcher (or the shell) that started it
+                  "pid": str(os.getppid()),  # the launcher (or shell) that started it
+                  "feedforward": self.ff_phase}  # which trajectory runs, or it is done
         # announced a few samples ahead of when it applies, and before the next sample
         # is published: the loop nodes take `state` before their data in every pass, so
         # in lockstep each has it before the sample it must act on (reruns identical)
         self.spub.publish(arming_state_msg(since_ns, self.status_name("arming"), state,
                                            reason, values, self.backend.hardware_id))
+        if not log:
+            return
         if state == "faulted":
             self.get_logger().warning(f"{state}: {reason}")
         else:
@@ -280,7 +284,14 @@ class StageDriver(Node):
             self.link = missing_links(self)
 
     def on_phase(self, msg):
-        self.sup.set_tracking(msg.data == "tracking", self.stamp(self.j))
+        """The feedforward's phase ("tracking: trajectory of N points stamped S", "done:
+        ..."): the arming state follows it, and /stage/state relays it."""
+        self.sup.set_tracking(msg.data.split(":")[0] in ("tracking", "done"),
+                              self.stamp(self.j))
+        if msg.data != self.ff_phase:
+            self.ff_phase = msg.data
+            self.on_state_change(self.sup.state, self.sup.reason, self.stamp(self.j),
+                                 log=False)
 
     def on_arm(self, request, response):
         self.check_links()
