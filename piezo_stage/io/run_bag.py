@@ -71,7 +71,9 @@ def read_run(bag) -> Run:
             ref[_ns(m)] = np.array(m.position[:2]) * UM
         elif topic.endswith("/state") and msgtype.endswith("DiagnosticArray"):
             m = deserialize(data, msgtype)
-            states.append((_ns(m), m.status[0].message))
+            if not states or states[-1][1] != m.status[0].message:
+                states.append((_ns(m), m.status[0].message))  # changes (not the relays
+                # of the feedforward's phase, which repeat the state)
         elif topic.endswith("/model"):
             models += 1
         elif topic == "/diagnostics":

@@ -25,7 +25,7 @@ class Probe:
         self.node = rclpy.create_node("probe", context=self.ctx)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
-        self.states, self.effort, self.samples = [], None, 0
+        self.states, self.effort, self.samples, self.values = [], None, 0, {}
         self.node.create_subscription(DiagnosticArray, f"{ns}/state", self._on_state, QOS_EVENTS)
         # only the newest sample matters here: no backlog to lag behind under load
         newest = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
@@ -36,7 +36,10 @@ class Probe:
 
     def _on_state(self, msg):
         kv = {k.key: k.value for k in msg.status[0].values}
-        self.states.append((kv["state"], kv.get("reason", ""), time.monotonic()))
+        self.values = kv
+        if not self.states or self.states[-1][:2] != (kv["state"], kv.get("reason", "")):
+            # (the driver also republishes its state to relay the feedforward's phase)
+            self.states.append((kv["state"], kv.get("reason", ""), time.monotonic()))
 
     def _on_js(self, msg):
         self.effort, self.samples = list(msg.effort), self.samples + 1

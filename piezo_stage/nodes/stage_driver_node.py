@@ -253,6 +253,7 @@ class StageDriver(Node):
 
     # -- arming ---------------------------------------------------------------------------
     def on_state_change(self, state, reason, since_ns, log=True):
+        self.state_since = since_ns
         lim = self.backend.limits
         values = {"lookahead_s": self.lookahead_ns * 1e-9,
                   "control_rate_hz": self.p["control_rate_hz"],
@@ -290,8 +291,8 @@ class StageDriver(Node):
                               self.stamp(self.j))
         if msg.data != self.ff_phase:
             self.ff_phase = msg.data
-            self.on_state_change(self.sup.state, self.sup.reason, self.stamp(self.j),
-                                 log=False)
+            self.on_state_change(self.sup.state, self.sup.reason, self.state_since,
+                                 log=False)  # the same state, from the same sample
 
     def on_arm(self, request, response):
         self.check_links()
