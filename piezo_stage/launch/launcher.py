@@ -123,9 +123,11 @@ class Launch:
              "controller": {"min_subscribers": rec + int("stage_driver" in has)},
              "trajectory": {"min_subscribers": rec + int("feedforward" in has)},
              "gap": {"min_subscribers": rec}}
-        if not self.lockstep:  # real time: the driver's clock starts once they listen
+        if not self.lockstep:  # real time: the driver's clock starts once they listen;
+            # the loop closes (and the set arms) once the trajectory node's is there
             g = {"trajectory": g["trajectory"], "gap": g["gap"],
-                 "stage_driver": g["stage_driver"]}
+                 "stage_driver": g["stage_driver"],
+                 "feedforward": {"wait_for_trajectory": "trajectory" in has}}
         g.setdefault("stage_driver", {})["auto_arm"] = self.arm
         return g
 

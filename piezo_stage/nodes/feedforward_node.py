@@ -72,8 +72,10 @@ class Feedforward(Node):
         self.max_points = declare(self, "max_trajectory_points", 200_000, "longer "
                                   "trajectories are refused (memory, parse time)", lo=2,
                                   hi=10_000_000)
-        self.wait_traj = declare(self, "wait_for_trajectory", False, "lockstep: answer no "
-                                 "sample before a trajectory has arrived")
+        self.wait_traj = declare(self, "wait_for_trajectory", False, "answer no sample "
+                                 "before a trajectory has arrived (lockstep: the loop waits; "
+                                 "real time: the loop does not close, so the set does not "
+                                 "arm)")
         self.planner = ReferencePlanner(
             declare(self, "approach_speed_um_per_s", 200.0, "approach speed [um/s]",
                     lo=0.1, hi=1e6),
@@ -202,8 +204,9 @@ class Feedforward(Node):
             self.traj_key = key
             self.planner.set_trajectory(t, w, start_ns=stamp if stamp > now else None)
             self.traj_text = f"trajectory of {len(t)} points stamped {stamp}"
-            self.get_logger().info(f"{self.traj_text} accepted" + (
-                f", starts in {(stamp - now) * 1e-9:.3f} s" if stamp > now else ""))
+            self.get_logger().info(f"trajectory of {len(t)} points accepted" + (
+                f", stamped {stamp}: starts in {(stamp - now) * 1e-9:.3f} s"
+                if stamp > now else ""))
             self.publish_phase()
         except PiezoStageError as e:
             self.stats["rejected_trajectories"] += 1
@@ -245,6 +248,8 @@ class Feedforward(Node):
         if waiting and not self.driver.realtime:
             self.pending = msg  # lockstep: the loop waits here
             return
+        if self.wait_traj and self.planner.traj is None and self.driver.realtime:
+            return  # real time: no answer, so the loop is not closed and nothing arms
         self.last_ns = ns
         applied = v_applied or self.ff
         if self.inv is not None and not self.started:
