@@ -41,7 +41,7 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 0.5) -> str | No
             names = sorted(n for n, s in node.get_node_names_and_namespaces() if s == ns)
         if not names:
             return None
-        end = time.monotonic() + 2.0  # its driver's latched state, if it has one
+        end = time.monotonic() + 3.0  # its driver's latched state, if it has one
         while time.monotonic() < end and "host" not in who:
             ex.spin_once(timeout_sec=0.05)
         if "host" in who:
