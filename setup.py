@@ -1,8 +1,13 @@
 """ament_python package that also installs with plain pip.
 
-colcon (``setup.py develop/install``) honours setup.cfg and puts the console scripts
-under lib/piezo_stage for ``ros2 run``; pip builds a wheel, whose scripts go to the
-environment's bin/ (where ``piezo-stage`` is found on PATH).
+The one command on the user's PATH is ``piezo-stage``. The node executables are
+installed where ROS looks for them, ``<prefix>/lib/piezo_stage/<node>`` (``ros2 run
+piezo_stage <node>``), as data files: so pip (a wheel, whose console scripts all go to
+bin/) and colcon (``setup.py install``, whose scripts setup.cfg sends to lib/piezo_stage)
+install them to the same place, and no node name (controller, recorder, gap...) lands on
+PATH. Each is a small shell script, scripts/<node>, that runs ``python -m
+piezo_stage.nodes.<node>_node`` with the prefix's own Python when it has one (a virtual
+environment), else ``python3`` (a ROS install).
 """
 
 from glob import glob
@@ -37,6 +42,7 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.py")),
+        ("lib/" + package_name, [f"scripts/{n}" for n in NODES]),
     ],
     python_requires=">=3.10",
     install_requires=[
@@ -48,7 +54,7 @@ setup(
         "matplotlib>=3.7",
         "rosbags>=0.10",
         "tqdm>=4.60",  # progress of the long commands, on a terminal only
-        "threadpoolctl>=3",  # the gap diagnosis: one BLAS thread per axis thread
+        "threadpoolctl>=3",  # the gap diagnosis: one BLAS thread per axis (optional in code)
     ],
     extras_require={
         # rclpy and the messages come from the ros-jazzy-* wheels; a full ROS install
@@ -63,8 +69,10 @@ setup(
         # (pytest-xdist: two workers, each test on its own ROS domain; pytest-timeout: a
         # hung test fails with every thread's stack instead of hanging the suite)
         # (hypothesis: the trajectory decoder against rclpy's own, on generated messages)
+        # (wheel: the install-layout test builds our wheel without build isolation)
         "test": ["pytest>=7", "pytest-xdist>=3.5", "pytest-timeout>=2.2", "nidaqmx>=1.0",
-                 "ruff>=0.5", "numpydoc>=1.6", "hypothesis>=6.90"],
+                 "ruff>=0.5", "numpydoc>=1.6", "hypothesis>=6.90",
+                 "wheel>=0.40"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",
@@ -72,7 +80,6 @@ setup(
     description="Duhem hysteresis identification and control of 2-axis piezo stages",
     license="Apache-2.0",
     entry_points={
-        "console_scripts": ["piezo-stage = piezo_stage.__main__:main"]
-        + [f"{n} = piezo_stage.nodes.{n}_node:main" for n in NODES],
+        "console_scripts": ["piezo-stage = piezo_stage.__main__:main"],
     },
 )

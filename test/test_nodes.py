@@ -327,19 +327,61 @@ def test_colcon_style_prefix_install_starts_the_driver(tmp_path, env):
                            env=e, cwd=tmp_path, capture_output=True, text=True)
     assert where.stdout.split() == [str(site / "piezo_stage" / "paths.py"),
                                     str(share / "config" / "sim_stage.yaml")], where
-    proc = subprocess.Popen([str(prefix / "lib" / "piezo_stage" / "stage_driver"),
-                             "--ros-args", "-r", "__ns:=/stage"], env=e, cwd=tmp_path,
-                            stderr=subprocess.PIPE, text=True)
+    # the nodes and piezo-stage in lib/piezo_stage, nothing in bin/ (colcon's layout)
+    from piezo_stage.nodes import NODES
+    lib = prefix / "lib" / "piezo_stage"
+    assert sorted(os.listdir(lib)) == sorted([*NODES, "piezo-stage"])
+    assert not (prefix / "bin").exists() or not os.listdir(prefix / "bin")
+    # a ROS install has no Python in the prefix: the node runs python3 from PATH
+    e["PATH"] = os.path.dirname(sys.executable) + os.pathsep + e.get("PATH", "")
+    _driver_starts(lib / "stage_driver", e, tmp_path)
+
+
+def _driver_starts(exe, env, cwd):
+    """The installed stage_driver executable starts and says so; then SIGINT."""
+    assert os.access(exe, os.X_OK), exe
+    proc = subprocess.Popen([str(exe), "--ros-args", "-r", "__ns:=/stage"], env=env,
+                            cwd=cwd, stderr=subprocess.PIPE, text=True)
     try:
         lines = []
         for line in proc.stderr:
             lines.append(line)
-            if "started disarmed" in line or "not found" in line:
+            if "started disarmed" in line or "not found" in line or "rror" in line:
                 break
-        assert "started disarmed" in lines[-1], "".join(lines)
+        assert lines and "started disarmed" in lines[-1], "".join(lines)
     finally:
         proc.send_signal(signal.SIGINT)
         proc.wait(30)
+
+
+def test_a_wheel_puts_only_piezo_stage_on_path_and_the_nodes_in_lib(tmp_path, env):
+    """pip's install (a wheel, into a prefix): bin/ holds piezo-stage and nothing else
+    (no controller, recorder, gap... shadowing other tools on PATH); the nodes are
+    executables in lib/piezo_stage, where `ros2 run piezo_stage <node>` looks, and run
+    with the prefix's own Python (a virtual environment's). (Before: eight node names
+    in bin/, none in lib/piezo_stage.)"""
+    from piezo_stage.nodes import NODES
+    src, prefix = tmp_path / "src", tmp_path / "prefix"
+    subprocess.run(f"git -C {ROOT} ls-files -z | (cd {ROOT} && xargs -0 tar -cf -) | "
+                   f"(mkdir -p {src} && tar -xf - -C {src})", shell=True, check=True)
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
+                        "--no-build-isolation", "--disable-pip-version-check",
+                        "--prefix", str(prefix), str(src)],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert os.listdir(prefix / "bin") == ["piezo-stage"]
+    lib = prefix / "lib" / "piezo_stage"
+    assert sorted(os.listdir(lib)) == sorted(NODES)
+    assert (prefix / "share/ament_index/resource_index/packages/piezo_stage").exists()
+    site = next(prefix.glob("lib/python3*/site-packages"))
+    # the prefix's Python is taken over PATH's: a prefix without piezo_stage's
+    # dependencies on PATH could not start the node
+    # (a link to our interpreter, given our environment's packages as a venv would)
+    import sysconfig
+    os.symlink(sys.executable, prefix / "bin" / "python3")
+    e = dict(env, PYTHONPATH=os.pathsep.join([str(site), sysconfig.get_paths()["purelib"]]),
+             AMENT_PREFIX_PATH=str(prefix), PATH="/nonexistent")
+    _driver_starts(lib / "stage_driver", e, tmp_path)
 
 
 def test_launch_file_and_launcher_share_one_node_list_and_parameters(tmp_path):

@@ -29,6 +29,7 @@ reported with the feedback bandwidth that rejects it.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -1084,9 +1085,14 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
             raise DataError(f"FIT and HOLDOUT have different channels (axis {a})")
     if len(fit.t) < 200 or len(holdout.t) < 200:
         raise DataError("records too short for a gap diagnosis (need >= 200 samples)")
-    from threadpoolctl import threadpool_limits
     # the axes are independent problems, one per core; one BLAS thread each (two of
-    # each on two cores fight, ~20 % slower)
+    # each on two cores fight, ~20 % slower). threadpoolctl is optional (rosdep has no
+    # key for it): without it the diagnosis is the same, only slower on two axes.
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        def threadpool_limits(_n):
+            return contextlib.nullcontext()
     args = (effects, base_model, base_effects)
     with threadpool_limits(1 if len(axes) > 1 else None):
         per = _axes_apart(fit, holdout, axes, args, progress or (lambda what: None))

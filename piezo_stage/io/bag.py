@@ -22,7 +22,7 @@ from functools import lru_cache
 
 import yaml
 
-from piezo_stage.core.errors import DataError
+from piezo_stage.core.errors import ConfigError, DataError
 from piezo_stage.io.files import atomic_write
 
 # What our publishers offer, by kind (see nodes/_common.py): (depth, transient local)
@@ -95,6 +95,16 @@ def new_bag_dir(root="bags") -> str:
     return path
 
 
+
+def _need_mcap():
+    """ConfigError naming the missing package and its install line: rosdep has no key
+    for mcap, so a ROS install from package.xml alone lacks it (README: ROS install)."""
+    try:
+        import mcap  # noqa: F401
+    except ImportError:
+        raise ConfigError("bags need the Python package mcap, which rosdep does not "
+                          "install: pip install mcap") from None
+
 class BagWriter:
     """Write raw serialized messages into a rosbag2-layout MCAP bag.
 
@@ -104,6 +114,7 @@ class BagWriter:
     """
 
     def __init__(self, path, chunk_size=64 * 1024, compression="zstd", metadata=None):
+        _need_mcap()
         from mcap.writer import CompressionType, Writer
         self.path = os.fspath(path)
         if os.path.exists(self.path):
@@ -248,6 +259,7 @@ def scan_bag(path) -> BagScan:
     message index says it held), a cut-off tail is noted, and reading goes on past both.
     """
     import io
+    _need_mcap()
 
     from mcap.exceptions import EndOfFile, McapError
     from mcap.records import Channel, Message, MessageIndex, Metadata, Schema
@@ -323,6 +335,7 @@ def iter_messages(path, topics=None, on_damage=_warn):
     rest is read record by record (``scan_bag``) and ``on_damage`` gets one line saying
     which chunk is corrupt and how much was lost; DataError when nothing is usable.
     """
+    _need_mcap()
     from mcap.exceptions import McapError
     from mcap.reader import NonSeekingReader
     p = mcap_path(path)
@@ -391,6 +404,7 @@ def repair_bag(path) -> BagScan:
 
 def read_metadata(path) -> dict:
     """MCAP metadata records: name -> dict."""
+    _need_mcap()
     from mcap.reader import make_reader
     with open(mcap_path(path), "rb") as fh:
         return {m.name: dict(m.metadata) for m in make_reader(fh).iter_metadata()}
@@ -421,7 +435,7 @@ def read_bag_record(path, namespace=None):
                        if n in ("x", "y") and i < len(m.position)}
             if len(m.effort) == len(names):
                 volt[st] = {n: float(m.effort[i]) for i, n in enumerate(names) if n in ("x", "y")}
-    except DataError:
+    except (DataError, ConfigError):
         raise
     except Exception as e:  # a corrupt message body: one line, not a traceback
         raise DataError(f"{path}: unreadable bag ({type(e).__name__}: {e})") from None

@@ -2,8 +2,8 @@
 
 ``NODES`` is the one list of the set's nodes, in start order (the recorder and the live
 view first, so they listen before anything is published; the driver last, so its first
-sample finds everyone): the launcher, the ros2 launch file and setup.py's console
-scripts all read it.
+sample finds everyone): the launcher, the ros2 launch file and setup.py (which
+installs scripts/<node> to lib/piezo_stage) all read it.
 """
 
 NODES = ("recorder", "live_view", "identifier", "gap", "controller", "feedforward",

@@ -1,0 +1,75 @@
+"""The package's install metadata as a ROS machine meets it: every package.xml key is one
+rosdep resolves, the optional hardware packages are no hard dependency, and the node
+executables come from one list (the install itself is run by test_nodes.py)."""
+
+import ast
+import os
+import xml.etree.ElementTree as ET
+
+from conftest import ROOT
+
+# ROS 2 Jazzy packages (rosdep resolves them from the distribution file)
+ROS_PACKAGES = {
+    "rclpy", "rcl_interfaces", "builtin_interfaces", "rosgraph_msgs", "std_msgs",
+    "std_srvs", "geometry_msgs", "sensor_msgs", "trajectory_msgs", "diagnostic_msgs",
+    "ament_index_python", "launch", "launch_ros",
+}
+# The keys we use, each found in rosdistro's rosdep/python.yaml (read 2026-11-25 from a
+# 2025 copy of ros/rosdistro: the fork InvincibleRMC/rosdistro at 30d139d7). Not there,
+# so never to be used: python3-mcap-pip, python3-foxglove-sdk-pip, python3-nidaqmx-pip,
+# python3-threadpoolctl, python3-numpydoc.
+ROSDEP_PYTHON_KEYS = {
+    "python3-numpy", "python3-scipy", "python3-yaml", "python3-numba",
+    "python3-matplotlib", "python3-rosbags-pip", "python3-tqdm", "python3-websockets",
+    "python3-pytest", "python3-ruff-pip",
+}
+OPTIONAL = ("nidaqmx", "threadpoolctl")  # hardware / speed only: never a hard dependency
+
+
+def _depends():
+    root = ET.parse(os.path.join(ROOT, "package.xml")).getroot()
+    return [(e.tag, e.text.strip()) for e in root
+            if e.tag.endswith("depend") and e.text]
+
+
+def test_every_package_xml_key_is_one_rosdep_resolves():
+    unknown = [key for _, key in _depends()
+               if key not in ROS_PACKAGES and key not in ROSDEP_PYTHON_KEYS]
+    assert not unknown, f"rosdep has no key for {unknown}"
+
+
+def test_optional_hardware_packages_are_no_hard_dependency():
+    keys = " ".join(key for _, key in _depends())
+    assert not any(name in keys for name in OPTIONAL), keys
+    setup = open(os.path.join(ROOT, "setup.py")).read()
+    tree = ast.parse(setup)
+    requires = next(kw.value for node in ast.walk(tree) if isinstance(node, ast.Call)
+                    for kw in node.keywords if kw.arg == "install_requires")
+    assert not any("nidaqmx" in ast.literal_eval(el) for el in requires.elts)
+
+
+def test_one_executable_script_per_node_and_no_node_console_script():
+    from piezo_stage.nodes import NODES
+    scripts = os.path.join(ROOT, "scripts")
+    assert sorted(os.listdir(scripts)) == sorted(NODES)
+    for n in NODES:
+        path = os.path.join(scripts, n)
+        assert os.access(path, os.X_OK), path
+        assert f"-m piezo_stage.nodes.{n}_node " in open(path).read(), path
+    setup = open(os.path.join(ROOT, "setup.py")).read()
+    assert '"console_scripts": ["piezo-stage = piezo_stage.__main__:main"]' in setup
+
+
+def test_without_mcap_a_bag_command_says_what_to_install(tmp_path):
+    """rosdep cannot install mcap: a bag command on a machine without it says the pip
+    line in one line and exits 2 (no traceback, no 'unreadable bag')."""
+    import subprocess
+    import sys
+    (tmp_path / "b").mkdir()
+    code = ("import sys; sys.modules['mcap'] = None; "  # as if not installed
+            "sys.argv = ['piezo-stage', 'identify', sys.argv[1]]; "
+            "from piezo_stage.__main__ import main; main()")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "b")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "pip install mcap" in r.stderr and "unreadable" not in r.stderr, r.stderr
