@@ -66,6 +66,9 @@ def run_demo(args):
         rms = float(np.sqrt(np.mean(e[:, i] ** 2)))
         print(f"{a:>4} {rms:8.4f} {np.max(np.abs(e[:, i])):8.4f} {100 * rms / span[i]:8.3f}")
     from piezo_stage.io.plots import tracking_png
-    print(f"plot: {tracking_png(os.path.join(bag, 'tracking.png'), t, d, w)}")
+    from piezo_stage.io.run_bag import read_run
+    png = tracking_png(os.path.join(bag, "tracking.png"), read_run(bag),
+                       args.excite + 0.2 + 0.1, excite_s=args.excite)
+    print(f"plot: {png} (the whole run)")
     print(f"bag: {bag}")
     return 0

@@ -6,7 +6,11 @@ base (log times: simulated time for lockstep runs, wall clock for real-time ones
 /clock carries the bag's time every ``clock_period_s`` of it, so nodes on use_sim_time
 follow the replay (as ``ros2 bag play --clock`` does); the recorded /clock is not
 replayed. Diagnostics and the model hand-over are not replayed, so a live identifier
-re-identifies from the data.
+re-identifies from the data. A trajectory is published latched (transient local), as
+an outside publisher is asked to, so a node that joins later still gets it.
+``duration_s`` is the record's time (the first ``duration_s`` seconds of the bag,
+whatever the rate). One line at the end says what was replayed, whether it ran to the
+end, was cut by ``duration_s`` or interrupted.
 """
 
 from __future__ import annotations
@@ -18,31 +22,37 @@ from piezo_stage.io.bag import iter_messages
 SKIP = ("/diagnostics", "/model", "/rosout", "/parameter_events", "/clock")
 
 
-def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01) -> int:
+def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rosgraph_msgs.msg import Clock
 
-    from piezo_stage.nodes._common import QOS_DATA
+    from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED
     from piezo_stage.nodes._tap import msg_class
     from piezo_stage_msgs_adapters import clock_msg
+    msgs = [m for m in iter_messages(bag) if not m[0].endswith(SKIP)]
+    t0_log = msgs[0][2] if msgs else 0
+    span_s = (msgs[-1][2] - t0_log) * 1e-9 if msgs else 0.0
+    if duration_s is not None:
+        msgs = [m for m in msgs if (m[2] - t0_log) * 1e-9 <= duration_s]
     rclpy.init()
     node = rclpy.create_node("replay")
-    pubs, n = {}, 0
+    pubs, n, how, log_ns = {}, 0, "to the end", t0_log
+    t0_wall = time.monotonic()
     try:
-        msgs = [m for m in iter_messages(bag) if not m[0].endswith(SKIP)]
         for topic, msgtype, _, _ in msgs:
             if topic not in pubs:
                 name = topic if not namespace else namespace.rstrip("/") + "/" + \
                     topic.rsplit("/", 1)[-1]
-                pubs[topic] = node.create_publisher(msg_class(msgtype), name, QOS_DATA)
+                qos = QOS_LATCHED if topic.endswith("/trajectory") else QOS_DATA
+                pubs[topic] = node.create_publisher(msg_class(msgtype), name, qos)
         clock = node.create_publisher(Clock, "/clock", 10)
         next_clock = None
         deadline = time.monotonic() + 5.0  # let subscribers match before the first sample
         while time.monotonic() < deadline and not all(p.get_subscription_count() for p in
                                                        pubs.values()):
             rclpy.spin_once(node, timeout_sec=0.05)
-        t0_log, t0_wall = (msgs[0][2] if msgs else 0), time.monotonic()
+        t0_wall = time.monotonic()
         for topic, _, log_ns, data in msgs:
             if rate > 0:
                 due = t0_wall + (log_ns - t0_log) * 1e-9 / rate
@@ -55,10 +65,14 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01) -> int:
             n += 1
         for p in pubs.values():
             p.wait_for_all_acked()
-        print(f"replayed {n} messages on {len(pubs)} topics")
+        if duration_s is not None and duration_s < span_s:
+            how = f"cut at --duration {duration_s:g} s of the record"
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        how = "interrupted"
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
+    print(f"replayed {n} messages on {len(pubs)} topics: {(log_ns - t0_log) * 1e-9:.3f} s "
+          f"of the record's {span_s:.3f} s in {time.monotonic() - t0_wall:.3f} s, {how}",
+          flush=True)
     return 0

@@ -134,3 +134,24 @@ def test_loop_prints_figures():
     for row in rows:
         assert 60 < float(row[2]) < 100   # stroke [um]
         assert 5 < float(row[4]) < 25     # loop width [% of stroke]
+
+
+def test_the_demo_picture_shows_the_whole_run(tmp_path, monkeypatch):
+    """The demo's tracking.png: its first column spans the whole recorded run
+    (excitation, approach, tracking), the second and third the tracking window. (Before:
+    only the last second, where desired and measured lie on top of each other.)"""
+    from piezo_stage.io import plots
+    from piezo_stage.io.run_bag import Run
+    figs = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: figs.append(fig) or path)
+    t_ns = np.arange(0, 4000) * 1_000_000                   # 4 s at 1 kHz
+    w = np.c_[np.sin(t_ns * 1e-9), np.cos(t_ns * 1e-9)]
+    run = Run(t_ns, w, w, t_ns, desired_um={int(k): w[i] for i, k in enumerate(t_ns)
+                                             if k >= 3_000_000_000})
+    plots.tracking_png(tmp_path / "p.png", run, 3.1, excite_s=2.5)
+    ax = figs[0].axes
+    lo, hi = ax[0].get_xlim()
+    assert lo <= 0.0 and hi >= 3.999                           # the whole run
+    lo, hi = ax[1].get_xlim()
+    assert lo >= 3.0 and hi <= 4.2                             # the tracking window
+    assert "the whole run" in ax[0].get_title()

@@ -77,6 +77,10 @@ def test_gap_command_report_and_closing_the_loop(tmp_path):
     assert {"residual_rms_um", "noise_floor_um", "input_locked_um", "not_input_locked_um",
             "explained_um", "unexplained_um"} <= set(j["axes"]["x"]["budget"])
     assert "Gap budget" in (tmp_path / "rep" / "report.md").read_text()
+    # the headline says which rule chose the verdict, and so does the report's table
+    assert "(chosen by the first-effect rule: it alone closes >= 30 % of the gap)" \
+        in j["reason"], j["reason"]
+    assert "| chosen by |" in (tmp_path / "rep" / "report.md").read_text()
     assert (tmp_path / "rep" / "report.md").read_text().count("Verdict: delay") == 1
     assert (tmp_path / "rep" / "gap_x.png").stat().st_size > 10_000
     # the simulator with the found effect is closer to the held-out stage
@@ -152,6 +156,11 @@ def test_two_effects_at_once_are_both_named_and_the_budget_adds_up(effects, coup
         named = {s["effect"] for s in d["effects"]}
         assert named == want, (axis, d["reason"])
         assert d["verdict"] == d["effects"][0]["effect"]  # the dominant one
+        # each step names the rule that took it; the headline names the first's
+        rules = [s["rule"] for s in d["effects"]]
+        assert rules[0].startswith(("the first-effect rule", "the pair rule")), rules
+        assert all(r.startswith("the further-effect rule") for r in rules[1:]), rules
+        assert f"(chosen by {rules[0]})" in d["reason"], d["reason"]
         gaps = [s["gap_after_um"] for s in d["effects"]]
         assert gaps == sorted(gaps, reverse=True)          # each step shrinks the gap
         b = d["budget"]

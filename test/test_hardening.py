@@ -344,7 +344,7 @@ def test_deeply_nested_yaml_is_one_line_exit_2(tmp_path):
     ["excite", "--rate", "0"], ["excite", "--rate", "-5"], ["excite", "--rate", "nan"],
     ["excite", "--rate", "inf"], ["excite", "--rate", "1e9"], ["loop", "--freq", "0"],
     ["loop", "--freq", "nan"], ["loop", "--cycles", "-1"], ["tune", "--latency", "inf"],
-    ["launch", "--duration", "-1"], ["replay", "x", "--rate", "0"],
+    ["launch", "--duration", "-1"], ["replay", "x", "--rate", "-0.5"],
 ])
 def test_numeric_arguments_are_range_checked(args, tmp_path):
     out = ["--out", tmp_path / "o.csv"] if args[0] == "excite" else []

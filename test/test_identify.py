@@ -153,6 +153,26 @@ def _cli(*args):
                           env=dict(os.environ, PYTHONPATH=ROOT))
 
 
+def test_identify_names_an_idle_or_missing_axis_and_the_axis_option(cfg, tmp_path):
+    """An idle y (constant voltage) or a record without y: --axis both fits x and says
+    so in one line; asking for y by name fails (exit 2) naming y and --axis x.
+    (Before: "voltage is constant", no axis named; a record without y fitted x
+    silently.)"""
+    r = record(cfg, cycles=1)
+    write_table(tmp_path / "idle.csv", {"t": r.t, "vx": r.v["x"], "vy": r.v["y"] + 20.0,
+                                        "wx": r.w["x"], "wy": r.w["y"]})
+    write_table(tmp_path / "xonly.csv", {"t": r.t, "vx": r.v["x"], "wx": r.w["x"]})
+    for name, says in (("idle", "axis y is idle (its voltage is constant at 20 V)"),
+                       ("xonly", "the record has no axis y")):
+        both = _cli("identify", tmp_path / f"{name}.csv", "--method", "fast")
+        assert both.returncode == 0 and both.stderr.count("\n") == 1, both.stderr
+        assert says in both.stderr and "fitting x alone (--axis x)" in both.stderr
+        assert "   x     fast" in both.stdout and "   y " not in both.stdout, both.stdout
+        y = _cli("identify", tmp_path / f"{name}.csv", "--axis", "y")
+        assert y.returncode == 2 and y.stderr.count("\n") == 1, y.stderr
+        assert says in y.stderr and "identify x with --axis x" in y.stderr, y.stderr
+
+
 def test_identify_command_writes_model_and_json(cfg, tmp_path):
     fit, val = record(cfg, seed=1), record(cfg, freq=2.0, cycles=3, seed=2)
     for name, r in (("fit", fit), ("val", val)):

@@ -199,6 +199,8 @@ def test_demo_identifier_hands_model_to_feedforward_and_tracks(tmp_path, env):
     for a in ("x", "y"):
         assert float(rows[a][1]) < 0.3  # rms um
     assert (tmp_path / "demo" / "metadata.yaml").exists()
+    assert "tracking.png (the whole run)" in r.stdout
+    assert (tmp_path / "demo" / "tracking.png").stat().st_size > 20_000
 
 
 def test_gap_node_publishes_the_live_residual(tmp_path, env):
@@ -299,6 +301,22 @@ def test_replay_honours_rate_on_the_bags_time_and_publishes_clock(tmp_path, env)
     bad = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "replay", str(bag), "--rate",
                           "-1"], env=env, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--rate" in bad.stderr
+    # --duration is the record's time, and the end is said in one line
+    cut = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "replay", str(bag),
+                          "--rate", "0", "--duration", "0.5"], env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert cut.returncode == 0, cut.stderr
+    assert cut.stdout.startswith("replayed 501 messages on 1 topics: 0.500 s of the "
+                                 "record's 1.499 s in "), cut.stdout
+    assert cut.stdout.endswith(", cut at --duration 0.5 s of the record\n"), cut.stdout
+    assert "to the end" in r.stdout
+    # a file that is not a bag is named for what it is
+    for path, says in ((os.path.join(CONFIG, "stage_model.yaml"), "a YAML file"),
+                       (bag / "metadata.yaml", "the bag's metadata.yaml (give its directory)")):
+        other = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "replay", str(path)],
+                               env=env, capture_output=True, text=True, timeout=60)
+        assert other.returncode == 2 and other.stderr.count("\n") == 1, other.stderr
+        assert f"{path}: {says}" in other.stderr and "not a bag" in other.stderr
 
 
 def test_colcon_style_prefix_install_starts_the_driver(tmp_path, env):
@@ -364,7 +382,9 @@ def test_a_wheel_puts_only_piezo_stage_on_path_and_the_nodes_in_lib(tmp_path, en
     src, prefix = tmp_path / "src", tmp_path / "prefix"
     subprocess.run(f"git -C {ROOT} ls-files -z | (cd {ROOT} && xargs -0 tar -cf -) | "
                    f"(mkdir -p {src} && tar -xf - -C {src})", shell=True, check=True)
+    # (--ignore-installed: pip would otherwise uninstall our own editable install first)
     r = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
+                        "--ignore-installed",
                         "--no-build-isolation", "--disable-pip-version-check",
                         "--prefix", str(prefix), str(src)],
                        capture_output=True, text=True, cwd=tmp_path)

@@ -51,10 +51,7 @@ def main(args):
         rec.voltage_exact = True
         if val is not None:
             val.voltage_exact = True
-    axes = ["x", "y"] if args.axis == "both" else [args.axis]
-    axes = [a for a in axes if a in rec.v and a in rec.w]
-    if not axes:
-        raise DataError(f"{args.data}: no complete axis ({args.axis}) in the record")
+    axes = _axes(rec, args)
     opts = IdentifyOptions(method=args.method,
                            structure="whole" if args.whole else "segmented",
                            budget=args.budget, seed=args.seed, coupling=args.coupling,
@@ -100,3 +97,37 @@ def main(args):
         curves = {a: predict_axis(r, rec) for a, r in results.items()}
         print(f"plot: {identification_png(plot, rec.t, curves)}")
     return 0
+
+
+
+def _axes(rec, args) -> list:
+    """The axes to fit. An axis the record lacks or holds idle is named, with the
+    --axis that fits what moves: an error when it was asked for by name, or when it
+    leaves nothing; one line on stderr when --axis both fits the other alone."""
+    import sys
+
+    from piezo_stage.core.identify.segmentation import voltage_noise
+    wanted = ["x", "y"] if args.axis == "both" else [args.axis]
+    present = [a for a in ("x", "y") if a in rec.v and a in rec.w]
+    moving = [a for a in present
+              if np.ptp(rec.v[a]) > max(1e-9, 10.0 * voltage_noise(rec.v[a]))]
+
+    def why(a):
+        if a in present:
+            v = np.asarray(rec.v[a], float)
+            held = (f"is constant at {v[0]:.4g} V" if np.ptp(v) <= 1e-9 else
+                    f"stays within {np.ptp(v):.3g} V of {np.median(v):.4g} V")
+            return f"axis {a} is idle (its voltage {held}): nothing to identify"
+        if a in rec.v or a in rec.w:
+            return f"the record lacks the voltage or the displacement of axis {a}"
+        return f"the record has no axis {a}"
+    for a in wanted:
+        if a in moving:
+            continue
+        rest = [m for m in moving if m != a]
+        if args.axis != "both" or not rest:
+            hint = f"; identify {rest[0]} with --axis {rest[0]}" if rest else ""
+            raise DataError(f"{args.data}: {why(a)}{hint}")
+        print(f"note: {args.data}: {why(a)}; fitting {rest[0]} alone (--axis {rest[0]})",
+              file=sys.stderr)
+    return [a for a in wanted if a in moving]

@@ -10,9 +10,12 @@ HELP = "republish a recorded bag on its topics"
 
 def add_arguments(s):
     s.add_argument("bag")
-    s.add_argument("--rate", type=number(0, 1000, lo_open=True), default=1.0,
+    s.add_argument("--rate", type=number(0, 1000), default=1.0,
                    help="playback speed (1: original timing; 0: as fast as possible)")
     s.add_argument("--namespace", default=None, help="replace the recorded namespace")
+    s.add_argument("--duration", type=number(0, 10**7, lo_open=True), metavar="S",
+                   help="replay the record's first S seconds (the record's time, "
+                   "whatever --rate)")
 
 
 def main(args):
@@ -22,4 +25,4 @@ def main(args):
     if not (math.isfinite(args.rate) and args.rate >= 0):
         raise DataError(f"--rate {args.rate}: must be a finite number >= 0 (0: as fast as "
                         "possible)")
-    return replay(args.bag, args.rate, args.namespace)
+    return replay(args.bag, args.rate, args.namespace, duration_s=args.duration)

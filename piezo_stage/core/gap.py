@@ -670,6 +670,9 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         need = (50.0 if g_before <= 0.5 * floor else FIRST_SHRINK_PCT) if not steps \
             else STEP_SHRINK_PCT
         step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
+        rule = (f"the first-effect rule: it alone closes >= {need:.0f} % of the gap"
+                if not steps else f"the further-effect rule: it closes >= {need:.0f} % "
+                "of what was left")
         if not steps and step < need and len(pool) > 1 and g_before > 0.5 * floor:
             # effects of similar size: none alone closes 30 %, two of the three best
             # together may (the better one of the best such pair joins first; the other
@@ -690,11 +693,14 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                         and _significant(r_cur, r_pair, floor, n) \
                         and 100.0 * (1 - g_pair / g_a) >= STEP_SHRINK_PCT \
                         and (best_pair is None or g_pair < best_pair[0]):
-                    best_pair = (g_pair, a)
+                    best_pair = (g_pair, a, b)
             if best_pair is not None:
                 e = best_pair[1]
                 c, g_new = pool[e], _gap(scores[e], floor)
                 step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
+                rule = (f"the pair rule: {e} and {best_pair[2]} together close "
+                        f"{100.0 * (1 - best_pair[0] / g_cur):.0f} % of the gap (>= "
+                        f"{need:.0f} %), which no effect does alone")
                 need = 0.0  # the first of a pair that closes the gap together
         if not (_significant(r_cur, scores[e], floor, n) and step >= need):
             break
@@ -706,7 +712,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         steps.append({"effect": e, "params": c.params, "rms_after_um": scores[e],
                       "gap_after_um": g_new, "step_shrink_pct": step,
                       "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
-                      "equally_well": alike})
+                      "equally_well": alike, "rule": rule})
         # polish the kept model's alphas fully, so that what the next candidates earn
         # is theirs and not a better alpha search riding along
         alphas, fitted, _ = fit_fast(c.reg, budget=POLISH_BUDGET, x0=c.alphas, step=0.1)
@@ -788,7 +794,8 @@ def _decide(ranking, steps, g_before, nf, fit, holdout, axis):
     said = ", then ".join(f"{s['effect']} to {s['gap_after_um']:.3g} um" + (
         f" ({' or '.join(s['equally_well'])} as well: not separable on this excitation)"
         if s["equally_well"] and i else "") for i, s in enumerate(steps))
-    return first, (f"{first} shrinks the held-out gap by {steps[0]['shrink_pct']:.0f} %"
+    return first, (f"{first} shrinks the held-out gap by {steps[0]['shrink_pct']:.0f} % "
+                   f"(chosen by {steps[0]['rule']})"
                    + (f"; with {said} ({steps[-1]['shrink_pct']:.0f} % in all)"
                       if len(steps) > 1 else ""))
 

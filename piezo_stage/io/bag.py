@@ -229,6 +229,34 @@ def mcap_path(path) -> str:
     return p
 
 
+def what_file(path, head: bytes) -> str:
+    """What a file that is not an MCAP bag looks like, from its name and first bytes,
+    in a few words for an error line ("a YAML file: the bag's metadata.yaml")."""
+    name = os.path.basename(os.fspath(path))
+    if not head:
+        return "an empty file"
+    if head.startswith(b"#ROSBAG"):
+        return "a ROS 1 bag (convert it with rosbags-convert)"
+    if head.startswith(b"SQLite format 3"):
+        return "a rosbag2 SQLite3 bag (record with the mcap storage, or convert it)"
+    if head.startswith(b"\x89PNG"):
+        return "a PNG picture"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return "a binary file"
+    first = text.lstrip().split("\n", 1)[0]
+    if name == "metadata.yaml":
+        return "the bag's metadata.yaml (give its directory)"
+    if name.endswith((".yaml", ".yml")) or first.endswith(":") or ": " in first:
+        return "a YAML file (a model or parameters?)"
+    if text.lstrip().startswith(("{", "[")):
+        return "a JSON file"
+    if "," in first:
+        return "a CSV table (a record: identify and gap read it)"
+    return "a text file"
+
+
 @dataclass
 class BagScan:
     """What a record-by-record read of an MCAP file recovered (see ``scan_bag``)."""
@@ -272,7 +300,8 @@ def scan_bag(path) -> BagScan:
         raise DataError(f"{p}: cannot read ({e.strerror})") from None
     magic = data[:MAGIC_SIZE]
     if len(data) < MAGIC_SIZE or magic[1:5] != b"MCAP":
-        raise DataError(f"{p}: not an MCAP file")
+        raise DataError(f"{p}: {what_file(p, data[:4096])}, not a bag (an MCAP file or "
+                        "a directory holding one)")
     scan, off, chunk_no, last_chunk = BagScan(p), MAGIC_SIZE, -1, None
     while off < len(data):
         if off + 9 > len(data):

@@ -43,13 +43,13 @@ def write_report(out_dir, result, holdout):
         if d.effects:
             lines += ["Effects kept, in the order added (each refitted with the ones "
                       "before it, scored on the held-out record):", "",
-                      "| effect | gap after um | shrink of the whole gap % | parameters |",
-                      "|---|---|---|---|"]
+                      "| effect | gap after um | shrink of the whole gap % | chosen by | "
+                      "parameters |", "|---|---|---|---|---|"]
             for st in d.effects:
                 params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                    for k, v in st["params"].items())
                 lines.append(f"| {st['effect']} | {st['gap_after_um']:.4f} | "
-                             f"{st['shrink_pct']:.1f} | {params} |")
+                             f"{st['shrink_pct']:.1f} | {st.get('rule', '')} | {params} |")
             lines.append("")
         b = d.budget
         if b:
@@ -90,12 +90,20 @@ def write_report(out_dir, result, holdout):
         ax[1, 0].plot(v, pb, lw=0.5, label="base model")
         ax[1, 0].set(xlabel="voltage [V]", ylabel="displacement [um]", title="loop overlay")
         ax[1, 0].legend()
+        # each candidate alone, then the effects as joined (each with the ones before)
         effs = [r["effect"] for r in d.ranking]
         ax[1, 1].bar(effs, [r["gap_after_um"] for r in d.ranking], color="tab:blue",
-                     label="gap after")
+                     label="gap after, alone")
+        joined = ["+".join(st["effect"] for st in d.effects[:i + 1])
+                  for i in range(len(d.effects))]
+        if joined:
+            ax[1, 1].bar(joined, [st["gap_after_um"] for st in d.effects],
+                         color="tab:orange", label="gap after, joined")
         ax[1, 1].axhline(d.ranking[0]["gap_before_um"], color="k", ls="--",
                          label="gap before")
-        ax[1, 1].set(ylabel="held-out gap [um]", title="before / after per candidate")
+        ax[1, 1].set(ylabel="held-out gap [um]",
+                     title="before / after: each candidate, and as joined")
+        ax[1, 1].tick_params(axis="x", labelrotation=30)
         ax[1, 1].legend()
         fig.tight_layout()
         png = f"gap_{axis}.png"

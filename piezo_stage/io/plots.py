@@ -44,22 +44,44 @@ def identification_png(path, t, per_axis: dict):
     return _save(fig, path)
 
 
-def tracking_png(path, t, desired, measured, axes=("x", "y")):
-    """``desired``, ``measured``: (n, len(axes)) [um] at times t [s] -> the desired and
-    measured position and the tracking error over time, one row per axis."""
+def tracking_png(path, run, t_track_s, excite_s=0.0, axes=("x", "y")):
+    """The whole recorded run (``run``: io.run_bag.Run), one row per axis: the
+    measured and desired position over the run, with the excitation (the
+    identification's data) shaded and the start of tracking marked; the tracking
+    window alone (from ``t_track_s`` [s]), where desired and measured can be told
+    apart; and the tracking error there."""
     plt = _pyplot()
-    fig, ax = plt.subplots(len(axes), 2, figsize=(12, 3.8 * len(axes)), squeeze=False)
+    t = run.t_ns * 1e-9
+    ref_t = np.array(sorted(run.desired_um)) if run.desired_um else np.zeros(0, np.int64)
+    ref = np.array([run.desired_um[k] for k in ref_t]).reshape(-1, 2)
+    meas = dict(zip(run.t_ns.tolist(), run.w_um))
+    both = [k for k in ref_t.tolist() if k in meas and k >= t_track_s * 1e9]
+    tt = np.array(both) * 1e-9
+    d = np.array([run.desired_um[k] for k in both]).reshape(-1, 2)
+    w = np.array([meas[k] for k in both]).reshape(-1, 2)
+    fig, ax = plt.subplots(len(axes), 3, figsize=(16, 3.8 * len(axes)), squeeze=False)
     for i, axis in enumerate(axes):
-        e = measured[:, i] - desired[:, i]
-        ax[i, 0].plot(t, desired[:, i], lw=1.0, label="desired")
-        ax[i, 0].plot(t, measured[:, i], lw=0.6, label="measured")
-        ax[i, 0].set(xlabel="time [s]", ylabel="position [um]", title=f"axis {axis}: tracking")
-        ax[i, 0].legend()
-        ax[i, 1].plot(t, e, lw=0.5)
-        span = max(np.ptp(desired[:, i]), 1e-12)
-        ax[i, 1].set(xlabel="time [s]", ylabel="measured - desired [um]",
-                     title=f"axis {axis}: error, rms {np.sqrt(np.mean(e ** 2)):.4f} um "
-                           f"({100 * np.sqrt(np.mean(e ** 2)) / span:.3f} % of the range)")
+        a = ax[i, 0]
+        a.plot(t, run.w_um[:, i], lw=0.6, label="measured")
+        a.plot(ref_t * 1e-9, ref[:, i], lw=0.8, ls="--", label="desired")
+        if excite_s > 0:
+            a.axvspan(t[0] if t.size else 0.0, excite_s, color="0.9",
+                      label="excitation (identified from)")
+        a.axvline(t_track_s, color="k", lw=0.8, ls=":", label="tracking from")
+        a.set(xlabel="time [s]", ylabel="position [um]", title=f"axis {axis}: the whole run")
+        a.legend(fontsize=7, loc="upper left")
+        a = ax[i, 1]
+        a.plot(tt, d[:, i], lw=1.0, label="desired")
+        a.plot(tt, w[:, i], lw=0.6, label="measured")
+        a.set(xlabel="time [s]", ylabel="position [um]", title=f"axis {axis}: tracking")
+        a.legend(fontsize=7)
+        e = w[:, i] - d[:, i]
+        rms = float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")
+        span = max(float(np.ptp(d[:, i])) if d.size else 0.0, 1e-12)
+        ax[i, 2].plot(tt, e, lw=0.5)
+        ax[i, 2].set(xlabel="time [s]", ylabel="measured - desired [um]",
+                     title=f"axis {axis}: error, rms {rms:.4f} um "
+                           f"({100 * rms / span:.3f} % of the range)")
     fig.tight_layout()
     return _save(fig, path)
 
