@@ -31,8 +31,13 @@ def test_blind_single_effect(family, kind):
         assert res["ranking"][0]["shrink_pct"] >= 50.0
     for r in res["ranking"]:
         for k in ("effect", "rms_before_um", "rms_after_um", "gap_before_um",
-                  "gap_after_um", "shrink_pct", "params"):
+                  "gap_after_um", "shrink_pct", "shrink_pm_pct", "params"):
             assert k in r
+    # every candidate contains the base (its no-effect limit): never worse on FIT
+    base = next(r for r in res["ranking"] if r["effect"] == "none")["fit_rms_um"]
+    assert all(r["fit_rms_um"] <= base * (1 + 1e-9) for r in res["ranking"]), res["ranking"]
+    if kind != "none":  # the held-out shrink comes with its uncertainty
+        assert 0.0 <= res["ranking"][0]["shrink_pm_pct"] < 15.0, res["ranking"][0]
 
 
 def test_creep_without_holds_is_inconclusive():

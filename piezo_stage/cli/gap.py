@@ -39,18 +39,22 @@ def main(args):
     per = res.per_axis
     print(f"verdict: {res['verdict']} ({res['reason']})")
     print(f"{'axis':>4} {'effect':>9} {'rms_before':>10} {'rms_after':>9} {'gap_before':>10} "
-          f"{'gap_after':>9} {'shrink_pct':>10}")
+          f"{'gap_after':>9} {'shrink_pct':>10} {'+-':>5}")
     for a, d in per.items():
         for r in d.ranking:
             print(f"{a:>4} {r['effect']:>9} {r['rms_before_um']:10.4f} {r['rms_after_um']:9.4f} "
-                  f"{r['gap_before_um']:10.4f} {r['gap_after_um']:9.4f} {r['shrink_pct']:10.1f}")
+                  f"{r['gap_before_um']:10.4f} {r['gap_after_um']:9.4f} {r['shrink_pct']:10.1f} "
+                  f"{r.get('shrink_pm_pct', float('nan')):5.1f}"
+                  + (" (at its no-effect limit: its search did worse on FIT)"
+                     if r["params"].get("no_effect_limit") else ""))
     print(f"where: axis {res['where']['axis']}, band {res['where']['band_hz'][0]:g}-"
           f"{res['where']['band_hz'][1]:g} Hz, segment {res['where']['segment']}; noise floor "
           f"{res['noise_floor_um']:.4f} um; {res['seconds']:.1f} s")
     for a, d in per.items():
         if d.effects:
             print(f"effects {a} (in the order added): " + ", ".join(
-                f"{s['effect']} (gap {s['gap_after_um']:.4f} um)" for s in d.effects))
+                f"{s['effect']} (gap {s['gap_after_um']:.4f} um, shrink {s['shrink_pct']:.0f} "
+                f"+- {s.get('shrink_pm_pct', float('nan')):.0f} %)" for s in d.effects))
         b = d.budget
         expl = ", ".join(f"{k} {v:.4f}" for k, v in b["explained_um"].items()) or "nothing"
         print(f"budget {a} [um]: residual {b['residual_rms_um']:.4f} = noise "

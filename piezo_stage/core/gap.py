@@ -270,10 +270,26 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
         reg.transform = transform_ops(list(kept) + [(effect, params)], fs)
     # the alphas again, with the effect in place (base and effects fitted together)
     alphas, fit, _ = fit_fast(reg, budget=TRIAL_BUDGET, x0=alphas, step=0.2)
+    if fit.rms > base.fit_rms_um * (1.0 + FIT_TOLERANCE):
+        # every candidate contains its base (no delay, no resonance, no creep, a zero
+        # coupling or higher-degree term): worse on FIT means the search ended in the
+        # wrong place, and the no-effect limit is the better answer
+        return no_effect_limit(base, effect)
     effects = _with_drift(list(kept) + [(effect, params)], reg, fit.theta, tau)
     params = dict(effects[-1][1])
     return Candidate(effect, params, alphas, fit.theta, reg, fit.rms, reg.transform, tau,
                      effects, fs)
+
+
+FIT_TOLERANCE = 1e-9  # relative: a candidate's FIT RMS above its base's by more is a miss
+
+
+def no_effect_limit(base: Candidate, effect: str) -> Candidate:
+    """``effect`` at its no-effect limit: the base model itself under the effect's
+    name (params say so), so its FIT RMS is the base's and it can never be kept."""
+    return Candidate(effect, {"no_effect_limit": True}, base.alphas, base.theta, base.reg,
+                     base.fit_rms_um, base.op, base.drift_tau_s, list(base.effects),
+                     base.reg_fs)
 
 
 def _without(reg, alphas, kept, names, fs):
@@ -452,6 +468,34 @@ def _search_dynamics(fs, cost, seeds=()):
 
 def _gap(r, nf):
     return float(np.sqrt(max(r * r - nf * nf, 0.0)))
+
+
+SHRINK_BLOCK_S = 0.5     # block bootstrap of the held-out shrink: blocks this long
+SHRINK_RESAMPLES = 400
+
+
+def shrink_uncertainty(before: np.ndarray, after: np.ndarray, floor: float,
+                       fs: float, seed: int = 0) -> float:
+    """One standard deviation [percentage points] of the held-out shrink
+    1 - gap(after)/gap(before), by a block bootstrap over the held-out record (blocks of
+    SHRINK_BLOCK_S, so the residuals' correlation in time is kept): how much the figure
+    would move on another stretch of the same stage."""
+    n = min(len(before), len(after))
+    size = max(int(SHRINK_BLOCK_S * fs), 1)
+    k = n // size
+    if k < 4:
+        return float("nan")
+    sb = (np.asarray(before[:k * size]) ** 2).reshape(k, size).sum(axis=1)
+    sa = (np.asarray(after[:k * size]) ** 2).reshape(k, size).sum(axis=1)
+    pick = np.random.default_rng(seed).integers(0, k, size=(SHRINK_RESAMPLES, k))
+    rb = np.sqrt(sb[pick].sum(axis=1) / (k * size))
+    ra = np.sqrt(sa[pick].sum(axis=1) / (k * size))
+    gb = np.sqrt(np.maximum(rb ** 2 - floor ** 2, 0.0))
+    ga = np.sqrt(np.maximum(ra ** 2 - floor ** 2, 0.0))
+    ok = gb > 0
+    if ok.sum() < SHRINK_RESAMPLES // 2:
+        return float("nan")
+    return float(np.std(100.0 * (1.0 - ga[ok] / gb[ok])))
 
 
 def hold_runs(v: ArrayLike, fs: float, min_s: float = 0.2,
@@ -648,13 +692,16 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     dist0 = disturbance(holdout, axis, resid, nf)
     floor = float(np.hypot(nf, dist0["rms_um"])) if dist0 else nf
     g_before = _gap(r_before, floor)
-    scores = {e: rms(c.predict(holdout, axis) - w_h) for e, c in cands.items()}
+    resids = {e: c.predict(holdout, axis) - w_h for e, c in cands.items()}
+    scores = {e: rms(r) for e, r in resids.items()}
     ranking = []
     for e, c in cands.items():
         g_after = _gap(scores[e], floor)
         ranking.append({"effect": e, "rms_before_um": r_before, "rms_after_um": scores[e],
                         "gap_before_um": g_before, "gap_after_um": g_after,
                         "shrink_pct": 100.0 * (1 - g_after / g_before) if g_before > 0 else 0.0,
+                        "shrink_pm_pct": shrink_uncertainty(resid, resids[e], floor,
+                                                            holdout.fs_hz),
                         "fit_rms_um": c.fit_rms_um, "params": c.params})
     ranking.sort(key=lambda r: r["gap_after_um"])
     # forward selection: the best candidate joins when it shrinks the held-out gap
@@ -723,6 +770,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
             g_new = _gap(scores[e], floor)
             steps[-1].update(rms_after_um=scores[e], gap_after_um=g_new,
                              shrink_pct=100.0 * (1 - g_new / g_before) if g_before else 0.0)
+        steps[-1]["shrink_pm_pct"] = shrink_uncertainty(
+            resid, c.predict(holdout, axis) - w_h, floor, holdout.fs_hz)
         model, r_cur = c, scores[e]
         del pool[e]
         if g_new <= NOISE_STOP * floor:

@@ -31,7 +31,8 @@ def write_report(out_dir, result, holdout):
                                for k, v in r["params"].items())
             lines.append(f"| {r['effect']} | {r['rms_before_um']:.4f} | {r['rms_after_um']:.4f} | "
                          f"{r['gap_before_um']:.4f} | {r['gap_after_um']:.4f} | "
-                         f"{r['shrink_pct']:.1f} | {params} |")
+                         f"{r['shrink_pct']:.1f} +- {r.get('shrink_pm_pct', float('nan')):.1f}"
+                         f" | {params} |")
         wh = d.where
         lines += ["", f"Where: band {wh['band_hz'][0]:g}-{wh['band_hz'][1]:g} Hz, segment "
                   f"**{wh['segment']}** (RMS by segment: " +
@@ -49,7 +50,8 @@ def write_report(out_dir, result, holdout):
                 params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                    for k, v in st["params"].items())
                 lines.append(f"| {st['effect']} | {st['gap_after_um']:.4f} | "
-                             f"{st['shrink_pct']:.1f} | {st.get('rule', '')} | {params} |")
+                             f"{st['shrink_pct']:.1f} +- {st.get('shrink_pm_pct', float('nan')):.1f}"
+                             f" | {st.get('rule', '')} | {params} |")
             lines.append("")
         b = d.budget
         if b:
