@@ -139,6 +139,12 @@ def test_excite_command(tmp_path):
     assert r.returncode == 0, r.stderr
     c0 = read_table(tmp_path / "e0.csv", ["t", "vx", "vy"])
     assert c0["t"][-1] < c["t"][-1] - 4 and not broadband(c0["vx"], 1000.0)
+    # --nested: the minor loops that show memory, about 11 s more per axis
+    r = _cli("excite", "--nested", "--out", tmp_path / "en.csv", "--rate", 1000)
+    assert r.returncode == 0, r.stderr
+    cn = read_table(tmp_path / "en.csv", ["t", "vx", "vy"])
+    assert 20 < cn["t"][-1] - c["t"][-1] < 24
+    assert cn["vx"].min() >= 0 and cn["vx"].max() <= 150
 
 
 def _pair_with(effects, coupling, seed, fs=1000.0):
@@ -263,7 +269,7 @@ def test_a_richer_hysteresis_shape_is_the_structure_class():
     res = diagnose(*recs, axes=["x"])
     assert res["verdict"] == "structure", res["reason"]
     assert [s["effect"] for s in res["effects"]] == ["structure"]
-    assert res["effects"][0]["params"] == {"degree": 5}
+    assert res["effects"][0]["params"] == {"degree": 5, "play_operators": 16}
     # the best first-round candidate; kept, its alphas polished, it closes the gap
     assert res["ranking"][0]["effect"] == "structure"
     assert res["effects"][0]["shrink_pct"] > 80
@@ -362,3 +368,43 @@ def test_one_column_search_finds_what_the_exact_search_finds(kind, monkeypatch):
             assert fast.params[k] == pytest.approx(v, rel=0.05), k
         else:
             assert fast.params[k] == v
+
+
+def _structure_pair(seeds=(1, 2), fs=1000.0):
+    """(FIT, HOLDOUT, the HOLDOUT's true displacement) from config/structure_stage.yaml:
+    play-operator hysteresis (return-point memory, a tanh envelope), not our model
+    class; the gap protocol with its nested minor loops."""
+    from piezo_stage.core.excitation import gap_protocol
+    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.record import Record
+    from piezo_stage.io.plant_file import load_plant_config
+    cfg = load_plant_config(os.path.join(ROOT, "config", "structure_stage.yaml"))
+    out = []
+    for seed in seeds:
+        cfg.seed = seed
+        t, vx, vy = gap_protocol(fs, seed=seed, nested=True)
+        plant = Plant(cfg, fs)
+        w = plant.run(vx, vy)
+        out.append((Record(t, {"x": vx, "y": vy}, w, source=f"structure {seed}"),
+                    plant.last_true))
+    return out[0][0], out[1][0], out[1][1]
+
+
+def test_a_stage_with_memory_is_named_structure_and_its_locked_part_is_the_truth():
+    """A stage whose hysteresis is not our model class (play operators: memory our
+    Duhem law lacks, branches no cubic follows): structure (play-operator columns beside
+    richer branches) is named, the held-out gap shrinks by far more than 60 % with the
+    stage's coupling, and the budget's input-locked part is within 15 % of the truth
+    the plant knows. (Before: the structure class was degree-5 branches only: 1 %
+    shrink, verdict inconclusive; the locked part was 0.41 of 0.47 um.)"""
+    from piezo_stage.core.gap import fit_candidate
+    fit, hold, true = _structure_pair()
+    res = diagnose(fit, hold, axes=["x"])
+    assert res["verdict"] == "structure", res["reason"]
+    named = [s["effect"] for s in res["effects"]]
+    assert named[0] == "structure" and "coupling" in named, named
+    assert res["effects"][-1]["shrink_pct"] >= 60.0, res["effects"]
+    base = fit_candidate(fit, "x", "none")
+    locked_true = float(np.sqrt(np.mean((base.predict(hold, "x") - true["x"]) ** 2)))
+    b = res["budget"]
+    assert abs(b["input_locked_um"] - locked_true) <= 0.15 * locked_true, (b, locked_true)

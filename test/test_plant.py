@@ -181,3 +181,65 @@ def test_effect_operator_on_columns_equals_the_stateful_effect(effect, params):
     want = np.column_stack([make_effect(effect, 1000.0, params).process(X[:, j])
                             for j in range(3)])
     np.testing.assert_allclose(op.apply(X), want, rtol=1e-9, atol=1e-9)
+
+
+def _structure_cfg():
+    import os
+
+    from conftest import ROOT
+    c = load_plant_config(os.path.join(ROOT, "config", "structure_stage.yaml"))
+    c.noise_rms_um = c.quantization_um = 0.0
+    return c
+
+
+def test_the_structure_plant_has_return_point_memory_and_chunks_alike():
+    """config/structure_stage.yaml's play-operator law: a minor loop inside the major
+    one closes where it began (return-point memory, which our Duhem law lacks); a run
+    in one batch, in chunks or a command at a time gives the same output."""
+    fs = 1000.0
+    up = np.linspace(0.0, 120.0, 600)
+    minor = 90.0 + 30.0 * np.cos(np.linspace(0.0, 2 * np.pi, 400))  # 120 -> 60 -> 120
+    v = np.concatenate([up, minor, np.linspace(120.0, 0.0, 600)])
+    w = Plant(_structure_cfg(), fs).run(v, np.zeros_like(v))["x"]
+    at_start, at_end = w[599], w[999]          # 120 V before and after the minor loop
+    assert abs(at_end - at_start) < 1e-9       # closed where it began
+    assert abs(w[799] - w[599]) > 1.0          # and it was a loop, not a rest
+    # the Duhem stage does not close it
+    d = Plant(load_plant_config(_default_path()), fs)
+    d.config.noise_rms_um = 0.0
+    wd = Plant(copy.deepcopy(d.config), fs).run(v, np.zeros_like(v))["x"]
+    assert abs(wd[999] - wd[599]) > 0.05
+    # chunking and stepping
+    one = Plant(_structure_cfg(), fs)
+    stepped = np.array([one.step(a, 0.3 * a)[0] for a in v])
+    chunks = Plant(_structure_cfg(), fs)
+    chunked = np.concatenate([chunks.run(v[i:i + 37], 0.3 * v[i:i + 37])["x"]
+                              for i in range(0, v.size, 37)])
+    batch = Plant(_structure_cfg(), fs).run(v, 0.3 * v)["x"]
+    assert np.array_equal(stepped, batch) and np.array_equal(chunked, batch)
+
+
+def _default_path():
+    from piezo_stage.io.plant_file import default_plant_config_path
+    return default_plant_config_path()
+
+
+@pytest.mark.parametrize("block, says", [
+    ({"kind": "preisach"}, "only 'prandtl-ishlinskii'"),
+    ({"operators": 0}, "operators = 0"),
+    ({"envelope": {"scale_um": -9.0, "width_um": 8.0}}, "monotone"),
+    ({"decay": 3}, "unknown key"),
+])
+def test_a_bad_hysteresis_block_is_refused_by_name(tmp_path, block, says):
+    import os
+
+    import yaml
+
+    from conftest import ROOT
+    doc = yaml.safe_load(open(os.path.join(ROOT, "config", "structure_stage.yaml")))
+    doc["model"] = os.path.join(ROOT, "config", "stage_model.yaml")
+    doc["hysteresis"] = {"kind": "prandtl-ishlinskii", **block}
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match=says):
+        load_plant_config(p)

@@ -20,6 +20,9 @@ def add_arguments(s):
     s.add_argument("--chirp", type=number(0, 60), default=CHIRP_S, metavar="S", help="the small "
                    "chirp per axis up to 0.4 x the rate, S seconds (tells a resonance from "
                    "a delay; default %(default)g, 0: none)")
+    s.add_argument("--nested", action="store_true", help="add nested minor loops (1 Hz "
+                   "at 100/66/33 %% of the span, and loops inside the major one), which "
+                   "show a hysteresis's memory; about 22 s more")
 
 
 def main(args):
@@ -28,7 +31,7 @@ def main(args):
     if not 0 <= args.chirp <= 60:
         raise DataError(f"--chirp {args.chirp:g}: give 0 (none) to 60 seconds")
     t, vx, vy = gap_protocol(args.rate, args.v_min, args.v_max, seed=args.seed,
-                             chirp_s=args.chirp)
+                             chirp_s=args.chirp, nested=args.nested)
     write_table(args.out, {"t": t, "vx": vx, "vy": vy})
     print(f"{args.out}: {len(t)} samples, {t[-1]:.1f} s at {args.rate:g} Hz "
           f"(protocol {args.protocol}, seed {args.seed})")

@@ -79,4 +79,6 @@ def main(args):
         model, effects = res.model(fit)
         save_model(args.out_model, model, effects=effects or None)
         print(f"model with the found effects: {args.out_model}")
+        for note in res.notes:
+            print(f"note: {note}")
     return 0

@@ -143,16 +143,34 @@ def plant_run(vx: F64, vy: F64, substeps: int, vstate: F64, dstate: F64, alpha: 
                     wa = duhem_step(dstate[a, 0], dstate[a, 1], vstate[a], alpha[a], H[a])
                     dstate[a, 0] = vstate[a]
                     dstate[a, 1] = wa
-                    c = 2 + a
-                    if present[c]:
-                        wc = duhem_step(dstate[c, 0], dstate[c, 1], vstate[1 - a], alpha[c],
-                                        H[c])
-                        dstate[c, 0] = vstate[1 - a]
-                        dstate[c, 1] = wc
-                        wa = wa + wc
+                c = 2 + a
+                if present[c]:  # (also under another law on the axis: Plant adds it)
+                    wc = duhem_step(dstate[c, 0], dstate[c, 1], vstate[1 - a], alpha[c],
+                                    H[c])
+                    dstate[c, 0] = vstate[1 - a]
+                    dstate[c, 1] = wc
+                    wa = wa + wc
                 w[a, k] = wa
             k += 1
     return hits
+
+
+@njit
+def play_run(v: F64, r: F64, p: F64, z: F64, out: F64) -> None:
+    """Play operators (thresholds ``r``, weights ``p``, state ``z``, updated in place)
+    over ``v`` [V]; writes sum_j p_j z_j [um] per sample into ``out``."""
+    for k in range(v.shape[0]):
+        s = 0.0
+        for j in range(r.shape[0]):
+            lo, hi = v[k] - r[j], v[k] + r[j]
+            zj = z[j]
+            if zj < lo:
+                zj = lo
+            elif zj > hi:
+                zj = hi
+            z[j] = zj
+            s += p[j] * zj
+        out[k] = s
 
 
 @njit

@@ -11,6 +11,13 @@ The protocol ends each axis's sines with a small linear chirp about mid-stroke, 
 ``excite --chirp 0``): the slow blocks cannot tell a resonance above the control rate
 from a pure delay (both only lag the slow motion), the chirp passes through the
 resonance and shows its peak (the gap diagnosis seeds its resonance search there).
+
+``nested=True`` (``excite --nested``) adds, after the sines, the minor loops that show
+a hysteresis's memory: 1 Hz sines from the lower limit at 100, 66 and 33 % of the span
+(the seed's 60/40/20 um experiment), then loops inside the major one on its falling
+branch (between 90 and 50 %) and on its rising branch (between 20 and 60 %); about
+11 s more per axis. A law with return-point memory closes each of them where it
+began; our Duhem law does not.
 """
 
 from __future__ import annotations
@@ -23,9 +30,11 @@ CHIRP_S = 2.0  # s per axis: enough to resolve a resonance's peak (0.8 kHz, zeta
 
 def gap_protocol(fs_hz: float = 5000.0, lo: float = 0.0, hi: float = 150.0, seed: int = 0,
                  hold_s: float = 3.0, chirp_s: float = CHIRP_S,
-                 chirp_frac: float = 0.015) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 chirp_frac: float = 0.015,
+                 nested: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (t [s], vx [V], vy [V]); about 36 s at the defaults (31.6 s, plus
-    2 x (chirp_s + 0.2 s) for the chirps of +-chirp_frac of the span)."""
+    2 x (chirp_s + 0.2 s) for the chirps of +-chirp_frac of the span; ``nested``: 22 s
+    more, see the module docstring)."""
     rng = np.random.default_rng(seed)
     span = hi - lo
     dt = 1.0 / fs_hz
@@ -40,6 +49,19 @@ def gap_protocol(fs_hz: float = 5000.0, lo: float = 0.0, hi: float = 150.0, seed
             a = amp * rng.uniform(0.85, 1.0)
             t = np.arange(int(cyc * fs_hz / f)) * dt
             parts.append(lo + span * a / 2 * (1 - np.cos(2 * np.pi * f * t)))
+        if nested:
+            t = np.arange(int(2 * fs_hz)) * dt  # two cycles at 1 Hz each
+            for frac in (1.0, 0.66, 0.33):
+                a = frac * rng.uniform(0.9, 1.0)
+                parts.append(lo + span * a / 2 * (1 - np.cos(2 * np.pi * t)))
+            for top, bottom, start in ((0.9, 0.5, "top"), (0.6, 0.2, "bottom")):
+                hi_v, lo_v = lo + span * top, lo + span * bottom
+                first = hi_v if start == "top" else lo_v
+                parts.append(ramp_to(parts[-1][-1], first, 0.5))
+                mid, half = (hi_v + lo_v) / 2, (hi_v - lo_v) / 2
+                sign = 1.0 if start == "top" else -1.0
+                parts.append(mid + sign * half * np.cos(2 * np.pi * t))
+            parts.append(ramp_to(parts[-1][-1], lo, 0.5))
         if chirp_s > 0:
             mid = lo + span / 2
             parts.append(ramp_to(lo, mid, 0.1))

@@ -40,6 +40,7 @@ from numpy.typing import ArrayLike
 from scipy import signal
 from scipy.optimize import minimize, minimize_scalar
 
+from piezo_stage.core._jit import play_run
 from piezo_stage.core.duhem import OTHER, StageModel
 from piezo_stage.core.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.errors import DataError
@@ -52,6 +53,7 @@ from piezo_stage.core.record import Record
 
 EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
 STRUCTURE_DEGREE = (5, 5)  # the richer branch polynomials of the "structure" class
+STRUCTURE_PLAYS = 16       # and play operators (memory), thresholds up to half the span
 CREEP_TAUS = (0.05, 0.5, 5.0, 50.0)
 MIN_HOLD_S = 1.0
 
@@ -74,6 +76,7 @@ class Candidate:
     drift_tau_s: float | None = None
     effects: list = field(default_factory=list)
     reg_fs: float = 0.0            # the rate of the record it was fitted on [Hz]
+    plays_V: np.ndarray | None = None  # structure: play-operator thresholds [V]
 
     def predict(self, rec: Record, axis: str) -> np.ndarray:
         """Prediction on another record; initial state and offset re-estimated."""
@@ -98,9 +101,13 @@ class Candidate:
         if op is not None:
             cols = op(cols)
         fixed = cols[:, 0]
+        k = len(self.theta)
         if self.drift_tau_s is not None:
-            k = len(self.theta) - 2
+            k -= 2
             fixed = fixed + Drift.columns(len(v), rec.fs_hz, self.drift_tau_s) @ self.theta[k:]
+        if self.plays_V is not None:  # (their coefficients before the drift's)
+            n = len(self.plays_V)
+            fixed = fixed + play_columns(v, self.plays_V) @ self.theta[k - n:k]
         A = np.column_stack([cols[:, 1:], np.ones(len(v))])
         coef, *_ = np.linalg.lstsq(A, rec.w[axis] - fixed, rcond=None)
         return fixed + A @ coef
@@ -191,22 +198,27 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     # terms); the extra freedom is kept only if it pays on HOLDOUT, like any effect
     deg = STRUCTURE_DEGREE if "structure" in names else (3, 2)
     reg = DuhemRegression(v, w, "segmented", n=deg[0], m=deg[1], v_other=v_other)
-    tau = None
-    if "drift" in names:
+    tau, plays, extra = None, None, []
+    if "structure" in names:  # memory: play operators, linear in their weights
+        plays = np.ptp(v) * np.arange(1, STRUCTURE_PLAYS + 1) / (2 * STRUCTURE_PLAYS)
+        extra.append(play_columns(v, plays))
+    if "drift" in names:  # (last: its coefficients come last in theta)
         tau = max(rec.t[-1] - rec.t[0], 1.0) / 3.0
-        reg.extra = Drift.columns(len(v), fs, tau)
+        extra.append(Drift.columns(len(v), fs, tau))
+    if extra:
+        reg.extra = np.column_stack(extra)
     fixed_op = transform_ops(kept, fs)
     reg.transform = fixed_op
     if effect == "none" or base is None:
         alphas, fit, _ = fit_fast(reg, budget=100, grid=11)
         return Candidate(effect, {}, alphas, fit.theta, reg, fit.rms, fixed_op, tau,
-                         _with_drift(list(kept), reg, fit.theta, tau), fs)
+                         _with_drift(list(kept), reg, fit.theta, tau), fs, plays)
     alphas = np.asarray(base.alphas, float)
     params = {}
     if effect == "coupling" and base.reg.v_other is None:
         alphas = np.append(alphas, alphas.mean())
     elif effect == "structure":
-        params = {"degree": STRUCTURE_DEGREE[0]}
+        params = {"degree": STRUCTURE_DEGREE[0], "play_operators": STRUCTURE_PLAYS}
     elif effect in TRANSFORMS:
         # the kept operators applied once for these alphas; the new effect's parameter
         # search then filters only what it must (creep: once in all)
@@ -278,7 +290,19 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     effects = _with_drift(list(kept) + [(effect, params)], reg, fit.theta, tau)
     params = dict(effects[-1][1])
     return Candidate(effect, params, alphas, fit.theta, reg, fit.rms, reg.transform, tau,
-                     effects, fs)
+                     effects, fs, plays)
+
+
+def play_columns(v: np.ndarray, thresholds_V: np.ndarray) -> np.ndarray:
+    """One column per play operator (threshold [V]), each from rest at v[0]: the
+    memory a Duhem law lacks, as regressors (core/play.py's law, unit weights)."""
+    v = np.ascontiguousarray(v, dtype=float)
+    out = np.empty((v.size, len(thresholds_V)))
+    one, col = np.ones(1), np.empty(v.size)
+    for j, r in enumerate(thresholds_V):
+        play_run(v, np.array([float(r)]), one, np.array([v[0]]), col)
+        out[:, j] = col
+    return out
 
 
 FIT_TOLERANCE = 1e-9  # relative: a candidate's FIT RMS above its base's by more is a miss
@@ -289,7 +313,7 @@ def no_effect_limit(base: Candidate, effect: str) -> Candidate:
     name (params say so), so its FIT RMS is the base's and it can never be kept."""
     return Candidate(effect, {"no_effect_limit": True}, base.alphas, base.theta, base.reg,
                      base.fit_rms_um, base.op, base.drift_tau_s, list(base.effects),
-                     base.reg_fs)
+                     base.reg_fs, base.plays_V)
 
 
 def _without(reg, alphas, kept, names, fs):
@@ -856,6 +880,7 @@ LOCK_TAUS = (0.003, 0.05, 1.0)         # s: their slow (creep-like, dynamic) res
 RIDGES = (1e-6, 1e-4, 1e-2, 1.0)      # on unit-norm features, chosen by cross-validation
 LOCK_RES_N, LOCK_RES_MAX, LOCK_RES_ZETA = 6, 0.4, 0.15  # resonators: 50 Hz .. 0.4 fs
 LOCK_BLOCK_S = 0.2                    # cross-validation folds: alternating blocks
+LOCK_PLAYS = 8                        # play operators per input (hysteresis memory)
 
 
 def input_locked(v: np.ndarray, v_other: np.ndarray, fs: float,
@@ -877,6 +902,9 @@ def input_locked(v: np.ndarray, v_other: np.ndarray, fs: float,
                                  np.empty((len(u), 2 * 4 + 1)))
             cols.append(X[:, :-1])
         cols.append(B)
+        # memory (minor loops that close where they began): play operators
+        cols.append(play_columns(u, np.ptp(u) * np.arange(1, LOCK_PLAYS + 1)
+                                 / (2 * LOCK_PLAYS)))
         # fast dynamics (a resonance rung by a chirp): the input through a bank of
         # damped resonators, in two phases (the output and its one-sample lag)
         for fn in np.geomspace(50.0, LOCK_RES_MAX * fs, LOCK_RES_N):
@@ -1032,6 +1060,7 @@ class Diagnosis:
 
     json: dict
     per_axis: dict
+    notes: list = field(default_factory=list)  # what ``model`` had to leave out
 
     def __getitem__(self, key: str) -> object:
         return self.json[key]
@@ -1046,8 +1075,17 @@ class Diagnosis:
         the axis where it explains the most. Voltage limits: 0-150 V widened to FIT's."""
         from piezo_stage.core.duhem import StageModel
         axes, coupling, effects, weight = {}, {}, {}, {}
+        self.notes = []
         for a, d in self.per_axis.items():
             c = d.model or d.candidates["none"]
+            if c.plays_V is not None:
+                # the model file has no play operators (yet): their Duhem branches were
+                # fitted beside them and are wrong without them; the kept effects but
+                # the structure are refitted on FIT instead
+                c = fit_candidate(fit, a, "none", kept=[(n, p) for n, p in c.effects
+                                                        if n != "structure"])
+                self.notes.append(f"axis {a}: structure's play operators are not in the "
+                                  "model file format; the written model leaves them out")
             main, coup = c.reg.models(c.alphas, c.theta)
             axes[a] = main
             if coup is not None:

@@ -6,6 +6,10 @@ Signal path per axis, at the internal rate (10 kHz by default)::
     + coupling from the other axis -> creep -> dynamics -> drift -> delay
     -> sensor (noise, quantisation) -> sampled at the command rate
 
+``hysteresis`` (a plant option) replaces the Duhem law on the axes it names with a
+law that is not our model class (core/play.py: play operators with return-point
+memory and a tanh envelope); the coupling and everything after stay.
+
 Every unmodelled effect is off unless configured. A run is deterministic for a given
 seed, and running a record in one batch or in any chunking (down to one command at a
 time, as the lockstep driver does) gives identical output.
@@ -22,6 +26,7 @@ from piezo_stage.core._jit import as_f64, plant_run, sensor_run
 from piezo_stage.core.duhem import AXES, StageModel
 from piezo_stage.core.effects import EFFECTS, make_effect
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.play import PlayHysteresis
 
 # Order in which effects act on the displacement (see module docstring).
 EFFECT_ORDER = ("creep", "dynamics", "drift", "delay")
@@ -45,6 +50,9 @@ class PlantConfig:
     effects : dict
         effect name -> parameter dict (plus optional 'axes': ['x', 'y']); only the
         effects listed here are on.
+    hysteresis : dict
+        {} for the model file's Duhem law; else core/play.py's parameters (plus
+        'axes'): that law replaces the Duhem one on those axes.
     seed : int
         Seed of the sensor-noise generator.
     """
@@ -56,6 +64,7 @@ class PlantConfig:
     quantization_um: float = 0.005
     effects: dict = field(default_factory=dict)
     seed: int = 0
+    hysteresis: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if not self.internal_rate_hz > 0:
@@ -107,6 +116,13 @@ class Plant:
                 if a not in AXES:
                     raise ConfigError(f"effect {name}: unknown axis {a!r}")
                 self._effects[a].append(make_effect(name, self.fs_hz, params))
+        self._play = {}
+        if config.hysteresis:
+            params = dict(config.hysteresis)
+            for a in params.pop("axes", list(AXES)):
+                if a not in AXES:
+                    raise ConfigError(f"hysteresis: unknown axis {a!r}")
+                self._play[a] = PlayHysteresis.from_params(params)
         self._kernel_params()
         self.reset()
 
@@ -124,6 +140,9 @@ class Plant:
         d = max([p[1].shape[1] for p in kp if p is not None] or [1])
         self._alpha, self._H = np.zeros((4, 2)), np.zeros((4, 2, d))
         self._present = np.array([p is not None for p in kp])
+        for i, a in enumerate(AXES):  # another law in place of the Duhem one
+            if a in self._play:
+                self._present[i] = False
         for i, p in enumerate(kp):
             if p is not None:  # zero high-order padding leaves Horner's sums exact
                 self._alpha[i] = p[0]
@@ -142,6 +161,8 @@ class Plant:
             x0 = model.axes[a].initial.w if a in model.axes else 0.0
             for e in self._effects[a]:
                 e.reset(x0)
+        self._z = {a: law.rest(self._vstate[i]) for i, a in enumerate(AXES)
+                   if (law := self._play.get(a)) is not None}
         self._rng = np.random.default_rng(self.config.seed)
         self.limit_hits = 0
         self.samples = 0
@@ -179,6 +200,9 @@ class Plant:
         self.limit_hits += plant_run(vx, vy, R, self._vstate, self._dstate, self._alpha,
                                      self._H, self._present, self.v_limits[0],
                                      self.v_limits[1], self._max_step, applied, w)
+        for i, a in enumerate(AXES):
+            if a in self._play:
+                w[i] += self._play[a].run(applied[i], self._z[a])
         if self._has_effects:
             true = np.empty((2, n))
             for i, a in enumerate(AXES):

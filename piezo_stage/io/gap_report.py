@@ -49,9 +49,10 @@ def write_report(out_dir, result, holdout):
             for st in d.effects:
                 params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                    for k, v in st["params"].items())
+                pm = st.get("shrink_pm_pct", float("nan"))
                 lines.append(f"| {st['effect']} | {st['gap_after_um']:.4f} | "
-                             f"{st['shrink_pct']:.1f} +- {st.get('shrink_pm_pct', float('nan')):.1f}"
-                             f" | {st.get('rule', '')} | {params} |")
+                             f"{st['shrink_pct']:.1f} +- {pm:.1f} | {st.get('rule', '')} | "
+                             f"{params} |")
             lines.append("")
         b = d.budget
         if b:

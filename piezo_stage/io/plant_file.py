@@ -27,7 +27,7 @@ from piezo_stage.io.model_file import as_number, load_model, load_yaml
 
 SCHEMA_KEY = "piezo_stage_plant"
 _TOP = (SCHEMA_KEY, "model", "internal_rate_hz", "amplifier", "sensor", "seed", "effects",
-        "note")
+        "hysteresis", "note")
 
 
 def _num(d, key, default, where, lo=-math.inf, hi=math.inf):
@@ -74,8 +74,16 @@ def plant_config_from_dict(doc, base_dir=".", source="plant config") -> PlantCon
         seed = int(doc.get("seed", 0))
     except (TypeError, ValueError):
         raise ConfigError(f"{source}: seed must be an integer") from None
+    hyst = doc.get("hysteresis") or {}
+    if not isinstance(hyst, dict):
+        raise ConfigError(f"{source}: hysteresis must be a mapping")
+    if hyst:  # checked here, so a bad block fails when the file is read
+        from piezo_stage.core.play import PlayHysteresis
+        PlayHysteresis.from_params({k: v for k, v in hyst.items() if k != "axes"},
+                                   f"{source}: hysteresis")
     return PlantConfig(
         model=model,
+        hysteresis=dict(hyst),
         internal_rate_hz=_num(doc, "internal_rate_hz", 10_000.0, source, 1.0, 1.0e6),
         slew_V_per_s=_num(amp, "slew_V_per_s", 1.0e5, "amplifier", 1e-3, 1e9),
         noise_rms_um=_num(sensor, "noise_rms_um", 0.1, "sensor", 0.0, 1e3),
