@@ -107,7 +107,15 @@ class Candidate:
             fixed = fixed + Drift.columns(len(v), rec.fs_hz, self.drift_tau_s) @ self.theta[k:]
         if self.plays_V is not None:  # (their coefficients before the drift's)
             n = len(self.plays_V)
-            fixed = fixed + play_columns(v, self.plays_V) @ self.theta[k - n:k]
+            best = None
+            for start in PLAY_STARTS:  # the start that fits this record best
+                f = fixed + play_columns(v, self.plays_V, start) @ self.theta[k - n:k]
+                A = np.column_stack([cols[:, 1:], np.ones(len(v))])
+                c, *_ = np.linalg.lstsq(A, rec.w[axis] - f, rcond=None)
+                err = float(np.sum((rec.w[axis] - f - A @ c) ** 2))
+                if best is None or err < best[0]:
+                    best = (err, f)
+            fixed = best[1]
         A = np.column_stack([cols[:, 1:], np.ones(len(v))])
         coef, *_ = np.linalg.lstsq(A, rec.w[axis] - fixed, rcond=None)
         return fixed + A @ coef
@@ -185,7 +193,7 @@ def _compose(ops):
 
 
 def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = None,
-                  kept: Sequence[tuple[str, dict]] = ()) -> Candidate:
+                  kept: Sequence[tuple[str, dict]] = (), memory: bool = False) -> Candidate:
     """Fit the Duhem model, the effects already ``kept`` ([(name, params)], their
     parameters fixed) and ``effect`` (its parameters searched) together on rec. The
     transform effects are linear and time invariant, so they commute: the new one is
@@ -199,9 +207,11 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     deg = STRUCTURE_DEGREE if "structure" in names else (3, 2)
     reg = DuhemRegression(v, w, "segmented", n=deg[0], m=deg[1], v_other=v_other)
     tau, plays, extra = None, None, []
-    if "structure" in names:  # memory: play operators, linear in their weights
+    kept_structure = dict(kept).get("structure", {})
+    memory = (memory and effect == "structure") or "play_operators" in kept_structure
+    if memory:  # return-point memory: play operators, linear in their weights
         plays = np.ptp(v) * np.arange(1, STRUCTURE_PLAYS + 1) / (2 * STRUCTURE_PLAYS)
-        extra.append(play_columns(v, plays))
+        extra.append(play_start_columns(v, w, plays, reg.B))
     if "drift" in names:  # (last: its coefficients come last in theta)
         tau = max(rec.t[-1] - rec.t[0], 1.0) / 3.0
         extra.append(Drift.columns(len(v), fs, tau))
@@ -218,7 +228,9 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     if effect == "coupling" and base.reg.v_other is None:
         alphas = np.append(alphas, alphas.mean())
     elif effect == "structure":
-        params = {"degree": STRUCTURE_DEGREE[0], "play_operators": STRUCTURE_PLAYS}
+        params = {"degree": STRUCTURE_DEGREE[0]}
+        if memory:
+            params["play_operators"] = STRUCTURE_PLAYS
     elif effect in TRANSFORMS:
         # the kept operators applied once for these alphas; the new effect's parameter
         # search then filters only what it must (creep: once in all)
@@ -293,16 +305,38 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
                      effects, fs, plays)
 
 
-def play_columns(v: np.ndarray, thresholds_V: np.ndarray) -> np.ndarray:
-    """One column per play operator (threshold [V]), each from rest at v[0]: the
-    memory a Duhem law lacks, as regressors (core/play.py's law, unit weights)."""
+PLAY_STARTS = (0.0, 1.0, -1.0)  # operators at rest at v[0], after a fall, after a rise
+
+
+def play_columns(v: np.ndarray, thresholds_V: np.ndarray, start: float = 0.0) -> np.ndarray:
+    """One column per play operator (threshold r [V]): the memory a Duhem law lacks, as
+    regressors (core/play.py's law, unit weights). Each starts at v[0] + start * r: at
+    rest (0), or as left by a fall (+1) or a rise (-1) to v[0] before the record."""
     v = np.ascontiguousarray(v, dtype=float)
     out = np.empty((v.size, len(thresholds_V)))
     one, col = np.ones(1), np.empty(v.size)
     for j, r in enumerate(thresholds_V):
-        play_run(v, np.array([float(r)]), one, np.array([v[0]]), col)
+        play_run(v, np.array([float(r)]), one, np.array([v[0] + start * float(r)]), col)
         out[:, j] = col
     return out
+
+
+def play_start_columns(v: np.ndarray, w: np.ndarray, thresholds_V: np.ndarray,
+                       others: np.ndarray | None = None) -> np.ndarray:
+    """The play columns of the start (PLAY_STARTS) that, with ``others`` (columns)
+    and a constant, explains ``w`` best: the operators' state before a record is
+    not known, and a record cut from a run (a scan's later cycles) did not start at
+    rest. Chosen like the free response and the offset, from the record itself."""
+    best = (np.inf, None)
+    for start in PLAY_STARTS:
+        P = play_columns(v, thresholds_V, start)
+        A = np.column_stack([P] + ([others] if others is not None else [])
+                            + [np.ones(len(v))])
+        coef, *_ = np.linalg.lstsq(A, w, rcond=None)
+        err = float(np.sum((w - A @ coef) ** 2))
+        if err < best[0]:
+            best = (err, P)
+    return best[1]
 
 
 FIT_TOLERANCE = 1e-9  # relative: a candidate's FIT RMS above its base's by more is a miss
@@ -698,11 +732,22 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         testable.append(e)
     no_band = "dynamics" in testable and "delay" in testable and not broadband(
         fit.v[axis], fit.fs_hz)
+    def candidate(e, on, kept):
+        """fit_candidate; structure both ways (richer branches, and with play
+        operators: memory), the one closer on HOLDOUT kept (as every candidate is
+        judged), so memory is named only where it pays."""
+        c = fit_candidate(fit, axis, e, on, kept)
+        if e == "structure":
+            m = fit_candidate(fit, axis, e, on, kept, memory=True)
+            if rms(m.predict(holdout, axis) - holdout.w[axis]) < \
+                    rms(c.predict(holdout, axis) - holdout.w[axis]):
+                c = m
+        return c
     base = fit_candidate(fit, axis, "none", kept=given)
     progress(f"{axis} none")
     cands = {"none": base}
     for e in testable:
-        cands[e] = fit_candidate(fit, axis, e, base, base.effects)
+        cands[e] = candidate(e, base, base.effects)
         progress(f"{axis} {e}")
     nf = noise_floor(holdout.w[axis])
     w_h = holdout.w[axis]
@@ -755,7 +800,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 pairs.append(tuple(sorted(("delay", "dynamics"), key=scores.get)))
             best_pair = None
             for a, b in pairs:
-                pair = fit_candidate(fit, axis, b, pool[a], pool[a].effects)
+                pair = candidate(b, pool[a], pool[a].effects)
                 progress(f"{axis} {a}+{b}")
                 r_pair = rms(pair.predict(holdout, axis) - w_h)
                 tried[(a, b)] = (pair, r_pair)
@@ -788,12 +833,18 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         # is theirs and not a better alpha search riding along
         alphas, fitted, _ = fit_fast(c.reg, budget=POLISH_BUDGET, x0=c.alphas, step=0.1)
         if fitted.rms < c.fit_rms_um:
+            was = (c.alphas, c.theta, c.fit_rms_um, c.effects)
             c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
             c.effects = _with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
-            scores[e] = rms(c.predict(holdout, axis) - w_h)
-            g_new = _gap(scores[e], floor)
-            steps[-1].update(rms_after_um=scores[e], gap_after_um=g_new,
-                             shrink_pct=100.0 * (1 - g_new / g_before) if g_before else 0.0)
+            polished = rms(c.predict(holdout, axis) - w_h)
+            if polished <= scores[e]:
+                scores[e] = polished
+                g_new = _gap(scores[e], floor)
+                steps[-1].update(rms_after_um=scores[e], gap_after_um=g_new,
+                                 shrink_pct=100.0 * (1 - g_new / g_before)
+                                 if g_before else 0.0)
+            else:  # closer on FIT, further on HOLDOUT: the extra freedom overfits
+                c.alphas, c.theta, c.fit_rms_um, c.effects = was
         steps[-1]["shrink_pm_pct"] = shrink_uncertainty(
             resid, c.predict(holdout, axis) - w_h, floor, holdout.fs_hz)
         model, r_cur = c, scores[e]
@@ -805,7 +856,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 # fitted already as a pair on top of the effect just kept
                 pool[e2], scores[e2] = tried[(e, e2)]
             else:
-                pool[e2] = fit_candidate(fit, axis, e2, model, model.effects)
+                pool[e2] = candidate(e2, model, model.effects)
                 scores[e2] = rms(pool[e2].predict(holdout, axis) - w_h)
             progress(f"{axis} {'+'.join(x['effect'] for x in steps)}+{e2}")
     if model is not None:  # each effect's parameters as finally refitted (drift's)
@@ -1023,6 +1074,64 @@ def _line_rms(r, fs, freq, segs):
     return float(np.sqrt(power / n))
 
 
+MIN_PERIODS = 3        # synchronous averaging: whole periods needed (the first dropped)
+
+
+def input_period(v: np.ndarray, v_other: np.ndarray | None, fs: float,
+                 min_s: float = 0.05) -> int | None:
+    """The input's period in samples when the whole record repeats it (both axes'
+    inputs, to within 0.1 % of the span), at least MIN_PERIODS times; else None."""
+    from piezo_stage.core.identify.segmentation import voltage_noise
+    v = np.asarray(v, float)
+    n = v.size
+    span = float(np.ptp(v))
+    if span <= 0 or n < MIN_PERIODS * int(min_s * fs):
+        return None
+    x = v - v.mean()
+    f = np.fft.rfft(x, 2 * n)
+    ac = np.fft.irfft(f * np.conj(f))[:n]
+    ac /= np.maximum(ac[0] * (n - np.arange(n)) / n, 1e-300)  # unbiased, normalised
+    lo, hi = max(int(min_s * fs), 1), n // MIN_PERIODS
+    if hi <= lo:
+        return None
+    seg = ac[lo:hi + 1]
+    if seg.max() < 0.99:
+        return None
+    # the first peak of the correlation (>= 0.99), then its best-matching lag
+    L0 = lo + int(np.flatnonzero(seg >= 0.99)[0])
+    L1 = L0
+    while L1 + 1 <= hi and seg[L1 + 1 - lo] >= 0.99:
+        L1 += 1
+    tol = 1e-3 * span + 5.0 * voltage_noise(v)
+
+    def mismatch(L):
+        worst = 0.0
+        for u in (v, v_other):
+            if u is None or np.ptp(u) <= 0:
+                continue
+            u = np.asarray(u, float)
+            worst = max(worst, float(np.max(np.abs(u[L:] - u[:-L]))) /
+                        max(tol, 1e-3 * np.ptp(u)))
+        return worst
+    L = min(range(L0, L1 + 1), key=mismatch)
+    return L if L <= hi and mismatch(L) <= 1.0 else None
+
+
+def synchronous_split(resid: np.ndarray, period: int) -> tuple[float, float, int]:
+    """(locked, rest, periods used) [um]: the RMS of the residual's synchronous average
+    over its whole periods (the first dropped: the hysteresis's state settles), less the
+    average's noise bias (the rest's variance over the number of periods), and the RMS
+    of what differs from period to period."""
+    K = len(resid) // period
+    segs = np.asarray(resid[period:K * period], float).reshape(K - 1, period)
+    segs = segs - segs.mean()
+    mean = segs.mean(axis=0)
+    m = segs.shape[0]
+    var_rest = float(np.sum((segs - mean) ** 2) / ((m - 1) * period)) if m > 1 else 0.0
+    locked2 = float(np.mean(mean ** 2)) - var_rest / m
+    return float(np.sqrt(max(locked2, 0.0))), float(np.sqrt(var_rest)), m
+
+
 def gap_budget(holdout: Record, axis: str, resid: np.ndarray, nf: float, g_before: float,
                steps: list[dict]) -> dict:
     """Where the held-out residual goes [um]: the noise floor; the part locked to the
@@ -1037,9 +1146,19 @@ def gap_budget(holdout: Record, axis: str, resid: np.ndarray, nf: float, g_befor
     centred = (resid - resid.mean())[::k]
     vo = holdout.v.get(OTHER[axis])
     r = rms(centred)
-    rest = rms(centred - input_locked(holdout.v[axis][::k], None if vo is None else vo[::k],
-                                      holdout.fs_hz / k, centred))
-    il = float(np.sqrt(max(r * r - rest * rest, 0.0)))
+    period = input_period(holdout.v[axis], vo, holdout.fs_hz)
+    if period is not None:
+        # the input repeats: what repeats with it is the synchronous average over its
+        # periods (model-free), less the average's own noise
+        il, rest, used = synchronous_split(resid - resid.mean(), period)
+        estimator = {"kind": "synchronous average", "periods": used,
+                     "period_s": period / holdout.fs_hz}
+    else:
+        rest = rms(centred - input_locked(holdout.v[axis][::k],
+                                          None if vo is None else vo[::k],
+                                          holdout.fs_hz / k, centred))
+        il = float(np.sqrt(max(r * r - rest * rest, 0.0)))
+        estimator = {"kind": "regression", "why": "the input does not repeat"}
     nil = _gap(rest, nf)
     explained, g_prev = {}, g_before
     for s in steps:
@@ -1048,6 +1167,7 @@ def gap_budget(holdout: Record, axis: str, resid: np.ndarray, nf: float, g_befor
     total = np.sqrt(nf ** 2 + il ** 2 + nil ** 2)
     return {"residual_rms_um": rms(resid), "noise_floor_um": nf, "gap_um": g_before,
             "input_locked_um": il, "not_input_locked_um": nil,
+            "locked_estimator": estimator,
             "explained_um": explained, "unexplained_um": g_prev,
             "closure_pct": 100.0 * (total / r - 1.0) if r > 0 else 0.0}
 
