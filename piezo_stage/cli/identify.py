@@ -26,10 +26,14 @@ def add_arguments(s):
     s.add_argument("--voltage", choices=("auto", "exact"), default="auto",
                    help="exact: v is what the actuator got (never cleaned); auto: a noisy "
                    "(measured) v has its in-branch micro-reversals removed (bags: exact)")
-    s.add_argument("--n", type=number(0, 12, integer=True), default=3,
-                   help="degree of f (default 3)")
-    s.add_argument("--m", type=number(0, 12, integer=True), default=2,
-                   help="degree of g (default 2)")
+    s.add_argument("--structure", default="cubic", metavar="cubic|auto|D",
+                   help="branch shape: cubic (f of degree 3, g of 2: the paper's), D (f of "
+                   "degree D, g of D-1, D in 1..12), or auto (the degree, 3..7, that "
+                   "predicts the record's own last 40 %% best when fitted on the rest)")
+    s.add_argument("--n", type=number(0, 12, integer=True), default=None,
+                   help="degree of f (default 3; with --structure cubic only)")
+    s.add_argument("--m", type=number(0, 12, integer=True), default=None,
+                   help="degree of g (default 2; with --structure cubic only)")
     s.add_argument("--out", metavar="MODEL.yaml", help="write the model file")
     s.add_argument("--json", metavar="FILE", help="write the full report as JSON")
     s.add_argument("--plot", metavar="PNG", help="loop and fit-error figure (default: "
@@ -52,17 +56,36 @@ def main(args):
         if val is not None:
             val.voltage_exact = True
     axes = _axes(rec, args)
+    n, m = _degrees(args)
     opts = IdentifyOptions(method=args.method,
                            structure="whole" if args.whole else "segmented",
                            budget=args.budget, seed=args.seed, coupling=args.coupling,
-                           n=args.n, m=args.m)
+                           n=n, m=m)
+    chosen = {}
+    if args.structure == "auto":
+        from dataclasses import replace
+
+        from piezo_stage.core.identify.api import choose_degree
+        for a in axes:
+            d, held = choose_degree(rec, a, opts)
+            chosen[a] = (d, held)
+            print(f"structure {a}: degree {d} (held-out RMS on the record's last 40 %: "
+                  + ", ".join(f"{k}: {e:.4f} um" for k, e in held.items()) + ")")
+        opts_for = {a: replace(opts, n=chosen[a][0], m=max(chosen[a][0] - 1, 0))
+                    for a in axes}
+    else:
+        opts_for = {a: opts for a in axes}
     from piezo_stage.progress import bar, best_so_far
     results, report = {}, {}
     for a in axes:
         with bar(f"identify {a} ({opts.method})") as b:
-            r = identify_axis(rec, a, opts, best_so_far(b))
+            r = identify_axis(rec, a, opts_for[a], best_so_far(b))
         results[a] = r
         report[a] = r.to_json()
+        report[a]["degrees"] = {"f": opts_for[a].n, "g": opts_for[a].m}
+        if a in chosen:
+            report[a]["structure_auto"] = {"chosen": chosen[a][0], "held_out_rms_um": {
+                str(k): e for k, e in chosen[a][1].items()}}
         if val is not None:
             report[a].update(validate_axis(r, val))
     print(f"{'axis':>4} {'method':>8} {'structure':>9} {'fit_rms_um':>10} {'fit_pct':>8} "
@@ -131,3 +154,23 @@ def _axes(rec, args) -> list:
         print(f"note: {args.data}: {why(a)}; fitting {rest[0]} alone (--axis {rest[0]})",
               file=sys.stderr)
     return [a for a in wanted if a in moving]
+
+
+def _degrees(args) -> tuple[int, int]:
+    """(n, m) from --structure and --n/--m (usage errors: exit 2)."""
+    if args.structure in ("cubic", "auto"):
+        if args.structure == "auto" and (args.n is not None or args.m is not None):
+            raise DataError("--structure auto chooses the degrees: leave out --n/--m")
+        return (3 if args.n is None else args.n), (2 if args.m is None else args.m)
+    try:
+        d = int(args.structure)
+    except ValueError:
+        raise DataError(f"--structure {args.structure!r}: give cubic, auto or a degree "
+                        "1..12") from None
+    if not 1 <= d <= 12:
+        raise DataError(f"--structure {d}: the degree must be 1..12")
+    if args.n is not None or args.m is not None:
+        raise DataError(f"--structure {d} sets the degrees (f {d}, g {d - 1}): leave out "
+                        "--n/--m")
+    return d, d - 1
+

@@ -225,3 +225,36 @@ def validate_axis(res: AxisResult, rec: Record) -> dict:
     fig = error_figures(w, pred)
     return {"validate_rms_um": fig["rms_um"], "validate_rms_pct": fig["rms_pct"],
             "validate_max_err_um": fig["max_err_um"], "validate_noise_floor_um": noise_floor(w)}
+
+
+STRUCTURE_DEGREES = (3, 4, 5, 6, 7)  # identify --structure auto: branch degrees tried
+HELD_OUT_FRACTION = 0.4              # the record's last 40 % judges them
+
+
+def choose_degree(rec: Record, axis: str, opts: IdentifyOptions,
+                  degrees: Sequence[int] = STRUCTURE_DEGREES) -> tuple[int, dict]:
+    """The branch degree (f of degree d, g of d - 1) that predicts the record's own
+    later cycles best: each is fitted on the first 60 % of the span where the axis
+    moves and judged on the last 40 %
+    (initial output re-estimated, as for --validate); the smallest within 2 % of the
+    best wins (a higher degree must pay on held-out data). -> (d, {d: held-out RMS})."""
+    from dataclasses import replace
+    # the span where this axis moves (a protocol drives the axes in turn), split there
+    v = np.asarray(rec.v[axis], float)
+    moves = np.flatnonzero(np.abs(np.diff(v)) > 1e-9 * max(np.ptp(v), 1e-300))
+    lo, hi = (int(moves[0]), int(moves[-1]) + 2) if moves.size else (0, len(v))
+    cut = lo + int((hi - lo) * (1 - HELD_OUT_FRACTION))
+
+    def part(sl, name):
+        return Record(rec.t[sl], {a: v[sl] for a, v in rec.v.items()},
+                      {a: w[sl] for a, w in rec.w.items()}, source=f"{rec.source} ({name})",
+                      voltage_exact=rec.voltage_exact)
+    first, last = part(slice(lo, cut), "first 60 %"), part(slice(cut, hi), "last 40 %")
+    for piece in (first, last):
+        check_identifiable(piece.v[axis], piece.source)
+    held = {}
+    for d in degrees:
+        r = identify_axis(first, axis, replace(opts, n=d, m=max(d - 1, 0)))
+        held[d] = validate_axis(r, last)["validate_rms_um"]
+    best = min(held.values())
+    return min(d for d, e in held.items() if e <= 1.02 * best), held
