@@ -1,0 +1,206 @@
+"""Sim-to-real gap diagnosis: where the simulator and the stage disagree, which
+unmodelled effects cause it, and how far the gap shrinks once they are added.
+
+Base model ("the sim"): the segmented Duhem model per axis, identified on FIT (or
+given: then what it has is not a candidate). Candidates, each a small physical
+operator from core/effects.py added to the sim and fitted on FIT *together with* the
+Duhem coefficients (the effect operator is linear, so E(X theta) = E(X) theta: for
+fixed alphas and effect parameters it is one least-squares problem; the effect's own
+parameters are searched):
+
+    creep      w = E_creep(H(v)), log-like relaxation bank, gamma searched
+    dynamics   w = G(s) H(v), resonance (fn, zeta) or lag (tau), the better of the two
+    delay      w(t) = H(v)(t - d), d searched
+    drift      w = H(v) + a t + b (1 - exp(-t / tau)), input independent
+    coupling   w = H(v) + H_c(v_other), a Duhem term driven by the other axis
+    structure  H with richer branch polynomials (the hysteresis's own shape)
+    none       the base model alone
+
+Every candidate is scored on HOLDOUT (a different record): the initial Duhem state
+and a constant sensor offset are re-estimated there, the same for all. The gap is the
+part of the residual above the floor (the noise, and a disturbance line if any),
+sqrt(max(rms^2 - floor^2, 0)); shrink = 100 (1 - gap_after / gap_before). Effects join
+one at a time (forward selection, each refitted with those before it) while the
+held-out gap keeps shrinking clearly. The budget splits the held-out residual into
+noise, input-locked and not input-locked parts, and the gap into what each kept
+effect explains and what is left; a disturbance (a line the input does not cause) is
+reported with the feedback bandwidth that rejects it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+from piezo_stage.core.duhem import StageModel
+from piezo_stage.core.errors import DataError
+
+# the package's public names, here as before it was split by concern
+from piezo_stage.core.gap.budget import gap_budget, input_period  # noqa: F401
+from piezo_stage.core.gap.candidates import (  # noqa: F401
+    EFFECTS,
+    Candidate,
+    broadband,
+    fit_candidate,
+    play_columns,
+)
+from piezo_stage.core.gap.selection import AxisDiagnosis, diagnose_axis  # noqa: F401
+from piezo_stage.core.gap.where import held, holds  # noqa: F401
+from piezo_stage.core.record import Record
+
+# The other speed-up (see candidates.ONE_COLUMN_SEARCH): the axes in processes
+# (False: threads), switchable so that ``bench gap`` measures the path without it
+AXES_IN_PROCESSES = True
+
+
+@dataclass
+class Diagnosis:
+    """What ``diagnose`` found: ``json``, the --json contract (see the module docstring
+    and the README; ``diagnosis["verdict"]`` reads it), and ``per_axis``, each axis's
+    full diagnosis (its kept model and candidates: for reports and ``model``)."""
+
+    json: dict
+    per_axis: dict
+    notes: list = field(default_factory=list)  # what ``model`` had to leave out
+
+    def __getitem__(self, key: str) -> object:
+        return self.json[key]
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.json
+
+    def model(self, fit: Record) -> tuple[StageModel, dict]:
+        """The model with every kept effect, as ``gap --out-model`` writes it: (StageModel,
+        effects). Each axis's Duhem model (and coupling) from its kept fit; the model
+        file holds one parameter set per effect, so where both axes have one, the set of
+        the axis where it explains the most. Voltage limits: 0-150 V widened to FIT's."""
+        from piezo_stage.core.duhem import StageModel
+        axes, coupling, effects, weight = {}, {}, {}, {}
+        self.notes = []
+        for a, d in self.per_axis.items():
+            c = d.model or d.candidates["none"]
+            if c.plays_V is not None:
+                # the model file has no play operators (yet): their Duhem branches were
+                # fitted beside them and are wrong without them; the kept effects but
+                # the structure are refitted on FIT instead
+                c = fit_candidate(fit, a, "none", kept=[(n, p) for n, p in c.effects
+                                                        if n != "structure"])
+                self.notes.append(f"axis {a}: structure's play operators are not in the "
+                                  "model file format; the written model leaves them out")
+            main, coup = c.reg.models(c.alphas, c.theta)
+            axes[a] = main
+            if coup is not None:
+                coupling[a] = coup
+            for name, params in c.model_effects().items():
+                e = effects.setdefault(name, {"axes": []})
+                e["axes"].append(a)
+                w = d.budget.get("explained_um", {}).get(name, 0.0)
+                if w >= weight.get(name, -1.0):
+                    weight[name] = w
+                    e.update(params)
+        lim = (min(0.0, min(float(fit.v[a].min()) for a in axes)),
+               max(150.0, max(float(fit.v[a].max()) for a in axes)))
+        return StageModel(axes, coupling, lim), effects
+
+
+def _axis_child(conn, fit, holdout, axis, args):
+    effects, base_model, base_effects = args
+    try:
+        d = diagnose_axis(fit, holdout, axis, effects, base_model,
+                          lambda what: conn.send(("progress", what)), base_effects)
+        conn.send(("done", d))
+    except BaseException as e:  # noqa: BLE001 -- re-raised in the parent
+        conn.send(("error", e))
+    finally:
+        conn.close()
+
+
+def _axes_apart(fit, holdout, axes, args, progress):
+    """Each axis's diagnosis in a process of its own (forked: the records are not
+    copied), progress relayed from them. Processes, not threads: the many small steps
+    of the parameter searches hold the GIL, and two axes in two threads took 19 s
+    where two processes take 12 s (the 35 s, 5 kHz record with four effects). One
+    axis, or no fork (not Linux): in this process / in threads."""
+    import multiprocessing as mp
+    import sys
+    if len(axes) == 1 or not (AXES_IN_PROCESSES and sys.platform.startswith("linux")):
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
+            futures = {a: pool.submit(diagnose_axis, fit, holdout, a, args[0], args[1],
+                                      progress, args[2]) for a in axes}
+            return {a: f.result() for a, f in futures.items()}
+    from multiprocessing.connection import wait
+    ctx = mp.get_context("fork")
+    procs, conns, per = {}, {}, {}
+    try:
+        for a in axes:
+            r, w = ctx.Pipe(duplex=False)
+            p = ctx.Process(target=_axis_child, args=(w, fit, holdout, a, args), daemon=True)
+            p.start()
+            w.close()
+            procs[a], conns[r] = p, a
+        while conns:
+            for r in wait(list(conns)):
+                a = conns[r]
+                try:
+                    kind, val = r.recv()
+                except EOFError:
+                    procs[a].join(5)
+                    raise RuntimeError(f"axis {a}: its diagnosis process ended without a "
+                                       f"result (exit code {procs[a].exitcode})") from None
+                if kind == "progress":
+                    progress(val)
+                    continue
+                del conns[r]
+                r.close()
+                if kind == "error":
+                    raise val
+                per[a] = val
+    finally:
+        for p in procs.values():
+            if p.is_alive() and p.pid is not None and conns:
+                p.terminate()
+            p.join(5)
+    return {a: per[a] for a in axes}
+
+
+def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] = EFFECTS,
+             axes: Sequence[str] | None = None, base_model: StageModel | None = None,
+             progress: Callable[[str], None] | None = None,
+             base_effects: dict | None = None) -> Diagnosis:
+    """Diagnose the gap on every axis (see the module docstring). ``progress(what)`` is
+    called after each candidate fit (in this thread: relayed from the axes' processes)."""
+    t0 = time.perf_counter()
+    holdout = holdout or fit
+    axes = axes or [a for a in ("x", "y") if a in fit.w and a in holdout.w]
+    if not axes:
+        raise DataError("no axis with voltage and displacement in both records")
+    for a in axes:
+        if (a in fit.w) != (a in holdout.w):
+            raise DataError(f"FIT and HOLDOUT have different channels (axis {a})")
+    if len(fit.t) < 200 or len(holdout.t) < 200:
+        raise DataError("records too short for a gap diagnosis (need >= 200 samples)")
+    # the axes are independent problems, one per core; one BLAS thread each (two of
+    # each on two cores fight, ~20 % slower). threadpoolctl is optional (rosdep has no
+    # key for it): without it the diagnosis is the same, only slower on two axes.
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        def threadpool_limits(_n):
+            return contextlib.nullcontext()
+    args = (effects, base_model, base_effects)
+    with threadpool_limits(1 if len(axes) > 1 else None):
+        per = _axes_apart(fit, holdout, axes, args, progress or (lambda what: None))
+    worst = max(per.values(), key=lambda d: d.ranking[0]["gap_before_um"])
+    out = {"verdict": worst.verdict, "reason": worst.reason, "ranking": worst.ranking,
+           "where": worst.where, "noise_floor_um": worst.noise_floor_um,
+           "effects": worst.effects, "budget": worst.budget,
+           "axes": {a: {"verdict": d.verdict, "reason": d.reason, "ranking": d.ranking,
+                        "where": d.where, "noise_floor_um": d.noise_floor_um,
+                        "effects": d.effects, "budget": d.budget}
+                    for a, d in per.items()},
+           "holdout_is_fit": holdout is fit,
+           "seconds": time.perf_counter() - t0}
+    return Diagnosis(out, per)

@@ -1,0 +1,329 @@
+"""One axis's diagnosis: every candidate fitted on FIT and scored on HOLDOUT, forward
+selection of the effects that shrink the held-out gap, and the verdict."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from piezo_stage.core.duhem import OTHER, StageModel
+from piezo_stage.core.errors import DataError
+from piezo_stage.core.gap.budget import gap_above_floor, gap_budget, shrink_uncertainty
+from piezo_stage.core.gap.candidates import (
+    EFFECTS,
+    TRANSFORMS,
+    Candidate,
+    broadband,
+    fit_candidate,
+    with_drift,
+)
+from piezo_stage.core.gap.disturbance import disturbance
+from piezo_stage.core.gap.where import MIN_HOLD_S, holds, where
+from piezo_stage.core.identify.api import check_identifiable
+from piezo_stage.core.identify.fast import fit_fast
+from piezo_stage.core.metrics import noise_floor, rms
+from piezo_stage.core.record import Record
+
+
+class GivenModel:
+    """A model from a file as the base ("the sim"): prediction with the initial state
+    and a constant offset re-estimated on the record, like every candidate."""
+
+    effect = "given"
+    params: dict = {}
+
+    def __init__(self, stage_model: StageModel):
+        self.model = stage_model
+
+    def predict(self, rec: Record, axis: str) -> np.ndarray:
+        """The given model's prediction on a record (no fit)."""
+        from piezo_stage.core.identify.api import simulate_axis
+        m = self.model.axes[axis]
+        c = self.model.coupling.get(axis)
+        vo = rec.v.get(OTHER[axis])
+        if c is not None and vo is None:
+            c = None
+        w = simulate_axis(m, c, rec.v[axis], vo, w_meas=rec.w[axis])
+        r = rec.w[axis] - w
+        return w + r.mean()
+
+
+@dataclass
+class AxisDiagnosis:
+    """One axis's diagnosis: verdict, ranking, kept effects, budget, models."""
+    axis: str
+    verdict: str
+    reason: str
+    ranking: list
+    where: dict
+    noise_floor_um: float
+    candidates: dict = field(default_factory=dict)
+    effects: list = field(default_factory=list)    # forward selection: kept, in order
+    budget: dict = field(default_factory=dict)
+    model: Candidate | None = None                   # the model with every kept effect
+
+
+FIRST_SHRINK_PCT = 30.0  # the dominant effect must close this much of the held-out gap
+
+
+STEP_SHRINK_PCT = 15.0   # each further effect this much of what is left
+
+
+PAIR_POOL = 3           # no single effect closes the first 30 %: pairs among these best
+
+
+POLISH_BUDGET = 24       # and for a kept one, polished
+
+
+NOISE_STOP = 0.6         # a gap under this share of the noise floor is at the floor
+
+
+                         # (the residual within 17 % of the noise RMS, which is itself
+                         # estimated from the data)
+
+
+def _significant(rms_a, rms_b, nf, n):
+    """A held-out improvement counts when it is well above what chance gives on this
+    many samples (the MSE of white noise fluctuates by nf^2 sqrt(2/N))."""
+    return rms_a ** 2 - rms_b ** 2 > max(0.05 * nf ** 2, 10 * nf ** 2 * np.sqrt(2.0 / n))
+
+
+def _given_effects(base_model, base_effects, axis):
+    """What the user's model already has on this axis: never a candidate, and part of
+    every candidate's fit. -> [(name, params)]."""
+    out = []
+    if base_model is None or axis not in base_model.axes:
+        return out
+    if axis in base_model.coupling:
+        out.append(("coupling", {}))
+    for name, p in (base_effects or {}).items():
+        p = dict(p or {})
+        if axis in p.pop("axes", ["x", "y"]) and name in TRANSFORMS + ("drift",):
+            out.append((name, p))
+    return out
+
+
+def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str] = EFFECTS,
+                  base_model: StageModel | None = None,
+                  progress: Callable[[str], None] | None = None,
+                  base_effects: dict | None = None) -> AxisDiagnosis:
+    """Fit every candidate on FIT, score on HOLDOUT, then add effects one at a time
+    (forward selection, each refitted jointly with the Duhem model and the effects
+    kept before it) while the held-out gap keeps shrinking clearly. ``base_model`` (a
+    StageModel, with ``base_effects`` from its file) replaces the FIT-identified Duhem
+    model as the sim to compare with; what it already has is not a candidate.
+    ``progress(what)`` is called after each candidate is fitted."""
+    progress = progress or (lambda what="": None)
+    for rec in (fit, holdout):
+        if axis not in rec.v or axis not in rec.w:
+            raise DataError(f"{rec.source}: no v{axis}/w{axis} for axis {axis}")
+        check_identifiable(rec.v[axis], rec.source)
+    notes = []
+    if holdout is fit:
+        notes.append("no HOLDOUT: scored on FIT itself, where extra freedom is not "
+                     "penalised (record the excitation twice)")
+    given = _given_effects(base_model, base_effects, axis)
+    testable = []
+    for e in effects:
+        if e in [n for n, _ in given]:
+            continue  # the sim has it already
+        if e == "coupling":
+            vo_f, vo_h = fit.v.get(OTHER[axis]), holdout.v.get(OTHER[axis])
+            if vo_f is None or vo_h is None or np.ptp(vo_f) < 1.0:
+                notes.append("coupling not tested: the other axis's voltage does not move")
+                continue
+        testable.append(e)
+    no_band = "dynamics" in testable and "delay" in testable and not broadband(
+        fit.v[axis], fit.fs_hz)
+    def candidate(e, on, kept):
+        """fit_candidate; structure both ways (richer branches, and with play
+        operators: memory), the one closer on HOLDOUT kept (as every candidate is
+        judged), so memory is named only where it pays."""
+        c = fit_candidate(fit, axis, e, on, kept)
+        if e == "structure":
+            m = fit_candidate(fit, axis, e, on, kept, memory=True)
+            if rms(m.predict(holdout, axis) - holdout.w[axis]) < \
+                    rms(c.predict(holdout, axis) - holdout.w[axis]):
+                c = m
+        return c
+    base = fit_candidate(fit, axis, "none", kept=given)
+    progress(f"{axis} none")
+    cands = {"none": base}
+    for e in testable:
+        cands[e] = candidate(e, base, base.effects)
+        progress(f"{axis} {e}")
+    nf = noise_floor(holdout.w[axis])
+    w_h = holdout.w[axis]
+    n = len(w_h)
+    sim = GivenModel(base_model) if base_model is not None and axis in base_model.axes \
+        else base
+    resid = sim.predict(holdout, axis) - w_h
+    r_before = rms(resid)
+    # a line the input does not cause (a floor vibration) is no model's to close: for
+    # choosing effects it counts with the noise (the gap is what a model could close)
+    dist0 = disturbance(holdout, axis, resid, nf)
+    floor = float(np.hypot(nf, dist0["rms_um"])) if dist0 else nf
+    g_before = gap_above_floor(r_before, floor)
+    resids = {e: c.predict(holdout, axis) - w_h for e, c in cands.items()}
+    scores = {e: rms(r) for e, r in resids.items()}
+    ranking = []
+    for e, c in cands.items():
+        g_after = gap_above_floor(scores[e], floor)
+        ranking.append({"effect": e, "rms_before_um": r_before, "rms_after_um": scores[e],
+                        "gap_before_um": g_before, "gap_after_um": g_after,
+                        "shrink_pct": 100.0 * (1 - g_after / g_before) if g_before > 0 else 0.0,
+                        "shrink_pm_pct": shrink_uncertainty(resid, resids[e], floor,
+                                                            holdout.fs_hz),
+                        "fit_rms_um": c.fit_rms_um, "params": c.params})
+    ranking.sort(key=lambda r: r["gap_after_um"])
+    # forward selection: the best candidate joins when it shrinks the held-out gap
+    # clearly; the rest are refitted with it in place and tried again
+    steps, model, r_cur = [], None, r_before
+    # (every candidate stays in: one that explains nothing on its own, as creep
+    # beside a larger coupling, can show once the larger one is modelled)
+    pool = {e: cands[e] for e in testable}
+    tried = {}  # (a, b): b fitted on top of a, and its held-out RMS (the pairs)
+    while pool:
+        e, c = min(pool.items(), key=lambda kv: scores[kv[0]])
+        g_cur, g_new = gap_above_floor(r_cur, floor), gap_above_floor(scores[e], floor)
+        need = (50.0 if g_before <= 0.5 * floor else FIRST_SHRINK_PCT) if not steps \
+            else STEP_SHRINK_PCT
+        step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
+        rule = (f"the first-effect rule: it alone closes >= {need:.0f} % of the gap"
+                if not steps else f"the further-effect rule: it closes >= {need:.0f} % "
+                "of what was left")
+        if not steps and step < need and len(pool) > 1 and g_before > 0.5 * floor:
+            # effects of similar size: none alone closes 30 %, two of the three best
+            # together may (the better one of the best such pair joins first; the other
+            # must then still earn its place as a later step)
+            top = sorted(pool, key=scores.get)[:PAIR_POOL]
+            pairs = [(a, b) for i, a in enumerate(top) for b in top[i + 1:]]
+            if "delay" in pool and "dynamics" in pool and not {"delay", "dynamics"} <= set(top):
+                # a resonance seen through a delay: neither alone may fit at all
+                pairs.append(tuple(sorted(("delay", "dynamics"), key=scores.get)))
+            best_pair = None
+            for a, b in pairs:
+                pair = candidate(b, pool[a], pool[a].effects)
+                progress(f"{axis} {a}+{b}")
+                r_pair = rms(pair.predict(holdout, axis) - w_h)
+                tried[(a, b)] = (pair, r_pair)
+                g_pair, g_a = gap_above_floor(r_pair, floor), gap_above_floor(scores[a], floor)
+                if 100.0 * (1 - g_pair / g_cur) >= need \
+                        and _significant(r_cur, r_pair, floor, n) \
+                        and 100.0 * (1 - g_pair / g_a) >= STEP_SHRINK_PCT \
+                        and (best_pair is None or g_pair < best_pair[0]):
+                    best_pair = (g_pair, a, b)
+            if best_pair is not None:
+                e = best_pair[1]
+                c, g_new = pool[e], gap_above_floor(scores[e], floor)
+                step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
+                rule = (f"the pair rule: {e} and {best_pair[2]} together close "
+                        f"{100.0 * (1 - best_pair[0] / g_cur):.0f} % of the gap (>= "
+                        f"{need:.0f} %), which no effect does alone")
+                need = 0.0  # the first of a pair that closes the gap together
+        if not (_significant(r_cur, scores[e], floor, n) and step >= need):
+            break
+        # what fits as well at this step (the excitation cannot tell them apart)
+        alike = [e2 for e2 in pool if e2 != e and gap_above_floor(scores[e2], floor) <=
+                 1.02 * g_new + 0.02 * (g_cur - g_new)]
+        if steps and len(alike) >= 2 and len(alike) == len(pool) - 1:
+            break  # every candidate helps alike: the refit helps, not any one effect
+        steps.append({"effect": e, "params": c.params, "rms_after_um": scores[e],
+                      "gap_after_um": g_new, "step_shrink_pct": step,
+                      "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
+                      "equally_well": alike, "rule": rule})
+        # polish the kept model's alphas fully, so that what the next candidates earn
+        # is theirs and not a better alpha search riding along
+        alphas, fitted, _ = fit_fast(c.reg, budget=POLISH_BUDGET, x0=c.alphas, step=0.1)
+        if fitted.rms < c.fit_rms_um:
+            was = (c.alphas, c.theta, c.fit_rms_um, c.effects)
+            c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
+            c.effects = with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
+            polished = rms(c.predict(holdout, axis) - w_h)
+            if polished <= scores[e]:
+                scores[e] = polished
+                g_new = gap_above_floor(scores[e], floor)
+                steps[-1].update(rms_after_um=scores[e], gap_after_um=g_new,
+                                 shrink_pct=100.0 * (1 - g_new / g_before)
+                                 if g_before else 0.0)
+            else:  # closer on FIT, further on HOLDOUT: the extra freedom overfits
+                c.alphas, c.theta, c.fit_rms_um, c.effects = was
+        steps[-1]["shrink_pm_pct"] = shrink_uncertainty(
+            resid, c.predict(holdout, axis) - w_h, floor, holdout.fs_hz)
+        model, r_cur = c, scores[e]
+        del pool[e]
+        if g_new <= NOISE_STOP * floor:
+            break  # at the noise floor (itself estimated): nothing left to explain
+        for e2 in list(pool):
+            if len(steps) == 1 and (e, e2) in tried:
+                # fitted already as a pair on top of the effect just kept
+                pool[e2], scores[e2] = tried[(e, e2)]
+            else:
+                pool[e2] = candidate(e2, model, model.effects)
+                scores[e2] = rms(pool[e2].predict(holdout, axis) - w_h)
+            progress(f"{axis} {'+'.join(x['effect'] for x in steps)}+{e2}")
+    if model is not None:  # each effect's parameters as finally refitted (drift's)
+        final = dict(model.effects)
+        for st in steps:
+            st["params"] = final.get(st["effect"], st["params"])
+    loc = where(holdout, axis, resid, nf)
+    verdict, reason = _decide(ranking, steps, g_before, floor, fit, holdout, axis)
+    if verdict in ("none", "inconclusive"):
+        steps, model = [], None
+    if no_band and ({"delay", "dynamics"} & {st["effect"] for st in steps}
+                    or "delay and dynamics" in reason or "dynamics and delay" in reason):
+        notes.append("no broadband excitation (no chirp): a resonance above the "
+                     "excitation's tones cannot be told from a delay (record the "
+                     "protocol with its chirp: `excite` without `--chirp 0`)")
+    if notes:
+        reason = (reason + "; " if reason else "") + "; ".join(notes)
+    final = (model.predict(holdout, axis) - w_h) if model is not None else resid
+    dist = disturbance(holdout, axis, final, nf)
+    budget = gap_budget(holdout, axis, resid, nf, g_before, steps)
+    budget["disturbance"] = dist
+    g_left = budget["unexplained_um"]
+    if dist is not None and (not steps or dist["rms_um"] >= g_left):
+        # what is left is mostly a line no model of the input removes
+        said = (f"disturbance: {dist['rms_um']:.3g} um at {dist['freq_hz']:.1f} Hz, not "
+                f"caused by the input (reject it with >= {dist['feedback_bandwidth_hz']:.0f}"
+                " Hz of feedback bandwidth)")
+        if verdict == "none":
+            verdict, reason = "disturbance", said
+        else:
+            reason += "; what is left is a " + said
+    return AxisDiagnosis(axis, verdict, reason, ranking, loc, nf, cands, steps, budget,
+                         model)
+
+
+def _decide(ranking, steps, g_before, nf, fit, holdout, axis):
+    """The verdict: the first (dominant) effect forward selection kept, unless the
+    excitation cannot tell it from another."""
+    eff = [r for r in ranking if r["effect"] != "none"]
+    if not eff:
+        return "inconclusive", "no candidate effect could be tested"
+    if not steps:
+        if g_before <= 0.5 * nf:
+            return "none", f"the residual is at the noise floor (gap {g_before:.3g} um, " \
+                           f"noise {nf:.3g} um)"
+        best = eff[0]
+        return "inconclusive", (f"no candidate closes the gap ({g_before:.3g} um): best "
+                                f"{best['effect']} shrinks it by {best['shrink_pct']:.0f} %")
+    first = steps[0]["effect"]
+    if first in ("creep", "drift"):
+        if not holds(fit.v[axis], fit.fs_hz) or not holds(holdout.v[axis], holdout.fs_hz):
+            return "inconclusive", (f"no holds longer than {MIN_HOLD_S:g} s: creep cannot be "
+                                    "separated from drift")
+    kept = [s["effect"] for s in steps]
+    if len(eff) > 1 and eff[1]["gap_after_um"] <= eff[0]["gap_after_um"] * 1.02 + 1e-3 and \
+            eff[1]["shrink_pct"] >= FIRST_SHRINK_PCT and eff[1]["effect"] not in kept:
+        return "inconclusive", (f"{eff[0]['effect']} and {eff[1]['effect']} explain the gap "
+                                "equally well on this excitation")
+    said = ", then ".join(f"{s['effect']} to {s['gap_after_um']:.3g} um" + (
+        f" ({' or '.join(s['equally_well'])} as well: not separable on this excitation)"
+        if s["equally_well"] and i else "") for i, s in enumerate(steps))
+    return first, (f"{first} shrinks the held-out gap by {steps[0]['shrink_pct']:.0f} % "
+                   f"(chosen by {steps[0]['rule']})"
+                   + (f"; with {said} ({steps[-1]['shrink_pct']:.0f} % in all)"
+                      if len(steps) > 1 else ""))

@@ -1,0 +1,91 @@
+"""Where a residual lives: holds (voltages held still), and the residual by band,
+branch, turning points, holds, amplitude and the other axis's input."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy import signal
+
+from piezo_stage.core.duhem import OTHER
+from piezo_stage.core.errors import DataError
+from piezo_stage.core.identify.segmentation import segment
+from piezo_stage.core.metrics import rms
+from piezo_stage.core.record import Record
+
+MIN_HOLD_S = 1.0
+
+
+def hold_runs(v: ArrayLike, fs: float, min_s: float = 0.2,
+              tol_frac: float = 1e-3) -> list[tuple[int, int]]:
+    """The holds of ``v``: [(start, stop)] sample ranges of at least ``min_s`` seconds
+    over which the voltage stays within ``tol_frac`` of its span (the whole stretch,
+    not sample to sample: a slow sine's turning points and a staircase DAC output move
+    on, and are not holds)."""
+    from piezo_stage.core._jit import hold_runs_kernel
+    v = np.ascontiguousarray(v, dtype=float)
+    if v.size == 0:
+        return []
+    tol = tol_frac * max(float(np.ptp(v)), 1e-12)
+    need = max(int(round(min_s * fs)), 1)
+    out = np.empty((v.size // need + 1, 2), np.int64)
+    n = hold_runs_kernel(v, tol, need, out)
+    return [(int(a), int(b)) for a, b in out[:n]]
+
+
+def held(v: ArrayLike, fs: float, min_s: float = 0.2, tol_frac: float = 1e-3) -> np.ndarray:
+    """Mask of the samples inside holds (see ``hold_runs``)."""
+    mask = np.zeros(len(v), bool)
+    for a, b in hold_runs(v, fs, min_s, tol_frac):
+        mask[a:b] = True
+    return mask
+
+
+def holds(v: ArrayLike, fs: float, min_s: float = MIN_HOLD_S) -> list[float]:
+    """Lengths [s] of the holds of at least ``min_s`` seconds (see ``hold_runs``)."""
+    return [(b - a) / fs for a, b in hold_runs(v, fs, min_s)]
+
+
+def where(rec: Record, axis: str, resid: np.ndarray, nf: float) -> dict:
+    """Localise the residual: band, segment, amplitude, correlation with the other axis."""
+    v = rec.v[axis]
+    fs = rec.fs_hz
+    out = {"axis": axis, "rms_um": rms(resid), "noise_floor_um": nf}
+    f, P = signal.welch(resid - resid.mean(), fs=fs, nperseg=min(len(resid), 4096))
+    white = nf ** 2 / (fs / 2)  # one-sided PSD of white noise of variance nf^2
+    edges = [0.0, 0.3, 3.0, 30.0, 300.0, fs / 2]
+    bands = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (f >= lo) & (f < hi) if hi < fs / 2 else (f >= lo)
+        if m.sum() == 0 or lo >= fs / 2:
+            continue
+        excess = float(np.sum(np.clip(P[m] - white, 0, None)) * (f[1] - f[0]))
+        bands.append(((lo, min(hi, fs / 2)), excess))
+    (blo, bhi), _ = max(bands, key=lambda b: b[1])
+    out["band_hz"] = [blo, bhi]
+    out["band_excess_um2"] = {f"{lo:g}-{hi:g}": e for (lo, hi), e in bands}
+    dv = np.diff(v, prepend=v[0])
+    try:
+        seg = segment(v)
+        turn = np.zeros(len(v), bool)
+        wdt = max(1, int(0.02 * fs))
+        for i in seg.turning_points:
+            turn[max(i - wdt, 0):i + wdt] = True
+        labels = seg.labels
+    except DataError:
+        turn = np.zeros(len(v), bool)
+        labels = np.sign(dv)
+    still = held(v, fs)
+    parts = {"ascending": (labels > 0) & ~turn & ~still,
+             "descending": (labels < 0) & ~turn & ~still,
+             "turning_points": turn & ~still, "holds": still}
+    seg_rms = {k: rms(resid[m]) for k, m in parts.items() if m.sum() > 10}
+    out["segment_rms_um"] = seg_rms
+    out["segment"] = max(seg_rms, key=seg_rms.get)
+    q = np.quantile(v, [1 / 3, 2 / 3])
+    amp = {"low": v <= q[0], "mid": (v > q[0]) & (v <= q[1]), "high": v > q[1]}
+    out["amplitude_rms_um"] = {k: rms(resid[m]) for k, m in amp.items() if m.sum() > 10}
+    vo = rec.v.get(OTHER[axis])
+    if vo is not None and np.ptp(vo) > 0:
+        out["corr_other_input"] = float(np.corrcoef(resid, vo)[0, 1])
+    return out
