@@ -426,34 +426,6 @@ def test_launch_file_and_launcher_share_one_node_list_and_parameters(tmp_path):
     assert la.node_params("stage_driver")["use_sim_time"] is True
 
 
-def test_package_xml_declares_what_the_code_imports():
-    """Every third-party module the package imports has an exec_depend (rosdep key)."""
-    import ast
-    import xml.etree.ElementTree as ET
-    deps = {e.text for e in ET.parse(os.path.join(ROOT, "package.xml")).getroot()
-            if e.tag == "exec_depend"}
-    key = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python3-yaml",
-           "numba": "python3-numba", "matplotlib": "python3-matplotlib",
-           "tqdm": "python3-tqdm", "mcap": "python3-mcap-pip",
-           "rosbags": "python3-rosbags-pip", "nidaqmx": "python3-nidaqmx-pip",
-           "foxglove": "python3-foxglove-sdk-pip", "websockets": "python3-websockets",
-           "threadpoolctl": "python3-threadpoolctl"}
-    std = set(sys.stdlib_module_names) | {"piezo_stage", "piezo_stage_msgs_adapters"}
-    files = [os.path.join(d, f) for base in ("piezo_stage", "piezo_stage_msgs_adapters",
-                                             "launch")
-             for d, _, fs in os.walk(os.path.join(ROOT, base)) for f in fs
-             if f.endswith(".py")]
-    used = set()
-    for f in files:
-        for node in ast.walk(ast.parse(open(f).read())):
-            if isinstance(node, ast.Import):
-                used |= {a.name.split(".")[0] for a in node.names}
-            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
-                used.add(node.module.split(".")[0])
-    missing = sorted(m for m in used - std if key.get(m, m) not in deps)
-    assert not missing, missing
-
-
 def test_recorder_takes_a_latched_trajectory_sent_before_it_started_once(tmp_path, env):
     """A trajectory a latched publisher sent before the recorder came up is in the bag
     (the recorder was volatile on /stage/trajectory and lost it), once, although it

@@ -73,3 +73,37 @@ def test_without_mcap_a_bag_command_says_what_to_install(tmp_path):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
     assert "pip install mcap" in r.stderr and "unreadable" not in r.stderr, r.stderr
+
+
+# imported, but with no rosdep key: the README's "ROS install" pip line installs them
+PIP_ONLY = {"mcap": "mcap", "foxglove": "foxglove-sdk", "threadpoolctl": "threadpoolctl",
+            "nidaqmx": "nidaqmx"}
+
+
+def test_package_xml_declares_what_the_code_imports():
+    """Every third-party module the package imports has an exec_depend (a rosdep key),
+    or has no key and is on the README's pip line for ROS installs."""
+    import sys
+    deps = {key for tag, key in _depends() if tag == "exec_depend"}
+    key = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python3-yaml",
+           "numba": "python3-numba", "matplotlib": "python3-matplotlib",
+           "tqdm": "python3-tqdm", "rosbags": "python3-rosbags-pip",
+           "websockets": "python3-websockets"}
+    std = set(sys.stdlib_module_names) | {"piezo_stage", "piezo_stage_msgs_adapters"}
+    files = [os.path.join(d, f) for base in ("piezo_stage", "piezo_stage_msgs_adapters",
+                                             "launch")
+             for d, _, fs in os.walk(os.path.join(ROOT, base)) for f in fs
+             if f.endswith(".py")]
+    used = set()
+    for f in files:
+        for node in ast.walk(ast.parse(open(f).read())):
+            if isinstance(node, ast.Import):
+                used |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                used.add(node.module.split(".")[0])
+    missing = sorted(m for m in used - std - set(PIP_ONLY) if key.get(m, m) not in deps)
+    assert not missing, missing
+    readme = open(os.path.join(ROOT, "README.md")).read()
+    pip_lines = [line for line in readme.splitlines() if line.strip().startswith("pip install")]
+    for module, package in PIP_ONLY.items():
+        assert module not in used or any(package in line for line in pip_lines), package
