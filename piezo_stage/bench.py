@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 
+from piezo_stage.bench_procs import cpu_ticks, progress_runs
 from piezo_stage.core.plant import Plant
 from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
 
@@ -152,25 +153,6 @@ def _ring_rate(env, steps=3000):
             p.wait()
 
 
-def _runs(items, desc):
-    """Iterate with a progress bar on a terminal (tqdm; silent otherwise)."""
-    from piezo_stage.progress import bar
-    items = list(items)
-    with bar(desc, total=len(items), unit=" runs") as b:
-        for x in items:
-            yield x
-            b.update(1)
-
-
-def _cpu_ticks():
-    """(all, steal) CPU ticks of this machine so far (/proc/stat; zeros elsewhere)."""
-    try:
-        f = [int(x) for x in open("/proc/stat").readline().split()[1:]]
-        return sum(f), f[7]
-    except (OSError, IndexError, ValueError):
-        return 0, 0
-
-
 def _loop_run(env, steps, foxglove_port=None):
     """One lockstep run with the recorder: (steps/s, median ms, p99 ms, lost per topic,
     steal fraction), or (None, log tail) when the run failed. With ``foxglove_port``
@@ -190,7 +172,7 @@ def _loop_run(env, steps, foxglove_port=None):
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"],
                     foxglove_port=foxglove_port)
     log = tempfile.TemporaryFile("w+")
-    c0 = _cpu_ticks()
+    c0 = cpu_ticks()
     with contextlib.redirect_stderr(log):
         old = os.dup(2)
         os.dup2(log.fileno(), 2)
@@ -198,7 +180,7 @@ def _loop_run(env, steps, foxglove_port=None):
             rc = launch.run(duration=600)
         finally:
             os.dup2(old, 2)
-    c1 = _cpu_ticks()
+    c1 = cpu_ticks()
     log.seek(0)
     text = log.read()
     m = re.search(r"done after (\d+) samples: (\d+) steps/s, step period median ([\d.]+) "
@@ -239,7 +221,7 @@ def bench_loop(steps=3000, runs=5):
           "nodes' lean wait set and raw CDR, no recorder; run before each loop run, so "
           "each ratio pairs two runs minutes apart at most (this host's speed drifts)")
     results, rings = [], []
-    for k in _runs(range(runs), "bench loop: runs"):
+    for k in progress_runs(range(runs), "bench loop: runs"):
         rings.append(_ring_rate(env))
         res, err = _loop_run(env, steps)
         if res is None:
@@ -308,7 +290,7 @@ def bench_liveview(steps=6000, pairs=3):
           "the live view (Foxglove WebSocket) and a client watching joint_states, "
           f"alternated, {pairs} pairs")
     plain, watched, rates = [], [], []
-    for k in _runs(range(pairs), "bench liveview: pairs"):
+    for k in progress_runs(range(pairs), "bench liveview: pairs"):
         res, err = _loop_run(env, steps)
         if res is None:
             print("  the loop run failed:\n" + err)

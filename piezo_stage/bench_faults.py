@@ -188,8 +188,8 @@ def bench_faults() -> int:
         if not probe.wait_state("armed", 60):
             print("bench faults: the set did not arm")
             return 1
-        from piezo_stage.bench import _runs
-        for name in _runs(FAULTS, "bench faults: faults"):
+        from piezo_stage.bench_procs import progress_runs
+        for name in progress_runs(FAULTS, "bench faults: faults"):
             probe.spin(1.5)
             n = len(probe.states)
             t0 = time.time_ns()

@@ -127,3 +127,22 @@ def main(argv):
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]) or 0)
+
+
+def progress_runs(items, desc):
+    """Iterate with a progress bar on a terminal (tqdm; silent otherwise)."""
+    from piezo_stage.progress import bar
+    items = list(items)
+    with bar(desc, total=len(items), unit=" runs") as b:
+        for x in items:
+            yield x
+            b.update(1)
+
+
+def cpu_ticks():
+    """(all, steal) CPU ticks of this machine so far (/proc/stat; zeros elsewhere)."""
+    try:
+        f = [int(x) for x in open("/proc/stat").readline().split()[1:]]
+        return sum(f), f[7]
+    except (OSError, IndexError, ValueError):
+        return 0, 0

@@ -24,7 +24,7 @@ DT_NS = 1_000_000  # 1 kHz
 
 
 def _run(mode: str, track_s: float, env: dict, bag: str):
-    from piezo_stage.bench import _cpu_ticks
+    from piezo_stage.bench_procs import cpu_ticks
     from piezo_stage.launch.host_pauses import HostPauseMonitor
     from piezo_stage.launch.launcher import Launch
     from piezo_stage.paths import default_config
@@ -38,10 +38,10 @@ def _run(mode: str, track_s: float, env: dict, bag: str):
                              exit_after_max_steps=True)
     launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"])
-    c0 = _cpu_ticks()
+    c0 = cpu_ticks()
     with HostPauseMonitor() as mon:
         rc = launch.run(duration=900.0)
-    c1 = _cpu_ticks()
+    c1 = cpu_ticks()
     if rc != 0:
         raise RuntimeError(f"the {mode} run failed: {launch.failed}")
     return read_run(bag), (c1[1] - c0[1]) / max(1, c1[0] - c0[0]), mon.pauses
@@ -110,8 +110,8 @@ def bench_realtime(track_s: float = 20.0) -> int:
     print(f"bench realtime: the seed's 10 Hz trajectory for {track_s:g} s, driver (sim at "
           "1 kHz) + feedforward + controller + trajectory + recorder as separate processes")
     out = {}
-    from piezo_stage.bench import _runs
-    for mode in _runs(("realtime", "lockstep"), "bench realtime: runs"):
+    from piezo_stage.bench_procs import progress_runs
+    for mode in progress_runs(("realtime", "lockstep"), "bench realtime: runs"):
         run, steal, pauses = _run(mode, track_s, env, os.path.join(tmp, mode))
         out[mode] = figures(run, track_s, slew, pauses)
         out[mode]["steal"] = steal

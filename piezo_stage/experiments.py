@@ -87,7 +87,8 @@ def _controller_params(c):
             "controller": ctl}
 
 
-def _merge(*ds):
+def merge_params(*ds: dict) -> dict:
+    """{node: parameters} mappings merged, later ones over earlier ones, per node."""
     out = {}
     for d in ds:
         for node, p in d.items():
@@ -110,7 +111,7 @@ def plan(name, freqs=FREQS_HZ, controllers=CONTROLLERS, with_effects=False):
                     tag = "" if comp else " (effects not compensated)"
                     cases.append(Case(f"tracking {f:g} Hz {c}{tag}", f, t, {"x": w, "y": w}, c,
                                       eval_s=n_eval / f,
-                                      params=_merge(_controller_params(c), {
+                                      params=merge_params(_controller_params(c), {
                                           "feedforward": {"compensate_effects": comp}})))
     elif name == "decoupling":
         f = 1.0
@@ -123,7 +124,7 @@ def plan(name, freqs=FREQS_HZ, controllers=CONTROLLERS, with_effects=False):
                                   f"{'on' if on else 'off'}", f, t, {driven: w, held: hold},
                                   "feedforward", judged=(held,), moving=driven,
                                   eval_s=EVAL_CYCLES / f, group=f"{driven}->{held}",
-                                  params=_merge(_controller_params("feedforward"),
+                                  params=merge_params(_controller_params("feedforward"),
                                                 {"feedforward": {"use_coupling": on}})))
     elif name == "amplitude":
         f = 1.0
@@ -166,7 +167,7 @@ def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=N
     # the driver counts its own samples (in real time from when its clock starts, once
     # the set listens), so both modes end right after the trajectory and its tail
     drv.update(max_steps=int(total_s * RATE_HZ), exit_after_max_steps=True)
-    o = _merge(extra or {}, {"stage_driver": drv, "trajectory": {"kind": "csv",
+    o = merge_params(extra or {}, {"stage_driver": drv, "trajectory": {"kind": "csv",
                                                                  "csv_path": csv}},
                {"feedforward": {"model_file": os.path.abspath(model)}} if model else {},
                case.params)
@@ -248,8 +249,8 @@ def saturate(cases, range_um, warn):
 
 
 def _range(config, extra):
-    from piezo_stage.launch.launcher import _params
-    r = {**_params(config).get("feedforward", {}),
+    from piezo_stage.launch.launcher import read_parameters
+    r = {**read_parameters(config).get("feedforward", {}),
          **(extra or {}).get("feedforward", {})}.get("range_um", [-10.0, 90.0])
     return float(r[0]), float(r[1])
 

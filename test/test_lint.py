@@ -125,3 +125,81 @@ def test_core_public_docstrings_pass_numpydoc():
                 found.append(f"{full}: {code} {msg}")
     assert len(names) > 150  # the walk found the API
     assert not found, "\n".join(found)
+
+
+# -- the layout: no private name across modules, no import circle ------------------
+
+def _module_path(name):
+    """The file of a dotted module of ours (a package's __init__.py), or None."""
+    base = os.path.join(ROOT, *name.split("."))
+    for p in (base + ".py", os.path.join(base, "__init__.py")):
+        if os.path.exists(p):
+            return p
+    return None
+
+
+def _imports(path):
+    """(line, module file, names) of every import of our packages in ``path``
+    (function-level ones too)."""
+    for node in ast.walk(ast.parse(open(path).read())):
+        if isinstance(node, ast.ImportFrom) and node.module and not node.level \
+                and node.module.split(".")[0] in PACKAGES:
+            yield node.lineno, node.module, [a.name for a in node.names]
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.split(".")[0] in PACKAGES:
+                    yield node.lineno, a.name, []
+
+
+def test_no_private_name_is_imported_across_modules():
+    """A name with a leading underscore is its module's own: used elsewhere it is a
+    public API nobody documented (private modules such as nodes/_params.py are fine:
+    their public names are the package's internal API)."""
+    bad = []
+    for path in _modules():
+        for line, module, names in _imports(path):
+            for n in names:
+                if n.startswith("_") and not n.startswith("__") and \
+                        _module_path(f"{module}.{n}") is None:
+                    bad.append(f"{os.path.relpath(path, ROOT)}:{line}: {module}.{n}")
+    assert not bad, bad
+
+
+def test_no_import_circle():
+    """The modules' imports (function-level ones too) form no circle: each module sits
+    on a floor above everything it uses."""
+    graph = {}
+    for path in _modules():
+        deps = set()
+        for _, module, names in _imports(path):
+            target = _module_path(module)
+            subs = [p for p in (_module_path(f"{module}.{n}") for n in names) if p]
+            deps |= set(subs) or ({target} if target else set())
+        graph[path] = deps - {path}
+    index, low, stack, on, circles, counter = {}, {}, [], set(), [], [0]
+
+    def strong(v):  # Tarjan's strongly connected components
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(os.path.relpath(w, ROOT))
+                if w == v:
+                    break
+            if len(comp) > 1:
+                circles.append(sorted(comp))
+    for v in list(graph):
+        if v not in index:
+            strong(v)
+    assert not circles, circles

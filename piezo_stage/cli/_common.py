@@ -94,9 +94,9 @@ def port(text):
 
 def param_overrides(paths) -> dict:
     """Node parameters from parameter files (as `tune` writes), later files win."""
-    from piezo_stage.launch.launcher import _params
+    from piezo_stage.launch.launcher import read_parameters
     out = {}
     for p in paths or ():
-        for node, params in _params(p).items():
+        for node, params in read_parameters(p).items():
             out.setdefault(node, {}).update(params)
     return out

@@ -67,7 +67,7 @@ def _check_inputs(args):
 def identify_first(out_dir, config, plant, mode, extra, namespace):
     """No model given: the identifier identifies one through the node set (the demo's
     excitation) and it is written to out_dir/identified_model.yaml."""
-    from piezo_stage.experiments import NODES, _merge
+    from piezo_stage.experiments import NODES, merge_params
     from piezo_stage.io.bag import deserialize, iter_messages
     from piezo_stage.io.files import atomic_write
     from piezo_stage.launch.launcher import Launch
@@ -77,7 +77,7 @@ def identify_first(out_dir, config, plant, mode, extra, namespace):
         drv["plant_config"] = os.path.abspath(plant)
     if mode == "lockstep":
         drv.update(max_steps=5000, exit_after_max_steps=True)
-    o = _merge(extra or {}, {"stage_driver": drv,
+    o = merge_params(extra or {}, {"stage_driver": drv,
                              "trajectory": {"kind": "seed", "duration_s": 0.5, "excite_s": 4.0},
                              "identifier": {"auto_cycles": 2},
                              "feedforward": {"model_required_after_s": 4.0}})

@@ -34,7 +34,9 @@ LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
 STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
 
 
-def _params(config_path):
+def read_parameters(config_path) -> dict:
+    """{node name: parameters} of a node-parameters YAML (the file ros2 run takes),
+    checked: bounded, a mapping of '<node>: ros__parameters:' sections."""
     try:  # bounded: size, nesting, no aliases (the one YAML reader, io/model_file.py)
         doc = load_yaml(config_path, "config file") or {}
     except ModelError as e:
@@ -70,7 +72,7 @@ class Launch:
                  nodes=None, env=None, arm=True, foxglove_port=None, trajectory=True,
                  exclusive=True):
         self.config_path = os.path.abspath(config_path)
-        params = _params(self.config_path)
+        params = read_parameters(self.config_path)
         # outside trajectories only (--no-trajectory, or the trajectory node's kind: none):
         # the set arms, holds position and takes trajectories from other nodes
         kind = {**params.get("trajectory", {}),

@@ -77,13 +77,13 @@ def input_locked(v: np.ndarray, v_other: np.ndarray, fs: float,
     on the record itself (fitted on one fold, predicted on the other), so it holds
     what repeats with the input and not noise. -> that component (like resid)."""
     from piezo_stage.core._jit import duhem_regressors, lowpass_mean_columns
-    from piezo_stage.core.identify.regress import _basis
+    from piezo_stage.core.identify.regress import legendre_basis
     cols = []
     for u in (v, v_other):
         if u is None or np.ptp(u) <= 0:
             continue
         u = np.ascontiguousarray(u, dtype=float)
-        B = _basis(u, float(u.min()), float(u.max()), 3)
+        B = legendre_basis(u, float(u.min()), float(u.max()), 3)
         for alpha in LOCK_ALPHAS:
             X = duhem_regressors(u, float(u[0]), np.array([alpha, alpha]), B, B,
                                  np.empty((len(u), 2 * 4 + 1)))

@@ -38,7 +38,7 @@ from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
 from piezo_stage.core.identify.regress import legendre_to_power
 
 if TYPE_CHECKING:  # annotations only (api imports this module)
-    from piezo_stage.core.identify.api import IdentifyOptions
+    from piezo_stage.core.identify.options import IdentifyOptions
     from piezo_stage.core.identify.segmentation import Segmentation
 
 DEFAULTS = {"fish": 30, "iterations": 200, "visual": 0.3, "step": 0.1, "delta": 0.618,

@@ -10,6 +10,7 @@ import numpy as np
 
 from piezo_stage.core.duhem import OTHER, DuhemModel, DuhemState
 from piezo_stage.core.errors import DataError, SolverError
+from piezo_stage.core.identify.options import IdentifyOptions
 from piezo_stage.core.identify.regress import DuhemRegression
 from piezo_stage.core.identify.segmentation import (
     Segmentation,
@@ -27,25 +28,6 @@ MIN_BRANCH_SAMPLES = 20
 # |correlation| of the two axes' voltages above which direct and coupling terms cannot
 # be told apart (the same waveform on both axes: any split of the response fits)
 COLLINEAR = 0.99
-
-
-@dataclass
-class IdentifyOptions:
-    """How to identify an axis.
-
-    method: fast | afsa | afsa-bat; structure: whole | segmented; n, m: degrees of f and
-    g; coupling: 'auto' (fit a coupling term when the other axis's voltage moves and the
-    method is fast), 'on' or 'off'; budget: objective evaluations (None for the method's
-    default); seed for the swarms; afsa: swarm settings."""
-
-    method: str = "fast"
-    structure: str = "segmented"
-    n: int = 3
-    m: int = 2
-    coupling: str = "auto"
-    budget: int | None = None
-    seed: int = 0
-    afsa: dict = field(default_factory=dict)
 
 
 @dataclass

@@ -30,7 +30,8 @@ from piezo_stage.core._jit import as_f64, duhem_regressors, fold_branches
 from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
 
 
-def _basis(v, lo, hi, deg):
+def legendre_basis(v: np.ndarray, lo: float, hi: float, deg: int) -> np.ndarray:
+    """Legendre polynomials 0..deg of v mapped from [lo, hi] to [-1, 1], as columns."""
     x = (2.0 * v - (lo + hi)) / (hi - lo) if hi > lo else np.zeros_like(v)
     return np.ascontiguousarray(L.legvander(x, deg))
 
@@ -115,7 +116,7 @@ class DuhemRegression:
         self.n, self.m = int(n), int(m)
         self.D = max(self.n, self.m)
         self.lo, self.hi = float(self.v.min()), float(self.v.max())
-        self.B = _basis(self.v, self.lo, self.hi, self.D)
+        self.B = legendre_basis(self.v, self.lo, self.hi, self.D)
         self.v_other = None if v_other is None else as_f64(v_other)
         self.cdeg = int(coupling_deg)
         # coupling_state=False pins the coupling's initial output to 0: a model meant for
@@ -126,7 +127,7 @@ class DuhemRegression:
         self.cstate = bool(coupling_state)
         if self.v_other is not None:
             self.olo, self.ohi = float(self.v_other.min()), float(self.v_other.max())
-            self.Bo = _basis(self.v_other, self.olo, self.ohi, self.cdeg)
+            self.Bo = legendre_basis(self.v_other, self.olo, self.ohi, self.cdeg)
         self.evaluations = 0
         self.transform = None
         self.extra = None
@@ -143,10 +144,10 @@ class DuhemRegression:
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self.B = _basis(self.v, self.lo, self.hi, self.D)
+        self.B = legendre_basis(self.v, self.lo, self.hi, self.D)
         self._X = np.empty((self.v.size, 2 * (self.D + 1) + 1))
         if self.v_other is not None:
-            self.Bo = _basis(self.v_other, self.olo, self.ohi, self.cdeg)
+            self.Bo = legendre_basis(self.v_other, self.olo, self.ohi, self.cdeg)
             self._Xo = np.empty((self.v.size, 2 * (self.cdeg + 1) + 1))
             self._Xc = np.empty((self.v.size, 2 * (self.cdeg + 1) + self.cstate))
 

@@ -1,0 +1,25 @@
+"""How an axis is identified: the options every solver reads (their own module, so
+the solvers and the identification that calls them import it without a circle)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class IdentifyOptions:
+    """How to identify an axis.
+
+    method: fast | afsa | afsa-bat; structure: whole | segmented; n, m: degrees of f and
+    g; coupling: 'auto' (fit a coupling term when the other axis's voltage moves and the
+    method is fast), 'on' or 'off'; budget: objective evaluations (None for the method's
+    default); seed for the swarms; afsa: swarm settings."""
+
+    method: str = "fast"
+    structure: str = "segmented"
+    n: int = 3
+    m: int = 2
+    coupling: str = "auto"
+    budget: int | None = None
+    seed: int = 0
+    afsa: dict = field(default_factory=dict)
