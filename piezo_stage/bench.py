@@ -411,34 +411,18 @@ def _bench_structure():
     """bench gap's block for issue 25: a stage whose hysteresis is not our model class
     (config/structure_stage.yaml: play operators, memory, a tanh envelope). Two seed
     pairs of the protocol with its nested loops, both axes; then the kind of record
-    real stages give (one axis, a 1 Hz full-stroke sine, 10 s at 5 kHz, fit on 3 s,
-    held out on the next 4 s). The truth of the locked part: the base model's error
-    against the plant's true displacement."""
-    import os
-
-    from piezo_stage.core.excitation import gap_protocol
-    from piezo_stage.core.gap import diagnose, fit_candidate
-    from piezo_stage.core.plant import Plant
-    from piezo_stage.core.record import Record
-    from piezo_stage.io.plant_file import default_config_dir, load_plant_config
-    cfg = load_plant_config(os.path.join(default_config_dir(), "structure_stage.yaml"))
+    real stages give (gap_blind.scan_cut). The truth of the locked part: the base
+    model's error against the plant's true displacement (gap_blind.locked_truth)."""
+    from piezo_stage.core.gap import diagnose
+    from piezo_stage.studies.gap_blind import locked_truth, scan_cut, structure_pair
     print("\n  structure stage (play-operator hysteresis: memory, tanh envelope; our "
           "coupling): protocol with nested loops, 1 kHz, both axes")
     worse = total = 0
     for seeds in ((1, 2), (3, 4)):
-        recs = []
-        for sd in seeds:
-            cfg.seed = sd
-            t, vx, vy = gap_protocol(1000.0, seed=sd, nested=True)
-            plant = Plant(cfg, 1000.0)
-            w = plant.run(vx, vy)
-            recs.append((Record(t, {"x": vx, "y": vy}, w), plant.last_true))
-        (fit, _), (hold, true) = recs
+        fit, hold, true = structure_pair(seeds)
         res = diagnose(fit, hold)
         for a, d in res["axes"].items():
-            base = fit_candidate(fit, a, "none")
-            e = base.predict(hold, a) - true[a]
-            truth = float(np.sqrt(np.mean((e - e.mean()) ** 2)))
+            truth = locked_truth(fit, hold, true[a], a)
             b = d["budget"]
             none = next(r for r in d["ranking"] if r["effect"] == "none")["fit_rms_um"]
             worse += sum(r["fit_rms_um"] > none * (1 + 1e-9) for r in d["ranking"])
@@ -450,18 +434,9 @@ def _bench_structure():
                      f"{last['shrink_pm_pct']:.0f} % (target >= 60 %)" if last else "")
                   + f"; locked {b['input_locked_um']:.3f} um vs truth {truth:.3f} um "
                   f"({100 * (b['input_locked_um'] / truth - 1):+.0f} %, target within 15 %)")
-    cfg.model.coupling.clear()
-    fs = 5000.0
-    t = np.arange(int(10 * fs)) / fs
-    v = 75 - 75 * np.cos(2 * np.pi * t)
-    plant = Plant(cfg, fs)
-    w = plant.run(v, 0 * v)["x"]
-    b0, c0 = int(3 * fs), int(7 * fs)
-    fit = Record(t[:b0], {"x": v[:b0]}, {"x": w[:b0]})
-    hold = Record(t[b0:c0] - t[b0], {"x": v[b0:c0]}, {"x": w[b0:c0]})
+    fit, hold, true = scan_cut()
     res = diagnose(fit, hold)
-    e = fit_candidate(fit, "x", "none").predict(hold, "x") - plant.last_true["x"][b0:c0]
-    truth = float(np.sqrt(np.mean((e - e.mean()) ** 2)))
+    truth = locked_truth(fit, hold, true, "x")
     b = res["budget"]
     kept = res["effects"][0] if res["effects"] else None
     after = next((r["rms_after_um"] for r in res["ranking"] if r["effect"] == res["verdict"]),

@@ -370,26 +370,6 @@ def test_one_column_search_finds_what_the_exact_search_finds(kind, monkeypatch):
             assert fast.params[k] == v
 
 
-def _structure_pair(seeds=(1, 2), fs=1000.0):
-    """(FIT, HOLDOUT, the HOLDOUT's true displacement) from config/structure_stage.yaml:
-    play-operator hysteresis (return-point memory, a tanh envelope), not our model
-    class; the gap protocol with its nested minor loops."""
-    from piezo_stage.core.excitation import gap_protocol
-    from piezo_stage.core.plant import Plant
-    from piezo_stage.core.record import Record
-    from piezo_stage.io.plant_file import load_plant_config
-    cfg = load_plant_config(os.path.join(ROOT, "config", "structure_stage.yaml"))
-    out = []
-    for seed in seeds:
-        cfg.seed = seed
-        t, vx, vy = gap_protocol(fs, seed=seed, nested=True)
-        plant = Plant(cfg, fs)
-        w = plant.run(vx, vy)
-        out.append((Record(t, {"x": vx, "y": vy}, w, source=f"structure {seed}"),
-                    plant.last_true))
-    return out[0][0], out[1][0], out[1][1]
-
-
 def test_a_stage_with_memory_is_named_structure_and_its_locked_part_is_the_truth():
     """A stage whose hysteresis is not our model class (play operators: memory our
     Duhem law lacks, branches no cubic follows): structure (play-operator columns beside
@@ -397,16 +377,15 @@ def test_a_stage_with_memory_is_named_structure_and_its_locked_part_is_the_truth
     stage's coupling, and the budget's input-locked part is within 15 % of the truth
     the plant knows. (Before: the structure class was degree-5 branches only: 1 %
     shrink, verdict inconclusive; the locked part was 0.41 of 0.47 um.)"""
-    from piezo_stage.core.gap import fit_candidate
-    fit, hold, true = _structure_pair()
+    from piezo_stage.studies.gap_blind import locked_truth, structure_pair
+    fit, hold, true = structure_pair()
     res = diagnose(fit, hold, axes=["x"])
     assert res["verdict"] == "structure", res["reason"]
     named = [s["effect"] for s in res["effects"]]
     assert named[0] == "structure" and "coupling" in named, named
     assert res["effects"][0]["params"]["play_operators"] == 16  # memory was needed
     assert res["effects"][-1]["shrink_pct"] >= 60.0, res["effects"]
-    base = fit_candidate(fit, "x", "none")
-    locked_true = float(np.sqrt(np.mean((base.predict(hold, "x") - true["x"]) ** 2)))
+    locked_true = locked_truth(fit, hold, true["x"], "x")
     b = res["budget"]
     assert abs(b["input_locked_um"] - locked_true) <= 0.15 * locked_true, (b, locked_true)
 
@@ -448,20 +427,8 @@ def test_a_scan_cut_from_a_run_of_a_stage_with_memory():
     >= 40 % of the held-out gap; the budget's locked part is the synchronous average
     (the held-out input repeats) and within 10 % of the truth; no candidate is worse on
     FIT than the base. (Before: structure was degree-5 branches, 1 % at best.)"""
-    from piezo_stage.core.gap import fit_candidate
-    from piezo_stage.core.plant import Plant
-    from piezo_stage.core.record import Record
-    from piezo_stage.io.plant_file import load_plant_config
-    cfg = load_plant_config(os.path.join(ROOT, "config", "structure_stage.yaml"))
-    cfg.model.coupling.clear()
-    fs = 5000.0
-    t = np.arange(int(10 * fs)) / fs
-    v = 75 - 75 * np.cos(2 * np.pi * t)
-    plant = Plant(cfg, fs)
-    w = plant.run(v, 0 * v)["x"]
-    b, c = int(3 * fs), int(7 * fs)
-    fit = Record(t[:b], {"x": v[:b]}, {"x": w[:b]}, source="fit")
-    hold = Record(t[b:c] - t[b], {"x": v[b:c]}, {"x": w[b:c]}, source="holdout")
+    from piezo_stage.studies.gap_blind import locked_truth, scan_cut
+    fit, hold, true = scan_cut()
     res = diagnose(fit, hold)
     assert res["verdict"] == "structure", res["reason"]
     assert res["effects"][0]["shrink_pct"] >= 40.0
@@ -470,6 +437,5 @@ def test_a_scan_cut_from_a_run_of_a_stage_with_memory():
     budget = res["budget"]
     assert budget["locked_estimator"] == {"kind": "synchronous average", "periods": 3,
                                           "period_s": 1.0}
-    e = fit_candidate(fit, "x", "none").predict(hold, "x") - plant.last_true["x"][b:c]
-    truth = float(np.sqrt(np.mean((e - e.mean()) ** 2)))
+    truth = locked_truth(fit, hold, true, "x")
     assert abs(budget["input_locked_um"] - truth) <= 0.10 * truth, (budget, truth)

@@ -13,16 +13,21 @@ Two plant families:
 from __future__ import annotations
 
 import copy
+import os
 import time
 
 import numpy as np
 from scipy import signal
 
 from piezo_stage.core.excitation import CHIRP_S, gap_protocol
-from piezo_stage.core.gap import diagnose
+from piezo_stage.core.gap import diagnose, fit_candidate
 from piezo_stage.core.plant import Plant
 from piezo_stage.core.record import Record
-from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
+from piezo_stage.io.plant_file import (
+    default_config_dir,
+    default_plant_config_path,
+    load_plant_config,
+)
 
 TRUTHS = ("none", "creep", "dynamics", "delay", "drift", "coupling")
 
@@ -176,3 +181,45 @@ def confusion(rows, family=None):
     for r in rs:
         M[TRUTHS.index(r["truth"]), labels.index(r["verdict"])] += 1
     return labels, M
+
+
+# a stage whose hysteresis is not our model class (issue 25): config/structure_stage.yaml
+
+def structure_pair(seeds=(1, 2), fs=1000.0):
+    """(FIT, HOLDOUT, the HOLDOUT's true displacement {axis: um}) from the structure
+    stage (play operators: memory, a tanh envelope; our coupling), the gap protocol
+    with its nested minor loops, one record per seed."""
+    cfg = load_plant_config(os.path.join(default_config_dir(), "structure_stage.yaml"))
+    out = []
+    for seed in seeds:
+        cfg.seed = seed
+        t, vx, vy = gap_protocol(fs, seed=seed, nested=True)
+        plant = Plant(cfg, fs)
+        w = plant.run(vx, vy)
+        out.append((Record(t, {"x": vx, "y": vy}, w, source=f"structure {seed}"),
+                    plant.last_true))
+    return out[0][0], out[1][0], out[1][1]
+
+
+def scan_cut(fs=5000.0):
+    """The kind of record a real actuator gives (issue 25), from the structure stage
+    without coupling: one axis, a 1 Hz full-stroke sine for 10 s, FIT the first 3 s,
+    HOLDOUT the next 4 s (cut from the run: the operators did not start at rest).
+    -> (FIT, HOLDOUT, the HOLDOUT's true displacement [um])."""
+    cfg = load_plant_config(os.path.join(default_config_dir(), "structure_stage.yaml"))
+    cfg.model.coupling.clear()
+    t = np.arange(int(10 * fs)) / fs
+    v = 75 - 75 * np.cos(2 * np.pi * t)
+    plant = Plant(cfg, fs)
+    w = plant.run(v, 0 * v)["x"]
+    b, c = int(3 * fs), int(7 * fs)
+    fit = Record(t[:b], {"x": v[:b]}, {"x": w[:b]}, source="scan, first 3 s")
+    hold = Record(t[b:c] - t[b], {"x": v[b:c]}, {"x": w[b:c]}, source="scan, next 4 s")
+    return fit, hold, plant.last_true["x"][b:c]
+
+
+def locked_truth(fit, hold, true, axis):
+    """The true input-locked part of the base model's held-out residual [um]: the
+    identified Duhem model's error against the plant's noise-free displacement."""
+    e = fit_candidate(fit, axis, "none").predict(hold, axis) - true
+    return float(np.sqrt(np.mean((e - e.mean()) ** 2)))
