@@ -12,9 +12,12 @@ from __future__ import annotations
 import time
 
 
-def running_set(namespace: str, domain_id: int, wait_s: float = 0.5) -> str | None:
+def running_set(namespace: str, domain_id: int, wait_s: float = 2.0) -> str | None:
     """None when nothing runs in ``namespace`` on ``domain_id``; else who runs there
-    ("host, pid N", or the node names when no driver announced itself)."""
+    ("host, pid N", or the node names when no driver announced itself). Up to
+    ``wait_s`` for the graph to show the namespace's nodes: on a loaded host their
+    names took longer than 0.5 s to arrive, and the second launch went ahead (a fresh
+    clone's suite, 2026-11-25); a clean start pays the whole wait once."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.context import Context
