@@ -122,7 +122,6 @@ def main(args):
     return 0
 
 
-
 def _axes(rec, args) -> list:
     """The axes to fit. An axis the record lacks or holds idle is named, with the
     --axis that fits what moves: an error when it was asked for by name, or when it
