@@ -1,87 +1,21 @@
-"""The model file: one YAML schema used by the simulator, the inverse and identification.
-
-Schema (version 1)::
-
-    piezo_stage_model: 1
-    convention: seed-eq6        # w_k (1 + alpha|dv|) = w_{k-1} + |dv| f(v_k) + dv g(v_k)
-    units: {voltage: V, displacement: um, alpha: 1/V, f: um/V, g: um/V}
-    voltage_limits_V: [0.0, 150.0]
-    axes:
-      x:
-        structure: whole | segmented
-        initial_state: {v_V: 0.0, w_um: 0.0}
-        # whole:      alpha, f, g at this level
-        # segmented:  ascending: {alpha, f, g} and descending: {alpha, f, g}
-        #             or, when only the identifiable combination is known,
-        #             ascending: {alpha, h} (h = f + g), descending: {alpha, h} (h = g - f)
-        coupling:               # optional: displacement on x caused by the y voltage
-          structure: whole
-          alpha: ...
-          f: [...]
-          g: [...]
-      y: ...
-    effects: {}                 # optional unmodelled effects (see core/effects.py)
-
-Coefficients are lowest power first. Unknown keys are rejected so a typo is not
-silently ignored.
-"""
+"""The model file on disk: read (bounded, checked) and written (atomically); the schema
+and its checks are core/model_doc.py's, shared with the model message."""
 
 from __future__ import annotations
 
-import numpy as np
 import yaml
 
-from piezo_stage.core.duhem import AXES, DuhemBranch, DuhemModel, DuhemState, StageModel
-from piezo_stage.core.effects import validate_effects
-from piezo_stage.core.errors import ConfigError, ModelError
+from piezo_stage.core.duhem import StageModel
+from piezo_stage.core.errors import ModelError
+from piezo_stage.core.model_doc import (  # noqa: F401 - the file's names, as before
+    MAX_YAML_BYTES,
+    SCHEMA_KEY,
+    as_number,
+    model_from_dict,
+    model_to_dict,
+    parse_yaml,
+)
 from piezo_stage.io.files import atomic_write
-
-SCHEMA_KEY = "piezo_stage_model"
-SCHEMA_VERSION = 1
-
-
-MAX_YAML_BYTES = 1_000_000  # a model or plant file is a few kB; this is generous
-MAX_YAML_DEPTH = 32         # ours nest 5 deep; PyYAML's composer recurses per level
-
-
-# Aliases are refused (a 1 kB 'billion laughs' document expands to gigabytes; our files
-# never need anchors) from the parser's events, before anything is composed.
-_FAST_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-
-
-def parse_yaml(text, source="YAML", max_bytes=MAX_YAML_BYTES):
-    """Parse bounded YAML text (no aliases, at most max_bytes); ModelError on any
-    problem, with where."""
-    if len(text) > max_bytes:
-        raise ModelError(f"{source}: {len(text)} bytes, more than the {max_bytes} accepted")
-    try:
-        # the nesting and aliases first, from the parser's events (an iterative state
-        # machine): the composer recurses once per level, and 20,000 '[' would exhaust
-        # the stack. libyaml's parser when there is one: a model message is then parsed
-        # in well under a millisecond, not 5 ms in Python (a feedforward taking a new
-        # model while armed must not hold its loop up)
-        depth = 0
-        for event in yaml.parse(text, Loader=_FAST_LOADER):
-            if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
-                depth += 1
-                if depth > MAX_YAML_DEPTH:
-                    mark = event.start_mark
-                    raise ModelError(f"{source}: nested deeper than {MAX_YAML_DEPTH} levels "
-                                     f"at line {mark.line + 1}")
-            elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
-                depth -= 1
-            elif isinstance(event, yaml.AliasEvent):
-                raise ModelError(f"{source}: aliases are not accepted at line "
-                                 f"{event.start_mark.line + 1}")
-        # no aliases, at most MAX_YAML_DEPTH levels: the safe loader composes it as is
-        return yaml.load(text, Loader=_FAST_LOADER)  # noqa: S506 - a safe loader
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        why = ("aliases are not accepted" if "aliases" in str(e) else
-               f"nested deeper than {MAX_YAML_DEPTH} levels" if "nesting depth" in str(e)
-               else "malformed YAML")  # (libyaml's own bound, met before ours)
-        raise ModelError(f"{source}: {why}{where}") from None
 
 
 def load_yaml(path, what="file"):
@@ -101,182 +35,9 @@ def load_yaml(path, what="file"):
     return parse_yaml(text, f"{what} {path}")
 
 
-def as_number(x, where, error=ModelError):
-    """A finite real number. Booleans are not numbers here; a string is one only when
-    it reads as a number (YAML 1.1 reads ``1e-3`` and ``1.0e6`` as strings)."""
-    if isinstance(x, bool) or not isinstance(x, (int, float, str)):
-        raise error(f"{where}: expected a number, got {x!r}")
-    try:
-        v = float(x)
-    except ValueError:
-        raise error(f"{where}: expected a number, got {x!r}") from None
-    if not np.isfinite(v):
-        raise error(f"{where}: not finite")
-    return v
-
-
-_number = as_number
-
-
-def _numbers(xs, where):
-    if not isinstance(xs, (list, tuple)) or not xs:
-        raise ModelError(f"{where}: expected a list of numbers")
-    return [_number(x, f"{where}[{i}]") for i, x in enumerate(xs)]
-
-
-def _check_keys(d, allowed, where):
-    if not isinstance(d, dict):
-        raise ModelError(f"{where}: expected a mapping")
-    extra = set(d) - set(allowed)
-    if extra:
-        raise ModelError(f"{where}: unknown key(s) {sorted(extra)}")
-
-
-def _branch(d, where):
-    _check_keys(d, ("alpha", "f", "g", "h"), where)
-    if "alpha" not in d:
-        raise ModelError(f"{where}: missing alpha")
-    if "h" in d and ("f" in d or "g" in d):
-        raise ModelError(f"{where}: give either h or f and g, not both")
-    if "h" not in d and ("f" not in d or "g" not in d):
-        raise ModelError(f"{where}: needs f and g (or h)")
-    alpha = _number(d["alpha"], f"{where}.alpha")
-    try:
-        if "h" in d:
-            return DuhemBranch.from_h(alpha, _numbers(d["h"], f"{where}.h"))
-        return DuhemBranch(alpha, _numbers(d["f"], f"{where}.f"),
-                           _numbers(d["g"], f"{where}.g"))
-    except (TypeError, ValueError) as e:  # ModelError is a ValueError
-        raise ModelError(f"{where}: {e}") from None
-
-
-def _duhem(d, where) -> DuhemModel:
-    if not isinstance(d, dict):
-        raise ModelError(f"{where}: expected a mapping")
-    structure = d.get("structure", "whole")
-    init = d.get("initial_state", {}) or {}
-    _check_keys(init, ("v_V", "w_um"), f"{where}.initial_state")
-    state = DuhemState(_number(init.get("v_V", 0.0), f"{where}.initial_state.v_V"),
-                       _number(init.get("w_um", 0.0), f"{where}.initial_state.w_um"))
-    if structure == "whole":
-        _check_keys(d, ("structure", "initial_state", "alpha", "f", "g", "h", "coupling",
-                        "note"), where)
-        b = _branch({k: d[k] for k in ("alpha", "f", "g", "h") if k in d}, where)
-        return DuhemModel(b, b, state)
-    if structure == "segmented":
-        _check_keys(d, ("structure", "initial_state", "ascending", "descending",
-                        "coupling", "note"), where)
-        for k in ("ascending", "descending"):
-            if k not in d:
-                raise ModelError(f"{where}: segmented model needs '{k}'")
-        return DuhemModel(_branch(d["ascending"], f"{where}.ascending"),
-                          _branch(d["descending"], f"{where}.descending"), state)
-    raise ModelError(f"{where}: structure must be 'whole' or 'segmented', got {structure!r}")
-
-
-def model_from_dict(doc, source="model") -> tuple[StageModel, dict]:
-    """Parse a model document; returns (StageModel, effects dict)."""
-    if not isinstance(doc, dict) or SCHEMA_KEY not in doc:
-        raise ModelError(f"{source}: not a piezo_stage model file (no '{SCHEMA_KEY}' key)")
-    if doc[SCHEMA_KEY] != SCHEMA_VERSION:
-        raise ModelError(f"{source}: unsupported model version {doc[SCHEMA_KEY]!r}")
-    _check_keys(doc, (SCHEMA_KEY, "convention", "units", "voltage_limits_V", "axes",
-                      "effects", "identification", "note"), source)
-    if doc.get("convention", "seed-eq6") != "seed-eq6":
-        raise ModelError(f"{source}: unknown convention {doc['convention']!r}")
-    axes_doc = doc.get("axes")
-    if not isinstance(axes_doc, dict) or not axes_doc:
-        raise ModelError(f"{source}: 'axes' must map x and/or y to a model")
-    axes, coupling = {}, {}
-    for a, d in axes_doc.items():
-        if a not in AXES:
-            raise ModelError(f"{source}: unknown axis {a!r}")
-        axes[a] = _duhem(d, f"{source}: axes.{a}")
-        if isinstance(d, dict) and d.get("coupling") is not None:
-            coupling[a] = _duhem(d["coupling"], f"{source}: axes.{a}.coupling")
-    lim = doc.get("voltage_limits_V", [0.0, 150.0])
-    if not isinstance(lim, (list, tuple)) or len(lim) != 2:
-        raise ModelError(f"{source}: voltage_limits_V must be [min, max]")
-    lim = tuple(_numbers(list(lim), f"{source}: voltage_limits_V"))
-    if not lim[0] < lim[1] or max(abs(lim[0]), abs(lim[1])) > MAX_VOLTS:
-        raise ModelError(f"{source}: voltage_limits_V {list(lim)} must have min < max "
-                         f"within +-{MAX_VOLTS:g} V")
-    _check_magnitudes(axes, coupling, lim, source)
-    try:  # every effect key known, every value in a physical range (core/effects.py)
-        effects = validate_effects(doc.get("effects"), f"{source}: effects")
-    except ConfigError as e:
-        raise ModelError(str(e)) from None
-    return StageModel(axes, coupling, lim), effects
-
-
-MAX_VOLTS = 1000.0      # no piezo amplifier here drives more
-MAX_SLOPE = 1.0e4       # um/V: h(v) beyond this anywhere in the limits is not a stage
-
-
-def _check_magnitudes(axes, coupling, lim, source):
-    """Every branch polynomial finite and physically sized over the voltage limits
-    (1e300 coefficients, or 2,000 terms that overflow, are refused here)."""
-    v = np.linspace(lim[0], lim[1], 201)
-    for kind, models in (("axes", axes), ("coupling", coupling)):
-        for a, m in models.items():
-            for name, br in (("ascending", m.ascending), ("descending", m.descending)):
-                for asc in (True, False):
-                    with np.errstate(all="ignore"):
-                        y = np.polynomial.polynomial.polyval(v, br.h(asc))
-                    if not np.all(np.isfinite(y)) or np.abs(y).max() > MAX_SLOPE:
-                        raise ModelError(f"{source}: {kind}.{a} {name} branch reaches "
-                                         f"{np.nanmax(np.abs(y)):.3g} um/V within the "
-                                         f"voltage limits (finite and <= {MAX_SLOPE:g})")
-
-
 def load_model(path) -> tuple[StageModel, dict]:
     """Read a model file; returns (StageModel, effects)."""
     return model_from_dict(load_yaml(path, "model file"), str(path))
-
-
-def _floats(a):
-    return [float(x) for x in np.asarray(a, float)]
-
-
-def _branch_doc(b: DuhemBranch, ascending: bool):
-    if b.reduced:
-        return {"alpha": b.alpha, "h": _floats(b.h(ascending))}
-    return {"alpha": b.alpha, "f": _floats(b.f), "g": _floats(b.g)}
-
-
-def _duhem_doc(m: DuhemModel):
-    d = {"structure": m.structure,
-         "initial_state": {"v_V": float(m.initial.v), "w_um": float(m.initial.w)}}
-    if m.structure == "whole":
-        d.update(_branch_doc(m.ascending, True))
-    else:
-        d["ascending"] = _branch_doc(m.ascending, True)
-        d["descending"] = _branch_doc(m.descending, False)
-        if m.ascending.reduced or m.descending.reduced:
-            d["note"] = ("within one branch only h = f + g (ascending) and h = g - f "
-                         "(descending) are identifiable; f and g are not given separately")
-    return d
-
-
-def model_to_dict(model: StageModel, effects=None, extra=None) -> dict:
-    doc = {
-        SCHEMA_KEY: SCHEMA_VERSION,
-        "convention": "seed-eq6",
-        "units": {"voltage": "V", "displacement": "um", "alpha": "1/V",
-                  "f": "um/V per V^i", "g": "um/V per V^i"},
-        "voltage_limits_V": [float(x) for x in model.voltage_limits],
-        "axes": {},
-    }
-    for a, m in model.axes.items():
-        d = _duhem_doc(m)
-        if a in model.coupling:
-            d["coupling"] = _duhem_doc(model.coupling[a])
-        doc["axes"][a] = d
-    if effects:
-        doc["effects"] = effects
-    if extra:
-        doc.update(extra)
-    return doc
 
 
 def save_model(path, model: StageModel, effects=None, extra=None):
