@@ -397,3 +397,32 @@ def test_use_sim_time_on_a_real_time_set_is_refused(tmp_path):
         Launch(str(cfg))
     r = cli("launch", cfg, "--duration", "1")
     assert r.returncode == 2 and "use_sim_time" in r.stderr
+
+
+@pytest.mark.parametrize("plays, why", [
+    ({"thresholds_V": [0, 10], "weights_um_per_V": [0.1]}, "same length"),
+    ({"thresholds_V": [-1, 10], "weights_um_per_V": [0.1, 0.1]}, ">= 0"),
+    ({"thresholds_V": [0, 10], "weights_um_per_V": [0.1, float("nan")]}, "not finite"),
+    ({"thresholds_V": list(range(201)), "weights_um_per_V": [0.0] * 201}, "more than 200"),
+    ({"thresholds_V": [0, 10], "weights_um_per_V": [1e4, 1e4]}, "weights sum"),
+    ({"thresholds_V": [0, 10]}, "missing weights_um_per_V"),
+    ({"thresholds_V": [0], "weights_um_per_V": [0.1], "start": 1}, "unknown key"),
+])
+def test_play_operators_in_a_model_file_are_checked(plays, why):
+    """A model file's play operators (return-point memory) round-trip through the
+    document, and a bad block is refused naming the key."""
+    import yaml
+
+    from piezo_stage.core.errors import ModelError
+    from piezo_stage.io.model_file import model_from_dict, model_to_dict
+    doc = yaml.safe_load(GOOD)
+    doc["axes"]["x"]["play_operators"] = {"thresholds_V": [0.0, 20.0],
+                                          "weights_um_per_V": [0.05, -0.01]}
+    model, _ = model_from_dict(doc)
+    p = model.plays["x"]
+    assert list(p.initial_V) == [model.axes["x"].initial.v] * 2  # at rest by default
+    again, _ = model_from_dict(yaml.safe_load(yaml.safe_dump(model_to_dict(model))))
+    assert again.plays == model.plays and "y" not in again.plays
+    doc["axes"]["x"]["play_operators"] = plays
+    with pytest.raises(ModelError, match=why):
+        model_from_dict(doc)

@@ -106,3 +106,52 @@ def test_stage_inverse_per_sample_matches_the_model(stage_model):
     nxt, _ = stage_model.simulate([*applied[:, 0], vx], [*applied[:, 1], vy])
     assert nxt["x"][-1] == pytest.approx(40.0, abs=1e-6)
     assert nxt["y"][-1] == pytest.approx(30.0, abs=1e-6)
+
+
+def _with_plays(stage_model, start=0.0):
+    """The stage model with 12 play operators per axis (return-point memory; weights
+    of both signs, as a least-squares fit gives them)."""
+    from piezo_stage.core.play import PlayOperators
+    r = np.linspace(0.0, 60.0, 12)
+    p = 0.04 * np.exp(-r / 15.0) * np.where(np.arange(12) % 5 == 4, -0.5, 1.0)
+    plays = {a: PlayOperators.at_rest(r, p * (1.0 + 0.3 * (a == "y")), 10.0, start)
+             for a in stage_model.axes}
+    return stage_model.replace(plays=plays)
+
+
+def test_play_operators_give_memory_and_are_inverted_exactly(stage_model):
+    """A model with play operators: a minor loop closes where it began (return-point
+    memory, which the Duhem law alone lacks), the batch inverse (coupling included) and
+    the per-sample inverse both make the model reach a target with nested loops to
+    rounding, and a reset from a measured position starts the operators at rest."""
+    from piezo_stage.core.inverse import StageInverse
+    m = _with_plays(stage_model, start=1.0)
+    # memory: 20 -> 120 -> 60 -> 90 -> 60 V: the minor loop 60-90-60 closes on itself
+    v = np.concatenate([np.linspace(20, 120, 400), np.linspace(120, 60, 200),
+                        np.linspace(60, 90, 100), np.linspace(90, 60, 100)])
+    z = m.plays["x"].state()
+    w = m.plays["x"].run(v, z)
+    assert w[-1] == pytest.approx(w[599], abs=1e-12)   # the operators' sum closes
+    duhem_only, _ = stage_model.axes["x"].simulate(v)
+    assert abs(duhem_only[-1] - duhem_only[599]) > 1e-3  # the Duhem law does not
+    t = np.arange(3000) / 1000
+    wx = 20 + 8 * np.sin(2 * np.pi * 2 * t) + 3 * np.sin(2 * np.pi * 9 * t)
+    wy = 18 + 6 * np.cos(2 * np.pi * 3 * t) * np.exp(-t)
+    res = invert_stage(m, wx, wy)
+    w, _ = m.simulate(res["x"].v, res["y"].v)
+    assert res["x"].n_saturated == res["y"].n_saturated == 0
+    np.testing.assert_allclose(w["x"], wx, atol=1e-6)
+    np.testing.assert_allclose(w["y"], wy, atol=1e-6)
+    without, _ = m.replace(plays={}).simulate(res["x"].v, res["y"].v)
+    assert np.max(np.abs(without["x"] - wx)) > 1.0     # the operators matter here
+    inv = StageInverse(m)
+    v = np.array([inv.step(a, b)[:2] for a, b in zip(wx[:1000], wy[:1000])])
+    np.testing.assert_allclose(v[:, 0], res["x"].v[:1000], atol=1e-6)
+    assert inv.w["x"] == pytest.approx(wx[999], abs=1e-6)
+    snap = inv.snapshot()
+    ahead = inv.step_ahead([{"x": 25.0, "y": 20.0}], 26.0, 20.0)
+    inv.restore(snap)
+    assert inv.w["x"] == pytest.approx(wx[999], abs=1e-6) and ahead["x"] > v[-1, 0]
+    inv.reset(v={"x": 50.0, "y": 50.0}, w={"x": 12.0, "y": 11.0})
+    np.testing.assert_array_equal(inv.pz[0, :12], 50.0)
+    assert inv.w["x"] == pytest.approx(12.0 + inv.cwp[0], abs=1e-9)

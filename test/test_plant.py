@@ -7,7 +7,7 @@ import pytest
 
 from conftest import sine_v
 from piezo_stage.core.errors import ConfigError
-from piezo_stage.core.plant import Plant
+from piezo_stage.core.plant import Plant, PlantConfig
 from piezo_stage.io.plant_file import load_plant_config
 
 
@@ -243,3 +243,31 @@ def test_a_bad_hysteresis_block_is_refused_by_name(tmp_path, block, says):
     p.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match=says):
         load_plant_config(p)
+
+
+def test_a_model_with_play_operators_is_the_plant_exactly():
+    """``simulate --model`` with a model that has play operators (as ``gap --out-model``
+    writes structure with memory): the exact plant (no noise, no slew limit reached)
+    gives the model's own output, in one batch or a command at a time, and the
+    operators are really in it."""
+    from piezo_stage.core.play import PlayOperators
+    model = load_plant_config(_default_path()).model
+    r = np.linspace(0.0, 50.0, 8)
+    plays = {"x": PlayOperators.at_rest(r, 0.05 * np.exp(-r / 20.0), 0.0)}
+    m = model.replace(plays=plays)
+    fs = 1000.0
+    t = np.arange(2000) / fs
+    vx = 75 - 60 * np.cos(2 * np.pi * 1.5 * t) * np.exp(-t)
+    vy = 60 + 20 * np.sin(2 * np.pi * 2 * t)
+    want, _ = m.simulate(vx, vy)
+    plant = Plant(PlantConfig.exact(m, fs), fs)
+    plant.run(vx, vy)
+    np.testing.assert_allclose(plant.last_true["x"], want["x"], atol=1e-9)
+    np.testing.assert_allclose(plant.last_true["y"], want["y"], atol=1e-9)
+    one = Plant(PlantConfig.exact(m, fs), fs)
+    stepped = np.array([one.step(a, b)[0] for a, b in zip(vx, vy)])
+    batch = Plant(PlantConfig.exact(m, fs), fs).run(vx, vy)["x"]
+    assert np.array_equal(stepped, batch)
+    without = Plant(PlantConfig.exact(model, fs), fs)
+    without.run(vx, vy)
+    assert np.max(np.abs(without.last_true["x"] - want["x"])) > 1.0

@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, duhem_run, duhem_step
 from piezo_stage.core.errors import ModelError
+from piezo_stage.core.play import PlayOperators
 
 
 def _coeffs(x, name):
@@ -205,21 +206,28 @@ OTHER = {"x": "y", "y": "x"}
 
 @dataclass(frozen=True)
 class StageModel:
-    """Hysteresis of a 2-axis stage: one Duhem model per axis, optional coupling.
+    """Hysteresis of a 2-axis stage: one Duhem model per axis, optional coupling and
+    play operators.
 
     ``coupling['x']`` is the displacement on x caused by the y voltage (seed's H_xy),
-    itself a Duhem model driven by v_y; the axis output is the sum
-    w_x = H_xx(v_x) + H_xy(v_y). Axes absent from ``axes`` are not modelled.
+    itself a Duhem model driven by v_y; ``plays['x']`` (core/play.py's PlayOperators,
+    optional) adds return-point memory driven by v_x; the axis output is the sum
+    w_x = H_xx(v_x) + P_x(v_x) + H_xy(v_y). Axes absent from ``axes`` are not modelled.
     """
 
     axes: dict
     coupling: dict = field(default_factory=dict)
     voltage_limits: tuple = (0.0, 150.0)
+    plays: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        for a in list(self.axes) + list(self.coupling):
+        for a in list(self.axes) + list(self.coupling) + list(self.plays):
             if a not in AXES:
                 raise ModelError(f"unknown axis {a!r} (axes are x and y)")
+        for a, p in self.plays.items():
+            if a not in self.axes or not isinstance(p, PlayOperators):
+                raise ModelError(f"axis {a}: play operators need the axis's Duhem model "
+                                 "and a PlayOperators")
         lo, hi = self.voltage_limits
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise ModelError(f"voltage limits must be finite with min < max, got {lo}, {hi}")
@@ -228,13 +236,15 @@ class StageModel:
                  states: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
         """Noise-free response [um] of each modelled axis to voltages [V].
 
-        ``states`` maps 'x', 'y', 'cx', 'cy' to DuhemState; returns (w dict, states).
+        ``states`` maps 'x', 'y', 'cx', 'cy' to DuhemState and 'px', 'py' to the play
+        operators' state (an array); returns (w dict, states).
         """
         v = {"x": vx, "y": vy}
-        states = dict(states or {})
+        states = {k: s.copy() if isinstance(s, np.ndarray) else s
+                  for k, s in (states or {}).items()}
         out = {}
-        for a, m in self.axes.items():
-            w, states[a] = m.simulate(v[a], states.get(a))
+        for a in self.axes:
+            w, states[a] = self.axis_simulate(a, v[a], states)
             c = self.coupling.get(a)
             if c is not None:
                 wc, states["c" + a] = c.simulate(v[OTHER[a]], states.get("c" + a))
@@ -242,8 +252,30 @@ class StageModel:
             out[a] = w
         return out, states
 
+    def axis_simulate(self, axis: str, v: ArrayLike,
+                      states: dict | None = None) -> tuple[np.ndarray, DuhemState]:
+        """One axis's own response [um] (its Duhem model and play operators, no
+        coupling) to ``v`` [V]; ``states`` as for ``simulate`` (the play state, when
+        given there, is advanced in place). Returns (w, the Duhem model's final state)."""
+        states = states if states is not None else {}
+        w, final = self.axes[axis].simulate(v, states.get(axis))
+        p = self.plays.get(axis)
+        if p is not None:
+            z = states.setdefault("p" + axis, p.state())
+            w = w + p.run(as_f64(v), z)
+        return w, final
 
-def stroke_um(model: DuhemModel, limits: tuple[float, float], n: int = 301) -> float:
+    def replace(self, **changes: object) -> "StageModel":
+        """The same model with some fields changed (axes, coupling, voltage_limits,
+        plays)."""
+        fields = {"axes": self.axes, "coupling": self.coupling,
+                  "voltage_limits": self.voltage_limits, "plays": self.plays}
+        fields.update(changes)
+        return StageModel(**fields)
+
+
+def stroke_um(model: DuhemModel, limits: tuple[float, float], n: int = 301,
+              plays: PlayOperators | None = None) -> float:
     """The displacement one slow full stroke gives: settled on a sweep down to
     ``limits[0]``, then swept up to ``limits[1]`` [um]. Positive for a stage that
     expands with voltage.
@@ -256,6 +288,8 @@ def stroke_um(model: DuhemModel, limits: tuple[float, float], n: int = 301) -> f
         (lo, hi) voltage range [V].
     n : int
         Samples per sweep.
+    plays : PlayOperators or None
+        The axis's play operators (their sum is part of the stroke).
 
     Returns
     -------
@@ -267,6 +301,8 @@ def stroke_um(model: DuhemModel, limits: tuple[float, float], n: int = 301) -> f
     v = np.concatenate([np.linspace(hi, lo, n), np.linspace(lo, hi, n)])
     with np.errstate(all="ignore"):
         w, _ = model.simulate(v, DuhemState(hi, 0.0))
+        if plays is not None:
+            w = w + plays.run(v, np.full(plays.thresholds_V.size, hi))
     return float(w[-1] - w[n - 1])
 
 
@@ -293,12 +329,12 @@ def check_model_change(new: StageModel, old: StageModel | None = None,
         How far the stroke may change from the running model's (either way).
     """
     for a, m in new.axes.items():
-        s = stroke_um(m, new.voltage_limits)
+        s = stroke_um(m, new.voltage_limits, plays=new.plays.get(a))
         if not np.isfinite(s) or s <= 0:
             raise ModelError(f"axis {a}: a full stroke gives {s:.3g} um; a stage expands "
                              "with voltage (is the model's sign or scale wrong?)")
         if old is not None and a in old.axes:
-            s0 = stroke_um(old.axes[a], old.voltage_limits)
+            s0 = stroke_um(old.axes[a], old.voltage_limits, plays=old.plays.get(a))
             if s0 > 0 and not s0 / max_ratio <= s <= s0 * max_ratio:
                 raise ModelError(f"axis {a}: a full stroke gives {s:.4g} um, the running "
                                  f"model {s0:.4g} um (more than x{max_ratio:g} apart)")

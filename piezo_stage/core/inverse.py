@@ -13,6 +13,11 @@ Exact inverse
     reach saturates at the limit and is flagged; the state then follows what the
     model really does at that voltage.
 
+    With play operators (a model's ``plays``: return-point memory, core/play.py) the
+    target is the Duhem step plus the operators' sum P(v_k) from their state; P is
+    continuous and piecewise linear in v_k, so the same scan and regula falsi find the
+    nearest root, and forward(inverse(w*)) is w* again.
+
 Seed eq. 12 (for comparison)
     The explicit first-order inverse v_k = v_{k-1} + dw_k / S_b(v_{k-1}, w_k), with
     the branch slope S from eq. 6 (dw/dv = H_asc(v) - alpha w rising,
@@ -32,6 +37,7 @@ from numpy.typing import ArrayLike
 from piezo_stage.core._jit import as_f64, duhem_inverse_run, stage_inverse_step, stage_sync
 from piezo_stage.core.duhem import AXES, OTHER, DuhemModel, DuhemState, StageModel
 from piezo_stage.core.errors import DataError, ModelError
+from piezo_stage.core.play import PlayOperators
 
 # Scan resolution for the first root: the voltage span is split into this many
 # intervals; a branch would need two roots within span/64 (> 2 V) to fool it.
@@ -53,18 +59,28 @@ class InverseResult:
         return int(np.count_nonzero(self.saturated))
 
 
+_NO_PLAYS = (np.zeros(0), np.zeros(0))
+
+
 def invert(model: DuhemModel, w_target: ArrayLike, v_limits: tuple[float, float] = (0.0, 150.0),
-           state: DuhemState | None = None) -> InverseResult:
-    """Exact inverse of one axis's Duhem model over a target sequence [um]."""
+           state: DuhemState | None = None, plays: PlayOperators | None = None,
+           play_state: np.ndarray | None = None) -> InverseResult:
+    """Exact inverse of one axis's Duhem model (plus its play operators, when given:
+    ``play_state`` their state, advanced in place; default their initial state) over a
+    target sequence [um]."""
     wt = as_f64(w_target)
     if not np.all(np.isfinite(wt)):
         raise DataError("target displacement has NaN or inf")
     st = state or model.initial
     alpha, H = model.kernel_params()
+    r, p = (plays.thresholds_V, plays.weights_um_per_V) if plays is not None else _NO_PLAYS
+    z = play_state if play_state is not None else (
+        plays.state() if plays is not None else np.zeros(0))
     n = wt.size
     v, w, sat = np.empty(n), np.empty(n), np.zeros(n, dtype=np.int8)
     vp, wp = duhem_inverse_run(wt, float(st.v), float(st.w), alpha, H,
-                               float(v_limits[0]), float(v_limits[1]), N_SCAN, v, w, sat)
+                               float(v_limits[0]), float(v_limits[1]), N_SCAN, r, p, z,
+                               v, w, sat)
     return InverseResult(v, w, sat.astype(bool), DuhemState(float(vp), float(wp)))
 
 
@@ -102,7 +118,7 @@ def invert_stage(model: StageModel, wx: ArrayLike, wy: ArrayLike, states: dict |
                  tol_V: float = 1e-10, max_iter: int = 50) -> dict[str, InverseResult]:
     """Joint inverse of a 2-axis model with coupling.
 
-    w_x = H_xx(v_x) + H_xy(v_y) and w_y = H_yy(v_y) + H_yx(v_x): Gauss-Seidel on whole
+    w_x = H_xx(v_x) + P_x(v_x) + H_xy(v_y) and likewise for y: Gauss-Seidel on whole
     sequences (v_x from w_x minus the coupling of the current v_y, then v_y likewise),
     which converges because the coupling is small against the direct gain.
 
@@ -121,7 +137,9 @@ def invert_stage(model: StageModel, wx: ArrayLike, wy: ArrayLike, states: dict |
                 continue
             c = model.coupling.get(a)
             wc = c.simulate(v[OTHER[a]], states.get("c" + a))[0] if c else 0.0
-            r = invert(model.axes[a], targets[a] - wc, lo_hi, states.get(a))
+            p = model.plays.get(a)
+            z = states["p" + a].copy() if "p" + a in states else None
+            r = invert(model.axes[a], targets[a] - wc, lo_hi, states.get(a), p, z)
             change = max(change, float(np.max(np.abs(r.v - v[a]), initial=0.0)))
             v[a] = r.v
             res[a] = r
@@ -164,6 +182,15 @@ class StageInverse:
         self._cH = np.zeros((2, 2, Dc))
         for i, k in enumerate(ckp):
             self._cH[i, :, :k[1].shape[1]] = k[1]
+        # play operators per axis, padded with zero weights to one length
+        P = max([p.thresholds_V.size for p in model.plays.values()] or [0])
+        self._pr, self._pp = np.zeros((2, P)), np.zeros((2, P))
+        for i, a in enumerate(AXES):
+            if a in model.plays:
+                k = model.plays[a].thresholds_V.size
+                self._pr[i, :k] = model.plays[a].thresholds_V
+                self._pp[i, :k] = model.plays[a].weights_um_per_V
+        self.pz = np.zeros((2, P))
         self._out = np.zeros((4, 2))
         self._target = np.zeros(2)
         self._present = tuple(bool(p) for p in self.present)
@@ -180,11 +207,21 @@ class StageInverse:
                  for a in AXES]
         self.cvp = np.array([s.v for s in cinit], float)
         self.cwp = np.array([s.w for s in cinit], float)
+        self.pz[:] = 0.0
+        for i, a in enumerate(AXES):
+            if a in self.model.plays:
+                p = self.model.plays[a]
+                self.pz[i, :p.thresholds_V.size] = p.initial_V
         if v:
             self.vp = np.array([float(v.get(a, 0.0)) for a in AXES])
-            self.wp = np.array([float((w or {}).get(a, 0.0)) for a in AXES])
+            self.pz[:] = self.vp[:, None]  # the operators at rest at v
+            self.wp = np.array([float((w or {}).get(a, 0.0)) for a in AXES]) - self._play_w()
             self.cvp = self.vp[::-1].copy()
             self.cwp = np.zeros(2)
+
+    def _play_w(self) -> np.ndarray:
+        """The play operators' sum per axis [um] in the present state."""
+        return np.einsum("ij,ij->i", self._pp, self.pz)
 
     @property
     def v(self) -> dict[str, float]:
@@ -195,16 +232,18 @@ class StageInverse:
     def w(self) -> dict[str, float]:
         """The model's present output [um] per axis (main term plus the coupling the
         inverse compensates)."""
-        w = self.wp + self.cwp if self.use_coupling else self.wp
+        w = self.wp + self._play_w()
+        w = w + self.cwp if self.use_coupling else w
         return {"x": float(w[0]), "y": float(w[1])}
 
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def snapshot(self) -> tuple[np.ndarray, ...]:
         """A copy of the hysteresis state (for stepping ahead and coming back)."""
-        return self.vp.copy(), self.wp.copy(), self.cvp.copy(), self.cwp.copy()
+        return (self.vp.copy(), self.wp.copy(), self.cvp.copy(), self.cwp.copy(),
+                self.pz.copy())
 
-    def restore(self, snap: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> None:
+    def restore(self, snap: tuple[np.ndarray, ...]) -> None:
         """Go back to a state taken with ``snapshot``."""
-        self.vp[:], self.wp[:], self.cvp[:], self.cwp[:] = snap
+        self.vp[:], self.wp[:], self.cvp[:], self.cwp[:], self.pz[:] = snap
 
     def step_ahead(self, in_flight: Sequence[dict[str, float]], wx: float,
                    wy: float) -> dict[str, float]:
@@ -227,7 +266,7 @@ class StageInverse:
         feedback, after the driver's limits), so the next inverse starts from the
         state the stage is actually in rather than from the feedforward's own output."""
         stage_sync(float(vx), float(vy), self.vp, self.wp, self._alpha, self._H, self.cvp,
-                   self.cwp, self._calpha, self._cH)
+                   self.cwp, self._calpha, self._cH, self._pr, self._pp, self.pz)
 
     def step(self, wx: float, wy: float,
              commit: bool = True) -> tuple[float, float, dict[str, bool]]:
@@ -235,7 +274,8 @@ class StageInverse:
         t = self._target
         t[0], t[1] = wx, wy
         o = stage_inverse_step(t, self.vp, self.wp, self._alpha, self._H, self.cvp,
-                               self.cwp, self._calpha, self._cH, self.use_coupling,
+                               self.cwp, self._calpha, self._cH, self._pr, self._pp,
+                               self.pz, self.use_coupling,
                                self.limits[0], self.limits[1], self.sweeps, N_SCAN,
                                self._out)
         vx, vy, sx, sy = o[0, 0], o[0, 1], o[3, 0], o[3, 1]

@@ -20,6 +20,10 @@ Schema (version 1)::
           alpha: ...
           f: [...]
           g: [...]
+        play_operators:         # optional: return-point memory, sum_j p_j z_j added to
+          thresholds_V: [...]   #   the Duhem output (core/play.py); r_j >= 0
+          weights_um_per_V: [...]
+          initial_V: [...]      #   z_j at the start (default: at rest at initial_state)
       y: ...
     effects: {}                 # optional unmodelled effects (see core/effects.py)
 
@@ -35,6 +39,7 @@ import yaml
 from piezo_stage.core.duhem import AXES, DuhemBranch, DuhemModel, DuhemState, StageModel
 from piezo_stage.core.effects import validate_effects
 from piezo_stage.core.errors import ConfigError, ModelError
+from piezo_stage.core.play import MAX_OPERATORS, PlayOperators
 
 SCHEMA_KEY = "piezo_stage_model"
 
@@ -147,18 +152,35 @@ def _duhem(d, where) -> DuhemModel:
                        _number(init.get("w_um", 0.0), f"{where}.initial_state.w_um"))
     if structure == "whole":
         _check_keys(d, ("structure", "initial_state", "alpha", "f", "g", "h", "coupling",
-                        "note"), where)
+                        "play_operators", "note"), where)
         b = _branch({k: d[k] for k in ("alpha", "f", "g", "h") if k in d}, where)
         return DuhemModel(b, b, state)
     if structure == "segmented":
         _check_keys(d, ("structure", "initial_state", "ascending", "descending",
-                        "coupling", "note"), where)
+                        "coupling", "play_operators", "note"), where)
         for k in ("ascending", "descending"):
             if k not in d:
                 raise ModelError(f"{where}: segmented model needs '{k}'")
         return DuhemModel(_branch(d["ascending"], f"{where}.ascending"),
                           _branch(d["descending"], f"{where}.descending"), state)
     raise ModelError(f"{where}: structure must be 'whole' or 'segmented', got {structure!r}")
+
+
+def _plays(d, v0, where) -> PlayOperators:
+    _check_keys(d, ("thresholds_V", "weights_um_per_V", "initial_V"), where)
+    for k in ("thresholds_V", "weights_um_per_V"):
+        if k not in d:
+            raise ModelError(f"{where}: missing {k}")
+    if isinstance(d["thresholds_V"], list) and len(d["thresholds_V"]) > MAX_OPERATORS:
+        raise ModelError(f"{where}: more than {MAX_OPERATORS} operators")
+    r = _numbers(d["thresholds_V"], f"{where}.thresholds_V")
+    p = _numbers(d["weights_um_per_V"], f"{where}.weights_um_per_V")
+    z = (_numbers(d["initial_V"], f"{where}.initial_V") if "initial_V" in d
+         else [v0] * len(r))
+    try:
+        return PlayOperators(r, p, z)
+    except ModelError as e:
+        raise ModelError(f"{where}: {e}") from None
 
 
 def model_from_dict(doc: object, source: str = "model") -> tuple[StageModel, dict]:
@@ -174,13 +196,16 @@ def model_from_dict(doc: object, source: str = "model") -> tuple[StageModel, dic
     axes_doc = doc.get("axes")
     if not isinstance(axes_doc, dict) or not axes_doc:
         raise ModelError(f"{source}: 'axes' must map x and/or y to a model")
-    axes, coupling = {}, {}
+    axes, coupling, plays = {}, {}, {}
     for a, d in axes_doc.items():
         if a not in AXES:
             raise ModelError(f"{source}: unknown axis {a!r}")
         axes[a] = _duhem(d, f"{source}: axes.{a}")
         if isinstance(d, dict) and d.get("coupling") is not None:
             coupling[a] = _duhem(d["coupling"], f"{source}: axes.{a}.coupling")
+        if isinstance(d, dict) and d.get("play_operators") is not None:
+            plays[a] = _plays(d["play_operators"], axes[a].initial.v,
+                              f"{source}: axes.{a}.play_operators")
     lim = doc.get("voltage_limits_V", [0.0, 150.0])
     if not isinstance(lim, (list, tuple)) or len(lim) != 2:
         raise ModelError(f"{source}: voltage_limits_V must be [min, max]")
@@ -188,12 +213,12 @@ def model_from_dict(doc: object, source: str = "model") -> tuple[StageModel, dic
     if not lim[0] < lim[1] or max(abs(lim[0]), abs(lim[1])) > MAX_VOLTS:
         raise ModelError(f"{source}: voltage_limits_V {list(lim)} must have min < max "
                          f"within +-{MAX_VOLTS:g} V")
-    _check_magnitudes(axes, coupling, lim, source)
+    _check_magnitudes(axes, coupling, lim, source, plays)
     try:  # every effect key known, every value in a physical range (core/effects.py)
         effects = validate_effects(doc.get("effects"), f"{source}: effects")
     except ConfigError as e:
         raise ModelError(str(e)) from None
-    return StageModel(axes, coupling, lim), effects
+    return StageModel(axes, coupling, lim, plays), effects
 
 
 MAX_VOLTS = 1000.0      # no piezo amplifier here drives more
@@ -202,9 +227,15 @@ MAX_VOLTS = 1000.0      # no piezo amplifier here drives more
 MAX_SLOPE = 1.0e4       # um/V: h(v) beyond this anywhere in the limits is not a stage
 
 
-def _check_magnitudes(axes, coupling, lim, source):
+def _check_magnitudes(axes, coupling, lim, source, plays=None):
     """Every branch polynomial finite and physically sized over the voltage limits
-    (1e300 coefficients, or 2,000 terms that overflow, are refused here)."""
+    (1e300 coefficients, or 2,000 terms that overflow, are refused here); the play
+    operators' summed slope likewise."""
+    for a, p in (plays or {}).items():
+        slope = float(np.abs(p.weights_um_per_V).sum())
+        if slope > MAX_SLOPE:
+            raise ModelError(f"{source}: axes.{a}.play_operators: weights sum to "
+                             f"{slope:.3g} um/V in magnitude (<= {MAX_SLOPE:g})")
     v = np.linspace(lim[0], lim[1], 201)
     for kind, models in (("axes", axes), ("coupling", coupling)):
         for a, m in models.items():
@@ -258,6 +289,11 @@ def model_to_dict(model: StageModel, effects: dict | None = None,
         d = _duhem_doc(m)
         if a in model.coupling:
             d["coupling"] = _duhem_doc(model.coupling[a])
+        if a in model.plays:
+            p = model.plays[a]
+            d["play_operators"] = {"thresholds_V": _floats(p.thresholds_V),
+                                   "weights_um_per_V": _floats(p.weights_um_per_V),
+                                   "initial_V": _floats(p.initial_V)}
         doc["axes"][a] = d
     if effects:
         doc["effects"] = effects

@@ -3,8 +3,8 @@
 Signal path per axis, at the internal rate (10 kHz by default)::
 
     command (zero-order hold) -> amplifier (clamp, slew) -> Duhem hysteresis
-    + coupling from the other axis -> creep -> dynamics -> drift -> delay
-    -> sensor (noise, quantisation) -> sampled at the command rate
+    (+ the model's play operators) + coupling from the other axis -> creep
+    -> dynamics -> drift -> delay -> sensor (noise, quantisation) -> sampled at the command rate
 
 ``hysteresis`` (a plant option) replaces the Duhem law on the axes it names with a
 law that is not our model class (core/play.py: play operators with return-point
@@ -163,6 +163,7 @@ class Plant:
                 e.reset(x0)
         self._z = {a: law.rest(self._vstate[i]) for i, a in enumerate(AXES)
                    if (law := self._play.get(a)) is not None}
+        self._mz = {a: p.state() for a, p in model.plays.items()}
         self._rng = np.random.default_rng(self.config.seed)
         self.limit_hits = 0
         self.samples = 0
@@ -203,6 +204,8 @@ class Plant:
         for i, a in enumerate(AXES):
             if a in self._play:
                 w[i] += self._play[a].run(applied[i], self._z[a])
+            elif a in self._mz:  # the model's own play operators, beside its Duhem law
+                w[i] += self.config.model.plays[a].run(applied[i], self._mz[a])
         if self._has_effects:
             true = np.empty((2, n))
             for i, a in enumerate(AXES):

@@ -1,5 +1,12 @@
-"""A hysteresis that is not our model class: a Prandtl-Ishlinskii law (play operators)
-with a non-polynomial output envelope, for the simulated stage's ``hysteresis`` option.
+"""Play operators: the return-point memory a Duhem law lacks, as a model term
+(``PlayOperators``) and as a hysteresis that is not our model class (``PlayHysteresis``:
+a Prandtl-Ishlinskii law with a non-polynomial output envelope, for the simulated
+stage's ``hysteresis`` option).
+
+``PlayOperators`` is what a model file's ``play_operators`` block holds (the gap
+diagnosis's ``structure`` with memory fits it): its output, linear in the weights, is
+added to the axis's Duhem output, and the exact inverse (core/inverse.py) solves for
+both at once.
 
 The Duhem law we identify has polynomial branch shapes and no return-point memory: a
 minor loop inside a major one does not close where it started. Real actuators have
@@ -25,9 +32,71 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import play_run
-from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.errors import ConfigError, ModelError
+
+MAX_OPERATORS = 200  # a model or plant with more is not one we fit (16 by default)
+
+
+@dataclass(frozen=True)
+class PlayOperators:
+    """Play operators' sum_j p_j z_j: thresholds ``thresholds_V`` (r_j >= 0 [V]),
+    weights ``weights_um_per_V`` (p_j, any sign: fitted by least squares) and the
+    state they start from, ``initial_V`` (z_j [V]). Rate independent, like the Duhem
+    law; a state is an array of z_j, updated in place by ``run``."""
+
+    thresholds_V: np.ndarray
+    weights_um_per_V: np.ndarray
+    initial_V: np.ndarray
+
+    def __post_init__(self):
+        arrays = []
+        for name in ("thresholds_V", "weights_um_per_V", "initial_V"):
+            a = np.atleast_1d(np.array(getattr(self, name), dtype=float))
+            if a.ndim != 1 or not np.all(np.isfinite(a)):
+                raise ModelError(f"play operators: {name} must be a list of finite numbers")
+            arrays.append(a)
+        r, p, z = arrays
+        if not 1 <= r.size <= MAX_OPERATORS or p.size != r.size or z.size != r.size:
+            raise ModelError(f"play operators: thresholds_V, weights_um_per_V and "
+                             f"initial_V need the same length, 1 to {MAX_OPERATORS} "
+                             f"(got {r.size}, {p.size}, {z.size})")
+        if np.any(r < 0):
+            raise ModelError("play operators: thresholds_V must be >= 0")
+        for name, a in zip(("thresholds_V", "weights_um_per_V", "initial_V"), arrays):
+            object.__setattr__(self, name, a)
+
+    @classmethod
+    def at_rest(cls, thresholds_V: ArrayLike, weights_um_per_V: ArrayLike, v0: float = 0.0,
+                start: float = 0.0) -> PlayOperators:
+        """Operators whose state is z_j = v0 + start * r_j: at rest at ``v0`` (0), as
+        a fall (+1) or a rise (-1) to v0 leaves them."""
+        r = np.asarray(thresholds_V, dtype=float)
+        return cls(r, weights_um_per_V, float(v0) + float(start) * r)
+
+    def state(self) -> np.ndarray:
+        """A fresh copy of the initial state (for ``run``)."""
+        return self.initial_V.copy()
+
+    def output(self, z: np.ndarray) -> float:
+        """The operators' sum [um] in state ``z`` (z already at the present voltage)."""
+        return float(self.weights_um_per_V @ z)
+
+    def run(self, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """The operators' sum [um] over ``v`` [V] from state ``z`` (updated in place)."""
+        out = np.empty(np.size(v))
+        play_run(np.ascontiguousarray(v, dtype=float), self.thresholds_V,
+                 self.weights_um_per_V, z, out)
+        return out
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, PlayOperators) and all(
+            np.array_equal(getattr(self, k), getattr(other, k))
+            for k in ("thresholds_V", "weights_um_per_V", "initial_V"))
+
+    __hash__ = None
 
 KEYS = ("kind", "axes", "operators", "max_threshold_V", "weight_um_per_V", "decay_V",
         "envelope")

@@ -29,7 +29,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.arming import HOLD, ReferencePlanner
 from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
-from piezo_stage.core.duhem import StageModel, check_model_change
+from piezo_stage.core.duhem import check_model_change
 from piezo_stage.core.errors import DataError, PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.metrics import LatencyHistogram
@@ -152,7 +152,7 @@ class Feedforward(Node):
             if not lo < hi:
                 raise PiezoStageError(f"{name}: voltage limits {list(model.voltage_limits)} "
                                       f"outside the driver's {self.driver.limits}")
-            model = StageModel(model.axes, model.coupling, (lo, hi))
+            model = model.replace(voltage_limits=(lo, hi))
         # gain sign and size against the running model (or the range served): a model
         # scaled by -1 or 0.001 would drive the stage to its limits
         check_model_change(model, self.model, self.range[1] - self.range[0])

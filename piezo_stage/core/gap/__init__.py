@@ -41,6 +41,7 @@ from piezo_stage.core.errors import DataError
 from piezo_stage.core.gap.budget import gap_budget, input_period  # noqa: F401
 from piezo_stage.core.gap.candidates import (  # noqa: F401
     EFFECTS,
+    TRANSFORMS,
     Candidate,
     broadband,
     fit_candidate,
@@ -75,24 +76,24 @@ class Diagnosis:
         """The model with every kept effect, as ``gap --out-model`` writes it: (StageModel,
         effects). Each axis's Duhem model (and coupling) from its kept fit; the model
         file holds one parameter set per effect, so where both axes have one, the set of
-        the axis where it explains the most. Voltage limits: 0-150 V widened to FIT's."""
-        from piezo_stage.core.duhem import StageModel
-        axes, coupling, effects, weight = {}, {}, {}, {}
+        the axis where it explains the most; ``structure`` with memory as the axis's
+        play operators. Voltage limits: 0-150 V widened to FIT's."""
+        axes, coupling, plays, effects, weight = {}, {}, {}, {}, {}
         self.notes = []
         for a, d in self.per_axis.items():
             c = d.model or d.candidates["none"]
-            if c.plays_V is not None:
-                # the model file has no play operators (yet): their Duhem branches were
-                # fitted beside them and are wrong without them; the kept effects but
-                # the structure are refitted on FIT instead
-                c = fit_candidate(fit, a, "none", kept=[(n, p) for n, p in c.effects
-                                                        if n != "structure"])
-                self.notes.append(f"axis {a}: structure's play operators are not in the "
-                                  "model file format; the written model leaves them out")
             main, coup = c.reg.models(c.alphas, c.theta)
             axes[a] = main
             if coup is not None:
                 coupling[a] = coup
+            if c.plays_V is not None:  # structure with memory: its play operators
+                plays[a] = c.play_operators()
+                if any(n in TRANSFORMS for n, _ in c.effects):
+                    # the fit put the operators' sum after the kept transform effects,
+                    # the model file before them (as the hysteresis it is)
+                    self.notes.append(f"axis {a}: the play operators were fitted after "
+                                      "the transform effects; the model applies the "
+                                      "effects to them too")
             for name, params in c.model_effects().items():
                 e = effects.setdefault(name, {"axes": []})
                 e["axes"].append(a)
@@ -102,7 +103,7 @@ class Diagnosis:
                     e.update(params)
         lim = (min(0.0, min(float(fit.v[a].min()) for a in axes)),
                max(150.0, max(float(fit.v[a].max()) for a in axes)))
-        return StageModel(axes, coupling, lim), effects
+        return StageModel(axes, coupling, lim, plays), effects
 
 
 def _axis_child(conn, fit, holdout, axis, args):

@@ -18,6 +18,7 @@ from piezo_stage.core.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.identify.api import free_response
 from piezo_stage.core.identify.fast import fit_fast
 from piezo_stage.core.identify.regress import DuhemRegression, gram_blocks, solve_gram
+from piezo_stage.core.play import PlayOperators
 from piezo_stage.core.record import Record
 
 EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
@@ -51,6 +52,7 @@ class Candidate:
     effects: list = field(default_factory=list)
     reg_fs: float = 0.0            # the rate of the record it was fitted on [Hz]
     plays_V: np.ndarray | None = None  # structure: play-operator thresholds [V]
+    plays_start: float = 0.0           # and their state at the start (PLAY_STARTS)
 
     def predict(self, rec: Record, axis: str) -> np.ndarray:
         """Prediction on another record; initial state and offset re-estimated."""
@@ -93,6 +95,15 @@ class Candidate:
         A = np.column_stack([cols[:, 1:], np.ones(len(v))])
         coef, *_ = np.linalg.lstsq(A, rec.w[axis] - fixed, rcond=None)
         return fixed + A @ coef
+
+    def play_operators(self) -> PlayOperators | None:
+        """The fitted play operators (thresholds, weights, the state they started the
+        fit record in), as a model file holds them; None without memory."""
+        if self.plays_V is None:
+            return None
+        n, k = len(self.plays_V), len(self.theta) - (2 if self.drift_tau_s is not None else 0)
+        return PlayOperators.at_rest(self.plays_V, self.theta[k - n:k], float(self.reg.v[0]),
+                                     self.plays_start)
 
     def model_effect(self) -> tuple[str, dict] | None:
         """The effect as model-file / plant parameters (None for none and coupling)."""
@@ -180,12 +191,13 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     # terms); the extra freedom is kept only if it pays on HOLDOUT, like any effect
     deg = STRUCTURE_DEGREE if "structure" in names else (3, 2)
     reg = DuhemRegression(v, w, "segmented", n=deg[0], m=deg[1], v_other=v_other)
-    tau, plays, extra = None, None, []
+    tau, plays, start, extra = None, None, 0.0, []
     kept_structure = dict(kept).get("structure", {})
     memory = (memory and effect == "structure") or "play_operators" in kept_structure
     if memory:  # return-point memory: play operators, linear in their weights
         plays = np.ptp(v) * np.arange(1, STRUCTURE_PLAYS + 1) / (2 * STRUCTURE_PLAYS)
-        extra.append(play_start_columns(v, w, plays, reg.B))
+        P, start = play_start_columns(v, w, plays, reg.B)
+        extra.append(P)
     if "drift" in names:  # (last: its coefficients come last in theta)
         tau = max(rec.t[-1] - rec.t[0], 1.0) / 3.0
         extra.append(Drift.columns(len(v), fs, tau))
@@ -196,7 +208,7 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     if effect == "none" or base is None:
         alphas, fit, _ = fit_fast(reg, budget=100, grid=11)
         return Candidate(effect, {}, alphas, fit.theta, reg, fit.rms, fixed_op, tau,
-                         with_drift(list(kept), reg, fit.theta, tau), fs, plays)
+                         with_drift(list(kept), reg, fit.theta, tau), fs, plays, start)
     alphas = np.asarray(base.alphas, float)
     params = {}
     if effect == "coupling" and base.reg.v_other is None:
@@ -276,7 +288,7 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     effects = with_drift(list(kept) + [(effect, params)], reg, fit.theta, tau)
     params = dict(effects[-1][1])
     return Candidate(effect, params, alphas, fit.theta, reg, fit.rms, reg.transform, tau,
-                     effects, fs, plays)
+                     effects, fs, plays, start)
 
 
 PLAY_STARTS = (0.0, 1.0, -1.0)  # operators at rest at v[0], after a fall, after a rise
@@ -296,12 +308,13 @@ def play_columns(v: np.ndarray, thresholds_V: np.ndarray, start: float = 0.0) ->
 
 
 def play_start_columns(v: np.ndarray, w: np.ndarray, thresholds_V: np.ndarray,
-                       others: np.ndarray | None = None) -> np.ndarray:
-    """The play columns of the start (PLAY_STARTS) that, with ``others`` (columns)
-    and a constant, explains ``w`` best: the operators' state before a record is
-    not known, and a record cut from a run (a scan's later cycles) did not start at
-    rest. Chosen like the free response and the offset, from the record itself."""
-    best = (np.inf, None)
+                       others: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """(columns, start): the play columns of the start (PLAY_STARTS) that, with
+    ``others`` (columns) and a constant, explains ``w`` best: the operators' state
+    before a record is not known, and a record cut from a run (a scan's later cycles)
+    did not start at rest. Chosen like the free response and the offset, from the
+    record itself."""
+    best = (np.inf, None, 0.0)
     for start in PLAY_STARTS:
         P = play_columns(v, thresholds_V, start)
         A = np.column_stack([P] + ([others] if others is not None else [])
@@ -309,8 +322,8 @@ def play_start_columns(v: np.ndarray, w: np.ndarray, thresholds_V: np.ndarray,
         coef, *_ = np.linalg.lstsq(A, w, rcond=None)
         err = float(np.sum((w - A @ coef) ** 2))
         if err < best[0]:
-            best = (err, P)
-    return best[1]
+            best = (err, P, start)
+    return best[1], best[2]
 
 
 FIT_TOLERANCE = 1e-9  # relative: a candidate's FIT RMS above its base's by more is a miss
@@ -321,7 +334,7 @@ def no_effect_limit(base: Candidate, effect: str) -> Candidate:
     name (params say so), so its FIT RMS is the base's and it can never be kept."""
     return Candidate(effect, {"no_effect_limit": True}, base.alphas, base.theta, base.reg,
                      base.fit_rms_um, base.op, base.drift_tau_s, list(base.effects),
-                     base.reg_fs, base.plays_V)
+                     base.reg_fs, base.plays_V, base.plays_start)
 
 
 def _without(reg, alphas, kept, names, fs):
