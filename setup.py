@@ -70,9 +70,10 @@ setup(
         # hung test fails with every thread's stack instead of hanging the suite)
         # (hypothesis: the trajectory decoder against rclpy's own, on generated messages)
         # (wheel: the install-layout test builds our wheel without build isolation)
+        # (pysindy: the sparse hysteresis peer that bench identify compares with)
         "test": ["pytest>=7", "pytest-xdist>=3.5", "pytest-timeout>=2.2", "nidaqmx>=1.0",
                  "ruff>=0.5", "numpydoc>=1.6", "hypothesis>=6.90",
-                 "wheel>=0.40"],
+                 "wheel>=0.40", "pysindy>=2.0"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",

@@ -201,20 +201,21 @@ def structure_pair(seeds=(1, 2), fs=1000.0):
     return out[0][0], out[1][0], out[1][1]
 
 
-def scan_cut(fs=5000.0):
-    """The kind of record a real actuator gives (issue 25), from the structure stage
-    without coupling: one axis, a 1 Hz full-stroke sine for 10 s, FIT the first 3 s,
-    HOLDOUT the next 4 s (cut from the run: the operators did not start at rest).
-    -> (FIT, HOLDOUT, the HOLDOUT's true displacement [um])."""
-    cfg = load_plant_config(os.path.join(default_config_dir(), "structure_stage.yaml"))
+def scan_cut(fs=5000.0, config="structure_stage.yaml"):
+    """The kind of record a real actuator gives (issue 25), from a stage (default: the
+    structure stage) without coupling: one axis, a 1 Hz full-stroke sine for 10 s, FIT
+    the first 3 s, HOLDOUT the next 4 s (cut from the run: the hysteresis did not start
+    at rest). -> (FIT, HOLDOUT, the HOLDOUT's true displacement [um])."""
+    cfg = load_plant_config(os.path.join(default_config_dir(), config))
     cfg.model.coupling.clear()
     t = np.arange(int(10 * fs)) / fs
     v = 75 - 75 * np.cos(2 * np.pi * t)
     plant = Plant(cfg, fs)
     w = plant.run(v, 0 * v)["x"]
     b, c = int(3 * fs), int(7 * fs)
-    fit = Record(t[:b], {"x": v[:b]}, {"x": w[:b]}, source="scan, first 3 s")
-    hold = Record(t[b:c] - t[b], {"x": v[b:c]}, {"x": w[b:c]}, source="scan, next 4 s")
+    fit = Record(t[:b], {"x": v[:b]}, {"x": w[:b]}, source=f"{config}: a scan's first 3 s")
+    hold = Record(t[b:c] - t[b], {"x": v[b:c]}, {"x": w[b:c]},
+                  source=f"{config}: the next 4 s")
     return fit, hold, plant.last_true["x"][b:c]
 
 
