@@ -1,8 +1,13 @@
 """piezo_stage: Duhem-model identification and control of 2-axis piezo stages.
 
-The numerical core (:mod:`piezo_stage.core`) is pure numpy/scipy and never imports
-ROS; :mod:`piezo_stage.io` reads and writes records and model files; the ROS 2 nodes
-in :mod:`piezo_stage.nodes` are thin shells over both.
+From the bottom up: the numerical core (:mod:`piezo_stage.core`, pure numpy/scipy,
+never ROS); records and files (:mod:`piezo_stage.io`); the stage backends
+(:mod:`piezo_stage.drivers`); the ROS 2 nodes, thin shells over those
+(:mod:`piezo_stage.nodes`); the launcher (:mod:`piezo_stage.launch`); the
+applications that run the node set and the offline studies (:mod:`piezo_stage.apps`);
+the benchmarks (:mod:`piezo_stage.benchmarks`); the ``piezo-stage`` command
+(:mod:`piezo_stage.cli`). Each folder imports only from those below it
+(test/test_lint.py).
 """
 
 __version__ = "0.1.0"

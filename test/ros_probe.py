@@ -1,3 +1,3 @@
-"""The tests' outside node: piezo_stage.launch.probe."""
+"""The tests' outside node: piezo_stage.benchmarks.probe."""
 
-from piezo_stage.launch.probe import Probe, _param_call_raw, get_params, set_params  # noqa: F401
+from piezo_stage.benchmarks.probe import Probe, _param_call_raw, get_params, set_params  # noqa: F401

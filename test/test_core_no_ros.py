@@ -51,5 +51,5 @@ def test_core_sources_do_not_import_ros():
                 # messages or ROS
                 for bad in ("import rclpy", "from rclpy", "_msgs", "piezo_stage.nodes",
                             "piezo_stage.io", "piezo_stage.cli", "piezo_stage.launch",
-                            "piezo_stage.drivers", "piezo_stage.experiments"):
+                            "piezo_stage.drivers", "piezo_stage.apps.experiments"):
                     assert bad not in src, (f, bad)

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
+from piezo_stage.apps.studies.gap_blind import make_pair
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.gap import diagnose
 from piezo_stage.io.csv_table import read_table, write_table
-from piezo_stage.studies.gap_blind import make_pair
 
 
 @pytest.mark.parametrize("family,kind", [
@@ -150,7 +150,7 @@ def test_excite_command(tmp_path):
 def _pair_with(effects, coupling, seed, fs=1000.0):
     """(FIT, HOLDOUT) from our simulated stage with these effects on (and its
     hysteretic coupling kept or removed)."""
-    from piezo_stage.studies.gap_blind import make_multi_pair
+    from piezo_stage.apps.studies.gap_blind import make_multi_pair
     return make_multi_pair(effects, seed, fs, coupling=coupling)
 
 
@@ -302,7 +302,7 @@ def test_a_resonance_and_a_delay_are_both_found_with_the_chirp():
     diagnosis names the resonance and the delay (not a delay standing in for both) with
     their values. Without it they are told apart only by what they do to slow motion:
     not at all for a resonance far above the excitation."""
-    from piezo_stage.studies.gap_blind import make_multi_pair
+    from piezo_stage.apps.studies.gap_blind import make_multi_pair
     eff = {"delay": {"delay_s": 0.0015},
            "dynamics": {"kind": "resonance", "fn_hz": 300.0, "zeta": 0.06}}
     res = diagnose(*make_multi_pair(eff, 3, 1000.0, coupling=False), axes=["x"])
@@ -384,7 +384,7 @@ def test_a_stage_with_memory_is_named_structure_and_its_locked_part_is_the_truth
     stage's coupling, and the budget's input-locked part is within 15 % of the truth
     the plant knows. (Before: the structure class was degree-5 branches only: 1 %
     shrink, verdict inconclusive; the locked part was 0.41 of 0.47 um.)"""
-    from piezo_stage.studies.gap_blind import locked_truth, structure_pair
+    from piezo_stage.apps.studies.gap_blind import locked_truth, structure_pair
     fit, hold, true = structure_pair()
     res = diagnose(fit, hold, axes=["x"])
     assert res["verdict"] == "structure", res["reason"]
@@ -459,7 +459,7 @@ def test_a_scan_cut_from_a_run_of_a_stage_with_memory():
     >= 40 % of the held-out gap; the budget's locked part is the synchronous average
     (the held-out input repeats) and within 10 % of the truth; no candidate is worse on
     FIT than the base. (Before: structure was degree-5 branches, 1 % at best.)"""
-    from piezo_stage.studies.gap_blind import locked_truth, scan_cut
+    from piezo_stage.apps.studies.gap_blind import locked_truth, scan_cut
     fit, hold, true = scan_cut()
     res = diagnose(fit, hold)
     assert res["verdict"] == "structure", res["reason"]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import CONFIG, ROOT
-from piezo_stage.bench_faults import ALIAS_BOMB, scaled_model
+from piezo_stage.benchmarks.faults import ALIAS_BOMB, scaled_model
 from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.io.model_file import load_model, parse_yaml
 from piezo_stage.io.run_bag import status_node

@@ -345,8 +345,8 @@ def test_the_sparse_peer_recovers_an_ode_in_its_library():
     in continuous form, dw/dt = 0.05 |dv/dt| (0.4 v - w) + 0.1 dv/dt, integrated finely
     and sampled at 5 kHz) it finds those terms and predicts another amplitude and rate
     (held out) to well under a nanometre RMS."""
+    from piezo_stage.apps.studies import sparse_peer
     from piezo_stage.core.record import Record
-    from piezo_stage.studies import sparse_peer
 
     def record(freq, amp, fs=5000.0, sub=20):
         t = np.arange(int(3.0 * fs * sub)) / (fs * sub)

@@ -203,3 +203,48 @@ def test_no_import_circle():
         if v not in index:
             strong(v)
     assert not circles, circles
+
+
+# what each folder may import from ours: a layer uses only the layers below it
+LAYERS = {
+    "piezo_stage/core": set(),
+    "piezo_stage_msgs_adapters": {"piezo_stage/core"},
+    "piezo_stage/io": {"piezo_stage/core"},
+    "piezo_stage/drivers": {"piezo_stage/core", "piezo_stage/io"},
+    "piezo_stage/nodes": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/drivers",
+                          "piezo_stage_msgs_adapters"},
+    "piezo_stage/launch": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes"},
+    "piezo_stage/apps": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes",
+                         "piezo_stage/launch", "piezo_stage_msgs_adapters"},
+    "piezo_stage/benchmarks": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes",
+                               "piezo_stage/launch", "piezo_stage/apps",
+                               "piezo_stage_msgs_adapters"},
+}
+# small helpers every layer above the core may use (paths, progress bars, signals)
+HELPERS = {"piezo_stage/paths.py", "piezo_stage/progress.py", "piezo_stage/stopping.py"}
+
+
+def _layer(path):
+    rel = os.path.relpath(path, ROOT)
+    return next((k for k in LAYERS if rel.startswith(k + "/")), None)
+
+
+def test_each_folder_uses_only_the_layers_below_it():
+    """library (core; io and the adapters on it), drivers, nodes, launcher, applications,
+    benchmarks, commands: each folder imports only from the folders below it (and the
+    root's small helpers), so the tree reads from the bottom up."""
+    bad = []
+    for path in _modules():
+        mine = _layer(path)
+        if mine is None:
+            continue
+        for line, module, names in _imports(path):
+            targets = [p for p in (_module_path(f"{module}.{n}") for n in names) if p] \
+                or [_module_path(module)]
+            for t in filter(None, targets):
+                theirs, rel = _layer(t), os.path.relpath(t, ROOT)
+                ok = theirs == mine or theirs in LAYERS[mine] or (
+                    rel in HELPERS and mine != "piezo_stage/core")
+                if not ok and not t.endswith(os.path.join("piezo_stage", "__init__.py")):
+                    bad.append(f"{os.path.relpath(path, ROOT)}:{line}: {module} ({rel})")
+    assert not bad, "\n".join(bad)

@@ -1,5 +1,5 @@
 """The live view (Foxglove WebSocket) against a running node set, with a plain
-WebSocket client speaking Foxglove's protocol (launch/foxglove_probe.py): it decodes
+WebSocket client speaking Foxglove's protocol (benchmarks/foxglove_probe.py): it decodes
 what it receives using only the schema the server advertised, as Foxglove does."""
 
 import os
@@ -13,7 +13,7 @@ pytest.importorskip("rclpy")
 pytest.importorskip("foxglove")
 pytest.importorskip("websockets")
 from conftest import CONFIG, ROOT  # noqa: E402
-from piezo_stage.launch.foxglove_probe import connect, decoder, receive  # noqa: E402
+from piezo_stage.benchmarks.foxglove_probe import connect, decoder, receive  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 
 # real node processes in real time: -m "not slow" leaves them out, and ./dev.sh test
@@ -69,14 +69,14 @@ def check_parameters(env):
     are writable (and applied); the port refuses a set as read-only."""
     from rcl_interfaces.srv import DescribeParameters, ListParameters
 
-    from piezo_stage.launch.probe import Probe, _param_call_raw, set_params
+    from piezo_stage.benchmarks.probe import Probe, _param_call_raw, set_params
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # as the nodes'
     probe = Probe(int(env["ROS_DOMAIN_ID"]))
     try:
         names = _param_call_raw(probe, "/stage/live_view", "list_parameters",
                                 ListParameters, names=[], depth=0).result.names
         names = [n for n in names if not n.startswith("qos_overrides")]
-        from piezo_stage.launch.declared import DECLARED, RCLPY_OWN
+        from piezo_stage.nodes.declared import DECLARED, RCLPY_OWN
         assert set(names) - RCLPY_OWN == DECLARED["live_view"]  # the launcher's table
         descs = _param_call_raw(probe, "/stage/live_view", "describe_parameters",
                                 DescribeParameters, names=names).descriptors

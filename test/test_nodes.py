@@ -435,7 +435,7 @@ def test_recorder_takes_a_latched_trajectory_sent_before_it_started_once(tmp_pat
     from trajectory_msgs.msg import JointTrajectory
 
     import piezo_stage_msgs_adapters as A
-    from piezo_stage.launch.probe import Probe
+    from piezo_stage.benchmarks.probe import Probe
     from piezo_stage.nodes._common import QOS_LATCHED
     probe = Probe(int(env["ROS_DOMAIN_ID"]))
     t = np.arange(0, 0.1, 1e-3)

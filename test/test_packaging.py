@@ -80,7 +80,7 @@ PIP_ONLY = {"mcap": "mcap", "foxglove": "foxglove-sdk", "threadpoolctl": "thread
             "nidaqmx": "nidaqmx"}
 
 
-# imported only by a benchmark's peer (piezo_stage/studies/sparse_peer.py, which says
+# imported only by a benchmark's peer (piezo_stage/apps/studies/sparse_peer.py, which says
 # so when it is missing): in setup.py's test extra, never a run dependency
 BENCH_ONLY = {"pysindy": "pysindy"}
 

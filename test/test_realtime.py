@@ -298,7 +298,7 @@ def test_every_parameter_of_every_node_is_live_or_read_only(tmp_path, domain):
     from diagnostic_msgs.msg import DiagnosticArray
     from rcl_interfaces.srv import DescribeParameters, ListParameters
 
-    from piezo_stage.launch.declared import DECLARED, RCLPY_OWN
+    from piezo_stage.nodes.declared import DECLARED, RCLPY_OWN
     from ros_probe import _param_call_raw, set_params
     d, env = domain
     nodes = ["stage_driver", "feedforward", "controller", "trajectory", "identifier", "gap"]
@@ -351,7 +351,7 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
 
-    from piezo_stage.bench_faults import scaled_model
+    from piezo_stage.benchmarks.faults import scaled_model
     from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS
     d, env = domain
     bag = str(tmp_path / "outside")

@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 from conftest import CONFIG  # noqa: E402
-from piezo_stage import bench_signals  # noqa: E402
+from piezo_stage.benchmarks import signals as bench_signals  # noqa: E402
 
 pytestmark = pytest.mark.slow
 STAGE = os.path.join(CONFIG, "stage.yaml")

@@ -167,7 +167,7 @@ def test_tune_relay_runs_the_node_set_and_writes_gains(tmp_path, ros_env):
     assert r.returncode == 0, r.stderr[-2000:]
     # lockstep: one period of latency, so the relay oscillates at 500 Hz on each axis,
     # and the gain it measures is this stage's small-signal gain (config/sim_stage.yaml)
-    from piezo_stage.experiments import relay_points
+    from piezo_stage.apps.experiments import relay_points
     pts = relay_points(str(tmp_path / "relay"), 2.0)
     for a, p in pts.items():
         assert p.freq_hz == pytest.approx(500.0, rel=1e-6), (a, p)

@@ -8,8 +8,8 @@ HELP = "performance benchmarks (figures as ratios)"
 
 
 def add_arguments(s):
-    s.add_argument("what", choices=("plant", "identify", "loop", "gap", "realtime",
-                                    "faults", "liveview", "signals"))
+    from piezo_stage.benchmarks import BENCHMARKS
+    s.add_argument("what", choices=tuple(BENCHMARKS))
     s.add_argument("--track", type=number(0, 3600, lo_open=True), default=20.0, metavar="S",
                    help="realtime: seconds of the seed's trajectory")
     s.add_argument("--samples", type=number(1000, 10**9, integer=True), default=2_000_000)
@@ -18,5 +18,5 @@ def add_arguments(s):
 
 
 def main(args):
-    from piezo_stage import bench
-    return bench.main(args)
+    from piezo_stage import benchmarks
+    return benchmarks.main(args)

@@ -18,5 +18,5 @@ def add_arguments(s):
 
 
 def main(args):
-    from piezo_stage.demo import run_demo
+    from piezo_stage.apps.demo import run_demo
     return run_demo(args)

@@ -11,7 +11,7 @@ HELP = "the seed's control experiments through the node set"
 
 
 def add_arguments(s):
-    from piezo_stage.experiments import CONTROLLERS, EXPERIMENTS, FREQS_HZ
+    from piezo_stage.apps.experiments import CONTROLLERS, EXPERIMENTS, FREQS_HZ
     s.add_argument("name", choices=EXPERIMENTS)
     s.add_argument("--plant", metavar="CONFIG.yaml", help="simulated plant (default "
                    "config/sim_stage.yaml)")
@@ -47,7 +47,7 @@ def _floats(text):
 def _controllers(text):
     import argparse
 
-    from piezo_stage.experiments import CONTROLLERS
+    from piezo_stage.apps.experiments import CONTROLLERS
     out = tuple(x.strip() for x in text.split(","))
     bad = [c for c in out if c not in CONTROLLERS]
     if bad or not out:
@@ -67,7 +67,7 @@ def _check_inputs(args):
 def identify_first(out_dir, config, plant, mode, extra, namespace):
     """No model given: the identifier identifies one through the node set (the demo's
     excitation) and it is written to out_dir/identified_model.yaml."""
-    from piezo_stage.experiments import NODES, merge_params
+    from piezo_stage.apps.experiments import NODES, merge_params
     from piezo_stage.io.bag import deserialize, iter_messages
     from piezo_stage.io.files import atomic_write
     from piezo_stage.launch.launcher import Launch
@@ -101,7 +101,7 @@ def identify_first(out_dir, config, plant, mode, extra, namespace):
 def main(args):
     import sys
 
-    from piezo_stage.experiments import run_experiment, table
+    from piezo_stage.apps.experiments import run_experiment, table
     from piezo_stage.io.bag import new_bag_dir
     from piezo_stage.paths import default_config
     _check_inputs(args)

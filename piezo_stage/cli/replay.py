@@ -21,7 +21,7 @@ def add_arguments(s):
 def main(args):
     import math
 
-    from piezo_stage.replay import replay
+    from piezo_stage.apps.replay import replay
     if not (math.isfinite(args.rate) and args.rate >= 0):
         raise DataError(f"--rate {args.rate}: must be a finite number >= 0 (0: as fast as "
                         "possible)")

@@ -18,8 +18,8 @@ def add_arguments(s):
 
 
 def main(args):
+    from piezo_stage.apps.studies import identification
     from piezo_stage.progress import bar
-    from piezo_stage.studies import identification
     with bar("study: identifications", total=2 + 3 * args.seeds, unit=" fits") as b:
         rep = identification.run(args.out, seeds=args.seeds, budget=args.budget,
                                  progress=lambda m: b.write(m, file=sys.stderr),

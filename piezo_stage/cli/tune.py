@@ -69,8 +69,8 @@ def _relay(args):
     None (after one line on stderr) when the node set failed."""
     import tempfile
 
+    from piezo_stage.apps.experiments import run_relay
     from piezo_stage.core.tuning import tune_relay
-    from piezo_stage.experiments import run_relay
     from piezo_stage.paths import default_config
     if args.rate != 1000.0:
         die("tune --relay: the node set runs at 1000 Hz (--rate is for a model)")

@@ -87,7 +87,7 @@ def tracking_png(path, run, t_track_s, excite_s=0.0, axes=("x", "y")):
 
 
 def experiment_png(path, evals):
-    """``evals``: [(case, evaluation)] from piezo_stage.experiments -> per case, the
+    """``evals``: [(case, evaluation)] from piezo_stage.apps.experiments -> per case, the
     desired and true position of each judged axis over its window, and the errors
     against the true and the measured position (the seed's Figs. 17-25 layout)."""
     plt = _pyplot()

@@ -24,8 +24,8 @@ import time
 
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.io.model_file import load_yaml
-from piezo_stage.launch.declared import DECLARED, RCLPY_OWN, unknown_parameter
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
+from piezo_stage.nodes.declared import DECLARED, RCLPY_OWN, unknown_parameter
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it

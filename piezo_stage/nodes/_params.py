@@ -83,7 +83,7 @@ def check_overrides(node) -> None:
     """Refuse a parameter the node was given but does not declare (a misspelling such as
     ``kP`` would otherwise be ignored without a word): ConfigError naming the key and
     the closest declared one."""
-    from piezo_stage.launch.declared import RCLPY_OWN, unknown_parameter
+    from piezo_stage.nodes.declared import RCLPY_OWN, unknown_parameter
     declared = set(node._parameters)
     unknown = sorted(k for k in node._parameter_overrides
                      if k not in declared and k not in RCLPY_OWN

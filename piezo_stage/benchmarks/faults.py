@@ -166,9 +166,9 @@ FAULTS = ("controller killed", "controller stopped 1 s", "feedforward killed",
 
 
 def bench_faults() -> int:
+    from piezo_stage.benchmarks.probe import Probe
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     from piezo_stage.launch.launcher import Launch
-    from piezo_stage.launch.probe import Probe
     from piezo_stage.paths import default_config
     slew = load_plant_config(default_plant_config_path()).slew_V_per_s
     d = random.randint(101, 200)
@@ -188,7 +188,7 @@ def bench_faults() -> int:
         if not probe.wait_state("armed", 60):
             print("bench faults: the set did not arm")
             return 1
-        from piezo_stage.bench_procs import progress_runs
+        from piezo_stage.benchmarks.procs import progress_runs
         for name in progress_runs(FAULTS, "bench faults: faults"):
             probe.spin(1.5)
             n = len(probe.states)

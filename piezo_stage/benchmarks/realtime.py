@@ -24,8 +24,8 @@ DT_NS = 1_000_000  # 1 kHz
 
 
 def _run(mode: str, track_s: float, env: dict, bag: str):
-    from piezo_stage.bench_procs import cpu_ticks
-    from piezo_stage.launch.host_pauses import HostPauseMonitor
+    from piezo_stage.benchmarks.host_pauses import HostPauseMonitor
+    from piezo_stage.benchmarks.procs import cpu_ticks
     from piezo_stage.launch.launcher import Launch
     from piezo_stage.paths import default_config
     o = {"stage_driver": {"mode": mode},
@@ -56,7 +56,7 @@ def figures(run, track_s: float, slew_V_per_s: float, pauses=()) -> dict:
     """The benchmark's figures of one run (see the module docstring). ``pauses``: host
     pauses (both CPUs stopped) on the run's clock, to attribute missed ticks and to give
     the tracking figure without the samples they disturbed."""
-    from piezo_stage.launch.host_pauses import inside
+    from piezo_stage.benchmarks.host_pauses import inside
     f = {}
     armed = run.state_times("armed")
     if not armed:
@@ -110,7 +110,7 @@ def bench_realtime(track_s: float = 20.0) -> int:
     print(f"bench realtime: the seed's 10 Hz trajectory for {track_s:g} s, driver (sim at "
           "1 kHz) + feedforward + controller + trajectory + recorder as separate processes")
     out = {}
-    from piezo_stage.bench_procs import progress_runs
+    from piezo_stage.benchmarks.procs import progress_runs
     for mode in progress_runs(("realtime", "lockstep"), "bench realtime: runs"):
         run, steal, pauses = _run(mode, track_s, env, os.path.join(tmp, mode))
         out[mode] = figures(run, track_s, slew, pauses)

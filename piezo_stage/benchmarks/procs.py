@@ -1,5 +1,5 @@
-"""The benchmarks' helper processes, as a module: ``python -m piezo_stage.bench_procs
-WHAT ARGS...`` runs one of them (bench.py starts them; each prints its figure).
+"""The benchmarks' helper processes, as a module: ``python -m piezo_stage.benchmarks.procs
+WHAT ARGS...`` runs one of them (the benchmarks start them; each prints its figure).
 
 * ``plain N FS OUT``: the simulated stage's ``Plant.run`` over N samples, timed; run
   with NUMBA_DISABLE_JIT=1 it is the kernels' plain-Python baseline (OUT: the output).
@@ -121,7 +121,7 @@ def main(argv):
         return ping(args[0], int(args[1]) if len(args) > 1 else 0)
     if what == "ring":
         return ring(args[0], args[1], int(args[2]))
-    sys.stderr.write(f"bench_procs: unknown helper {what!r}\n")
+    sys.stderr.write(f"benchmarks.procs: unknown helper {what!r}\n")
     return 2
 
 

@@ -1,0 +1,31 @@
+"""Benchmarks: each prints its figures as ratios against a baseline run in the same
+invocation (never timed unit tests); ``piezo-stage bench <what>`` runs one.
+
+One module per benchmark (plant, identify, loop, liveview, gap, realtime, faults,
+signals) and the equipment they share: ``procs`` (helper processes, CPU ticks, the
+progress of repeated runs), ``probe`` (an outside node), ``host_pauses`` (when the
+whole machine stopped), ``foxglove_probe`` (a live-view client).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+# what -> (module, function, the arguments it takes from the command line)
+BENCHMARKS = {
+    "plant": ("plant", "bench_plant", ("samples",)),
+    "identify": ("identify", "bench_identify", ()),
+    "loop": ("loop", "bench_loop", ()),
+    "gap": ("gap", "bench_gap", ()),
+    "liveview": ("liveview", "bench_liveview", ()),
+    "faults": ("faults", "bench_faults", ()),
+    "realtime": ("realtime", "bench_realtime", ("track",)),
+    "signals": ("signals", "main", ("trials",)),
+}
+
+
+def main(args) -> int:
+    """Run the benchmark ``args.what`` with its command-line arguments."""
+    module, function, takes = BENCHMARKS[args.what]
+    run = getattr(importlib.import_module(f"piezo_stage.benchmarks.{module}"), function)
+    return run(*(getattr(args, k) for k in takes))

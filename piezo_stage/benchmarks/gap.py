@@ -1,0 +1,156 @@
+"""`piezo-stage bench gap`: the blind suite's confusion matrices, the diagnosis's run
+time on a two-axis record against the exact searches, and the structure stage."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def bench_gap(seeds=3):
+
+    from piezo_stage.apps.studies import gap_blind
+    from piezo_stage.core.gap import diagnose
+    print("bench gap: blind suite, one unmodelled effect per record pair (FIT, HOLDOUT), "
+          "diagnosis not told which; axis x, 1 kHz, ~36 s protocol records (its chirp "
+          "included)")
+    from piezo_stage.progress import bar, steps
+    with bar("bench gap: blind cases", total=2 * len(gap_blind.TRUTHS) * seeds,
+             unit=" cases") as b:
+        rows = gap_blind.run(seeds=seeds, progress=steps(b))
+    for fam in ("own", "independent", None):
+        labels, M = gap_blind.confusion(rows, fam)
+        ok = sum(M[i, i] for i in range(len(gap_blind.TRUTHS)))
+        print(f"\n  confusion matrix ({fam or 'all'}): rows truth, columns verdict; "
+              f"correct {ok}/{M.sum()} = {100 * ok / M.sum():.0f} %")
+        print("  " + " " * 10 + "".join(f"{lab[:8]:>9}" for lab in labels))
+        for i, tname in enumerate(gap_blind.TRUTHS):
+            print(f"  {tname:<10}" + "".join(f"{x:>9d}" for x in M[i]))
+    shr = [r["shrink_true_pct"] for r in rows if r["truth"] != "none" and
+           r["shrink_true_pct"] is not None]
+    hits = [r for r in rows if r["truth"] != "none" and r["verdict"] == r["truth"]]
+    low = min(hits, key=lambda r: r["shrink_true_pct"])
+    print(f"\n  held-out gap shrink with the true effect: median {np.median(shr):.0f} %; "
+          f">= 50 % in {sum(x >= 50 for x in shr)}/{len(shr)} cases; where the verdict is "
+          f"right, min {low['shrink_true_pct']:.0f} % ({low['family']}/{low['truth']} seed "
+          f"{low['seed']}; target >= 50 %)")
+    print(f"  mean diagnosis time per axis record pair: "
+          f"{np.mean([r['seconds'] for r in rows]):.1f} s")
+    for r in rows:
+        if r["verdict"] != r["truth"]:
+            print(f"  miss: {r['family']}/{r['truth']} seed {r['seed']} -> {r['verdict']} "
+                  f"({r['reason']})")
+    with bar("bench gap: two effects at once", total=len(gap_blind.PAIRS) * 2,
+             unit=" cases") as b:
+        multi = gap_blind.run_multi(seeds=2, progress=steps(b))
+    exact = sum(r["named"] == r["truth"] for r in multi)
+    print(f"\n  two at once (own simulator, 1 kHz, both axes; a floor vibration counts as "
+          f"the disturbance class): the named set exactly "
+          f"right on {exact}/{len(multi)} axis records = {100 * exact / len(multi):.0f} % "
+          f"(target >= 80 %)")
+    for r in multi:
+        if r["named"] != r["truth"]:
+            print(f"  miss: {'+'.join(sorted(r['truth']))} seed {r['seed']} axis {r['axis']}"
+                  f" -> {sorted(r['named']) or r['verdict']} ({r['reason']})")
+    # speed: a 35 s record at 5 kHz, two axes, each case also without the two speed-ups
+    # (every search step on every column, the axes in threads) in the same run. The
+    # issue's figures: 36 s per single-effect case, 134 s for our stage with three
+    # effects (its machine)
+    from piezo_stage.core import gap as gap_mod
+    from piezo_stage.core.gap import candidates as gap_candidates
+
+    def timed(fit, hold, fast=True):
+        gap_candidates.ONE_COLUMN_SEARCH = gap_mod.AXES_IN_PROCESSES = fast
+        try:
+            t0 = time.perf_counter()
+            res = diagnose(fit, hold)
+            return res, time.perf_counter() - t0
+        finally:
+            gap_candidates.ONE_COLUMN_SEARCH = gap_mod.AXES_IN_PROCESSES = True
+    fit, hold = gap_blind.make_pair("creep", "own", 0, fs=5000.0)
+    (_, dt), (_, slow) = timed(fit, hold), timed(fit, hold, fast=False)
+    print(f"\n  speed: {fit.t[-1]:.1f} s record at 5 kHz, two axes, one effect: {dt:.1f} s "
+          f"(target <= 10 s: {'met' if dt <= 10 else 'NOT met'}); without the speed-ups "
+          f"{slow:.1f} s, x{slow / dt:.2f}")
+    effects = {"creep": {"gamma": 0.04}, "delay": {"delay_s": 0.0008},
+               "dynamics": {"kind": "resonance", "fn_hz": 600.0, "zeta": 0.08}}
+    for chirp in (2.0, 0.0):
+        fit, hold = gap_blind.make_multi_pair(effects, 1, fs=5000.0, coupling=True,
+                                              chirp_s=chirp)
+        res, dt = timed(fit, hold)
+        print(f"  speed: the same with our stage's creep, 600 Hz resonance, 0.8 ms delay and "
+              f"coupling{'' if chirp else ', protocol without its chirp (--chirp 0)'}: "
+              f"{dt:.1f} s (target <= 20 s: {'met' if dt <= 20 else 'NOT met'})", end="")
+        if chirp:
+            _, slow = timed(fit, hold, fast=False)
+            print(f"; without the speed-ups {slow:.1f} s, x{slow / dt:.2f}", end="")
+        print()
+        _print_named(res)
+    _bench_structure()
+    return 0
+
+
+
+def _bench_structure():
+    """bench gap's block for issue 25: a stage whose hysteresis is not our model class
+    (config/structure_stage.yaml: play operators, memory, a tanh envelope). Two seed
+    pairs of the protocol with its nested loops, both axes; then the kind of record
+    real stages give (gap_blind.scan_cut). The truth of the locked part: the base
+    model's error against the plant's true displacement (gap_blind.locked_truth)."""
+    from piezo_stage.apps.studies.gap_blind import locked_truth, scan_cut, structure_pair
+    from piezo_stage.core.gap import diagnose
+    print("\n  structure stage (play-operator hysteresis: memory, tanh envelope; our "
+          "coupling): protocol with nested loops, 1 kHz, both axes")
+    worse = total = 0
+    for seeds in ((1, 2), (3, 4)):
+        fit, hold, true = structure_pair(seeds)
+        res = diagnose(fit, hold)
+        for a, d in res["axes"].items():
+            truth = locked_truth(fit, hold, true[a], a)
+            b = d["budget"]
+            none = next(r for r in d["ranking"] if r["effect"] == "none")["fit_rms_um"]
+            worse += sum(r["fit_rms_um"] > none * (1 + 1e-9) for r in d["ranking"])
+            total += len(d["ranking"])
+            last = d["effects"][-1] if d["effects"] else None
+            print(f"    seeds {seeds} axis {a}: verdict {d['verdict']}, named "
+                  + (", ".join(s["effect"] for s in d["effects"]) or "nothing")
+                  + (f"; held-out gap shrink {last['shrink_pct']:.0f} +- "
+                     f"{last['shrink_pm_pct']:.0f} % (target >= 60 %)" if last else "")
+                  + f"; locked {b['input_locked_um']:.3f} um vs truth {truth:.3f} um "
+                  f"({100 * (b['input_locked_um'] / truth - 1):+.0f} %, target within 15 %)")
+    fit, hold, true = scan_cut()
+    res = diagnose(fit, hold)
+    truth = locked_truth(fit, hold, true, "x")
+    b = res["budget"]
+    kept = res["effects"][0] if res["effects"] else None
+    after = next((r["rms_after_um"] for r in res["ranking"] if r["effect"] == res["verdict"]),
+                 float("nan"))
+    print(f"    a scan cut from a run (1 Hz, 5 kHz, fit 3 s, held out 4 s): verdict "
+          f"{res['verdict']}" + (f", closes {kept['shrink_pct']:.0f} +- "
+                                 f"{kept['shrink_pm_pct']:.0f} % (target >= 40 %)"
+                                 if kept else "")
+          + f"; locked {b['input_locked_um']:.3f} um ({b['locked_estimator']['kind']}) vs "
+          f"truth {truth:.3f} um; held-out RMS {b['residual_rms_um']:.3f} -> {after:.3f} "
+          f"um (noise {b['noise_floor_um']:.3f})")
+    print(f"    candidate fits worse on FIT than their base: {worse} of {total}")
+
+
+
+def _print_named(res):
+    """Per axis: the effects the diagnosis kept, and what they closed."""
+    for a, d in res["axes"].items():
+        b = d["budget"]
+        print(f"    axis {a}: named " + ", then ".join(
+            s["effect"] + (f" (or {'/'.join(s['equally_well'])})" if s["equally_well"] else "")
+            for s in d["effects"]) + f"; held-out gap {b['gap_um']:.3f} -> "
+            f"{b['unexplained_um']:.3f} um ({100 * (1 - b['unexplained_um'] / b['gap_um']):.0f}"
+            " % shrink, target >= 80 %)" + "".join(
+                f"; {s['effect']} {_fmt_params(s['params'])}" for s in d["effects"]
+                if s["effect"] in ("delay", "dynamics")))
+
+
+
+def _fmt_params(p):
+    return "(" + ", ".join(f"{k} {v:.4g}" for k, v in p.items()
+                           if isinstance(v, float)) + ")"

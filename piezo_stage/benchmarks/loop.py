@@ -1,0 +1,125 @@
+"""`piezo-stage bench loop`: the lockstep loop (five processes and the recorder)
+against a bare three-process ring of empty callbacks on the nodes' own transport path
+and a two-process rclpy ping-pong, in the same run."""
+
+from __future__ import annotations
+
+from piezo_stage.benchmarks.procs import cpu_ticks, progress_runs
+
+
+def ring_rate(env, steps=3000):
+    """Steps/s of a bare 3-process ring with empty callbacks on the loop nodes' own
+    transport path: the ceiling of any three-hop lockstep loop with it on this host."""
+    import subprocess
+    import sys
+    ring = [sys.executable, "-m", "piezo_stage.benchmarks.procs", "ring"]
+    others = [subprocess.Popen(ring + [a, b, str(steps)], env=env)
+              for a, b in (("b", "c"), ("c", "a"))]
+    try:
+        r = subprocess.run(ring + ["a", "b", str(steps)], env=env,
+                           capture_output=True, text=True, timeout=300)
+        return float(r.stdout.split()[0])
+    finally:
+        for p in others:
+            p.kill()
+            p.wait()
+
+
+
+def loop_run(env, steps, foxglove_port=None):
+    """One lockstep run with the recorder: (steps/s, median ms, p99 ms, lost per topic,
+    steal fraction), or (None, log tail) when the run failed. With ``foxglove_port``
+    the live view runs too (its client is the caller's)."""
+    import contextlib
+    import os
+    import re
+    import tempfile
+
+    from piezo_stage.io.bag import iter_messages
+    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.paths import default_config
+    bag = os.path.join(tempfile.mkdtemp(), "bench")
+    o = {"stage_driver": {"max_steps": steps, "exit_after_max_steps": True},
+         "feedforward": {"model_file": default_config("stage_model.yaml")}}
+    launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
+                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+                    foxglove_port=foxglove_port)
+    log = tempfile.TemporaryFile("w+")
+    c0 = cpu_ticks()
+    with contextlib.redirect_stderr(log):
+        old = os.dup(2)
+        os.dup2(log.fileno(), 2)
+        try:
+            rc = launch.run(duration=600)
+        finally:
+            os.dup2(old, 2)
+    c1 = cpu_ticks()
+    log.seek(0)
+    text = log.read()
+    m = re.search(r"done after (\d+) samples: (\d+) steps/s, step period median ([\d.]+) "
+                  r"ms, p99 ([\d.]+) ms", text)
+    if not m or rc != 0:
+        return None, f"exit {rc}; {'; '.join(launch.failed)}\n{text[-2000:]}"
+    counts = {}
+    for topic, *_ in iter_messages(bag):
+        counts[topic] = counts.get(topic, 0) + 1
+    lost = {t: steps + 1 - counts.get(t, 0) for t in
+            ("/stage/joint_states", "/stage/sim/true_position", "/stage/reference",
+             "/stage/command")}
+    steal = (c1[1] - c0[1]) / max(1, c1[0] - c0[0])
+    return (int(m.group(2)), float(m.group(3)), float(m.group(4)), lost, steal), None
+
+
+
+def bench_loop(steps=3000, runs=5):
+    import os
+    import random
+    import subprocess
+    import sys
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    ping = [sys.executable, "-m", "piezo_stage.benchmarks.procs", "ping"]
+    pong = subprocess.Popen(ping + ["pong"], env=env)
+    try:
+        r = subprocess.run(ping + ["ping", "2000"], env=env,
+                           capture_output=True, text=True, timeout=300)
+    finally:
+        pong.terminate()
+        pong.wait()
+    rt_med, rt_p99 = map(float, r.stdout.split())
+    print("bench loop: lockstep closed loop, driver + feedforward + controller + trajectory "
+          "+ recorder as separate processes (Fast DDS, this host)")
+    print(f"  baseline ping-pong (2 processes): round trip median {rt_med * 1e3:.3f} ms, "
+          f"p99 {rt_p99 * 1e3:.3f} ms")
+    print("  baseline ring: 3 processes passing one message round, empty callbacks, the "
+          "nodes' lean wait set and raw CDR, no recorder; run before each loop run, so "
+          "each ratio pairs two runs minutes apart at most (this host's speed drifts)")
+    results, rings = [], []
+    for k in progress_runs(range(runs), "bench loop: runs"):
+        rings.append(ring_rate(env))
+        res, err = loop_run(env, steps)
+        if res is None:
+            print("  the loop run failed:\n" + err)
+            return 1
+        rate, med, p99, lost, steal = res
+        results.append(res)
+        print(f"  pair {k + 1}: ring {rings[-1]:.0f} steps/s; loop {rate} steps/s = "
+              f"{rate / rings[-1]:.2f} x the ring, step period median {med:.3f} ms, p99 "
+              f"{p99:.3f} ms; lost {sum(lost.values())}; CPU steal by the host "
+              f"{100 * steal:.1f} %")
+    rates = sorted(r[0] for r in results)
+    med_rate = rates[len(rates) // 2]
+    med_period = sorted(r[1] for r in results)[len(results) // 2]
+    ratios = sorted(r[0] / g for r, g in zip(results, rings))
+    lost = {t: max(r[3][t] for r in results) for t in results[0][3]}
+    print(f"  closed loop, median of {runs} runs of {steps} steps: {med_rate} steps/s "
+          f"(range {rates[0]}-{rates[-1]}), step period median {med_period:.3f} ms = "
+          f"{med_period / (rt_med * 1e3):.2f} x the ping-pong round trip; "
+          f"{ratios[len(ratios) // 2]:.2f} x the ring's rate (median of the pairs, range "
+          f"{ratios[0]:.2f}-{ratios[-1]:.2f}; target >= 0.5)")
+    print(f"  recorder: messages lost per loop topic, worst run {lost} (0 = every "
+          f"published message is in the bag)")
+    print(f"  target >= 1000 steps/s (median run): "
+          f"{'met' if med_rate >= 1000 else 'NOT met'}; 0 lost: "
+          f"{'met' if not any(lost.values()) else 'NOT met'}")
+    return 0
