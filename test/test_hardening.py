@@ -121,6 +121,23 @@ def test_launch_refuses_an_unknown_mode(tmp_path):
     assert "bogus" in r.stderr
 
 
+
+@pytest.mark.parametrize("record", [None, "bag"])
+def test_lockstep_gates_count_the_live_view_as_a_subscriber(tmp_path, record):
+    """The live view subscribes to every topic, as the recorder does: with --foxglove
+    every lockstep publisher waits for one subscriber more, so its gate cannot open on
+    the taps before a loop node listens (a lockstep run with the live view once hung:
+    the driver's first sample went out before the feedforward had matched)."""
+    from piezo_stage.launch.launcher import Launch
+    cfg = os.path.join(CONFIG, "stage.yaml")
+    rec = None if record is None else str(tmp_path / record)
+    plain = Launch(cfg, record=rec)._gates()
+    watched = Launch(cfg, record=rec, foxglove_port=0)._gates()
+    for node, gates in plain.items():
+        for key in ("min_subscribers", "min_record_subscribers"):
+            if key in gates:
+                assert watched[node][key] == gates[key] + 1, (node, key)
+
 def test_trajectory_messages_are_checked_point_by_point():
     pytest.importorskip("trajectory_msgs")
     from builtin_interfaces.msg import Duration

@@ -115,7 +115,11 @@ class Launch:
 
     def _gates(self):
         has = set(self.nodes)
-        rec = int("recorder" in has)
+        # the recorder and the live view subscribe to every topic: each publisher waits
+        # for them too, or a gate could open on the taps before a loop node listens
+        # (lockstep with --foxglove once hung so: the live view stood in for the
+        # feedforward, whose first sample never came)
+        rec = int("recorder" in has) + int("live_view" in has)
         g = {"stage_driver": {"min_subscribers": rec + sum(n in has for n in
                                                            ("feedforward", "identifier",
                                                             "gap")),
