@@ -125,19 +125,42 @@ def hostile_inputs(good_model: str) -> dict:
     return {"model": models, "trajectory": trajectories, "joint_states": states}
 
 
+def _feedforward_counts(probe) -> dict:
+    """The feedforward's cumulative counts from /diagnostics, kept up to date as the
+    probe spins (a dict that fills in)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    latest = {}
+
+    def on_diag(msg):
+        for st in msg.status:
+            if st.name.endswith("/feedforward: inverse feedforward"):
+                latest.update({kv.key: kv.value for kv in st.values})
+    probe.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+    return latest
+
+
 def _send_hostile(probe, good_model: str) -> list:
     """Publish every hostile input (a little apart); [(surface, what, sent at ns)]."""
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
     from trajectory_msgs.msg import JointTrajectory
 
-    from piezo_stage.nodes._common import QOS_DATA
-    pubs = {"model": probe.node.create_publisher(String, "/stage/model", 10),
+    from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED
+    # models as the identifier publishes them (latched): a volatile publisher would
+    # never meet the feedforward's latched subscription, only the recorder's
+    pubs = {"model": probe.node.create_publisher(String, "/stage/model", QOS_LATCHED),
             "trajectory": probe.node.create_publisher(JointTrajectory, "/stage/trajectory",
                                                       10),
             "joint_states": probe.node.create_publisher(JointState, "/stage/joint_states",
                                                         QOS_DATA)}
-    probe.wait(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 10)
+    def feedforward_listens(topic):
+        return any(i.node_name == "feedforward"
+                   for i in probe.node.get_subscriptions_info_by_topic(topic))
+    if not probe.wait(lambda: all(p.get_subscription_count() > 0 for p in pubs.values())
+                      and feedforward_listens("/stage/model")
+                      and feedforward_listens("/stage/trajectory"), 10):
+        raise RuntimeError("the feedforward's model and trajectory subscriptions never "
+                           "matched the outside node's publishers")
     probe.spin(0.5)
     sent = []
     for surface, items in hostile_inputs(good_model).items():
@@ -199,10 +222,15 @@ def bench_faults() -> int:
             probe.spin(0.5)
             marks.append((name, t0, time.time_ns(), rearmed))
         probe.spin(1.5)
+        diag = _feedforward_counts(probe)
+        probe.spin(1.5)
+        before = dict(diag)
         n, t0 = len(probe.states), time.time_ns()
         with open(default_config("stage_model.yaml")) as fh:
             sent = _send_hostile(probe, fh.read())
-        probe.spin(1.0)
+        probe.spin(2.5)  # the feedforward's diagnostics come at 1 Hz
+        refused = {k: int(diag.get(k, 0)) - int(before.get(k, 0))
+                   for k in ("rejected_models", "rejected_trajectories")}
         # never disarmed nor faulted: the valid trajectory among them is approached
         # (a new goal while armed), which is the set staying armed
         rearmed = all(s[0] in ("armed", "approaching") for s in probe.states[n:])
@@ -251,8 +279,16 @@ def bench_faults() -> int:
           + f" ({len(sent)} in all); node deaths {len(deaths)}"
           + (f" ({', '.join(deaths)})" if deaths else "")
           + f"; the largest step, {step:.2f} V, came after '{after}'")
-    ok_all &= not deaths
+    n_models = counts.get("model", 0)
+    n_bad_traj = sum(1 for surface, what, _ in sent
+                     if surface == "trajectory" and "(valid)" not in what)
+    print(f"  refused by the feedforward (its diagnostics): models "
+          f"{refused['rejected_models']} of {n_models}, trajectories "
+          f"{refused['rejected_trajectories']} of the {n_bad_traj} invalid")
+    ok_all &= not deaths and refused["rejected_models"] == n_models and \
+        refused["rejected_trajectories"] == n_bad_traj
     print(f"  targets (no step beyond the slew limit; safe within stale + V/ramp; NaN "
-          f"and hostile inputs never disarm or kill a node; every fault recovered): "
+          f"and hostile inputs never disarm or kill a node, and each is refused; every fault "
+          f"recovered): "
           f"{'met' if ok_all else 'NOT met'}")
     return 0
