@@ -1,4 +1,4 @@
-"""Physics of the discrete Duhem model (seed eqs. 1-6)."""
+"""Physics of the discrete Duhem model (the paper's eqs. 1-6)."""
 
 import numpy as np
 import pytest

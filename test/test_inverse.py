@@ -1,4 +1,4 @@
-"""Exact inverse of the discrete Duhem model, and the seed's eq. 12 for comparison."""
+"""Exact inverse of the discrete Duhem model, and the paper's eq. 12 for comparison."""
 
 import numpy as np
 import pytest
@@ -22,7 +22,7 @@ def test_round_trip_on_reachable_targets(stage_model, axis):
 
 
 def test_round_trip_seed_trajectory(stage_model):
-    # the seed's desired displacement y(t) = 21 + 24 sin(2 pi 10 t - pi/2) um
+    # the paper's desired displacement y(t) = 21 + 24 sin(2 pi 10 t - pi/2) um
     m = stage_model.axes["y"]
     t = np.arange(3000) / 10_000
     target = 21 + 24 * np.sin(2 * np.pi * 10 * t - np.pi / 2)

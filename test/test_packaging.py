@@ -75,7 +75,7 @@ def test_without_mcap_a_bag_command_says_what_to_install(tmp_path):
     assert "pip install mcap" in r.stderr and "unreadable" not in r.stderr, r.stderr
 
 
-# imported, but with no rosdep key: the README's "ROS install" pip line installs them
+# imported, but with no rosdep key: the "ROS install" pip line (docs/nodes.md) installs them
 PIP_ONLY = {"mcap": "mcap", "foxglove": "foxglove-sdk", "threadpoolctl": "threadpoolctl",
             "nidaqmx": "nidaqmx"}
 
@@ -87,7 +87,7 @@ BENCH_ONLY = {"pysindy": "pysindy"}
 
 def test_package_xml_declares_what_the_code_imports():
     """Every third-party module the package imports has an exec_depend (a rosdep key),
-    or has no key and is on the README's pip line for ROS installs, or serves only a
+    or has no key and is on the docs' pip line for ROS installs, or serves only a
     benchmark and is in the test extra."""
     import sys
     deps = {key for tag, key in _depends() if tag == "exec_depend"}
@@ -115,7 +115,7 @@ def test_package_xml_declares_what_the_code_imports():
     test_extra = test_extra[:test_extra.index("]")]
     for module, package in BENCH_ONLY.items():
         assert f'"{package}' in test_extra and package not in deps, package
-    readme = open(os.path.join(ROOT, "README.md")).read()
-    pip_lines = [line for line in readme.splitlines() if line.strip().startswith("pip install")]
+    docs = open(os.path.join(ROOT, "docs", "nodes.md")).read()
+    pip_lines = [line for line in docs.splitlines() if line.strip().startswith("pip install")]
     for module, package in PIP_ONLY.items():
         assert module not in used or any(package in line for line in pip_lines), package

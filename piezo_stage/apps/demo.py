@@ -3,7 +3,7 @@
 Lockstep simulation; the trajectory node first excites the stage (1 Hz full-stroke
 sine, tracked with the nominal feedforward and PID), the identifier identifies the
 Duhem model after two cycles and hands it to the feedforward, then the stage tracks
-the seed's y(t) = 21 + 24 sin(2 pi 10 t - pi/2) um on both axes. The run is recorded;
+the paper's y(t) = 21 + 24 sin(2 pi 10 t - pi/2) um on both axes. The run is recorded;
 the summary is computed from the bag.
 """
 
@@ -47,7 +47,7 @@ def run_demo(args):
         "feedforward": {"model_required_after_s": args.excite},
     }
     print(f"demo: lockstep simulated stage, {args.excite:g} s excitation + {args.track:g} s "
-          f"of the seed's 10 Hz trajectory ({steps} steps at {rate:g} Hz)", flush=True)
+          f"of the paper's 10 Hz trajectory ({steps} steps at {rate:g} Hz)", flush=True)
     launch = Launch(default_config("stage.yaml"), record=bag, namespace=args.namespace,
                     overrides=overrides)
     rc = launch.run(duration=600.0)

@@ -1,4 +1,4 @@
-"""`piezo-stage experiment`: the seed's control experiments run through the node set.
+"""`piezo-stage experiment`: the paper's control experiments run through the node set.
 
 Every case is one run of the real node set (driver on the simulated stage or the DAQ,
 feedforward, controller, trajectory, recorder) on a trajectory written for it, recorded
@@ -8,13 +8,13 @@ measured one, over the last ``EVAL_CYCLES`` cycles of the motion, and at least
 ``EVAL_MIN_S`` (tracking at 5 Hz and above: 2 cycles at 40 Hz are only 50 samples)
 (the first cycles settle the hysteresis memory the approach left).
 
-Experiments (seed section 4):
+Experiments (the paper's section 4):
 
 * ``decoupling``: one axis driven by a 1 Hz sine over 5-65 um, the other held at
   30 um; the held axis's motion is the coupling, with the feedforward's coupling
-  compensation off and on (seed Figs. 17-18), feedforward only so that the feedback
+  compensation off and on (the paper's Figs. 17-18), feedforward only so that the feedback
   does not hide what the decoupling does;
-* ``tracking``: the seed's y(t) = 21 + 24 sin(2 pi f t - pi/2) um on both axes at 1, 5,
+* ``tracking``: the paper's y(t) = 21 + 24 sin(2 pi f t - pi/2) um on both axes at 1, 5,
   10 and 40 Hz with feedforward only, feedback only and composite (Figs. 19-20);
 * ``amplitude``: 1 Hz, constant 60 um and variable 60/40/20 um cycles (Figs. 22-25);
   both start 1 um above the stage's 0 V rest (0 um is reachable only at exactly 0 V,

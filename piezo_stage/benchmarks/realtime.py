@@ -1,7 +1,7 @@
 """`piezo-stage bench realtime`: the same run in real time and in lockstep, compared.
 
 The node set (driver on the simulated stage, feedforward with config/stage_model.yaml,
-controller, trajectory, recorder) tracks the seed's 10 Hz trajectory for ``track_s``
+controller, trajectory, recorder) tracks the paper's 10 Hz trajectory for ``track_s``
 seconds, first in real time (the sim paced by the wall clock at 1 kHz), then in
 lockstep, in the same invocation. Every figure comes from the bags (and the driver's
 final diagnostics in them): tick jitter, missed ticks, stamp-to-arrival lag at the
@@ -74,7 +74,7 @@ def figures(run, track_s: float, slew_V_per_s: float, pauses=()) -> dict:
     f["held"] = int(sum(int(k) not in run.desired_um for k in win))
     # start-up: from the first sample to the end of the approach; where 0 V is applied
     # and the stage is still above the asked position the path is unreachable (the
-    # seed's trajectory starts at -3 um, below the stage's 0 V rest): counted apart
+    # the paper's trajectory starts at -3 um, below the stage's 0 V rest): counted apart
     volts = dict(zip(run.t_ns.tolist(), run.v_V))
     start = run.errors_um(int(run.t_ns[0]), a0)
     ks = [k for k in sorted(run.desired_um) if k <= a0 and k in run.true_um]
@@ -107,7 +107,7 @@ def bench_realtime(track_s: float = 20.0) -> int:
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     tmp = tempfile.mkdtemp()
-    print(f"bench realtime: the seed's 10 Hz trajectory for {track_s:g} s, driver (sim at "
+    print(f"bench realtime: the paper's 10 Hz trajectory for {track_s:g} s, driver (sim at "
           "1 kHz) + feedforward + controller + trajectory + recorder as separate processes")
     out = {}
     from piezo_stage.benchmarks.procs import progress_runs

@@ -12,7 +12,7 @@ def add_arguments(s):
     s.add_argument("--excite", type=number(0, 600), default=3.0,
                    help="excitation before tracking [s]")
     s.add_argument("--track", type=number(0, 600, lo_open=True), default=1.0,
-                   help="tracking of the seed's 10 Hz "
+                   help="tracking of the paper's 10 Hz "
                    "trajectory [s]")
     s.add_argument("--namespace", default="/stage")
 

@@ -1,4 +1,4 @@
-"""`piezo-stage experiment`: the seed's control experiments through the node set."""
+"""`piezo-stage experiment`: the paper's control experiments through the node set."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import os
 
 from piezo_stage.cli._common import param_overrides
 
-HELP = "the seed's control experiments through the node set"
+HELP = "the paper's control experiments through the node set"
 
 
 def add_arguments(s):

@@ -1,4 +1,4 @@
-"""`piezo-stage study`: the seed's identification study reproduced."""
+"""`piezo-stage study`: the paper's identification study reproduced."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import sys
 
 from piezo_stage.cli._common import number
 
-HELP = "reproduce the seed's identification study"
+HELP = "reproduce the paper's identification study"
 
 
 def add_arguments(s):

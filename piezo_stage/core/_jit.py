@@ -2,7 +2,7 @@
 
 The Duhem recursion is sequential in time, so numpy cannot vectorise it; numba compiles
 these loops to machine code. One kernel per formula: ``horner`` (polynomials),
-``branch_step`` / ``duhem_step`` (seed eq. 6), ``amplifier_step`` (clamp, then slew);
+``branch_step`` / ``duhem_step`` (the paper's eq. 6), ``amplifier_step`` (clamp, then slew);
 the batch runs, the plant (``plant_run``), the inverse and the identification objectives
 call them. With numba switched off (``NUMBA_DISABLE_JIT=1``, or numba missing) every
 kernel runs as its plain-Python original: ``bench plant`` times that as its baseline.
@@ -42,7 +42,7 @@ def horner(c: F64, x: float) -> float:
 
 @njit
 def branch_step(v_prev: float, w_prev: float, vk: float, alpha_b: float, h: F64) -> float:
-    """One step of seed eq. 6 on one branch, the one formula of the Duhem step:
+    """One step of the paper's eq. 6 on one branch, the one formula of the Duhem step:
     w_k = (w_{k-1} + dv h(v_k)) / (1 + alpha |dv|), h's coefficients lowest power first."""
     dv = vk - v_prev
     return (w_prev + dv * horner(h, vk)) / (1.0 + alpha_b * abs(dv))
@@ -50,7 +50,7 @@ def branch_step(v_prev: float, w_prev: float, vk: float, alpha_b: float, h: F64)
 
 @njit
 def duhem_step(v_prev: float, w_prev: float, vk: float, alpha: F64, H: F64) -> float:
-    """One step of seed eq. 6 from (v_prev, w_prev) to voltage vk, on the branch the
+    """One step of the paper's eq. 6 from (v_prev, w_prev) to voltage vk, on the branch the
     step's sign picks (H is (2, D): ascending, descending)."""
     b = 0 if vk >= v_prev else 1
     return branch_step(v_prev, w_prev, vk, alpha[b], H[b])
@@ -59,7 +59,7 @@ def duhem_step(v_prev: float, w_prev: float, vk: float, alpha: F64, H: F64) -> f
 @njit
 def duhem_run(v: F64, v_prev: float, w_prev: float, alpha: F64, H: F64,
               out: F64) -> tuple[float, float]:
-    """Run the discrete Duhem recursion (seed eq. 6) over ``v``.
+    """Run the discrete Duhem recursion (the paper's eq. 6) over ``v``.
 
     w_k = (w_{k-1} + dv_k * H_b(v_k)) / (1 + alpha_b |dv_k|),  dv_k = v_k - v_{k-1},
     with branch b = 0 (ascending, dv >= 0) or 1 (descending). ``H[0] = f + g`` and
@@ -394,7 +394,7 @@ def as_f64(x: ArrayLike) -> F64:
 @njit
 def duhem_rms_batch(v: F64, w_meas: F64, v0: float, w0: float, alpha: F64, H: F64,
                     out: F64) -> F64:
-    """RMS output error [um] of K candidate models over one record (seed eq. 9 without
+    """RMS output error [um] of K candidate models over one record (the paper's eq. 9 without
     its 1/sqrt(N) factor, which does not change the minimiser).
 
     alpha: (K, 2), H: (K, 2, D); each candidate starts from (v0, w0).
@@ -421,7 +421,7 @@ def branch_rms_batch(v: F64, w_meas: F64, starts: I64, stops: I64, v_init: F64,
 
     Segment j runs over samples starts[j]..stops[j]-1 from the state
     (v_init[j], w_init[j]) (the turning point before it, taken from the data), so
-    each branch can be identified on its own (seed section 3.2).
+    each branch can be identified on its own (the paper's section 3.2).
     alpha: (K,), H: (K, D).
     """
     for c in range(alpha.shape[0]):

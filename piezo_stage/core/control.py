@@ -1,10 +1,10 @@
 """Control laws: discrete PID and the composite law (feedforward + feedback).
 
 Units: errors in um, voltages in V, so gains are V/um (P), V/(um s) (I), V s/um (D).
-The composite law follows the seed's eq. 17-19: the inverse-model feedforward voltage
+The composite law follows the paper's eq. 17-19: the inverse-model feedforward voltage
 plus a PID correction of the measured error. Cross-coupling is compensated in the
 feedforward by the joint inverse of the 2-axis model (StageInverse), which is the
-exact form of the seed's decoupler (eqs. 15-16) when the model holds the coupling.
+exact form of the paper's decoupler (eqs. 15-16) when the model holds the coupling.
 """
 
 from __future__ import annotations

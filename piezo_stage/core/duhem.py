@@ -1,14 +1,14 @@
 """Duhem hysteresis: forward model, whole-curve and segmented, batch and per sample.
 
-Continuous law (seed eq. 1), input voltage v [V], output displacement w [um]::
+Continuous law (the paper's eq. 1), input voltage v [V], output displacement w [um]::
 
     dw/dt = alpha |dv/dt| (f(v) - w) + dv/dt g(v)
 
-Implicit Euler on the voltage increment dv_k = v_k - v_{k-1} (seed eq. 6) gives::
+Implicit Euler on the voltage increment dv_k = v_k - v_{k-1} (the paper's eq. 6) gives::
 
     w_k (1 + alpha |dv_k|) = w_{k-1} + |dv_k| F(v_k) + dv_k G(v_k)
 
-where, following the seed's eq. 6 literally, the polynomials F = sum f_i v**i and
+where, following the paper's eq. 6 literally, the polynomials F = sum f_i v**i and
 G = sum g_j v**j already carry the factor alpha of eq. 1 (F = alpha f_eq1); f_i and
 g_j are in um/V per V**i. On an ascending step (dv >= 0) only H_asc = F + G enters,
 on a descending step only H_desc = G - F::
@@ -16,7 +16,7 @@ on a descending step only H_desc = G - F::
     w_k = (w_{k-1} + dv_k H_b(v_k)) / (1 + alpha_b |dv_k|)
 
 so within one branch f_i and g_i of the same power are not separately identifiable.
-The *segmented* model (seed eqs. 2-3) has its own (alpha, f, g) per branch; the
+The *segmented* model (the paper's eqs. 2-3) has its own (alpha, f, g) per branch; the
 *whole-curve* model shares one set. The state (v_{k-1}, w_{k-1}) is carried across
 reversals, so the output is continuous whatever the branch. The recursion only sees
 the sequence of voltages, never time: the law is rate independent.
@@ -45,7 +45,7 @@ def _coeffs(x, name):
 
 @dataclass(frozen=True)
 class DuhemBranch:
-    """One parameter set (alpha, f, g) in the seed's eq. 6 convention.
+    """One parameter set (alpha, f, g) in the paper's eq. 6 convention.
 
     Parameters
     ----------
@@ -209,7 +209,7 @@ class StageModel:
     """Hysteresis of a 2-axis stage: one Duhem model per axis, optional coupling and
     play operators.
 
-    ``coupling['x']`` is the displacement on x caused by the y voltage (seed's H_xy),
+    ``coupling['x']`` is the displacement on x caused by the y voltage (the paper's H_xy),
     itself a Duhem model driven by v_y; ``plays['x']`` (core/play.py's PlayOperators,
     optional) adds return-point memory driven by v_x; the axis output is the sum
     w_x = H_xx(v_x) + P_x(v_x) + H_xy(v_y). Axes absent from ``axes`` are not modelled.

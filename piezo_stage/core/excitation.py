@@ -14,7 +14,7 @@ resonance and shows its peak (the gap diagnosis seeds its resonance search there
 
 ``nested=True`` (``excite --nested``) adds, after the sines, the minor loops that show
 a hysteresis's memory: 1 Hz sines from the lower limit at 100, 66 and 33 % of the span
-(the seed's 60/40/20 um experiment), then loops inside the major one on its falling
+(the paper's 60/40/20 um experiment), then loops inside the major one on its falling
 branch (between 90 and 50 %) and on its rising branch (between 20 and 60 %); about
 11 s more per axis. A law with return-point memory closes each of them where it
 began; our Duhem law does not.

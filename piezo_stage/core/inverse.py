@@ -2,7 +2,7 @@
 
 Exact inverse
     Per sample, from the model's current state (v_{k-1}, w_{k-1}), solve the forward
-    step of seed eq. 6 for v_k::
+    step of the paper's eq. 6 for v_k::
 
         w_{k-1} + dv H_b(v_{k-1} + dv) - (1 + alpha_b |dv|) w*_k = 0
 

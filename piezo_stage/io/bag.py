@@ -98,7 +98,7 @@ def new_bag_dir(root="bags") -> str:
 
 def _need_mcap():
     """ConfigError naming the missing package and its install line: rosdep has no key
-    for mcap, so a ROS install from package.xml alone lacks it (README: ROS install)."""
+    for mcap, so a ROS install from package.xml alone lacks it (docs/nodes.md: ROS install)."""
     try:
         import mcap  # noqa: F401
     except ImportError:

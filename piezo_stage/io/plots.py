@@ -1,6 +1,6 @@
 """PNG figures of the commands' results, written atomically (complete or absent):
 an identification (measured and modelled loop, fit error over time) and a tracking
-run (desired and measured, error over time), like the seed's figures."""
+run (desired and measured, error over time), like the paper's figures."""
 
 from __future__ import annotations
 
@@ -89,7 +89,7 @@ def tracking_png(path, run, t_track_s, excite_s=0.0, axes=("x", "y")):
 def experiment_png(path, evals):
     """``evals``: [(case, evaluation)] from piezo_stage.apps.experiments -> per case, the
     desired and true position of each judged axis over its window, and the errors
-    against the true and the measured position (the seed's Figs. 17-25 layout)."""
+    against the true and the measured position (the paper's Figs. 17-25 layout)."""
     plt = _pyplot()
     n = len(evals)
     fig, ax = plt.subplots(n, 2, figsize=(12, 2.4 * n), squeeze=False)

@@ -1,4 +1,4 @@
-"""ROS 2 nodes: one per file, each a thin shell over the core (see README: topics).
+"""ROS 2 nodes: one per file, each a thin shell over the core (see docs/nodes.md: topics).
 
 ``NODES`` is the one list of the set's nodes, in start order (the recorder and the live
 view first, so they listen before anything is published; the driver last, so its first

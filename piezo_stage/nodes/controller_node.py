@@ -1,4 +1,4 @@
-"""controller: composite law, feedforward + PID on the measured error (seed eq. 17-19).
+"""controller: composite law, feedforward + PID on the measured error (the paper's eq. 17-19).
 
 Each reference, stamped for the target sample, carries the desired position and the
 feedforward for it, and the measurement of the sample t_k it answers with the voltage

@@ -1,9 +1,9 @@
-"""Reproduce the seed's identification study (Tables 1-3, Figs. 5-15) on the simulated stage.
+"""Reproduce the paper's identification study (Tables 1-3, Figs. 5-15) on the simulated stage.
 
 Record: x axis, 1 Hz, 0-150 V sine, sensor noise on, 2 cycles at 1 kHz (2,000 samples,
 the virgin rise included). Compared: whole vs segmented (afsa-bat), afsa vs afsa-bat
 (segmented, equal evaluation budget, several seeds), and fast beside both. The 1 Hz
-models are then validated on 5, 10 and 40 Hz records (seed section 3.4), first on the
+models are then validated on 5, 10 and 40 Hz records (the paper's section 3.4), first on the
 default stage (pure Duhem hysteresis: rate independent) and then on a stage with a
 mechanical resonance switched on, to show where a rate-dependent error comes from.
 """
@@ -164,9 +164,9 @@ def print_report(rep):
               f"{r['evaluations_mean']:11.0f} {r['seconds_mean']:7.2f}")
     c = rep["comparison"]
     print(f"segmented vs whole (afsa-bat): {c['segmented_vs_whole_afsa_bat_pct']:.1f} % lower "
-          f"RMS (seed: {c['seed_claims']['segmented_vs_whole_pct']} %)")
+          f"RMS (the paper: {c['seed_claims']['segmented_vs_whole_pct']} %)")
     print(f"afsa-bat vs afsa (segmented, equal budget): {c['afsa_bat_vs_afsa_pct']:.1f} % lower "
-          f"RMS (seed: {c['seed_claims']['afsa_bat_vs_afsa_pct']} %)")
+          f"RMS (the paper: {c['seed_claims']['afsa_bat_vs_afsa_pct']} %)")
     print(f"noise floor estimated from the data: {c['noise_floor_um']:.4f} um")
     print("validation of the 1 Hz models at other frequencies (rms_um / rms_pct):")
     print(f"{'stage':<26} {'method':<9} " + " ".join(f"{f:>15g}Hz" for f in (1, 5, 10, 40)))

@@ -59,7 +59,7 @@ AXES_IN_PROCESSES = True
 @dataclass
 class Diagnosis:
     """What ``diagnose`` found: ``json``, the --json contract (see the module docstring
-    and the README; ``diagnosis["verdict"]`` reads it), and ``per_axis``, each axis's
+    and docs/gap.md; ``diagnosis["verdict"]`` reads it), and ``per_axis``, each axis's
     full diagnosis (its kept model and candidates: for reports and ``model``)."""
 
     json: dict

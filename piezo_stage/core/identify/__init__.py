@@ -1,8 +1,8 @@
-"""Duhem identification: segmentation, output-error objective (seed eq. 9), solvers.
+"""Duhem identification: segmentation, output-error objective (the paper's eq. 9), solvers.
 
 Solvers: ``fast`` (variable projection: exact least squares in the polynomial
 coefficients for fixed alpha, a search over alpha only; the default), ``afsa`` (the
-standard artificial fish swarm) and ``afsa-bat`` (the seed's bat-improved swarm).
+standard artificial fish swarm) and ``afsa-bat`` (the paper's bat-improved swarm).
 """
 
 from piezo_stage.core.identify.api import (  # noqa: F401

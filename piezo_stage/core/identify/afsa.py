@@ -1,6 +1,6 @@
-"""Artificial fish swarm (``afsa``) and the seed's bat-improved swarm (``afsa-bat``).
+"""Artificial fish swarm (``afsa``) and the paper's bat-improved swarm (``afsa-bat``).
 
-Standard AFSA (Li Xiaolei, 2002), minimising the output error (seed eq. 9 as RMS):
+Standard AFSA (Li Xiaolei, 2002), minimising the output error (the paper's eq. 9 as RMS):
 each fish at X_i with food concentration Y_i = J(X_i) tries, every iteration,
 * swarm:  move a random fraction of ``step`` towards the centre X_c of the fish
           within ``visual``, if Y_c < Y_i and the neighbourhood is not crowded
@@ -12,7 +12,7 @@ each fish at X_i with food concentration Y_i = J(X_i) tries, every iteration,
 keeps the better of its swarm and follow results, and a bulletin board keeps the best
 fish ever seen.
 
-AFSA-bat (seed section 3.2, eqs. 7-8): each fish also carries a velocity with a bat's
+AFSA-bat (the paper's section 3.2, eqs. 7-8): each fish also carries a velocity with a bat's
 pulse frequency f = f_min + (f_max - f_min) beta, beta ~ U(0, 1):
     swarm  V_i <- f V_i + (X_c - X_i)/|X_c - X_i| rand step          (eq. 7)
     follow V_i <- f V_i + (X_best - X_i)/|X_best - X_i| rand step    (eq. 8)
@@ -21,7 +21,7 @@ rather than the best neighbour.
 
 Search space (both variants): log(alpha) and the polynomial coefficients in a Legendre
 basis over the record's voltage span, each scaled to [0, 1]. Segmented models are
-identified one branch at a time (seed section 3.2) over that branch's segments, each
+identified one branch at a time (the paper's section 3.2) over that branch's segments, each
 started from the measured displacement at its turning point; the whole-curve model
 over the whole record. Evaluations are batched and compiled; all runs are seeded.
 """

@@ -1,8 +1,8 @@
 """Output-error regression of the Duhem model for fixed alphas (variable projection).
 
-For fixed alpha_asc and alpha_desc the discrete Duhem output (seed eq. 6) is linear in
+For fixed alpha_asc and alpha_desc the discrete Duhem output (the paper's eq. 6) is linear in
 the polynomial coefficients and in the initial output w_0 (see _jit.duhem_regressors),
-so the output-error least-squares problem of seed eq. 9 is solved exactly by one
+so the output-error least-squares problem of the paper's eq. 9 is solved exactly by one
 linear least-squares solve; only the alphas need a search. Polynomials are expanded in
 Legendre polynomials of the voltage mapped to [-1, 1] over the record's span, which
 keeps the regression well conditioned, and converted to power coefficients in volts at
