@@ -287,7 +287,8 @@ LIVE = {"controller": {"kp", "ki", "kd", "feedback"},
         "live_view": {"max_rate_hz", "batch_period_s"},
         "trajectory": {"kind", "frequency_hz", "duration_s", "center_um", "amplitude_um",
                        "dt_s", "csv_path", "excite_s", "excite_center_um",
-                       "excite_amplitude_um", "excite_y_hz"}}
+                       "excite_amplitude_um", "excite_y_hz", "lines", "scan_size_um",
+                       "scan_center_um", "corner", "slow", "fast_axis"}}
 
 
 def test_every_parameter_of_every_node_is_live_or_read_only(tmp_path, domain):

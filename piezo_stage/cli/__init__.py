@@ -15,7 +15,7 @@ from piezo_stage.cli._common import EXIT_SOLVER, Parser, die
 from piezo_stage.core.errors import DataError, PiezoStageError, SolverError
 
 COMMANDS = ("simulate", "invert", "excite", "gap", "launch", "demo", "experiment", "tune",
-            "replay", "bag", "loop", "identify", "study", "bench")
+            "replay", "bag", "loop", "identify", "study", "bench", "raster")
 
 
 def build_parser():

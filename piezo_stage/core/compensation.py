@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from scipy.linalg import expm
@@ -215,6 +215,13 @@ class EffectCompensator:
         return f"effects compensated: {done}" + (f" (not: {left})" if left else "")
 
 
+class LearnedOffsets(Protocol):
+    """What the reference needs of a learner (core.learning.PeriodicLearner)."""
+
+    def offset(self, k: int) -> dict:
+        """The correction {axis: um} at trajectory sample ``k``."""
+
+
 class PreviewedReference:
     """The reference planner with the model's effects compensated: what the stage should
     be at each target tick, and the hysteresis target to command for it.
@@ -230,10 +237,36 @@ class PreviewedReference:
     def __init__(self, planner: ReferencePlanner, dt_ns: int):
         self.planner, self.dt_ns = planner, int(dt_ns)
         self.comp, self.on, self.ahead = None, True, {}
+        self.learner = None  # a core.learning.PeriodicLearner, or None
 
     def set_compensator(self, comp: EffectCompensator | None) -> None:
         """A new model's compensator (None: no effects)."""
         self.comp, self.ahead = comp, {}
+
+    def set_learner(self, learner: LearnedOffsets | None) -> None:
+        """Learning feedforward: ``learner.offset(k)`` is added to the wanted position
+        of trajectory sample ``k`` (before the effects are compensated); None: off."""
+        self.learner = learner
+
+    def sample_index(self, stamp_ns: int) -> int | None:
+        """The trajectory sample (at this reference's period) a stamp falls on while the
+        trajectory runs; None outside it."""
+        clock = self.planner.clock_s(stamp_ns)
+        if clock is None or clock < 0 or self.planner.traj is None or \
+                clock > self.planner.traj[0][-1]:
+            return None
+        return int(round(clock * 1e9 / self.dt_ns))
+
+    def _learned(self, wanted: dict, stamps: dict) -> dict:
+        """``wanted`` with the learned correction of each axis's stamp added."""
+        if self.learner is None:
+            return wanted
+        out = dict(wanted)
+        for a, ts in stamps.items():
+            k = self.sample_index(ts)
+            if k is not None:
+                out[a] = wanted[a] + self.learner.offset(k).get(a, 0.0)
+        return out
 
     def describe(self) -> str:
         """The diagnostics' line: what is compensated, or that nothing is."""
@@ -253,14 +286,15 @@ class PreviewedReference:
         comp = self.comp if self.on else None
         if comp is None:
             d = self.planner.sample(target_ns)
-            return d, d
+            return d, self._learned(d, {a: target_ns for a in d})
         preview = self.planner.traj is not None
         held = dict(self.planner.desired)
         lead = comp.max_lead_ticks if preview else 0
         t_lead = target_ns + lead * self.dt_ns
         self.ahead[t_lead] = self.planner.sample(t_lead)
-        wanted = {a: self.ahead.get(target_ns + comp.lead_ticks[a] * self.dt_ns if preview
-                                    else target_ns, held)[a] for a in held}
+        stamps = {a: target_ns + comp.lead_ticks[a] * self.dt_ns if preview else target_ns
+                  for a in held}
+        wanted = self._learned({a: self.ahead.get(stamps[a], held)[a] for a in held}, stamps)
         desired = self.ahead.get(target_ns, held)
         self.ahead = {t: d for t, d in self.ahead.items() if t >= target_ns}
         return desired, comp.step(wanted, preview)

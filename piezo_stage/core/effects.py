@@ -175,6 +175,11 @@ class Dynamics:
         assert abs(bd[0]) < 1e-12
         self._f = _LinearFilter(bd[1:], ad)
 
+    @property
+    def coefficients(self) -> tuple[np.ndarray, np.ndarray]:
+        """(b, a) of the sampled filter, y = (b / a) x at the operator's rate."""
+        return self._f.b.copy(), self._f.a.copy()
+
     def reset(self, x0: float = 0.0) -> None:
         """At rest with input and output at ``x0``."""
         self._f.reset(x0)

@@ -1,7 +1,9 @@
 """trajectory: publishes a whole desired trajectory (trajectory_msgs/JointTrajectory).
 
-Kinds: sine, variable_sine, steps, triangle, csv, and the seed's preset
-y(t) = 21 + 24 sin(2 pi f t - pi/2) um (``seed``). ``excite_s`` > 0 prepends a
+Kinds: sine, variable_sine, steps, triangle, csv, the paper's preset
+y(t) = 21 + 24 sin(2 pi f t - pi/2) um (``seed``), and ``raster`` (a microscope's scan:
+``frequency_hz`` is its line rate, ``lines``, ``scan_size_um``, ``scan_center_um``,
+``corner``, ``slow`` and ``fast_axis`` shape it). ``excite_s`` > 0 prepends a
 full-stroke sine of that length (x at 1 Hz, y at ``excite_y_hz``), so the identifier
 has loops to learn from, and can tell each axis from its coupling, before the tracking
 starts. Published once its consumers listen, again on a parameter change.
@@ -33,6 +35,12 @@ PARAMS = {  # name: (default, description)
     "amplitude_um": (24.0, "amplitude [um]"),
     "dt_s": (0.001, "point spacing [s]"),
     "csv_path": ("", "CSV t,wx,wy for kind csv"),
+    "lines": (16, "raster: line periods (trace and retrace) in the scan"),
+    "scan_size_um": ([40.0, 40.0], "raster: scan size [fast, slow] [um]"),
+    "scan_center_um": ([40.0, 40.0], "raster: scan centre [fast, slow] [um]"),
+    "corner": (0.1, "raster: share of each line spent turning around, 0-0.5"),
+    "slow": ("steps", "raster: slow axis, steps (a line at a time) or ramp"),
+    "fast_axis": ("x", "raster: the fast axis, x or y"),
     "excite_s": (0.0, "prepended excitation [s] (0: none)"),
     "excite_center_um": (35.0, "excitation centre [um]"),
     "excite_amplitude_um": (34.0, "excitation amplitude [um]"),
@@ -61,8 +69,11 @@ class Trajectory(Node):
         if p["kind"] == "csv":
             from piezo_stage.io.csv_table import read_table
             table = read_table(p["csv_path"], ["t", "wx", "wy"])
+        scan = {"lines": p["lines"], "size_um": list(p["scan_size_um"]),
+                "center_um": list(p["scan_center_um"]), "corner": p["corner"],
+                "slow": p["slow"], "fast_axis": p["fast_axis"]}
         t, w = generate(p["kind"], p["duration_s"], p["dt_s"], p["frequency_hz"],
-                        p["center_um"], p["amplitude_um"], table=table)
+                        p["center_um"], p["amplitude_um"], table=table, scan=scan)
         if p["excite_s"] > 0:
             te, we = generate("sine", p["excite_s"], p["dt_s"], 1.0, p["excite_center_um"],
                               p["excite_amplitude_um"])

@@ -1,0 +1,389 @@
+"""Learning feedforward for repeated motion (iterative learning control).
+
+A periodic trajectory (the paper's sines, a raster's line pairs) repeats its error from
+one period to the next: what the model misses (the amplifier's slew, a resonance the
+feedforward cannot invert causally, a model off by some per cent) comes back every
+period. The learner adds a correction c to the desired position before the feedforward
+(before its effect compensation and its hysteresis inverse) and, after each period j,
+updates it from that period's measured error e_j = desired - measured:
+
+    A_(j+1)(k) = Q(k) ((1 - gain_j) A_j(k) + gain_j (C_j(k) + L(k) E_j(k)))
+                                               (per DFT bin k of the period; C_j is the
+                                                correction applied in period j, A_j soft-
+                                                thresholded by the noise, see below)
+
+Derivation. Around the branches the hysteresis inverse and the plant's hysteresis
+cancel, so from c to the stage's position the loop is linear: the model's effects D
+(creep, dynamics, delay, `core/effects.py`) times what the feedforward does about them,
+C_ff = 1 / D for each effect it compensates and 1 for one it does not (a resonance it
+cannot invert causally). So G = prod over the uncompensated effects of D, and the
+learning filter is L = 1 / G, applied over the whole period at once: the period is known
+in advance, so the inverse is non-causal and stable even where G is not minimum phase
+(the circular form of stable inversion; a notch of G, |G| < 0.1, is not inverted).
+
+Convergence. With the true loop G_true the bin's error shrinks by
+|1 - gain L G_true| per period; learning converges monotonically where
+Q |1 - gain L G_true| < 1. The true loop is not known: :func:`design` evaluates the
+factor with every effect parameter of the model off by +-``perturb`` (1 % by default,
+one at a time and all together), and Q (zero phase: a real gain per bin, so it shifts
+nothing) passes the bins up to the last one where the worst factor is below
+``1 - margin``, rolling off with a raised cosine below that bin. The design reports the
+worst factor over the passed bins (< 1 is the condition). What no model margin covers
+(a model further off, the amplifier's slew, a hysteresis the model does not follow) is
+watched while learning: a bin whose error grows well past the smallest it reached,
+beyond what the noise explains, goes back to the correction that gave that smallest
+error and learns at a quarter of the gain from there
+(:attr:`PeriodicLearner.damped` counts them), so learning cannot keep growing what it
+should shrink.
+
+Noise. The measured error carries the sensor's noise, which the learner must not write
+into the command. The gain falls with the periods learned, gain_j = max(gain_floor,
+gain / (1 + gain j)): for gain 1 the accumulated correction A is the running mean of
+what each period asked for, C_j + L E_j, so its noise falls as 1 / sqrt(periods). What
+is applied is A soft-thresholded by that noise, bin by bin: |A| - kappa |L| sigma
+sqrt(n / j), at least 0 (kappa = 1.5), so a bin at the noise level is not applied at
+all and the command stays clean where the model is already right. sigma, the sensor
+noise, comes from the data: from one period to the next the error changes by what the
+change of the applied correction does (through the model) plus twice the noise's
+variance (a median absolute deviation, smoothed over the periods). The first period
+only measures. :meth:`PeriodicLearner.noise_factor` says how much of white noise's RMS
+the accumulated correction would carry at the current gain, before the threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from piezo_stage.core.compensation import DynamicsInverse, EffectCompensator
+from piezo_stage.core.errors import ConfigError
+
+EFFECTS_WITH_DYNAMICS = ("creep", "dynamics", "delay")  # drift ignores the input
+NOISE_KAPPA = 1.5  # a bin is learned where it exceeds this many noise RMS
+
+
+def _scaled(params: dict, scale: dict | None) -> dict:
+    sc = scale or {}
+    out = {k: v for k, v in params.items() if k not in ("axes", "enabled")}
+    for k, f in sc.items():
+        if k in out:
+            out[k] = [x * f for x in out[k]] if isinstance(out[k], list) else out[k] * f
+    return out
+
+
+def creep_response(params: dict, rate_hz: float, freqs_hz: np.ndarray) -> np.ndarray:
+    """Creep (core/effects.py's form) at the control rate: 1 - gamma (1 - the mean of
+    its low-passes (1 - p) / (1 - p z^-1), p = exp(-T / tau))."""
+    z1 = np.exp(-2j * np.pi * np.asarray(freqs_hz, float) / rate_hz)
+    poles = np.exp(-1.0 / (rate_hz * np.atleast_1d(np.asarray(
+        params.get("tau_s", (0.05, 0.5, 5.0, 50.0)), float))))
+    slow = np.mean([(1 - p) / (1 - p * z1) for p in poles], axis=0)
+    return 1 - min(float(params.get("gamma", 0.03)), 0.99) * (1 - slow)
+
+
+def held_dynamics_response(params: dict, delay_s: float, rate_hz: float,
+                           freqs_hz: np.ndarray) -> np.ndarray:
+    """Dynamics (and a transport delay) driven by a command held over each control
+    period and read at the period's end, as the plant's sampled output: the delay's
+    whole periods are a shift, its fraction the instant inside the held period at
+    which the dynamics are read (core.compensation.DynamicsInverse's forward model:
+    x+ = Ad x + Bd u, y = Cs x + Ds u). Without dynamics a fraction of a period is not
+    seen at all: the held command has reached the output by the period's end."""
+    f = np.asarray(freqs_hz, float)
+    T = 1.0 / rate_hz
+    whole = int(np.floor(delay_s / T + 1e-9))
+    shift = np.exp(-2j * np.pi * f * whole * T)
+    if not params:
+        return shift
+    kw = {k: params[k] for k in ("kind", "fn_hz", "zeta", "tau_s") if k in params}
+    dyn = DynamicsInverse(rate_hz, delta_s=delay_s - whole * T, **kw)
+    z = np.exp(2j * np.pi * f * T)
+    n = dyn.Ad.shape[0]
+    h = np.array([dyn.Ds + dyn.Cs @ np.linalg.solve(zk * np.eye(n) - dyn.Ad, dyn.Bd.ravel())
+                  for zk in z])
+    return h * shift
+
+
+def effects_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: np.ndarray,
+                     scale: dict | None = None) -> np.ndarray:
+    """The axis's effects chain (creep, dynamics, delay; drift ignores the input) as the
+    sampled plant shows it at the control rate, every parameter times ``scale``'s
+    factor for it (a perturbed model)."""
+    on = {name: _scaled(p, scale) for name, p in (effects or {}).items()
+          if name in EFFECTS_WITH_DYNAMICS and p.get("enabled", True)
+          and axis in p.get("axes", ("x", "y"))}
+    g = np.ones(len(freqs_hz), complex)
+    if "creep" in on:
+        g = g * creep_response(on["creep"], rate_hz, freqs_hz)
+    if "dynamics" in on or "delay" in on:
+        g = g * held_dynamics_response(on.get("dynamics", {}),
+                                       float(on.get("delay", {}).get("delay_s", 0.0)),
+                                       rate_hz, freqs_hz)
+    return g
+
+
+def loop_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: np.ndarray,
+                  compensator: EffectCompensator | None = None, scale: dict | None = None,
+                  model: dict | None = None) -> np.ndarray:
+    """From a correction of the desired position to the stage's position: the effects
+    chain (``effects``, perhaps perturbed by ``scale``) times what the feedforward's
+    ``compensator`` (a core.compensation.EffectCompensator, or None) does about the
+    *model's* effects (``model``; ``effects`` when not given): the delay's whole periods
+    run ahead, creep divided out, and where the dynamics are inverted, the dynamics read
+    at the delay's fraction divided out."""
+    f = np.asarray(freqs_hz, float)
+    model = effects if model is None else model
+    g = effects_response(effects, axis, rate_hz, f, scale)
+    if compensator is None:
+        return g
+    lead = compensator.lead_ticks.get(axis, 0) / rate_hz
+    g = g * np.exp(2j * np.pi * f * lead)
+    if axis in compensator.creep:
+        g = g / creep_response(model["creep"], rate_hz, f)
+    if axis in compensator.dynamics:
+        dl = model.get("delay", {})
+        frac = float(dl.get("delay_s", 0.0)) - lead \
+            if axis in dl.get("axes", ("x", "y")) else 0.0
+        g = g / held_dynamics_response(model["dynamics"], frac, rate_hz, f)
+    return g
+
+
+@dataclass
+class LearningDesign:
+    """One axis's learning filter for a period of ``n`` samples at ``rate_hz``: per DFT
+    bin the learning filter ``learn``, the zero-phase robustness filter ``q``; the passed
+    band's edge ``cutoff_hz``; ``worst_factor``: the largest Q |1 - gain L G| over the
+    bins and the perturbed models (< 1: monotonic convergence), ``nominal_factor`` the
+    same on the model itself."""
+    n: int
+    rate_hz: float
+    gain: float
+    learn: np.ndarray
+    q: np.ndarray
+    cutoff_hz: float
+    worst_factor: float
+    nominal_factor: float
+
+    def describe(self) -> str:
+        """One line: the band learned and the convergence check."""
+        ok = "met" if self.worst_factor < 1.0 else "NOT met"
+        return (f"learning up to {self.cutoff_hz:.0f} Hz, gain {self.gain:g}; convergence "
+                f"factor {self.nominal_factor:.2f} on the model, {self.worst_factor:.2f} "
+                f"with its parameters off by the design's margin ({ok}: < 1)")
+
+
+def _scales(effects: dict, perturb: float) -> list[dict]:
+    """Every parameter of the effects off by +-perturb, one at a time and all together."""
+    names = {"delay_s", "fn_hz", "zeta", "gamma", "tau_s"}
+    present = sorted({k for p in (effects or {}).values() for k in p} & names)
+    out = [{}]
+    for k in present:
+        out += [{k: 1 + perturb}, {k: 1 - perturb}]
+    if present:
+        out += [{k: 1 + perturb for k in present}, {k: 1 - perturb for k in present}]
+    return out
+
+
+def design(n: int, rate_hz: float, effects: dict | None = None, axis: str = "x",
+           compensator: EffectCompensator | None = None, gain: float = 1.0,
+           perturb: float = 0.01,
+           margin: float = 0.05, max_cutoff_hz: float | None = None) -> LearningDesign:
+    """The learning filter and the robustness filter for one axis (see the module).
+
+    Parameters
+    ----------
+    n : int
+        Samples per period.
+    rate_hz : float
+        The control rate [Hz].
+    effects : dict, optional
+        The model's effects (as the model file has them).
+    axis : str
+        The axis.
+    compensator : EffectCompensator, optional
+        What the feedforward does about the effects (None: nothing).
+    gain : float
+        The largest learning gain used, in (0, 1].
+    perturb : float
+        The relative error of every effect parameter the design must survive (1 %
+        by default: the gap diagnosis finds a resonance and a delay to a fraction of
+        that; a resonance near or above the Nyquist frequency moves its alias by far
+        more than its own error, which a larger margin answers by learning nothing
+        near the alias).
+    margin : float
+        Learn only where the worst factor stays below 1 - margin.
+    max_cutoff_hz : float, optional
+        An upper edge for the learned band (default 0.4 x the rate).
+
+    Returns
+    -------
+    LearningDesign
+        The filters and the convergence check.
+    """
+    if n < 4 or not 0 < gain <= 1 or not 0 <= perturb < 1:
+        raise ConfigError("learning: a period of >= 4 samples, gain in (0, 1], perturb "
+                          "in [0, 1)")
+    f = np.fft.rfftfreq(n, 1.0 / rate_hz)
+    g = loop_response(effects, axis, rate_hz, f, compensator)
+    ok = np.abs(g) >= 0.1
+    learn = np.where(ok, 1.0 / np.where(ok, g, 1.0), 0.0)
+    worst = np.zeros(f.size)
+    for sc in _scales(effects or {}, perturb):
+        gt = loop_response(effects, axis, rate_hz, f, compensator, sc, model=effects)
+        worst = np.maximum(worst, np.abs(1 - gain * learn * gt))
+    edge = 0.4 * rate_hz if max_cutoff_hz is None else min(max_cutoff_hz, 0.4 * rate_hz)
+    bad = np.flatnonzero((worst >= 1 - margin) & (f > 0) | (f > edge))
+    last = (bad[0] - 1) if bad.size else f.size - 1
+    cutoff = float(f[max(last, 0)])
+    q = np.zeros(f.size)
+    q[:last + 1] = 1.0
+    if bad.size and f[bad[0]] <= edge and cutoff > 0:
+        # cut for robustness: a raised-cosine roll-off over the top quarter of the
+        # passed band (zero phase), so no bin next to an untrusted one learns fully
+        roll = (f > 0.75 * cutoff) & (f <= cutoff)
+        q[roll] = 0.5 * (1 + np.cos(np.pi * (f[roll] - 0.75 * cutoff) / (0.25 * cutoff)))
+    q[0] = 1.0
+    nominal = np.abs(1 - gain * learn * g)
+    return LearningDesign(n, rate_hz, gain, learn, q, cutoff, float(np.max(q * worst)),
+                          float(np.max(q * nominal)))
+
+
+class PeriodicLearner:
+    """The correction of each axis over one period, learned period by period.
+
+    ``offset(k)``: the correction at sample ``k`` of the trajectory (the period's
+    sample ``k mod n``). ``update(errors)``: one whole period's errors (desired -
+    measured, per axis, n samples in the period's own order) learned. ``limit_um``
+    bounds the correction (a safety bound: what learning may add to any target).
+    """
+
+    def __init__(self, designs: dict[str, LearningDesign], gain_floor: float = 0.05,
+                 limit_um: float = 5.0):
+        ns = {d.n for d in designs.values()}
+        if len(ns) != 1:
+            raise ConfigError("learning: every axis needs the same period")
+        self.n = ns.pop()
+        self.designs, self.gain_floor, self.limit_um = designs, float(gain_floor), limit_um
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget what was learned (a new trajectory)."""
+        self.c = {a: np.zeros(self.n) for a in self.designs}
+        self.acc = {a: np.zeros(self.n // 2 + 1, complex) for a in self.designs}
+        self.bin_gain = {a: np.ones(d.q.size) for a, d in self.designs.items()}
+        self._best = {a: None for a in self.designs}  # each bin's smallest error so far
+        self._best_acc = {a: None for a in self.designs}  # and the correction that gave it
+        self.periods, self.learned, self.skipped, self.damped = 0, 0, 0, 0
+        self.noise_um = {a: None for a in self.designs}  # sensor noise, from the data
+        self._e_prev = {a: None for a in self.designs}
+        self._j, self._done = None, False
+        self._buf = {a: np.full(self.n, np.nan) for a in self.designs}
+
+    def observe(self, k: int, error: dict) -> bool:
+        """One sample's error [um] (desired - measured) at trajectory sample ``k``;
+        learns as soon as the period's last sample has come with every other one (so the
+        next period's first sample already gets the new correction). A period that
+        misses a sample (a missed tick) is skipped and counted. True when it learned."""
+        j, i = int(k) // self.n, int(k) % self.n
+        if j != self._j:
+            if self._j is not None and not self._done:
+                self.skipped += 1  # the period before ended without all its samples
+            for b in self._buf.values():
+                b[:] = np.nan
+            self._j, self._done = j, False
+        for a, b in self._buf.items():
+            b[i] = error[a]
+        if i == self.n - 1 and not self._done:
+            self._done = True
+            if all(np.all(np.isfinite(b)) for b in self._buf.values()):
+                self.update(self._buf)
+                return True
+            self.skipped += 1
+        return False
+
+    @property
+    def gain(self) -> float:
+        """The gain of the next update: it falls with the periods learned (``learned``;
+        ``periods`` counts the periods seen, the first only measured)."""
+        g0 = max(d.gain for d in self.designs.values())
+        return max(self.gain_floor, g0 / (1 + g0 * self.learned))
+
+    def offset(self, k: int) -> dict:
+        """The correction [um] at sample ``k`` of the trajectory."""
+        i = int(k) % self.n
+        return {a: float(c[i]) for a, c in self.c.items()}
+
+    def update(self, errors: dict) -> None:
+        """Learn one period's errors [um] (desired - measured, with ``c`` applied)."""
+        g, learned = self.gain, False
+        for a, d in self.designs.items():
+            e = np.asarray(errors[a], float)
+            if e.shape != (self.n,) or not np.all(np.isfinite(e)):
+                raise ConfigError(f"learning: axis {a} needs {self.n} finite errors")
+            E = np.fft.rfft(e)
+            if not self._noise(a, E):
+                continue  # the first period only measures
+            learned = True
+            self._guard(a, E)
+            # what this period asks for, given what was applied during it: the running
+            # mean of these is the correction, whatever the threshold let through
+            asked = np.fft.rfft(self.c[a]) + d.learn * E
+            gk = g * self.bin_gain[a]
+            self.acc[a] = d.q * ((1 - gk) * self.acc[a] + gk * asked)
+            # what the running mean of the periods can tell from noise: each bin of the
+            # accumulated correction carries |L| sigma sqrt(n / periods) of it
+            thr = NOISE_KAPPA * self.noise_um[a] * np.abs(d.learn) * np.sqrt(
+                self.n / (self.learned + 1))
+            mag = np.abs(self.acc[a])
+            C = self.acc[a] * np.clip(1.0 - thr / np.maximum(mag, 1e-300), 0.0, 1.0)
+            self.c[a] = np.clip(np.fft.irfft(C, self.n), -self.limit_um, self.limit_um)
+        self.periods += 1
+        self.learned += learned
+
+    def _noise(self, a: str, E: np.ndarray) -> bool:
+        """Update the sensor-noise estimate from this period's error spectrum: the change
+        from the last period, less what the change of the applied correction explains
+        (through the model, 1 / L), is the noise's (twice its variance). False for the
+        first period (nothing to compare with)."""
+        d = self.designs[a]
+        applied = np.fft.rfft(self.c[a])
+        prev, self._e_prev[a] = self._e_prev[a], (E.copy(), applied)
+        if prev is None:
+            return False
+        E0, applied0 = prev
+        g_model = np.where(d.learn != 0, 1.0 / np.where(d.learn != 0, d.learn, 1.0), 0.0)
+        diff = np.fft.irfft(E - E0 + g_model * (applied - applied0), self.n)
+        sigma = 1.4826 * float(np.median(np.abs(diff))) / np.sqrt(2.0)
+        old = self.noise_um[a]
+        self.noise_um[a] = sigma if old is None else 0.8 * old + 0.2 * sigma
+        return True
+
+    def _guard(self, a: str, E: np.ndarray) -> None:
+        """A bin whose error has grown well past the smallest it reached (1.5 x, plus
+        three noise RMS of a bin) is learning the wrong way (its loop is further from
+        the model than the design allowed for): its correction goes back to what it was
+        at that smallest error and its gain drops to a quarter. Called before the
+        period's update, with the error the present correction gave."""
+        mag = np.abs(E)
+        best, kept = self._best[a], self._best_acc[a]
+        if best is None:
+            self._best[a], self._best_acc[a] = mag.copy(), self.acc[a].copy()
+            return
+        noise = 3.0 * (self.noise_um[a] or 0.0) * np.sqrt(self.n)
+        worse = (mag > 1.5 * best + noise) & (self.designs[a].q > 0)
+        worse[0] = False  # an offset that grows is drift or creep: learned, not damped
+        self.acc[a][worse] = kept[worse]
+        self.bin_gain[a][worse] *= 0.25
+        self.damped += int(worse.sum())
+        better = mag < best
+        best[better], kept[better] = mag[better], self.acc[a][better]
+
+    def noise_factor(self, axis: str) -> float:
+        """How much of white sensor noise's RMS the correction would carry at the
+        current gain, in steady state: the share of the band Q passes, times the
+        first-order learning recursion's gain / sqrt(gain (2 - gain))."""
+        d, g = self.designs[axis], self.gain
+        share = float(np.sum((d.q * self.bin_gain[axis]) ** 2 * np.abs(d.learn) ** 2)
+                      / d.q.size)
+        return float(np.sqrt(share * g / (2 - g)))

@@ -1,0 +1,144 @@
+"""Raster trajectories and learning feedforward (core/trajectory.py, core/learning.py),
+and the offline study that closes them around the simulated stage."""
+
+import os
+
+import numpy as np
+import pytest
+
+from conftest import CONFIG
+from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.learning import PeriodicLearner, design, loop_response
+from piezo_stage.core.trajectory import generate, raster, rounded_triangle
+
+
+def test_rounded_triangle_is_linear_between_its_rounded_turnarounds():
+    p = np.linspace(0, 2, 4001)
+    s = rounded_triangle(p, 0.2)
+    assert s.min() == pytest.approx(0.0, abs=1e-12) and s.max() == pytest.approx(1.0)
+    v = np.gradient(s, p)
+    assert np.abs(np.diff(v)).max() < 0.05  # no velocity jump anywhere
+    mid = (np.mod(p, 0.5) > 0.06) & (np.mod(p, 0.5) < 0.44)  # clear of the turning
+    acc = np.abs(np.gradient(v, p))[mid]
+    assert acc.max() < 1e-6 * np.abs(v).max() / (p[1] - p[0])  # exactly linear there
+    with pytest.raises(ConfigError):
+        rounded_triangle(p, 0.7)
+
+
+def test_raster_sweeps_lines_and_steps_the_slow_axis_inside_the_turnarounds():
+    t, w = raster(line_rate_hz=20, lines=5, size_um=(40, 10), center_um=(50, 30),
+                  corner=0.1, dt_s=1e-4)
+    assert t[-1] == pytest.approx(5 / 20)
+    assert w["x"].min() == pytest.approx(30) and w["x"].max() == pytest.approx(70)
+    assert w["y"][0] == pytest.approx(25) and w["y"][-1] == pytest.approx(35)
+    phase = 20 * t
+    sweeping = np.abs(w["x"] - 50) <= 0.4 * 40  # the central 80 % of each sweep
+    for j in range(5):  # the slow axis stands still while the fast one sweeps
+        sel = sweeping & (phase >= j) & (phase < j + 1)
+        assert np.ptp(w["y"][sel]) < 1e-9
+        assert w["y"][sel][0] == pytest.approx(25 + 10 * j / 4)
+    tr, wr = raster(20, 5, (40, 10), (50, 30), slow="ramp", fast_axis="y", dt_s=1e-3)
+    assert np.all(np.diff(wr["x"]) >= 0) and wr["y"].max() == pytest.approx(70)
+    t2, w2 = generate("raster", frequency_hz=20, dt_s=1e-4,
+                      scan={"lines": 5, "size_um": (40, 10), "center_um": (50, 30)})
+    assert np.array_equal(w2["x"], w["x"])
+    with pytest.raises(ConfigError, match="Nyquist"):
+        raster(line_rate_hz=600, dt_s=1e-3)
+    with pytest.raises(ConfigError):
+        raster(lines=1)
+
+
+def _circular(g, x):
+    """A linear loop with response g over whole periods (steady state)."""
+    return np.fft.irfft(g * np.fft.rfft(x), x.size)
+
+
+def test_learning_inverts_a_loop_that_is_not_minimum_phase_and_converges():
+    """A delay of 2.4 samples and an 800 Hz resonance at 1 kHz left to the learner (no
+    compensator): the design inverts them over the whole period, and the error of a
+    periodic target falls to nothing within a few periods."""
+    n, rate = 25, 1000.0
+    eff = {"delay": {"delay_s": 2.4e-3}, "dynamics": {"kind": "resonance",
+                                                      "fn_hz": 800.0, "zeta": 0.05}}
+    d = {a: design(n, rate, eff, a) for a in ("x", "y")}
+    assert d["x"].worst_factor < 1 and d["x"].cutoff_hz == pytest.approx(400.0)
+    g = loop_response(eff, "x", rate, np.fft.rfftfreq(n, 1 / rate))
+    k = np.arange(n)
+    target = 20 + 10 * np.sin(2 * np.pi * k / n) + 2 * np.cos(2 * np.pi * 7 * k / n)
+    learner = PeriodicLearner(d, limit_um=20.0)  # the delay asks for more than 5 um
+    errs = []
+    for _ in range(12):
+        y = _circular(g, target + learner.c["x"])
+        e = target - y
+        errs.append(np.sqrt(np.mean(e ** 2)))
+        learner.update({"x": e, "y": e})
+    assert errs[-1] < 1e-3 * errs[0]
+    assert np.all(np.diff(errs[2:]) <= 1e-12)  # monotonic once the noise estimate exists
+
+
+def test_noise_alone_is_not_learned():
+    """A loop the model follows exactly and a feedforward already right: the error is
+    only sensor noise (0.1 um) and what the correction itself does. The correction stays
+    far under the noise (soft thresholding on the noise the data show, and a gain that
+    falls with the periods)."""
+    n = 50
+    learner = PeriodicLearner({"x": design(n, 1000.0)})
+    rng = np.random.default_rng(1)
+    for _ in range(60):
+        learner.update({"x": -learner.c["x"] + 0.1 * rng.standard_normal(n)})
+    assert learner.noise_um["x"] == pytest.approx(0.1, rel=0.2)
+    assert np.sqrt(np.mean(learner.c["x"] ** 2)) < 0.02  # a fifth of the noise
+
+
+def test_a_model_far_off_does_not_grow_the_error():
+    """The learner believes the loop is 1 while it is a 3-sample delay (phase 180
+    degrees at a sixth of the rate): the bins the design cannot know diverge at first,
+    the guard takes them back to their best correction and slows them, and over 200
+    periods the error does not grow."""
+    n = 24
+    learner = PeriodicLearner({"x": design(n, 1000.0)})
+    g = np.exp(-2j * np.pi * np.fft.rfftfreq(n, 1e-3) * 3e-3)
+    k = np.arange(n)
+    target = 5 * np.sin(2 * np.pi * k / n) + np.sin(2 * np.pi * 6 * k / n)
+    rng = np.random.default_rng(2)
+    errs = []
+    for _ in range(200):
+        y = _circular(g, target + learner.c["x"]) + 0.05 * rng.standard_normal(n)
+        e = target - y
+        errs.append(np.sqrt(np.mean(e ** 2)))
+        learner.update({"x": e})
+    assert learner.damped > 0
+    assert max(errs[100:]) < 1.5 * errs[0]
+    assert np.mean(errs[-20:]) <= np.mean(errs[:20])
+
+
+def test_observe_learns_whole_periods_and_skips_broken_ones():
+    n = 10
+    learner = PeriodicLearner({"x": design(n, 1000.0), "y": design(n, 1000.0)})
+    learned = [learner.observe(k, {"x": 1.0, "y": -1.0}) for k in range(3 * n)]
+    # at each period's last sample; the first period only measures
+    assert [k for k, done in enumerate(learned) if done] == [n - 1, 2 * n - 1, 3 * n - 1]
+    assert learner.periods == 3 and learner.learned == 2
+    for k in list(range(3 * n, 4 * n - 1)) + [5 * n - 1]:  # a period's last sample missed
+        learner.observe(k, {"x": 1.0, "y": -1.0})               # and then all but one
+    assert learner.skipped == 2 and learner.periods == 3
+
+
+def test_offline_learning_on_the_effects_stage_shrinks_the_error_within_the_limits():
+    """The feedforward's own core pieces around the effects stage (creep, an 800 Hz
+    resonance and a 0.5 ms delay, compensated from the model), 40 Hz: learning
+    shrinks the error against the true position, stays within the voltage limits and
+    never steps beyond the amplifier's slew."""
+    from piezo_stage.apps.studies.learning import run_case, trajectory
+    from piezo_stage.io.plant_file import load_plant_config
+    cfg = load_plant_config(os.path.join(CONFIG, "sim_stage_effects.yaml"))
+    t, w, _ = trajectory("sine", 40.0, 30)
+    runs = {learn: run_case(cfg, cfg.model, cfg.effects, t, w, 40.0, learn)
+            for learn in (False, True)}
+    for a in ("x", "y"):
+        before, after = runs[False]["per_period"][a], runs[True]["per_period"][a]
+        assert after[-1] < 0.3 * before[-1] and after[-1] < 0.1  # % of the range
+    lo, hi = cfg.model.voltage_limits
+    v0, v1 = runs[True]["v_range"]
+    assert lo <= v0 and v1 <= hi
+    assert runs[True]["max_step_V"] <= cfg.slew_V_per_s * 1e-3
