@@ -281,7 +281,8 @@ def test_controller_gains_and_feedback_are_live_and_read_only_ones_refused(tmp_p
 
 
 LIVE = {"controller": {"kp", "ki", "kd", "feedback"},
-        "feedforward": {"compensate_effects"},
+        "feedforward": {"compensate_effects", "learning", "learning_period_s",
+                        "learning_gain"},
         "identifier": {"method", "structure", "auto_cycles"},
         "recorder": {"batch_period_s"},
         "live_view": {"max_rate_hz", "batch_period_s"},

@@ -56,7 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from piezo_stage.core.compensation import DynamicsInverse, EffectCompensator
+from piezo_stage.core.compensation import DynamicsInverse, EffectCompensator, PreviewedReference
 from piezo_stage.core.errors import ConfigError
 
 EFFECTS_WITH_DYNAMICS = ("creep", "dynamics", "delay")  # drift ignores the input
@@ -387,3 +387,75 @@ class PeriodicLearner:
         share = float(np.sum((d.q * self.bin_gain[axis]) ** 2 * np.abs(d.learn) ** 2)
                       / d.q.size)
         return float(np.sqrt(share * g / (2 - g)))
+
+
+class LearnedFeedforward:
+    """Learning as the feedforward runs it: a :class:`PeriodicLearner` for the
+    trajectory's period, fed with each measured sample's error against what was asked
+    for that sample, its correction applied through the reference
+    (core.compensation.PreviewedReference.set_learner). Everything is by sample stamp,
+    so the feedforward's look-ahead and missed ticks change nothing.
+
+    ``configure`` (period, gain, effects, compensator) builds it anew; ``enabled``
+    switches it (off: nothing applied, what was learned is kept); ``reset`` forgets
+    (a new trajectory)."""
+
+    def __init__(self, reference: PreviewedReference, dt_ns: int, axes: tuple = ("x", "y")):
+        self.ref, self.dt_ns, self.axes = reference, int(dt_ns), tuple(axes)
+        self.learner, self.enabled, self.why = None, False, "off"
+        self.asked = {}  # stamp [ns] -> (trajectory sample, {axis: desired um})
+
+    def configure(self, period_s: float, gain: float = 1.0, effects: dict | None = None,
+                  compensator: EffectCompensator | None = None) -> None:
+        """A learner for ``period_s`` (0: none) at the reference's rate."""
+        self.learner, self.asked = None, {}
+        n = int(round(period_s * 1e9 / self.dt_ns))
+        if period_s <= 0:
+            self.why = "off (no learning_period_s)"
+        elif abs(n * self.dt_ns - period_s * 1e9) > 1e-3 * self.dt_ns or n < 4:
+            self.why = (f"off: a period of {period_s:g} s is not a whole number (>= 4) of "
+                        f"control periods")
+        else:
+            rate = 1e9 / self.dt_ns
+            self.learner = PeriodicLearner({a: design(n, rate, effects, a, compensator, gain)
+                                            for a in self.axes})
+            self.why = ""
+        self.ref.set_learner(self.learner if self.enabled else None)
+
+    def enable(self, on: bool) -> None:
+        """Apply the learned correction (and go on learning) or not."""
+        self.enabled = bool(on)
+        self.ref.set_learner(self.learner if self.enabled else None)
+
+    def reset(self) -> None:
+        """Forget what was learned (a new trajectory)."""
+        self.asked = {}
+        if self.learner is not None:
+            self.learner.reset()
+
+    def note(self, target_ns: int, desired: dict) -> None:
+        """What was asked for the sample at ``target_ns`` (while a trajectory runs)."""
+        if self.learner is None or not self.enabled:
+            return
+        k = self.ref.sample_index(target_ns)
+        if k is not None:
+            self.asked[int(target_ns)] = (k, dict(desired))
+
+    def measured(self, stamp_ns: int, w: dict) -> None:
+        """The measured position of the sample at ``stamp_ns``: its error is learned."""
+        got = self.asked.pop(int(stamp_ns), None)
+        self.asked = {t: v for t, v in self.asked.items() if t > stamp_ns}
+        if got is None or self.learner is None:
+            return
+        k, d = got
+        self.learner.observe(k, {a: d[a] - w[a] for a in self.axes})
+
+    def describe(self) -> str:
+        """One line for the diagnostics."""
+        if self.learner is None or not self.enabled:
+            return "learning " + (self.why or "off")
+        le = self.learner
+        noise = ", ".join(f"{a} {v:.3f}" for a, v in le.noise_um.items() if v is not None)
+        return (f"learning: {le.learned} periods learned ({le.skipped} skipped, {le.damped} "
+                f"bins slowed), noise {noise or '-'} um; "
+                + next(iter(le.designs.values())).describe())

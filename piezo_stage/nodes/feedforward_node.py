@@ -32,6 +32,7 @@ from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
 from piezo_stage.core.duhem import check_model_change
 from piezo_stage.core.errors import DataError, PiezoStageError
 from piezo_stage.core.inverse import StageInverse
+from piezo_stage.core.learning import LearnedFeedforward
 from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.core.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
@@ -85,6 +86,20 @@ class Feedforward(Node):
         self.ref.on = declare(self, "compensate_effects", True, "compensate the model's "
                               "unmodelled effects", live=lambda on: setattr(self.ref, "on",
                                                                             bool(on)))
+        # learning feedforward for periodic trajectories (core/learning.py)
+        self.learning = LearnedFeedforward(self.ref, self.dt_ns)
+        self.effects, self.comp = None, None
+        self.learn_p = {"learning_period_s": 0.0, "learning_gain": 1.0}
+        self.learn_p = {
+            "learning_period_s": declare(self, "learning_period_s", 0.0, "learning: the "
+                                         "trajectory's period [s] (0: none)", lo=0.0,
+                                         hi=60.0, live=lambda v: self.relearn(period=v)),
+            "learning_gain": declare(self, "learning_gain", 1.0, "learning: first gain "
+                                     "(it falls with the periods learned)", lo=0.01, hi=1.0,
+                                     live=lambda v: self.relearn(gain=v))}
+        self.learning.enable(declare(self, "learning", False, "learn the periodic error "
+                                     "into the feedforward", live=self.learning.enable))
+        self.relearn()
         self.max_res_hz = declare(self, "max_resonance_inverse_hz", 0.0, "a model's "
                                   "resonance above this is taken as its group delay, not "
                                   "inverted (0: no limit)", lo=0.0, hi=1e6)
@@ -131,7 +146,7 @@ class Feedforward(Node):
                                    f"{self.ref.describe()}" + (
             f" (last rejected: {self.last_rejection})" if self.last_rejection else ""), {
             **self.stats, "model": self.model_name, "phase": self.planner.phase,
-            "effects": self.ref.describe(),
+            "effects": self.ref.describe(), "learning": self.learning.describe(),
             "lookahead_ms": self.driver.lookahead_ns * 1e-6,
             "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
             "joint_states_lag_p99_ms": self.lag.percentile(99) * 1e3,
@@ -170,10 +185,21 @@ class Feedforward(Node):
         self.inv, self.model_name, self.limits = inv, name, model.voltage_limits
         self.model = model
         self.ref.set_compensator(comp)
+        self.effects, self.comp = effects, comp
+        self.relearn()
         self.started = self.planner.desired is not None  # else: from the first sample
         self.stats["models"] += 1
         self.last_rejection = ""  # the warning clears with a good model
         self.get_logger().info(f"using model {name}")
+
+    def relearn(self, period=None, gain=None):
+        """A learner for the present period, gain, model effects and compensation."""
+        if period is not None:
+            self.learn_p["learning_period_s"] = period
+        if gain is not None:
+            self.learn_p["learning_gain"] = gain
+        self.learning.configure(self.learn_p["learning_period_s"],
+                                self.learn_p["learning_gain"], self.effects, self.comp)
 
     def on_model(self, msg):
         try:
@@ -203,6 +229,7 @@ class Feedforward(Node):
                                 "past (0: start now; a future stamp: start then)")
             self.traj_key = key
             self.planner.set_trajectory(t, w, start_ns=stamp if stamp > now else None)
+            self.learning.reset()
             self.traj_text = f"trajectory of {len(t)} points stamped {stamp}"
             self.get_logger().info(f"trajectory of {len(t)} points accepted" + (
                 f", stamped {stamp}: starts in {(stamp - now) * 1e-9:.3f} s"
@@ -241,6 +268,7 @@ class Feedforward(Node):
             return  # a duplicate changes nothing; a stray stamp is counted
         if self.driver.realtime and info:
             self.lag.add((info["received_timestamp"] - ns) * 1e-9)
+        self.learning.measured(ns, w)
         target = ns + self.driver.lookahead_ns
         clock = self.planner.clock_s(target)
         waiting = (self.wait_traj and self.planner.traj is None) or (
@@ -274,6 +302,7 @@ class Feedforward(Node):
             desired, self.ff, self.planned = self.planner.desired, dict(applied), {}
         else:
             desired, h = self.ref.sample(target)
+            self.learning.note(target, desired)
             self.planned[target] = h
             try:
                 self.ff = self.feedforward(ns, target, h) if self.use_ff else self.ff
