@@ -41,7 +41,8 @@ into the command. The gain falls with the periods learned, gain_j = max(gain_flo
 gain / (1 + gain j)): for gain 1 the accumulated correction A is the running mean of
 what each period asked for, C_j + L E_j, so its noise falls as 1 / sqrt(periods). What
 is applied is A soft-thresholded by that noise, bin by bin: |A| - kappa |L| sigma
-sqrt(n / j), at least 0 (kappa = 1.5), so a bin at the noise level is not applied at
+sqrt(n / j), at least 0 (kappa = 1.5; j the periods averaged, at most what the gain's
+floor holds), so a bin at the noise level is not applied at
 all and the command stays clean where the model is already right. sigma, the sensor
 noise, comes from the data: from one period to the next the error changes by what the
 change of the applied correction does (through the model) plus twice the noise's
@@ -309,6 +310,14 @@ class PeriodicLearner:
         g0 = max(d.gain for d in self.designs.values())
         return max(self.gain_floor, g0 / (1 + g0 * self.learned))
 
+    @property
+    def averaged(self) -> float:
+        """How many periods' worth of noise the accumulated correction averages: the
+        periods learned while the gain falls, then what an exponential mean at the
+        gain's floor holds, (2 - floor) / floor."""
+        f = self.gain_floor
+        return float(min(self.learned + 1, (2 - f) / f)) if f > 0 else self.learned + 1.0
+
     def offset(self, k: int) -> dict:
         """The correction [um] at sample ``k`` of the trajectory."""
         i = int(k) % self.n
@@ -334,7 +343,7 @@ class PeriodicLearner:
             # what the running mean of the periods can tell from noise: each bin of the
             # accumulated correction carries |L| sigma sqrt(n / periods) of it
             thr = NOISE_KAPPA * self.noise_um[a] * np.abs(d.learn) * np.sqrt(
-                self.n / (self.learned + 1))
+                self.n / self.averaged)
             mag = np.abs(self.acc[a])
             C = self.acc[a] * np.clip(1.0 - thr / np.maximum(mag, 1e-300), 0.0, 1.0)
             self.c[a] = np.clip(np.fft.irfft(C, self.n), -self.limit_um, self.limit_um)
