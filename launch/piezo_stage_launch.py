@@ -28,7 +28,8 @@ def _nodes(context):
     launch = Launch(cfg, record=record, namespace=ns, arm=arm,
                     foxglove_port=int(port) if port else None)
     return [Node(package="piezo_stage", executable=n, name=n, namespace=ns,
-                 parameters=[cfg, launch.node_params(n)], output="screen")
+                 parameters=[cfg, launch.node_params(n)], output="screen",
+                 additional_env=launch.node_env)
             for n in launch.nodes]
 
 

@@ -443,3 +443,18 @@ def test_play_operators_in_a_model_file_are_checked(plays, why):
     doc["axes"]["x"]["play_operators"] = plays
     with pytest.raises(ModelError, match=why):
         model_from_dict(doc)
+
+
+def test_real_time_sets_publish_asynchronously_and_lockstep_does_not(tmp_path):
+    """In real time Fast DDS publishes from its own thread (a participant joining the
+    graph once held a synchronous publish ~0.33 s and the driver faulted); lockstep
+    keeps the synchronous mode its byte-identical reruns were measured with."""
+    from piezo_stage.launch.launcher import Launch
+    rt = tmp_path / "rt.yaml"
+    rt.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n")
+    env = {k: v for k, v in os.environ.items() if k != "RMW_FASTRTPS_PUBLICATION_MODE"}
+    real = Launch(str(rt), env=env)
+    assert real.env["RMW_FASTRTPS_PUBLICATION_MODE"] == "ASYNCHRONOUS"
+    assert real.node_env == {"RMW_FASTRTPS_PUBLICATION_MODE": "ASYNCHRONOUS"}
+    lock = Launch(os.path.join(CONFIG, "stage.yaml"), env=env)
+    assert "RMW_FASTRTPS_PUBLICATION_MODE" not in lock.env and lock.node_env == {}
