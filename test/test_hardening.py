@@ -446,9 +446,9 @@ def test_play_operators_in_a_model_file_are_checked(plays, why):
 
 
 def test_real_time_sets_publish_asynchronously_and_lockstep_does_not(tmp_path):
-    """In real time Fast DDS publishes from its own thread (a participant joining the
-    graph once held a synchronous publish ~0.33 s and the driver faulted); lockstep
-    keeps the synchronous mode its byte-identical reruns were measured with."""
+    """In real time Fast DDS publishes from its own thread (a publish hands off rather
+    than sends); lockstep keeps the synchronous mode its byte-identical reruns were
+    measured with."""
     from piezo_stage.launch.launcher import Launch
     rt = tmp_path / "rt.yaml"
     rt.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n")
@@ -458,3 +458,52 @@ def test_real_time_sets_publish_asynchronously_and_lockstep_does_not(tmp_path):
     assert real.node_env == {"RMW_FASTRTPS_PUBLICATION_MODE": "ASYNCHRONOUS"}
     lock = Launch(os.path.join(CONFIG, "stage.yaml"), env=env)
     assert "RMW_FASTRTPS_PUBLICATION_MODE" not in lock.env and lock.node_env == {}
+
+
+PRIORITY_PROBE = """
+import os, sys, rclpy
+from std_msgs.msg import String
+from piezo_stage.nodes._loop import set_realtime_priority
+rclpy.init()
+node = rclpy.create_node("priority_probe")
+node.create_publisher(String, "chatter", 10)
+class Log:
+    def warning(self, text):
+        print("WARN", text)
+got = set_realtime_priority(int(sys.argv[1]), Log(), main_thread=sys.argv[2] == "1")
+for tid in sorted(os.listdir("/proc/self/task")):
+    name = open(f"/proc/self/task/{tid}/comm").read().strip()
+    policy = os.sched_getscheduler(int(tid))
+    prio = os.sched_getparam(int(tid)).sched_priority
+    print(got, int(tid) == os.getpid(), name, int(policy == os.SCHED_FIFO), prio)
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+@pytest.mark.parametrize("main_thread", [True, False])
+def test_fast_dds_writer_threads_run_below_the_threads_that_hold_their_mutex(ros_env,
+                                                                             main_thread):
+    """Fast DDS's asynchronous writer threads poll a writer's mutex in a loop while
+    another thread holds it: at that thread's own SCHED_FIFO priority two of them once
+    filled both cores and the holder never ran again (a controller at 188 % CPU, deaf
+    to signals, its launcher gone). They now sit one level below the node's other
+    threads, or at normal priority where the main thread stays there (the recorder)."""
+    pytest.importorskip("rclpy")
+    env = dict(ros_env, RMW_FASTRTPS_PUBLICATION_MODE="ASYNCHRONOUS")
+    r = subprocess.run([sys.executable, "-c", PRIORITY_PROBE, "45", str(int(main_thread))],
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    rows = [line.split() for line in r.stdout.splitlines() if not line.startswith("WARN")]
+    if "WARN" in r.stdout or rows[0][0] == "0":
+        pytest.skip("SCHED_FIFO is not permitted here")
+    asyn = [row for row in rows if row[2].startswith("dds.asyn")]
+    rest = [row for row in rows if not row[2].startswith("dds.asyn") and
+            (main_thread or row[1] == "False")]
+    assert asyn and rest
+    if main_thread:
+        assert all(row[3:] == ["1", "44"] for row in asyn), asyn
+    else:
+        assert all(row[3] == "0" for row in asyn), asyn
+        assert [row[3] for row in rows if row[1] == "True"] == ["0"]
+    assert all(row[3:] == ["1", "45"] for row in rest), rest

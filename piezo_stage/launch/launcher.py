@@ -108,10 +108,11 @@ class Launch:
         self.env = dict(os.environ if env is None else env)
         if self.backend == "sim":  # keep a simulated run's discovery on this host
             self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-        # real time: Fast DDS publishes from its own thread, so a node's publish never
-        # waits on the middleware's work when a participant joins the graph (in the
-        # default synchronous mode such a join held a publish for ~0.33 s now and then,
-        # and the driver faulted on stale commands); lockstep keeps the synchronous mode
+        # real time: Fast DDS publishes from its own thread, so a node's publish hands
+        # off instead of sending. (A participant joining the graph can still hold a
+        # publish up to ~0.33 s in either mode: Fast DDS's shared-memory port health
+        # check, Fast-DDS issue 6535; see docs/realtime.md.) Lockstep keeps the
+        # synchronous mode its byte-identical reruns were measured with.
         self.node_env = {} if self.lockstep else {"RMW_FASTRTPS_PUBLICATION_MODE":
                                                   "ASYNCHRONOUS"}
         for k, v in self.node_env.items():

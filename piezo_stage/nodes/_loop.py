@@ -25,13 +25,33 @@ def set_realtime_priority(prio, logger, main_thread=True) -> int:
         return 0
     try:
         for tid in os.listdir("/proc/self/task"):
-            if main_thread or int(tid) != os.getpid():
-                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(prio))
+            if int(tid) == os.getpid() and not main_thread:
+                continue
+            below = _polls_a_mutex(tid)
+            if below and (prio <= 1 or not main_thread):
+                continue  # nothing lower to give it than normal priority: leave it there
+            os.sched_setscheduler(int(tid), os.SCHED_FIFO,
+                                  os.sched_param(prio - 1 if below else prio))
         return prio
     except (PermissionError, OSError, AttributeError, ValueError) as e:
         logger.warning(f"thread_priority {prio}: not permitted here ({e}); running at "
                        "normal priority, so expect more missed ticks and late commands")
         return 0
+
+
+def _polls_a_mutex(tid) -> bool:
+    """Whether a thread is one of Fast DDS's asynchronous writer threads (``dds.asyn.*``),
+    which poll a writer's mutex in a loop while another thread holds it (rmw_fastrtps
+    issue 666). At the holder's own SCHED_FIFO priority two of them filled both cores of
+    a 2-core host and the holder never ran again (a controller at 188 % CPU for half an
+    hour, deaf to signals). So they go one level below every thread that may hold that
+    mutex, and where one of those stays at normal priority (the recorder's main thread),
+    they stay there too: the holder then always preempts them."""
+    try:
+        with open(f"/proc/self/task/{tid}/comm") as fh:
+            return fh.read().startswith("dds.asyn")
+    except OSError:
+        return False
 
 
 def missing_links(node) -> str:
