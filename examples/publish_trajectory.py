@@ -90,8 +90,8 @@ def main(argv=None):
     node.create_subscription(JointState, f"{ns}/joint_states", on_joints, 10)
     pub = node.create_publisher(JointTrajectory, f"{ns}/trajectory", LATCHED)
     try:
-        # the feedforward's subscription matched (not just the recorder's): a stamp
-        # "start at T" is then taken before T, and even a volatile publish would arrive
+        # the feedforward's subscription in the graph (not just the recorder's): a stamp
+        # "start at T" is then taken before T
         end = time.monotonic() + args.timeout
         while time.monotonic() < end and not any(
                 i.node_name == "feedforward" and i.node_namespace == ns
@@ -101,7 +101,13 @@ def main(argv=None):
             print(f"no feedforward on {ns}/trajectory: is the node set running?",
                   file=sys.stderr)
             return 1
-        while time.monotonic() < end and pub.get_subscription_count() < 1:
+        # every subscription the graph shows on the topic matched (the recorder's too,
+        # so the bag holds this trajectory), or 2 s: a latched message still reaches a
+        # subscriber that matches later, if it asks for history
+        settle = min(end, time.monotonic() + 2.0)
+        while time.monotonic() < settle and (
+                pub.get_subscription_count() < 1 or pub.get_subscription_count() <
+                len(node.get_subscriptions_info_by_topic(f"{ns}/trajectory"))):
             rclpy.spin_once(node, timeout_sec=0.05)
         msg = JointTrajectory(joint_names=["x", "y"])
         start = node.get_clock().now().nanoseconds + int(args.start_in * 1e9)
