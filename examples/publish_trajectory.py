@@ -4,8 +4,9 @@
 It uses rclpy and the common_interfaces messages only (nothing from piezo_stage), the
 way a lab's own node would:
 
-1. wait until the feedforward's subscription to <namespace>/trajectory is matched (the
-   first match may be the recorder's), then publish a trajectory_msgs/JointTrajectory
+1. wait until the feedforward's subscription to <namespace>/trajectory is in the graph
+   and every subscription there (the recorder's too) has been matched for 0.5 s, then
+   publish a trajectory_msgs/JointTrajectory
    (joints x, y, positions in metres) there, latched (reliable, transient local, depth
    1), stamped a moment ahead so the stage starts it at that time;
 2. wait on <namespace>/state (diagnostic_msgs/DiagnosticArray, latched) until the
@@ -18,7 +19,7 @@ way a lab's own node would:
     python examples/publish_trajectory.py --points "0,20,20 0.5,40,20 1.0,30,30"
     python examples/publish_trajectory.py --csv path.csv        # t [s], x [um], y [um]
 
-Start the node set first, e.g. `piezo-stage launch config/rt.yaml --no-trajectory`.
+Start the node set first, e.g. `piezo-stage launch config/realtime.yaml --no-trajectory`.
 """
 
 import argparse
@@ -102,12 +103,22 @@ def main(argv=None):
                   file=sys.stderr)
             return 1
         # every subscription the graph shows on the topic matched (the recorder's too,
-        # so the bag holds this trajectory), or 2 s: a latched message still reaches a
-        # subscriber that matches later, if it asks for history
-        settle = min(end, time.monotonic() + 2.0)
-        while time.monotonic() < settle and (
-                pub.get_subscription_count() < 1 or pub.get_subscription_count() <
-                len(node.get_subscriptions_info_by_topic(f"{ns}/trajectory"))):
+        # so the bag holds this trajectory), and so for 0.5 s on end: discovery brings
+        # the other nodes' subscriptions one by one (the feedforward's may come before
+        # the recorder's), and each subscriber completes its side of a match a moment
+        # after this publisher; a volatile subscriber gets only what is sent after that.
+        # At most 3 s: a latched message still reaches a subscriber that matches later
+        # if it asks for history.
+        settle, held_since = min(end, time.monotonic() + 3.0), None
+        while time.monotonic() < settle:
+            matched = pub.get_subscription_count()
+            if matched >= 1 and matched >= len(
+                    node.get_subscriptions_info_by_topic(f"{ns}/trajectory")):
+                held_since = held_since or time.monotonic()
+                if time.monotonic() - held_since >= 0.5:
+                    break
+            else:
+                held_since = None
             rclpy.spin_once(node, timeout_sec=0.05)
         msg = JointTrajectory(joint_names=["x", "y"])
         start = node.get_clock().now().nanoseconds + int(args.start_in * 1e9)

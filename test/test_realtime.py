@@ -564,7 +564,11 @@ def test_no_trajectory_set_holds_and_follows_outside_publishers(tmp_path, domain
     only_middleware_stalls([(n, next(reasons, "?") if n == "faulted" else "")
                             for n in names[names.index("armed"):-1]], at_most=2)
     assert_never_beyond_slew(run.t_ns, run.v_V)
-    assert sum(topic == "/stage/trajectory" for topic, _, _, _ in iter_messages(bag)) == 4
+    from rclpy.serialization import deserialize_message
+    held = [deserialize_message(data, JointTrajectory) for topic, _, _, data
+            in iter_messages(bag) if topic == "/stage/trajectory"]
+    assert len(held) == 4, [(len(m.points), round(m.points[-1].positions[0] * 1e6, 3))
+                            for m in held]  # 1000 at 20, 30 and 35; 5 at 30 (the example)
     assert int(run.diagnostics["feedforward"]["rejected_trajectories"]) == 1
     for end_ns, um in ends:  # the 0.3 s before each end: at that trajectory's point
         k = (run.t_ns > end_ns - 300_000_000) & (run.t_ns < end_ns)
