@@ -63,6 +63,7 @@ setup(
                 # the live view node, and the client bench liveview watches it with
                 "foxglove-sdk>=0.30", "websockets>=12"],
         "daq": ["nidaqmx>=1.0"],
+        "pi": ["pipython>=2.10"],
         # the tests import the real nidaqmx (it installs without NI hardware) and run
         # the daq backend on it with only NI's driver layer replaced (the test double)
         # (and ruff and numpydoc: the suite runs the linters, test/test_lint.py)
@@ -71,7 +72,9 @@ setup(
         # (hypothesis: the trajectory decoder against rclpy's own, on generated messages)
         # (wheel: the install-layout test builds our wheel without build isolation)
         # (pysindy: the sparse hysteresis peer that bench identify compares with)
+        # (pipython: the pi backend on PI's real package, against a controller double)
         "test": ["pytest>=7", "pytest-xdist>=3.5", "pytest-timeout>=2.2", "nidaqmx>=1.0",
+                 "pipython>=2.10",
                  "ruff>=0.5", "numpydoc>=1.6", "hypothesis>=6.90",
                  "wheel>=0.40", "pysindy>=2.0"],
     },

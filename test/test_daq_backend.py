@@ -205,3 +205,29 @@ def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp
     assert int(diag["missed_ticks"]) >= 5
     assert diag["hardware_id"].startswith("NI-DAQ Dev1")
     assert volts[-1] == [0.0, 0.0]                                # ramped down on stop
+
+
+def test_play_on_the_daq_double_records_the_waveform_and_fails_on_missed_clocks(device):
+    """`play --backend daq`'s engine: hardware-timed single point, one write and read per
+    sample clock, from and back to the safe voltage: the record's voltages are the
+    waveform and its positions the simulated stage's; a missed sample clock fails the
+    play (the record would not be the waveform)."""
+    from piezo_stage.core.errors import BackendFault
+    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.record import Record
+    from piezo_stage.drivers.playback import play_record
+    from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
+    t = np.arange(0, 0.5, 1e-3)
+    wave = Record(t, {"x": 75 - 70 * np.cos(2 * np.pi * 4 * t),
+                      "y": 75 - 60 * np.cos(2 * np.pi * 2 * t)}, source="wave")
+    rec = play_record("daq", wave, {}, safe_V=0.0, ramp_V_per_s=1e5)
+    np.testing.assert_array_equal(rec.v["x"], wave.v["x"])
+    ref = Plant(load_plant_config(default_plant_config_path()), 1000.0).run(wave.v["x"],
+                                                                              wave.v["y"])
+    for a in "xy":  # the double's stage started from a short ramp to 5 V: the same branch
+        assert np.abs(rec.w[a] - ref[a])[250:].max() < 1.0, a
+    assert dd.device_outputs() == [0.0, 0.0]
+    dd.install(clock="virtual", lag_every=100, late="warning")
+    with pytest.raises(BackendFault, match="missed .* sample clocks"):
+        play_record("daq", wave, {}, safe_V=0.0, ramp_V_per_s=1e5)
+    assert dd.device_outputs() == [0.0, 0.0]

@@ -25,6 +25,11 @@ class SolverError(PiezoStageError, RuntimeError):
     """An identification solver failed to produce a usable model."""
 
 
+class BackendFault(PiezoStageError, RuntimeError):
+    """The hardware stopped answering or reported an error (a lost link, a controller
+    error): the driver faults, a command exits 1."""
+
+
 def printable(text: object, limit: int = 200) -> str:
     """``text`` safe to echo in a one-line message: control characters (a terminal's
     escape sequences, NULs, newlines) written as escapes, cut to ``limit`` characters.

@@ -1,4 +1,5 @@
-"""Stage backends behind the driver node: simulated, NI-DAQ, replay of a bag.
+"""Stage backends behind the driver node: simulated, NI-DAQ, PI controller, replay of a
+bag.
 
 Each backend has ``rate_hz``, ``limits`` ({axis: (lo, hi)} V), ``slew_V_per_s``
 ({axis: V/s}), ``hardware_id`` (what /diagnostics names), ``paced`` (True when
@@ -14,13 +15,14 @@ from __future__ import annotations
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.drivers.daq import DAQ_PARAMS
+from piezo_stage.drivers.pi import PI_PARAMS
 
 # Backend configuration (name, default, description): the driver declares them read-only.
 BACKEND_PARAMS = (
     ("plant_config", "", "sim: plant YAML ('' = the package's config/sim_stage.yaml)"),
     ("seed", -1, "sim: noise seed (-1: the plant config's)"),
     ("replay_bag", "", "replay: the bag to play"),
-) + DAQ_PARAMS
+) + DAQ_PARAMS + PI_PARAMS
 
 
 def step_period_summary(times) -> str:
@@ -103,4 +105,7 @@ def make_backend(kind: str, rate_hz: float, params: dict, safe_V: float = 0.0):
     if kind == "daq":
         from piezo_stage.drivers.daq import DaqBackend
         return DaqBackend(rate_hz, params, safe_V)
-    raise ConfigError(f"unknown backend {kind!r}; use sim, daq or replay")
+    if kind == "pi":
+        from piezo_stage.drivers.pi import PiBackend
+        return PiBackend(rate_hz, params, safe_V)
+    raise ConfigError(f"unknown backend {kind!r}; use sim, daq, pi or replay")

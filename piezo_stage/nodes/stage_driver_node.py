@@ -42,7 +42,7 @@ from piezo_stage.core.arming import (
 )
 from piezo_stage.core.arming import PARAMETERS as ARMING
 from piezo_stage.core.control import clamp_slew
-from piezo_stage.core.errors import DataError
+from piezo_stage.core.errors import BackendFault, DataError
 from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node
@@ -57,7 +57,7 @@ from piezo_stage_msgs_adapters import (
 )
 
 PARAMS = (  # name (one name: the parameter's), default, description, limits
-    ("backend", "sim", "stage backend", {"choices": ("sim", "daq", "replay")}),
+    ("backend", "sim", "stage backend", {"choices": ("sim", "daq", "pi", "replay")}),
     ("mode", "lockstep", "lockstep (sim, replay) | realtime",
      {"choices": ("lockstep", "realtime")}),
     ("control_rate_hz", 1000.0, "sample rate [Hz]", {"lo": 1.0, "hi": 1e5}),
@@ -85,8 +85,9 @@ class StageDriver(Node):
         super().__init__("stage_driver")
         d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
         p = self.p = {name: d(name, default, desc, **kw) for name, default, desc, kw in PARAMS}
-        if p["backend"] == "daq" and p["mode"] != "realtime":
-            raise DataError("backend daq runs in real time only (mode: realtime)")
+        if p["backend"] in ("daq", "pi") and p["mode"] != "realtime":
+            raise DataError(f"backend {p['backend']} runs in real time only (mode: "
+                            "realtime)")
         if p["mode"] == "realtime" and self.get_parameter("use_sim_time").value:
             raise DataError("use_sim_time is for lockstep (the driver's samples are the "
                             "clock); in real time the nodes run on the system clock")
@@ -107,6 +108,7 @@ class StageDriver(Node):
         self.step_times = deque(maxlen=1_000_000)     # lockstep: the loop's pace
         self.link, self.shutdown_requested, self.shutdown_by = "", False, None
         self.ff_phase = ""  # what the feedforward last said (relayed on state)
+        self.failed = None  # the hardware's fault (BackendFault), once it failed
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
         self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
         self.spub = self.create_publisher(DiagnosticArray, "state", QOS_EVENTS)
@@ -195,9 +197,12 @@ class StageDriver(Node):
         v, hit = clamp_slew(target, self.v, self.backend.limits,
                             {a: s * (missed + 1) for a, s in self.max_step.items()})
         self.stats["limit_hits"] += hit and self.sup.state in ENABLED
-        for _ in range(missed):  # the plant held the last voltage over the missed ticks
-            self.backend.step(self.v["x"], self.v["y"])
-        w, true, applied, hw_j = self.backend.step(v["x"], v["y"])
+        try:
+            for _ in range(missed):  # the plant held the last voltage over the missed ticks
+                self.backend.step(self.v["x"], self.v["y"])
+            w, true, applied, hw_j = self.backend.step(v["x"], v["y"])
+        except BackendFault as e:
+            return self.hardware_failed(e)
         if hw_j is not None:  # the DAQ's own sample count: its misses show in the stamps
             missed, j = missed + hw_j - j, hw_j
         self.stats["missed_ticks"] += missed
@@ -217,6 +222,18 @@ class StageDriver(Node):
                 or time.monotonic() > self.shutdown_by):
             self.final_report()
             rclpy.try_shutdown()  # at the safe voltage (or out of time): exit
+
+    def hardware_failed(self, error):
+        """A lost link or a controller error: faulted, said on state and diagnostics,
+        then the node exits 1 with the reason (the backend's close ramps to safe where
+        the link still allows it). No sample is taken after it."""
+        if self.failed is None:
+            self.failed = error
+            self.sup.fault(f"hardware: {error}", self.stamp(self.j))
+            self.get_logger().error(f"faulted: hardware: {error}")
+            self.final_report()
+            self.spub.wait_for_all_acked(Duration(seconds=1))
+        raise error
 
     def done(self):
         if self.lock:
