@@ -64,6 +64,8 @@ setup(
                 "foxglove-sdk>=0.30", "websockets>=12"],
         "daq": ["nidaqmx>=1.0"],
         "pi": ["pipython>=2.10"],
+        # (nv200, for backend nv200, declares Python >= 3.12 and runs on 3.11: no extra
+        # pip would honour here; dev.sh installs it with --ignore-requires-python)
         # the tests import the real nidaqmx (it installs without NI hardware) and run
         # the daq backend on it with only NI's driver layer replaced (the test double)
         # (and ruff and numpydoc: the suite runs the linters, test/test_lint.py)

@@ -24,7 +24,7 @@ ROSDEP_PYTHON_KEYS = {
     "python3-pytest", "python3-ruff-pip",
 }
 # hardware / speed only: never a hard dependency
-OPTIONAL = ("nidaqmx", "pipython", "threadpoolctl")
+OPTIONAL = ("nidaqmx", "pipython", "nv200", "threadpoolctl")
 
 
 def _depends():
@@ -47,7 +47,7 @@ def test_optional_hardware_packages_are_no_hard_dependency():
     requires = next(kw.value for node in ast.walk(tree) if isinstance(node, ast.Call)
                     for kw in node.keywords if kw.arg == "install_requires")
     assert not any(name in ast.literal_eval(el) for el in requires.elts
-                   for name in ("nidaqmx", "pipython"))
+                   for name in ("nidaqmx", "pipython", "nv200"))
 
 
 def test_one_executable_script_per_node_and_no_node_console_script():
@@ -79,7 +79,7 @@ def test_without_mcap_a_bag_command_says_what_to_install(tmp_path):
 
 # imported, but with no rosdep key: the "ROS install" pip line (docs/nodes.md) installs them
 PIP_ONLY = {"mcap": "mcap", "foxglove": "foxglove-sdk", "threadpoolctl": "threadpoolctl",
-            "nidaqmx": "nidaqmx", "pipython": "pipython"}
+            "nidaqmx": "nidaqmx", "pipython": "pipython", "nv200": "nv200"}
 
 
 # imported only by a benchmark's peer (piezo_stage/apps/studies/sparse_peer.py, which says

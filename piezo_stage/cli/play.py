@@ -13,7 +13,9 @@ def add_arguments(s):
                    "and invert write it")
     s.add_argument("--backend", choices=PLAY_BACKENDS, default="sim",
                    help="sim: the simulated stage; pi: a PI controller's wave generator "
-                   "and data recorder (pipython); daq: NI-DAQ hardware-timed (nidaqmx)")
+                   "and data recorder (pipython); nv200: two NV200 amplifiers' "
+                   "generators and recorders, at most 1024 points (nv200); daq: NI-DAQ "
+                   "hardware-timed (nidaqmx)")
     s.add_argument("--config", help="sim: the simulated stage's plant YAML (default "
                    "config/sim_stage.yaml)")
     s.set_defaults(model=None)
@@ -21,7 +23,9 @@ def add_arguments(s):
                    "the stage_driver's backend parameters (limits, slew, channels, "
                    "pi_axes...) and safe_voltage_V, safe_ramp_V_per_s")
     s.add_argument("--device", help="pi: the controller (tcp:HOST[:PORT], "
-                   "serial:DEVICE[:BAUD], usb:SERIAL:PID); daq: the device name (Dev1)")
+                   "serial:DEVICE[:BAUD], usb:SERIAL:PID); nv200: the two amplifiers, "
+                   "x and y, comma separated (tcp:HOST[:PORT],tcp:HOST[:PORT]); daq: "
+                   "the device name (Dev1)")
     s.add_argument("--seed", type=number(0, 2**32 - 1, integer=True),
                    help="sim: noise seed (overrides the config)")
     s.add_argument("--out", required=True, help="the record: CSV t,vx,vy,wx,wy (as "
@@ -46,6 +50,8 @@ def main(args):
                                  ("ai_channels", ["Dev1/ai0", "Dev1/ai1"])):
                 params[key] = [f"{args.device}/{ch.split('/', 1)[-1]}"
                                for ch in params.get(key, default)]
+        elif args.backend == "nv200":
+            params["nv200_addresses"] = args.device.split(",")
         else:
             params["pi_address"] = args.device
     arm = ArmingParams()

@@ -1,5 +1,5 @@
-"""Stage backends behind the driver node: simulated, NI-DAQ, PI controller, replay of a
-bag.
+"""Stage backends behind the driver node: simulated, NI-DAQ, PI controller, NV200
+amplifiers, replay of a bag.
 
 Each backend has ``rate_hz``, ``limits`` ({axis: (lo, hi)} V), ``slew_V_per_s``
 ({axis: V/s}), ``hardware_id`` (what /diagnostics names), ``paced`` (True when
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.drivers.daq import DAQ_PARAMS
+from piezo_stage.drivers.nv200 import NV200_PARAMS
 from piezo_stage.drivers.pi import PI_PARAMS
 
 # Backend configuration (name, default, description): the driver declares them read-only.
@@ -22,7 +23,7 @@ BACKEND_PARAMS = (
     ("plant_config", "", "sim: plant YAML ('' = the package's config/sim_stage.yaml)"),
     ("seed", -1, "sim: noise seed (-1: the plant config's)"),
     ("replay_bag", "", "replay: the bag to play"),
-) + DAQ_PARAMS + PI_PARAMS
+) + DAQ_PARAMS + PI_PARAMS + NV200_PARAMS
 
 
 def step_period_summary(times) -> str:
@@ -108,4 +109,7 @@ def make_backend(kind: str, rate_hz: float, params: dict, safe_V: float = 0.0):
     if kind == "pi":
         from piezo_stage.drivers.pi import PiBackend
         return PiBackend(rate_hz, params, safe_V)
-    raise ConfigError(f"unknown backend {kind!r}; use sim, daq, pi or replay")
+    if kind == "nv200":
+        from piezo_stage.drivers.nv200 import Nv200Backend
+        return Nv200Backend(rate_hz, params, safe_V)
+    raise ConfigError(f"unknown backend {kind!r}; use sim, daq, pi, nv200 or replay")

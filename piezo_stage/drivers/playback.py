@@ -8,6 +8,8 @@ columns ``simulate`` writes (t, vx, vy, wx, wy), so ``identify``, ``gap`` and
 - ``sim``: the simulated stage (a plant config), sample-exact: what ``simulate`` does.
 - ``pi``: the PI controller's wave generator and data recorder (drivers/pi.py): the
   controller's servo clock plays and records, the host only loads and reads.
+- ``nv200``: each NV200's generator (1024 points) and recorder (drivers/nv200.py);
+  longer waveforms are refused.
 - ``daq``: NI-DAQ hardware-timed single point (drivers/daq.py): one write and one read
   per sample clock, paced by the device; a sample the host misses is counted (DAQmx's
   late-sample report) and the play fails, since the record would not be the waveform.
@@ -23,7 +25,7 @@ import numpy as np
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
 from piezo_stage.core.record import Record
 
-PLAY_BACKENDS = ("sim", "pi", "daq")
+PLAY_BACKENDS = ("sim", "pi", "nv200", "daq")
 
 
 def _check_limits(rec: Record, limits: dict) -> None:
@@ -71,9 +73,12 @@ def play_record(kind: str, rec: Record, params: dict | None = None, plant_config
     from piezo_stage.drivers import BACKEND_PARAMS
     p = {name: default for name, default, _ in BACKEND_PARAMS}
     p.update(params or {})
-    if kind == "pi":
-        from piezo_stage.drivers.pi import PiBackend
-        backend = PiBackend(rec.fs_hz, p, safe_V)
+    if kind in ("pi", "nv200"):
+        if kind == "pi":
+            from piezo_stage.drivers.pi import PiBackend as Backend
+        else:
+            from piezo_stage.drivers.nv200 import Nv200Backend as Backend
+        backend = Backend(rec.fs_hz, p, safe_V)
         try:
             _check_limits(rec, backend.limits)
             _check_slew(rec, backend.slew_V_per_s)

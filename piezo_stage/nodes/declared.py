@@ -14,6 +14,7 @@ DECLARED = {
         "amplifier_gain", "ao_channels", "arm_confirm_ticks", "arm_tolerance_V",
         "auto_arm", "backend", "clock_period_s", "control_rate_hz", "exit_after_max_steps",
         "lookahead_s", "max_steps", "min_record_subscribers", "min_subscribers", "mode",
+        "nv200_addresses", "nv200_timeout_s",
         "output_limits_V", "pi_address", "pi_axes", "pi_timeout_s", "plant_config",
         "replay_bag", "safe_ramp_V_per_s", "safe_voltage_V", "seed", "sensor_offset_um",
         "sensor_um_per_V", "slew_V_per_s",

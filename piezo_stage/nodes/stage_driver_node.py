@@ -57,7 +57,8 @@ from piezo_stage_msgs_adapters import (
 )
 
 PARAMS = (  # name (one name: the parameter's), default, description, limits
-    ("backend", "sim", "stage backend", {"choices": ("sim", "daq", "pi", "replay")}),
+    ("backend", "sim", "stage backend", {"choices": ("sim", "daq", "pi", "nv200",
+                                                  "replay")}),
     ("mode", "lockstep", "lockstep (sim, replay) | realtime",
      {"choices": ("lockstep", "realtime")}),
     ("control_rate_hz", 1000.0, "sample rate [Hz]", {"lo": 1.0, "hi": 1e5}),
@@ -85,7 +86,7 @@ class StageDriver(Node):
         super().__init__("stage_driver")
         d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
         p = self.p = {name: d(name, default, desc, **kw) for name, default, desc, kw in PARAMS}
-        if p["backend"] in ("daq", "pi") and p["mode"] != "realtime":
+        if p["backend"] in ("daq", "pi", "nv200") and p["mode"] != "realtime":
             raise DataError(f"backend {p['backend']} runs in real time only (mode: "
                             "realtime)")
         if p["mode"] == "realtime" and self.get_parameter("use_sim_time").value:
