@@ -478,3 +478,18 @@ def test_a_scan_cut_from_a_run_of_a_stage_with_memory():
     v = np.concatenate([fit.v["x"], hold.v["x"]])
     w = model.simulate(v, np.zeros_like(v))[0]["x"][fit.t.size:]
     assert np.sqrt(np.mean((w - true) ** 2)) < 0.03
+
+
+def test_a_record_sampled_too_slowly_for_fast_dynamics_is_diagnosed_not_refused(tmp_path):
+    """The gap protocol at 40 Hz (a host-paced loop's rate: the NV200's link) played on
+    the simulated stage: `gap` gives a verdict (no resonance candidate or budget feature
+    above the record's Nyquist rate; it once failed with a traceback from its worker)."""
+    exe = [sys.executable, "-m", "piezo_stage"]
+    wave, rec = str(tmp_path / "e40.csv"), str(tmp_path / "r40.csv")
+    for args in (["excite", "--rate", "40", "--out", wave], ["play", wave, "--out", rec]):
+        subprocess.run(exe + args, check=True, capture_output=True, timeout=120)
+    r = subprocess.run(exe + ["gap", rec, "--axis", "x", "--model",
+                              os.path.join(ROOT, "config", "stage_model.yaml")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.startswith("verdict: ") and "Traceback" not in r.stderr, r.stderr[-2000:]

@@ -93,8 +93,11 @@ def input_locked(v: np.ndarray, v_other: np.ndarray, fs: float,
         cols.append(play_columns(u, np.ptp(u) * np.arange(1, LOCK_PLAYS + 1)
                                  / (2 * LOCK_PLAYS)))
         # fast dynamics (a resonance rung by a chirp): the input through a bank of
-        # damped resonators, in two phases (the output and its one-sample lag)
-        for fn in np.geomspace(50.0, LOCK_RES_MAX * fs, LOCK_RES_N):
+        # damped resonators, in two phases (the output and its one-sample lag); a
+        # record sampled too slowly to show any (below 50 / LOCK_RES_MAX Hz) has none
+        bank = np.geomspace(50.0, LOCK_RES_MAX * fs, LOCK_RES_N) \
+            if LOCK_RES_MAX * fs > 50.0 else ()
+        for fn in bank:
             Y = Dynamics(fs, "resonance", float(fn), LOCK_RES_ZETA).apply(B[:, 1:]) - B[:, 1:]
             cols += [Y, np.vstack([Y[:1], Y[:-1]])]
     H = np.ascontiguousarray(np.hstack(cols))
