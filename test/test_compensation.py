@@ -5,8 +5,13 @@ positions at the control rate."""
 import numpy as np
 import pytest
 
-from piezo_stage.core.compensation import DynamicsInverse, EffectCompensator
+from piezo_stage.core.compensation import (
+    DynamicsInverse,
+    EffectCompensator,
+    PreviewDynamicsInverse,
+)
 from piezo_stage.core.effects import Creep, Delay, Dynamics
+from piezo_stage.core.errors import ConfigError
 
 FS, R = 1000.0, 10  # control rate, plant substeps per period
 
@@ -65,15 +70,53 @@ def test_effects_together_within_a_hundredth_of_a_micrometre():
     assert c.lead_ticks["x"] == 1
 
 
-def test_drift_and_non_minimum_phase_dynamics_are_reported_not_compensated():
+def test_drift_is_reported_not_compensated():
     c = EffectCompensator({"drift": {"rate_um_per_s": 0.01}}, FS)
     assert not c.compensated and "drift" in c.uncompensated
     assert "not: drift" in c.describe()
-    # sampled just after the hold starts, a resonance's inverse is unstable
-    assert not DynamicsInverse(FS, "resonance", 300.0, 0.05, delta_s=0.99e-3).ok
-    c = EffectCompensator({"dynamics": {"kind": "resonance", "fn_hz": 300.0, "zeta": 0.05},
-                           "delay": {"delay_s": 0.99e-3}}, FS)
-    assert "dynamics" in c.uncompensated and c.dynamics == {}
+
+
+@pytest.mark.parametrize("fn_hz, zeta, delay_s", [
+    (300.0, 0.05, 0.9e-3),  # sampled soon after the hold starts (whole plant substeps)
+    (600.0, 0.08, 0.8e-3),  # the gap issue's stage: a mode above the Nyquist rate
+])
+def test_non_minimum_phase_dynamics_are_inverted_with_preview(fn_hz, zeta, delay_s):
+    """The causal inverse is unstable at these rates; the stable noncausal one makes
+    the sampled output follow the wanted positions, previewing them some samples."""
+    assert not DynamicsInverse(FS, "resonance", fn_hz, zeta,
+                               delta_s=delay_s % (1 / FS)).ok
+    eff = {"dynamics": {"kind": "resonance", "fn_hz": fn_hz, "zeta": zeta},
+           "delay": {"delay_s": delay_s}}
+    h, c = _compensated(eff, W40)
+    assert c.compensated == {"dynamics", "delay"} and not c.uncompensated
+    assert c.preview_ticks["x"] > 0 and "samples of preview" in c.describe()
+    assert c.lead_ticks["x"] == c.preview_ticks["x"] + int(delay_s * FS)
+    makers = [lambda: Dynamics(FS * R, "resonance", fn_hz, zeta), lambda: Delay(FS * R, delay_s)]
+    y = _through_plant(h, makers)
+    # exact at the samples but for the truncated preview (1e-6 of the series' first tap)
+    assert np.max(np.abs(y - W40)[400:]) < 1e-3
+    assert np.max(np.abs(_through_plant(W40, makers) - W40)[50:]) > 1.0
+    # and the command stays bounded: the inverse is stable
+    assert np.max(np.abs(h)) < 10 * np.max(np.abs(W40))
+
+
+def test_preview_inverse_of_minimum_phase_dynamics_is_the_causal_inverse():
+    inv = DynamicsInverse(FS, "resonance", 800.0, 0.05)
+    assert inv.ok
+    p = PreviewDynamicsInverse(inv)
+    assert p.preview == 0
+    inv.reset(W40[0])
+    p.reset(W40[0])
+    a = np.array([inv.step(w) for w in W40[:300]])
+    b = np.array([p.step(w) for w in W40[:300]])
+    assert np.max(np.abs(a - b)) < 1e-8
+
+
+def test_a_preview_longer_than_allowed_is_refused():
+    inv = DynamicsInverse(FS, "resonance", 600.0, 0.08, delta_s=0.8e-3)
+    assert PreviewDynamicsInverse(inv).preview > 5
+    with pytest.raises(ConfigError, match="samples of preview"):
+        PreviewDynamicsInverse(inv, max_taps=5)
 
 
 def test_axes_list_and_disabled_effects_are_honoured():

@@ -16,6 +16,10 @@ def add_arguments(s):
     s.add_argument("--in", dest="inp", required=True, help="CSV with t,wx,wy (s, um)")
     s.add_argument("--out", required=True, help="output CSV t,vx,vy (V)")
     s.add_argument("--method", choices=("exact", "seed-eq12"), default="exact")
+    s.add_argument("--effects", action="store_true",
+                   help="also invert the model's effects (delay, dynamics, creep) at the "
+                   "target's sample rate, previewing the known target: for a waveform "
+                   "played at the controller's own rate (`play`)")
 
 
 def main(args):
@@ -23,13 +27,20 @@ def main(args):
     from piezo_stage.core.record import Record
     from piezo_stage.io.csv_table import read_table, write_table
     from piezo_stage.io.model_file import load_model
-    model, _ = load_model(args.model)
+    model, effects = load_model(args.model)
     missing = sorted({"x", "y"} - set(model.axes))
     if missing:
         raise DataError(f"{args.model} has no model for axis {', '.join(missing)}: its "
                         "voltages cannot be computed (give a model with both axes)")
     cols = read_table(args.inp, ["t", "wx", "wy"])
     rec = Record(cols["t"], w={"x": cols["wx"], "y": cols["wy"]}, source=args.inp)
+    if args.effects:
+        if args.method != "exact":
+            raise DataError("--effects needs --method exact")
+        if not effects:
+            raise DataError(f"{args.model} has no effects to invert (`gap --out-model` "
+                            "writes them)")
+        rec = Record(rec.t, w=compensate_effects(effects, rec), source=args.inp)
     if args.method == "exact":
         res = invert_stage(model, rec.w["x"], rec.w["y"])
     else:
@@ -47,3 +58,25 @@ def main(args):
                 f"{model.voltage_limits[1]:g}] V, saturated (first at t = {rec.t[i]:g} s, "
                 f"w = {rec.w[a][i]:g} um)\n")
     return 0
+
+
+def compensate_effects(effects: dict, rec) -> dict:
+    """The hysteresis targets {axis: um} that make the model's effects give ``rec``'s
+    positions at its samples: each axis's inverse fed its target ``lead_ticks`` ahead
+    (the last target held past the end); the record must be uniformly sampled."""
+    from piezo_stage.core.compensation import EffectCompensator
+    dt = np.diff(rec.t)
+    if dt.size == 0 or np.ptp(dt) > 1e-6 * float(np.median(dt)):
+        raise DataError("--effects needs a uniformly sampled target (one rate)")
+    comp = EffectCompensator(effects, 1.0 / float(np.median(dt)))
+    n, lead = len(rec), comp.lead_ticks
+    ahead = {a: np.concatenate([rec.w[a], np.full(lead[a], rec.w[a][-1])]) for a in lead}
+    comp.reset({a: float(rec.w[a][0]) for a in lead})
+    out = {a: np.empty(n) for a in lead}
+    for k in range(n):
+        h = comp.step({a: float(ahead[a][k + lead[a]]) for a in lead})
+        for a in lead:
+            out[a][k] = h[a]
+    note = comp.describe()
+    sys.stderr.write(f"piezo-stage: {note}\n")
+    return out

@@ -19,6 +19,8 @@ def add_arguments(s):
     s.add_argument("--model-error", type=number(-0.5, 0.5), default=0.0, metavar="F",
                    help="learning: every effect parameter of the model off by this "
                    "factor (0.2: 20 %%)")
+    s.add_argument("--rate", type=float, choices=(1000.0, 2000.0, 5000.0), default=1000.0,
+                   help="learning: the control rate [Hz] (default 1000)")
     s.add_argument("--seeds", type=number(1, 1000, integer=True), default=5)
     s.add_argument("--budget", type=number(1, 10**8, integer=True), default=60_000,
                    help="evaluations per swarm run")
@@ -45,7 +47,8 @@ def learning(args):
     from piezo_stage.io.files import atomic_write
     from piezo_stage.progress import bar
     with bar("study: learning runs", total=2 * len(learning.cases()), unit=" runs") as b:
-        rows = learning.run(args.periods, args.model_error, progress=lambda: b.update(1))
+        rows = learning.run(args.periods, args.model_error, progress=lambda: b.update(1),
+                            rate_hz=args.rate)
     learning.print_report(rows)
     if args.json:
         with atomic_write(args.json) as fh:

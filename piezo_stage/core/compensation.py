@@ -12,7 +12,9 @@ these operators are discrete and exactly invertible:
   y_m = C' x_(m-1) + D' u_m with C' = C Phi(T - delta), D' = C Gamma(T - delta); the
   inverse u_m = (y_m - C' x_(m-1)) / D' is used when its own poles
   (eig(Ad - Bd C' / D')) are inside the unit circle, i.e. the sampled plant is minimum
-  phase at this rate (checked; otherwise the dynamics are reported uncompensated);
+  phase at this rate (checked); otherwise (a resonance near or above the Nyquist rate)
+  its stable noncausal inverse, which previews the known trajectory a few more periods
+  (``PreviewDynamicsInverse``);
 * creep, y = h - gamma (h - mean_i LP_i(h)) with first-order low-passes LP_i, is
   solved for h sample by sample (its direct term is 1 - gamma + gamma mean(1 - p_i));
 * drift ignores the input: no feedforward can remove it (feedback does).
@@ -29,6 +31,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from scipy.linalg import expm
+from scipy.signal import lfilter, lfilter_zi, ss2tf
 
 from piezo_stage.core.errors import ConfigError
 
@@ -108,6 +111,78 @@ class DynamicsInverse:
         return u
 
 
+class PreviewDynamicsInverse:
+    """The stable inverse of sampled dynamics that are not minimum phase, with preview
+    (stable inversion in the manner of Devasia, Chen and Paden, in discrete time).
+
+    The sampled model ``G(z) = Cs (zI - Ad)^-1 Bd + Ds`` (DynamicsInverse's) is
+    num(z) / den(z); its zeros outside the unit circle (z_u, from sampling a resonance
+    near or above the Nyquist rate) make the causal inverse den / num unstable. Split
+    num = K num_s num_u (zeros inside / outside) and invert each part the way it is
+    stable:
+
+    * 1 / num_u(z) = prod(-1 / z_u) / prod(1 - z / z_u) is expanded in powers of z, that
+      is in future samples: a noncausal FIR whose taps decay as |1 / z_u|^k, truncated
+      where they fall below ``tol`` of the first (``taps`` samples of preview);
+    * den(z) / (K num_s(z)) is causal and stable once advanced by r = deg num_u samples
+      (its poles are num_s's zeros, inside the circle).
+
+    So u_m needs y_m .. y_(m + preview) with preview = taps - 1 + r: ``step`` is fed the
+    wanted output ``preview`` samples ahead and returns u_m for the oldest. The result
+    makes the sampled output follow y at the samples (the truncation leaves an error
+    of ``tol``); between samples a mode above the Nyquist rate can still move, which
+    no command held for a whole period can prevent.
+    """
+
+    def __init__(self, inv: DynamicsInverse, tol: float = 1e-6, max_taps: int = 2000):
+        num, den = ss2tf(inv.Ad, inv.Bd, inv.Cs[None, :], np.array([[inv.Ds]]))
+        num, den = np.trim_zeros(np.real(num[0]), "f"), np.real(den)
+        zeros = np.roots(num)
+        inside, outside = zeros[np.abs(zeros) < 1.0], zeros[np.abs(zeros) >= 1.0]
+        if np.any(np.abs(np.abs(outside) - 1.0) < 1e-6):
+            raise ConfigError("the sampled dynamics have a zero on the unit circle: no "
+                              "stable inverse")
+        k_gain = num[0]
+        r = outside.size
+        # the noncausal part: prod(-1/z_u) * series of 1 / prod(1 - p_i z), p_i = 1/z_u
+        p = 1.0 / outside
+        rho = float(np.max(np.abs(p))) if r else 0.0
+        taps = 1 if r == 0 else min(max_taps, int(np.ceil(np.log(tol) / np.log(rho))) + 1)
+        if r and rho ** (taps - 1) > 10 * tol:
+            raise ConfigError(f"the sampled dynamics' zero at |z| = {1 / rho:.4f} needs "
+                              f"more than {max_taps} samples of preview")
+        series = np.zeros(taps)
+        series[0] = 1.0
+        series = lfilter([1.0], np.real(np.poly(p)), series) if r else series
+        self.fir = np.real(np.prod(-p) * series) if r else series
+        # the causal part den / (K num_s), in powers of z^-1
+        self.b = den / k_gain
+        self.a = np.real(np.poly(inside)) if inside.size else np.ones(1)
+        self.preview = taps - 1 + r
+        self.r = r
+        self._zi_unit = lfilter_zi(self.b, self.a) if max(self.a.size, self.b.size) > 1 \
+            else np.zeros(0)
+        self._dc_fir = float(np.sum(self.fir))
+        self.window = np.zeros(taps + r)
+        self.zi = np.zeros(max(self.a.size, self.b.size) - 1)
+
+    def reset(self, u0: float) -> None:
+        """At rest with input and output at ``u0`` (unit DC gain)."""
+        self.window[:] = u0
+        w0 = u0 * self._dc_fir
+        self.zi = self._zi_unit * w0
+
+    def step(self, y_ahead: float) -> float:
+        """Feed the wanted output ``preview`` samples ahead; the input for the sample
+        ``preview`` before it."""
+        self.window[:-1] = self.window[1:]
+        self.window[-1] = y_ahead
+        # w_(m + r) from y_(m + r) .. y_(m + r + taps - 1): the window's last taps
+        w = float(self.fir @ self.window[self.r:])
+        u, self.zi = lfilter(self.b, self.a, [w], zi=self.zi)
+        return float(u[0])
+
+
 class EffectCompensator:
     """Per axis, the hysteresis target that makes the effects chain give the desired
     position: ``lead_ticks`` say how far ahead the desired position must be asked for
@@ -124,7 +199,9 @@ class EffectCompensator:
         T = 1.0 / self.rate_hz
         max_fn = float(max_resonance_hz) if max_resonance_hz else math.inf
         self.creep, self.dynamics, self.lead_ticks = {}, {}, {a: 0 for a in axes}
-        self.compensated, self.uncompensated = set(), {}
+        # of lead_ticks, the samples a stable inverse previews (not a time advance)
+        self.preview_ticks = {a: 0 for a in axes}
+        self.compensated, self.uncompensated, self.notes = set(), {}, {}
         for name, p in (effects or {}).items():
             p = dict(p or {})
             if not p.pop("enabled", True):
@@ -173,10 +250,21 @@ class EffectCompensator:
                 inv = DynamicsInverse(self.rate_hz, delta_s=delta, **dyn)
                 if inv.ok:
                     self.dynamics[a] = inv
-                else:
+                    continue
+                # not minimum phase at this rate: the stable inverse with preview
+                try:
+                    pinv = PreviewDynamicsInverse(inv)
+                except ConfigError as e:
                     self.compensated.discard("dynamics")
                     self.uncompensated["dynamics"] = (
-                        f"not minimum phase when sampled at {self.rate_hz:g} Hz")
+                        f"not minimum phase when sampled at {self.rate_hz:g} Hz: {e}")
+                    continue
+                self.dynamics[a] = pinv
+                self.preview_ticks[a] = pinv.preview
+                self.lead_ticks[a] += pinv.preview
+                self.notes["dynamics"] = (
+                    f"not minimum phase at {self.rate_hz:g} Hz: inverted with "
+                    f"{pinv.preview} samples of preview")
         self.axes = tuple(axes)
 
     @property
@@ -210,7 +298,8 @@ class EffectCompensator:
 
     def describe(self) -> str:
         """One line: which effects are compensated, which not and why."""
-        done = ", ".join(sorted(self.compensated)) or "none"
+        done = ", ".join(f"{k} ({self.notes[k]})" if k in self.notes else k
+                         for k in sorted(self.compensated)) or "none"
         left = "; ".join(f"{k}: {v}" for k, v in sorted(self.uncompensated.items()))
         return f"effects compensated: {done}" + (f" (not: {left})" if left else "")
 

@@ -138,7 +138,9 @@ def loop_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: np.
     g = effects_response(effects, axis, rate_hz, f, scale)
     if compensator is None:
         return g
-    lead = compensator.lead_ticks.get(axis, 0) / rate_hz
+    # the time advance: the lead without the samples a stable inverse only previews
+    lead = (compensator.lead_ticks.get(axis, 0) -
+            getattr(compensator, "preview_ticks", {}).get(axis, 0)) / rate_hz
     g = g * np.exp(2j * np.pi * f * lead)
     if axis in compensator.creep:
         g = g / creep_response(model["creep"], rate_hz, f)

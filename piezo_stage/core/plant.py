@@ -89,7 +89,8 @@ class Plant:
 
     ``run(vx, vy)`` advances one command per element; ``step(vx, vy)`` advances one.
     Both return measured displacement [um] per axis; ``last_true`` holds the
-    noise-free displacement of the last call.
+    noise-free displacement of the last call, and with ``keep_fine`` set
+    ``last_true_fine`` the same at the internal rate (between the command samples).
     """
 
     def __init__(self, config: PlantConfig, command_rate_hz: float):
@@ -168,6 +169,8 @@ class Plant:
         self.limit_hits = 0
         self.samples = 0
         self.last_true = {a: np.zeros(0) for a in AXES}
+        self.keep_fine = False
+        self.last_true_fine = {a: np.zeros(0) for a in AXES}
         self.last_applied = {a: np.zeros(0) for a in AXES}
 
     def run(self, vx: ArrayLike, vy: ArrayLike) -> dict[str, np.ndarray]:
@@ -206,15 +209,17 @@ class Plant:
                 w[i] += self._play[a].run(applied[i], self._z[a])
             elif a in self._mz:  # the model's own play operators, beside its Duhem law
                 w[i] += self.config.model.plays[a].run(applied[i], self._mz[a])
+        fine = w
         if self._has_effects:
-            true = np.empty((2, n))
+            fine = np.empty_like(w)
             for i, a in enumerate(AXES):
                 y = w[i]
                 for e in self._effects[a]:
                     y = e.process(y)
-                true[i] = y[R - 1::R]
-        else:
-            true = w[:, R - 1::R]
+                fine[i] = y
+        true = fine[:, R - 1::R]
+        if self.keep_fine:
+            self.last_true_fine = {"x": fine[0].copy(), "y": fine[1].copy()}
         cfg = self.config
         noise = (self._rng.standard_normal((n, 2)) if cfg.noise_rms_um > 0 else
                  np.zeros((n, 2)))

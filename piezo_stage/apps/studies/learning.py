@@ -15,7 +15,7 @@ RATE_HZ = 1000.0
 
 def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
              freq_hz: float, learn: bool = True, gain: float = 1.0, seed: int = 0,
-             fast_axis: str | None = None) -> dict:
+             fast_axis: str | None = None, rate_hz: float = RATE_HZ) -> dict:
     """One periodic trajectory on the plant, feedforward only (the model's inverse and
     its effects compensated), learning or not.
 
@@ -42,6 +42,9 @@ def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
     fast_axis : str, optional
         A raster's fast axis: its linearity error over the central 80 % of each line
         is reported per period (% of the scan size).
+    rate_hz : float
+        The control rate [Hz] (a whole number of plant substeps; the trajectory's
+        samples at it).
 
     Returns
     -------
@@ -49,7 +52,10 @@ def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
         ``per_period``: {axis: mean absolute error against the true position [% of the
         axis's range] per period}; ``linearity_pct`` (raster: RMS and max per period);
         ``range_um``, ``design`` (one line per axis), ``max_step_V``, ``v_range``,
-        ``noise_factor``, ``damped``.
+        ``noise_factor``, ``damped``; ``intersample_um``: {axis: RMS of the true
+        position between samples against the straight line through the samples either
+        side [um], over the last period} (what a mode above the Nyquist rate does while
+        the command is held).
     """
     from dataclasses import replace
 
@@ -59,18 +65,19 @@ def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
     from piezo_stage.core.learning import PeriodicLearner, design
     from piezo_stage.core.plant import Plant
 
-    dt_ns = int(round(1e9 / RATE_HZ))
-    n = int(round(RATE_HZ / freq_hz))
-    if abs(n * freq_hz - RATE_HZ) > 1e-6 * RATE_HZ:
-        raise ValueError(f"{freq_hz:g} Hz is not a whole number of samples at {RATE_HZ:g} Hz")
+    dt_ns = int(round(1e9 / rate_hz))
+    n = int(round(rate_hz / freq_hz))
+    if abs(n * freq_hz - rate_hz) > 1e-6 * rate_hz:
+        raise ValueError(f"{freq_hz:g} Hz is not a whole number of samples at {rate_hz:g} Hz")
     periods = int(round(t[-1] * freq_hz))
-    plant = Plant(replace(plant_cfg, seed=seed), RATE_HZ)
+    plant = Plant(replace(plant_cfg, seed=seed), rate_hz)
+    plant.keep_fine = True
     planner = ReferencePlanner(speed_um_s=2000.0, accel_um_s2=2e5)
     ref = PreviewedReference(planner, dt_ns)
-    comp = EffectCompensator(effects, RATE_HZ) if effects else None
+    comp = EffectCompensator(effects, rate_hz) if effects else None
     ref.set_compensator(comp)
     inv = StageInverse(model)
-    designs = {a: design(n, RATE_HZ, effects, a, comp, gain) for a in ("x", "y")}
+    designs = {a: design(n, rate_hz, effects, a, comp, gain) for a in ("x", "y")}
     learner = PeriodicLearner(designs)
     if learn:
         ref.set_learner(learner)
@@ -82,6 +89,9 @@ def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
         comp.reset({"x": wx, "y": wy})
     planner.set_trajectory(t, w)
     err, vs = {a: {} for a in ("x", "y")}, []
+    between = {a: [] for a in ("x", "y")}  # the last period's intersample deviations
+    last = {"x": wx, "y": wy}
+    ramp = np.arange(1, plant.substeps + 1) / plant.substeps
     k_end = int(round((t[-1] + 1.0) / (dt_ns * 1e-9)))
     for k in range(1, k_end):
         target = k * dt_ns
@@ -97,6 +107,10 @@ def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
         true = {a: float(plant.last_true[a][-1]) for a in ("x", "y")}
         for a, m in (("x", mx), ("y", my)):
             err[a][i] = desired[a] - true[a]
+            if i >= (periods - 1) * n:
+                line = last[a] + (true[a] - last[a]) * ramp
+                between[a].append(plant.last_true_fine[a] - line)
+            last[a] = true[a]
         if learn:
             learner.observe(i, {"x": desired["x"] - mx, "y": desired["y"] - my})
     span = {a: float(np.ptp(w[a])) for a in w}
@@ -121,7 +135,9 @@ def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
             "max_step_V": float(np.abs(np.diff(v, axis=0)).max()),
             "v_range": (float(v.min()), float(v.max())),
             "noise_factor": {a: learner.noise_factor(a) for a in designs},
-            "damped": learner.damped, "noise_um": dict(learner.noise_um)}
+            "damped": learner.damped, "noise_um": dict(learner.noise_um),
+            "intersample_um": {a: float(np.sqrt(np.mean(np.concatenate(b) ** 2)))
+                               if b else 0.0 for a, b in between.items()}}
 
 
 # the paper's y(t) = 21 + 24 sin(2 pi f t - pi/2) um reaches -3 um, below this stage's
@@ -134,24 +150,26 @@ def cases(periods: int = 20) -> list[dict]:
     """The study's cases: (name, plant config, model file, trajectory kind, frequency)."""
     return [{"name": f"{kind} {f:g} Hz, {plant}", "plant": plant, "kind": kind,
              "freq_hz": f, "periods": periods}
-            for plant in ("sim_stage.yaml", "sim_stage_effects.yaml")
+            for plant in ("sim_stage.yaml", "sim_stage_effects.yaml", "sim_stage_600hz.yaml")
             for kind, f in (("sine", 40.0), ("sine", 100.0), ("raster", 20.0))]
 
 
-def trajectory(kind: str, freq_hz: float, periods: int) -> tuple:
-    """(t, w, fast axis or None) of a case."""
+def trajectory(kind: str, freq_hz: float, periods: int, rate_hz: float = RATE_HZ) -> tuple:
+    """(t, w, fast axis or None) of a case, sampled at ``rate_hz``."""
     from piezo_stage.core.trajectory import generate, raster
     if kind == "raster":
-        t, w = raster(freq_hz, periods, (40.0, 40.0), (45.0, 45.0), dt_s=1.0 / RATE_HZ)
+        t, w = raster(freq_hz, periods, (40.0, 40.0), (45.0, 45.0), dt_s=1.0 / rate_hz)
         return t, w, "x"
-    t, w = generate("sine", periods / freq_hz, 1.0 / RATE_HZ, freq_hz,
+    t, w = generate("sine", periods / freq_hz, 1.0 / rate_hz, freq_hz,
                     LIFTED_CENTER_UM, 24.0)
     return t, w, None
 
 
-def run(periods: int = 20, model_error: float = 0.0, progress=None) -> list[dict]:
-    """Every case without and with learning; with ``model_error`` the model's effect
-    parameters are all off by that factor (1 + model_error) for the learning runs."""
+def run(periods: int = 20, model_error: float = 0.0, progress=None,
+        rate_hz: float = RATE_HZ) -> list[dict]:
+    """Every case without and with learning at the control rate ``rate_hz``; with
+    ``model_error`` the model's effect parameters are all off by that factor
+    (1 + model_error) for the learning runs."""
     import copy
 
     from piezo_stage.io.plant_file import load_plant_config
@@ -167,23 +185,25 @@ def run(periods: int = 20, model_error: float = 0.0, progress=None) -> list[dict
                 for k in ("delay_s", "fn_hz", "zeta", "gamma"):
                     if k in p:
                         p[k] *= 1 + model_error
-        t, w, fast = trajectory(case["kind"], case["freq_hz"], periods)
+        t, w, fast = trajectory(case["kind"], case["freq_hz"], periods, rate_hz)
         res = {}
         for learn in (False, True):
             res[learn] = run_case(cfg, model, effects, t, w, case["freq_hz"], learn,
-                                  fast_axis=fast)
+                                  fast_axis=fast, rate_hz=rate_hz)
             if progress:
                 progress()
-        out.append({**case, "model_error": model_error, "without": res[False],
+        out.append({**case, "model_error": model_error, "rate_hz": rate_hz,
+                    "without": res[False],
                     "with": res[True]})
     return out
 
 
 def print_report(rows: list[dict]) -> None:
     """The table: per case and axis, the first and the last period without learning
-    and with it (mean absolute error, % of the range), a raster's linearity."""
+    and with it (mean absolute error, % of the range), a raster's linearity, the true
+    position's RMS between samples over the last period [um]."""
     print(f"{'case':<44} {'axis':>4} {'no learning':>12} {'learning: 1st':>14} "
-          f"{'last':>8} {'linearity rms/max %':>20} {'damped':>7}")
+          f"{'last':>8} {'linearity rms/max %':>20} {'damped':>7} {'between um':>10}")
     for r in rows:
         for a in r["with"]["per_period"]:
             wo, wi = r["without"]["per_period"][a], r["with"]["per_period"][a]
@@ -191,4 +211,5 @@ def print_report(rows: list[dict]) -> None:
             lin_txt = (f"{lin['rms'][-1]:.3f} / {lin['max'][-1]:.3f}"
                        if lin and a == "x" else "")
             print(f"{r['name']:<44} {a:>4} {wo[-1]:11.3f}% {wi[0]:13.3f}% {wi[-1]:7.3f}% "
-                  f"{lin_txt:>20} {r['with']['damped']:>7}")
+                  f"{lin_txt:>20} {r['with']['damped']:>7} "
+                  f"{r['with']['intersample_um'][a]:10.4f}")
