@@ -12,11 +12,12 @@ HELP = "the paper's control experiments through the node set"
 
 def add_arguments(s):
     from piezo_stage.apps.experiments import CONTROLLERS, EXPERIMENTS, FREQS_HZ
-    s.add_argument("name", choices=EXPERIMENTS)
+    s.add_argument("name", choices=EXPERIMENTS + ("scan",))
     s.add_argument("--plant", metavar="CONFIG.yaml", help="simulated plant (default "
-                   "config/sim_stage.yaml)")
-    s.add_argument("--model", metavar="MODEL.yaml", help="the feedforward's model "
-                   "(default: identified through the node set first)")
+                   "config/sim_stage.yaml; scan: sim_stage.yaml and sim_stage_effects.yaml)")
+    s.add_argument("--model", metavar="MODEL.yaml", help="the feedforward's model, as "
+                   "`gap --out-model` writes it (default: identified through the node set "
+                   "first; scan: each plant's own)")
     s.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
     s.add_argument("--config", help="node parameters YAML (default config/stage.yaml)")
     s.add_argument("--params", action="append", metavar="FILE",
@@ -110,6 +111,8 @@ def main(args):
     out_dir = args.record or new_bag_dir("bags")
     os.makedirs(out_dir, exist_ok=True)
     model = args.model
+    if args.name == "scan":
+        return scan(args, config, extra, out_dir)
     try:
         if model is None:
             print("no --model: identifying one through the node set first", flush=True)
@@ -139,5 +142,37 @@ def main(args):
                      f"mode: {args.mode}\n\n```\n{table(doc)}\n```\n\n"
                      f"![{args.name}]({args.name}.png)\n")
         print(f"report: {experiment_png(os.path.join(args.report, args.name + '.png'), evals)}")
+    print(f"bags: {out_dir}")
+    return 0
+
+
+def scan(args, config, extra, out_dir):
+    """`experiment scan`: rasters and the seed trajectory with and without learning."""
+    import sys
+
+    from piezo_stage.apps.scan import run_scan, table
+    from piezo_stage.io.files import atomic_write
+    try:
+        doc, evals = run_scan(out_dir, config, [args.plant] if args.plant else None,
+                              args.model, args.mode, extra, args.namespace)
+    except RuntimeError as e:
+        sys.stderr.write(f"piezo-stage experiment: {e}\n")
+        return 1
+    print(table(doc))
+    text = json.dumps(doc, indent=1)
+    if args.json:
+        with atomic_write(args.json) as fh:
+            fh.write(text + "\n")
+        print(f"json: {args.json}")
+    if args.report:
+        from piezo_stage.io.plots import scan_png
+        os.makedirs(args.report, exist_ok=True)
+        with atomic_write(os.path.join(args.report, "scan.json")) as fh:
+            fh.write(text + "\n")
+        with atomic_write(os.path.join(args.report, "scan.md")) as fh:
+            fh.write(f"# Experiment scan\n\nplants: {', '.join(doc['plants'])}; model: "
+                     f"{doc['model']}; mode: {args.mode}\n\n```\n{table(doc)}\n```\n\n"
+                     "![scan](scan.png)\n")
+        print(f"report: {scan_png(os.path.join(args.report, 'scan.png'), evals)}")
     print(f"bags: {out_dir}")
     return 0

@@ -111,3 +111,59 @@ def experiment_png(path, evals):
     ax[-1, 1].set(xlabel="time in the window [s]")
     fig.tight_layout()
     return _save(fig, path)
+
+
+def scan_png(path, evals):
+    """``evals``: [(plant, case, evaluation)] from piezo_stage.apps.scan -> per plant, the
+    raster whose linearity error without learning is the largest, as the stage traced
+    it against the ideal grid before and after learning (each line's fast-axis error
+    drawn across the line, magnified, trace and retrace in their own colours), and
+    every case's error per period."""
+    plt = _pyplot()
+    plants = list(dict.fromkeys(p for p, _, _ in evals))
+    fig, ax = plt.subplots(len(plants), 3, figsize=(15, 4.6 * len(plants)), squeeze=False)
+    for row, plant in enumerate(plants):
+        mine = [(c, ev) for p, c, ev in evals if p == plant]
+        rasters = [(c, ev) for c, ev in mine if c.kind == "raster"]
+        worst = max((ev["axes"]["x"]["linearity_rms_pct_of_scan"], c.freq_hz)
+                    for c, ev in rasters if not c.learning)[1] if rasters else None
+        line_rate_hz = worst
+        grids = {c.learning: (c, ev) for c, ev in rasters if c.freq_hz == worst}
+        if len(grids) == 2:
+            c0, ev0 = grids[False]
+            spacing = float(np.ptp(ev0["desired"][:, 1])) / max(1, c0.periods - 1)
+            # magnified by what is judged: the central 80 % of the sweeps after the first
+            # period (the approach's transient would otherwise set the scale)
+            emax = 0.0
+            for c, ev in grids.values():
+                later = ev["period"] > 0
+                d0, e0 = ev["desired"][later, 0], (ev["true"] - ev["desired"])[later, 0]
+                mid = np.abs(d0 - d0.min() - np.ptp(d0) / 2) <= 0.4 * np.ptp(d0)
+                emax = max(emax, float(np.max(np.abs(e0[mid]))) if mid.any() else 0.0)
+            want = 0.45 * spacing / max(emax, 1e-9)
+            dec = 10 ** np.floor(np.log10(want))
+            mag = float(max(m * dec for m in (1, 2, 5) if m * dec <= want))
+            for col, learn in enumerate((False, True)):
+                c, ev = grids[learn]
+                d, e = ev["desired"], ev["true"][:, 0] - ev["desired"][:, 0]
+                vel = np.gradient(d[:, 0])
+                a = ax[row, col]
+                a.plot(d[:, 0], d[:, 1], color="0.8", lw=0.6, label="ideal grid")
+                for sel, colour, lab in ((vel > 0, "tab:blue", "trace"),
+                                         (vel < 0, "tab:red", "retrace")):
+                    a.plot(np.where(sel, d[:, 0], np.nan), d[:, 1] + mag * e, lw=0.6,
+                           color=colour, label=f"{lab}: x error x{mag:g} drawn in y")
+                a.set(xlabel="x [um]", ylabel="y [um]",
+                      title=f"{plant}: raster {line_rate_hz:g} Hz, "
+                      f"{'after' if learn else 'without'} learning")
+                a.legend(fontsize=7, loc="upper right")
+        a = ax[row, 2]
+        for c, ev in mine:
+            per = ev["axes"]["x"]["per_period_pct"]
+            a.semilogy(np.arange(1, len(per) + 1), np.maximum(per, 1e-4),
+                       "-" if c.learning else "--", lw=1.0, label=c.name)
+        a.set(xlabel="period", ylabel="x mean |true - desired| [% of range]",
+              title=f"{plant}: error per period (floor 1e-4 %)", ylim=(5e-5, None))
+        a.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    return _save(fig, path)

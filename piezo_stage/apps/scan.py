@@ -1,0 +1,245 @@
+"""`piezo-stage experiment scan`: raster scans and the seed trajectory through the node
+set, feedforward only, with and without learning feedforward.
+
+Every case is one run of the real node set (experiments.run_case) on a trajectory
+written for it, recorded to its own bag, and every figure is computed from the bag,
+against the simulated stage's true position (``/stage/sim/true_position``), period by
+period from the start of the motion:
+
+* ``raster`` at line rates 5, 20 and 50 Hz (the fast axis x sweeps a 40 um triangle
+  with rounded turnarounds, trace and retrace per line period; the slow axis y steps
+  inside the lower turnaround; centre 45, 45 um): per period the mean absolute error
+  (% of the axis's span), the linearity error over the central 80 % of each sweep
+  (RMS and max, % of the scan size) and the trace-retrace offset (the mean error on
+  the trace minus on the retrace, over the same central part);
+* ``seed`` at 40 and 100 Hz: the paper's y(t) = 21 + 24 sin(2 pi f t - pi/2) um lifted
+  by 4 um (centre 25 um: its -3 um bottom is below the stage's 0 V rest) on both axes.
+
+A case's figures are those of its last period; ``periods_to_converge`` is the first
+period from which every period's error stays within 10 % (or 0.002 % of the range) of
+the mean of the last three. Learning runs with ``learning_period_s`` the trajectory's
+period and the controller's feedback off (learning corrects the feedforward).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import numpy as np
+
+from piezo_stage.apps.experiments import RATE_HZ, Case, merge_params, run_case
+from piezo_stage.core.errors import DataError
+
+RASTER_HZ = (5.0, 20.0, 50.0)
+SEED_HZ = (40.0, 100.0)
+PERIODS = 24            # line periods (raster) or cycles (seed) per run
+SCAN_SIZE_UM = (40.0, 40.0)
+SCAN_CENTER_UM = (45.0, 45.0)
+SEED_CENTER_UM = 25.0
+DEFAULT_PLANTS = ("sim_stage.yaml", "sim_stage_effects.yaml")
+HOLD_AFTER_S = {"lockstep": 1.0, "realtime": 3.0}
+
+
+def _padded(t, w, hold_after_s=1.0):
+    """``w`` (sampled at RATE_HZ from t = 0) held ``hold_after_s`` at its last point
+    after (the run's steps are counted from the driver's start, so arming and the
+    approach eat into them: in real time up to about 3 s, which the experiments' margin
+    and this hold cover); no hold before (the planner approaches the first point
+    first): a learner would take a hold for periods of the motion, and its guard would
+    then slow every bin the motion's first periods raise."""
+    dt = 1.0 / RATE_HZ
+    lead, tail = 0, int(hold_after_s / dt)
+    out = {a: np.concatenate([np.full(lead, v[0]), v, np.full(tail, v[-1])])
+           for a, v in w.items()}
+    n = len(next(iter(out.values())))
+    return np.arange(n) * dt, out, lead
+
+
+def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
+         mode: str = "lockstep") -> list[Case]:
+    """The cases: each trajectory without and with learning."""
+    from piezo_stage.core.trajectory import generate, raster
+    cases = []
+    trajs = []
+    for f in raster_hz:
+        t, w = raster(f, periods, SCAN_SIZE_UM, SCAN_CENTER_UM, dt_s=1.0 / RATE_HZ)
+        trajs.append(("raster", f, t, w))
+    for f in seed_hz:
+        t, w = generate("sine", periods / f, 1.0 / RATE_HZ, f, SEED_CENTER_UM, 24.0)
+        trajs.append(("seed", f, t, w))
+    for kind, f, t, w in trajs:
+        n = int(round(RATE_HZ / f))
+        if abs(n * f - RATE_HZ) > 1e-6 * RATE_HZ:
+            raise DataError(f"{kind} at {f:g} Hz is not a whole number of samples at "
+                            f"{RATE_HZ:g} Hz")
+        t, w, _ = _padded(t, {a: np.asarray(v, float)[:periods * n + 1]
+                              for a, v in w.items()}, HOLD_AFTER_S[mode])
+        for learn in (False, True):
+            name = f"{kind} {f:g} Hz{' learning' if learn else ''}"
+            c = Case(name, f, t, w, "feedforward", moving="x",
+                     eval_s=periods / f,
+                     params={"feedforward": {"inverse_feedforward": True,
+                                             "learning": learn,
+                                             "learning_period_s": 1.0 / f},
+                             "controller": {"feedback": False}})
+            c.kind, c.learning, c.periods, c.n = kind, learn, periods, n
+            cases.append(c)
+    return cases
+
+
+def _motion(case, run):
+    """(period index (m,), desired (m, 2), true (m, 2), applied (m, 2) V) over the
+    motion's periods x n samples' time, found from its end (the last stamp the desired
+    position changes on), by stamp (in real time a missed tick leaves a gap, not a
+    shift), checked against the trajectory written for the case (to within one
+    sample's motion: the planner's clock need not fall on its points)."""
+    # up to the end of the last armed spell: once disarmed (a real-time run's end) the
+    # feedforward holds where the stage is, which moves with the noise
+    after = [since for since, st in run.states if st != "armed" and
+             any(st2 == "armed" and s2 < since for s2, st2 in run.states)]
+    stop = after[-1] if after else np.iinfo(np.int64).max
+    ks = np.array([k for k in sorted(run.desired_um) if k in run.true_um and k < stop],
+                  dtype=np.int64)
+    d = np.array([run.desired_um[k] for k in ks]).reshape(-1, 2)
+    moved = np.flatnonzero(np.any(np.abs(np.diff(d, axis=0)) > 1e-9, axis=1))
+    if moved.size == 0:
+        raise DataError(f"{case.name}: the stage was never asked to move")
+    period_ns = 1e9 / case.freq_hz
+    t_end = int(ks[int(moved[-1]) + 1])  # the motion's last point
+    t0 = t_end - case.periods * period_ns
+    sel = (ks >= t0 - 0.5e6) & (ks < t_end - 0.5e6)
+    if ks[0] > t0 + period_ns or sel.sum() < 0.9 * case.periods * case.n:
+        raise DataError(f"{case.name}: the bag holds {int(sel.sum())} of the motion's "
+                        f"{case.periods * case.n} samples")
+    ks, d = ks[sel], d[sel]
+    tau = (ks - t0) * 1e-9
+    want = np.column_stack([np.interp(tau, case.t, case.w[a]) for a in "xy"])
+    step = np.max(np.abs(np.diff(want, axis=0)), axis=0) if len(want) > 1 else 0.0
+    if np.any(np.max(np.abs(d - want), axis=0) > step + 1e-6):
+        raise DataError(f"{case.name}: the recorded desired positions are not the "
+                        "trajectory's (did the run end before the trajectory did?)")
+    period = np.clip(np.floor((ks - t0 + 0.5e6) / period_ns).astype(int), 0,
+                     case.periods - 1)
+    vmap = dict(zip(run.t_ns.tolist(), run.v_V))
+    v = np.array([vmap[k] for k in ks.tolist() if k in vmap]).reshape(-1, 2)
+    return period, d, np.array([run.true_um[k] for k in ks.tolist()]), v
+
+
+def converged_at(per: list[float], floor: float = 0.002) -> int:
+    """The first period from which every period's error is within 10 % (or ``floor``)
+    of the mean of the last three."""
+    final = float(np.mean(per[-3:]))
+    ok = np.asarray(per) <= max(1.1 * final, final + floor)
+    bad = np.flatnonzero(~ok)
+    return int(bad[-1] + 1) if bad.size else 0
+
+
+def evaluate(case, bag) -> dict:
+    """Per axis, per period and for the last period: the figures of the module doc."""
+    from piezo_stage.io.run_bag import read_run
+    period, d, true, v = _motion(case, read_run(bag))
+    P = case.periods
+    out = {"desired": d, "true": true, "period": period, "axes": {},
+           "samples": int(len(period)),
+           "v_range": (float(np.min(v)), float(np.max(v))) if v.size else (np.nan, np.nan),
+           "max_step_V": float(np.abs(np.diff(v, axis=0)).max()) if len(v) > 1 else 0.0}
+    groups = [period == p for p in range(P)]
+    for i, a in enumerate("xy"):
+        span = float(np.ptp(d[:, i]))
+        if span <= 0:
+            continue
+        e = true[:, i] - d[:, i]
+        per = [float(100 * np.mean(np.abs(e[g])) / span) if g.any() else float("nan")
+               for g in groups]
+        last = groups[-1]
+        fig = {"per_period_pct": per, "mean_abs_err_pct_of_range": per[-1],
+               "rms_err_um": float(np.sqrt(np.mean(e[last] ** 2))),
+               "max_err_um": float(np.max(np.abs(e[last]))),
+               "periods_to_converge": converged_at(per)}
+        if case.kind == "raster" and a == "x":
+            lo = float(np.min(d[:, i]))
+            mid = np.abs(d[:, i] - lo - span / 2) <= 0.4 * span
+            vel = np.gradient(d[:, i])
+            rms = [float(100 * np.sqrt(np.mean(e[g & mid] ** 2)) / span) for g in groups]
+            mx = [float(100 * np.max(np.abs(e[g & mid])) / span) for g in groups]
+            off = [float(np.mean(e[g & mid & (vel > 0)]) - np.mean(e[g & mid & (vel < 0)]))
+                   for g in groups]
+            fig.update({"linearity_rms_pct_of_scan": rms[-1],
+                        "linearity_max_pct_of_scan": mx[-1],
+                        "linearity_rms_per_period_pct": rms,
+                        "trace_retrace_offset_um": off[-1],
+                        "trace_retrace_offset_pct_of_scan": 100 * abs(off[-1]) / span})
+        out["axes"][a] = fig
+    return out
+
+
+def own_model(plant_path: str, out_dir: str) -> str:
+    """The plant's own model and effects as a model file (no --model: the feedforward
+    knows the stage it drives, as `study learning` does)."""
+    from piezo_stage.io.model_file import save_model
+    from piezo_stage.io.plant_file import load_plant_config
+    cfg = load_plant_config(plant_path)
+    path = os.path.join(out_dir, "model_" + os.path.basename(plant_path))
+    save_model(path, cfg.model, {k: dict(v) for k, v in cfg.effects.items()} or None)
+    return path
+
+
+def run_scan(out_dir, config, plants, model=None, mode="lockstep", extra=None,
+             namespace="/stage", env=None, log=print, periods=PERIODS,
+             raster_hz=RASTER_HZ, seed_hz=SEED_HZ):
+    """Every case on every plant; bags under ``out_dir``. Returns the JSON document and
+    [(plant, case, evaluation)] for the figure."""
+    from piezo_stage.paths import default_config
+    from piezo_stage.progress import bar
+    plants = [os.path.abspath(p) for p in plants] if plants else \
+        [default_config(p) for p in DEFAULT_PLANTS]
+    cases = plan(periods, raster_hz, seed_hz, mode)
+    doc = {"experiment": "scan", "mode": mode, "model": os.path.abspath(model) if model
+           else "each plant's own", "plants": plants, "cases": []}
+    evals = []
+    with bar(total=len(cases) * len(plants), desc="experiment scan", unit="run") as pb:
+        for plant in plants:
+            pname = os.path.splitext(os.path.basename(plant))[0]
+            m = model or own_model(plant, out_dir)
+            for k, case in enumerate(cases):
+                bag = os.path.join(out_dir, f"{pname}_{k:02d}_" + "".join(
+                    c if c.isalnum() else "_" for c in case.name))
+                if os.path.exists(bag):
+                    shutil.rmtree(bag)
+                rc, failed = run_case(case, bag, config, plant, m, mode,
+                                      merge_params(extra or {}), namespace, env)
+                if rc != 0:
+                    raise RuntimeError(f"{pname}, {case.name}: the node set failed: "
+                                       f"{'; '.join(failed) or f'exit {rc}'}")
+                ev = evaluate(case, bag)
+                evals.append((pname, case, ev))
+                for a, fig in ev["axes"].items():
+                    doc["cases"].append({
+                        "plant": pname, "name": case.name, "kind": case.kind,
+                        "freq_hz": case.freq_hz, "axis": a, "learning": case.learning,
+                        "reference": "true", "periods": periods, **fig,
+                        "v_range_V": list(ev["v_range"]), "max_step_V": ev["max_step_V"],
+                        "bag": os.path.abspath(bag)})
+                pb.update(1)
+                x = ev["axes"]["x"]
+                log(f"  {pname}, {case.name}: x {x['mean_abs_err_pct_of_range']:.3f} % "
+                    + (f"(linearity {x['linearity_rms_pct_of_scan']:.3f} %) "
+                       if "linearity_rms_pct_of_scan" in x else "")
+                    + f"after {periods} periods")
+    return doc, evals
+
+
+def table(doc) -> str:
+    """One row per plant, case and axis: the last period's figures."""
+    rows = [f"{'plant':<18} {'case':<22} {'axis':>4} {'mean_pct':>9} {'lin_rms%':>9} "
+            f"{'lin_max%':>9} {'tr-re um':>9} {'converged':>9}"]
+    for c in doc["cases"]:
+        lin = c.get("linearity_rms_pct_of_scan")
+        rows.append(
+            f"{c['plant']:<18} {c['name']:<22} {c['axis']:>4} "
+            f"{c['mean_abs_err_pct_of_range']:9.3f} "
+            + (f"{lin:9.3f} {c['linearity_max_pct_of_scan']:9.3f} "
+               f"{c['trace_retrace_offset_um']:9.4f} " if lin is not None else " " * 30)
+            + f"{c['periods_to_converge']:9d}")
+    return "\n".join(rows)
