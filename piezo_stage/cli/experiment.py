@@ -124,24 +124,30 @@ def main(args):
     except RuntimeError as e:
         sys.stderr.write(f"piezo-stage experiment: {e}\n")
         return 1
-    print(table(doc))
+    from piezo_stage.io.plots import experiment_png
+    return _outputs(args, args.name, doc, table(doc),
+                    f"plant: {doc['plant']}; model: {model}; mode: {args.mode}",
+                    lambda path: experiment_png(path, evals), out_dir)
+
+
+def _outputs(args, name, doc, table_text, header, draw, out_dir):
+    """The table on stdout; --json; --report DIR: NAME.json, NAME.md and NAME.png (by
+    ``draw(path)``); all written whole or not at all."""
+    from piezo_stage.io.files import atomic_write
+    print(table_text)
     text = json.dumps(doc, indent=2)
     if args.json:
-        from piezo_stage.io.files import atomic_write
         with atomic_write(args.json) as fh:
             fh.write(text + "\n")
         print(f"json: {args.json}")
     if args.report:
-        from piezo_stage.io.files import atomic_write
-        from piezo_stage.io.plots import experiment_png
         os.makedirs(args.report, exist_ok=True)
-        with atomic_write(os.path.join(args.report, f"{args.name}.json")) as fh:
+        with atomic_write(os.path.join(args.report, f"{name}.json")) as fh:
             fh.write(text + "\n")
-        with atomic_write(os.path.join(args.report, f"{args.name}.md")) as fh:
-            fh.write(f"# Experiment {args.name}\n\nplant: {doc['plant']}; model: {model}; "
-                     f"mode: {args.mode}\n\n```\n{table(doc)}\n```\n\n"
-                     f"![{args.name}]({args.name}.png)\n")
-        print(f"report: {experiment_png(os.path.join(args.report, args.name + '.png'), evals)}")
+        with atomic_write(os.path.join(args.report, f"{name}.md")) as fh:
+            fh.write(f"# Experiment {name}\n\n{header}\n\n```\n{table_text}\n```\n\n"
+                     f"![{name}]({name}.png)\n")
+        print(f"report: {draw(os.path.join(args.report, name + '.png'))}")
     print(f"bags: {out_dir}")
     return 0
 
@@ -151,28 +157,13 @@ def scan(args, config, extra, out_dir):
     import sys
 
     from piezo_stage.apps.scan import run_scan, table
-    from piezo_stage.io.files import atomic_write
     try:
         doc, evals = run_scan(out_dir, config, [args.plant] if args.plant else None,
                               args.model, args.mode, extra, args.namespace)
     except RuntimeError as e:
         sys.stderr.write(f"piezo-stage experiment: {e}\n")
         return 1
-    print(table(doc))
-    text = json.dumps(doc, indent=1)
-    if args.json:
-        with atomic_write(args.json) as fh:
-            fh.write(text + "\n")
-        print(f"json: {args.json}")
-    if args.report:
-        from piezo_stage.io.plots import scan_png
-        os.makedirs(args.report, exist_ok=True)
-        with atomic_write(os.path.join(args.report, "scan.json")) as fh:
-            fh.write(text + "\n")
-        with atomic_write(os.path.join(args.report, "scan.md")) as fh:
-            fh.write(f"# Experiment scan\n\nplants: {', '.join(doc['plants'])}; model: "
-                     f"{doc['model']}; mode: {args.mode}\n\n```\n{table(doc)}\n```\n\n"
-                     "![scan](scan.png)\n")
-        print(f"report: {scan_png(os.path.join(args.report, 'scan.png'), evals)}")
-    print(f"bags: {out_dir}")
-    return 0
+    from piezo_stage.io.plots import scan_png
+    return _outputs(args, "scan", doc, table(doc),
+                    f"plants: {', '.join(doc['plants'])}; model: {doc['model']}; "
+                    f"mode: {args.mode}", lambda path: scan_png(path, evals), out_dir)
