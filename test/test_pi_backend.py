@@ -322,11 +322,16 @@ def test_driver_node_on_the_pi_double_arms_tracks_and_ramps_down(tmp_path, ros_e
         end = c.end()
     assert not end["unmodelled"], end["unmodelled"]
     states, volts, diag = _states(bag)
+    from piezo_stage.io.run_bag import read_run
+    bag_states = read_run(bag).states
     names = [s for s, _ in states]
     assert "armed" in names and names[-1] == "disarmed", states
     assert "faulted" not in names, states
     assert diag["hardware_id"].startswith("PI E-727 at tcp:127.0.0.1")
-    assert int(diag["samples"]) > 2500, diag
+    # the loop kept its pace from arming to the end (how long the set took to start
+    # varies with the host; the samples per second of the driver's own run do not)
+    ran_s = (bag_states[-1][0] - bag_states[1][0]) * 1e-9
+    assert int(diag["samples"]) >= max(1000, 0.8 * RT_RATE * ran_s), (diag, ran_s)
     assert end["max_abs_V"] <= 150.0 and end["sva"] == {"1": 0.0, "2": 0.0}
     assert end["servo"] == {"1": False, "2": False}
     assert volts[-1] == [0.0, 0.0]

@@ -31,7 +31,6 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from scipy.linalg import expm
-from scipy.signal import lfilter, lfilter_zi, ss2tf
 
 from piezo_stage.core.errors import ConfigError
 
@@ -135,6 +134,9 @@ class PreviewDynamicsInverse:
     """
 
     def __init__(self, inv: DynamicsInverse, tol: float = 1e-6, max_taps: int = 2000):
+        # here, not at the top: scipy.signal adds 0.7 s to every node's start-up
+        from scipy.signal import lfilter, lfilter_zi, ss2tf
+        self._lfilter = lfilter
         num, den = ss2tf(inv.Ad, inv.Bd, inv.Cs[None, :], np.array([[inv.Ds]]))
         num, den = np.trim_zeros(np.real(num[0]), "f"), np.real(den)
         zeros = np.roots(num)
@@ -179,7 +181,7 @@ class PreviewDynamicsInverse:
         self.window[-1] = y_ahead
         # w_(m + r) from y_(m + r) .. y_(m + r + taps - 1): the window's last taps
         w = float(self.fir @ self.window[self.r:])
-        u, self.zi = lfilter(self.b, self.a, [w], zi=self.zi)
+        u, self.zi = self._lfilter(self.b, self.a, [w], zi=self.zi)
         return float(u[0])
 
 
