@@ -107,13 +107,18 @@ def main(argv=None):
         # the other nodes' subscriptions one by one (the feedforward's may come before
         # the recorder's), and each subscriber completes its side of a match a moment
         # after this publisher; a volatile subscriber gets only what is sent after that.
-        # At most 3 s: a latched message still reaches a subscriber that matches later
+        # At most 5 s: a latched message still reaches a subscriber that matches later
         # if it asks for history.
-        settle, held_since = min(end, time.monotonic() + 3.0), None
+        # A recorder the graph lists in the namespace must be among them: its node can
+        # be known a moment before its subscription is.
+        settle, held_since = min(end, time.monotonic() + 5.0), None
         while time.monotonic() < settle:
             matched = pub.get_subscription_count()
-            if matched >= 1 and matched >= len(
-                    node.get_subscriptions_info_by_topic(f"{ns}/trajectory")):
+            subs = node.get_subscriptions_info_by_topic(f"{ns}/trajectory")
+            recorder = any(n == "recorder" and s == ns
+                           for n, s in node.get_node_names_and_namespaces())
+            if matched >= 1 and matched >= len(subs) and (not recorder or any(
+                    i.node_name == "recorder" and i.node_namespace == ns for i in subs)):
                 held_since = held_since or time.monotonic()
                 if time.monotonic() - held_since >= 0.5:
                     break

@@ -38,7 +38,7 @@ SCAN_SIZE_UM = (40.0, 40.0)
 SCAN_CENTER_UM = (45.0, 45.0)
 SEED_CENTER_UM = 25.0
 DEFAULT_PLANTS = ("sim_stage.yaml", "sim_stage_effects.yaml")
-HOLD_AFTER_S = {"lockstep": 1.0, "realtime": 3.0}
+HOLD_AFTER_S = {"lockstep": 1.0, "realtime": 1.0}  # the experiments add a margin too
 
 
 def _padded(t, w, hold_after_s=1.0):
