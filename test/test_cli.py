@@ -187,3 +187,16 @@ def test_the_demo_picture_shows_the_whole_run(tmp_path, monkeypatch):
     lo, hi = ax[1].get_xlim()
     assert lo >= 3.0 and hi <= 4.2                             # the tracking window
     assert "the whole run" in ax[0].get_title()
+
+
+def test_experiment_rate_is_checked_before_anything_runs(tmp_path):
+    """`experiment scan --rate`: a rate that does not hold every scan trajectory's period
+    in whole samples is a one-line data error (exit 2) before any bag folder is made;
+    the other experiments refuse --rate (their trajectories are written at 1 kHz)."""
+    pytest.importorskip("rclpy")
+    bags = tmp_path / "bags"
+    r = run("experiment", "scan", "--rate", "1300", "--record", bags, check=False)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "1300 Hz" in r.stderr and not bags.exists()
+    r = run("experiment", "tracking", "--rate", "5000", "--record", bags, check=False)
+    assert r.returncode == 2 and "--params" in r.stderr and not bags.exists(), r.stderr

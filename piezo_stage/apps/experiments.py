@@ -168,7 +168,7 @@ def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=N
         drv["plant_config"] = os.path.abspath(plant)
     # the driver counts its own samples (in real time from when its clock starts, once
     # the set listens), so both modes end right after the trajectory and its tail
-    drv.update(max_steps=int(total_s * _rate(config, extra)), exit_after_max_steps=True)
+    drv.update(max_steps=int(total_s * control_rate(config, extra)), exit_after_max_steps=True)
     o = merge_params(extra or {}, {"stage_driver": drv, "trajectory": {"kind": "csv",
                                                                  "csv_path": csv}},
                {"feedforward": {"model_file": os.path.abspath(model)}} if model else {},
@@ -257,7 +257,7 @@ def _range(config, extra):
     return float(r[0]), float(r[1])
 
 
-def _rate(config, extra):
+def control_rate(config, extra):
     """The driver's control rate [Hz] (``--params`` may raise it where the backend can
     run it): its step count ends the run."""
     from piezo_stage.launch.launcher import read_parameters

@@ -28,12 +28,13 @@ import shutil
 
 import numpy as np
 
-from piezo_stage.apps.experiments import RATE_HZ, Case, merge_params, run_case
+from piezo_stage.apps.experiments import RATE_HZ, Case, control_rate, merge_params, run_case
 from piezo_stage.core.errors import DataError
 
 RASTER_HZ = (5.0, 20.0, 50.0)
 SEED_HZ = (40.0, 100.0)
 PERIODS = 24            # line periods (raster) or cycles (seed) per run
+AFTER_PERIODS = 20      # also reported: the error in this period (the targets' count)
 SCAN_SIZE_UM = (40.0, 40.0)
 SCAN_CENTER_UM = (45.0, 45.0)
 SEED_CENTER_UM = 25.0
@@ -41,15 +42,15 @@ DEFAULT_PLANTS = ("sim_stage.yaml", "sim_stage_effects.yaml")
 HOLD_AFTER_S = {"lockstep": 1.0, "realtime": 1.0}  # the experiments add a margin too
 
 
-def _padded(t, w, hold_after_s=1.0):
-    """``w`` (sampled at RATE_HZ from t = 0) held ``hold_after_s`` at its last point
+def _padded(t, w, hold_after_s=1.0, rate_hz=RATE_HZ):
+    """``w`` (sampled at ``rate_hz`` from t = 0) held ``hold_after_s`` at its last point
     after (the run's steps are counted from the driver's start, so arming and the
     approach eat into them: in real time up to about 3 s, which the experiments' margin
     and this hold cover); no hold before (the planner approaches the first point
     first): a learner would take a hold for periods of the motion, and its guard would
     then slow every bin the motion's first periods raise."""
-    dt = 1.0 / RATE_HZ
-    lead, tail = 0, int(hold_after_s / dt)
+    dt = 1.0 / rate_hz
+    lead, tail = 0, int(round(hold_after_s / dt))
     out = {a: np.concatenate([np.full(lead, v[0]), v, np.full(tail, v[-1])])
            for a, v in w.items()}
     n = len(next(iter(out.values())))
@@ -57,24 +58,26 @@ def _padded(t, w, hold_after_s=1.0):
 
 
 def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
-         mode: str = "lockstep") -> list[Case]:
-    """The cases: each trajectory without and with learning."""
+         mode: str = "lockstep", rate_hz: float = RATE_HZ) -> list[Case]:
+    """The cases: each trajectory without and with learning, sampled at the control
+    rate ``rate_hz`` (a period must be a whole number of its samples: learning needs
+    that)."""
     from piezo_stage.core.trajectory import generate, raster
     cases = []
     trajs = []
     for f in raster_hz:
-        t, w = raster(f, periods, SCAN_SIZE_UM, SCAN_CENTER_UM, dt_s=1.0 / RATE_HZ)
+        t, w = raster(f, periods, SCAN_SIZE_UM, SCAN_CENTER_UM, dt_s=1.0 / rate_hz)
         trajs.append(("raster", f, t, w))
     for f in seed_hz:
-        t, w = generate("sine", periods / f, 1.0 / RATE_HZ, f, SEED_CENTER_UM, 24.0)
+        t, w = generate("sine", periods / f, 1.0 / rate_hz, f, SEED_CENTER_UM, 24.0)
         trajs.append(("seed", f, t, w))
     for kind, f, t, w in trajs:
-        n = int(round(RATE_HZ / f))
-        if abs(n * f - RATE_HZ) > 1e-6 * RATE_HZ:
+        n = int(round(rate_hz / f))
+        if abs(n * f - rate_hz) > 1e-6 * rate_hz:
             raise DataError(f"{kind} at {f:g} Hz is not a whole number of samples at "
-                            f"{RATE_HZ:g} Hz")
+                            f"{rate_hz:g} Hz")
         t, w, _ = _padded(t, {a: np.asarray(v, float)[:periods * n + 1]
-                              for a, v in w.items()}, HOLD_AFTER_S[mode])
+                              for a, v in w.items()}, HOLD_AFTER_S[mode], rate_hz)
         for learn in (False, True):
             name = f"{kind} {f:g} Hz{' learning' if learn else ''}"
             c = Case(name, f, t, w, "feedforward", moving="x",
@@ -83,7 +86,7 @@ def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
                                              "learning": learn,
                                              "learning_period_s": 1.0 / f},
                              "controller": {"feedback": False}})
-            c.kind, c.learning, c.periods, c.n = kind, learn, periods, n
+            c.kind, c.learning, c.periods, c.n, c.rate_hz = kind, learn, periods, n, rate_hz
             cases.append(c)
     return cases
 
@@ -106,9 +109,10 @@ def _motion(case, run):
     if moved.size == 0:
         raise DataError(f"{case.name}: the stage was never asked to move")
     period_ns = 1e9 / case.freq_hz
+    half = 0.5e9 / case.rate_hz  # half a sample
     t_end = int(ks[int(moved[-1]) + 1])  # the motion's last point
     t0 = t_end - case.periods * period_ns
-    sel = (ks >= t0 - 0.5e6) & (ks < t_end - 0.5e6)
+    sel = (ks >= t0 - half) & (ks < t_end - half)
     if ks[0] > t0 + period_ns or sel.sum() < 0.9 * case.periods * case.n:
         raise DataError(f"{case.name}: the bag holds {int(sel.sum())} of the motion's "
                         f"{case.periods * case.n} samples")
@@ -119,7 +123,7 @@ def _motion(case, run):
     if np.any(np.max(np.abs(d - want), axis=0) > step + 1e-6):
         raise DataError(f"{case.name}: the recorded desired positions are not the "
                         "trajectory's (did the run end before the trajectory did?)")
-    period = np.clip(np.floor((ks - t0 + 0.5e6) / period_ns).astype(int), 0,
+    period = np.clip(np.floor((ks - t0 + half) / period_ns).astype(int), 0,
                      case.periods - 1)
     vmap = dict(zip(run.t_ns.tolist(), run.v_V))
     v = np.array([vmap[k] for k in ks.tolist() if k in vmap]).reshape(-1, 2)
@@ -157,6 +161,8 @@ def evaluate(case, bag) -> dict:
                "rms_err_um": float(np.sqrt(np.mean(e[last] ** 2))),
                "max_err_um": float(np.max(np.abs(e[last]))),
                "periods_to_converge": converged_at(per)}
+        if P >= AFTER_PERIODS:
+            fig["pct_after_20_periods"] = per[AFTER_PERIODS - 1]
         if case.kind == "raster" and a == "x":
             lo = float(np.min(d[:, i]))
             mid = np.abs(d[:, i] - lo - span / 2) <= 0.4 * span
@@ -185,18 +191,43 @@ def own_model(plant_path: str, out_dir: str) -> str:
     return path
 
 
+def _with_rate(config, extra, rate_hz):
+    """(parameters with ``rate_hz`` for the driver, feedforward and controller when
+    given, the control rate they run at)."""
+    if rate_hz is not None:
+        extra = merge_params(extra or {}, {n: {"control_rate_hz": float(rate_hz)} for n in
+                                           ("stage_driver", "feedforward", "controller")})
+    return extra, control_rate(config, extra)
+
+
+def check_rate(config, extra=None, rate_hz=None) -> float:
+    """The scan's control rate, checked: every trajectory's period a whole number of
+    its samples (DataError otherwise)."""
+    _, rate = _with_rate(config, extra, rate_hz)
+    for f in RASTER_HZ + SEED_HZ:
+        if abs(round(rate / f) * f - rate) > 1e-6 * rate:
+            raise DataError(f"experiment scan: {f:g} Hz is not a whole number of samples "
+                            f"at {rate:g} Hz: use a control rate that is a multiple of 200 Hz "
+                            "(1000, 2000, 5000)")
+    return rate
+
+
 def run_scan(out_dir, config, plants, model=None, mode="lockstep", extra=None,
              namespace="/stage", env=None, log=print, periods=PERIODS,
-             raster_hz=RASTER_HZ, seed_hz=SEED_HZ):
-    """Every case on every plant; bags under ``out_dir``. Returns the JSON document and
-    [(plant, case, evaluation)] for the figure."""
+             raster_hz=RASTER_HZ, seed_hz=SEED_HZ, rate_hz=None):
+    """Every case on every plant; bags under ``out_dir``. ``rate_hz``: the control rate
+    of the driver, the feedforward and the controller (default: the parameters' own,
+    ``config`` and ``extra``); the trajectories are sampled at it. Returns the JSON
+    document and [(plant, case, evaluation)] for the figure."""
     from piezo_stage.paths import default_config
     from piezo_stage.progress import bar
     plants = [os.path.abspath(p) for p in plants] if plants else \
         [default_config(p) for p in DEFAULT_PLANTS]
-    cases = plan(periods, raster_hz, seed_hz, mode)
+    extra, rate = _with_rate(config, extra, rate_hz)
+    cases = plan(periods, raster_hz, seed_hz, mode, rate)
     doc = {"experiment": "scan", "mode": mode, "model": os.path.abspath(model) if model
-           else "each plant's own", "plants": plants, "cases": []}
+           else "each plant's own", "plants": plants, "control_rate_hz": rate,
+           "cases": []}
     evals = []
     with bar(total=len(cases) * len(plants), desc="experiment scan", unit="run") as pb:
         for plant in plants:
@@ -218,7 +249,8 @@ def run_scan(out_dir, config, plants, model=None, mode="lockstep", extra=None,
                     doc["cases"].append({
                         "plant": pname, "name": case.name, "kind": case.kind,
                         "freq_hz": case.freq_hz, "axis": a, "learning": case.learning,
-                        "reference": "true", "periods": periods, **fig,
+                        "reference": "true", "periods": periods,
+                        "control_rate_hz": rate, **fig,
                         "v_range_V": list(ev["v_range"]), "max_step_V": ev["max_step_V"],
                         "bag": os.path.abspath(bag)})
                 pb.update(1)
@@ -232,13 +264,15 @@ def run_scan(out_dir, config, plants, model=None, mode="lockstep", extra=None,
 
 def table(doc) -> str:
     """One row per plant, case and axis: the last period's figures."""
-    rows = [f"{'plant':<18} {'case':<22} {'axis':>4} {'mean_pct':>9} {'lin_rms%':>9} "
-            f"{'lin_max%':>9} {'tr-re um':>9} {'converged':>9}"]
+    rows = [f"{'plant':<18} {'case':<22} {'axis':>4} {'mean_pct':>9} {'at_20':>7} "
+            f"{'lin_rms%':>9} {'lin_max%':>9} {'tr-re um':>9} {'converged':>9}"]
     for c in doc["cases"]:
         lin = c.get("linearity_rms_pct_of_scan")
+        at20 = c.get("pct_after_20_periods")
         rows.append(
             f"{c['plant']:<18} {c['name']:<22} {c['axis']:>4} "
             f"{c['mean_abs_err_pct_of_range']:9.3f} "
+            + (f"{at20:7.3f} " if at20 is not None else " " * 8)
             + (f"{lin:9.3f} {c['linearity_max_pct_of_scan']:9.3f} "
                f"{c['trace_retrace_offset_um']:9.4f} " if lin is not None else " " * 30)
             + f"{c['periods_to_converge']:9d}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 
-from piezo_stage.cli._common import param_overrides
+from piezo_stage.cli._common import number, param_overrides
 
 HELP = "the paper's control experiments through the node set"
 
@@ -26,6 +26,10 @@ def add_arguments(s):
                    help="tracking: frequencies [Hz] (default 1,5,10,40)")
     s.add_argument("--controllers", type=_controllers, default=CONTROLLERS,
                    metavar="C1,C2", help="tracking: " + ", ".join(CONTROLLERS))
+    s.add_argument("--rate", type=number(1.0, 1e5), metavar="HZ",
+                   help="scan: the control rate of the driver, feedforward and controller "
+                   "(default: the parameters'; a simulated stage in lockstep runs any "
+                   "whole number of its substeps, e.g. 5000)")
     s.add_argument("--json", metavar="FILE")
     s.add_argument("--record", metavar="DIR", help="where the bags go (default "
                    "bags/<time>)")
@@ -108,6 +112,14 @@ def main(args):
     _check_inputs(args)
     extra = param_overrides(args.params)
     config = args.config or default_config("stage.yaml")
+    if args.name == "scan":
+        from piezo_stage.apps.scan import check_rate
+        check_rate(config, extra, args.rate)  # DataError (exit 2) before any output
+    elif args.rate is not None:
+        sys.stderr.write("piezo-stage experiment: --rate is scan's (the other experiments' "
+                         "trajectories are written at 1 kHz: set control_rate_hz through "
+                         "--params)\n")
+        return 2
     out_dir = args.record or new_bag_dir("bags")
     os.makedirs(out_dir, exist_ok=True)
     model = args.model
@@ -159,11 +171,13 @@ def scan(args, config, extra, out_dir):
     from piezo_stage.apps.scan import run_scan, table
     try:
         doc, evals = run_scan(out_dir, config, [args.plant] if args.plant else None,
-                              args.model, args.mode, extra, args.namespace)
+                              args.model, args.mode, extra, args.namespace,
+                              rate_hz=args.rate)
     except RuntimeError as e:
         sys.stderr.write(f"piezo-stage experiment: {e}\n")
         return 1
     from piezo_stage.io.plots import scan_png
     return _outputs(args, "scan", doc, table(doc),
                     f"plants: {', '.join(doc['plants'])}; model: {doc['model']}; "
-                    f"mode: {args.mode}", lambda path: scan_png(path, evals), out_dir)
+                    f"mode: {args.mode}; control rate {doc['control_rate_hz']:g} Hz",
+                    lambda path: scan_png(path, evals), out_dir)
