@@ -30,9 +30,9 @@ nothing) passes the bins up to the last one where the worst factor is below
 ``1 - margin``, rolling off with a raised cosine below that bin. The design reports the
 worst factor over the passed bins (< 1 is the condition). What no model margin covers
 (a model further off, the amplifier's slew, a hysteresis the model does not follow) is
-watched while learning: a bin whose error grows well past the smallest it reached,
-beyond what the noise explains, goes back to the correction that gave that smallest
-error and learns at a quarter of the gain from there
+watched while learning: a bin whose error grows well past the smallest it reached and
+past where it started, beyond what the noise explains, goes back to the correction that
+gave that smallest error and learns at a quarter of the gain from there
 (:attr:`PeriodicLearner.damped` counts them), so learning cannot keep growing what it
 should shrink.
 
@@ -277,6 +277,7 @@ class PeriodicLearner:
         self.bin_gain = {a: np.ones(d.q.size) for a, d in self.designs.items()}
         self._best = {a: None for a in self.designs}  # each bin's smallest error so far
         self._best_acc = {a: None for a in self.designs}  # and the correction that gave it
+        self._first = {a: None for a in self.designs}  # each bin's error before learning
         self.periods, self.learned, self.skipped, self.damped = 0, 0, 0, 0
         self.noise_um = {a: None for a in self.designs}  # sensor noise, from the data
         self._e_prev = {a: None for a in self.designs}
@@ -372,17 +373,24 @@ class PeriodicLearner:
 
     def _guard(self, a: str, E: np.ndarray) -> None:
         """A bin whose error has grown well past the smallest it reached (1.5 x, plus
-        three noise RMS of a bin) is learning the wrong way (its loop is further from
-        the model than the design allowed for): its correction goes back to what it was
-        at that smallest error and its gain drops to a quarter. Called before the
-        period's update, with the error the present correction gave."""
+        three noise RMS of a bin) and past the error it had before learning is learning
+        the wrong way (its loop is further from the model than the design allowed for):
+        its correction goes back to what it was at that smallest error and its gain
+        drops to a quarter. Called before the period's update, with the error the
+        present correction gave."""
         mag = np.abs(E)
         best, kept = self._best[a], self._best_acc[a]
         if best is None:
             self._best[a], self._best_acc[a] = mag.copy(), self.acc[a].copy()
+            self._first[a] = mag.copy()
             return
         noise = 3.0 * (self.noise_um[a] or 0.0) * np.sqrt(self.n)
         worse = (mag > 1.5 * best + noise) & (self.designs[a].q > 0)
+        # and past the error it had before learning: a bin that rises for a few periods
+        # after an unusually good one (a saturated command answers a change of the
+        # correction out of proportion) but stays below where it started is still
+        # learning, and slowing it there stalled it for good
+        worse &= mag > self._first[a] + noise
         worse[0] = False  # an offset that grows is drift or creep: learned, not damped
         self.acc[a][worse] = kept[worse]
         self.bin_gain[a][worse] *= 0.25
