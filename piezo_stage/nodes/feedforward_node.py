@@ -28,11 +28,8 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.arming import HOLD, ReferencePlanner
-from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
-from piezo_stage.core.duhem import check_model_change
 from piezo_stage.core.errors import DataError, PiezoStageError
-from piezo_stage.core.inverse import StageInverse
-from piezo_stage.core.learning import LearnedFeedforward
+from piezo_stage.core.feedforward import InverseFeedforward
 from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.core.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
@@ -51,7 +48,6 @@ from piezo_stage_msgs_adapters import (
 )
 
 PAST_TRAJECTORY_NS = 1_000_000_000  # a trajectory stamped up to 1 s ago: start now
-HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
 
 class Feedforward(Node):
     def __init__(self):
@@ -60,13 +56,11 @@ class Feedforward(Node):
                                              "rate [Hz]", lo=1.0, hi=1e5)))
         model_file = declare(self, "model_file", "", "initial model YAML ('' = none until "
                              "one arrives on model)")
-        self.gain = declare(self, "nominal_um_per_V", 0.5, "gain used before any model "
-                            "[um/V]", lo=0.01, hi=100.0)
-        self.use_c = declare(self, "use_coupling", True, "invert the coupling "
-                             "(decoupling)")
-        self.use_ff = declare(self, "inverse_feedforward", True, "false: hold the "
-                              "feedforward at the voltage applied when enabled (feedback "
-                              "only)")
+        gain = declare(self, "nominal_um_per_V", 0.5, "gain used before any model [um/V]",
+                       lo=0.01, hi=100.0)
+        use_c = declare(self, "use_coupling", True, "invert the coupling (decoupling)")
+        use_ff = declare(self, "inverse_feedforward", True, "false: hold the feedforward "
+                         "at the voltage applied when enabled (feedback only)")
         self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]")
         self.hold_s = declare(self, "model_required_after_s", 0.0, "lockstep: hold the "
                               "loop at this trajectory time until a model arrives (0: never)")
@@ -82,39 +76,35 @@ class Feedforward(Node):
                     lo=0.1, hi=1e6),
             declare(self, "approach_accel_um_per_s2", 20000.0, "approach acceleration "
                     "[um/s^2]", lo=1.0, hi=1e9))
-        self.ref = PreviewedReference(self.planner, self.dt_ns)  # effects compensated
+        # the per-sample work (core/feedforward.py): reference, learning, inverse
+        self.core = InverseFeedforward(self.planner, self.dt_ns, gain, use_c, use_ff,
+                                       declare(self, "max_resonance_inverse_hz", 0.0,
+                                               "a model's resonance above this is taken "
+                                               "as its group delay, not inverted (0: no "
+                                               "limit)", lo=0.0, hi=1e6))
+        self.ref, self.learning = self.core.ref, self.core.learning
         self.ref.on = declare(self, "compensate_effects", True, "compensate the model's "
                               "unmodelled effects", live=lambda on: setattr(self.ref, "on",
                                                                             bool(on)))
         # learning feedforward for periodic trajectories (core/learning.py)
-        self.learning = LearnedFeedforward(self.ref, self.dt_ns)
-        self.effects, self.comp = None, None
-        self.learn_p = {"learning_period_s": 0.0, "learning_gain": 1.0}
-        self.learn_p = {
+        self.core.learn_p = {
             "learning_period_s": declare(self, "learning_period_s", 0.0, "learning: the "
                                          "trajectory's period [s] (0: none)", lo=0.0,
-                                         hi=60.0, live=lambda v: self.relearn(period=v)),
+                                         hi=60.0, live=lambda v: self.core.relearn(period=v)),
             "learning_gain": declare(self, "learning_gain", 1.0, "learning: first gain "
                                      "(it falls with the periods learned)", lo=0.01, hi=1.0,
-                                     live=lambda v: self.relearn(gain=v))}
+                                     live=lambda v: self.core.relearn(gain=v))}
         self.learning.enable(declare(self, "learning", False, "learn the periodic error "
                                      "into the feedforward", live=self.learning.enable))
-        self.relearn()
-        self.max_res_hz = declare(self, "max_resonance_inverse_hz", 0.0, "a model's "
-                                  "resonance above this is taken as its group delay, not "
-                                  "inverted (0: no limit)", lo=0.0, hi=1e6)
-        self.limits = (0.0, 150.0)
-        self.inv, self.model_name, self.pending, self.traj_key = None, "nominal", None, None
+        self.core.relearn()
+        self.model_name, self.pending, self.traj_key = "nominal", None, None
         self.traj_text = ""
-        self.model, self.handover = None, None  # the running model; easing into a new one
-        self.started = False  # the inverse has been put where the stage is
         # the driver's announcements: taken before the data in each lean-loop pass
         self.driver = DriverState(self, self.dt_ns, declare(
             self, "thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
             "scheduler alone; lockstep never changes it)", lo=0, hi=99))
-        self.last_ns, self.ff, self.planned = -1, {"x": 0.0, "y": 0.0}, {}
+        self.last_ns = -1
         self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
-        self.last_target = None
         self.driver.limits, self.last_rejection = None, ""
         self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
                                 "rejected_models": 0, "saturated": 0, "bad_messages": 0,
@@ -158,48 +148,13 @@ class Feedforward(Node):
                 "bad_messages", "late_dropped")])
 
     def set_model(self, model, effects, name):
-        missing = {"x", "y"} - set(model.axes)
-        if missing:
-            raise PiezoStageError(f"{name} has no model for axis {', '.join(sorted(missing))}")
-        if self.driver.limits:  # never wider than what the driver will apply
-            lo = max(model.voltage_limits[0], self.driver.limits[0])
-            hi = min(model.voltage_limits[1], self.driver.limits[1])
-            if not lo < hi:
-                raise PiezoStageError(f"{name}: voltage limits {list(model.voltage_limits)} "
-                                      f"outside the driver's {self.driver.limits}")
-            model = model.replace(voltage_limits=(lo, hi))
-        # gain sign and size against the running model (or the range served): a model
-        # scaled by -1 or 0.001 would drive the stage to its limits
-        check_model_change(model, self.model, self.range[1] - self.range[0])
-        comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes),
-                                  self.max_res_hz) if effects else None)
-        inv = StageInverse(model, use_coupling=self.use_c)
-        warm = StageInverse(model, use_coupling=self.use_c)  # compile the kernels now,
-        warm.sync(*model.voltage_limits)                      # not at the first sample
-        warm.step(0.0, 0.0)
-        if self.planner.desired is not None:
-            inv.reset(v=self.ff, w=self.planner.desired)
-        # armed: the jump between the old model's answer and the new one's is eased out
-        self.handover = {} if self.inv is not None and self.driver.enabled(self.last_ns) \
-            else None
-        self.inv, self.model_name, self.limits = inv, name, model.voltage_limits
-        self.model = model
-        self.ref.set_compensator(comp)
-        self.effects, self.comp = effects, comp
-        self.relearn()
-        self.started = self.planner.desired is not None  # else: from the first sample
+        self.core.set_model(model, effects, name, self.driver.limits,
+                            self.range[1] - self.range[0],
+                            armed=self.core.inv is not None and self.driver.enabled(self.last_ns))
+        self.model_name = name
         self.stats["models"] += 1
         self.last_rejection = ""  # the warning clears with a good model
         self.get_logger().info(f"using model {name}")
-
-    def relearn(self, period=None, gain=None):
-        """A learner for the present period, gain, model effects and compensation."""
-        if period is not None:
-            self.learn_p["learning_period_s"] = period
-        if gain is not None:
-            self.learn_p["learning_gain"] = gain
-        self.learning.configure(self.learn_p["learning_period_s"],
-                                self.learn_p["learning_gain"], self.effects, self.comp)
 
     def on_model(self, msg):
         try:
@@ -272,70 +227,37 @@ class Feedforward(Node):
         target = ns + self.driver.lookahead_ns
         clock = self.planner.clock_s(target)
         waiting = (self.wait_traj and self.planner.traj is None) or (
-            self.inv is None and 0 < self.hold_s <= (clock if clock is not None else -1))
+            self.core.inv is None and 0 < self.hold_s <= (clock if clock is not None else -1))
         if waiting and not self.driver.realtime:
             self.pending = msg  # lockstep: the loop waits here
             return
         if self.wait_traj and self.planner.traj is None and self.driver.realtime:
             return  # real time: no answer, so the loop is not closed and nothing arms
         self.last_ns = ns
-        applied = v_applied or self.ff
-        if self.inv is not None and not self.started:
-            # start (or restart, or a new model) from where the stage is, not from the
-            # model's initial state: hysteresis remembers what this node did not see
-            self.inv.reset(v=applied, w=w)
-            self.started = True
-        elif self.inv is not None:
-            self.inv.sync(applied["x"], applied["y"])  # the stage's state at t_k
-        # one reference per target tick; after a sample the driver skipped (a missed
-        # tick), also the targets that sample would have answered, so no tick goes
-        # without a command of its own
-        gap = (target - self.last_target) // self.dt_ns if self.last_target else 1
-        for t in range(target - (min(gap, 20) - 1) * self.dt_ns, target + 1, self.dt_ns):
+        applied = v_applied or self.core.ff
+        self.core.measured(ns, w, applied)
+        for t in self.core.targets(target):
             self.answer(ns, t, w, applied)
-        self.last_target = target
 
     def answer(self, ns, target, w, applied):
-        phase = self.planner.phase
-        if not self.driver.enabled(target):
-            self.ref.hold(self.inv.w if self.inv else w, w)
-            desired, self.ff, self.planned = self.planner.desired, dict(applied), {}
-        else:
-            desired, h = self.ref.sample(target)
-            self.learning.note(target, desired)
-            self.planned[target] = h
-            try:
-                self.ff = self.feedforward(ns, target, h) if self.use_ff else self.ff
-            except PiezoStageError as e:  # hold the last feedforward, say why, go on
-                self.stats["bad_messages"] += 1
-                self.get_logger().error(f"feedforward for {desired}: {e}",
-                                        throttle_duration_sec=1.0)
+        phase, enabled = self.planner.phase, self.driver.enabled(target)
+        desired, error = self.core.answer(ns, target, w, applied, enabled)
+        if error is not None:
+            self.stats["bad_messages"] += 1
+            self.get_logger().error(f"feedforward for {desired}: {error}",
+                                    throttle_duration_sec=1.0)
+        self.stats["saturated"] = self.core.saturated
         if self.planner.phase != phase:
             self.publish_phase()
-        if self.setpoint_arrival and self.driver.realtime and self.driver.enabled(target):
+        if self.setpoint_arrival and self.driver.realtime and enabled:
             # a streamed setpoint cannot be previewed: it starts at this target tick
             self.sp_latency.add((target - self.setpoint_arrival) * 1e-9)
             self.setpoint_arrival = None
         if self.driver.realtime and target < time.time_ns():
             self.stats["late_dropped"] += 1  # it could only reach the driver too late
             return
-        self.gate.publish(self.pub, reference_cdr(target, desired, self.ff, w, applied))
+        self.gate.publish(self.pub, reference_cdr(target, desired, self.core.ff, w, applied))
 
-    def feedforward(self, ns, target, desired):
-        if self.inv is None:
-            return {a: min(max(desired[a] / self.gain, self.limits[0]), self.limits[1])
-                    for a in ("x", "y")}
-        ahead = [self.planned[t] for t in sorted(self.planned) if ns < t < target]
-        self.planned = {t: d for t, d in self.planned.items() if t > ns}
-        v = self.inv.step_ahead(ahead, desired["x"], desired["y"])
-        self.stats["saturated"] = self.inv.saturated
-        if self.handover is not None:  # the offset to the old answer shrinks 1 V a tick
-            off = self.handover or {a: self.ff[a] - v[a] for a in v}
-            h = HANDOVER_V_PER_TICK
-            off = {a: o - max(-h, min(h, o)) for a, o in off.items()}  # toward 0 by h
-            v = {a: min(max(v[a] + off[a], self.limits[0]), self.limits[1]) for a in v}
-            self.handover = off if any(off.values()) else None
-        return v
 
 def main(args=None):
     """Run the feedforward (the Jazzy form)."""

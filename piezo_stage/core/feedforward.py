@@ -1,0 +1,165 @@
+"""The feedforward node's work per sample, without ROS (nodes/feedforward_node.py is its
+shell: parameters, topics, statistics, logs).
+
+Per measured sample k (stamp t_k, position w, voltages applied for it) the feedforward
+answers the target ticks t_k + look-ahead: the planner (core/arming.py) gives the
+desired position, the previewed reference compensates the model's effects and applies
+what learning learned (core/compensation.py, core/learning.py), and the exact inverse
+(core/inverse.py), synced to the voltages really applied and stepped through the
+commands still in flight, turns it into voltages. While the driver does not apply
+commands the reference holds where the stage is and the feedforward is the applied
+voltage, so enabling is bumpless. A new model replaces the inverse at once; while
+armed, the jump between the old model's answer and the new one's is eased out.
+"""
+
+from __future__ import annotations
+
+from piezo_stage.core.arming import ReferencePlanner
+from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
+from piezo_stage.core.duhem import StageModel, check_model_change
+from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.inverse import StageInverse
+from piezo_stage.core.learning import LearnedFeedforward
+
+HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
+MAX_FILLED_TICKS = 20  # after a skipped sample, at most this many targets answered
+
+
+class InverseFeedforward:
+    """Desired positions to voltages, sample by sample.
+
+    Parameters
+    ----------
+    planner : ReferencePlanner
+        The desired position's source (trajectory, setpoint, approach, hold).
+    dt_ns : int
+        The control period [ns].
+    nominal_um_per_V : float
+        The gain used before any model.
+    use_coupling : bool
+        Invert the model's coupling (decoupling).
+    inverse : bool
+        False: the feedforward stays at the voltage applied when enabled (feedback only).
+    max_resonance_hz : float
+        A model's resonance above this is taken as its group delay (0: no limit).
+    """
+
+    def __init__(self, planner: ReferencePlanner, dt_ns: int, nominal_um_per_V: float = 0.5,
+                 use_coupling: bool = True, inverse: bool = True,
+                 max_resonance_hz: float = 0.0):
+        self.planner, self.dt_ns = planner, int(dt_ns)
+        self.ref = PreviewedReference(planner, self.dt_ns)  # effects compensated
+        self.learning = LearnedFeedforward(self.ref, self.dt_ns)
+        self.gain, self.use_c, self.use_ff = nominal_um_per_V, use_coupling, inverse
+        self.max_res_hz = max_resonance_hz
+        self.learn_p = {"learning_period_s": 0.0, "learning_gain": 1.0}
+        self.limits = (0.0, 150.0)
+        self.inv, self.model, self.handover = None, None, None
+        self.effects, self.comp = None, None
+        self.started = False  # the inverse has been put where the stage is
+        self.ff, self.planned, self.last_target = {"x": 0.0, "y": 0.0}, {}, None
+
+    def set_model(self, model: StageModel, effects: dict | None, name: str,
+                  driver_limits: tuple | None = None, range_um: float = 100.0,
+                  armed: bool = False) -> None:
+        """Use ``model`` (and its ``effects``) from the next sample. Refused
+        (PiezoStageError, the running model stays) when an axis is missing, its voltage
+        limits do not overlap the driver's, or its gain's sign or size is far from the
+        running model's (check_model_change over ``range_um``). ``armed``: ease the
+        jump to the new model's answer out."""
+        missing = {"x", "y"} - set(model.axes)
+        if missing:
+            raise PiezoStageError(f"{name} has no model for axis {', '.join(sorted(missing))}")
+        if driver_limits:  # never wider than what the driver will apply
+            lo = max(model.voltage_limits[0], driver_limits[0])
+            hi = min(model.voltage_limits[1], driver_limits[1])
+            if not lo < hi:
+                raise PiezoStageError(f"{name}: voltage limits {list(model.voltage_limits)} "
+                                      f"outside the driver's {driver_limits}")
+            model = model.replace(voltage_limits=(lo, hi))
+        # gain sign and size against the running model (or the range served): a model
+        # scaled by -1 or 0.001 would drive the stage to its limits
+        check_model_change(model, self.model, range_um)
+        comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes),
+                                  self.max_res_hz) if effects else None)
+        inv = StageInverse(model, use_coupling=self.use_c)
+        warm = StageInverse(model, use_coupling=self.use_c)  # compile the kernels now,
+        warm.sync(*model.voltage_limits)                      # not at the first sample
+        warm.step(0.0, 0.0)
+        if self.planner.desired is not None:
+            inv.reset(v=self.ff, w=self.planner.desired)
+        self.handover = {} if self.inv is not None and armed else None
+        self.inv, self.model, self.limits = inv, model, model.voltage_limits
+        self.ref.set_compensator(comp)
+        self.effects, self.comp = effects, comp
+        self.relearn()
+        self.started = self.planner.desired is not None  # else: from the first sample
+
+    def relearn(self, period: float | None = None, gain: float | None = None) -> None:
+        """A learner for the present period, gain, model effects and compensation."""
+        if period is not None:
+            self.learn_p["learning_period_s"] = period
+        if gain is not None:
+            self.learn_p["learning_gain"] = gain
+        self.learning.configure(self.learn_p["learning_period_s"],
+                                self.learn_p["learning_gain"], self.effects, self.comp)
+
+    def measured(self, ns: int, w: dict, applied: dict) -> None:
+        """The sample at ``ns``: the stage at ``w`` with ``applied`` [V]. The inverse
+        starts (or restarts, or takes a new model) from where the stage is, not from the
+        model's initial state (hysteresis remembers what this node did not see), and is
+        synced to the voltages really applied."""
+        if self.inv is not None and not self.started:
+            self.inv.reset(v=applied, w=w)
+            self.started = True
+        elif self.inv is not None:
+            self.inv.sync(applied["x"], applied["y"])  # the stage's state at t_k
+
+    def targets(self, target: int) -> range:
+        """The target ticks to answer for ``target``: one per tick; after a sample the
+        driver skipped (a missed tick), also the targets that sample would have
+        answered, so no tick goes without a command of its own."""
+        gap = (target - self.last_target) // self.dt_ns if self.last_target else 1
+        self.last_target = target
+        return range(target - (min(gap, MAX_FILLED_TICKS) - 1) * self.dt_ns, target + 1,
+                     self.dt_ns)
+
+    def answer(self, ns: int, target: int, w: dict, applied: dict,
+               enabled: bool) -> tuple[dict, PiezoStageError | None]:
+        """(desired position [um], the error that held the last feedforward or None) for
+        ``target``; the feedforward [V] is ``self.ff``. Not ``enabled`` (the driver does
+        not apply commands): hold where the stage is, at the applied voltage."""
+        if not enabled:
+            self.ref.hold(self.inv.w if self.inv else w, w)
+            self.ff, self.planned = dict(applied), {}
+            return self.planner.desired, None
+        desired, h = self.ref.sample(target)
+        self.learning.note(target, desired)
+        self.planned[target] = h
+        if not self.use_ff:
+            return desired, None
+        try:
+            self.ff = self._voltages(ns, target, h)
+        except PiezoStageError as e:  # hold the last feedforward, say why, go on
+            return desired, e
+        return desired, None
+
+    def _voltages(self, ns, target, desired):
+        if self.inv is None:
+            return {a: min(max(desired[a] / self.gain, self.limits[0]), self.limits[1])
+                    for a in ("x", "y")}
+        ahead = [self.planned[t] for t in sorted(self.planned) if ns < t < target]
+        self.planned = {t: d for t, d in self.planned.items() if t > ns}
+        v = self.inv.step_ahead(ahead, desired["x"], desired["y"])
+        if self.handover is not None:  # the offset to the old answer shrinks 1 V a tick
+            off = self.handover or {a: self.ff[a] - v[a] for a in v}
+            h = HANDOVER_V_PER_TICK
+            off = {a: o - max(-h, min(h, o)) for a, o in off.items()}  # toward 0 by h
+            v = {a: min(max(v[a] + off[a], self.limits[0]), self.limits[1]) for a in v}
+            self.handover = off if any(off.values()) else None
+        return v
+
+    @property
+    def saturated(self) -> int:
+        """Targets the inverse could not reach within the voltage limits, so far."""
+        return self.inv.saturated if self.inv is not None else 0

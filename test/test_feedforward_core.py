@@ -1,0 +1,112 @@
+"""The feedforward's per-sample work without ROS (core/feedforward.py): bumpless while
+the driver does not apply commands, the model's inverse once it does, a new model eased
+in while armed, missed ticks answered, a bad model refused with the old one kept."""
+
+import os
+
+import pytest
+
+from conftest import CONFIG
+from piezo_stage.core.arming import ReferencePlanner
+from piezo_stage.core.duhem import AXES
+from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.feedforward import HANDOVER_V_PER_TICK, InverseFeedforward
+from piezo_stage.io.model_file import load_model
+
+DT = 1_000_000  # 1 kHz
+
+
+@pytest.fixture
+def model():
+    return load_model(os.path.join(CONFIG, "stage_model.yaml"))[0]
+
+
+def _core(model=None):
+    core = InverseFeedforward(ReferencePlanner(), DT)
+    if model is not None:
+        core.set_model(model, None, "test model")
+    return core
+
+
+def test_disabled_it_holds_the_applied_voltage_and_where_the_stage_is(model):
+    core = _core(model)
+    applied, w = {"x": 12.0, "y": 34.0}, {"x": 5.0, "y": 9.0}
+    core.measured(0, w, applied)
+    desired, err = core.answer(0, DT, w, applied, enabled=False)
+    assert err is None and core.ff == applied and core.ff is not applied
+    assert desired == pytest.approx(w)
+
+
+def test_enabled_it_answers_with_the_models_inverse(model):
+    core = _core(model)
+    applied, w = {"x": 0.0, "y": 0.0}, {"x": 0.0, "y": 0.0}
+    core.measured(0, w, applied)
+    core.answer(0, DT, w, applied, enabled=False)
+    core.planner.set_setpoint({"x": 0.5, "y": 0.5})
+    for k in range(1, 400):  # the approach, then the setpoint held
+        desired, err = core.answer((k - 1) * DT, k * DT, w, applied, enabled=True)
+        assert err is None
+        applied = dict(core.ff)
+        core.measured(k * DT, w, applied)
+    assert desired == pytest.approx({"x": 0.5, "y": 0.5})
+    # the inverse's own model puts the stage where it was asked (coupling included)
+    assert core.inv.w["x"] == pytest.approx(0.5, abs=1e-6)
+    assert core.inv.w["y"] == pytest.approx(0.5, abs=1e-6)
+    assert all(0.0 < core.ff[a] < 150.0 for a in AXES)
+
+
+def test_without_a_model_the_nominal_gain_within_the_limits():
+    core = _core()
+    core.planner.set_setpoint({"x": 10.0, "y": -4.0})
+    core.planner.hold({"x": 10.0, "y": -4.0})
+    w = {"x": 10.0, "y": -4.0}
+    core.answer(0, DT, w, {"x": 0.0, "y": 0.0}, enabled=True)
+    assert core.ff == {"x": 20.0, "y": 0.0}  # 10 um / 0.5 um/V; -8 V clamped to 0
+
+
+def test_a_new_model_while_armed_never_jumps(model):
+    """While armed at a setpoint, the model is replaced by one without its coupling
+    (which would answer the same target with other voltages): the new inverse starts
+    where the stage is, the offset to the old answer is eased out a volt a tick at
+    most, and the feedforward then settles on the new model's answer."""
+    assert model.coupling
+    core = _core(model)
+    applied, w = {"x": 0.0, "y": 0.0}, {"x": 0.0, "y": 0.0}
+    core.measured(0, w, applied)
+    core.answer(0, DT, w, applied, enabled=False)  # disarmed first: holds where it is
+    core.planner.set_setpoint({"x": 20.0, "y": 20.0})
+
+    def run(k0, n):
+        nonlocal applied
+        out = []
+        for k in range(k0, k0 + n):
+            core.answer((k - 1) * DT, k * DT, w, applied, enabled=True)
+            applied = dict(core.ff)
+            core.measured(k * DT, w, applied)
+            out.append(dict(core.ff))
+        return out
+
+    before = run(1, 400)[-1]
+    core.set_model(model.replace(coupling={}), None, "no coupling", armed=True)
+    after = run(401, 400)
+    steps = [before] + after
+    assert max(abs(b[a] - c[a]) for b, c in zip(steps, steps[1:]) for a in AXES) \
+        <= HANDOVER_V_PER_TICK + 1e-9
+    assert core.model.coupling == {}
+    assert core.handover is None and after[-1] == pytest.approx(after[-2], abs=1e-9)
+
+
+def test_missed_ticks_are_answered_up_to_twenty():
+    core = _core()
+    assert list(core.targets(10 * DT)) == [10 * DT]
+    assert list(core.targets(13 * DT)) == [11 * DT, 12 * DT, 13 * DT]
+    assert len(core.targets(100 * DT)) == 20
+
+
+def test_a_model_missing_an_axis_or_outside_the_drivers_limits_is_refused(model):
+    core = _core(model)
+    with pytest.raises(PiezoStageError, match="no model for axis y"):
+        core.set_model(model.replace(axes={"x": model.axes["x"]}), None, "x only")
+    with pytest.raises(PiezoStageError, match="outside the driver's"):
+        core.set_model(model, None, "far", driver_limits=(200.0, 300.0))
+    assert core.model is not None and core.limits == model.voltage_limits
