@@ -219,3 +219,27 @@ def test_a_transient_rise_below_the_unlearned_error_is_not_slowed_for_good():
         before, after = runs[False]["per_period"][a], runs[True]["per_period"][a]
         assert after[-1] < 0.25 * before[-1], (a, before[-1], after)
     assert runs[True]["damped"] == 0
+
+
+def test_a_period_is_learned_against_the_correction_each_sample_was_given():
+    """Commands are computed ahead of their tick (the loop's look-ahead, a compensator's
+    lead): when a period is learned, the first samples of the next one already got the
+    old correction. The learner keeps what each sample was given (``offset``) and learns
+    each period against that, so on an exact loop (position = desired + correction) the
+    error is gone once the first correction has gone round, look-ahead or not."""
+    n, ahead = 20, 5
+    k = np.arange(n)
+    target = 3 * np.sin(2 * np.pi * k / n) + 0.5 * np.cos(2 * np.pi * 3 * k / n)
+    learner = PeriodicLearner({"x": design(n, 1000.0)})
+    given = {}
+    for s in range(12 * n):
+        given[s + ahead] = learner.offset(s + ahead)["x"]  # computed ahead
+        if s < ahead:
+            given[s] = learner.offset(s)["x"]
+        err = target[s % n] - given.pop(s)  # the loop follows what it was given
+        learner.observe(s, {"x": err})
+    # the first period only measures, the second learns; from the fourth on: nothing left
+    # (before: the look-ahead's samples were learned against the wrong correction, and
+    # the running mean carried that for many periods)
+    assert max(np.abs(target - learner.c["x"])) < 1e-9
+    assert learner.skipped == 0

@@ -309,8 +309,9 @@ class EffectCompensator:
 class LearnedOffsets(Protocol):
     """What the reference needs of a learner (core.learning.PeriodicLearner)."""
 
-    def offset(self, k: int) -> dict:
-        """The correction {axis: um} at trajectory sample ``k``."""
+    def offset(self, k: int, axes: tuple | None = None) -> dict:
+        """The correction {axis: um} at trajectory sample ``k``, given to ``axes``
+        (default: every axis)."""
 
 
 class PreviewedReference:
@@ -356,7 +357,7 @@ class PreviewedReference:
         for a, ts in stamps.items():
             k = self.sample_index(ts)
             if k is not None:
-                out[a] = wanted[a] + self.learner.offset(k).get(a, 0.0)
+                out[a] = wanted[a] + self.learner.offset(k, (a,)).get(a, 0.0)
         return out
 
     def describe(self) -> str:

@@ -49,6 +49,12 @@ change of the applied correction does (through the model) plus twice the noise's
 variance (a median absolute deviation, smoothed over the periods). The first period
 only measures. :meth:`PeriodicLearner.noise_factor` says how much of white noise's RMS
 the accumulated correction would carry at the current gain, before the threshold.
+
+What was applied. C_j is the correction each sample of period j was given, as
+:meth:`PeriodicLearner.offset` handed it out, not the correction of the last update: the
+feedforward computes a sample's command ahead of its tick (the loop's look-ahead, a
+compensator's lead), so the first samples of a period were given the correction from
+before that update, and the period is learned against what they got.
 """
 
 from __future__ import annotations
@@ -283,25 +289,34 @@ class PeriodicLearner:
         self._e_prev = {a: None for a in self.designs}
         self._j, self._done = None, False
         self._buf = {a: np.full(self.n, np.nan) for a in self.designs}
+        self._ubuf = {a: np.full(self.n, np.nan) for a in self.designs}
+        self._used = {}  # trajectory sample -> the correction it was given (offset)
 
     def observe(self, k: int, error: dict) -> bool:
         """One sample's error [um] (desired - measured) at trajectory sample ``k``;
         learns as soon as the period's last sample has come with every other one (so the
         next period's first sample already gets the new correction). A period that
-        misses a sample (a missed tick) is skipped and counted. True when it learned."""
+        misses a sample (a missed tick) is skipped and counted. True when it learned.
+        The correction each sample was given (``offset``) is what the period is learned
+        against: a command is computed ahead of its tick (the loop's look-ahead), so the
+        first samples of a period got the correction from before the last update."""
         j, i = int(k) // self.n, int(k) % self.n
         if j != self._j:
             if self._j is not None and not self._done:
                 self.skipped += 1  # the period before ended without all its samples
-            for b in self._buf.values():
+            for b in (*self._buf.values(), *self._ubuf.values()):
                 b[:] = np.nan
             self._j, self._done = j, False
+        used = self._used.pop(int(k), None)
         for a, b in self._buf.items():
             b[i] = error[a]
+            self._ubuf[a][i] = used.get(a, self.c[a][i]) if used else self.c[a][i]
         if i == self.n - 1 and not self._done:
             self._done = True
+            # forget what was given to samples already learned (or never to be)
+            self._used = {q: u for q, u in self._used.items() if q > k}
             if all(np.all(np.isfinite(b)) for b in self._buf.values()):
-                self.update(self._buf)
+                self.update(self._buf, self._ubuf)
                 return True
             self.skipped += 1
         return False
@@ -321,26 +336,33 @@ class PeriodicLearner:
         f = self.gain_floor
         return float(min(self.learned + 1, (2 - f) / f)) if f > 0 else self.learned + 1.0
 
-    def offset(self, k: int) -> dict:
-        """The correction [um] at sample ``k`` of the trajectory."""
+    def offset(self, k: int, axes: tuple | None = None) -> dict:
+        """The correction [um] at sample ``k`` of the trajectory, kept as what sample
+        ``k`` of ``axes`` (default: every axis) was given, for learning its period."""
         i = int(k) % self.n
-        return {a: float(c[i]) for a, c in self.c.items()}
+        out = {a: float(c[i]) for a, c in self.c.items()}
+        used = self._used.setdefault(int(k), {})
+        for a in (axes or out):
+            used[a] = out[a]
+        return out
 
-    def update(self, errors: dict) -> None:
-        """Learn one period's errors [um] (desired - measured, with ``c`` applied)."""
+    def update(self, errors: dict, applied: dict | None = None) -> None:
+        """Learn one period's errors [um] (desired - measured) made with the correction
+        ``applied`` (per axis, n samples; default ``c``, the present correction)."""
         g, learned = self.gain, False
         for a, d in self.designs.items():
             e = np.asarray(errors[a], float)
             if e.shape != (self.n,) or not np.all(np.isfinite(e)):
                 raise ConfigError(f"learning: axis {a} needs {self.n} finite errors")
-            E = np.fft.rfft(e)
-            if not self._noise(a, E):
+            u = self.c[a] if applied is None else np.asarray(applied[a], float)
+            E, U = np.fft.rfft(e), np.fft.rfft(u)
+            if not self._noise(a, E, U):
                 continue  # the first period only measures
             learned = True
             self._guard(a, E)
             # what this period asks for, given what was applied during it: the running
             # mean of these is the correction, whatever the threshold let through
-            asked = np.fft.rfft(self.c[a]) + d.learn * E
+            asked = U + d.learn * E
             gk = g * self.bin_gain[a]
             self.acc[a] = d.q * ((1 - gk) * self.acc[a] + gk * asked)
             # what the running mean of the periods can tell from noise: each bin of the
@@ -353,13 +375,12 @@ class PeriodicLearner:
         self.periods += 1
         self.learned += learned
 
-    def _noise(self, a: str, E: np.ndarray) -> bool:
+    def _noise(self, a: str, E: np.ndarray, applied: np.ndarray) -> bool:
         """Update the sensor-noise estimate from this period's error spectrum: the change
         from the last period, less what the change of the applied correction explains
         (through the model, 1 / L), is the noise's (twice its variance). False for the
         first period (nothing to compare with)."""
         d = self.designs[a]
-        applied = np.fft.rfft(self.c[a])
         prev, self._e_prev[a] = self._e_prev[a], (E.copy(), applied)
         if prev is None:
             return False
