@@ -124,17 +124,23 @@ def test_observe_learns_whole_periods_and_skips_broken_ones():
     assert learner.skipped == 2 and learner.periods == 3
 
 
+def _offline_sine(plant: str, freq_hz: float, periods: int):
+    """(the plant's config, {learning: run}) of the offline study's sine on ``plant``,
+    its own model, without and with learning."""
+    from piezo_stage.apps.studies.learning import run_case, trajectory
+    from piezo_stage.io.plant_file import load_plant_config
+    cfg = load_plant_config(os.path.join(CONFIG, plant))
+    t, w, _ = trajectory("sine", freq_hz, periods)
+    return cfg, {learn: run_case(cfg, cfg.model, cfg.effects, t, w, freq_hz, learn)
+                 for learn in (False, True)}
+
+
 def test_offline_learning_on_the_effects_stage_shrinks_the_error_within_the_limits():
     """The feedforward's own core pieces around the effects stage (creep, an 800 Hz
     resonance and a 0.5 ms delay, compensated from the model), 40 Hz: learning
     shrinks the error against the true position, stays within the voltage limits and
     never steps beyond the amplifier's slew."""
-    from piezo_stage.apps.studies.learning import run_case, trajectory
-    from piezo_stage.io.plant_file import load_plant_config
-    cfg = load_plant_config(os.path.join(CONFIG, "sim_stage_effects.yaml"))
-    t, w, _ = trajectory("sine", 40.0, 30)
-    runs = {learn: run_case(cfg, cfg.model, cfg.effects, t, w, 40.0, learn)
-            for learn in (False, True)}
+    cfg, runs = _offline_sine("sim_stage_effects.yaml", 40.0, 30)
     for a in ("x", "y"):
         before, after = runs[False]["per_period"][a], runs[True]["per_period"][a]
         assert after[-1] < 0.3 * before[-1] and after[-1] < 0.1  # % of the range
@@ -209,12 +215,7 @@ def test_a_transient_rise_below_the_unlearned_error_is_not_slowed_for_good():
     The guard slowed every bin on that rise once (learning then ended above the
     unlearned error, 1.6 against 1.4 %); now a bin is slowed only when it also grows
     past its unlearned error, and 40 periods bring the error under a quarter."""
-    from piezo_stage.apps.studies.learning import run_case, trajectory
-    from piezo_stage.io.plant_file import load_plant_config
-    cfg = load_plant_config(os.path.join(CONFIG, "sim_stage_600hz.yaml"))
-    t, w, _ = trajectory("sine", 100.0, 40)
-    runs = {learn: run_case(cfg, cfg.model, cfg.effects, t, w, 100.0, learn)
-            for learn in (False, True)}
+    _, runs = _offline_sine("sim_stage_600hz.yaml", 100.0, 40)
     for a in ("x", "y"):
         before, after = runs[False]["per_period"][a], runs[True]["per_period"][a]
         assert after[-1] < 0.25 * before[-1], (a, before[-1], after)
