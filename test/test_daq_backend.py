@@ -130,7 +130,12 @@ def test_the_sample_clock_and_the_watchdog_start_at_the_first_step(device):
     b = DaqBackend(1000.0, {**PARAMS, "watchdog_timeout_s": 0.05}, safe_V=0.0)
     time.sleep(0.3)
     idx = [b.step(30.0, 30.0)[3] for _ in range(5)]
-    assert idx[0] <= 1 and idx[-1] <= 6 and b.late == 0
+    # the 0.3 s wait counts for nothing: the first sample is index 0 or 1, and late
+    # samples are at most the few a busy host makes of the five steps themselves (it
+    # held this process a few ms between two steps in a fresh clone's parallel suite,
+    # 2026-11-25); counted from the build they were ~300
+    assert idx[0] <= 1 and idx[-1] <= 20, idx
+    assert b.late <= 4, (idx, b.late)
     assert not dd.DEVICE.get("watchdog_expired") and dd.device_outputs() == [2.0, 2.0]
     b.close(0.0, 500.0)
 
