@@ -251,6 +251,7 @@ def run_node(factory, args=None) -> int:
     finally:
         phase = signals.STATE.phase
         signals.set_phase("stopping")
+        signals.watch()  # a teardown that hangs says where, and ends
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -17,6 +17,11 @@ where the node is (``phase``):
 - inside :func:`interruptible` (a long fit in a callback): :class:`Stopped` is raised.
 - ``stopping`` (teardown): noted, nothing else.
 
+A node that does not end within ``STATE.watch_s`` of the first stop signal (4 s; the
+driver's includes its ramp), or of the start of its teardown when it ended by itself,
+prints every thread's stack (faulthandler) and exits 1: a hang says where it was, and
+ends before the launcher's grace runs out and it has to kill.
+
 Started by the launcher, a node begins with SIGINT and SIGTERM blocked (the launcher
 blocks them around the fork, and the mask survives exec): a signal sent before this
 module is imported waits, and is delivered the moment :func:`install` unblocks it. The
@@ -27,6 +32,7 @@ launcher leaves no node behind, the driver included (it ramps down as for any SI
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import signal
 import sys
@@ -52,6 +58,8 @@ class _State:
     count = 0                  # how many have come
     name = ""                  # the node's name, for the one line a stop prints
     raise_depth = 0            # > 0 inside interruptible()
+    watch_s = 4.0              # a stop that takes longer prints the stacks and exits 1
+    watching = False
 
 
 STATE = _State()
@@ -75,8 +83,23 @@ def _on_signal(signum, frame):
                          "start-up (nothing was open yet)\n")
         sys.stderr.flush()
         os._exit(128 + signum)
+    watch()
     if STATE.phase == "building" or STATE.raise_depth > 0:
         raise Stopped(signum)
+
+
+def watch(seconds: float | None = None) -> None:
+    """From now on the node has ``STATE.watch_s`` to end (once armed, it stays), or
+    from now ``seconds`` (a node that knows its stop takes longer: the driver's ramp)."""
+    if seconds is not None:
+        STATE.watch_s = float(seconds)
+    elif STATE.watching:
+        return
+    STATE.watching = True
+    try:
+        faulthandler.dump_traceback_later(STATE.watch_s, exit=True, file=sys.stderr)
+    except (ValueError, OSError, AttributeError):  # no usable stderr
+        pass
 
 
 def install() -> None:
