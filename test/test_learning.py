@@ -294,3 +294,30 @@ def test_a_strong_bin_is_applied_nearly_whole_a_noise_bin_not_at_all():
     thr = 1.5 * learner.noise_um["x"] * np.sqrt(n / learner.averaged)
     quiet = np.flatnonzero(np.abs(acc) <= thr)
     assert quiet.size > 10 and np.all(np.abs(c[quiet]) < 1e-9)
+
+
+def test_a_period_a_host_pause_disturbed_is_not_learned_a_lasting_change_is():
+    """An exact loop (position = desired + correction, 0.01 um of noise): one period
+    carries a pause's transient (the stage stood 5 samples while the motion went on).
+    It is not learned (``disturbed``), the guard slows nothing (learned, the transient
+    had it slow the bins it raised), and the correction ends where the noise allows.
+    Then the motion changes for good: after three disturbed periods in a row the
+    periods are learned again (what the guard then makes of the change is its own
+    matter)."""
+    n = 20
+    k = np.arange(n)
+    target = 2 * np.sin(2 * np.pi * k / n)
+    learner = PeriodicLearner({"x": design(n, 1000.0)})
+    rng = np.random.default_rng(4)
+    for j in range(30):
+        e = target - learner.c["x"] + 0.01 * rng.standard_normal(n)
+        if j == 8:
+            e[5:10] += 3.0  # the pause
+        learner.update({"x": e})
+    assert learner.disturbed == 1 and learner.damped == 0
+    assert np.max(np.abs(target - learner.c["x"])) < 0.02
+    learned = learner.learned
+    target2 = 4 * target  # a lasting change: four times the error it had
+    for _ in range(10):
+        learner.update({"x": target2 - learner.c["x"] + 0.01 * rng.standard_normal(n)})
+    assert learner.disturbed == 1 + 3 and learner.learned == learned + 7

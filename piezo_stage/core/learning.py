@@ -65,6 +65,14 @@ variance (a median absolute deviation, smoothed over the periods). The first per
 only measures. :meth:`PeriodicLearner.noise_factor` says how much of white noise's RMS
 the accumulated correction would carry at the current gain, before the threshold.
 
+Disturbances. A period whose error RMS jumps past twice the last learned period's
+(plus three noise RMS) on some axis is not learned: in real time a host pause holds a
+late command while the motion goes on, and the period that carries it is no sample of
+the loop's repeating error (learned, it went into the running mean, and the guard
+slowed the bins it raised for good: a 50 Hz raster's linearity ended at 0.35 % where
+lockstep reached 0.067 %, 2026-11-25). Three such periods in a row are the loop's own
+change and are learned.
+
 What was applied. C_j is the correction each sample of period j was given, as
 :meth:`PeriodicLearner.offset` handed it out, not the correction of the last update: the
 feedforward computes a sample's command ahead of its tick (the loop's look-ahead, a
@@ -84,6 +92,8 @@ from piezo_stage.core.errors import ConfigError
 EFFECTS_WITH_DYNAMICS = ("creep", "dynamics", "delay")  # drift ignores the input
 NOISE_KAPPA = 1.5  # a bin is learned where it exceeds this many noise RMS
 FULL_GAIN_PERIODS = 3  # periods learned at the full gain before it falls
+DISTURBED_FACTOR = 2.0  # a period whose error RMS jumps past this times the last one's
+DISTURBED_RUN = 3       # ... is skipped, unless this many in a row have (a lasting change)
 
 
 def _scaled(params: dict, scale: dict | None) -> dict:
@@ -302,6 +312,8 @@ class PeriodicLearner:
         self._first = {a: None for a in self.designs}  # each bin's error before learning
         self.periods, self.learned, self.skipped, self.damped = 0, 0, 0, 0
         self.applied = 0  # periods learned that ran on a learned correction throughout
+        self.disturbed = 0  # periods not learned: their error jumped (a host pause)
+        self._last_rms, self._run = None, 0
         self.noise_um = {a: None for a in self.designs}  # sensor noise, from the data
         self._e_prev = {a: None for a in self.designs}
         self._j, self._done = None, False
@@ -379,11 +391,16 @@ class PeriodicLearner:
     def update(self, errors: dict, applied: dict | None = None) -> None:
         """Learn one period's errors [um] (desired - measured) made with the correction
         ``applied`` (per axis, n samples; default ``c``, the present correction)."""
-        g, learned = self.gain, False
-        for a, d in self.designs.items():
+        for a in self.designs:
             e = np.asarray(errors[a], float)
             if e.shape != (self.n,) or not np.all(np.isfinite(e)):
                 raise ConfigError(f"learning: axis {a} needs {self.n} finite errors")
+        if self._disturbed_period(errors):
+            self._period_gen = None
+            return
+        g, learned = self.gain, False
+        for a, d in self.designs.items():
+            e = np.asarray(errors[a], float)
             u = self.c[a] if applied is None else np.asarray(applied[a], float)
             E, U = np.fft.rfft(e), np.fft.rfft(u)
             if not self._noise(a, E, U):
@@ -410,6 +427,24 @@ class PeriodicLearner:
         self._period_gen = None
         self.applied += learned and gen >= 1
         self._gen += learned
+
+    def _disturbed_period(self, errors: dict) -> bool:
+        """A period whose error RMS on some axis is more than DISTURBED_FACTOR times the
+        last learned period's, plus three noise RMS, was disturbed (a host pause: the
+        driver held a late command, the stage stood while the motion went on): it is not
+        learned (``disturbed`` counts it), nor shown to the guard, which would slow
+        every bin it raised. A change that lasts (DISTURBED_RUN periods in a row) is
+        the loop's own and is learned from there."""
+        rms = {a: float(np.sqrt(np.mean(np.square(errors[a])))) for a in self.designs}
+        last = self._last_rms
+        if last and self._run < DISTURBED_RUN and any(
+                rms[a] > DISTURBED_FACTOR * last[a] + 3.0 * (self.noise_um[a] or 0.0)
+                for a in rms):
+            self._run += 1
+            self.disturbed += 1
+            return True
+        self._run, self._last_rms = 0, rms
+        return False
 
     def kappa(self, axis: str) -> float:
         """The threshold in noise RMS of a bin: NOISE_KAPPA, or more where the passed
@@ -539,6 +574,6 @@ class LearnedFeedforward:
             return "learning " + (self.why or "off")
         le = self.learner
         noise = ", ".join(f"{a} {v:.3f}" for a, v in le.noise_um.items() if v is not None)
-        return (f"learning: {le.learned} periods learned ({le.skipped} skipped, {le.damped} "
-                f"bins slowed), noise {noise or '-'} um; "
+        return (f"learning: {le.learned} periods learned ({le.skipped} skipped, "
+                f"{le.disturbed} disturbed, {le.damped} bins slowed), noise {noise or '-'} um; "
                 + next(iter(le.designs.values())).describe())
