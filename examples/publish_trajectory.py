@@ -135,6 +135,7 @@ def main(argv=None):
             msg.points.append(JointTrajectoryPoint(
                 positions=[x * 1e-6, y * 1e-6], time_from_start=Duration(sec=sec, nanosec=nsec)))
         pub.publish(msg)  # latched: taken whenever the stage's nodes match
+        reached = pub.get_subscription_count()
         ours = f"trajectory of {len(pts)} points stamped {start}"
         mine, again = f"done: {ours}", True
         print(f"published {len(pts)} points to {ns}/trajectory, starting in "
@@ -142,6 +143,12 @@ def main(argv=None):
         end = time.monotonic() + args.timeout
         while time.monotonic() < end and seen["state"].get("feedforward") != mine:
             rclpy.spin_once(node, timeout_sec=0.05)
+            if pub.get_subscription_count() > reached:
+                # a subscriber matched after the publish (a recorder whose discovery
+                # came late, taking the topic volatile): once more for it; each of the
+                # set's nodes takes a trajectory once, by its bytes
+                reached = pub.get_subscription_count()
+                pub.publish(msg)
             if again and ours in seen["state"].get("feedforward", ""):
                 # the stage has it: once more for a subscriber that completed its side
                 # of the match a moment too late (a recorder taking the topic volatile

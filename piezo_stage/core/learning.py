@@ -391,8 +391,8 @@ class PeriodicLearner:
     def update(self, errors: dict, applied: dict | None = None) -> None:
         """Learn one period's errors [um] (desired - measured) made with the correction
         ``applied`` (per axis, n samples; default ``c``, the present correction)."""
-        for a in self.designs:
-            e = np.asarray(errors[a], float)
+        errors = {a: np.asarray(errors[a], float) for a in self.designs}
+        for a, e in errors.items():
             if e.shape != (self.n,) or not np.all(np.isfinite(e)):
                 raise ConfigError(f"learning: axis {a} needs {self.n} finite errors")
         if self._disturbed_period(errors):
@@ -400,7 +400,7 @@ class PeriodicLearner:
             return
         g, learned = self.gain, False
         for a, d in self.designs.items():
-            e = np.asarray(errors[a], float)
+            e = errors[a]
             u = self.c[a] if applied is None else np.asarray(applied[a], float)
             E, U = np.fft.rfft(e), np.fft.rfft(u)
             if not self._noise(a, E, U):

@@ -44,11 +44,12 @@ from piezo_stage.core.arming import PARAMETERS as ARMING
 from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import BackendFault, DataError
 from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
-from piezo_stage.nodes import _signals
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._signals import STATE as STOP_STATE
+from piezo_stage.nodes._signals import watch as watch_stop
 from piezo_stage_msgs_adapters import (
     arming_state_msg,
     clock_msg,
@@ -85,7 +86,7 @@ COMMAND_WINDOW_NS = 1_000_000_000
 class StageDriver(Node):
     def __init__(self):
         super().__init__("stage_driver")
-        _signals.STATE.watch_s = 12.0  # its stop ramps and closes the backend (see below)
+        STOP_STATE.watch_s = 12.0  # its stop ramps and closes the backend (see below)
         d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
         p = self.p = {name: d(name, default, desc, **kw) for name, default, desc, kw in PARAMS}
         if p["backend"] in ("daq", "pi", "nv200") and p["mode"] != "realtime":
@@ -271,7 +272,7 @@ class StageDriver(Node):
         span = max(abs(x - self.sup.p.safe_V) for x in self.v.values())
         self.shutdown_by = time.monotonic() + span / self.sup.p.ramp_V_per_s + 1.0
         # the ramp, then the backend's close (which may ramp again) and the teardown
-        _signals.watch(max(_signals.STATE.watch_s, 2 * span / self.sup.p.ramp_V_per_s + 6.0))
+        watch_stop(max(STOP_STATE.watch_s, 2 * span / self.sup.p.ramp_V_per_s + 6.0))
 
     # -- arming ---------------------------------------------------------------------------
     def on_state_change(self, state, reason, since_ns, log=True):
