@@ -110,3 +110,25 @@ def test_a_model_missing_an_axis_or_outside_the_drivers_limits_is_refused(model)
     with pytest.raises(PiezoStageError, match="outside the driver's"):
         core.set_model(model, None, "far", driver_limits=(200.0, 300.0))
     assert core.model is not None and core.limits == model.voltage_limits
+
+
+def test_a_trajectorys_stamp_sets_its_start_and_an_old_one_is_refused():
+    from piezo_stage.core.errors import DataError
+    from piezo_stage.core.feedforward import PAST_TRAJECTORY_NS, trajectory_start
+    now = 10**18
+    assert trajectory_start(0, now) is None  # zero: now
+    assert trajectory_start(now - PAST_TRAJECTORY_NS + 1, now) is None  # just sent: now
+    assert trajectory_start(now + 5 * 10**9, now) == now + 5 * 10**9  # the future: then
+    with pytest.raises(DataError, match="stamped 5.000 s in the past"):
+        trajectory_start(now - 5 * 10**9, now)
+
+
+def test_the_phase_says_which_trajectory_runs(model):
+    import numpy as np
+    core = _core(model)
+    assert core.phase_text() == core.planner.phase  # nothing to follow: the phase alone
+    core.planner.hold({"x": 1.0, "y": 1.0})
+    t = np.arange(0.0, 0.01, 0.001)
+    core.planner.set_trajectory(t, {"x": np.full(t.size, 2.0), "y": np.full(t.size, 2.0)})
+    core.traj_text = "trajectory of 10 points stamped 0"
+    assert core.phase_text() == f"{core.planner.phase}: trajectory of 10 points stamped 0"

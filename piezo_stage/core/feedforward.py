@@ -17,12 +17,64 @@ from __future__ import annotations
 from piezo_stage.core.arming import ReferencePlanner
 from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
 from piezo_stage.core.duhem import StageModel, check_model_change
-from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.errors import DataError, PiezoStageError
 from piezo_stage.core.inverse import StageInverse
 from piezo_stage.core.learning import LearnedFeedforward
 
 HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
 MAX_FILLED_TICKS = 20  # after a skipped sample, at most this many targets answered
+PAST_TRAJECTORY_NS = 1_000_000_000  # a trajectory stamped up to 1 s ago: start now
+
+# the feedforward node's parameters: name, default, description, limits and choices
+# (nodes/_params.declare); the node makes compensate_effects and the learning ones live
+PARAMETERS = (
+    ("control_rate_hz", 1000.0, "control rate [Hz]", {"lo": 1.0, "hi": 1e5}),
+    ("model_file", "", "initial model YAML ('' = none until one arrives on model)", {}),
+    ("nominal_um_per_V", 0.5, "gain used before any model [um/V]",
+     {"lo": 0.01, "hi": 100.0}),
+    ("use_coupling", True, "invert the coupling (decoupling)", {}),
+    ("inverse_feedforward", True, "false: hold the feedforward at the voltage applied "
+     "when enabled (feedback only)", {}),
+    ("range_um", [-10.0, 90.0], "accepted target range [um]", {}),
+    ("model_required_after_s", 0.0, "lockstep: hold the loop at this trajectory time "
+     "until a model arrives (0: never)", {}),
+    ("max_trajectory_points", 200_000, "longer trajectories are refused (memory, parse "
+     "time)", {"lo": 2, "hi": 10_000_000}),
+    ("wait_for_trajectory", False, "answer no sample before a trajectory has arrived "
+     "(lockstep: the loop waits; real time: the loop does not close, so the set does not "
+     "arm)", {}),
+    ("approach_speed_um_per_s", 200.0, "approach speed [um/s]", {"lo": 0.1, "hi": 1e6}),
+    ("approach_accel_um_per_s2", 20000.0, "approach acceleration [um/s^2]",
+     {"lo": 1.0, "hi": 1e9}),
+    ("max_resonance_inverse_hz", 0.0, "a model's resonance above this is taken as its "
+     "group delay, not inverted (0: no limit)", {"lo": 0.0, "hi": 1e6}),
+    ("compensate_effects", True, "compensate the model's unmodelled effects", {}),
+    ("learning_period_s", 0.0, "learning: the trajectory's period [s] (0: none)",
+     {"lo": 0.0, "hi": 60.0}),
+    ("learning_gain", 1.0, "learning: first gain (it falls with the periods learned)",
+     {"lo": 0.01, "hi": 1.0}),
+    ("learning", False, "learn the periodic error into the feedforward", {}),
+    ("thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the scheduler "
+     "alone; lockstep never changes it)", {"lo": 0, "hi": 99}),
+    ("min_subscribers", 0, "reference subscribers to wait for", {}),
+)
+
+# the node's counts on /diagnostics, and those reported as rates (key, name, level)
+COUNTS = ("rejected_trajectories", "rejected_setpoints", "models", "rejected_models",
+          "saturated", "bad_messages", "late_dropped", "stray_stamps")
+RATES = tuple((k, k.replace("_", " "), 0) for k in (
+    "rejected_models", "rejected_trajectories", "rejected_setpoints", "bad_messages",
+    "late_dropped"))
+
+
+def trajectory_start(stamp_ns: int, now_ns: int) -> int | None:
+    """When a trajectory stamped ``stamp_ns`` starts, at ``now_ns`` (the set's clock,
+    wall or simulated): None (now) for 0 or a stamp up to PAST_TRAJECTORY_NS ago, the
+    stamp when it is in the future. Further in the past: refused (DataError)."""
+    if 0 < stamp_ns < now_ns - PAST_TRAJECTORY_NS:
+        raise DataError(f"trajectory: stamped {(now_ns - stamp_ns) * 1e-9:.3f} s in the "
+                        "past (0: start now; a future stamp: start then)")
+    return stamp_ns if stamp_ns > now_ns else None
 
 
 class InverseFeedforward:
@@ -58,6 +110,7 @@ class InverseFeedforward:
         self.effects, self.comp = None, None
         self.started = False  # the inverse has been put where the stage is
         self.ff, self.planned, self.last_target = {"x": 0.0, "y": 0.0}, {}, None
+        self.traj_text = ""  # which trajectory runs: "trajectory of N points stamped S"
 
     def set_model(self, model: StageModel, effects: dict | None, name: str,
                   driver_limits: tuple | None = None, range_um: float = 100.0,
@@ -158,6 +211,14 @@ class InverseFeedforward:
             v = {a: min(max(v[a] + off[a], self.limits[0]), self.limits[1]) for a in v}
             self.handover = off if any(off.values()) else None
         return v
+
+    def phase_text(self) -> str:
+        """The planner's phase and what it follows: "tracking: trajectory of 1000 points
+        stamped 1795...", "done: ..." once its last point is reached, "tracking:
+        setpoint", or the phase alone."""
+        what = self.traj_text if self.planner.traj is not None else (
+            "setpoint" if self.planner.setpoint is not None else "")
+        return f"{self.planner.phase}: {what}" if what else self.planner.phase
 
     @property
     def saturated(self) -> int:

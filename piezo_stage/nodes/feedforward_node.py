@@ -27,9 +27,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
+from piezo_stage.core import feedforward as core_ff
 from piezo_stage.core.arming import HOLD, ReferencePlanner
-from piezo_stage.core.errors import DataError, PiezoStageError
-from piezo_stage.core.feedforward import InverseFeedforward
+from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.core.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
@@ -47,76 +47,48 @@ from piezo_stage_msgs_adapters import (
     trajectory_stamp_ns,
 )
 
-PAST_TRAJECTORY_NS = 1_000_000_000  # a trajectory stamped up to 1 s ago: start now
 
 class Feedforward(Node):
     def __init__(self):
         super().__init__("feedforward")
-        self.dt_ns = int(round(1e9 / declare(self, "control_rate_hz", 1000.0, "control "
-                                             "rate [Hz]", lo=1.0, hi=1e5)))
-        model_file = declare(self, "model_file", "", "initial model YAML ('' = none until "
-                             "one arrives on model)")
-        gain = declare(self, "nominal_um_per_V", 0.5, "gain used before any model [um/V]",
-                       lo=0.01, hi=100.0)
-        use_c = declare(self, "use_coupling", True, "invert the coupling (decoupling)")
-        use_ff = declare(self, "inverse_feedforward", True, "false: hold the feedforward "
-                         "at the voltage applied when enabled (feedback only)")
-        self.range = declare(self, "range_um", [-10.0, 90.0], "accepted target range [um]")
-        self.hold_s = declare(self, "model_required_after_s", 0.0, "lockstep: hold the "
-                              "loop at this trajectory time until a model arrives (0: never)")
-        self.max_points = declare(self, "max_trajectory_points", 200_000, "longer "
-                                  "trajectories are refused (memory, parse time)", lo=2,
-                                  hi=10_000_000)
-        self.wait_traj = declare(self, "wait_for_trajectory", False, "answer no sample "
-                                 "before a trajectory has arrived (lockstep: the loop waits; "
-                                 "real time: the loop does not close, so the set does not "
-                                 "arm)")
-        self.planner = ReferencePlanner(
-            declare(self, "approach_speed_um_per_s", 200.0, "approach speed [um/s]",
-                    lo=0.1, hi=1e6),
-            declare(self, "approach_accel_um_per_s2", 20000.0, "approach acceleration "
-                    "[um/s^2]", lo=1.0, hi=1e9))
+        live = ("compensate_effects", "learning_period_s", "learning_gain", "learning")
+        p = self.p = {name: declare(self, name, default, desc, **kw)
+                      for name, default, desc, kw in core_ff.PARAMETERS if name not in live}
+        self.dt_ns = int(round(1e9 / p["control_rate_hz"]))
+        self.max_points, self.wait_traj = p["max_trajectory_points"], p["wait_for_trajectory"]
+        self.planner = ReferencePlanner(p["approach_speed_um_per_s"],
+                                        p["approach_accel_um_per_s2"])
         # the per-sample work (core/feedforward.py): reference, learning, inverse
-        self.core = InverseFeedforward(self.planner, self.dt_ns, gain, use_c, use_ff,
-                                       declare(self, "max_resonance_inverse_hz", 0.0,
-                                               "a model's resonance above this is taken "
-                                               "as its group delay, not inverted (0: no "
-                                               "limit)", lo=0.0, hi=1e6))
+        self.core = core_ff.InverseFeedforward(
+            self.planner, self.dt_ns, p["nominal_um_per_V"], p["use_coupling"],
+            p["inverse_feedforward"], p["max_resonance_inverse_hz"])
         self.ref, self.learning = self.core.ref, self.core.learning
-        self.ref.on = declare(self, "compensate_effects", True, "compensate the model's "
-                              "unmodelled effects", live=lambda on: setattr(self.ref, "on",
-                                                                            bool(on)))
-        # learning feedforward for periodic trajectories (core/learning.py)
-        self.core.learn_p = {
-            "learning_period_s": declare(self, "learning_period_s", 0.0, "learning: the "
-                                         "trajectory's period [s] (0: none)", lo=0.0,
-                                         hi=60.0, live=lambda v: self.core.relearn(period=v)),
-            "learning_gain": declare(self, "learning_gain", 1.0, "learning: first gain "
-                                     "(it falls with the periods learned)", lo=0.01, hi=1.0,
-                                     live=lambda v: self.core.relearn(gain=v))}
-        self.learning.enable(declare(self, "learning", False, "learn the periodic error "
-                                     "into the feedforward", live=self.learning.enable))
+        # the live ones once the core is there (a start-up override calls them at once):
+        # effect compensation and learning feedforward (core/learning.py)
+        on_set = {"compensate_effects": lambda on: setattr(self.ref, "on", bool(on)),
+                  "learning_period_s": lambda v: self.core.relearn(period=v),
+                  "learning_gain": lambda v: self.core.relearn(gain=v),
+                  "learning": self.learning.enable}
+        p.update({name: declare(self, name, default, desc, live=on_set[name], **kw)
+                  for name, default, desc, kw in core_ff.PARAMETERS if name in live})
+        self.ref.on = p["compensate_effects"]
+        self.core.learn_p = {k: p[k] for k in ("learning_period_s", "learning_gain")}
+        self.learning.enable(p["learning"])
         self.core.relearn()
         self.model_name, self.pending, self.traj_key = "nominal", None, None
-        self.traj_text = ""
         # the driver's announcements: taken before the data in each lean-loop pass
-        self.driver = DriverState(self, self.dt_ns, declare(
-            self, "thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
-            "scheduler alone; lockstep never changes it)", lo=0, hi=99))
+        self.driver = DriverState(self, self.dt_ns, p["thread_priority"])
         self.last_ns = -1
         self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
         self.driver.limits, self.last_rejection = None, ""
-        self.stats = {"rejected_trajectories": 0, "rejected_setpoints": 0, "models": 0,
-                                "rejected_models": 0, "saturated": 0, "bad_messages": 0,
-                                "late_dropped": 0, "stray_stamps": 0}
-        if model_file:
+        self.stats = dict.fromkeys(core_ff.COUNTS, 0)
+        if p["model_file"]:
             from piezo_stage.io.model_file import load_model
-            self.set_model(*load_model(model_file), model_file)
+            self.set_model(*load_model(p["model_file"]), p["model_file"])
         self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
         self.phase_pub = self.create_publisher(String, "feedforward/phase", QOS_EVENTS)
         self.phase_pub.publish(String(data=HOLD))
-        self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
-                                                   "reference subscribers to wait for"))])
+        self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
         self.lag = LatencyHistogram()  # sample stamp -> its arrival here
@@ -143,13 +115,11 @@ class Feedforward(Node):
             "joint_states_lag_max_ms": self.lag.max_s * 1e3,
             "setpoint_latency_median_ms": self.sp_latency.percentile(50) * 1e3,
             "setpoint_latency_max_ms": self.sp_latency.max_s * 1e3}), "inverse feedforward",
-            rates=[(k, k.replace("_", " "), 0) for k in (
-                "rejected_models", "rejected_trajectories", "rejected_setpoints",
-                "bad_messages", "late_dropped")])
+            rates=core_ff.RATES)
 
     def set_model(self, model, effects, name):
         self.core.set_model(model, effects, name, self.driver.limits,
-                            self.range[1] - self.range[0],
+                            self.p["range_um"][1] - self.p["range_um"][0],
                             armed=self.core.inv is not None and self.driver.enabled(self.last_ns))
         self.model_name = name
         self.stats["models"] += 1
@@ -177,15 +147,13 @@ class Feedforward(Node):
             key = hash(bytes(msg))  # ~1 ms for 60,000 points, before any decoding
             if key == self.traj_key:
                 return  # the same trajectory again (volatile and latched delivery)
-            t, w = trajectory_from_cdr(msg, self.range, self.max_points)
+            t, w = trajectory_from_cdr(msg, self.p["range_um"], self.max_points)
             stamp, now = trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
-            if 0 < stamp < now - PAST_TRAJECTORY_NS:  # (the clock: wall or simulated)
-                raise DataError(f"trajectory: stamped {(now - stamp) * 1e-9:.3f} s in the "
-                                "past (0: start now; a future stamp: start then)")
+            start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
             self.traj_key = key
-            self.planner.set_trajectory(t, w, start_ns=stamp if stamp > now else None)
+            self.planner.set_trajectory(t, w, start_ns=start)
             self.learning.reset()
-            self.traj_text = f"trajectory of {len(t)} points stamped {stamp}"
+            self.core.traj_text = f"trajectory of {len(t)} points stamped {stamp}"
             self.get_logger().info(f"trajectory of {len(t)} points accepted" + (
                 f", stamped {stamp}: starts in {(stamp - now) * 1e-9:.3f} s"
                 if stamp > now else ""))
@@ -196,17 +164,13 @@ class Feedforward(Node):
         self.resume()
 
     def publish_phase(self):
-        """The planner's phase, and which trajectory runs: "tracking: trajectory of 1000
-        points stamped 1795...", "done: ..." once its last point is reached (the driver
-        relays it on /stage/state, so an outside node can wait for the end)."""
-        what = self.traj_text if self.planner.traj is not None else (
-            "setpoint" if self.planner.setpoint is not None else "")
-        self.phase_pub.publish(String(data=f"{self.planner.phase}: {what}" if what else
-                                      self.planner.phase))
+        """The planner's phase and what it follows (core: ``phase_text``); the driver
+        relays it on /stage/state, so an outside node can wait for the end."""
+        self.phase_pub.publish(String(data=self.core.phase_text()))
 
     def on_setpoint(self, msg):
         try:
-            self.planner.set_setpoint(setpoint_from_msg(msg, self.range))
+            self.planner.set_setpoint(setpoint_from_msg(msg, self.p["range_um"]))
             self.setpoint_arrival = time.time_ns()  # for its arrival-to-applied latency
         except PiezoStageError as e:
             self.stats["rejected_setpoints"] += 1
@@ -225,9 +189,9 @@ class Feedforward(Node):
             self.lag.add((info["received_timestamp"] - ns) * 1e-9)
         self.learning.measured(ns, w)
         target = ns + self.driver.lookahead_ns
-        clock = self.planner.clock_s(target)
+        clock, hold_s = self.planner.clock_s(target), self.p["model_required_after_s"]
         waiting = (self.wait_traj and self.planner.traj is None) or (
-            self.core.inv is None and 0 < self.hold_s <= (clock if clock is not None else -1))
+            self.core.inv is None and 0 < hold_s <= (clock if clock is not None else -1))
         if waiting and not self.driver.realtime:
             self.pending = msg  # lockstep: the loop waits here
             return

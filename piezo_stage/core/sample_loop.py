@@ -1,0 +1,281 @@
+"""The stage driver's sample loop without ROS (nodes/stage_driver_node.py is its shell:
+parameters, topics, services, the gate, timers and logs).
+
+Samples sit on the stage's own sample clock, ``t0 + j * dt``: in lockstep t0 = 0 and one
+sample is taken per command stamped for the next one; in real time t0 is the ROS time of
+the first tick and a tick serviced more than a period late skips the missed samples (the
+backend holds its voltage over them, the stamps show the gap). Commands are applied at
+the tick they are stamped for; late ones are counted and the last command is held. The
+arming supervisor (core/arming.py) decides what is applied: the safe voltage until the
+loop is proven closed, then commands, and a ramp to the safe voltage on a fault, an
+e-stop or a shutdown. Everything is clamped to the voltage limits and the slew limit.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from piezo_stage.core.arming import (
+    ENABLED,
+    ArmingParams,
+    ArmingSupervisor,
+    CommandSchedule,
+    SampleClock,
+)
+from piezo_stage.core.control import clamp_slew
+from piezo_stage.core.errors import DataError
+
+# the driver node's parameters: name (one name: the parameter's), default, description,
+# limits (nodes/_params.declare)
+PARAMETERS = (
+    ("backend", "sim", "stage backend", {"choices": ("sim", "daq", "pi", "nv200",
+                                                  "replay")}),
+    ("mode", "lockstep", "lockstep (sim, replay) | realtime",
+     {"choices": ("lockstep", "realtime")}),
+    ("control_rate_hz", 1000.0, "sample rate [Hz]", {"lo": 1.0, "hi": 1e5}),
+    ("lookahead_s", 0.005, "real time: commands are computed this far ahead of the "
+     "sample they answer [s]", {"lo": 0.0, "hi": 1.0}),
+    ("max_steps", 0, "stop after this many samples (0: never)", {"lo": 0, "hi": 2**31 - 1}),
+    ("exit_after_max_steps", False, "exit (code 0) after max_steps", {}),
+    ("min_subscribers", 0, "lockstep: joint_states subscribers to wait for",
+     {"lo": 0, "hi": 100}),
+    ("min_record_subscribers", 0, "lockstep: true_position subscribers to wait for "
+     "(recorders)", {"lo": 0, "hi": 100}),
+    ("clock_period_s", 0.01, "lockstep: publish /clock (simulated time for nodes on "
+     "use_sim_time) every this much sample time [s]; 0: not at all", {"lo": 0.0, "hi": 10.0}),
+    ("thread_priority", 50, "real time: SCHED_FIFO priority of the sample loop (0: leave "
+     "the scheduler alone)", {"lo": 0, "hi": 99}),
+)
+
+# backends that run on their hardware's clock
+HARDWARE_BACKENDS = ("daq", "pi", "nv200")
+
+# the counts /diagnostics reports as rates (key, name, the level they raise)
+RATES = (("missed_ticks", "missed ticks", 0), ("late_commands", "late commands", 0),
+         ("rejected", "malformed commands", 0),
+         ("limit_hits", "voltage or slew limit hits", 0))
+
+# real time: a command stamped further than this from its arrival is no command of this
+# loop (the look-ahead is milliseconds); taking it would poison the schedule
+COMMAND_WINDOW_NS = 1_000_000_000
+
+
+def check_mode(backend: str, mode: str, use_sim_time: bool) -> None:
+    """Refuse (DataError) a hardware backend in lockstep, and simulated time in real
+    time."""
+    if backend in HARDWARE_BACKENDS and mode != "realtime":
+        raise DataError(f"backend {backend} runs in real time only (mode: realtime)")
+    if mode == "realtime" and use_sim_time:
+        raise DataError("use_sim_time is for lockstep (the driver's samples are the "
+                        "clock); in real time the nodes run on the system clock")
+
+
+@dataclass
+class Sample:
+    """One sample taken: its stamp [ns], the measured and (simulated stage) true
+    positions [um] and the voltages applied [V]."""
+    ns: int
+    w: dict
+    true: dict | None
+    applied: dict
+
+
+class SampleLoop:
+    """Commands in, samples out, for one backend.
+
+    Parameters
+    ----------
+    backend : object
+        A stage backend (the drivers package): ``limits``, ``slew_V_per_s``, ``paced``,
+        ``step``, ``start``, ``close``.
+    arm : ArmingParams
+        The supervisor's parameters (safe voltage, ramp, staleness, ...).
+    rate_hz : float
+        The sample rate [Hz].
+    lockstep : bool
+        One sample per command (sim, replay) or the wall or hardware clock (real time).
+    lookahead_s : float
+        Real time: how far ahead of its sample a command is computed [s].
+    max_steps : int
+        Samples to take (0: no end).
+    on_state_change : callable
+        ``(state, reason, since_ns)``, called by the supervisor on every change.
+    clock_period_s : float
+        Lockstep: /clock is due every this much sample time (0: never).
+    """
+
+    def __init__(self, backend: Any, arm: ArmingParams, rate_hz: float, lockstep: bool,
+                 lookahead_s: float, max_steps: int,
+                 on_state_change: Callable[[str, str, int], None],
+                 clock_period_s: float = 0.0):
+        self.backend, self.lock, self.max_steps = backend, bool(lockstep), int(max_steps)
+        self.rate_hz = float(rate_hz)
+        self.dt_ns = int(round(1e9 / rate_hz))
+        self.lookahead_ns = self.dt_ns if self.lock else max(
+            self.dt_ns, int(round(lookahead_s * 1e9)))
+        self.max_step = {a: s / rate_hz for a, s in backend.slew_V_per_s.items()}
+        self.v = {"x": arm.safe_V, "y": arm.safe_V}
+        self.j, self.t0_ns = -1, 0
+        self.stats = {"samples": 0, "rejected": 0, "limit_hits": 0, "unexpected_stamp": 0,
+                      "missed_ticks": 0, "late_commands": 0}
+        self.step_times = deque(maxlen=1_000_000)  # lockstep: the loop's pace
+        self.sup = ArmingSupervisor(arm, self.v, 1.0 / rate_hz,
+                                    3 * self.dt_ns if self.lock else max(
+                                        3 * self.dt_ns, 20_000_000), on_state_change)
+        self.sched = CommandSchedule(0, self.dt_ns, self.lookahead_ns)
+        self.clock = SampleClock(self.dt_ns * 1e-9, backend.paced)
+        self.shutdown_requested, self.shutdown_by = False, None
+        self.clock_every = max(1, int(round(clock_period_s * rate_hz))) \
+            if clock_period_s else 0
+        self.ff_phase = ""  # what the feedforward last said (the state topic relays it)
+
+    def stamp(self, j: int) -> int:
+        """Sample ``j``'s stamp [ns]."""
+        return self.t0_ns + j * self.dt_ns
+
+    def next_tick(self, now: float,
+                  ros_now_ns: Callable[[], int]) -> tuple[int, dict | None, bool, int]:
+        """Real time: (the sample due at monotonic ``now``, its command or None, whether
+        that was on time, the ticks missed since the last one). At the first tick the
+        hardware clock starts (not when built) and the sample clock is mapped to ROS
+        time, ``ros_now_ns()``, once."""
+        if self.clock.mono0 is None:
+            self.backend.start()
+            self.t0_ns = self.sched.t0 = int(ros_now_ns())
+        j = self.clock.tick(now, self.j)
+        cmd, on_time = self.sched.due(j, count_held=self.sup.state in ENABLED)
+        return j, cmd, on_time, j - self.j - 1
+
+    def command(self, ns: int, v: dict, recv_ns: int) -> bool:
+        """A command for the sample stamped ``ns`` (a valid one: the adapter checked
+        it), received at ``recv_ns``. True in lockstep when it is the next sample's:
+        take that sample now. A stamp that is no sample of this loop is counted."""
+        if self.lock:
+            if ns != self.stamp(self.j + 1):
+                self.stats["unexpected_stamp"] += 1
+                return False
+            self.sup.note_command(ns)
+            return True
+        if abs(ns - recv_ns) > COMMAND_WINDOW_NS:  # a stray stamp: never scheduled
+            self.stats["unexpected_stamp"] += 1
+            return False
+        self.sup.note_command(recv_ns)
+        self.sched.add(ns, v, recv_ns, self.j)
+        self.stats["late_commands"] = self.sched.late
+        return False
+
+    def ended(self, j: int) -> bool:
+        """No sample ``j``: a replay ran out, or lockstep took ``max_steps``."""
+        return bool(getattr(self.backend, "exhausted", False) or (
+            self.lock and self.max_steps and j > self.max_steps))
+
+    def past_max_steps(self, j: int) -> bool:
+        """Real time: ``max_steps`` taken and no shutdown asked for yet."""
+        return bool(self.max_steps and j > self.max_steps and not self.shutdown_requested)
+
+    def step(self, j: int, cmd: dict | None, on_time: bool, now_ns: int, link: str = "",
+             missed: int = 0) -> Sample:
+        """Take sample ``j``: the supervisor's target, clamped and slewed (over the
+        missed ticks too, where the backend held the last voltage), applied. Raises the
+        backend's BackendFault."""
+        target = self.sup.tick(self.stamp(j), now_ns, cmd, on_time, link, missed + 1)
+        v, hit = clamp_slew(target, self.v, self.backend.limits,
+                            {a: s * (missed + 1) for a, s in self.max_step.items()})
+        self.stats["limit_hits"] += hit and self.sup.state in ENABLED
+        for _ in range(missed):  # the plant held the last voltage over the missed ticks
+            self.backend.step(self.v["x"], self.v["y"])
+        w, true, applied, hw_j = self.backend.step(v["x"], v["y"])
+        if hw_j is not None:  # the DAQ's own sample count: its misses show in the stamps
+            missed, j = missed + hw_j - j, hw_j
+        self.stats["missed_ticks"] += missed
+        self.v, self.j = dict(applied), j
+        self.sup.applied(applied)
+        self.stats["samples"] += 1
+        if self.lock:
+            self.step_times.append(time.perf_counter())
+        return Sample(self.stamp(j), w, true, applied)
+
+    @property
+    def clock_due(self) -> bool:
+        """Lockstep: the last sample is one /clock is published at."""
+        return bool(self.clock_every) and self.j % self.clock_every == 0
+
+    def feedforward_phase(self, text: str) -> bool:
+        """The feedforward's phase ("tracking: trajectory of N points stamped S", "done:
+        ..."): arming follows it. True when it changed (the state topic relays it)."""
+        self.sup.set_tracking(text.split(":")[0] in ("tracking", "done"), self.stamp(self.j))
+        changed, self.ff_phase = text != self.ff_phase, text
+        return changed
+
+    def arm(self, on: bool, link: str = "") -> tuple[bool, str]:
+        """Arm (the missing ``link`` named when refused) or disarm: (success, message)."""
+        now = self.stamp(self.j)
+        if not on:
+            return self.sup.request_disarm(now)
+        ok, message = self.sup.request_arm(now)
+        return ok, message + (f" ({link})" if link and not ok else "")
+
+    def estop(self) -> str:
+        """Drive to the safe voltage, latched until disarm and re-arm."""
+        self.sup.trigger_estop(self.stamp(self.j))
+        return "driving to the safe voltage; latched until disarm and re-arm"
+
+    def begin_shutdown(self) -> float:
+        """A stop (signal or max_steps) in real time: disarm and ramp to the safe
+        voltage. Returns the time [s] the ramp, the backend's close and the teardown
+        may take."""
+        self.shutdown_requested = True
+        self.sup.request_disarm(self.stamp(self.j))
+        self.sup.reason = "shutting down"
+        span = max(abs(x - self.sup.p.safe_V) for x in self.v.values())
+        self.shutdown_by = time.monotonic() + span / self.sup.p.ramp_V_per_s + 1.0
+        return 2 * span / self.sup.p.ramp_V_per_s + 6.0
+
+    @property
+    def shut_down(self) -> bool:
+        """After ``begin_shutdown``: at the safe voltage and disabled, or out of time."""
+        return self.shutdown_requested and (self.sup.state not in ENABLED and all(
+            abs(x - self.sup.p.safe_V) < 1e-9 for x in self.v.values())
+            or time.monotonic() > self.shutdown_by)
+
+    def announced(self) -> dict:
+        """What the state topic tells: the look-ahead, the rate and the voltage range
+        every axis can take (for the loop's nodes), whose set this is (host, and the
+        launcher or shell that started the driver: a second launch on the namespace
+        names it), and the feedforward's phase (which trajectory runs, or that it is
+        done)."""
+        lim = self.backend.limits
+        return {"lookahead_s": self.lookahead_ns * 1e-9, "control_rate_hz": self.rate_hz,
+                "voltage_limits_V": [max(lo for lo, _ in lim.values()),
+                                     min(hi for _, hi in lim.values())],
+                "host": socket.gethostname(), "pid": str(os.getppid()),
+                "feedforward": self.ff_phase}
+
+    def status(self) -> tuple[int, str, dict]:
+        """(level, message, values) for /diagnostics: 2 when faulted (disarmed is a
+        state asked for, not a fault)."""
+        lag, late, ms = self.sched.arrival_lag, self.clock.late, 1e3
+        st = self.sup.state
+        values = {**self.stats, "state": st, "reason": self.sup.reason,
+                  "v_x_V": self.v["x"], "v_y_V": self.v["y"],
+                  "tick_late_median_ms": late.percentile(50) * ms,
+                  "tick_late_p99_ms": late.percentile(99) * ms,
+                  "tick_late_max_ms": late.max_s * ms,
+                  "command_lag_median_ms": lag.percentile(50) * ms,
+                  "command_lag_p99_ms": lag.percentile(99) * ms,
+                  "command_lag_max_ms": lag.max_s * ms,
+                  "late_commands": self.sched.late, "commands": self.sched.received,
+                  "held_ticks": self.sched.held_ticks,
+                  "lookahead_ms": self.lookahead_ns * 1e-6, **self.sup.counts}
+        return 2 if st == "faulted" else 0, f"{st}: {self.sup.reason}", values
+
+    def summary(self) -> str:
+        """Where a stop left the stage."""
+        return (f"{self.sup.state}, x {self.v['x']:.3f} V, y {self.v['y']:.3f} V (safe "
+                f"{self.sup.p.safe_V:g} V) after {self.stats['samples']} samples")

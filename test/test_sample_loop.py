@@ -1,0 +1,116 @@
+"""The driver's sample loop without ROS (core/sample_loop.py), on the simulated stage."""
+
+import pytest
+
+from piezo_stage.core.arming import ArmingParams
+from piezo_stage.core.errors import DataError
+from piezo_stage.core.sample_loop import COMMAND_WINDOW_NS, SampleLoop, check_mode
+from piezo_stage.drivers import SimBackend
+
+RATE = 1000.0
+
+
+def loop(lockstep=True, max_steps=0, **arm):
+    changes = []
+    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(**arm), RATE, lockstep, 0.005,
+                   max_steps, lambda *a: changes.append(a), clock_period_s=0.01)
+    s.changes = changes
+    return s
+
+
+def close_the_loop(s, v=10.0):
+    """Lockstep: commands that hold the applied voltage until arming may go ahead."""
+    s.step(0, None, False, 0)
+    j = 0
+    while s.sup.evidence < s.sup.p.confirm_ticks:
+        j += 1
+        assert s.command(s.stamp(j), {"x": s.v["x"], "y": s.v["y"]}, 0)
+        s.step(j, {"x": s.v["x"], "y": s.v["y"]}, True, s.stamp(j))
+    return j
+
+
+def test_lockstep_takes_the_next_samples_command_only():
+    s = loop()
+    s.step(0, None, False, 0)
+    assert s.command(s.stamp(1), {"x": 1.0, "y": 1.0}, 0)
+    assert not s.command(s.stamp(5), {"x": 1.0, "y": 1.0}, 0)
+    assert s.stats["unexpected_stamp"] == 1
+    out = s.step(1, {"x": 1.0, "y": 1.0}, True, s.stamp(1))
+    assert out.ns == s.stamp(1) and s.j == 1 and s.stats["samples"] == 2
+    assert out.applied == {"x": 0.0, "y": 0.0}  # disarmed: the safe voltage, not the command
+
+
+def test_real_time_never_schedules_a_command_stamped_far_from_its_arrival():
+    s = loop(lockstep=False)
+    recv = 10**12
+    assert not s.command(recv + COMMAND_WINDOW_NS + 1, {"x": 1.0, "y": 1.0}, recv)
+    assert s.stats["unexpected_stamp"] == 1 and s.sched.received == 0
+    assert not s.command(recv + 5_000_000, {"x": 1.0, "y": 1.0}, recv)
+    assert s.sched.received == 1 and s.stats["unexpected_stamp"] == 1
+
+
+def test_arming_names_the_missing_link_when_refused_and_estop_latches():
+    s = loop()
+    s.step(0, None, False, 0)
+    ok, message = s.arm(True, "no command from /stage/controller")
+    assert not ok and message.endswith("(no command from /stage/controller)")
+    close_the_loop(s)
+    ok, message = s.arm(True, "no command from /stage/controller")
+    assert ok and "no command" not in message and s.sup.state == "approaching"
+    assert "latched" in s.estop() and s.sup.state == "faulted"
+    assert not s.arm(True)[0]  # latched until a disarm
+    assert s.arm(False)[0] and s.arm(True)[0]
+
+
+def test_missed_ticks_hold_the_voltage_and_widen_the_slew_step():
+    s = loop()
+    j = close_the_loop(s)
+    s.arm(True)
+    # a jump far beyond one sample's slew: held back to the slew over the samples
+    s.backend.slew_V_per_s = {"x": 1000.0, "y": 1000.0}
+    s.max_step = {"x": 1.0, "y": 1.0}
+    before = dict(s.v)
+    s.step(j + 3, {"x": 100.0, "y": 100.0}, True, s.stamp(j + 3), missed=2)
+    assert s.stats["missed_ticks"] == 2 and s.j == j + 3
+    assert s.v["x"] == pytest.approx(before["x"] + 3.0)  # three samples' worth of slew
+    assert s.stats["limit_hits"] == 1
+
+
+def test_a_stop_ramps_to_the_safe_voltage_before_the_loop_may_end():
+    s = loop(lockstep=False, safe_V=0.0, ramp_V_per_s=10000.0, max_steps=50)
+    s.backend.start()
+    j = 0
+    s.step(j, None, False, 0)
+    s.v = {"x": 30.0, "y": 20.0}  # where the stage was when told to stop
+    assert s.past_max_steps(51) and not s.past_max_steps(10)
+    budget = s.begin_shutdown()
+    assert budget >= 2 * 30.0 / 10000.0 + 6.0 and s.sup.state == "disarmed"
+    assert not s.shut_down and not s.past_max_steps(51)
+    while not s.shut_down:
+        j += 1
+        s.step(j, None, False, s.stamp(j))
+        assert j < 100
+    assert s.v == {"x": 0.0, "y": 0.0}
+    assert "disarmed" in s.summary() and "x 0.000 V" in s.summary()
+
+
+def test_clock_and_state_announcement():
+    s = loop()
+    for j in range(11):
+        s.step(j, None, False, s.stamp(j))
+        assert s.clock_due == (j % 10 == 0)
+    a = s.announced()
+    assert a["control_rate_hz"] == RATE and a["lookahead_s"] == pytest.approx(1e-3)
+    assert a["voltage_limits_V"][0] < a["voltage_limits_V"][1]
+    assert s.feedforward_phase("tracking: trajectory of 10 points stamped 0")
+    assert not s.feedforward_phase("tracking: trajectory of 10 points stamped 0")
+    assert s.announced()["feedforward"].startswith("tracking")
+
+
+@pytest.mark.parametrize("backend, mode, sim_time", [("daq", "lockstep", False),
+                                                     ("pi", "lockstep", False),
+                                                     ("sim", "realtime", True)])
+def test_modes_a_backend_cannot_run(backend, mode, sim_time):
+    with pytest.raises(DataError):
+        check_mode(backend, mode, sim_time)
+    check_mode("sim", "lockstep", sim_time)
