@@ -452,12 +452,73 @@ def test_real_time_sets_publish_asynchronously_and_lockstep_does_not(tmp_path):
     from piezo_stage.launch.launcher import Launch
     rt = tmp_path / "rt.yaml"
     rt.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n")
-    env = {k: v for k, v in os.environ.items() if k != "RMW_FASTRTPS_PUBLICATION_MODE"}
+    from piezo_stage.launch.launcher import LOOPBACK_UDP_PROFILE
+    env = {k: v for k, v in os.environ.items() if k not in (
+        "RMW_FASTRTPS_PUBLICATION_MODE", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
     real = Launch(str(rt), env=env)
     assert real.env["RMW_FASTRTPS_PUBLICATION_MODE"] == "ASYNCHRONOUS"
-    assert real.node_env == {"RMW_FASTRTPS_PUBLICATION_MODE": "ASYNCHRONOUS"}
+    assert real.node_env["RMW_FASTRTPS_PUBLICATION_MODE"] == "ASYNCHRONOUS"
+    # and off shared memory: a simulated set on this host gets LOCALHOST's discovery
+    # over loopback UDP (rmw_fastrtps would add shared memory back under LOCALHOST)
+    assert real.node_env["FASTRTPS_DEFAULT_PROFILES_FILE"] == LOOPBACK_UDP_PROFILE
+    assert real.env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
     lock = Launch(os.path.join(CONFIG, "stage.yaml"), env=env)
     assert "RMW_FASTRTPS_PUBLICATION_MODE" not in lock.env and lock.node_env == {}
+    assert lock.env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+
+
+@pytest.mark.parametrize("given, wanted", [
+    ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, "profile"),
+    ({"ROS_LOCALHOST_ONLY": "1"}, "profile"),
+    ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}, {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}),
+    ({}, {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}),
+    ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}, {}),
+    ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+      "FASTRTPS_DEFAULT_PROFILES_FILE": "/lab/own.xml"}, {}),
+    ({"FASTDDS_BUILTIN_TRANSPORTS": "SHM"}, {}),
+    ({"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}, {}),
+])
+def test_a_real_time_set_leaves_out_shared_memory_unless_told_otherwise(given, wanted):
+    """The real-time transport choice on each discovery range, and a configuration of
+    the user's own (a profiles file, FASTDDS_BUILTIN_TRANSPORTS, another RMW) kept."""
+    from piezo_stage.launch.launcher import LOOPBACK_UDP_PROFILE, realtime_transport_env
+    if wanted == "profile":
+        wanted = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET",
+                  "FASTRTPS_DEFAULT_PROFILES_FILE": LOOPBACK_UDP_PROFILE}
+        assert os.path.isfile(LOOPBACK_UDP_PROFILE)
+    assert realtime_transport_env(given) == wanted
+
+
+LOOPBACK_PROBE = """
+import os, time, rclpy
+from std_msgs.msg import String
+before = set(os.listdir("/dev/shm"))
+rclpy.init()
+node = rclpy.create_node("transport_probe")
+pub = node.create_publisher(String, "chatter", 10)
+sub_seen = []
+node.create_subscription(String, "chatter", lambda m: sub_seen.append(m.data), 10)
+t0 = time.monotonic()
+while not sub_seen and time.monotonic() - t0 < 10:
+    pub.publish(String(data="x"))
+    rclpy.spin_once(node, timeout_sec=0.05)
+print(len(sub_seen) > 0, sorted(set(os.listdir("/dev/shm")) - before))
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+def test_the_loopback_udp_profile_talks_and_opens_no_shared_memory(ros_env):
+    """A participant on the real-time set's profile (fastdds_loopback_udp.xml, the way
+    the launcher applies it) creates no shared-memory segment or port, and still talks
+    (its own subscription hears its publisher)."""
+    pytest.importorskip("rclpy")
+    from piezo_stage.launch.launcher import realtime_transport_env
+    env = dict(ros_env, **realtime_transport_env(ros_env))
+    r = subprocess.run([sys.executable, "-c", LOOPBACK_PROBE], env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split("\n")[0] == "True []", r.stdout
 
 
 PRIORITY_PROBE = """

@@ -65,24 +65,14 @@ def safe_within(t, v, t_fault_ns):
     return (t[after[0]] - t_fault_ns) * 1e-9, held
 
 
-def only_middleware_stalls(states, at_most):
-    """The states after arming, ``(state, reason, ...)``: tracking throughout, except for
-    at most ``at_most`` faults on stale commands, each followed by the approach and a
-    re-arm. Why any: when a participant joins the graph, Fast DDS's shared-memory
-    transport opens its port with a health check that waits up to ~333 ms on a healthy
-    port and holds the sending writer meanwhile (Fast-DDS issue 6535, open); the
-    driver's publish or the feedforward's stalls and the driver faults, safely, on
-    stale commands. Every other fault, one that does not recover, or more of them than
-    that, still fails. Issue 28 stays open on it."""
-    names = [s[0] for s in states]
-    faults = [s for s in states if s[0] == "faulted"]
-    assert len(faults) <= at_most, states
-    assert all(str(s[1]).startswith("stale commands: none for") for s in faults), states
-    for k, name in enumerate(names):
-        if name == "faulted":
-            assert "armed" in names[k + 1:], states
-    assert names[0] == "armed" and names[-1] == "armed", states
-    return len(faults)
+def never_faulted(states):
+    """The states after arming, ``(state, reason, ...)``: tracking throughout, no fault.
+    (Until the set left out Fast DDS's shared-memory transport in real time, see
+    launcher.realtime_transport_env, a participant joining the graph now and then held a
+    node's publishes ~0.334 s, the port health check of Fast-DDS issue 6535, and the
+    driver faulted on stale commands: about 3 % of joins, 2026-11-25.)"""
+    assert states and states[0][0] == "armed", states
+    assert not [s for s in states if s[0] == "faulted"], states
 
 
 def test_arming_is_refused_with_the_missing_link_and_e_stop_stays_latched(tmp_path, domain):
@@ -366,8 +356,8 @@ def test_every_parameter_of_every_node_is_live_or_read_only(tmp_path, domain):
 def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_path, domain):
     """While the set tracks in real time an outside node sends joint states stamped
     10^15 ns ahead of the clock and before 1970, then a refit model (f and g x 1.2):
-    nobody faults or refuses to arm (but for the middleware's stall when the outside
-    node's publishers join, see only_middleware_stalls), the strays are counted and
+    nobody faults or refuses to arm (not even when the outside node's publishers join,
+    see never_faulted), the strays are counted and
     dropped, the refit is taken, and the jump between the two models' answers (14 V
     here) is eased out at 1 V a tick. Before: the far stamp faulted the driver for
     good; the new model stepped the output."""
@@ -397,11 +387,8 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
             js.publish(m)
             probe.spin(0.2)
         probe.spin(1.0)
-        # the probe's own publishers joined the graph just now: the middleware's stall
-        # on a join (issue 28) may fault the set on stale commands, which it recovers
-        # from; the model goes out once it tracks again, and from then on nothing faults
-        assert probe.wait(lambda: probe.states[-1][0] == "armed", 15), probe.states
-        only_middleware_stalls(probe.states[armed_at:], at_most=3)
+        # the probe's own publishers joined the graph just now: no fault for that
+        never_faulted(probe.states[armed_at:])
         model_at = len(probe.states)
         with open(MODEL) as fh:
             refit = scaled_model(fh.read(), 1.2)
@@ -442,16 +429,15 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
                                                            jump[before].max())
 
 
-def test_nodes_joining_cost_no_fault_of_ours_and_a_namespace_holds_one_set(tmp_path, domain):
+def test_nodes_joining_cost_no_fault_and_a_namespace_holds_one_set(tmp_path, domain):
     """While the set tracks in real time, ten outside nodes join and leave (latched and
-    default-QoS trajectory publishers, joint_states subscribers, plain nodes): no fault
-    but the middleware's join stall (at most one per joining participant, each ramped
-    safely and re-armed: see only_middleware_stalls).
-    A second launch on /stage exits 2 naming the running set; a second stage in /stage2
-    runs beside it and none of its topics reach this set's bag. The launcher's stop is a
-    disarm, never a fault. (Before: "stale commands:
-    none for 0.334 s" whenever a latched trajectory publisher appeared: the feedforward
-    fetched the running trajectory again and decoded its 60,001 points the slow way.)"""
+    default-QoS trajectory publishers, joint_states subscribers, plain nodes), a second
+    launch on /stage is refused (exit 2, naming the running set) and a second stage
+    starts and stops in /stage2: no fault at all, and the RMS tracking error meanwhile
+    stays near its quiet figure. None of /stage2's topics reach this set's bag. The launcher's
+    stop is a disarm, never a fault. (Before: "stale commands: none for 0.334 s" on
+    about 3 % of joins, the shared-memory port health check of Fast-DDS issue 6535: the
+    set now leaves that transport out in real time, see never_faulted.)"""
     import rclpy
     from rclpy.context import Context
     from sensor_msgs.msg import JointState
@@ -470,6 +456,10 @@ def test_nodes_joining_cost_no_fault_of_ours_and_a_namespace_holds_one_set(tmp_p
         launch.start()
         assert probe.wait_state("armed", 60)
         armed_at = len(probe.states) - 1
+        probe.spin(1.0)  # the approach
+        quiet = [time.time_ns()]
+        probe.spin(3.0)  # tracking with nobody joining: the quiet figure
+        quiet.append(time.time_ns())
         for k in range(10):
             ctx = Context()
             rclpy.init(context=ctx, domain_id=d)
@@ -491,28 +481,30 @@ def test_nodes_joining_cost_no_fault_of_ours_and_a_namespace_holds_one_set(tmp_p
         assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
         assert f"/stage is already running ({socket.gethostname()}, pid {os.getpid()})" \
             in r.stderr, r.stderr
-        # ten nodes joined and left, and a second launch was refused: no fault but the
-        # middleware's stall, handled safely (see only_middleware_stalls), at most one
-        # per participant that joined (the ten and the second launch's look at the
-        # graph); how many stall varies with the host: up to 3 on one, 6 on another.
-        # A stall in the last moments is still ramping down: wait for its re-arm
-        probe.wait(lambda: probe.states[-1][0] == "armed", 15)
-        only_middleware_stalls(probe.states[armed_at:], at_most=11)
-        # a second stage on the domain: its own set, its own topics. (Not asserted: no
-        # fault. Its five processes joining at once meet the shared-memory health check
-        # of only_middleware_stalls five times over.)
+        # a second stage on the domain: its own set, its own topics
         second.start()
         probe.spin(4.0)  # its nodes start (imports, discovery), arm and track
         second.stop()
         probe.spin(1.0)
+        joined = [quiet[1], time.time_ns()]
+        never_faulted(probe.states[armed_at:])
     finally:
         probe.close()
         second.stop()
         launch.stop()
     run = read_run(bag)
     # the stop by duration: a disarm and the ramp, never a fault
-    assert run.states[-1][1] == "disarmed" and run.states[-2][1] != "faulted", run.states
+    assert run.states[-1][1] == "disarmed" and "faulted" not in [s for _, s in run.states]
     assert list(run.v_V[-1]) == [0.0, 0.0]
+    # tracking while others joined, against the quiet seconds before: the RMS error
+    # (a stall of a third of a second made it 0.24 um against 0.028 um quiet). Not
+    # asserted: single held ticks, a command later than the 5 ms look-ahead while
+    # processes start on this 2-core host (a few um for a millisecond or two), which
+    # quiet real-time runs show too (docs/realtime.md)
+    rms = [np.sqrt(np.mean(run.errors_um(*span) ** 2)) for span in (quiet, joined)]
+    n = [len(run.errors_t_ns(*span)) for span in (quiet, joined)]
+    assert n[0] > 2000 and n[1] > 5000, n
+    assert rms[1] <= 2.0 * rms[0] + 0.03, rms
     from piezo_stage.io.bag import iter_messages
     topics = {topic for topic, _, _, _ in iter_messages(bag)}
     assert not any(t.startswith("/stage2/") for t in topics), topics  # its own set only
@@ -567,13 +559,11 @@ def test_no_trajectory_set_holds_and_follows_outside_publishers(tmp_path, domain
         launch.stop()
     run = read_run(bag)
     err = capfd.readouterr().err
-    # no fault but the middleware's stall when the example node joins, handled safely
-    # (see only_middleware_stalls); the last state is the launcher's stop
-    reasons = iter(line.split("faulted: ", 1)[1] for line in err.splitlines()
-                   if "stage_driver]: faulted: " in line)
+    # no fault, the example node's joining included; the last state is the launcher's
+    # stop, a disarm
     names = [s for _, s in run.states]
-    only_middleware_stalls([(n, next(reasons, "?") if n == "faulted" else "")
-                            for n in names[names.index("armed"):-1]], at_most=2)
+    never_faulted([(n,) for n in names[names.index("armed"):-1]])
+    assert "faulted" not in err and names[-1] == "disarmed", err[-2000:]
     assert_never_beyond_slew(run.t_ns, run.v_V)
     from rclpy.serialization import deserialize_message
     held = [deserialize_message(data, JointTrajectory) for topic, _, _, data

@@ -34,6 +34,40 @@ LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
 STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
 
 
+LOOPBACK_UDP_PROFILE = os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                                    "fastdds_loopback_udp.xml")
+_OWN_TRANSPORT_KEYS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE",
+                       "FASTDDS_BUILTIN_TRANSPORTS", "RMW_FASTRTPS_USE_QOS_FROM_XML")
+
+
+def realtime_transport_env(env) -> dict:
+    """The environment that keeps a real-time set's participants off Fast DDS's
+    shared-memory transport, on the discovery range ``env`` asks for.
+
+    A participant that first sends to a joining participant's shared-memory port runs
+    the port's health check, which can wait ~333 ms on a healthy idle port while it holds
+    the participant's send lock (Fast-DDS issue 6535); every publisher of that node waits
+    too, and the driver faulted on stale commands when anyone started a node. UDP has no
+    such check. LOCALHOST: rmw_fastrtps would add shared memory back, so the range goes
+    to SUBNET with a profile that is LOCALHOST's discovery on UDP over 127.0.0.1 alone
+    (fastdds_loopback_udp.xml). SUBNET or unset: the built-in UDPv4 transport alone.
+    Left as it is: another RMW, discovery OFF, or a transport configuration of the
+    user's own (a profiles file, FASTDDS_BUILTIN_TRANSPORTS, QoS from XML).
+    """
+    if env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp" or any(
+            env.get(k) for k in _OWN_TRANSPORT_KEYS):
+        return {}
+    scope = env.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "")
+    if not scope and env.get("ROS_LOCALHOST_ONLY") == "1":
+        scope = "LOCALHOST"
+    if scope == "LOCALHOST":
+        return {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET",
+                "FASTRTPS_DEFAULT_PROFILES_FILE": LOOPBACK_UDP_PROFILE}
+    if scope in ("", "SUBNET", "SYSTEM_DEFAULT"):
+        return {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+    return {}
+
+
 def read_parameters(config_path) -> dict:
     """{node name: parameters} of a node-parameters YAML (the file ros2 run takes),
     checked: bounded, a mapping of '<node>: ros__parameters:' sections."""
@@ -109,14 +143,17 @@ class Launch:
         if self.backend == "sim":  # keep a simulated run's discovery on this host
             self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         # real time: Fast DDS publishes from its own thread, so a node's publish hands
-        # off instead of sending. (A participant joining the graph can still hold a
-        # publish up to ~0.33 s in either mode: Fast DDS's shared-memory port health
-        # check, Fast-DDS issue 6535; see docs/realtime.md.) Lockstep keeps the
-        # synchronous mode its byte-identical reruns were measured with.
+        # off instead of sending, and the set's participants leave out the shared-memory
+        # transport, whose health check on a joining participant's port held every
+        # publish of a node up to ~0.33 s (realtime_transport_env). Lockstep keeps the
+        # synchronous mode and the transports its byte-identical reruns were measured
+        # with.
+        transport = {} if self.lockstep else realtime_transport_env(self.env)
         self.node_env = {} if self.lockstep else {"RMW_FASTRTPS_PUBLICATION_MODE":
-                                                  "ASYNCHRONOUS"}
-        for k, v in self.node_env.items():
-            self.env.setdefault(k, v)
+                                                  "ASYNCHRONOUS", **transport}
+        if not self.lockstep:
+            self.env.setdefault("RMW_FASTRTPS_PUBLICATION_MODE", "ASYNCHRONOUS")
+            self.env.update(transport)  # set only where the user configured none
         self.procs = {}
         self.failed = []
         self.signalled = set()   # the nodes this launcher sent SIGINT
