@@ -22,7 +22,7 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "reference_cdr", "point_cdr", "setpoint_from_msg", "trajectory_msg",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
            "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr", "clock_msg",
-           "check_trajectory_size", "trajectory_stamp_ns"]
+           "check_trajectory_size", "trajectory_max_bytes", "trajectory_stamp_ns"]
 
 JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
@@ -218,11 +218,22 @@ def trajectory_from_msg(msg: JointTrajectory, range_um=None, max_points=None):
     return _trajectory(names, t, pos, range_um)
 
 
+# A point of JOINTS in CDR: its time_from_start (8 bytes) and four sequences
+# (positions, velocities, accelerations, effort), each a 4-byte length, up to 4 bytes of
+# alignment and 8 bytes a joint: 104 bytes; 128 leaves room. Header and names: 64 kB.
+POINT_BYTES, HEAD_BYTES = 128, 65536
+assert 8 + 4 * (8 + 8 * len(JOINTS)) <= POINT_BYTES
+
+
+def trajectory_max_bytes(max_points: int) -> int:
+    """The most CDR bytes a valid trajectory of ``max_points`` points can take."""
+    return POINT_BYTES * int(max_points) + HEAD_BYTES
+
+
 def check_trajectory_size(data: bytes, max_points=None) -> None:
     """DataError when a trajectory's CDR bytes are more than ``max_points`` points can
-    take (256 bytes a point, velocities, accelerations and efforts included), from its
-    length alone."""
-    if max_points is not None and len(data) > 256 * max_points + 65536:
+    take (velocities, accelerations and efforts included), from its length alone."""
+    if max_points is not None and len(data) > trajectory_max_bytes(max_points):
         raise DataError(f"trajectory: {len(data)} bytes, more than {max_points} points "
                         "take (max_trajectory_points)")
 

@@ -80,6 +80,12 @@ n.destroy_node(); rclpy.try_shutdown()
 """
 
 
+# the same lab node, on the graph before the set starts: it publishes 2 s after the
+# feedforward matches
+OUTSIDE_FIRST = OUTSIDE.replace("< 20:", "< 40:").replace("m = JointTrajectory()",
+                                                         "time.sleep(2.0)\nm = JointTrajectory()")
+
+
 def _node(kind, env, log):
     return subprocess.Popen([sys.executable, "-m", f"piezo_stage.nodes.{kind}_node",
                              "--ros-args", "-r", "__ns:=/stage", "--params-file", STAGE],
@@ -121,4 +127,31 @@ def test_default_qos_publisher_works_without_warnings_and_a_restart_gets_the_lat
                 p.send_signal(signal.SIGINT)
                 p.wait(30)
     for log in (ff_log, tr_log):
+        assert "incompatible" not in log.read_text().lower(), log.read_text()
+
+
+def test_a_default_qos_publisher_already_on_the_graph_sees_no_warning_and_the_set_starts(
+        tmp_path, ros_env):
+    """A lab node with a default-QoS trajectory publisher is running when the set
+    starts. The set's own trajectory node sends its latched trajectory again to each
+    subscription that matches after its send, so no node opens a transient-local fetch
+    for it: no incompatible-QoS warning on either side, and the feedforward gets both
+    trajectories (once, a volatile publisher on the topic kept the feedforward from
+    ever fetching the set's own, and the set never armed)."""
+    ff_log, tr_log, lab_log = tmp_path / "ff.log", tmp_path / "tr.log", tmp_path / "lab.log"
+    with open(ff_log, "w") as ffh, open(tr_log, "w") as trh, open(lab_log, "w") as lab_h:
+        lab = subprocess.Popen([sys.executable, "-c", OUTSIDE_FIRST], env=ros_env,
+                               stderr=lab_h, stdout=lab_h)
+        time.sleep(1.5)  # on the graph first
+        traj = _node("trajectory", ros_env, trh)
+        ff = _node("feedforward", ros_env, ffh)
+        try:
+            assert _wait_for(ff_log, "trajectory of 1001 points accepted"), ff_log.read_text()
+            assert _wait_for(ff_log, "trajectory of 5 points accepted"), ff_log.read_text()
+            assert lab.wait(60) == 0, lab_log.read_text()
+        finally:
+            for p in (ff, traj, lab):
+                p.send_signal(signal.SIGINT)
+                p.wait(30)
+    for log in (ff_log, tr_log, lab_log):
         assert "incompatible" not in log.read_text().lower(), log.read_text()

@@ -12,10 +12,12 @@ So the node keeps one volatile subscription for everything live, and ``LatchedFe
 opens a transient-local one only for a moment (``open_s``), when the graph shows a
 latched publisher it has not fetched from yet and no volatile publisher is on the
 topic; it closes the moment each of those publishers' message has come (or after
-``open_s``). What is left: a default-QoS publisher that joins in that moment (a few
-milliseconds after a latched publisher appears, or after this node starts) may see the
-fetch and log one incompatible-QoS warning; it is still matched by the volatile
-subscription and its messages are taken.
+``open_s``). Our own trajectory node is left out: it sends its trajectory again to
+every subscription that matches later (trajectory_node.py), so the set's start opens no
+fetch, and a default-QoS publisher already on the graph sees no warning then. What is
+left: with an outside latched publisher, a default-QoS publisher that joins in that
+moment may see the fetch and log one incompatible-QoS warning; it is still matched by
+the volatile subscription and its messages are taken.
 The callback may then see one message twice (live and fetched): callers take a message
 once by its content.
 """
@@ -28,13 +30,18 @@ from rclpy.qos import DurabilityPolicy
 
 from piezo_stage.nodes._common import QOS_LATCHED, steady_timer
 
+# our nodes (in the same namespace) whose latched publishers send their message again
+# to every subscription that matches later: no fetch is needed from them
+RESENDING = ("trajectory",)
+
 
 class LatchedFetch:
     """See the module docstring. ``callback(data)`` gets the raw CDR bytes."""
 
     def __init__(self, node, msg_type, topic: str, callback, poll_s: float = 0.25,
-                 open_s: float = 1.0):
+                 open_s: float = 1.0, resending=RESENDING):
         self.node, self.msg_type, self.topic, self.callback = node, msg_type, topic, callback
+        self.resending = frozenset(resending)
         self.open_s = open_s
         self.fetched: set[bytes] = set()   # gids of the latched publishers fetched from
         self.sub, self.opened_at = None, 0.0
@@ -56,8 +63,10 @@ class LatchedFetch:
         """Open a fetch for new latched publishers; close it when its time is up or a
         volatile publisher appears."""
         infos = self.node.get_publishers_info_by_topic(self.topic)
+        ns = self.node.get_namespace()
         latched = {bytes(i.endpoint_gid) for i in infos
-                   if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL}
+                   if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                   and not (i.node_name in self.resending and i.node_namespace == ns)}
         volatile = any(i.qos_profile.durability != DurabilityPolicy.TRANSIENT_LOCAL
                        for i in infos)
         if volatile or time.monotonic() - self.opened_at > self.open_s:

@@ -6,7 +6,11 @@ y(t) = 21 + 24 sin(2 pi f t - pi/2) um (``seed``), and ``raster`` (a microscope'
 ``corner``, ``slow`` and ``fast_axis`` shape it). ``excite_s`` > 0 prepends a
 full-stroke sine of that length (x at 1 Hz, y at ``excite_y_hz``), so the identifier
 has loops to learn from, and can tell each axis from its coupling, before the tracking
-starts. Published once its consumers listen, again on a parameter change.
+starts. Published once its consumers listen, again on a parameter change, and again
+whenever a new subscription matches: the publisher is latched, but a volatile
+subscriber (any that does not ask for history: the feedforward's and the recorder's
+live ones) that matches after the send would otherwise never get it. The consumers
+take a trajectory once by its content.
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
@@ -21,7 +25,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.trajectory import KINDS, generate
-from piezo_stage.nodes._common import QOS_LATCHED
+from piezo_stage.nodes._common import QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare
@@ -57,11 +61,13 @@ class Trajectory(Node):
         self.pub = self.create_publisher(JointTrajectory, "trajectory", QOS_LATCHED)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 1,
                                                    "trajectory subscribers to wait for"))])
-        self.published = 0
+        self.published, self.resent, self.last, self.matched = 0, 0, None, 0
         self.add_on_set_parameters_callback(self.on_set)
         self.publish(self.build(self.p))
+        steady_timer(self, 0.25, self.resend_to_new)
         Diagnostics(self, lambda: (0, f"{self.published} trajectories published (last: "
                                    f"{self.p.get('kind')})", {"published": self.published,
+                                                              "resent": self.resent,
                                                               **self.p}), "trajectory")
 
     def build(self, p):
@@ -88,8 +94,24 @@ class Trajectory(Node):
         return trajectory_msg(t, w)
 
     def publish(self, msg):
-        self.gate.publish(self.pub, msg)
+        from rclpy.serialization import serialize_message
+        self.last = serialize_message(msg)  # (a resend then costs no conversion)
+        self.gate.publish(self.pub, self.last)
         self.published += 1
+        # the subscriptions it went to: now, or those matched when the gate opens
+        self.matched = self.pub.get_subscription_count() if self.gate.open else None
+
+    def resend_to_new(self):
+        """The last trajectory again when more subscriptions match than it went to."""
+        if not self.gate.open or self.last is None:
+            return
+        n = self.pub.get_subscription_count()
+        if self.matched is None:
+            self.matched = self.gate.opened_with[0]
+        if n > self.matched:
+            self.pub.publish(self.last)
+            self.resent += 1
+        self.matched = n
 
     def on_set(self, params):
         p = dict(self.p)
