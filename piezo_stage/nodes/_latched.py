@@ -12,8 +12,8 @@ So the node keeps one volatile subscription for everything live, and ``LatchedFe
 opens a transient-local one only for a moment (``open_s``), when the graph shows a
 latched publisher it has not fetched from yet and no volatile publisher is on the
 topic; it closes the moment each of those publishers' message has come (or after
-``open_s``). Our own trajectory node is left out: it sends its trajectory again to
-every subscription that matches later (trajectory_node.py), so the set's start opens no
+``open_s``). Our own trajectory node is left out: it sends its trajectory again when
+the feedforward holds with none (trajectory_node.py), so the set's start opens no
 fetch, and a default-QoS publisher already on the graph sees no warning then. What is
 left: with an outside latched publisher, a default-QoS publisher that joins in that
 moment may see the fetch and log one incompatible-QoS warning; it is still matched by
@@ -31,7 +31,7 @@ from rclpy.qos import DurabilityPolicy
 from piezo_stage.nodes._common import QOS_LATCHED, steady_timer
 
 # our nodes (in the same namespace) whose latched publishers send their message again
-# to every subscription that matches later: no fetch is needed from them
+# to a consumer that lacks it: no fetch is needed from them
 RESENDING = ("trajectory",)
 
 

@@ -151,14 +151,12 @@ class Gate:
         self.needs = [(p, int(n)) for p, n in needs]
         self.queue = []
         self.open = all(n <= 0 for _, n in self.needs)
-        self.opened_with = None  # the publishers' matched counts when it opened
         if not self.open:
             self._timer = steady_timer(node, 0.01, self._poll)
 
     def _poll(self):
-        counts = [p.get_subscription_count() for p, _ in self.needs]
-        if not self.open and all(c >= n for c, (_, n) in zip(counts, self.needs)):
-            self.open, self.opened_with = True, counts
+        if not self.open and all(p.get_subscription_count() >= n for p, n in self.needs):
+            self.open = True
             self._timer.cancel()
             self._node.destroy_timer(self._timer)  # out of the executor's wait set
             for pub, m in self.queue:

@@ -7,10 +7,12 @@ y(t) = 21 + 24 sin(2 pi f t - pi/2) um (``seed``), and ``raster`` (a microscope'
 full-stroke sine of that length (x at 1 Hz, y at ``excite_y_hz``), so the identifier
 has loops to learn from, and can tell each axis from its coupling, before the tracking
 starts. Published once its consumers listen, again on a parameter change, and again
-whenever a new subscription matches: the publisher is latched, but a volatile
-subscriber (any that does not ask for history: the feedforward's and the recorder's
-live ones) that matches after the send would otherwise never get it. The consumers
-take a trajectory once by its content.
+when the feedforward says it holds with no trajectory a second after the send (it
+matched too late for it, or it was restarted): the publisher is latched, but the set's
+nodes take trajectories on a volatile subscription and fetch no history from this node
+(nodes/_latched.py), so a default-QoS publisher on the graph sees no QoS warning. At
+most RESENDS times until the feedforward reports something else; it takes a
+trajectory once by its content.
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
@@ -18,18 +20,24 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
 
+import time
+
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
+from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
+from piezo_stage.core.arming import HOLD
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.trajectory import KINDS, generate
-from piezo_stage.nodes._common import QOS_LATCHED, steady_timer
+from piezo_stage.nodes._common import QOS_EVENTS, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import trajectory_msg
+
+RESENDS, RESEND_AFTER_S = 3, 1.0
 
 PARAMS = {  # name: (default, description)
     "kind": ("seed", "one of: " + ", ".join(KINDS)),
@@ -61,10 +69,12 @@ class Trajectory(Node):
         self.pub = self.create_publisher(JointTrajectory, "trajectory", QOS_LATCHED)
         self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 1,
                                                    "trajectory subscribers to wait for"))])
-        self.published, self.resent, self.last, self.matched = 0, 0, None, 0
+        self.published, self.resent, self.last = 0, 0, None
+        self.sent_at, self.ff_phase, self.budget = None, None, RESENDS
         self.add_on_set_parameters_callback(self.on_set)
         self.publish(self.build(self.p))
-        steady_timer(self, 0.25, self.resend_to_new)
+        self.create_subscription(String, "feedforward/phase", self.on_phase, QOS_EVENTS)
+        steady_timer(self, 0.25, self.resend_if_held)
         Diagnostics(self, lambda: (0, f"{self.published} trajectories published (last: "
                                    f"{self.p.get('kind')})", {"published": self.published,
                                                               "resent": self.resent,
@@ -94,24 +104,24 @@ class Trajectory(Node):
         return trajectory_msg(t, w)
 
     def publish(self, msg):
-        from rclpy.serialization import serialize_message
-        self.last = serialize_message(msg)  # (a resend then costs no conversion)
-        self.gate.publish(self.pub, self.last)
+        self.gate.publish(self.pub, msg)
         self.published += 1
-        # the subscriptions it went to: now, or those matched when the gate opens
-        self.matched = self.pub.get_subscription_count() if self.gate.open else None
+        self.last, self.sent_at, self.budget = msg, time.monotonic(), RESENDS
 
-    def resend_to_new(self):
-        """The last trajectory again when more subscriptions match than it went to."""
-        if not self.gate.open or self.last is None:
-            return
-        n = self.pub.get_subscription_count()
-        if self.matched is None:
-            self.matched = self.gate.opened_with[0]
-        if n > self.matched:
+    def on_phase(self, msg):
+        self.ff_phase = msg.data
+        if msg.data != HOLD:
+            self.budget = RESENDS  # it has one: a later restart may ask again
+
+    def resend_if_held(self):
+        """The last trajectory again when the feedforward still holds with none a
+        second after it was sent (and the gate has let it out)."""
+        if (self.ff_phase == HOLD and self.gate.open and self.last is not None
+                and self.budget > 0 and time.monotonic() - self.sent_at > RESEND_AFTER_S):
             self.pub.publish(self.last)
             self.resent += 1
-        self.matched = n
+            self.budget -= 1
+            self.sent_at = time.monotonic()
 
     def on_set(self, params):
         p = dict(self.p)
