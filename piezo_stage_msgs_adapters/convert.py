@@ -22,7 +22,8 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "reference_cdr", "point_cdr", "setpoint_from_msg", "trajectory_msg",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
            "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr", "clock_msg",
-           "check_trajectory_size", "trajectory_max_bytes", "trajectory_stamp_ns"]
+           "check_trajectory_size", "trajectory_max_bytes", "trajectory_take_bytes",
+           "trajectory_stamp_ns"]
 
 JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
@@ -228,6 +229,12 @@ assert 8 + 4 * (8 + 8 * len(JOINTS)) <= POINT_BYTES
 def trajectory_max_bytes(max_points: int) -> int:
     """The most CDR bytes a valid trajectory of ``max_points`` points can take."""
     return POINT_BYTES * int(max_points) + HEAD_BYTES
+
+
+def trajectory_take_bytes(max_points: int) -> int:
+    """The memory taking and decoding the largest admitted trajectory needs: its bytes
+    twice (the middleware's copy, then Python's) and 3 doubles a point decoded."""
+    return 2 * trajectory_max_bytes(max_points) + 24 * int(max_points)
 
 
 def check_trajectory_size(data: bytes, max_points=None) -> None:

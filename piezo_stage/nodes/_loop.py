@@ -49,10 +49,12 @@ def reserve_heap(nbytes: int, logger) -> int:
     now, so later allocations up to that size reuse pages already faulted in. rclpy
     takes a message with the GIL held, copying it twice (the middleware's buffer, then
     Python's bytes); on fresh pages a 11.2 MB trajectory took 20-25 ms of the loop's
-    thread here (page faults in this VM: ~1 ms per MB), on faulted ones 1-2 ms. glibc
-    only; elsewhere say so and go on. Returns the bytes reserved (0: none)."""
+    thread here (page faults in this VM: ~1 ms per MB), on faulted ones 1-2 ms. At
+    most HEAP_CAP (a lab that raises a node's message limits far pays the faults beyond
+    it). glibc only; elsewhere say so and go on. Returns the bytes reserved (0: none)."""
     import ctypes
     import ctypes.util
+    nbytes = min(int(nbytes), HEAP_CAP)
     if nbytes <= 0:
         return 0
     try:
@@ -127,9 +129,10 @@ class DriverState:
             return
         if values.get("mode") == "realtime" and not self.realtime:
             set_realtime_priority(self.prio, self.node.get_logger())
-            if reserve_heap(self.heap_bytes, self.node.get_logger()):
+            reserved = reserve_heap(self.heap_bytes, self.node.get_logger())
+            if reserved:
                 self.node.get_logger().info(
-                    f"heap: {self.heap_bytes / 2**20:.0f} MB reserved and touched (the "
+                    f"heap: {reserved / 2**20:.0f} MB reserved and touched (the "
                     "largest message this node takes then costs no page faults)")
             self.heap_bytes = 0  # once
         self.realtime = values.get("mode") == "realtime"

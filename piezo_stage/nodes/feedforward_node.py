@@ -35,7 +35,7 @@ from piezo_stage.core.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._latched import LatchedFetch
-from piezo_stage.nodes._loop import HEAP_CAP, Diagnostics, DriverState, Gate
+from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare
 from piezo_stage_msgs_adapters import (
     check_trajectory_size,
@@ -44,8 +44,8 @@ from piezo_stage_msgs_adapters import (
     reference_cdr,
     setpoint_from_msg,
     trajectory_from_cdr,
-    trajectory_max_bytes,
     trajectory_stamp_ns,
+    trajectory_take_bytes,
 )
 
 
@@ -78,16 +78,12 @@ class Feedforward(Node):
         self.core.relearn()
         self.model_name, self.pending, self.traj_key = "nominal", None, None
         # the driver's announcements: taken before the data in each lean-loop pass
-        # in real time: heap for the largest trajectory it admits, taken twice (the
-        # middleware's copy and Python's bytes) and decoded (3 doubles a point), so
-        # taking it costs no page fault (at most HEAP_CAP: a lab that raises
-        # max_trajectory_points far pays the faults beyond it)
-        self.driver = DriverState(self, self.dt_ns, p["thread_priority"], heap_bytes=min(
-            2 * trajectory_max_bytes(self.max_points) + 24 * self.max_points, HEAP_CAP))
-        self.last_ns = -1
-        self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
-        self.driver.limits, self.last_rejection = None, ""
-        self.stats = dict.fromkeys(core_ff.COUNTS, 0)
+        # in real time: heap for taking the largest trajectory it admits (no page fault)
+        self.driver = DriverState(self, self.dt_ns, p["thread_priority"],
+                                  heap_bytes=trajectory_take_bytes(self.max_points))
+        self.last_ns, self.last_rejection = -1, ""
+        # a stray stamp from the graph never poisons the loop
+        self.stamps, self.stats = StampGuard(), dict.fromkeys(core_ff.COUNTS, 0)
         if p["model_file"]:
             from piezo_stage.io.model_file import load_model
             self.set_model(*load_model(p["model_file"]), p["model_file"])
