@@ -10,9 +10,10 @@ way a lab's own node would:
    (joints x, y, positions in metres) there, latched (reliable, transient local, depth
    1), stamped a moment ahead so the stage starts it at that time;
 2. wait on <namespace>/state (diagnostic_msgs/DiagnosticArray, latched) until the
-   driver relays "done: trajectory of N points stamped S" for this very trajectory
-   (once the stage names it, publish it once more: a recorder that matched a moment
-   too late gets it, the stage takes each trajectory once);
+   driver relays "done: trajectory of N points stamped S" for this very trajectory,
+   publishing it again every REPEAT_S meanwhile (and when a subscriber matches): a
+   recorder whose side of the match came late takes the topic volatile and gets only
+   what is sent after; the stage's nodes take each trajectory once, by its bytes;
 3. read where the stage is (sensor_msgs/JointState on <namespace>/joint_states) and
    print the error per axis against the last point; exit 0 if both are within the
    tolerance, 1 if not (or on a timeout).
@@ -41,6 +42,7 @@ DEFAULT = [(0.0, 20.0, 20.0), (0.25, 40.0, 20.0), (0.5, 40.0, 40.0), (0.75, 20.0
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+REPEAT_S = 0.5  # the trajectory is sent again this often until the stage is done [s]
 STATE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
                    reliability=ReliabilityPolicy.RELIABLE,
                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -135,27 +137,21 @@ def main(argv=None):
             msg.points.append(JointTrajectoryPoint(
                 positions=[x * 1e-6, y * 1e-6], time_from_start=Duration(sec=sec, nanosec=nsec)))
         pub.publish(msg)  # latched: taken whenever the stage's nodes match
-        reached = pub.get_subscription_count()
-        ours = f"trajectory of {len(pts)} points stamped {start}"
-        mine, again = f"done: {ours}", True
+        reached, sent = pub.get_subscription_count(), time.monotonic()
+        mine = f"done: trajectory of {len(pts)} points stamped {start}"
         print(f"published {len(pts)} points to {ns}/trajectory, starting in "
               f"{args.start_in:g} s; waiting for the stage", flush=True)
         end = time.monotonic() + args.timeout
         while time.monotonic() < end and seen["state"].get("feedforward") != mine:
             rclpy.spin_once(node, timeout_sec=0.05)
-            if pub.get_subscription_count() > reached:
-                # a subscriber matched after the publish (a recorder whose discovery
-                # came late, taking the topic volatile): once more for it; each of the
-                # set's nodes takes a trajectory once, by its bytes
-                reached = pub.get_subscription_count()
+            if pub.get_subscription_count() > reached or time.monotonic() - sent > REPEAT_S:
+                # a subscriber matched after the last send, or REPEAT_S went by: once
+                # more. Each side of a match completes on its own; a volatile subscriber
+                # (a recorder: it matches every publisher that way) whose side came after
+                # a send never gets that send, and the publisher cannot tell. The set's
+                # nodes take a trajectory once, by its bytes: the stage sees no change.
+                reached, sent = pub.get_subscription_count(), time.monotonic()
                 pub.publish(msg)
-            if again and ours in seen["state"].get("feedforward", ""):
-                # the stage has it: once more for a subscriber that completed its side
-                # of the match a moment too late (a recorder taking the topic volatile
-                # while a default-QoS publisher is on it too); each of the set's nodes
-                # takes a trajectory once, by its bytes, so the stage sees no change
-                pub.publish(msg)
-                again = False
             if seen["state"].get("state") == "faulted":
                 print(f"the stage faulted: {seen['state'].get('reason')}", file=sys.stderr)
                 return 1

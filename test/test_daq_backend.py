@@ -192,7 +192,7 @@ def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp
                    "/**/trajectory:\n  ros__parameters:\n    kind: sine\n"
                    "    frequency_hz: 2.0\n    duration_s: 20.0\n")
     bag = tmp_path / "daq_run"
-    assert Launch(str(cfg), record=str(bag), env=env).run(duration=8.0) == 0
+    assert Launch(str(cfg), record=str(bag), env=env, exclusive=False).run(duration=8.0) == 0
     stamps, volts, states, diag = [], [], [], {}
     for topic, mt, _, data in iter_messages(bag):
         m = deserialize(data, mt)

@@ -452,7 +452,7 @@ def test_real_time_sets_publish_asynchronously_and_lockstep_does_not(tmp_path):
     from piezo_stage.launch.launcher import Launch
     rt = tmp_path / "rt.yaml"
     rt.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n")
-    from piezo_stage.launch.launcher import LOOPBACK_UDP_PROFILE
+    from piezo_stage.launch.launcher import LOCKSTEP_PROFILE, LOOPBACK_UDP_PROFILE
     env = {k: v for k, v in os.environ.items() if k not in (
         "RMW_FASTRTPS_PUBLICATION_MODE", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
     real = Launch(str(rt), env=env)
@@ -463,8 +463,18 @@ def test_real_time_sets_publish_asynchronously_and_lockstep_does_not(tmp_path):
     assert real.node_env["FASTRTPS_DEFAULT_PROFILES_FILE"] == LOOPBACK_UDP_PROFILE
     assert real.env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
     lock = Launch(os.path.join(CONFIG, "stage.yaml"), env=env)
-    assert "RMW_FASTRTPS_PUBLICATION_MODE" not in lock.env and lock.node_env == {}
+    assert "RMW_FASTRTPS_PUBLICATION_MODE" not in lock.env
+    # lockstep: its transports as they were, the writers' heartbeat at 50 ms (the
+    # driver's last wait for acknowledgements), a user's own profile left alone
+    assert lock.node_env == {"FASTRTPS_DEFAULT_PROFILES_FILE": LOCKSTEP_PROFILE}
+    assert lock.env["FASTRTPS_DEFAULT_PROFILES_FILE"] == LOCKSTEP_PROFILE
     assert lock.env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    own = Launch(os.path.join(CONFIG, "stage.yaml"),
+                 env=dict(env, FASTRTPS_DEFAULT_PROFILES_FILE="/lab/profiles.xml"))
+    assert own.node_env == {} and own.env["FASTRTPS_DEFAULT_PROFILES_FILE"] == \
+        "/lab/profiles.xml"
+    with open(LOCKSTEP_PROFILE) as fh:  # the file Fast DDS reads: the period as said
+        assert "<heartbeatPeriod><sec>0</sec><nanosec>50000000</nanosec>" in fh.read()
 
 
 @pytest.mark.parametrize("given, wanted", [

@@ -32,7 +32,7 @@ def test_live_view_serves_decodable_joint_states(tmp_path, ros_env):
     # a real-time driver on the sim, disarmed: it samples the stage at 1 kHz
     la = Launch(os.path.join(CONFIG, "stage.yaml"), nodes=["stage_driver"], env=env,
                 arm=False, foxglove_port=port,
-                overrides={"stage_driver": {"mode": "realtime"}})
+                overrides={"stage_driver": {"mode": "realtime"}}, exclusive=False)
     assert la.nodes[0] == "live_view" and la.node_params("live_view")["port"] == port
     la.start()
     try:

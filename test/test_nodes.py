@@ -4,6 +4,7 @@ Every test runs on its own random ROS_DOMAIN_ID with discovery kept on this host
 nothing depends on wall-clock speed (lockstep runs wait for each other)."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -39,14 +40,21 @@ def lockstep(tmp_path, env, name, steps=400, nodes=None, overrides=None):
     for k, v in (overrides or {}).items():
         o.setdefault(k, {}).update(v)
     bag = str(tmp_path / name)
-    rc = Launch(STAGE, record=bag, overrides=o, nodes=nodes, env=env).run(duration=300)
+    rc = Launch(STAGE, record=bag, overrides=o, nodes=nodes, env=env,
+                exclusive=False).run(duration=300)
     assert rc == 0
     return bag
 
 
-def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env):
+def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env, capfd):
     nodes = ["stage_driver", "feedforward", "controller", "trajectory"]
     a = lockstep(tmp_path, env, "a", nodes=nodes, steps=1500)  # > 1 s: diagnostics at 1 Hz
+    # the driver's last wait, for its readers' acknowledgements of the final samples:
+    # the set's writers send a heartbeat every 50 ms (fastdds_lockstep.xml); with Fast
+    # DDS's 3 s period it took 1.8-2.7 s
+    err = capfd.readouterr().err
+    acked = re.search(r"done after 1501 samples: .*; acknowledged in (\d+) ms", err)
+    assert acked and int(acked.group(1)) < 1000, err[-2000:]
     # 0 messages lost: every loop sample of the run is in the bag
     for suffix in ("/joint_states", "/sim/true_position", "/reference",
                    "/command"):

@@ -239,7 +239,7 @@ def test_driver_node_on_the_nv200_double_arms_tracks_and_ramps_down(tmp_path, ro
     try:
         bag = str(tmp_path / "nv200_run")
         assert Launch(_config(tmp_path, c.addresses), record=bag,
-                      env=ros_env).run(duration=10.0) == 0
+                      env=ros_env, exclusive=False).run(duration=10.0) == 0
     finally:
         end = c.end()
     assert not end["unmodelled"], end["unmodelled"]
@@ -271,7 +271,7 @@ def test_driver_node_on_the_nv200_double_faults_on_a_lost_link_or_an_error(
     from ros_probe import Probe
     c = AmplifiersProcess(tmp_path)
     launch = Launch(_config(tmp_path, c.addresses), record=str(tmp_path / "bag"),
-                    env=ros_env)
+                    env=ros_env, exclusive=False)
     probe = Probe(int(ros_env["ROS_DOMAIN_ID"]))
 
     def hurt():

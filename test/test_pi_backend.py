@@ -320,7 +320,7 @@ def test_driver_node_on_the_pi_double_arms_tracks_and_ramps_down(tmp_path, ros_e
     try:
         bag = str(tmp_path / "pi_run")
         assert Launch(_pi_config(tmp_path, c.address, RT_RATE), record=bag,
-                      env=ros_env).run(duration=8.0) == 0
+                      env=ros_env, exclusive=False).run(duration=8.0) == 0
     finally:
         end = c.end()
     assert not end["unmodelled"], end["unmodelled"]
@@ -355,7 +355,7 @@ def test_driver_node_on_the_pi_double_faults_on_a_lost_link_or_a_controller_erro
     from ros_probe import Probe
     c = ControllerProcess(tmp_path)
     launch = Launch(_pi_config(tmp_path, c.address, 500.0), record=str(tmp_path / "bag"),
-                    env=ros_env)
+                    env=ros_env, exclusive=False)
     probe = Probe(int(ros_env["ROS_DOMAIN_ID"]))
 
     def hurt():

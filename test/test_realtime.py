@@ -78,7 +78,7 @@ def never_faulted(states):
 def test_arming_is_refused_with_the_missing_link_and_e_stop_stays_latched(tmp_path, domain):
     d, env = domain
     launch = Launch(realtime_config(tmp_path), env=env, arm=False,
-                    nodes=["stage_driver", "feedforward", "controller"])
+                    nodes=["stage_driver", "feedforward", "controller"], exclusive=False)
     probe = Probe(d)
     drv = subprocess.Popen(launch.command("stage_driver"), env=env)
     others = []
@@ -155,7 +155,8 @@ def _faults_run(tmp_path, domain):
     d, env = domain
     bag = str(tmp_path / "faults")
     launch = Launch(realtime_config(tmp_path), record=bag, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+                    exclusive=False)
     probe = Probe(d)
     faults = []
     try:
@@ -234,7 +235,8 @@ def test_a_node_dying_under_launch_ends_the_run_at_the_safe_voltage(tmp_path, do
     d, env = domain
     bag = str(tmp_path / "dies")
     launch = Launch(realtime_config(tmp_path), record=bag, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+                    exclusive=False)
     probe = Probe(d)
     try:
         launch.start()
@@ -263,7 +265,7 @@ def test_controller_gains_and_feedback_are_live_and_read_only_ones_refused(tmp_p
     values and read-only ones are refused with the reason."""
     from ros_probe import get_params, set_params
     d, env = domain
-    launch = Launch(realtime_config(tmp_path), env=env, nodes=["controller"])
+    launch = Launch(realtime_config(tmp_path), env=env, nodes=["controller"], exclusive=False)
     proc = subprocess.Popen(launch.command("controller"), env=env)
     probe = Probe(d)
     try:
@@ -319,7 +321,7 @@ def test_every_parameter_of_every_node_is_live_or_read_only(tmp_path, domain):
     calm = {n: {"thread_priority": 0} for n in ("stage_driver", "feedforward", "controller",
                                                 "recorder")}
     launch = Launch(realtime_config(tmp_path), record=str(tmp_path / "bag"), env=env,
-                    nodes=nodes, arm=False, overrides=calm)
+                    nodes=nodes, arm=False, overrides=calm, exclusive=False)
     launch.start()
     probe = Probe(d)
     seen = {}
@@ -369,7 +371,8 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
     d, env = domain
     bag = str(tmp_path / "outside")
     launch = Launch(realtime_config(tmp_path), record=bag, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+                    exclusive=False)
     probe = Probe(d)
     try:
         launch.start()
@@ -525,7 +528,8 @@ def test_no_trajectory_set_holds_and_follows_outside_publishers(tmp_path, domain
     from piezo_stage.nodes._common import QOS_LATCHED
     d, env = domain
     bag = str(tmp_path / "outside")
-    launch = Launch(realtime_config(tmp_path), record=bag, env=env, trajectory=False)
+    launch = Launch(realtime_config(tmp_path), record=bag, env=env, trajectory=False,
+                    exclusive=False)
     assert "trajectory" not in launch.nodes and "feedforward" in launch.nodes
     probe = Probe(d)
     t = np.arange(0, 1.0, 1e-3)

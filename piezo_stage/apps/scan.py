@@ -239,7 +239,8 @@ def run_scan(out_dir, config, plants, model=None, mode="lockstep", extra=None,
                 if os.path.exists(bag):
                     shutil.rmtree(bag)
                 rc, failed = run_case(case, bag, config, plant, m, mode,
-                                      merge_params(extra or {}), namespace, env)
+                                      merge_params(extra or {}), namespace, env,
+                                      exclusive=not evals)
                 if rc != 0:
                     raise RuntimeError(f"{pname}, {case.name}: the node set failed: "
                                        f"{'; '.join(failed) or f'exit {rc}'}")

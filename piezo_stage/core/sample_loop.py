@@ -47,7 +47,7 @@ PARAMETERS = (
      {"lo": 0, "hi": 100}),
     ("min_record_subscribers", 0, "lockstep: true_position subscribers to wait for "
      "(recorders)", {"lo": 0, "hi": 100}),
-    ("clock_period_s", 0.01, "lockstep: publish /clock (simulated time for nodes on "
+    ("clock_period_s", 0.05, "lockstep: publish /clock (simulated time for nodes on "
      "use_sim_time) every this much sample time [s]; 0: not at all", {"lo": 0.0, "hi": 10.0}),
     ("thread_priority", 50, "real time: SCHED_FIFO priority of the sample loop (0: leave "
      "the scheduler alone)", {"lo": 0, "hi": 99}),

@@ -152,10 +152,12 @@ class StageDriver(Node):
 
     def finish(self):
         """Lockstep, all steps done: make sure every subscriber has them, then exit."""
+        t0 = time.monotonic()
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
                                   for pub in (self.jpub, self.tpub)):
             self.get_logger().info(f"done after {self.loop.j + 1} samples: "
-                                   f"{step_period_summary(list(self.loop.step_times)[1:])}")
+                                   f"{step_period_summary(list(self.loop.step_times)[1:])}"
+                                   f"; acknowledged in {(time.monotonic() - t0) * 1e3:.0f} ms")
             self.final_report()
             rclpy.try_shutdown()
 

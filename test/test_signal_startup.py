@@ -1,0 +1,60 @@
+"""A SIGINT in the interpreter's own start-up (site, runpy, a package's ``__init__``)
+meets Python's handler, not ours: the stress run tells that apart from a handler that
+missed by the traceback's frames, read against the real source files."""
+
+import os
+import signal
+import subprocess
+import sys
+
+import piezo_stage.nodes.trajectory_node as traj
+from piezo_stage.benchmarks.signals import Trial, before_our_handlers
+
+
+def _line(path, text):
+    with open(path) as fh:
+        return next(i for i, ln in enumerate(fh, 1) if text in ln)
+
+
+def _traceback(*frames):
+    body = "".join(f'  File "{p}", line {n}, in {f}\n    x\n' for p, n, f in frames)
+    return f"Traceback (most recent call last):\n{body}KeyboardInterrupt\n"
+
+
+RUNPY = ("<frozen runpy>", 198, "_run_module_as_main")
+NODE = traj.__file__
+
+
+def test_frames_before_the_handlers_are_python_s_own_and_any_later_one_is_not():
+    signals_line = _line(NODE, "import piezo_stage.nodes._signals")
+    numpy_line = _line(NODE, "import numpy as np")
+    assert before_our_handlers(_traceback(RUNPY, ("<frozen importlib._bootstrap>", 1, "_find")))
+    # the node module's line that imports the handlers, and that module's top level
+    assert before_our_handlers(_traceback(RUNPY, (NODE, signals_line, "<module>"),
+                                          (os.path.join(os.path.dirname(NODE), "_signals.py"),
+                                           40, "<module>")))
+    pkg_init = os.path.join(os.path.dirname(NODE), "__init__.py")
+    assert before_our_handlers(_traceback(RUNPY, (pkg_init, 9, "<module>")))
+    # past that line the handlers are in: a KeyboardInterrupt there is a miss
+    assert not before_our_handlers(_traceback(RUNPY, (NODE, numpy_line, "<module>")))
+    executor = os.path.join(os.path.dirname(NODE), "_executor.py")
+    assert not before_our_handlers(_traceback(RUNPY, (NODE, 140, "main"),
+                                              (executor, 203, "spin")))
+    assert not before_our_handlers("KeyboardInterrupt\n")  # no traceback: not this case
+
+
+def test_a_sigint_during_site_ends_the_process_at_once_and_is_told_apart(tmp_path):
+    """A sitecustomize that signals its own process stands for a SIGINT landing while
+    site runs; a trial judged on that real output is Python's start-up, not a miss."""
+    (tmp_path / "sitecustomize.py").write_text(
+        "import os, signal\nos.kill(os.getpid(), signal.SIGINT)\n")
+    env = dict(os.environ, PYTHONPATH=str(tmp_path))
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.nodes.trajectory_node"],
+                       env=env, capture_output=True, text=True, timeout=30)
+    assert r.returncode != 0 and "KeyboardInterrupt" in r.stderr, r.stderr
+    t = Trial("trajectory", 0.0, signal.SIGINT, False, rc=r.returncode, stop_s=0.0,
+              traceback="Traceback" in r.stderr, text=r.stderr)
+    assert t.python_startup and t.ok, r.stderr
+    # the same text for a SIGTERM is not this case (Python has no SIGTERM handler)
+    assert not Trial("trajectory", 0.0, signal.SIGTERM, False, rc=r.returncode,
+                     stop_s=0.0, text=r.stderr).python_startup
