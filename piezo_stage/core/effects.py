@@ -23,7 +23,6 @@ from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import signal
 
 from piezo_stage.core._jit import delay_columns
 from piezo_stage.core.errors import ConfigError
@@ -38,20 +37,29 @@ def _positive(name, x):
     return x
 
 
+def _signal():
+    """scipy.signal, imported where a filter is first built: the import takes ~0.6 s
+    (scipy.stats with it), and the nodes that load a model file without building one
+    (the identifier, the gap node) start that much sooner."""
+    from scipy import signal
+    return signal
+
+
 class _LinearFilter:
     """An IIR filter y = (b/a) x with carried state (scipy lfilter with zi)."""
 
     def __init__(self, b, a):
         self.b = np.asarray(b, float)
         self.a = np.asarray(a, float)
+        self._lfilter, self._lfilter_zi = _signal().lfilter, _signal().lfilter_zi
         self.reset()
 
     def reset(self, x0: float = 0.0):
         # start at rest with input and output at x0 (steady state of a unit-DC filter)
-        self.zi = signal.lfilter_zi(self.b, self.a) * x0
+        self.zi = self._lfilter_zi(self.b, self.a) * x0
 
     def process(self, x: ArrayLike) -> np.ndarray:
-        y, self.zi = signal.lfilter(self.b, self.a, x, zi=self.zi)
+        y, self.zi = self._lfilter(self.b, self.a, x, zi=self.zi)
         return y
 
 
@@ -120,6 +128,7 @@ def _sampled_late(num, den, dt, delta):
     period k, x_k = Phi(T) x_(k-1) + Gamma(T) u_k and y_k = C Phi(T - delta) x_(k-1) +
     C Gamma(T - delta) u_k (the modified z-transform; delta = 0 is the ZOH form)."""
     from scipy.linalg import expm
+    signal = _signal()
     A, B, C, _ = signal.tf2ss(num, den)
     n = A.shape[0]
 
@@ -167,7 +176,7 @@ class Dynamics:
         if delay_frac_s > 0.0:
             self._f = _LinearFilter(*_sampled_late(num, den, dt, delay_frac_s))
             return
-        bd, ad, _ = signal.cont2discrete((num, den), dt, method="zoh")
+        bd, ad, _ = _signal().cont2discrete((num, den), dt, method="zoh")
         # ZOH discretisation gives y at the *start* of the next hold interval (b[0] = 0);
         # the plant reads its sensor at the *end* of the interval in which the input
         # was applied, so drop that one-sample shift: y_k answers x_k held over [k-1, k]
