@@ -38,8 +38,9 @@ case "$cmd" in
     # those that do (marked slow or realtime) one at a time: a node set's timing does not
     # survive a second worker's CPU load on a 2-core machine
     if [ $# -eq 0 ] || [ "$*" = "-q" ]; then
-      .venv/bin/python -m pytest "$@" -m "not slow and not realtime"
-      exec .venv/bin/python -m pytest "$@" -m "slow or realtime" -n 0
+      # (each phase ends with its 15 slowest tests: where the suite's time goes)
+      .venv/bin/python -m pytest "$@" -m "not slow and not realtime" --durations=15
+      exec .venv/bin/python -m pytest "$@" -m "slow or realtime" -n 0 --durations=15
     fi
     exec .venv/bin/python -m pytest "$@" ;;
   demo) exec .venv/bin/piezo-stage demo "$@" ;;
