@@ -14,7 +14,10 @@ way a lab's own node would:
    publishing it again every REPEAT_S meanwhile (and when a subscriber matches): a
    recorder whose side of the match came late takes the topic volatile and gets only
    what is sent after; the stage's nodes take each trajectory once, by its bytes;
-3. read where the stage is (sensor_msgs/JointState on <namespace>/joint_states) and
+3. if no recorder in the namespace has matched yet, keep going (sending again on every
+   new match) until one has, or DISCOVERY_S from the start: a participant that missed
+   another's first announcements learns of it only from the next, 3 s later;
+4. read where the stage is (sensor_msgs/JointState on <namespace>/joint_states) and
    print the error per axis against the last point; exit 0 if both are within the
    tolerance, 1 if not (or on a timeout).
 
@@ -43,9 +46,18 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 REPEAT_S = 0.5  # the trajectory is sent again this often until the stage is done [s]
+DISCOVERY_S = 4.0  # a recorder is waited for this long from the start (see the end) [s]
 STATE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
                    reliability=ReliabilityPolicy.RELIABLE,
                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def recorder_ok(node, pub, ns):
+    """A recorder's subscription in the namespace is in the graph, and the publisher has
+    matched every subscription the graph shows on the topic."""
+    subs = node.get_subscriptions_info_by_topic(f"{ns}/trajectory")
+    return any(i.node_name == "recorder" and i.node_namespace == ns for i in subs) and \
+        pub.get_subscription_count() >= len(subs)
 
 
 def points_from(args):
@@ -79,6 +91,7 @@ def main(argv=None):
         return 2
     ns = "/" + args.namespace.strip("/")
 
+    started = time.monotonic()
     rclpy.init()
     node = rclpy.create_node("publish_trajectory")
     seen = {"state": {}, "position": None}
@@ -137,6 +150,7 @@ def main(argv=None):
             msg.points.append(JointTrajectoryPoint(
                 positions=[x * 1e-6, y * 1e-6], time_from_start=Duration(sec=sec, nanosec=nsec)))
         pub.publish(msg)  # latched: taken whenever the stage's nodes match
+        recorder_matched = recorder_ok(node, pub, ns)
         reached, sent = pub.get_subscription_count(), time.monotonic()
         mine = f"done: trajectory of {len(pts)} points stamped {start}"
         print(f"published {len(pts)} points to {ns}/trajectory, starting in "
@@ -159,9 +173,23 @@ def main(argv=None):
             print(f"the stage did not finish within {args.timeout:g} s (its feedforward: "
                   f"{seen['state'].get('feedforward') or 'nothing heard'})", file=sys.stderr)
             return 1
+        # a recorder this node has not seen at all may still be discovering it: a
+        # participant that missed another's first announcements learns of it from the
+        # next one, and Fast DDS announces every 3 s. Until a recorder in the namespace
+        # has been matched for 0.5 s, or DISCOVERY_S from the start: keep sending on
+        # every new match (a set without a recorder costs this wait once)
         settle = time.monotonic() + 0.2  # the newest samples at the last point
-        while time.monotonic() < settle:
+        recorded_since = 0.0 if recorder_matched else None
+        while time.monotonic() < settle or (
+                time.monotonic() - started < DISCOVERY_S and (
+                    recorded_since is None or time.monotonic() - recorded_since < 0.5)):
             rclpy.spin_once(node, timeout_sec=0.02)
+            if pub.get_subscription_count() > reached:
+                reached = pub.get_subscription_count()
+                pub.publish(msg)
+                recorded_since = None
+            if recorded_since is None and recorder_ok(node, pub, ns):
+                recorded_since = time.monotonic()
         x, y = seen["position"] or (float("nan"), float("nan"))
         ex, ey = x - pts[-1][1], y - pts[-1][2]
         print(f"done: final error x {ex:+.3f} um, y {ey:+.3f} um")
