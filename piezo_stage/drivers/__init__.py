@@ -36,6 +36,14 @@ def step_period_summary(times) -> str:
             f"p99 {1e3 * np.percentile(d, 99):.3f} ms")
 
 
+def done_line(loop, acked_s: float) -> str:
+    """A lockstep run's last line: the samples of ``loop`` (a core SampleLoop), their
+    step period, and how long its readers took to acknowledge the last of them."""
+    return (f"done after {loop.j + 1} samples: "
+            f"{step_period_summary(list(loop.step_times)[1:])}; "
+            f"acknowledged in {acked_s * 1e3:.0f} ms")
+
+
 class SimBackend:
     paced = False  # the driver paces it (lockstep: by commands; real time: wall clock)
 

@@ -28,7 +28,7 @@ from piezo_stage.core.arming import ENABLED, ArmingParams
 from piezo_stage.core.arming import PARAMETERS as ARMING
 from piezo_stage.core.errors import BackendFault, DataError
 from piezo_stage.core.sample_loop import PARAMETERS, RATES, SampleLoop, check_mode
-from piezo_stage.drivers import BACKEND_PARAMS, make_backend, step_period_summary
+from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
@@ -155,9 +155,7 @@ class StageDriver(Node):
         t0 = time.monotonic()
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
                                   for pub in (self.jpub, self.tpub)):
-            self.get_logger().info(f"done after {self.loop.j + 1} samples: "
-                                   f"{step_period_summary(list(self.loop.step_times)[1:])}"
-                                   f"; acknowledged in {(time.monotonic() - t0) * 1e3:.0f} ms")
+            self.get_logger().info(done_line(self.loop, time.monotonic() - t0))
             self.final_report()
             rclpy.try_shutdown()
 
