@@ -2,6 +2,7 @@
 state timeline, and the control law's safeguards (no ROS)."""
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -272,3 +273,28 @@ def test_a_trajectory_starts_at_its_stamp_and_ends_done():
     assert p.sample(601_000_000)["x"] == 20.0 and p.phase == DONE  # the last point held
     p.set_trajectory(t, {"x": np.array([20.0, 20.0]), "y": np.array([10.0, 10.0])})
     assert p.phase != DONE                                          # a new one restarts
+
+
+def test_a_lockstep_experiment_runs_long_enough_for_its_approach():
+    """An experiment's lockstep case runs its trajectory, the planner's approach to the
+    first point from rest (at the feedforward's approach speed, the case's own over the
+    defaults) and a slack: farther first points and slower approaches get more steps."""
+    import numpy as np
+
+    from piezo_stage.apps.experiments import LOCKSTEP_SLACK_S, Case, lockstep_margin_s
+    from piezo_stage.core.arming import Approach
+
+    config = os.path.join(os.path.dirname(os.path.dirname(__file__)), "config", "stage.yaml")
+    t = np.arange(11) * 1e-3
+
+    def case(x0, **ff):
+        return Case("c", 1.0, t, {"x": np.full(11, x0), "y": np.zeros(11)}, "feedforward",
+                    params={"feedforward": ff})
+
+    near, far = lockstep_margin_s(case(1.0), config), lockstep_margin_s(case(80.0), config)
+    assert LOCKSTEP_SLACK_S < near < far
+    assert far == pytest.approx(LOCKSTEP_SLACK_S + Approach(
+        {"x": 0.0, "y": 0.0}, {"x": 80.0, "y": 0.0}, 200.0, 20000.0).duration_s)
+    assert far - LOCKSTEP_SLACK_S > 80.0 / 200.0  # the cruise alone
+    slow = lockstep_margin_s(case(80.0, approach_speed_um_per_s=20.0), config)
+    assert slow - LOCKSTEP_SLACK_S > 80.0 / 20.0

@@ -43,6 +43,7 @@ RATE_HZ = 1000.0
 EVAL_CYCLES = 2
 EVAL_MIN_S = 0.5   # tracking: at least this long (40 Hz: 20 cycles, not 2 = 50 samples)
 LEAD_S, TAIL_S = 0.2, 0.3  # trajectory holds its first point, then its last
+LOCKSTEP_SLACK_S = 0.3  # a lockstep run's steps beyond its trajectory and approach
 NODES = ("stage_driver", "feedforward", "controller", "trajectory")
 
 
@@ -152,6 +153,24 @@ def _write_csv(path, t, w):
             fh.write("%.6f,%.9g,%.9g\n" % row)
 
 
+def lockstep_margin_s(case, config, extra=None) -> float:
+    """Simulated time a lockstep run needs beyond its trajectory: the planner's approach
+    from the stage at rest (0 um) to the first point, at the feedforward's approach
+    speed and acceleration, and LOCKSTEP_SLACK_S for arming (a few samples). A stage
+    resting elsewhere needs a longer approach: its run then ends before the trajectory
+    does and the evaluation says so (DataError), nothing is judged on a short run."""
+    from piezo_stage.core.arming import Approach
+    from piezo_stage.core.feedforward import PARAMETERS
+    from piezo_stage.launch.launcher import read_parameters
+    p = {name: default for name, default, *_ in PARAMETERS}
+    p.update(read_parameters(config).get("feedforward", {}))
+    p.update({**(extra or {}).get("feedforward", {}), **case.params.get("feedforward", {})})
+    first = {a: float(v[0]) for a, v in case.w.items()}
+    ap = Approach(dict.fromkeys(first, 0.0), first, float(p["approach_speed_um_per_s"]),
+                  float(p["approach_accel_um_per_s2"]))
+    return ap.duration_s + LOCKSTEP_SLACK_S
+
+
 def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=None,
              namespace="/stage", env=None, exclusive=True):
     """Run the node set for one case into ``bag``; returns the launcher's exit code and
@@ -164,7 +183,8 @@ def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=N
     _write_csv(csv, case.t, case.w)
     # + arming and the approach: in real time the set's discovery can take 3 s of the
     # driver's counted steps on a 2-core host (2.6 s seen), lockstep counts none
-    total_s = float(case.t[-1]) + (1.5 if mode == "lockstep" else 4.0)
+    total_s = float(case.t[-1]) + (lockstep_margin_s(case, config, extra)
+                                   if mode == "lockstep" else 4.0)
     drv = {"mode": mode}
     if plant:
         drv["plant_config"] = os.path.abspath(plant)

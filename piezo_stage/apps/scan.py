@@ -39,7 +39,9 @@ SCAN_SIZE_UM = (40.0, 40.0)
 SCAN_CENTER_UM = (45.0, 45.0)
 SEED_CENTER_UM = 25.0
 DEFAULT_PLANTS = ("sim_stage.yaml", "sim_stage_effects.yaml")
-HOLD_AFTER_S = {"lockstep": 1.0, "realtime": 1.0}  # the experiments add a margin too
+# the motion's last point held this long: in real time arming can eat up to ~3 s of the
+# counted steps; lockstep counts none of it (the experiments add a margin too)
+HOLD_AFTER_S = {"lockstep": 0.2, "realtime": 1.0}
 
 
 def _padded(t, w, hold_after_s=1.0, rate_hz=RATE_HZ):
