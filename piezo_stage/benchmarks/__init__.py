@@ -1,8 +1,8 @@
 """Benchmarks: each prints its figures as ratios against a baseline run in the same
 invocation (never timed unit tests); ``piezo-stage bench <what>`` runs one.
 
-One module per benchmark (plant, identify, loop, liveview, gap, realtime, faults,
-signals) and the equipment they share: ``procs`` (helper processes, CPU ticks, the
+One module per benchmark (plant, identify, loop, liveview, gap, realtime, learning,
+faults, signals) and the equipment they share: ``procs`` (helper processes, CPU ticks, the
 progress of repeated runs), ``probe`` (an outside node), ``host_pauses`` (when the
 whole machine stopped), ``foxglove_probe`` (a live-view client).
 """
@@ -20,6 +20,7 @@ BENCHMARKS = {
     "liveview": ("liveview", "bench_liveview", ()),
     "faults": ("faults", "bench_faults", ()),
     "realtime": ("realtime", "bench_realtime", ("track",)),
+    "learning": ("learning", "bench_learning", ("draws",)),
     "signals": ("signals", "main", ("trials",)),
 }
 

@@ -12,6 +12,8 @@ def add_arguments(s):
     s.add_argument("what", choices=tuple(BENCHMARKS))
     s.add_argument("--track", type=number(0, 3600, lo_open=True), default=20.0, metavar="S",
                    help="realtime: seconds of the paper's trajectory")
+    s.add_argument("--draws", type=number(1, 100, integer=True), default=5, metavar="N",
+                   help="learning: plant noise seeds, each run in lockstep and real time")
     s.add_argument("--samples", type=number(1000, 10**9, integer=True), default=2_000_000)
     s.add_argument("--trials", type=number(1, 10000, integer=True), default=108, metavar="N",
                    help="signals: processes to start and signal (each kind in turn)")

@@ -1,0 +1,91 @@
+"""`piezo-stage bench learning`: learning feedforward in real time against lockstep, over
+noise draws.
+
+The case is the scan experiment's seed trajectory at 40 Hz on the effects plant
+(config/sim_stage_effects.yaml, its own model), learning on, 24 periods at 1 kHz,
+through the node set (driver, feedforward, controller with its feedback off,
+trajectory, recorder). It runs once per plant noise seed in lockstep and once in real
+time, in the same invocation; every figure comes from the bags, as the experiment
+computes it: the mean absolute error against the true position in the 20th period (%
+of the range), per axis.
+
+Why over draws: at 1 kHz a 40 Hz period has 25 samples and the learned correction is a
+running mean of noisy periods, so one lockstep run's figure is one draw of the sensor's
+0.1 um noise; lockstep runs with other seeds scatter by up to 1.5 x among themselves
+(docs/experiments.md). Real time draws the same noise but meets it at other moments
+(its ticks are not lockstep's), so it is compared with the lockstep runs' median, as
+well as seed by seed.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import tempfile
+
+import numpy as np
+
+FREQ_HZ = 40.0
+PERIODS = 24
+TARGET = 1.5  # real time's median within this factor of lockstep's (issue 30, item 5)
+
+
+def _one(mode: str, seed: int, out_dir: str, env: dict) -> dict:
+    from piezo_stage.apps.experiments import merge_params, run_case
+    from piezo_stage.apps.scan import evaluate, own_model, plan
+    from piezo_stage.io.run_bag import read_run
+    from piezo_stage.paths import default_config
+    plant = default_config("sim_stage_effects.yaml")
+    model = own_model(plant, out_dir)
+    case = next(c for c in plan(PERIODS, (), (FREQ_HZ,), mode) if c.learning)
+    bag = os.path.join(out_dir, f"{mode}_{seed}")
+    rc, failed = run_case(case, bag, default_config("stage.yaml"), plant, model, mode,
+                          merge_params({"stage_driver": {"seed": seed}}), "/stage", env,
+                          exclusive=False)
+    if rc != 0:
+        raise RuntimeError(f"{mode} seed {seed}: the node set failed: "
+                           f"{'; '.join(failed) or f'exit {rc}'}")
+    ev = evaluate(case, bag)
+    run = read_run(bag)
+    gaps = np.maximum(np.round(np.diff(run.t_ns) * case.rate_hz * 1e-9), 1)
+    return {a: ev["axes"][a]["pct_after_20_periods"] for a in "xy"} | {
+        "missed": int((gaps - 1).sum()),
+        "learning": run.diagnostics.get("feedforward", {}).get("learning", "")}
+
+
+def bench_learning(draws: int = 5) -> int:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    tmp = tempfile.mkdtemp()
+    print(f"bench learning: seed trajectory {FREQ_HZ:g} Hz on the effects plant, learning "
+          f"on, {PERIODS} periods at 1 kHz, node set; each noise seed in lockstep and in "
+          "real time; the 20th period's mean absolute error vs the true position (% of "
+          "the range)")
+    from piezo_stage.benchmarks.procs import progress_runs
+    res = {"lockstep": [], "realtime": []}
+    for seed in progress_runs(range(draws), "bench learning: seeds"):
+        for mode in ("lockstep", "realtime"):
+            res[mode].append(_one(mode, seed, tmp, env))
+        ls, rt = res["lockstep"][-1], res["realtime"][-1]
+        print(f"  seed {seed}: lockstep x/y {ls['x']:.3f} / {ls['y']:.3f} %; real time "
+              f"{rt['x']:.3f} / {rt['y']:.3f} % ({rt['missed']} missed ticks; "
+              f"{rt['learning'].split(';')[0]})")
+    med = {m: {a: float(np.median([r[a] for r in rs])) for a in "xy"}
+           for m, rs in res.items()}
+    ratio = {a: med["realtime"][a] / med["lockstep"][a] for a in "xy"}
+    paired = [max(rt[a] / ls[a] for a in "xy")
+              for ls, rt in zip(res["lockstep"], res["realtime"])]
+    spread = {a: max(r[a] for r in res["lockstep"]) / min(r[a] for r in res["lockstep"])
+              for a in "xy"}
+    print(f"  medians of {draws} seeds: lockstep {med['lockstep']['x']:.3f} / "
+          f"{med['lockstep']['y']:.3f} %, real time {med['realtime']['x']:.3f} / "
+          f"{med['realtime']['y']:.3f} %; real time / lockstep {ratio['x']:.2f} / "
+          f"{ratio['y']:.2f}")
+    print(f"  lockstep's own spread over the seeds (largest / smallest): {spread['x']:.2f} / "
+          f"{spread['y']:.2f}; seed by seed, real time / lockstep (worse axis): "
+          + ", ".join(f"{p:.2f}" for p in paired)
+          + f" ({sum(p <= TARGET for p in paired)} of {draws} within {TARGET:g} x)")
+    ok = max(ratio.values()) <= TARGET
+    print(f"  target real time's median <= {TARGET:g} x lockstep's (both axes): "
+          f"{'met' if ok else 'NOT met'}")
+    return 0
