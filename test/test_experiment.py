@@ -148,7 +148,7 @@ def test_scan_learns_what_the_model_misses_on_a_raster(tmp_path, env):
 
 
 def test_scan_at_a_faster_control_rate_reaches_the_targets(tmp_path, env):
-    """The seed trajectory at 40 and 100 Hz on the effects stage (its own model): at
+    """The seed trajectory at 40 and 100 Hz on the effects stages (their own models): at
     1 kHz learning leaves 40 Hz near 0.05 % and the 100 Hz commands leave the
     amplifier's 0-150 V (docs/experiments.md); `experiment scan --rate 5000` runs the
     driver, feedforward and controller at 5 kHz (the simulated stage in lockstep runs
@@ -175,4 +175,21 @@ def test_scan_at_a_faster_control_rate_reaches_the_targets(tmp_path, env):
         if learn and kind == "seed":
             assert c["pct_after_20_periods"] <= (0.05 if f == 40.0 else 0.15), c
         if learn and kind == "raster" and a == "x":
+            assert c["linearity_rms_per_period_pct"][19] <= 0.05, c
+    # the other effects stage (a 600 Hz mode, its own model inverting it with preview):
+    # the same targets, learning on
+    doc, _ = run_scan(str(tmp_path / "bags600"), os.path.join(CONFIG, "stage.yaml"),
+                      [os.path.join(CONFIG, "sim_stage_600hz.yaml")], env=env,
+                      log=lambda m: None, periods=20, raster_hz=(20.0,),
+                      seed_hz=(40.0, 100.0), rate_hz=5000.0, learning=(True,))
+    assert {(c["kind"], c["freq_hz"], c["axis"]) for c in doc["cases"]} == {
+        (k, f, a) for k, f in (("raster", 20.0), ("seed", 40.0), ("seed", 100.0))
+        for a in "xy"}
+    for c in doc["cases"]:
+        assert c["learning"] and len(c["per_period_pct"]) == 20
+        assert 0.0 <= c["v_range_V"][0] and c["v_range_V"][1] <= 150.0
+        assert c["max_step_V"] <= 1.0e5 / 5000.0 + 1e-6
+        if c["kind"] == "seed":
+            assert c["pct_after_20_periods"] <= (0.05 if c["freq_hz"] == 40.0 else 0.15), c
+        elif c["axis"] == "x":
             assert c["linearity_rms_per_period_pct"][19] <= 0.05, c

@@ -60,10 +60,11 @@ def _padded(t, w, hold_after_s=1.0, rate_hz=RATE_HZ):
 
 
 def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
-         mode: str = "lockstep", rate_hz: float = RATE_HZ) -> list[Case]:
-    """The cases: each trajectory without and with learning, sampled at the control
-    rate ``rate_hz`` (a period must be a whole number of its samples: learning needs
-    that)."""
+         mode: str = "lockstep", rate_hz: float = RATE_HZ,
+         learning=(False, True)) -> list[Case]:
+    """The cases: each trajectory without and with learning (``learning``: which),
+    sampled at the control rate ``rate_hz`` (a period must be a whole number of its
+    samples: learning needs that)."""
     from piezo_stage.core.trajectory import generate, raster
     cases = []
     trajs = []
@@ -80,7 +81,7 @@ def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
                             f"{rate_hz:g} Hz")
         t, w, _ = _padded(t, {a: np.asarray(v, float)[:periods * n + 1]
                               for a, v in w.items()}, HOLD_AFTER_S[mode], rate_hz)
-        for learn in (False, True):
+        for learn in learning:
             name = f"{kind} {f:g} Hz{' learning' if learn else ''}"
             c = Case(name, f, t, w, "feedforward", moving="x",
                      eval_s=periods / f,
@@ -216,7 +217,7 @@ def check_rate(config, extra=None, rate_hz=None) -> float:
 
 def run_scan(out_dir, config, plants, model=None, mode="lockstep", extra=None,
              namespace="/stage", env=None, log=print, periods=PERIODS,
-             raster_hz=RASTER_HZ, seed_hz=SEED_HZ, rate_hz=None):
+             raster_hz=RASTER_HZ, seed_hz=SEED_HZ, rate_hz=None, learning=(False, True)):
     """Every case on every plant; bags under ``out_dir``. ``rate_hz``: the control rate
     of the driver, the feedforward and the controller (default: the parameters' own,
     ``config`` and ``extra``); the trajectories are sampled at it. Returns the JSON
@@ -226,7 +227,7 @@ def run_scan(out_dir, config, plants, model=None, mode="lockstep", extra=None,
     plants = [os.path.abspath(p) for p in plants] if plants else \
         [default_config(p) for p in DEFAULT_PLANTS]
     extra, rate = _with_rate(config, extra, rate_hz)
-    cases = plan(periods, raster_hz, seed_hz, mode, rate)
+    cases = plan(periods, raster_hz, seed_hz, mode, rate, learning)
     doc = {"experiment": "scan", "mode": mode, "model": os.path.abspath(model) if model
            else "each plant's own", "plants": plants, "control_rate_hz": rate,
            "cases": []}

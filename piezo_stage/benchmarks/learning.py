@@ -37,7 +37,7 @@ def _one(mode: str, seed: int, out_dir: str, env: dict) -> dict:
     from piezo_stage.paths import default_config
     plant = default_config("sim_stage_effects.yaml")
     model = own_model(plant, out_dir)
-    case = next(c for c in plan(PERIODS, (), (FREQ_HZ,), mode) if c.learning)
+    case, = plan(PERIODS, (), (FREQ_HZ,), mode, learning=(True,))
     bag = os.path.join(out_dir, f"{mode}_{seed}")
     rc, failed = run_case(case, bag, default_config("stage.yaml"), plant, model, mode,
                           merge_params({"stage_driver": {"seed": seed}}), "/stage", env,
