@@ -11,10 +11,10 @@ of the range), per axis.
 
 Why over draws: at 1 kHz a 40 Hz period has 25 samples and the learned correction is a
 running mean of noisy periods, so one lockstep run's figure is one draw of the sensor's
-0.1 um noise; lockstep runs with other seeds scatter by up to 1.5 x among themselves
-(docs/experiments.md). Real time draws the same noise but meets it at other moments
-(its ticks are not lockstep's), so it is compared with the lockstep runs' median, as
-well as seed by seed.
+0.1 um noise; lockstep runs with other seeds scatter by about 1.5 x among themselves
+(docs/experiments.md). Real time draws the same noise but meets it at other samples (its
+motion starts seconds of samples later, after discovery and arming), so it is compared
+with the lockstep runs' median, as well as seed by seed.
 """
 
 from __future__ import annotations
@@ -30,13 +30,11 @@ PERIODS = 24
 TARGET = 1.5  # real time's median within this factor of lockstep's (issue 30, item 5)
 
 
-def _one(mode: str, seed: int, out_dir: str, env: dict) -> dict:
+def _one(mode: str, seed: int, out_dir: str, env: dict, plant: str, model: str) -> dict:
     from piezo_stage.apps.experiments import merge_params, run_case
-    from piezo_stage.apps.scan import evaluate, own_model, plan
+    from piezo_stage.apps.scan import evaluate, plan
     from piezo_stage.io.run_bag import read_run
     from piezo_stage.paths import default_config
-    plant = default_config("sim_stage_effects.yaml")
-    model = own_model(plant, out_dir)
     case, = plan(PERIODS, (), (FREQ_HZ,), mode, learning=(True,))
     bag = os.path.join(out_dir, f"{mode}_{seed}")
     rc, failed = run_case(case, bag, default_config("stage.yaml"), plant, model, mode,
@@ -61,11 +59,15 @@ def bench_learning(draws: int = 5) -> int:
           f"on, {PERIODS} periods at 1 kHz, node set; each noise seed in lockstep and in "
           "real time; the 20th period's mean absolute error vs the true position (% of "
           "the range)")
+    from piezo_stage.apps.scan import own_model
     from piezo_stage.benchmarks.procs import progress_runs
+    from piezo_stage.paths import default_config
+    plant = default_config("sim_stage_effects.yaml")
+    model = own_model(plant, tmp)
     res = {"lockstep": [], "realtime": []}
     for seed in progress_runs(range(draws), "bench learning: seeds"):
         for mode in ("lockstep", "realtime"):
-            res[mode].append(_one(mode, seed, tmp, env))
+            res[mode].append(_one(mode, seed, tmp, env, plant, model))
         ls, rt = res["lockstep"][-1], res["realtime"][-1]
         print(f"  seed {seed}: lockstep x/y {ls['x']:.3f} / {ls['y']:.3f} %; real time "
               f"{rt['x']:.3f} / {rt['y']:.3f} % ({rt['missed']} missed ticks; "

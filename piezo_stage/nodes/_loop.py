@@ -129,8 +129,7 @@ class DriverState:
             return
         if values.get("mode") == "realtime" and not self.realtime:
             # the heap first, at normal priority: touching 54 MB takes ~54 ms of a core
-            # here, which at SCHED_FIFO no other set's loop on this host could preempt
-            # (a second set starting beside a running one held its driver 54 ms)
+            # here, which at SCHED_FIFO another set's loop on this host could not preempt
             reserved = reserve_heap(self.heap_bytes, self.node.get_logger())
             if reserved:
                 self.node.get_logger().info(
