@@ -1,7 +1,8 @@
 """A node whose stop hangs (the middleware's teardown once held a controller past the
 launcher's grace) prints every thread's stack and exits 1 within its watch: the real
 ``piezo_stage.nodes._signals`` in a real process, held in a sleep as a hung call
-would hold it."""
+would hold it. The middleware's part of a teardown is bounded apart: a hang there, even
+one that holds the GIL in native code, ends the process with the code of its stop."""
 
 import os
 import signal
@@ -58,3 +59,39 @@ raise SystemExit(130)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=10)
     assert p.returncode == 130 and "Timeout" not in err, err
+
+
+TEARDOWN = """
+import re, time
+import piezo_stage.nodes._signals as s
+s.set_phase("stopping", "/stage/probe")
+with s.bounded_teardown(130, 0.5):
+    {block}
+time.sleep(1.0)  # past the bound: the timers were cancelled with the block
+print("after", flush=True)
+"""
+
+
+def _teardown(block: str):
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, "-c", TEARDOWN.format(block=block)],
+                       capture_output=True, text=True, timeout=30)
+    return p, time.monotonic() - t0
+
+
+def test_a_middleware_teardown_that_hangs_holding_the_gil_ends_with_its_stop_code():
+    # a regular expression that backtracks for ever: native code holding the GIL, as
+    # rclpy's destroy_node does while Fast DDS hangs (no Python thread could run)
+    p, took = _teardown('re.match(r"(a+)+$", "a" * 40 + "b")')
+    assert p.returncode == 130, (p.returncode, p.stderr)
+    assert "after" not in p.stdout
+    lines = [ln for ln in p.stderr.splitlines() if "teardown did not end" in ln]
+    assert len(lines) == 1 and "/stage/probe" in lines[0] and "(130)" in lines[0], p.stderr
+    assert "Timeout" in p.stderr  # and the stacks, where it hung
+    assert took < 5.0, took
+
+
+def test_a_middleware_teardown_in_time_leaves_the_process_alone():
+    p, _ = _teardown("time.sleep(0.1)")
+    assert p.returncode == 0, p.stderr
+    assert "after" in p.stdout and "Timeout" not in p.stderr and not p.stderr.strip()

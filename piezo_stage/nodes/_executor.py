@@ -252,9 +252,15 @@ def run_node(factory, args=None) -> int:
         phase = signals.STATE.phase
         signals.set_phase("stopping")
         signals.watch()  # a teardown that hangs says where, and ends
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            if node is not None and hasattr(node, "close"):
+                node.close()  # the node's own first: the bag, the hardware
+        finally:
+            signum = signals.requested()
+            with signals.bounded_teardown(code if signum is None else 128 + signum):
+                if node is not None:
+                    node.destroy_node()
+                rclpy.try_shutdown()
     signum = signals.requested()
     if signum is None:
         return code

@@ -22,6 +22,17 @@ driver's includes its ramp), or of the start of its teardown when it ended by it
 prints every thread's stack (faulthandler) and exits 1: a hang says where it was, and
 ends before the launcher's grace runs out and it has to kill.
 
+The middleware's part of a teardown (the node's DDS entities and, with its last node,
+the participant) comes after the node's own (the bag finished, the hardware at its safe
+voltage and closed), under :func:`bounded_teardown`: it has ``MIDDLEWARE_TEARDOWN_S``,
+and if it has not ended by then the node prints the stacks and one line saying so, and
+exits with the code its stop had earned (130 for the launcher's SIGINT), not 1. Nothing
+of the node's run is lost there, and Fast DDS 2.14 has been seen to hang in that part
+(rclpy's ``destroy_node`` after a complete run, its peers exiting at the same moment;
+docs/realtime.md#stopping-a-run has the counts). The exit is a native timer's (``timer_create``
+with ``SIGEV_THREAD`` calling ``_exit``): a hang inside the middleware holds Python's
+GIL, so no Python thread or signal handler could act.
+
 Started by the launcher, a node begins with SIGINT and SIGTERM blocked (the launcher
 blocks them around the fork, and the mask survives exec): a signal sent before this
 module is imported waits, and is delivered the moment :func:`install` unblocks it. The
@@ -138,6 +149,72 @@ def requested() -> int | None:
 def count() -> int:
     """How many stop signals have come."""
     return STATE.count
+
+
+# -- the middleware's part of a teardown, bounded --------------------------------------
+MIDDLEWARE_TEARDOWN_S = 2.0  # it takes 10-100 ms when nothing hangs
+_SIGEV_THREAD, _CLOCK_MONOTONIC = 2, 1
+_KEEP: list = []  # what the native timers point at lives as long as they do
+
+
+def _native_timer(libc, function, value, seconds: float):
+    """A one-shot timer whose expiry calls ``function(value)`` on a thread of its own
+    (POSIX timer_create with SIGEV_THREAD): it runs while this thread holds the GIL."""
+    import ctypes
+
+    class SigEvent(ctypes.Structure):  # struct sigevent (Linux: 64 bytes)
+        _fields_ = [("value", ctypes.c_void_p), ("signo", ctypes.c_int),
+                    ("notify", ctypes.c_int), ("function", ctypes.c_void_p),
+                    ("attributes", ctypes.c_void_p), ("pad", ctypes.c_byte * 32)]
+
+    class TimeSpec(ctypes.Structure):
+        _fields_ = [("sec", ctypes.c_long), ("nsec", ctypes.c_long)]
+
+    ev = SigEvent(value=value, notify=_SIGEV_THREAD,
+                  function=ctypes.cast(function, ctypes.c_void_p).value)
+    timer = ctypes.c_void_p()
+    if libc.timer_create(_CLOCK_MONOTONIC, ctypes.byref(ev), ctypes.byref(timer)) != 0:
+        raise OSError(ctypes.get_errno(), "timer_create")
+    when = (TimeSpec(0, 0), TimeSpec(int(seconds), int(seconds % 1 * 1e9)))
+    if libc.timer_settime(timer, 0, ctypes.byref((TimeSpec * 2)(*when)), None) != 0:
+        libc.timer_delete(timer)
+        raise OSError(ctypes.get_errno(), "timer_settime")
+    _KEEP.append(ev)
+    return timer
+
+
+@contextmanager
+def bounded_teardown(code: int, seconds: float = MIDDLEWARE_TEARDOWN_S):
+    """The middleware's part of a teardown (see the module docstring): if the block has
+    not ended within ``seconds``, every thread's stack and one line go to stderr and the
+    process exits with ``code``. Without POSIX timers (not Linux) only the stop watch
+    (:func:`watch`) applies."""
+    timers, libc = [], None
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            text = (f"{_name()}: the middleware's teardown did not end within {seconds:g} s;"
+                    f" exited without it, with the code of its stop ({code})")
+            line = ctypes.create_string_buffer(text.replace("%", "%%").encode())
+            _KEEP.append(line)
+            faulthandler.dump_traceback_later(seconds, exit=False, file=sys.stderr)
+            timers.append(_native_timer(libc, libc.warnx, ctypes.addressof(line),
+                                        seconds + 0.05))
+            timers.append(_native_timer(libc, libc._exit, int(code) & 0xFF, seconds + 0.1))
+        except (OSError, AttributeError, ValueError):
+            for t in timers:
+                libc.timer_delete(t)
+            timers = []
+    try:
+        yield
+    finally:
+        for t in timers:
+            libc.timer_delete(t)
+        if timers:  # the stop watch again, for what is left (the interpreter's exit)
+            faulthandler.cancel_dump_traceback_later()
+            STATE.watching = False
+            watch()
 
 
 @contextmanager

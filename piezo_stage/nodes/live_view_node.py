@@ -98,10 +98,10 @@ class LiveView(Node):
             "url": self.url, "messages_sent": self.sent, "topics": len(self.channels),
             "watched": ", ".join(watched)}
 
-    def destroy_node(self):
-        """The WebSocket server stops, then the node goes."""
+    def close(self):
+        """The WebSocket server stops before the node goes (run_node calls this, then
+        destroys the node)."""
         self.server.stop()
-        super().destroy_node()
 
 
 def main(args=None):

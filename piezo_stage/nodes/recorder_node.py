@@ -102,12 +102,12 @@ class Recorder(Node):
         """What a stop left (run_node prints it)."""
         return f"bag {self.bag.path} finished, {sum(self.bag.counts.values())} messages"
 
-    def destroy_node(self):
-        """The bag is finished (its summary and index written), then the node goes."""
+    def close(self):
+        """The bag is finished (its summary and index written) before the node goes
+        (run_node calls this, then destroys the node)."""
         self.bag.finish()
         # the ROS context may already be shut down here: plain stderr, not the logger
         sys.stderr.write(f"[recorder] bag complete: {dict(self.bag.counts)}\n")
-        super().destroy_node()
 
 
 def main(args=None):

@@ -221,10 +221,10 @@ class StageDriver(Node):
         """What a stop left the stage at (run_node prints it)."""
         return f"{self.loop.summary()}; the backend then ramps to safe and closes"
 
-    def destroy_node(self):
-        """The backend ramps to the safe voltage and closes, then the node goes."""
+    def close(self):
+        """The backend ramps to the safe voltage and closes before the node goes
+        (run_node calls this, then destroys the node)."""
         self.backend.close(self.sup.p.safe_V, self.sup.p.ramp_V_per_s)
-        super().destroy_node()
 
 
 def main(args=None):
