@@ -114,3 +114,34 @@ def test_modes_a_backend_cannot_run(backend, mode, sim_time):
     with pytest.raises(DataError):
         check_mode(backend, mode, sim_time)
     check_mode("sim", "lockstep", sim_time)
+
+
+def test_real_time_a_stream_of_late_commands_faults_like_none():
+    """A controller that falls behind (its commands arrive 30 ticks after the tick they
+    are stamped for, as a restarted one once did for 240 ms) is followed by no one: only
+    commands on time keep the loop fresh, so it faults within stale_timeout_s of the
+    last one on time, and says the late ones still came."""
+    s = loop(lockstep=False, stale_s=0.05, confirm_ticks=10)
+    ms = 1_000_000
+
+    def run(j0, n, lag, v):
+        for j in range(j0, j0 + n):
+            k = j - lag if lag > 0 else j + 5  # late: for a tick already run
+            if k >= 0:
+                s.command(s.stamp(k), dict(v) if v else dict(s.v), s.stamp(j))
+            cmd, on_time = s.sched.due(j, count_held=s.sup.state in ("approaching",
+                                                                     "armed"))
+            s.step(j, cmd, on_time, s.stamp(j))
+        return j0 + n
+
+    j = run(0, 20, 0, None)  # holding the applied voltage, on time: the loop closes
+    assert s.arm(True)[0]
+    j = run(j, 100, 0, {"x": 5.0, "y": 5.0})
+    assert s.sup.state == "approaching" and s.v == {"x": 5.0, "y": 5.0}
+    last_on_time = s.stamp(j - 1)
+    late_before = s.sched.late
+    j = run(j, 100, 30, {"x": 5.0, "y": 5.0})
+    assert s.sched.late - late_before == 100
+    faulted = [ns for state, _, ns in s.changes if state == "faulted"]
+    assert len(faulted) == 1 and 0.05 < (faulted[0] - last_on_time) / ms <= 52
+    assert "none on time" in s.sup.reason and "arrived after their tick" in s.sup.reason

@@ -193,7 +193,7 @@ class ArmingParams:
     """The arming supervisor's parameters (safe voltage, ramps, timeouts, tolerances)."""
     safe_V: float = 0.0              # where disarmed and faulted outputs go
     ramp_V_per_s: float = 500.0      # how fast they go there
-    stale_s: float = 0.05            # armed: no fresh command for this long is a fault
+    stale_s: float = 0.05            # armed: no command on time for this long is a fault
     confirm_ticks: int = 20          # consecutive ticks of evidence that the loop closed
     tolerance_V: float = 0.01        # |command - applied| that counts as "holding"
     auto_arm: bool = False           # arm at start, and re-arm after a stale fault
@@ -210,8 +210,8 @@ class ArmingParams:
 PARAMETERS = (
     ("safe_voltage_V", "safe_V", "disarmed/faulted output [V]", (-200.0, 200.0)),
     ("safe_ramp_V_per_s", "ramp_V_per_s", "ramp rate to the safe voltage [V/s]", (1.0, 1e6)),
-    ("stale_timeout_s", "stale_s", "real time: no valid command for this long faults "
-     "the stage [s]", (0.001, 10.0)),
+    ("stale_timeout_s", "stale_s", "real time: no valid command arriving before its "
+     "tick for this long faults the stage [s]", (0.001, 10.0)),
     ("arm_confirm_ticks", "confirm_ticks", "ticks of a closed loop before arming",
      (1, 100000)),
     ("arm_tolerance_V", "tolerance_V", "|command - applied| that counts as holding [V]",
@@ -242,7 +242,8 @@ class ArmingSupervisor:
         self.link = "no command received yet"
         self.arm_requested = params.auto_arm
         self.estop = False
-        self.last_fresh_ns = None       # receipt time of the last valid command
+        self.last_fresh_ns = None       # receipt time of the last valid command on time
+        self.late_since_fresh = 0       # valid commands after their tick since then
         self.tracking = False           # the feedforward reports its trajectory clock runs
         self.on_change = on_change or (lambda *a: None)
         self.counts = {"faults": 0, "arms": 0}
@@ -286,9 +287,15 @@ class ArmingSupervisor:
             self._set(APPROACHING, "approaching a new goal", now_ns)
 
     # per tick --------------------------------------------------------------------
-    def note_command(self, recv_ns: int) -> None:
-        """A valid (finite) command arrived: the controller is alive."""
-        self.last_fresh_ns = recv_ns
+    def note_command(self, recv_ns: int, on_time: bool = True) -> None:
+        """A valid (finite) command arrived. Only one ``on_time`` (before the tick it
+        is stamped for) keeps the loop fresh: a stream of late ones is a loop that no
+        longer keeps up (a controller starved or restarted behind), and following it
+        would put the stage that far behind its path."""
+        if on_time:
+            self.last_fresh_ns, self.late_since_fresh = recv_ns, 0
+        else:
+            self.late_since_fresh += 1
 
     def tick(self, stamp_ns: int, now_ns: int, cmd: dict | None, on_time: bool, link: str = "",
              periods: int = 1) -> dict:
@@ -316,8 +323,11 @@ class ArmingSupervisor:
                 return self._toward_safe()  # the enable takes effect at enable_ns
             age = None if self.last_fresh_ns is None else (now_ns - self.last_fresh_ns) * 1e-9
             if age is None or age > self.p.stale_s:
-                self.fault(f"stale commands: none for {age if age is not None else 0:.3f} s "
-                           f"(> stale_timeout_s {self.p.stale_s:g})", stamp_ns)
+                late = (f"; {self.late_since_fresh} arrived after their tick"
+                        if self.late_since_fresh else "")
+                self.fault(f"stale commands: none on time for "
+                           f"{age if age is not None else 0:.3f} s "
+                           f"(> stale_timeout_s {self.p.stale_s:g}{late})", stamp_ns)
                 return self._toward_safe()
             return dict(cmd) if cmd is not None else dict(self.v)
         target = self._toward_safe()
@@ -390,8 +400,9 @@ class CommandSchedule:
         """The sample tick a command stamped ``ns`` is for."""
         return (int(stamp_ns) - self.t0 + self.dt // 2) // self.dt
 
-    def add(self, stamp_ns: int, v: dict, recv_ns: int, last_tick: int) -> None:
-        """Keep a command for its tick (late ones are counted, not kept)."""
+    def add(self, stamp_ns: int, v: dict, recv_ns: int, last_tick: int) -> bool:
+        """Keep a command for its tick (late ones are counted, and held when newer than
+        what is held). -> whether it arrived before its tick."""
         j = self.tick_of(stamp_ns)
         self.received += 1
         self.arrival_lag.add((int(recv_ns) - (int(stamp_ns) - self.lookahead)) * 1e-9)
@@ -399,8 +410,9 @@ class CommandSchedule:
             self.late += 1
             if self.held is None or j > self.held[0]:
                 self.held = (j, dict(v))  # late but newer than what is held: hold it
-            return
+            return False
         self.pending[j] = dict(v)
+        return True
 
     def due(self, j: int, count_held: bool = True) -> tuple[dict | None, bool]:
         """-> (voltages or None, exactly on time for tick j). With ``count_held`` (the

@@ -5,7 +5,8 @@ Samples sit on the stage's own sample clock, ``t0 + j * dt``: in lockstep t0 = 0
 sample is taken per command stamped for the next one; in real time t0 is the ROS time of
 the first tick and a tick serviced more than a period late skips the missed samples (the
 backend holds its voltage over them, the stamps show the gap). Commands are applied at
-the tick they are stamped for; late ones are counted and the last command is held. The
+the tick they are stamped for; late ones are counted, the newest command is held, and
+only commands on time keep the loop fresh (a stream of late ones faults it). The
 arming supervisor (core/arming.py) decides what is applied: the safe voltage until the
 loop is proven closed, then commands, and a ramp to the safe voltage on a fault, an
 e-stop or a shutdown. Everything is clamped to the voltage limits and the slew limit.
@@ -165,8 +166,7 @@ class SampleLoop:
         if abs(ns - recv_ns) > COMMAND_WINDOW_NS:  # a stray stamp: never scheduled
             self.stats["unexpected_stamp"] += 1
             return False
-        self.sup.note_command(recv_ns)
-        self.sched.add(ns, v, recv_ns, self.j)
+        self.sup.note_command(recv_ns, self.sched.add(ns, v, recv_ns, self.j))
         self.stats["late_commands"] = self.sched.late
         return False
 
