@@ -73,10 +73,10 @@ for k in range(5):
     p = JointTrajectoryPoint(); p.positions = [20e-6 + k * 1e-6, 20e-6]
     p.time_from_start.nanosec = k * 1_000_000; m.points.append(p)
 pub.publish(m)
-t0 = time.monotonic()
-while time.monotonic() - t0 < 1.5:
-    rclpy.spin_once(n, timeout_sec=0.05)
+from rclpy.duration import Duration
+acked = pub.wait_for_all_acked(Duration(seconds=30))  # sent once: stay until it is had
 n.destroy_node(); rclpy.try_shutdown()
+sys.exit(0 if acked else 1)
 """
 
 
