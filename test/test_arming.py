@@ -153,8 +153,8 @@ def test_command_schedule_applies_at_the_stamped_tick_and_counts_late():
     assert c.due(6) == (None, False)          # nothing for tick 6 yet
     assert c.due(7) == ({"x": 7.0}, True)
     assert c.due(9) == ({"x": 8.0}, False)    # none for 9: the newest earlier one, held
-    c.add(1000 + 9 * MS, {"x": 9.0}, 1000 + 10 * MS, last_tick=9)  # after its tick
-    assert c.late == 1 and c.due(10) == ({"x": 9.0}, False)
+    c.add(1000 + 9 * MS, {"x": 9.0}, 1000 + 10 * MS, last_tick=9)  # after its tick:
+    assert c.late == 1 and c.due(10) == ({"x": 8.0}, False)  # counted, dropped
     assert c.arrival_lag.percentile(50) == pytest.approx(1e-3, abs=2e-5)  # lags 1, 0, 6 ms
 
 

@@ -449,11 +449,12 @@ def test_launch_file_and_launcher_share_one_node_list_and_parameters(tmp_path):
     assert la.node_params("stage_driver")["use_sim_time"] is True
 
 
-def test_recorder_takes_a_latched_trajectory_sent_before_it_started_once(tmp_path, env):
-    """A trajectory a latched publisher sent before the recorder came up is in the bag
-    (the recorder was volatile on /stage/trajectory and lost it), once, although it
-    then arrives both by the latched fetch and live; a later one from a default-QoS
-    publisher is recorded too."""
+def test_the_bag_holds_the_trajectories_the_stage_accepted(tmp_path, env):
+    """The feedforward alone subscribes to /stage/trajectory and republishes what it
+    accepted, byte for byte and latched, on /stage/trajectory/accepted, which the
+    recorder takes: one accepted before the recorder started is in the bag; one sent
+    once by a default-QoS publisher as soon as its one subscriber matched reached the
+    stage and the bag; one refused (out of range) is in neither, and said."""
     from rclpy.qos import QoSProfile
     from trajectory_msgs.msg import JointTrajectory
 
@@ -462,29 +463,44 @@ def test_recorder_takes_a_latched_trajectory_sent_before_it_started_once(tmp_pat
     from piezo_stage.nodes._common import QOS_LATCHED
     probe = Probe(int(env["ROS_DOMAIN_ID"]))
     t = np.arange(0, 0.1, 1e-3)
-    latched = probe.node.create_publisher(JointTrajectory, "/stage/trajectory", QOS_LATCHED)
-    latched.publish(A.trajectory_msg(t, {"x": np.full(t.size, 5.0), "y": np.full(t.size, 5.0)}))
-    bag = tmp_path / "early"
-    rec = subprocess.Popen([sys.executable, "-m", "piezo_stage.nodes.recorder_node",
-                            "--ros-args", "-r", "__ns:=/stage", "-p", f"output:={bag}"],
-                           env=env)
+    node = lambda name, *extra: subprocess.Popen(  # noqa: E731
+        [sys.executable, "-m", f"piezo_stage.nodes.{name}_node", "--ros-args", "-r",
+         "__ns:=/stage", *extra], env=env, stderr=subprocess.PIPE, text=True)
+    ff = node("feedforward")
+    bag = tmp_path / "accepted"
+    rec = None
     try:
+        latched = probe.node.create_publisher(JointTrajectory, "/stage/trajectory",
+                                              QOS_LATCHED)
         assert probe.wait(lambda: latched.get_subscription_count() >= 1, 30)
-        probe.spin(2.0)
+        latched.publish(A.trajectory_msg(t, {"x": np.full(t.size, 5.0),
+                                             "y": np.full(t.size, 5.0)}))
+        probe.spin(1.0)
+        rec = node("recorder", "-p", f"output:={bag}")
+        probe.spin(3.0)  # the recorder up, its latched match with the feedforward made
         plain = probe.node.create_publisher(JointTrajectory, "/stage/trajectory",
                                             QoSProfile(depth=10))
         assert probe.wait(lambda: plain.get_subscription_count() >= 1, 10)
-        probe.spin(0.5)
         plain.publish(A.trajectory_msg(t, {"x": np.full(t.size, 7.0),
                                            "y": np.full(t.size, 7.0)}))
+        plain.publish(A.trajectory_msg(t, {"x": np.full(t.size, 500.0),
+                                           "y": np.full(t.size, 7.0)}))
+        from rclpy.duration import Duration
+        assert plain.wait_for_all_acked(Duration(seconds=10))
         probe.spin(1.5)
+        assert plain.get_subscription_count() == 1  # the feedforward alone
     finally:
         probe.close()
-        rec.send_signal(signal.SIGINT)
-        assert rec.wait(30) == 130
+        for p in (rec, ff):
+            if p is not None:
+                p.send_signal(signal.SIGINT)
+        ff_err = ff.communicate(timeout=30)[1]
+        assert rec is not None and rec.wait(30) == 130
     got = [deserialize(data, "trajectory_msgs/msg/JointTrajectory").points[0].positions[0]
-           for _, data in topic_data(str(bag), "/stage/trajectory")]
+           for _, data in topic_data(str(bag), "/stage/trajectory/accepted")]
     assert [round(p * 1e6, 6) for p in got] == [5.0, 7.0]
+    assert not topic_data(str(bag), "/stage/trajectory")
+    assert "trajectory rejected" in ff_err and "500" in ff_err, ff_err[-2000:]
 
 
 def test_learning_feedforward_through_the_node_set(tmp_path, env):

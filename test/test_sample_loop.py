@@ -118,9 +118,10 @@ def test_modes_a_backend_cannot_run(backend, mode, sim_time):
 
 def test_real_time_a_stream_of_late_commands_faults_like_none():
     """A controller that falls behind (its commands arrive 30 ticks after the tick they
-    are stamped for, as a restarted one once did for 240 ms) is followed by no one: only
-    commands on time keep the loop fresh, so it faults within stale_timeout_s of the
-    last one on time, and says the late ones still came."""
+    are stamped for, as a restarted one once did for 240 ms) is followed by no one: its
+    late commands are dropped (the stage holds the last one on time) and only commands
+    on time keep the loop fresh, so it faults within stale_timeout_s of the last one on
+    time, and says how far behind the late ones came."""
     s = loop(lockstep=False, stale_s=0.05, confirm_ticks=10)
     ms = 1_000_000
 
@@ -140,8 +141,11 @@ def test_real_time_a_stream_of_late_commands_faults_like_none():
     assert s.sup.state == "approaching" and s.v == {"x": 5.0, "y": 5.0}
     last_on_time = s.stamp(j - 1)
     late_before = s.sched.late
-    j = run(j, 100, 30, {"x": 5.0, "y": 5.0})
+    j = run(j, 5, 30, {"x": 9.0, "y": 9.0})  # late, and different: never applied
+    assert s.v == {"x": 5.0, "y": 5.0}
+    j = run(j, 95, 30, {"x": 5.0, "y": 5.0})
     assert s.sched.late - late_before == 100
     faulted = [ns for state, _, ns in s.changes if state == "faulted"]
     assert len(faulted) == 1 and 0.05 < (faulted[0] - last_on_time) / ms <= 52
-    assert "none on time" in s.sup.reason and "arrived after their tick" in s.sup.reason
+    assert s.sup.reason.startswith("late commands: 30 ms behind for 5"), s.sup.reason
+    assert "arrived after their tick, dropped" in s.sup.reason

@@ -31,7 +31,7 @@ def tracking_from_bag(bag, t_from_s):
 
 
 def run_demo(args):
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, run_set
     from piezo_stage.paths import default_config
     bag = args.out or new_bag_dir("bags")
     rate = 1000.0
@@ -50,9 +50,9 @@ def run_demo(args):
           f"of the paper's 10 Hz trajectory ({steps} steps at {rate:g} Hz)", flush=True)
     launch = Launch(default_config("stage.yaml"), record=bag, namespace=args.namespace,
                     overrides=overrides)
-    rc = launch.run(duration=600.0)
-    if rc != 0 or not os.path.isdir(bag):
-        sys.stderr.write("piezo-stage demo: the node set failed\n")
+    run_set(launch, "demo", duration=600.0)  # RunError: exit 1; a stop: 128 + signal
+    if not os.path.isdir(bag):
+        sys.stderr.write("piezo-stage demo: the node set wrote no bag\n")
         return 1
     t, d, w, models = tracking_from_bag(bag, args.excite + 0.2 + 0.1)
     if d.size == 0:

@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from piezo_stage.core.errors import ConfigError, DataError
+from piezo_stage.core.arming import ENABLED
+from piezo_stage.core.errors import ConfigError, DataError, RunError
 from piezo_stage.io.files import atomic_write
 
 EXPERIMENTS = ("decoupling", "tracking", "amplitude", "noise")
@@ -44,6 +45,7 @@ EVAL_CYCLES = 2
 EVAL_MIN_S = 0.5   # tracking: at least this long (40 Hz: 20 cycles, not 2 = 50 samples)
 LEAD_S, TAIL_S = 0.2, 0.3  # trajectory holds its first point, then its last
 LOCKSTEP_SLACK_S = 0.3  # a lockstep run's steps beyond its trajectory and approach
+REALTIME_SLACK_S = 0.7  # real time: more (the feedforward's phase reaches the driver late)
 NODES = ("stage_driver", "feedforward", "controller", "trajectory")
 
 
@@ -158,7 +160,7 @@ def lockstep_margin_s(case, config, extra=None) -> float:
     from the stage at rest (0 um) to the first point, at the feedforward's approach
     speed and acceleration, and LOCKSTEP_SLACK_S for arming (a few samples). A stage
     resting elsewhere needs a longer approach: its run then ends before the trajectory
-    does and the evaluation says so (DataError), nothing is judged on a short run."""
+    does and the evaluation says so (RunError), nothing is judged on a short run."""
     from piezo_stage.core.arming import Approach
     from piezo_stage.core.feedforward import PARAMETERS
     from piezo_stage.launch.launcher import read_parameters
@@ -172,49 +174,67 @@ def lockstep_margin_s(case, config, extra=None) -> float:
 
 
 def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=None,
-             namespace="/stage", env=None, exclusive=True):
-    """Run the node set for one case into ``bag``; returns the launcher's exit code and
-    what failed. ``exclusive``: look for a set already running in the namespace first
-    (about 2 s on a quiet domain); an experiment looks before its first case only, its
-    later cases follow its own sets, each stopped before the next starts."""
-    from piezo_stage.launch.launcher import Launch
+             namespace="/stage", env=None, exclusive=True) -> None:
+    """Run the node set for one case into ``bag``. RunError (exit 1) when the set fails;
+    KeyboardInterrupt when the command is stopped. ``exclusive``: look for a set already
+    running in the namespace first (about 2 s on a quiet domain); an experiment looks
+    before its first case only, its later cases follow its own sets, each stopped before
+    the next starts.
+
+    The driver counts the run's samples from the one at which the stage first enabled
+    (``max_steps_from_arming``): the approach, the trajectory and a little slack, in both
+    modes, however long discovery and arming took before it."""
+    from piezo_stage.launch.launcher import Launch, run_set
     os.makedirs(os.path.dirname(os.path.abspath(bag)) or ".", exist_ok=True)
     csv = os.path.abspath(bag) + ".trajectory.csv"
     _write_csv(csv, case.t, case.w)
-    # + arming and the approach: in real time the set's discovery can take 3 s of the
-    # driver's counted steps on a 2-core host (2.6 s seen), lockstep counts none
-    total_s = float(case.t[-1]) + (lockstep_margin_s(case, config, extra)
-                                   if mode == "lockstep" else 4.0)
+    total_s = float(case.t[-1]) + lockstep_margin_s(case, config, extra) + (
+        0.0 if mode == "lockstep" else REALTIME_SLACK_S)
     drv = {"mode": mode}
     if plant:
         drv["plant_config"] = os.path.abspath(plant)
-    # the driver counts its own samples (in real time from when its clock starts, once
-    # the set listens), so both modes end right after the trajectory and its tail
-    drv.update(max_steps=int(total_s * control_rate(config, extra)), exit_after_max_steps=True)
+    drv.update(max_steps=int(total_s * control_rate(config, extra)), exit_after_max_steps=True,
+               max_steps_from_arming=True)
     o = merge_params(extra or {}, {"stage_driver": drv, "trajectory": {"kind": "csv",
                                                                  "csv_path": csv}},
                {"feedforward": {"model_file": os.path.abspath(model)}} if model else {},
                case.params)
     launch = Launch(config, record=bag, overrides=o, namespace=namespace, env=env,
                     nodes=list(NODES), exclusive=exclusive)
-    rc = launch.run(duration=900.0)
-    return rc, launch.failed
+    run_set(launch, case.name, duration=900.0)
+
+
+def enabled_span(states) -> tuple[int, float] | None:
+    """(from, to) stamps [ns] of the last stretch in which the driver applied commands:
+    from the enable that began it (the approach's start, stamped in sample time by the
+    driver itself) to the next state that is not enabled (or the end). None: the stage
+    never enabled. The 'armed' stamp is not used: it is when the driver heard the
+    feedforward's phase, which in lockstep can be a second of samples after the
+    trajectory clock started."""
+    seq = sorted(states)
+    start = None
+    for i, (since, st) in enumerate(seq):
+        if st in ENABLED and (i == 0 or seq[i - 1][1] not in ENABLED):
+            start = i
+    if start is None:
+        return None
+    end = next((since for since, st in seq[start + 1:] if st not in ENABLED), float("inf"))
+    return seq[start][0], end
 
 
 def _window(case, run):
-    """Stamps of the evaluation window: the last eval_s of the motion."""
+    """Stamps of the evaluation window: the last eval_s of the motion, within the last
+    stretch the driver applied commands (at the end of a real-time run it disarms and
+    the feedforward then holds where the stage is, which moves with the noise). A run
+    that cannot give it is a RunError: the run failed, not its input."""
     ks = sorted(k for k in run.desired_um if k in run.true_um)
-    # only while armed: at the end of a real-time run the driver disarms and the
-    # feedforward then holds where the stage is (which moves with the noise)
-    armed = [(since, state) for since, state in sorted(run.states)]
-    starts = [i for i, (_, st) in enumerate(armed) if st == "armed"]
-    if starts:
-        i = starts[-1]
-        a0 = armed[i][0]
-        a1 = armed[i + 1][0] if i + 1 < len(armed) else float("inf")
-        ks = [k for k in ks if a0 <= k < a1]
+    span = enabled_span(run.states)
+    if span is None:
+        raise RunError(f"{case.name}: the set never armed (states: "
+                       f"{', '.join(st for _, st in sorted(run.states)) or 'none'})")
+    ks = [k for k in ks if span[0] <= k < span[1]]
     if len(ks) < 10:
-        raise DataError("no tracking samples in the bag")
+        raise RunError(f"{case.name}: no tracking samples in the bag")
     i = "xy".index(case.moving) if case.moving else None
     d = np.array([run.desired_um[k] for k in ks])
     if i is None:
@@ -222,11 +242,12 @@ def _window(case, run):
     else:
         moved = np.nonzero(np.abs(np.diff(d[:, i])) > 1e-9)[0]
         if moved.size == 0 or ks[moved[-1] + 1] > ks[-1] - int(0.5 * TAIL_S * 1e9):
-            raise DataError(f"{case.name}: the run ended before the trajectory did")
+            raise RunError(f"{case.name}: the run ended before the trajectory did")
         end = ks[moved[-1] + 1]
     start = end - int(round(case.eval_s * 1e9))
     if start < ks[0]:
-        raise DataError(f"{case.name}: the run is shorter than its evaluation window")
+        raise RunError(f"{case.name}: the run is shorter than its evaluation window "
+                       f"({(end - ks[0]) * 1e-9:.3f} s of {case.eval_s:g} s armed)")
     return [k for k in ks if start < k <= end]
 
 
@@ -309,11 +330,8 @@ def run_experiment(name, out_dir, config, plant=None, model=None, mode="lockstep
                 c if c.isalnum() else "_" for c in case.name).strip("_"))
             if os.path.exists(bag):
                 shutil.rmtree(bag)
-            rc, failed = run_case(case, bag, config, plant, model, mode, extra, namespace,
-                                  env, exclusive=k == 0)
-            if rc != 0:
-                raise RuntimeError(f"{case.name}: the node set failed: "
-                                   f"{'; '.join(failed) or f'exit {rc}'}")
+            run_case(case, bag, config, plant, model, mode, extra, namespace, env,
+                     exclusive=k == 0)
             ev = evaluate(case, bag)
             evals.append((case, ev))
             for (a, ref), fig in ev["axes"].items():
@@ -375,19 +393,16 @@ def relay_case(setpoint_um: float = 30.0, duration_s: float = 3.0, amplitude_V: 
 
 def relay_points(bag, amplitude_V: float, settle_s: float = 1.0) -> dict:
     """Each axis's ultimate point (core.tuning.relay_point) from a relay run's bag: the
-    samples of the first armed stretch from ``settle_s`` after arming to the end of the
+    samples of the enabled stretch from ``settle_s`` after its start to the end of the
     held trajectory, on the driver's sample grid (a missed tick holds its voltage and
     its position is interpolated); the latency is the driver's look-ahead."""
     from piezo_stage.core.tuning import relay_point
     from piezo_stage.io.run_bag import read_run
     run = read_run(bag)
-    states = sorted(run.states)
-    starts = [i for i, (_, st) in enumerate(states) if st == "armed"]
-    if not starts:
-        raise DataError("relay run: the set never armed")
-    i = starts[0]
-    a0 = states[i][0] + int(settle_s * 1e9)
-    a1 = states[i + 1][0] if i + 1 < len(states) else float("inf")
+    span = enabled_span(run.states)
+    if span is None:
+        raise RunError("relay run: the set never armed")
+    a0, a1 = span[0] + int(settle_s * 1e9), span[1]
     ref = [k for k in run.desired_um if a0 <= k < a1]
     if not ref:
         raise DataError("relay run: no samples after the settling time")
@@ -411,11 +426,9 @@ def run_relay(bag, config, plant=None, model=None, mode="lockstep", setpoint_um=
               duration_s=3.0, amplitude_V=2.0, hysteresis_um=0.0, settle_s=1.0, extra=None,
               namespace="/stage", env=None) -> dict:
     """Run the relay experiment through the node set into ``bag``; each axis's
-    ultimate point. RuntimeError when the node set fails."""
+    ultimate point. RunError when the node set fails."""
     if not settle_s + 0.5 < duration_s:
         raise ConfigError("relay: the duration must exceed the settling time by 0.5 s")
     case = relay_case(setpoint_um, duration_s, amplitude_V, hysteresis_um)
-    rc, failed = run_case(case, bag, config, plant, model, mode, extra, namespace, env)
-    if rc != 0:
-        raise RuntimeError(f"the relay run failed: {'; '.join(failed) or f'exit {rc}'}")
+    run_case(case, bag, config, plant, model, mode, extra, namespace, env)
     return relay_points(bag, amplitude_V, settle_s)

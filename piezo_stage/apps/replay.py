@@ -44,7 +44,8 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) 
             if topic not in pubs:
                 name = topic if not namespace else namespace.rstrip("/") + "/" + \
                     topic.rsplit("/", 1)[-1]
-                qos = QOS_LATCHED if topic.endswith("/trajectory") else QOS_DATA
+                qos = QOS_LATCHED if topic.endswith(("/trajectory", "/accepted")) \
+                    else QOS_DATA
                 pubs[topic] = node.create_publisher(msg_class(msgtype), name, qos)
         clock = node.create_publisher(Clock, "/clock", 10)
         next_clock = None

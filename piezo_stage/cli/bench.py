@@ -15,10 +15,28 @@ def add_arguments(s):
     s.add_argument("--draws", type=number(1, 100, integer=True), default=5, metavar="N",
                    help="learning: plant noise seeds, each run in lockstep and real time")
     s.add_argument("--samples", type=number(1000, 10**9, integer=True), default=2_000_000)
+    s.add_argument("--runs", type=number(1, 1000, integer=True), default=10, metavar="N",
+                   help="experiments: runs of each kind, with and without --model")
+    s.add_argument("--kinds", type=_kinds, default=None, metavar="K1,K2",
+                   help="experiments: which (default tracking,noise,amplitude,"
+                   "decoupling,scan)")
     s.add_argument("--trials", type=number(1, 10000, integer=True), default=108, metavar="N",
                    help="signals: processes to start and signal (each kind in turn)")
 
 
+def _kinds(text):
+    import argparse
+
+    from piezo_stage.benchmarks.experiments import KINDS
+    out = tuple(x.strip() for x in text.split(","))
+    if not out or any(k not in KINDS for k in out):
+        raise argparse.ArgumentTypeError(f"{text!r}: use {', '.join(KINDS)}")
+    return out
+
+
 def main(args):
+    if args.kinds is None:
+        from piezo_stage.benchmarks.experiments import KINDS
+        args.kinds = KINDS
     from piezo_stage import benchmarks
     return benchmarks.main(args)

@@ -73,9 +73,10 @@ def identify_first(out_dir, config, plant, mode, extra, namespace):
     """No model given: the identifier identifies one through the node set (the demo's
     excitation) and it is written to out_dir/identified_model.yaml."""
     from piezo_stage.apps.experiments import NODES, merge_params
+    from piezo_stage.core.errors import RunError
     from piezo_stage.io.bag import deserialize, iter_messages
     from piezo_stage.io.files import atomic_write
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, run_set
     bag = os.path.join(out_dir, "identification")
     drv = {"mode": mode}
     if plant:
@@ -88,15 +89,13 @@ def identify_first(out_dir, config, plant, mode, extra, namespace):
                              "feedforward": {"model_required_after_s": 4.0}})
     launch = Launch(config, record=bag, overrides=o, namespace=namespace,
                     nodes=list(NODES) + ["identifier"])
-    rc = launch.run(duration=7.0 if mode == "realtime" else 900.0)
-    if rc != 0:
-        raise RuntimeError(f"identification run failed: {'; '.join(launch.failed)}")
+    run_set(launch, "identification run", duration=7.0 if mode == "realtime" else 900.0)
     text = None
     for topic, msgtype, _, data in iter_messages(bag, topics=None):
         if topic.endswith("/model"):
             text = deserialize(data, msgtype).data
     if text is None:
-        raise RuntimeError("identification run: the identifier published no model")
+        raise RunError("identification run: the identifier published no model")
     path = os.path.join(out_dir, "identified_model.yaml")
     with atomic_write(path) as fh:
         fh.write(text)

@@ -5,6 +5,9 @@ from __future__ import annotations
 from piezo_stage.cli._common import number
 
 HELP = "play a voltage waveform (excite or invert CSV) on a stage and record it"
+DEVICE_FORMS = {"pi": "tcp:HOST[:PORT], serial:DEVICE[:BAUD] or usb:SERIAL:PID",
+                "nv200": "tcp:HOST[:PORT],tcp:HOST[:PORT] for x and y",
+                "daq": "the device name, e.g. Dev1"}
 
 
 def add_arguments(s):
@@ -44,6 +47,10 @@ def main(args):
     if len(rec) < 2:
         raise DataError(f"{args.inp}: a waveform needs at least two samples")
     params = param_overrides([args.params]).get("stage_driver", {}) if args.params else {}
+    given = {"daq": "ao_channels", "pi": "pi_address", "nv200": "nv200_addresses"}
+    if args.backend in given and not args.device and given[args.backend] not in params:
+        raise DataError(f"--backend {args.backend} needs --device (which controller: "
+                        f"{DEVICE_FORMS[args.backend]}), or {given[args.backend]} in --params")
     if args.device:
         if args.backend == "daq":
             for key, default in (("ao_channels", ["Dev1/ao0", "Dev1/ao1"]),
@@ -69,6 +76,7 @@ def main(args):
 
         from piezo_stage.io.bag import write_record_bag
         parent = os.path.dirname(os.path.abspath(args.out))
+        os.makedirs(parent, exist_ok=True)  # --out DIR/run1: DIR is made
         tmp = tempfile.mkdtemp(prefix=".play-", dir=parent)
         try:
             write_record_bag(os.path.join(tmp, "bag"), out, metadata={

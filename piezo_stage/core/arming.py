@@ -244,6 +244,7 @@ class ArmingSupervisor:
         self.estop = False
         self.last_fresh_ns = None       # receipt time of the last valid command on time
         self.late_since_fresh = 0       # valid commands after their tick since then
+        self.late_lag_ns = 0            # how far behind their tick the latest of them came
         self.tracking = False           # the feedforward reports its trajectory clock runs
         self.on_change = on_change or (lambda *a: None)
         self.counts = {"faults": 0, "arms": 0}
@@ -287,15 +288,17 @@ class ArmingSupervisor:
             self._set(APPROACHING, "approaching a new goal", now_ns)
 
     # per tick --------------------------------------------------------------------
-    def note_command(self, recv_ns: int, on_time: bool = True) -> None:
-        """A valid (finite) command arrived. Only one ``on_time`` (before the tick it
-        is stamped for) keeps the loop fresh: a stream of late ones is a loop that no
-        longer keeps up (a controller starved or restarted behind), and following it
-        would put the stage that far behind its path."""
+    def note_command(self, recv_ns: int, on_time: bool = True, lag_ns: int = 0) -> None:
+        """A valid (finite) command arrived, ``lag_ns`` after the tick it is stamped
+        for when late. Only one ``on_time`` (before that tick) keeps the loop fresh: a
+        stream of late ones is a loop that no longer keeps up (a controller starved or
+        restarted behind), and following it would put the stage that far behind its
+        path; the schedule drops them."""
         if on_time:
             self.last_fresh_ns, self.late_since_fresh = recv_ns, 0
         else:
             self.late_since_fresh += 1
+            self.late_lag_ns = int(lag_ns)
 
     def tick(self, stamp_ns: int, now_ns: int, cmd: dict | None, on_time: bool, link: str = "",
              periods: int = 1) -> dict:
@@ -323,11 +326,15 @@ class ArmingSupervisor:
                 return self._toward_safe()  # the enable takes effect at enable_ns
             age = None if self.last_fresh_ns is None else (now_ns - self.last_fresh_ns) * 1e-9
             if age is None or age > self.p.stale_s:
-                late = (f"; {self.late_since_fresh} arrived after their tick"
-                        if self.late_since_fresh else "")
-                self.fault(f"stale commands: none on time for "
-                           f"{age if age is not None else 0:.3f} s "
-                           f"(> stale_timeout_s {self.p.stale_s:g}{late})", stamp_ns)
+                age = age if age is not None else 0.0
+                if self.late_since_fresh:
+                    self.fault(f"late commands: {self.late_lag_ns * 1e-6:.0f} ms behind for "
+                               f"{age * 1e3:.0f} ms (> stale_timeout_s {self.p.stale_s:g}; "
+                               f"{self.late_since_fresh} arrived after their tick, "
+                               "dropped)", stamp_ns)
+                else:
+                    self.fault(f"stale commands: none on time for {age:.3f} s "
+                               f"(> stale_timeout_s {self.p.stale_s:g})", stamp_ns)
                 return self._toward_safe()
             return dict(cmd) if cmd is not None else dict(self.v)
         target = self._toward_safe()
@@ -382,8 +389,10 @@ class CommandSchedule:
     is for tick ``round((s - t0_ns) / dt_ns)``. ``due(j)`` gives the newest command for
     tick j or earlier (so the last one is held when none is new) and whether one
     stamped exactly for j arrived before j was executed. A command that arrives after
-    its tick is counted late. ``lookahead_ns``: how far ahead of the sample it answers a
-    command is stamped, so ``add`` can measure the sample-to-arrival latency.
+    its tick is counted late and dropped: applying it would put the stage that far
+    behind its path (a stream of them faults the loop: ArmingSupervisor).
+    ``lookahead_ns``: how far ahead of the sample it answers a command is stamped, so
+    ``add`` can measure the sample-to-arrival latency.
     """
 
     def __init__(self, t0_ns: int, dt_ns: int, lookahead_ns: int):
@@ -401,15 +410,13 @@ class CommandSchedule:
         return (int(stamp_ns) - self.t0 + self.dt // 2) // self.dt
 
     def add(self, stamp_ns: int, v: dict, recv_ns: int, last_tick: int) -> bool:
-        """Keep a command for its tick (late ones are counted, and held when newer than
-        what is held). -> whether it arrived before its tick."""
+        """Keep a command for its tick (late ones are counted and dropped). -> whether
+        it arrived before its tick."""
         j = self.tick_of(stamp_ns)
         self.received += 1
         self.arrival_lag.add((int(recv_ns) - (int(stamp_ns) - self.lookahead)) * 1e-9)
         if j <= last_tick:
             self.late += 1
-            if self.held is None or j > self.held[0]:
-                self.held = (j, dict(v))  # late but newer than what is held: hold it
             return False
         self.pending[j] = dict(v)
         return True

@@ -25,6 +25,11 @@ class SolverError(PiezoStageError, RuntimeError):
     """An identification solver failed to produce a usable model."""
 
 
+class RunError(PiezoStageError, RuntimeError):
+    """A run of the node set did not complete what it was for (it failed, never armed,
+    or ended before its evaluation window): the inputs were fine, a command exits 1."""
+
+
 class BackendFault(PiezoStageError, RuntimeError):
     """The hardware stopped answering or reported an error (a lost link, a controller
     error): the driver faults, a command exits 1."""

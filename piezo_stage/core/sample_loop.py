@@ -5,8 +5,9 @@ Samples sit on the stage's own sample clock, ``t0 + j * dt``: in lockstep t0 = 0
 sample is taken per command stamped for the next one; in real time t0 is the ROS time of
 the first tick and a tick serviced more than a period late skips the missed samples (the
 backend holds its voltage over them, the stamps show the gap). Commands are applied at
-the tick they are stamped for; late ones are counted, the newest command is held, and
-only commands on time keep the loop fresh (a stream of late ones faults it). The
+the tick they are stamped for; late ones are counted and dropped, the newest command on
+time is held, and only commands on time keep the loop fresh (a stream of late ones
+faults it). The
 arming supervisor (core/arming.py) decides what is applied: the safe voltage until the
 loop is proven closed, then commands, and a ramp to the safe voltage on a fault, an
 e-stop or a shutdown. Everything is clamped to the voltage limits and the slew limit.
@@ -44,6 +45,9 @@ PARAMETERS = (
      "sample they answer [s]", {"lo": 0.0, "hi": 1.0}),
     ("max_steps", 0, "stop after this many samples (0: never)", {"lo": 0, "hi": 2**31 - 1}),
     ("exit_after_max_steps", False, "exit (code 0) after max_steps", {}),
+    ("max_steps_from_arming", False, "count max_steps from the sample the stage first "
+     "enabled (the approach's start), not from the first sample; before that at most "
+     "max_steps samples wait for arming", {}),
     ("min_subscribers", 0, "lockstep: joint_states subscribers to wait for",
      {"lo": 0, "hi": 100}),
     ("min_record_subscribers", 0, "lockstep: true_position subscribers to wait for "
@@ -109,13 +113,18 @@ class SampleLoop:
         ``(state, reason, since_ns)``, called by the supervisor on every change.
     clock_period_s : float
         Lockstep: /clock is due every this much sample time (0: never).
+    from_arming : bool
+        ``max_steps`` counts from the sample the stage first enabled, so a run's length
+        after arming does not depend on how long arming took; before the first enable
+        at most ``max_steps`` samples are taken.
     """
 
     def __init__(self, backend: Any, arm: ArmingParams, rate_hz: float, lockstep: bool,
                  lookahead_s: float, max_steps: int,
                  on_state_change: Callable[[str, str, int], None],
-                 clock_period_s: float = 0.0):
+                 clock_period_s: float = 0.0, from_arming: bool = False):
         self.backend, self.lock, self.max_steps = backend, bool(lockstep), int(max_steps)
+        self.from_arming, self.enabled_j = bool(from_arming), None
         self.rate_hz = float(rate_hz)
         self.dt_ns = int(round(1e9 / rate_hz))
         self.lookahead_ns = self.dt_ns if self.lock else max(
@@ -126,9 +135,13 @@ class SampleLoop:
         self.stats = {"samples": 0, "rejected": 0, "limit_hits": 0, "unexpected_stamp": 0,
                       "missed_ticks": 0, "late_commands": 0}
         self.step_times = deque(maxlen=1_000_000)  # lockstep: the loop's pace
+        def on_change(state: str, reason: str, since_ns: int) -> None:
+            if state in ENABLED and self.enabled_j is None:
+                self.enabled_j = max(self.j, 0)  # max_steps_from_arming counts from here
+            on_state_change(state, reason, since_ns)
         self.sup = ArmingSupervisor(arm, self.v, 1.0 / rate_hz,
                                     3 * self.dt_ns if self.lock else max(
-                                        3 * self.dt_ns, 20_000_000), on_state_change)
+                                        3 * self.dt_ns, 20_000_000), on_change)
         self.sched = CommandSchedule(0, self.dt_ns, self.lookahead_ns)
         self.clock = SampleClock(self.dt_ns * 1e-9, backend.paced)
         self.shutdown_requested, self.shutdown_by = False, None
@@ -166,18 +179,27 @@ class SampleLoop:
         if abs(ns - recv_ns) > COMMAND_WINDOW_NS:  # a stray stamp: never scheduled
             self.stats["unexpected_stamp"] += 1
             return False
-        self.sup.note_command(recv_ns, self.sched.add(ns, v, recv_ns, self.j))
+        self.sup.note_command(recv_ns, self.sched.add(ns, v, recv_ns, self.j), recv_ns - ns)
         self.stats["late_commands"] = self.sched.late
         return False
+
+    def _past(self, j: int) -> bool:
+        """``max_steps`` taken by sample ``j`` (from the first sample, or from the first
+        enable with ``from_arming``: until then at most ``max_steps`` wait for it)."""
+        if not self.max_steps:
+            return False
+        if self.from_arming and self.enabled_j is not None:
+            return j - self.enabled_j > self.max_steps
+        return j > self.max_steps
 
     def ended(self, j: int) -> bool:
         """No sample ``j``: a replay ran out, or lockstep took ``max_steps``."""
         return bool(getattr(self.backend, "exhausted", False) or (
-            self.lock and self.max_steps and j > self.max_steps))
+            self.lock and self._past(j)))
 
     def past_max_steps(self, j: int) -> bool:
         """Real time: ``max_steps`` taken and no shutdown asked for yet."""
-        return bool(self.max_steps and j > self.max_steps and not self.shutdown_requested)
+        return self._past(j) and not self.shutdown_requested
 
     def step(self, j: int, cmd: dict | None, on_time: bool, now_ns: int, link: str = "",
              missed: int = 0) -> Sample:

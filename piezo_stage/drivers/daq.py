@@ -98,7 +98,13 @@ class DaqBackend:
         self.device = ai[0].split("/")[0]
         self.hardware_id = f"NI-DAQ {self.device} ({', '.join(ao + ai)})"
         self.late = 0
-        self.ao = nidaqmx.Task()
+        from nidaqmx.errors import DaqNotFoundError
+        try:
+            self.ao = nidaqmx.Task()
+        except DaqNotFoundError:  # the package is there, NI's driver library is not
+            raise ConfigError("backend daq: the nidaqmx package is installed but NI's "
+                              "NI-DAQmx driver is not (install NI-DAQmx on this "
+                              "machine, e.g. `python -m nidaqmx installdriver`)") from None
         self.ai = nidaqmx.Task()
         self.wd = None
         try:

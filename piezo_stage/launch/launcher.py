@@ -25,9 +25,16 @@ import time
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.io.model_file import load_yaml
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
-from piezo_stage.nodes.declared import DECLARED, RCLPY_OWN, unknown_parameter
+from piezo_stage.nodes.declared import (
+    DECLARED,
+    RCLPY_OWN,
+    check_value,
+    parameter_limits,
+    unknown_parameter,
+)
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+LOOP_NODES = ("stage_driver", "feedforward", "controller")  # without them nothing arms
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
 # how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
 # down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
@@ -92,7 +99,7 @@ def read_parameters(config_path) -> dict:
         raise ConfigError(str(e)) from None
     if not isinstance(doc, dict):
         raise ConfigError(f"{config_path}: expected '<node>: ros__parameters:' sections")
-    out = {}
+    out, limits = {}, None
     for key, sec in doc.items():
         node = str(key).rsplit("/", 1)[-1]  # '/**/stage_driver' or 'stage_driver'
         if node not in ORDER:
@@ -105,6 +112,10 @@ def read_parameters(config_path) -> dict:
                     not str(name).startswith("qos_overrides"):
                 raise ConfigError(f"{config_path}: {node}: "
                                   f"{unknown_parameter(str(name), DECLARED[node])}")
+            limits = limits or parameter_limits()
+            why = check_value(node, name, out[node][name], limits)
+            if why:  # a value the node would refuse, refused before any node starts
+                raise ConfigError(f"{config_path}: {node}: {why}")
     return out
 
 
@@ -150,6 +161,12 @@ class Launch:
             raise ConfigError(f"{config_path}: use_sim_time on {', '.join(sim_time)} in a "
                               "real-time set: simulated time is lockstep's (the driver's "
                               "samples); leave it out")
+        missing = [n for n in LOOP_NODES if n not in self.nodes]
+        if nodes is None and arm and missing:
+            raise ConfigError(
+                f"{config_path}: no section for {', '.join(missing)}: the set could not "
+                "close its loop, so it would never arm (a file of changes goes with "
+                "--params, over config/stage.yaml; --no-arm starts such a set anyway)")
         self.arm = bool(arm)
         self.exclusive = bool(exclusive)  # refuse a namespace where a set runs already
         self.backend = drv.get("backend", "sim")
@@ -174,6 +191,7 @@ class Launch:
         self.failed = []
         self.signalled = set()   # the nodes this launcher sent SIGINT
         self.stopped_by = None   # the signal that told the launcher to stop
+        self.quiet_stop = False  # a command that runs sets says a stop in its own line
 
     def _gates(self):
         has = set(self.nodes)
@@ -189,7 +207,8 @@ class Launch:
              "feedforward": {"min_subscribers": rec + int("controller" in has),
                              "wait_for_trajectory": "trajectory" in has},
              "controller": {"min_subscribers": rec + int("stage_driver" in has)},
-             "trajectory": {"min_subscribers": rec + int("feedforward" in has)},
+             # the feedforward alone takes trajectories (the recorder the accepted one)
+             "trajectory": {"min_subscribers": int("feedforward" in has)},
              "gap": {"min_subscribers": rec}}
         if not self.lockstep:  # real time: the driver's clock starts once they listen;
             # the loop closes (and the set arms) once the trajectory node's is there
@@ -328,12 +347,29 @@ class Launch:
             sys.stderr.write(f"piezo-stage launch: {f}\n")
         if self.failed:
             return 1
-        if self.stopped_by is not None:
+        if self.stopped_by is not None and not self.quiet_stop:
             sys.stderr.write(f"piezo-stage launch: stopped by "
                              f"{signal.Signals(self.stopped_by).name}: every node stopped "
                              "in order (the driver first, at its safe voltage)\n")
             return 128 + self.stopped_by
         return 0
+
+
+def run_set(launch: Launch, what: str, duration: float | None = None) -> None:
+    """Run ``launch`` for a command (an experiment's case, the demo): a stop by a signal
+    is the command's own stop (KeyboardInterrupt, with the signal noted, so it ends with
+    one line and 128 + the signal, as a stop anywhere else in it); a set that failed is
+    a RunError naming ``what`` and why (the command exits 1)."""
+    from piezo_stage import stopping
+    from piezo_stage.core.errors import RunError
+    launch.quiet_stop = True
+    rc = launch.run(duration)
+    if launch.stopped_by is not None and not launch.failed:
+        stopping.STATE.signum = launch.stopped_by
+        raise KeyboardInterrupt
+    if rc != 0:
+        raise RunError(f"{what}: the node set failed: "
+                       f"{'; '.join(launch.failed) or f'exit {rc}'}")
 
 
 def _ended(rc) -> str:

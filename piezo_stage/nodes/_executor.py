@@ -19,6 +19,7 @@ import signal
 import sys
 import time
 from contextlib import ExitStack
+from typing import Protocol, runtime_checkable
 
 import rclpy
 from rclpy.callback_groups import CallbackGroup
@@ -66,6 +67,17 @@ def hot_subscription(node, msg_type, topic, callback, qos, raw=False, with_info=
     it also gets the middleware's message info (``received_timestamp`` [ns], ...)."""
     return node.create_subscription(msg_type, topic, callback, qos,
                                     callback_group=LeanLoop(with_info), raw=raw)
+
+
+@runtime_checkable
+class StopsInOrder(Protocol):
+    """A node that a stop signal asks to stop in its own order (the stage driver): it
+    says whether a stop is under way, and starts one."""
+
+    @property
+    def shutdown_requested(self) -> bool: ...
+
+    def request_shutdown(self) -> None: ...
 
 
 class LeanExecutor(Executor):
@@ -215,15 +227,14 @@ class LeanExecutor(Executor):
         raise ExternalShutdownException()
 
     def _stop_requested(self, n: int) -> bool:
-        """A stop signal (the ``n``-th): True to keep spinning. A node with
-        ``request_shutdown()`` (the driver: it ramps the stage to its safe voltage, still
+        """A stop signal (the ``n``-th): True to keep spinning. A node that stops in
+        order (``StopsInOrder``: the driver ramps the stage to its safe voltage, still
         publishing, then shuts the context down itself) is asked once; a second signal
         ends the spin at once, as it does for every other node on the first."""
-        request = getattr(self.node, "request_shutdown", None)
-        if request is None or n > 1:
+        if not isinstance(self.node, StopsInOrder) or n > 1:
             return False
-        if not getattr(self.node, "shutdown_requested", False):
-            request()
+        if not self.node.shutdown_requested:
+            self.node.request_shutdown()
         return True
 
 

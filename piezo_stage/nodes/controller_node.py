@@ -31,7 +31,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from piezo_stage.core.control import PID, CompositeAxis, PIDGains, Relay
+from piezo_stage.core.control import LIVE, PARAMETERS, PID, CompositeAxis, PIDGains, Relay
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA
@@ -46,44 +46,27 @@ GAINS = ("kp", "ki", "kd")
 class Controller(Node):
     def __init__(self):
         super().__init__("controller")
-        rate = declare(self, "control_rate_hz", 1000.0, "control rate [Hz]",
-                       lo=1.0, hi=1e5)
+        p = {name: declare(self, name, default, desc, live=True if name in LIVE else None,
+                           **kw) for name, default, desc, kw in PARAMETERS}
+        rate = p["control_rate_hz"]
         self.dt_ns = int(round(1e9 / rate))
-        self.gains = PIDGains(
-            kp=declare(self, "kp", 0.2, "proportional gain [V/um]", lo=0.0, hi=100.0,
-                       live=True),
-            ki=declare(self, "ki", 150.0, "integral gain [V/(um s)]", lo=0.0, hi=1e5,
-                       live=True),
-            kd=declare(self, "kd", 0.0, "derivative gain [V s/um]", lo=0.0, hi=10.0,
-                       live=True),
-            i_limit_V=declare(self, "integral_limit_V", 30.0, "|integral contribution| "
-                              "<= this [V] (feedback only: the whole voltage span)",
-                              lo=0.0, hi=1000.0))
-        feedback = declare(self, "feedback", True, "PID on (false: feedforward only); "
-                           "switches bumplessly", live=True)
-        self.limits = tuple(declare(self, "voltage_limits_V", [0.0, 150.0], "clamp [V]"))
-        self.axes = {a: CompositeAxis(PID(self.gains, 1.0 / rate), self.limits, feedback)
-                     for a in ("x", "y")}
-        relay_V = declare(self, "relay_amplitude_V", 0.0, "relay experiment (tune --relay): "
-                          "the feedback is a relay of this amplitude [V]; 0: PID", lo=0.0,
-                          hi=75.0)
-        relay_eps = declare(self, "relay_hysteresis_um", 0.0, "relay experiment: its "
-                            "hysteresis band [um] (0 unless noise makes it chatter)",
-                            lo=0.0, hi=50.0)
+        self.gains = PIDGains(kp=p["kp"], ki=p["ki"], kd=p["kd"],
+                              i_limit_V=p["integral_limit_V"])
+        self.limits = tuple(p["voltage_limits_V"])
+        self.axes = {a: CompositeAxis(PID(self.gains, 1.0 / rate), self.limits,
+                                      p["feedback"]) for a in ("x", "y")}
+        relay_V, relay_eps = p["relay_amplitude_V"], p["relay_hysteresis_um"]
         self.relays = {a: Relay(relay_V, relay_eps, 1.0 / rate) for a in self.axes} \
             if relay_V > 0 else {}
         # the driver's announcements: taken before the data in each lean-loop pass
-        self.driver = DriverState(self, self.dt_ns, declare(
-            self, "thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
-            "scheduler alone; lockstep never changes it)", lo=0, hi=99))
+        self.driver = DriverState(self, self.dt_ns, p["thread_priority"])
         self.sent = {}     # target stamp -> (desired um, command V): for t_k's check
         self.last_ns = -1
         self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
         self.stats = {"commands": 0, "clamped": 0, "bad_messages": 0, "late_dropped": 0,
                       "not_closed": 0, "non_finite": 0, "restarts": 0, "stray_stamps": 0}
         self.pub = self.create_publisher(Vector3Stamped, "command", QOS_DATA)
-        self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
-                                                   "command subscribers to wait for"))])
+        self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "reference", self.on_reference, QOS_DATA, raw=True)
         self.add_on_set_parameters_callback(self.on_set)
         Diagnostics(self, lambda: (0, ("relay experiment" if self.relays else

@@ -13,7 +13,8 @@ DECLARED = {
     "stage_driver": frozenset({"ai_channels", "ai_range_V", "ai_terminal_config",
         "amplifier_gain", "ao_channels", "arm_confirm_ticks", "arm_tolerance_V",
         "auto_arm", "backend", "clock_period_s", "control_rate_hz", "exit_after_max_steps",
-        "lookahead_s", "max_steps", "min_record_subscribers", "min_subscribers", "mode",
+        "lookahead_s", "max_steps", "max_steps_from_arming", "min_record_subscribers",
+        "min_subscribers", "mode",
         "nv200_addresses", "nv200_timeout_s",
         "output_limits_V", "pi_address", "pi_axes", "pi_timeout_s", "plant_config",
         "replay_bag", "safe_ramp_V_per_s", "safe_voltage_V", "seed", "sensor_offset_um",
@@ -38,6 +39,34 @@ DECLARED = {
         "model_file", "output", "thread_priority"}),
     "live_view": frozenset({"batch_period_s", "host", "max_rate_hz", "port"}),
 }
+
+
+def parameter_limits() -> dict:
+    """{node: {name: {"lo": .., "hi": .., "choices": ..}}}: the ranges and choices the
+    loop nodes declare, from the core's parameter tables they declare from (the driver's
+    sample loop and arming supervisor, the feedforward, the controller)."""
+    from piezo_stage.core import arming, control, feedforward, sample_loop
+    driver = {name: kw for name, _, _, kw in sample_loop.PARAMETERS}
+    driver.update({name: {"lo": r[0], "hi": r[1]} for name, _, _, r in arming.PARAMETERS
+                   if r})
+    return {"stage_driver": driver,
+            "feedforward": {name: kw for name, _, _, kw in feedforward.PARAMETERS},
+            "controller": {name: kw for name, _, _, kw in control.PARAMETERS}}
+
+
+def check_value(node: str, name: str, value, limits: dict) -> str | None:
+    """Why ``value`` is refused for ``node``'s parameter ``name`` (None: it is not):
+    outside its declared range, not one of its choices, or not a number where one is
+    declared."""
+    kw = limits.get(node, {}).get(name) or {}
+    if "choices" in kw and value not in kw["choices"]:
+        return f"{name} = {value!r}: must be one of {', '.join(map(str, kw['choices']))}"
+    if "lo" in kw:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"{name} = {value!r}: must be a number in [{kw['lo']:g}, {kw['hi']:g}]"
+        if not kw["lo"] <= value <= kw["hi"]:
+            return f"{name} = {value!r} is outside its range [{kw['lo']:g}, {kw['hi']:g}]"
+    return None
 
 
 def unknown_parameter(key: str, declared) -> str:

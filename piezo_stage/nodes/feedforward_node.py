@@ -90,6 +90,10 @@ class Feedforward(Node):
         self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
         self.phase_pub = self.create_publisher(String, "feedforward/phase", QOS_EVENTS)
         self.phase_pub.publish(String(data=HOLD))
+        # what the stage runs, byte for byte as it came, latched: the recorder takes it
+        # from here whenever its own match with the sender came late or not at all
+        self.accepted_pub = self.create_publisher(JointTrajectory, "trajectory/accepted",
+                                                  QOS_LATCHED)
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
@@ -154,6 +158,7 @@ class Feedforward(Node):
             start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
             self.traj_key = key
             self.planner.set_trajectory(t, w, start_ns=start)
+            self.accepted_pub.publish(bytes(msg))
             self.learning.reset()
             self.core.traj_text = f"trajectory of {len(t)} points stamped {stamp}"
             self.get_logger().info(f"trajectory of {len(t)} points accepted" + (

@@ -67,7 +67,7 @@ class StageDriver(Node):
             if self.lock and p["clock_period_s"] > 0 else None
         self.loop = SampleLoop(self.backend, arm, p["control_rate_hz"], self.lock,
                                p["lookahead_s"], p["max_steps"], self.on_state_change,
-                               p["clock_period_s"])
+                               p["clock_period_s"], p["max_steps_from_arming"])
         self.sup = self.loop.sup
         # lockstep: nothing is published before every consumer listens; real time: the
         # sample clock starts then (the first publishes to new readers are slow)
@@ -164,7 +164,12 @@ class StageDriver(Node):
         self.diag.publish()
         self.diag.pub.wait_for_all_acked(Duration(seconds=1))
 
-    def request_shutdown(self):
+    @property
+    def shutdown_requested(self) -> bool:
+        """A stop is under way (the executor's StopsInOrder hook)."""
+        return self.loop.shutdown_requested
+
+    def request_shutdown(self) -> None:
         """SIGINT/SIGTERM or max_steps: ramp to the safe voltage, still publishing, then
         exit. Lockstep (a simulation waiting for commands) exits at once."""
         if self.lock:
