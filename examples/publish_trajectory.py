@@ -62,7 +62,8 @@ def main(argv=None):
     ap.add_argument("--namespace", default="/stage")
     ap.add_argument("--points", help='"t,x,y t,x,y ..." in s and um')
     ap.add_argument("--csv", help="a CSV of t [s], x [um], y [um]")
-    ap.add_argument("--start-in", type=float, default=0.5, help="start this long from now [s]")
+    ap.add_argument("--start-in", type=float, default=0.5, help="start this long from now "
+                    "[s]; 0: as soon as the stage has approached the first point")
     ap.add_argument("--tolerance", type=float, default=0.5, help="final error allowed [um]")
     ap.add_argument("--timeout", type=float, default=60.0, help="give up after [s]")
     args = ap.parse_args(argv)
@@ -102,7 +103,10 @@ def main(argv=None):
                   file=sys.stderr)
             return 1
         msg = JointTrajectory(joint_names=["x", "y"])
-        start = node.get_clock().now().nanoseconds + int(args.start_in * 1e9)
+        # 0: no start time (the stage starts it once it has approached the first point;
+        # a lockstep set, whose clock is its own samples, takes only this)
+        start = node.get_clock().now().nanoseconds + int(args.start_in * 1e9) \
+            if args.start_in > 0 else 0
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(start, 1_000_000_000)
         for t, x, y in pts:
             sec, nsec = divmod(int(round(t * 1e9)), 1_000_000_000)
@@ -110,8 +114,9 @@ def main(argv=None):
                 positions=[x * 1e-6, y * 1e-6], time_from_start=Duration(sec=sec, nanosec=nsec)))
         pub.publish(msg)  # latched: a feedforward whose side matched later still gets it
         mine = f"done: trajectory of {len(pts)} points stamped {start}"
-        print(f"published {len(pts)} points to {ns}/trajectory, starting in "
-              f"{args.start_in:g} s; waiting for the stage", flush=True)
+        print(f"published {len(pts)} points to {ns}/trajectory, starting "
+              f"{f'in {args.start_in:g} s' if start else 'after the approach'}; waiting "
+              "for the stage", flush=True)
         end = time.monotonic() + args.timeout
         while time.monotonic() < end and seen["state"].get("feedforward") != mine:
             rclpy.spin_once(node, timeout_sec=0.05)

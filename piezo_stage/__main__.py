@@ -9,7 +9,12 @@ from piezo_stage import stopping
 def main():
     stopping.install()
     from piezo_stage.cli import main as command
-    return command()
+    code = command()
+    # done (or stopped, and said so): a stop arriving now would meet the interpreter's
+    # exit, which gives the default handlers back, and end a finished command by the
+    # signal with no word; it is held instead, and the command exits with its own code
+    stopping.hold()
+    return code
 
 
 if __name__ == "__main__":

@@ -44,6 +44,11 @@ def running() -> None:
     STATE.running = True
 
 
+def hold() -> None:
+    """The command has ended: the stop signals are blocked from here to the exit."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
+
+
 def stopped_line() -> tuple[str, int]:
     """The one line a stopped command prints, and its exit code (128 + the signal)."""
     return (f"piezo-stage: stopped by {signal.Signals(STATE.signum).name}",

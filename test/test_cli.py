@@ -200,3 +200,66 @@ def test_experiment_rate_is_checked_before_anything_runs(tmp_path):
     assert "1300 Hz" in r.stderr and not bags.exists()
     r = run("experiment", "tracking", "--rate", "5000", "--record", bags, check=False)
     assert r.returncode == 2 and "--params" in r.stderr and not bags.exists(), r.stderr
+
+
+def _records(tmp_path):
+    """A fit and a held-out record of the simulated stage (excite, simulate)."""
+    run = lambda *a: subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, a)],  # noqa: E731
+                                    capture_output=True, text=True, timeout=120, check=True)
+    run("excite", "--out", tmp_path / "exc.csv")
+    for name, seed in (("fit", 2), ("hold", 3)):
+        run("simulate", "--in", tmp_path / "exc.csv", "--out", tmp_path / f"{name}.csv",
+            "--seed", seed)
+    return tmp_path / "fit.csv", tmp_path / "hold.csv"
+
+
+STOPPED = {  # command -> (its arguments, the moments to stop it at [s], its last line)
+    "identify": (lambda d, f, h, b: [f, "--out", d / "m.yaml"], (1.0, 6.0),
+                 "piezo-stage: stopped by SIGINT"),
+    "gap": (lambda d, f, h, b: [f, "--holdout", h, "--out-model", d / "g.yaml"], (1.5, 7.0),
+            "piezo-stage: stopped by SIGINT"),
+    "play": (lambda d, f, h, b: [d / "exc.csv", "--out", d / "played"], (1.0, 3.0),
+             "piezo-stage: stopped by SIGINT"),
+    "experiment": (lambda d, f, h, b: ["noise", "--model", os.path.join(CONFIG,
+                                       "stage_model.yaml"), "--record", d / "bags"],
+                   (2.0, 5.0), "piezo-stage: stopped by SIGINT"),
+    "demo": (lambda d, f, h, b: ["--out", d / "demo"], (3.0, 8.0),
+             "piezo-stage: stopped by SIGINT"),
+    "launch": (lambda d, f, h, b: ["--duration", "60"], (3.0, 6.0),
+               "piezo-stage launch: stopped by SIGINT"),
+    # (before the bag is read and its publishers matched, the command's own line)
+    "replay": (lambda d, f, h, b: [b, "--rate", "0.5"], (2.0, 6.0),
+               ("replayed ", "piezo-stage: stopped by SIGINT")),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", sorted(STOPPED))
+def test_ctrl_c_at_a_random_moment_ends_a_command_with_130_and_its_line(tmp_path, ros_env,
+                                                                      command):
+    """Ctrl-C (SIGINT to the command's whole process group, as a terminal sends it) at a
+    random moment of the command's run: exit 130, the command's own stop line last, no
+    traceback from it or its worker processes, no half-written output."""
+    import random
+    import signal
+    import time
+    fit, hold = _records(tmp_path)
+    bag = tmp_path / "bag"
+    subprocess.run([sys.executable, "-m", "piezo_stage.cli", "play", tmp_path / "exc.csv",
+                    "--out", bag], capture_output=True, timeout=120, check=True)
+    args, (lo, hi), last = STOPPED[command]
+    at = random.uniform(lo, hi)
+    p = subprocess.Popen([sys.executable, "-m", "piezo_stage", command,
+                          *map(str, args(tmp_path, fit, hold, bag))], env=ros_env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True, cwd=tmp_path)
+    time.sleep(at)
+    os.killpg(p.pid, signal.SIGINT)
+    out, err = p.communicate(timeout=120)
+    said = [ln for ln in (out + err).splitlines() if ln.startswith(last)]
+    if command == "replay" and said and said[-1].startswith("replayed "):
+        assert "stopped by SIGINT" in said[-1], said  # how far it got, and why it ended
+    assert p.returncode == 130, (at, p.returncode, err[-2000:])
+    assert said, (at, out[-1000:], err[-2000:])
+    assert "Traceback" not in err, (at, err[-3000:])
+    assert not list(tmp_path.glob("**/.*.tmp")), "a temporary output left behind"

@@ -154,6 +154,31 @@ def test_stage_follows_a_trajectory_from_another_lab_node(tmp_path, env):
     assert rec.w["y"][-50:].mean() == pytest.approx(20.0, abs=0.3)
 
 
+def test_the_docs_minimal_lab_node_is_run_by_the_stage_and_in_the_bag(tmp_path, env):
+    """docs/nodes.md's smallest outside node (default QoS, sent once as soon as one
+    subscriber matched, then waiting for the acknowledgements), as the page shows it,
+    against a lockstep set that waits for a trajectory: the stage runs it and the bag's
+    trajectory/accepted holds it."""
+    page = open(os.path.join(ROOT, "docs", "nodes.md"), encoding="utf-8").read()
+    code = re.search(r"## Other labs' nodes.*?```python\n(.*?)```", page, re.S).group(1)
+    lab = subprocess.Popen([sys.executable, "-c", code], env=env)
+    try:
+        bag = lockstep(tmp_path, env, "docs_lab", steps=1500,
+                       nodes=["stage_driver", "feedforward", "controller"],
+                       overrides={"feedforward": {"wait_for_trajectory": True}})
+        assert lab.wait(60) == 0
+    finally:
+        if lab.poll() is None:
+            lab.kill()
+    got = [deserialize(data, "trajectory_msgs/msg/JointTrajectory")
+           for _, data in topic_data(bag, "/stage/trajectory/accepted")]
+    assert len(got) == 1 and [round(p.positions[0] * 1e6, 6) for p in got[0].points] == \
+        [20.0, 40.0, 30.0]
+    rec = read_bag_record(bag)  # its last point, held
+    assert rec.w["x"][-50:].mean() == pytest.approx(30.0, abs=0.3)
+    assert rec.w["y"][-50:].mean() == pytest.approx(30.0, abs=0.3)
+
+
 def test_recorder_killed_with_sigkill_leaves_a_readable_bag(tmp_path, env):
     bag = tmp_path / "killed"
     procs = [subprocess.Popen([sys.executable, "-m", f"piezo_stage.nodes.{n}_node",

@@ -27,9 +27,14 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) 
     from rclpy.executors import ExternalShutdownException
     from rosgraph_msgs.msg import Clock
 
+    from piezo_stage import stopping
     from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED
     from piezo_stage.nodes._tap import msg_class
     from piezo_stage_msgs_adapters import clock_msg
+    # the node modules' import took the stop signals for a node's start-up (nodes/
+    # _signals.py); this is a command: a stop unwinds it, and it says how far it got
+    stopping.install()
+    code = 0
     msgs = [m for m in iter_messages(bag) if not m[0].endswith(SKIP)]
     t0_log = msgs[0][2] if msgs else 0
     span_s = (msgs[-1][2] - t0_log) * 1e-9 if msgs else 0.0
@@ -69,11 +74,13 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) 
         if duration_s is not None and duration_s < span_s:
             how = f"cut at --duration {duration_s:g} s of the record"
     except (KeyboardInterrupt, ExternalShutdownException):
-        how = "interrupted"
+        import signal
+        how = f"stopped by {signal.Signals(stopping.STATE.signum).name}"
+        code = 128 + stopping.STATE.signum
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
     print(f"replayed {n} messages on {len(pubs)} topics: {(log_ns - t0_log) * 1e-9:.3f} s "
           f"of the record's {span_s:.3f} s in {time.monotonic() - t0_wall:.3f} s, {how}",
           flush=True)
-    return 0
+    return code

@@ -6,6 +6,10 @@ WHAT ARGS...`` runs one of them (the benchmarks start them; each prints its figu
 * ``ping pong`` / ``ping ping N``: a two-process round trip through rclpy's stock path.
 * ``ring ME NEXT N``: one node of a 3-process ring on the loop nodes' own transport path
   (lean wait set, raw CDR) with empty callbacks; node ``a`` prints the steps/s.
+* ``once QOS UM``: a lab's node (rclpy and trajectory_msgs only) that sends one
+  trajectory, 0.3 s at UM on both axes, to /stage/trajectory with QOS (``latched`` or
+  ``default``) as soon as its publisher matched one subscriber, waits for every
+  reader's acknowledgement and exits (1 if none came).
 """
 
 from __future__ import annotations
@@ -113,8 +117,36 @@ def ring(me: str, nxt: str, n_steps: int):
     return 0
 
 
+def once(qos: str, um: float) -> int:
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+    rclpy.init()
+    node = rclpy.create_node("lab_once")
+    profile = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL) \
+        if qos == "latched" else QoSProfile(depth=10)
+    pub = node.create_publisher(JointTrajectory, "/stage/trajectory", profile)
+    t_end = time.monotonic() + 30.0
+    while pub.get_subscription_count() < 1 and time.monotonic() < t_end:
+        rclpy.spin_once(node, timeout_sec=0.005)
+    msg = JointTrajectory(joint_names=["x", "y"])
+    for k in range(31):
+        p = JointTrajectoryPoint(positions=[um * 1e-6, um * 1e-6])
+        p.time_from_start.nanosec = k * 10_000_000
+        msg.points.append(p)
+    pub.publish(msg)
+    ok = pub.wait_for_all_acked(Duration(seconds=10))
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0 if ok else 1
+
+
 def main(argv):
     what, args = argv[0], argv[1:]
+    if what == "once":
+        return once(args[0], float(args[1]))
     if what == "plain":
         return plain(int(args[0]), float(args[1]), args[2])
     if what == "ping":

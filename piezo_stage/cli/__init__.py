@@ -85,6 +85,23 @@ def main(argv=None):
         line, code = stopping.stopped_line()
         sys.stderr.write(line + "\n")
         return code
+    except SystemError as e:  # a stop inside a compiled kernel: numba's dispatcher
+        if not _stopped_within(e):  # returns with the KeyboardInterrupt set
+            raise
+        line, code = stopping.stopped_line()
+        sys.stderr.write(line + "\n")
+        return code
+
+
+def _stopped_within(error: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is in ``error``'s chain (cause or context)."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False
 
 
 if __name__ == "__main__":

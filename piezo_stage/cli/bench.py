@@ -16,7 +16,8 @@ def add_arguments(s):
                    help="learning: plant noise seeds, each run in lockstep and real time")
     s.add_argument("--samples", type=number(1000, 10**9, integer=True), default=2_000_000)
     s.add_argument("--runs", type=number(1, 1000, integer=True), default=10, metavar="N",
-                   help="experiments: runs of each kind, with and without --model")
+                   help="experiments: runs of each kind, with and without --model; "
+                   "outside: trajectories from each publisher")
     s.add_argument("--kinds", type=_kinds, default=None, metavar="K1,K2",
                    help="experiments: which (default tracking,noise,amplitude,"
                    "decoupling,scan)")

@@ -107,6 +107,13 @@ class Diagnosis:
 
 
 def _axis_child(conn, fit, holdout, axis, args):
+    import signal
+    # the parent decides about stops: a terminal's Ctrl-C reaches the whole process
+    # group, and a child that raised it too printed its traceback; the parent ends the
+    # children (SIGTERM, the default action: quiet) when it stops
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for s in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, signal.SIG_DFL)
     effects, base_model, base_effects = args
     try:
         d = diagnose_axis(fit, holdout, axis, effects, base_model,
