@@ -86,6 +86,14 @@ def bench_identify():
 
 
 
+def _pi_on(pi, fit, hold):
+    """The PI peer over HOLDOUT, its operators' state carried from FIT (HOLDOUT is cut
+    from the same run, as ours and the sparse peer are given it)."""
+    import numpy as np
+    v = np.concatenate([fit.v["x"], hold.v["x"]])
+    return pi.predict(v)[fit.v["x"].size:]
+
+
 def _bench_sparse_peer():
     """Ours beside the sparse hysteresis peer (Chandra et al. 2023, pysindy) on the
     issue's kind of record: one axis, a 1 Hz full-stroke sine at 5 kHz, fit on 3 s and
@@ -101,6 +109,7 @@ def _bench_sparse_peer():
     from piezo_stage.core.gap import fit_candidate
     from piezo_stage.core.identify import identify_axis
     from piezo_stage.core.identify.api import predict_axis
+    from piezo_stage.core.identify.prandtl import fit_prandtl_ishlinskii
 
     def rms(e):
         return float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else float("nan")
@@ -121,6 +130,9 @@ def _bench_sparse_peer():
         mem_s = time.perf_counter() - t0
         rows.append(("ours, structure (degree 5 + 16 play operators)", mem_s,
                      mem.predict(hold, "x")))
+        pi = fit_prandtl_ishlinskii(fit.v["x"], fit.w["x"])
+        rows.append(("peer, classical Prandtl-Ishlinskii (linear + 12 plays)", pi.fit_s,
+                     _pi_on(pi, fit, hold)))
         try:
             peer = sparse_peer.fit(fit, "x")
         except ConfigError as e:

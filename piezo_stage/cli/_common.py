@@ -64,6 +64,17 @@ def check_voltages(rec, limits, source):
                                   f"the voltage limits [{lo:g}, {hi:g}] V")
 
 
+def warn_past_fit_range(model, v: dict, source: str) -> None:
+    """One line on stderr when the voltages ``v`` take ``model`` past the range it was
+    fitted on (it runs there, its branches continuing straight from their ends)."""
+    from piezo_stage.core.duhem import past_fit_range
+    past = past_fit_range(model, v)
+    if past:
+        sys.stderr.write(f"piezo-stage: warning: {source}: the model is used past its "
+                         f"fitted range ({'; '.join(past)}): its branches continue "
+                         "straight from their ends there\n")
+
+
 def number(lo: float, hi: float, integer: bool = False, lo_open: bool = False):
     """argparse type: a finite number in [lo, hi] (``lo_open``: (lo, hi]), an integer
     when ``integer``; anything else is a one-line usage error (exit 2)."""
@@ -79,6 +90,18 @@ def number(lo: float, hi: float, integer: bool = False, lo_open: bool = False):
                 f"{printable(text, 40)!s} is outside {'(' if lo_open else '['}{lo:g}, {hi:g}]")
         return x
     return parse
+
+
+def limits(text):
+    """argparse type: "LO,HI" voltage limits [V], LO < HI."""
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError:
+        lo = hi = float("nan")
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        raise argparse.ArgumentTypeError(f"{printable(text, 40)!s}: give LO,HI in volts "
+                                         "with LO < HI, e.g. 0,150 or -90,90")
+    return lo, hi
 
 
 def port(text):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from piezo_stage.cli._common import limits
 from piezo_stage.core.errors import DataError
 
 HELP = "diagnose the sim-to-real gap"
@@ -14,6 +15,9 @@ def add_arguments(s):
     s.add_argument("--axis", choices=("x", "y", "both"), default="both")
     s.add_argument("--json", metavar="FILE")
     s.add_argument("--report", metavar="DIR", help="Markdown report with PNG plots")
+    s.add_argument("--limits", type=limits, metavar="LO,HI", help="the amplifier's "
+                   "voltage limits [V] for --out-model's model, e.g. --limits=-90,90 "
+                   "(default: 0,150 widened to take FIT)")
     s.add_argument("--out-model", metavar="MODEL.yaml",
                    help="write the model with the found effect (simulate --model uses it)")
 
@@ -26,6 +30,9 @@ def main(args):
     from piezo_stage.io.records import load_record
     fit = load_record(args.fit)
     hold = load_record(args.holdout) if args.holdout else None
+    if args.out_model:  # the limits, before the diagnosis: DataError (exit 2)
+        from piezo_stage.core.duhem import voltage_limits_for
+        voltage_limits_for(fit.v.values(), args.limits)
     base, base_effects = None, None
     if args.model:
         from piezo_stage.io.model_file import load_model
@@ -76,7 +83,7 @@ def main(args):
         print(f"report: {write_report(args.report, res, hold or fit)}")
     if args.out_model:
         from piezo_stage.io.model_file import save_model
-        model, effects = res.model(fit)
+        model, effects = res.model(fit, args.limits)
         save_model(args.out_model, model, effects=effects or None)
         print(f"model with the found effects: {args.out_model}")
         for note in res.notes:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from piezo_stage.cli._common import number
+from piezo_stage.cli._common import limits, number
 from piezo_stage.core.errors import DataError
 
 HELP = "identify the Duhem model from a record"
@@ -34,6 +34,10 @@ def add_arguments(s):
                    help="degree of f (default 3; with --structure cubic only)")
     s.add_argument("--m", type=number(0, 12, integer=True), default=None,
                    help="degree of g (default 2; with --structure cubic only)")
+    s.add_argument("--limits", type=limits, metavar="LO,HI", help="the amplifier's "
+                   "voltage limits [V], written into the model, e.g. 0,150 or --limits=-90,90 "
+                   "(default: 0,150 widened to take the record; the limits belong to the "
+                   "amplifier, not the record)")
     s.add_argument("--out", metavar="MODEL.yaml", help="write the model file")
     s.add_argument("--json", metavar="FILE", help="write the full report as JSON")
     s.add_argument("--plot", metavar="PNG", help="loop and fit-error figure (default: "
@@ -44,12 +48,13 @@ def main(args):
     import json
     import os
 
-    from piezo_stage.core.duhem import StageModel
+    from piezo_stage.core.duhem import StageModel, voltage_limits_for
     from piezo_stage.core.identify import IdentifyOptions, identify_axis, validate_axis
     from piezo_stage.io.files import atomic_write
     from piezo_stage.io.model_file import save_model
     from piezo_stage.io.records import load_record
     rec = load_record(args.data)
+    lim = voltage_limits_for(rec.v.values(), args.limits)  # before the fit: DataError
     val = load_record(args.validate) if args.validate else None
     if args.voltage == "exact":
         rec.voltage_exact = True
@@ -100,11 +105,9 @@ def main(args):
     for note in {n for r in results.values() for n in r.notes}:
         print(f"note: {note}")
     if args.out:
-        v_all = np.concatenate([rec.v[a] for a in rec.v])
-        limits = (float(np.floor(min(0.0, v_all.min()))), float(np.ceil(max(v_all.max(), 1.0))))
         model = StageModel({a: r.model for a, r in results.items()},
                            {a: r.coupling for a, r in results.items() if r.coupling},
-                           limits)
+                           lim)
         meta = {"identification": {a: {k: report[a][k] for k in report[a]
                                         if k not in ("history", "parameters")}
                                    for a in report}}

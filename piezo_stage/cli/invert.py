@@ -48,6 +48,8 @@ def main(args):
                for a, m in model.axes.items()}
     lo = model.voltage_limits[0]
     v = {a: res[a].v if a in res else np.full(len(rec), lo) for a in ("x", "y")}
+    from piezo_stage.cli._common import warn_past_fit_range
+    warn_past_fit_range(model, v, args.model)
     write_table(args.out, {"t": rec.t, "vx": v["x"], "vy": v["y"]})
     for a, r in res.items():
         if r.n_saturated:

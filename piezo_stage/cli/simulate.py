@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from piezo_stage.cli._common import check_voltages, load_plant, number
+from piezo_stage.cli._common import check_voltages, load_plant, number, warn_past_fit_range
 from piezo_stage.core.errors import DataError
 
 HELP = "run a voltage record through the simulated stage"
@@ -29,6 +29,7 @@ def main(args):
     rec = Record(cols["t"], {"x": cols["vx"], "y": cols["vy"]}, source=args.inp)
     cfg = load_plant(args, rec.fs_hz)
     check_voltages(rec, cfg.model.voltage_limits, args.inp)
+    warn_past_fit_range(cfg.model, rec.v, args.inp)
     plant = Plant(cfg, rec.fs_hz)
     w = plant.run(rec.v["x"], rec.v["y"])
     for a, x in w.items():

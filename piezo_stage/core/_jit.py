@@ -32,12 +32,29 @@ except ImportError:  # pragma: no cover - exercised only on installs without num
 
 
 @njit
+def _poly_and_slope(c: F64, x: float) -> tuple[float, float]:
+    """(sum_i c[i] x**i, its derivative) at x, c from index 2 on (Horner, both at once)."""
+    p, d = 0.0, 0.0
+    for i in range(c.shape[0] - 1, 1, -1):
+        d = d * x + p
+        p = p * x + c[i]
+    return p, d
+
+
+@njit
 def horner(c: F64, x: float) -> float:
-    """Evaluate sum_i c[i] x**i."""
-    acc = 0.0
-    for i in range(c.shape[0] - 1, -1, -1):
-        acc = acc * x + c[i]
-    return acc
+    """A branch polynomial at x: ``c = [lo, hi, c0, c1, ...]``, the polynomial
+    sum_i c[2 + i] x**i inside the voltage range [lo, hi] it was fitted on, and outside
+    it the straight continuation from the nearer end with the end's slope (never
+    negative): the polynomial's own tail past the data is no physics, and a degree-5
+    tail reached 1e11 um/V a few tens of volts beyond a record's range."""
+    if x > c[1]:
+        p, d = _poly_and_slope(c, c[1])
+        return p + max(d, 0.0) * (x - c[1])
+    if x < c[0]:
+        p, d = _poly_and_slope(c, c[0])
+        return p + max(d, 0.0) * (x - c[0])
+    return _poly_and_slope(c, x)[0]
 
 
 @njit

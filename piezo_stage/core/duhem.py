@@ -24,13 +24,14 @@ the sequence of voltages, never time: the law is rate independent.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, duhem_run, duhem_step
-from piezo_stage.core.errors import ModelError
+from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.core.play import PlayOperators
 
 
@@ -108,11 +109,25 @@ class DuhemModel:
         Parameter sets used on rising (dv >= 0) and falling voltage steps.
     initial : DuhemState
         State the model starts from and returns to on reset.
+    fit_range_V : tuple of float or None
+        The input range [V] the branches were fitted on: well outside it (past
+        POLY_MARGIN of its span) every branch polynomial continues straight from the
+        nearer end with that end's slope (``branch_values``), not along its own tail.
+        None: the polynomial everywhere.
     """
 
     ascending: DuhemBranch
     descending: DuhemBranch
     initial: DuhemState = field(default_factory=DuhemState)
+    fit_range_V: tuple | None = None
+
+    def __post_init__(self):
+        r = self.fit_range_V
+        if r is not None:
+            lo, hi = (float(x) for x in r)
+            if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+                raise ModelError(f"fit_range_V {list(r)} must be finite with lo < hi")
+            object.__setattr__(self, "fit_range_V", (lo, hi))
 
     @classmethod
     def whole(cls, alpha: float, f: ArrayLike, g: ArrayLike,
@@ -127,16 +142,19 @@ class DuhemModel:
         return "whole" if self.ascending == self.descending else "segmented"
 
     def kernel_params(self) -> tuple[np.ndarray, np.ndarray]:
-        """(alpha[2], H[2, D]) as the compiled loops take them (computed once)."""
+        """(alpha[2], H[2, 2 + D]) as the compiled loops take them (computed once):
+        each row the fitted range [lo, hi] (infinite without one), then the branch
+        polynomial's coefficients (the compiled ``horner``'s layout)."""
         cached = self.__dict__.get("_kp")
         if cached is not None:
             return cached
         ha = self.ascending.h(True)
         hd = self.descending.h(False)
         d = max(ha.size, hd.size)
-        H = np.zeros((2, d))
-        H[0, :ha.size] = ha
-        H[1, :hd.size] = hd
+        H = np.zeros((2, 2 + d))
+        H[:, :2] = polynomial_range(self.fit_range_V)
+        H[0, 2:2 + ha.size] = ha
+        H[1, 2:2 + hd.size] = hd
         alpha = np.array([self.ascending.alpha, self.descending.alpha])
         object.__setattr__(self, "_kp", (alpha, H))  # frozen: cache through the back door
         return alpha, H
@@ -161,7 +179,64 @@ class DuhemModel:
 
     def with_initial(self, state: DuhemState) -> "DuhemModel":
         """The same model starting from another state."""
-        return DuhemModel(self.ascending, self.descending, state)
+        return DuhemModel(self.ascending, self.descending, state, self.fit_range_V)
+
+    def with_fit_range(self, lo: float, hi: float) -> "DuhemModel":
+        """The same model, fitted on inputs within [lo, hi] V (see ``fit_range_V``)."""
+        return DuhemModel(self.ascending, self.descending, self.initial, (lo, hi))
+
+
+# Near the data a fitted branch polynomial is still held by it: within this share of the
+# fitted span beyond either end the polynomial is kept (our simulated stages' branches
+# are polynomials, and a held-out record reaching 148 V against a fit to 133 V was
+# predicted to the noise by its tail); past that, the straight continuation.
+POLY_MARGIN = 0.15
+
+
+def polynomial_range(fit_range_V: tuple | None) -> tuple[float, float]:
+    """The voltages [V] over which a branch fitted on ``fit_range_V`` is its polynomial
+    (the range widened by POLY_MARGIN of its span; everywhere without one)."""
+    if fit_range_V is None:
+        return -np.inf, np.inf
+    lo, hi = fit_range_V
+    m = POLY_MARGIN * (hi - lo)
+    return lo - m, hi + m
+
+
+def branch_values(h: ArrayLike, v: ArrayLike,
+                  fit_range_V: tuple | None = None) -> np.ndarray:
+    """A branch polynomial ``h`` (lowest power first) at the voltages ``v`` [V] as the
+    compiled loops evaluate it: over ``polynomial_range(fit_range_V)`` the polynomial,
+    outside it the straight continuation from the nearer end with that end's slope
+    (never negative).
+
+    Parameters
+    ----------
+    h : array_like
+        Coefficients [um/V per V**i].
+    v : array_like
+        Voltages [V].
+    fit_range_V : tuple of float or None
+        The fitted input range; None: the polynomial everywhere.
+
+    Returns
+    -------
+    ndarray
+        The values h(v) [um/V], the shape of ``v``.
+    """
+    P = np.polynomial.polynomial
+    h = np.asarray(h, float)
+    v = np.asarray(v, float)
+    with np.errstate(all="ignore"):
+        if fit_range_V is None:
+            return P.polyval(v, h)
+        lo, hi = polynomial_range(fit_range_V)
+        d = P.polyder(h) if h.size > 1 else np.zeros(1)
+        out = P.polyval(np.clip(v, lo, hi), h)
+        for end, side in ((hi, v > hi), (lo, v < lo)):
+            out = np.where(side, P.polyval(end, h) + max(float(P.polyval(end, d)), 0.0)
+                           * (v - end), out)
+    return out
 
 
 class DuhemHysteresis:
@@ -272,6 +347,63 @@ class StageModel:
                   "voltage_limits": self.voltage_limits, "plays": self.plays}
         fields.update(changes)
         return StageModel(**fields)
+
+
+DEFAULT_LIMITS_V = (0.0, 150.0)  # the usual piezo amplifier's output
+
+
+def voltage_limits_for(voltages: Iterable[ArrayLike],
+                       amplifier_V: tuple | None = None) -> tuple[float, float]:
+    """A model's voltage limits: they belong to the amplifier, not to the record it was
+    identified on. ``amplifier_V`` when given (the stage's configuration, ``--limits``),
+    and then every voltage must lie within it (DataError otherwise); else 0-150 V
+    widened to take the voltages (a bipolar stack's negative side, a higher supply).
+
+    Parameters
+    ----------
+    voltages : iterable of array_like
+        The record's voltages [V], per axis.
+    amplifier_V : tuple of float or None
+        (lo, hi) the amplifier can drive [V].
+
+    Returns
+    -------
+    tuple of float
+        (lo, hi) [V].
+    """
+    vs = [np.asarray(v, float) for v in voltages]
+    vmin = min((float(v.min()) for v in vs if v.size), default=0.0)
+    vmax = max((float(v.max()) for v in vs if v.size), default=0.0)
+    if amplifier_V is not None:
+        lo, hi = (float(x) for x in amplifier_V)
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise DataError(f"voltage limits {list(amplifier_V)}: give lo < hi")
+        if vmin < lo or vmax > hi:
+            raise DataError(f"the record's voltages span {vmin:g}..{vmax:g} V, outside the "
+                            f"amplifier's limits {lo:g}..{hi:g} V")
+        return lo, hi
+    return (min(DEFAULT_LIMITS_V[0], float(np.floor(vmin))),
+            max(DEFAULT_LIMITS_V[1], float(np.ceil(vmax))))
+
+
+def past_fit_range(model: StageModel, v: dict) -> list[str]:
+    """Where the voltages ``v`` ({axis: array} [V]) go past the range each axis's model
+    was fitted on (beyond it the branches continue straight from their ends), one
+    phrase an axis: "vx reaches 148 V, 15 V past the 0-133 V it was fitted on"."""
+    out = []
+    for a, m in model.axes.items():
+        if m.fit_range_V is None or a not in v or not np.size(v[a]):
+            continue
+        lo, hi = m.fit_range_V
+        vmin, vmax = float(np.min(v[a])), float(np.max(v[a]))
+        tol = 1e-6 * max(1.0, hi - lo)
+        if vmax > hi + tol:
+            out.append(f"v{a} reaches {vmax:.4g} V, {vmax - hi:.3g} V past the "
+                       f"{lo:.4g}..{hi:.4g} V it was fitted on")
+        if vmin < lo - tol:
+            out.append(f"v{a} reaches {vmin:.4g} V, {lo - vmin:.3g} V below the "
+                       f"{lo:.4g}..{hi:.4g} V it was fitted on")
+    return out
 
 
 def stroke_um(model: DuhemModel, limits: tuple[float, float], n: int = 301,

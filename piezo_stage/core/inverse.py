@@ -35,7 +35,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, duhem_inverse_run, stage_inverse_step, stage_sync
-from piezo_stage.core.duhem import AXES, OTHER, DuhemModel, DuhemState, StageModel
+from piezo_stage.core.duhem import (
+    AXES,
+    OTHER,
+    DuhemModel,
+    DuhemState,
+    StageModel,
+    branch_values,
+)
 from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.core.play import PlayOperators
 
@@ -90,8 +97,10 @@ def invert_seed_eq12(model: DuhemModel, w_target: ArrayLike,
     """Seed eq. 12 (explicit slope inverse, signs made consistent with eq. 6)."""
     wt = as_f64(w_target)
     st = state or model.initial
-    alpha, H = model.kernel_params()
-    ha, hd = H[0][::-1], H[1][::-1]
+    alpha, _ = model.kernel_params()
+    ha, hd = model.ascending.h(True), model.descending.h(False)
+    fr = model.fit_range_V
+    h = lambda c, x: float(branch_values(c, x, fr))  # noqa: E731 - as the kernels do
     lo, hi = v_limits
     vp, wp = float(st.v), float(st.w)
     n = wt.size
@@ -99,16 +108,16 @@ def invert_seed_eq12(model: DuhemModel, w_target: ArrayLike,
     for k in range(n):
         dw = wt[k] - wp
         if dw >= 0:
-            slope = np.polyval(ha, vp) - alpha[0] * wt[k]
+            slope = h(ha, vp) - alpha[0] * wt[k]
         else:
-            slope = np.polyval(hd, vp) + alpha[1] * wt[k]
+            slope = h(hd, vp) + alpha[1] * wt[k]
         vk = vp + dw / slope if slope > 0 else vp
         if vk > hi or vk < lo or slope <= 0:
             sat[k] = True
             vk = min(max(vk, lo), hi)
         d = vk - vp
         b = 0 if d >= 0 else 1
-        wp = (wp + d * np.polyval(H[b][::-1], vk)) / (1 + alpha[b] * abs(d))
+        wp = (wp + d * h(ha if b == 0 else hd, vk)) / (1 + alpha[b] * abs(d))
         vp = vk
         v[k], w[k] = vk, wp
     return InverseResult(v, w, sat, DuhemState(vp, wp))

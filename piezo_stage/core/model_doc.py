@@ -11,6 +11,9 @@ Schema (version 1)::
       x:
         structure: whole | segmented
         initial_state: {v_V: 0.0, w_um: 0.0}
+        fitted_range_V: [lo, hi]  # optional: the input range the branches were fitted
+                                  #   on; well past it each branch polynomial continues
+                                  #   straight from its end (duhem.branch_values)
         # whole:      alpha, f, g at this level
         # segmented:  ascending: {alpha, f, g} and descending: {alpha, f, g}
         #             or, when only the identifiable combination is known,
@@ -36,7 +39,15 @@ from __future__ import annotations
 import numpy as np
 import yaml
 
-from piezo_stage.core.duhem import AXES, DuhemBranch, DuhemModel, DuhemState, StageModel
+from piezo_stage.core.duhem import (
+    AXES,
+    DuhemBranch,
+    DuhemModel,
+    DuhemState,
+    StageModel,
+    branch_values,
+    polynomial_range,
+)
 from piezo_stage.core.effects import validate_effects
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.core.play import MAX_OPERATORS, PlayOperators
@@ -150,19 +161,26 @@ def _duhem(d, where) -> DuhemModel:
     _check_keys(init, ("v_V", "w_um"), f"{where}.initial_state")
     state = DuhemState(_number(init.get("v_V", 0.0), f"{where}.initial_state.v_V"),
                        _number(init.get("w_um", 0.0), f"{where}.initial_state.w_um"))
+    fr = d.get("fitted_range_V")
+    if fr is not None:
+        if not isinstance(fr, (list, tuple)) or len(fr) != 2:
+            raise ModelError(f"{where}.fitted_range_V must be [lo, hi]")
+        fr = tuple(_numbers(list(fr), f"{where}.fitted_range_V"))
+        if not fr[0] < fr[1]:
+            raise ModelError(f"{where}.fitted_range_V {list(fr)} must have lo < hi")
     if structure == "whole":
-        _check_keys(d, ("structure", "initial_state", "alpha", "f", "g", "h", "coupling",
-                        "play_operators", "note"), where)
+        _check_keys(d, ("structure", "initial_state", "fitted_range_V", "alpha", "f", "g",
+                        "h", "coupling", "play_operators", "note"), where)
         b = _branch({k: d[k] for k in ("alpha", "f", "g", "h") if k in d}, where)
-        return DuhemModel(b, b, state)
+        return DuhemModel(b, b, state, fr)
     if structure == "segmented":
-        _check_keys(d, ("structure", "initial_state", "ascending", "descending",
-                        "coupling", "play_operators", "note"), where)
+        _check_keys(d, ("structure", "initial_state", "fitted_range_V", "ascending",
+                        "descending", "coupling", "play_operators", "note"), where)
         for k in ("ascending", "descending"):
             if k not in d:
                 raise ModelError(f"{where}: segmented model needs '{k}'")
         return DuhemModel(_branch(d["ascending"], f"{where}.ascending"),
-                          _branch(d["descending"], f"{where}.descending"), state)
+                          _branch(d["descending"], f"{where}.descending"), state, fr)
     raise ModelError(f"{where}: structure must be 'whole' or 'segmented', got {structure!r}")
 
 
@@ -239,10 +257,12 @@ def _check_magnitudes(axes, coupling, lim, source, plays=None):
     v = np.linspace(lim[0], lim[1], 201)
     for kind, models in (("axes", axes), ("coupling", coupling)):
         for a, m in models.items():
+            # as the model runs: past its fitted range a branch continues from its end
+            vv = np.unique(np.concatenate([v, polynomial_range(m.fit_range_V)]))
+            vv = vv[np.isfinite(vv)]
             for name, br in (("ascending", m.ascending), ("descending", m.descending)):
                 for asc in (True, False):
-                    with np.errstate(all="ignore"):
-                        y = np.polynomial.polynomial.polyval(v, br.h(asc))
+                    y = branch_values(br.h(asc), vv, m.fit_range_V)
                     if not np.all(np.isfinite(y)) or np.abs(y).max() > MAX_SLOPE:
                         raise ModelError(f"{source}: {kind}.{a} {name} branch reaches "
                                          f"{np.nanmax(np.abs(y)):.3g} um/V within the "
@@ -262,6 +282,8 @@ def _branch_doc(b: DuhemBranch, ascending: bool):
 def _duhem_doc(m: DuhemModel):
     d = {"structure": m.structure,
          "initial_state": {"v_V": float(m.initial.v), "w_um": float(m.initial.w)}}
+    if m.fit_range_V is not None:
+        d["fitted_range_V"] = [float(x) for x in m.fit_range_V]
     if m.structure == "whole":
         d.update(_branch_doc(m.ascending, True))
     else:

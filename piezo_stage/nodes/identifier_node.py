@@ -20,7 +20,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from piezo_stage.core.duhem import StageModel
+from piezo_stage.core.duhem import StageModel, voltage_limits_for
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.identify import IdentifyOptions, identify_axis
 from piezo_stage.core.identify.segmentation import segment
@@ -104,7 +104,8 @@ class Identifier(Node):
         if not res:
             raise PiezoStageError("; ".join(skipped))
         model = StageModel({a: r.model for a, r in res.items()},
-                           {a: r.coupling for a, r in res.items() if r.coupling})
+                           {a: r.coupling for a, r in res.items() if r.coupling},
+                           voltage_limits_for(rec.v.values()))
         self.pub.publish(model_msg(yaml.safe_dump(model_to_dict(model), sort_keys=False)))
         self.stats["identifications"] += 1
         self.stats["last_fit_rms_um"] = max(r.fit["rms_um"] for r in res.values())

@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from piezo_stage.core.duhem import StageModel
+from piezo_stage.core.duhem import StageModel, voltage_limits_for
 from piezo_stage.core.errors import DataError
 
 # the package's public names, here as before it was split by concern
@@ -72,12 +72,13 @@ class Diagnosis:
     def __contains__(self, key: str) -> bool:
         return key in self.json
 
-    def model(self, fit: Record) -> tuple[StageModel, dict]:
+    def model(self, fit: Record, limits_V: tuple | None = None) -> tuple[StageModel, dict]:
         """The model with every kept effect, as ``gap --out-model`` writes it: (StageModel,
         effects). Each axis's Duhem model (and coupling) from its kept fit; the model
         file holds one parameter set per effect, so where both axes have one, the set of
         the axis where it explains the most; ``structure`` with memory as the axis's
-        play operators. Voltage limits: 0-150 V widened to FIT's."""
+        play operators. Voltage limits: the amplifier's ``limits_V``, else 0-150 V
+        widened to FIT's (core.duhem.voltage_limits_for)."""
         axes, coupling, plays, effects, weight = {}, {}, {}, {}, {}
         self.notes = []
         for a, d in self.per_axis.items():
@@ -101,8 +102,7 @@ class Diagnosis:
                 if w >= weight.get(name, -1.0):
                     weight[name] = w
                     e.update(params)
-        lim = (min(0.0, min(float(fit.v[a].min()) for a in axes)),
-               max(150.0, max(float(fit.v[a].max()) for a in axes)))
+        lim = voltage_limits_for([fit.v[a] for a in axes], limits_V)
         return StageModel(axes, coupling, lim, plays), effects
 
 

@@ -100,6 +100,8 @@ class _BranchProblem(_Problem):
         alpha, (H,) = self.decode(X)
         out = np.empty(alpha.size)
         self.evaluations += alpha.size
+        H = np.column_stack([np.full(alpha.size, -np.inf), np.full(alpha.size, np.inf),
+                             H])  # the kernels' layout: an infinite range, then h
         return branch_rms_batch(self.v, self.w, self.starts, self.stops, self.vi, self.wi,
                                 alpha, np.ascontiguousarray(H), out)
 
@@ -122,7 +124,9 @@ class _WholeProblem(_Problem):
         Gp = np.zeros((K, self.D))
         Fp[:, :F.shape[1]] = F
         Gp[:, :G.shape[1]] = G
-        H = np.ascontiguousarray(np.stack([Gp + Fp, Gp - Fp], axis=1))
+        H = np.stack([Gp + Fp, Gp - Fp], axis=1)  # (the kernels' layout: an infinite
+        lim = np.broadcast_to([-np.inf, np.inf], H.shape[:2] + (2,))  # range, then h)
+        H = np.ascontiguousarray(np.concatenate([lim, H], axis=2))
         A = np.ascontiguousarray(np.column_stack([alpha, alpha]))
         out = np.empty(K)
         self.evaluations += K

@@ -166,6 +166,7 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
     else:
         from piezo_stage.core.identify.afsa import fit_swarm
         model, evaluations, history = fit_swarm(v, w, seg, opts, progress)
+        model = model.with_fit_range(float(v.min()), float(v.max()))
         coupling = None
     seconds = time.perf_counter() - t0
     pred = simulate_axis(model, coupling, v, v_other)

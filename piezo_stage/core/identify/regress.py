@@ -240,4 +240,8 @@ class DuhemRegression:
             gc = legendre_to_power(o[c1:2 * c1], self.olo, self.ohi)
             w0c = float(o[2 * c1]) if self.cstate else 0.0
             coupling = DuhemModel.whole(alphas[-1], fc, gc, DuhemState(self.v_other[0], w0c))
+            if self.olo < self.ohi:
+                coupling = coupling.with_fit_range(self.olo, self.ohi)
+        if self.lo < self.hi:  # past the record's voltages a branch continues from its end
+            main = main.with_fit_range(self.lo, self.hi)
         return main, coupling
