@@ -201,3 +201,28 @@ def test_identify_writes_the_amplifiers_limits_and_simulate_warns_past_the_fit(t
             "--limits=-90,90")
     assert r.returncode == 0 and load_model(tmp_path / "m3.yaml")[0].voltage_limits == \
         (-90.0, 90.0)
+
+
+def test_gap_names_each_axis_and_warns_when_holdout_leaves_fits_range(tmp_path):
+    """FIT on a small stroke, HOLDOUT on the full one: one warning line says so, each
+    axis's verdict is printed, and the model --out-model writes loads and runs over
+    HOLDOUT's voltages through our simulate (saying, in one line, where it is past its
+    fitted range)."""
+    def cli(*a):
+        return subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, a)],
+                              capture_output=True, text=True, timeout=300)
+    for name, extra in (("fit", ["--v-max", "80"]), ("hold", ["--seed", "3"])):
+        assert cli("excite", "--rate", "1000", "--out", tmp_path / f"{name}_v.csv",
+                   *extra).returncode == 0
+        assert cli("simulate", "--in", tmp_path / f"{name}_v.csv", "--out",
+                   tmp_path / f"{name}.csv").returncode == 0
+    r = cli("gap", tmp_path / "fit.csv", "--holdout", tmp_path / "hold.csv", "--out-model",
+            tmp_path / "g.yaml")
+    assert r.returncode == 0, r.stderr[-2000:]
+    warned = [ln for ln in r.stderr.splitlines() if "warning" in ln]
+    assert len(warned) == 1 and "HOLDOUT goes past FIT's voltage range" in warned[0], r.stderr
+    assert "verdict x: " in r.stdout and "verdict y: " in r.stdout, r.stdout
+    r = cli("simulate", "--in", tmp_path / "hold_v.csv", "--model", tmp_path / "g.yaml",
+            "--out", tmp_path / "pred.csv")
+    assert r.returncode == 0, r.stderr
+    assert [ln for ln in r.stderr.splitlines() if ln.strip()][-1].count("past its fitted") == 1

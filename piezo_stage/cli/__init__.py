@@ -28,6 +28,8 @@ def build_parser():
     """The parser of every subcommand (``args.fn`` is its ``main``)."""
     p = Parser(prog="piezo-stage", description="piezo stage tools: simulate, identify, "
                "diagnose the sim-to-real gap, control through the ROS 2 node set")
+    from piezo_stage import __version__
+    p.add_argument("--version", action="version", version=f"piezo-stage {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=Parser)
     for name in COMMANDS:
         mod = importlib.import_module(f"piezo_stage.cli.{name}")

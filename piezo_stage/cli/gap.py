@@ -22,6 +22,25 @@ def add_arguments(s):
                    help="write the model with the found effect (simulate --model uses it)")
 
 
+def _warn_ranges(fit, hold) -> None:
+    """One line on stderr when HOLDOUT's voltages leave FIT's range by more than a tenth
+    of its span: the models fitted on FIT are used past what they saw there (they run,
+    continuing straight from their ends; a large gap may be that, not an effect)."""
+    import sys
+
+    import numpy as np
+    out = []
+    for a in sorted(set(fit.v) & set(hold.v)):
+        lo, hi = float(np.min(fit.v[a])), float(np.max(fit.v[a]))
+        hlo, hhi = float(np.min(hold.v[a])), float(np.max(hold.v[a]))
+        if hhi > hi + 0.1 * (hi - lo) or hlo < lo - 0.1 * (hi - lo):
+            out.append(f"v{a} {hlo:.4g}..{hhi:.4g} V against FIT's {lo:.4g}..{hi:.4g} V")
+    if out:
+        sys.stderr.write("piezo-stage: warning: HOLDOUT goes past FIT's voltage range ("
+                         + "; ".join(out) + "): the models are used past what they were "
+                         "fitted on, and part of the gap may be that\n")
+
+
 def main(args):
     import json
 
@@ -39,12 +58,18 @@ def main(args):
         base, base_effects = load_model(args.model)
     if hold is not None and set(fit.w) != set(hold.w):
         raise DataError(f"FIT has axes {sorted(fit.w)} but HOLDOUT has {sorted(hold.w)}")
+    if hold is not None:
+        _warn_ranges(fit, hold)
     from piezo_stage.progress import bar, steps
     with bar("gap: candidate fits", unit=" fits") as b:
         res = diagnose(fit, hold, base_model=base, base_effects=base_effects,
                        axes=None if args.axis == "both" else [args.axis], progress=steps(b))
     per = res.per_axis
-    print(f"verdict: {res['verdict']} ({res['reason']})")
+    print(f"verdict: {res['verdict']} ({res['reason']})" if len(per) == 1 else
+          f"verdict: {res['verdict']} (the axis with the larger gap, {res['where']['axis']})")
+    if len(per) > 1:
+        for a, d in per.items():
+            print(f"verdict {a}: {d.verdict} ({d.reason})")
     print(f"{'axis':>4} {'effect':>9} {'rms_before':>10} {'rms_after':>9} {'gap_before':>10} "
           f"{'gap_after':>9} {'shrink_pct':>10} {'+-':>5}")
     for a, d in per.items():

@@ -21,7 +21,9 @@ def add_arguments(s):
                    "factor (0.2: 20 %%)")
     s.add_argument("--rate", type=float, choices=(1000.0, 2000.0, 5000.0), default=1000.0,
                    help="learning: the control rate [Hz] (default 1000)")
-    s.add_argument("--seeds", type=number(1, 1000, integer=True), default=5)
+    s.add_argument("--seeds", type=number(1, 1000, integer=True), default=5,
+                   help="identification: random seeds per solver (the paper's Table 3 "
+                   "repeats; default 5)")
     s.add_argument("--budget", type=number(1, 10**8, integer=True), default=60_000,
                    help="evaluations per swarm run")
 
