@@ -31,30 +31,37 @@ except ImportError:  # pragma: no cover - exercised only on installs without num
     HAVE_NUMBA = False
 
 
-@njit
-def _poly_and_slope(c: F64, x: float) -> tuple[float, float]:
-    """(sum_i c[i] x**i, its derivative) at x, c from index 2 on (Horner, both at once)."""
-    p, d = 0.0, 0.0
-    for i in range(c.shape[0] - 1, 1, -1):
-        d = d * x + p
-        p = p * x + c[i]
-    return p, d
+# A branch row's layout, as every kernel takes it: PREFIX numbers, then the polynomial's
+# coefficients (lowest power first). The prefix: [lo, hi, h(lo), slope below lo,
+# h(hi), slope above hi], computed once per model (duhem.branch_row).
+PREFIX = 6
 
 
 @njit
 def horner(c: F64, x: float) -> float:
-    """A branch polynomial at x: ``c = [lo, hi, c0, c1, ...]``, the polynomial
-    sum_i c[2 + i] x**i inside the voltage range [lo, hi] it was fitted on, and outside
-    it the straight continuation from the nearer end with the end's slope (never
-    negative): the polynomial's own tail past the data is no physics, and a degree-5
-    tail reached 1e11 um/V a few tens of volts beyond a record's range."""
+    """A branch polynomial at x, ``c`` a branch row (PREFIX): the polynomial
+    sum_i c[PREFIX + i] x**i over [lo, hi] (the fitted range and its margin:
+    duhem.polynomial_range), and outside it the straight continuation from the nearer
+    end with the end's slope, precomputed: the polynomial's own tail past the data is
+    no physics, and a degree-5 tail reached 1e11 um/V a few tens of volts beyond a
+    record's range."""
     if x > c[1]:
-        p, d = _poly_and_slope(c, c[1])
-        return p + max(d, 0.0) * (x - c[1])
+        return c[4] + c[5] * (x - c[1])
     if x < c[0]:
-        p, d = _poly_and_slope(c, c[0])
-        return p + max(d, 0.0) * (x - c[0])
-    return _poly_and_slope(c, x)[0]
+        return c[2] + c[3] * (x - c[0])
+    p = c[PREFIX:]  # (a loop to index -1 over the slice compiles 3.4 x faster than a
+    acc = 0.0       # loop that stops at PREFIX - 1: measured on 2M Duhem steps)
+    for i in range(p.shape[0] - 1, -1, -1):
+        acc = acc * x + p[i]
+    return acc
+
+
+def unbounded_rows(h: F64) -> F64:
+    """Branch rows (PREFIX) for polynomials ``h`` (..., D) with no fitted range: the
+    polynomial everywhere (the identification's candidates)."""
+    pre = np.zeros(h.shape[:-1] + (PREFIX,))
+    pre[..., 0], pre[..., 1] = -np.inf, np.inf
+    return np.ascontiguousarray(np.concatenate([pre, h], axis=-1))
 
 
 @njit

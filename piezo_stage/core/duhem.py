@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import as_f64, duhem_run, duhem_step
+from piezo_stage.core._jit import PREFIX, as_f64, duhem_run, duhem_step
 from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.core.play import PlayOperators
 
@@ -142,19 +142,18 @@ class DuhemModel:
         return "whole" if self.ascending == self.descending else "segmented"
 
     def kernel_params(self) -> tuple[np.ndarray, np.ndarray]:
-        """(alpha[2], H[2, 2 + D]) as the compiled loops take them (computed once):
-        each row the fitted range [lo, hi] (infinite without one), then the branch
-        polynomial's coefficients (the compiled ``horner``'s layout)."""
+        """(alpha[2], H[2, PREFIX + D]) as the compiled loops take them (computed
+        once): each row a branch row (``branch_row``: the compiled ``horner``'s
+        layout)."""
         cached = self.__dict__.get("_kp")
         if cached is not None:
             return cached
         ha = self.ascending.h(True)
         hd = self.descending.h(False)
         d = max(ha.size, hd.size)
-        H = np.zeros((2, 2 + d))
-        H[:, :2] = polynomial_range(self.fit_range_V)
-        H[0, 2:2 + ha.size] = ha
-        H[1, 2:2 + hd.size] = hd
+        H = np.zeros((2, PREFIX + d))
+        H[0, :PREFIX + ha.size] = branch_row(ha, self.fit_range_V)
+        H[1, :PREFIX + hd.size] = branch_row(hd, self.fit_range_V)
         alpha = np.array([self.ascending.alpha, self.descending.alpha])
         object.__setattr__(self, "_kp", (alpha, H))  # frozen: cache through the back door
         return alpha, H
@@ -201,6 +200,34 @@ def polynomial_range(fit_range_V: tuple | None) -> tuple[float, float]:
     lo, hi = fit_range_V
     m = POLY_MARGIN * (hi - lo)
     return lo - m, hi + m
+
+
+def branch_row(h: ArrayLike, fit_range_V: tuple | None = None) -> np.ndarray:
+    """A branch polynomial ``h`` as the compiled ``horner`` takes it: [lo, hi, h(lo),
+    slope below lo, h(hi), slope above hi] (``polynomial_range``; each end's slope the
+    polynomial's there, never negative), then the coefficients.
+
+    Parameters
+    ----------
+    h : array_like
+        Coefficients [um/V per V**i], lowest power first.
+    fit_range_V : tuple of float or None
+        The fitted input range; None: the polynomial everywhere.
+
+    Returns
+    -------
+    ndarray
+        The row, PREFIX + len(h) numbers.
+    """
+    P = np.polynomial.polynomial
+    h = np.asarray(h, float)
+    lo, hi = polynomial_range(fit_range_V)
+    pre = [lo, hi, 0.0, 0.0, 0.0, 0.0]
+    if fit_range_V is not None:
+        d = P.polyder(h) if h.size > 1 else np.zeros(1)
+        pre[2:] = [P.polyval(lo, h), max(float(P.polyval(lo, d)), 0.0),
+                   P.polyval(hi, h), max(float(P.polyval(hi, d)), 0.0)]
+    return np.concatenate([pre, h])
 
 
 def branch_values(h: ArrayLike, v: ArrayLike,

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from piezo_stage.core._jit import as_f64, branch_rms_batch, duhem_rms_batch
+from piezo_stage.core._jit import as_f64, branch_rms_batch, duhem_rms_batch, unbounded_rows
 from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
 from piezo_stage.core.identify.regress import legendre_to_power
 
@@ -100,10 +100,8 @@ class _BranchProblem(_Problem):
         alpha, (H,) = self.decode(X)
         out = np.empty(alpha.size)
         self.evaluations += alpha.size
-        H = np.column_stack([np.full(alpha.size, -np.inf), np.full(alpha.size, np.inf),
-                             H])  # the kernels' layout: an infinite range, then h
         return branch_rms_batch(self.v, self.w, self.starts, self.stops, self.vi, self.wi,
-                                alpha, np.ascontiguousarray(H), out)
+                                alpha, unbounded_rows(H), out)
 
 
 class _WholeProblem(_Problem):
@@ -124,9 +122,7 @@ class _WholeProblem(_Problem):
         Gp = np.zeros((K, self.D))
         Fp[:, :F.shape[1]] = F
         Gp[:, :G.shape[1]] = G
-        H = np.stack([Gp + Fp, Gp - Fp], axis=1)  # (the kernels' layout: an infinite
-        lim = np.broadcast_to([-np.inf, np.inf], H.shape[:2] + (2,))  # range, then h)
-        H = np.ascontiguousarray(np.concatenate([lim, H], axis=2))
+        H = unbounded_rows(np.stack([Gp + Fp, Gp - Fp], axis=1))
         A = np.ascontiguousarray(np.column_stack([alpha, alpha]))
         out = np.empty(K)
         self.evaluations += K
