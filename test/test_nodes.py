@@ -122,7 +122,7 @@ for k in range(301):
 bad = JointTrajectory(joint_names=['x', 'q'], points=msg.points[:2])
 import time
 t0 = time.time()
-while pub.get_subscription_count() < 2 and time.time() - t0 < 120:
+while pub.get_subscription_count() < 1 and time.time() - t0 < 120:  # the feedforward
     rclpy.spin_once(n, timeout_sec=0.05)
 pub.publish(bad)
 pub.publish(msg)
@@ -136,17 +136,23 @@ sys.exit(0 if acked else 1)
 """
 
 
-def test_stage_follows_a_trajectory_from_another_lab_node(tmp_path, env):
-    ext = subprocess.Popen([sys.executable, "-c", EXTERNAL], env=env)
+def with_lab_node(tmp_path, env, code, name, steps):
+    """A lab node (Python ``code`` in its own process) beside a lockstep set that waits
+    for its trajectory (a bad one does not count); the node must exit 0. -> the bag."""
+    lab = subprocess.Popen([sys.executable, "-c", code], env=env)
     try:
-        # the loop waits for the lab node's trajectory (its bad one does not count)
-        bag = lockstep(tmp_path, env, "ext", steps=4000,
+        bag = lockstep(tmp_path, env, name, steps=steps,
                        nodes=["stage_driver", "feedforward", "controller"],
                        overrides={"feedforward": {"wait_for_trajectory": True}})
-        assert ext.wait(60) == 0
+        assert lab.wait(60) == 0
     finally:
-        if ext.poll() is None:
-            ext.kill()
+        if lab.poll() is None:
+            lab.kill()
+    return bag
+
+
+def test_stage_follows_a_trajectory_from_another_lab_node(tmp_path, env):
+    bag = with_lab_node(tmp_path, env, EXTERNAL, "ext", 4000)
     rec = read_bag_record(bag)
     # it rejected the bad trajectory, kept running, and followed the good one:
     # 30 um, then a step to 40 um; y at 20 um
@@ -161,15 +167,7 @@ def test_the_docs_minimal_lab_node_is_run_by_the_stage_and_in_the_bag(tmp_path, 
     trajectory/accepted holds it."""
     page = open(os.path.join(ROOT, "docs", "nodes.md"), encoding="utf-8").read()
     code = re.search(r"## Other labs' nodes.*?```python\n(.*?)```", page, re.S).group(1)
-    lab = subprocess.Popen([sys.executable, "-c", code], env=env)
-    try:
-        bag = lockstep(tmp_path, env, "docs_lab", steps=1500,
-                       nodes=["stage_driver", "feedforward", "controller"],
-                       overrides={"feedforward": {"wait_for_trajectory": True}})
-        assert lab.wait(60) == 0
-    finally:
-        if lab.poll() is None:
-            lab.kill()
+    bag = with_lab_node(tmp_path, env, code, "docs_lab", 1500)
     got = [deserialize(data, "trajectory_msgs/msg/JointTrajectory")
            for _, data in topic_data(bag, "/stage/trajectory/accepted")]
     assert len(got) == 1 and [round(p.positions[0] * 1e6, 6) for p in got[0].points] == \
@@ -207,9 +205,10 @@ def test_recorder_killed_with_sigkill_leaves_a_readable_bag(tmp_path, env):
 def test_launcher_reports_a_dead_node(tmp_path, env):
     bad = tmp_path / "bad.yaml"
     bad.write_text("/**/stage_driver:\n  ros__parameters:\n    backend: replay\n")
+    # (--no-arm: a file with the driver alone could never arm, and is refused without it)
     r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "launch", str(bad),
-                        "--duration", "20"], env=env, capture_output=True, text=True,
-                       timeout=120)
+                        "--duration", "20", "--no-arm"], env=env, capture_output=True,
+                       text=True, timeout=120)
     assert r.returncode != 0
     assert "stage_driver" in r.stderr
 

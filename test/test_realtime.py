@@ -689,3 +689,96 @@ def test_no_trajectory_set_holds_and_follows_outside_publishers(tmp_path, domain
     assert "incompatible" not in err.lower(), err[-2000:]
     assert "s in the past" in err
 
+
+
+# an outside node between the real controller (its output remapped to command_raw) and
+# the driver: forwards each command at once until FLAG exists, then DELAY s after it came
+DELAYING_RELAY = r"""
+import os, sys, time, collections
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from geometry_msgs.msg import Vector3Stamped
+flag, delay = sys.argv[1], float(sys.argv[2])
+try:  # like the loop's nodes: starved at normal priority, it lagged up to 29 ms
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(40))
+except OSError:
+    pass
+rclpy.init()
+n = rclpy.create_node("delaying_relay")
+qos = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
+pub = n.create_publisher(Vector3Stamped, "/stage/command", qos)
+queue = collections.deque()
+n.create_subscription(Vector3Stamped, "/stage/command_raw",
+                      lambda m: queue.append((time.monotonic(), m)), qos, raw=True)
+late = False
+try:
+    while rclpy.ok():
+        rclpy.spin_once(n, timeout_sec=0.0005)
+        late = late or os.path.exists(flag)
+        now = time.monotonic()
+        while queue and (not late or now - queue[0][0] >= delay):
+            pub.publish(queue.popleft()[1])
+except KeyboardInterrupt:
+    pass
+"""
+
+
+class _ControllerBehindARelay(Launch):
+    def command(self, node):
+        cmd = super().command(node)
+        return cmd + ["-r", "command:=command_raw"] if node == "controller" else cmd
+
+
+def test_a_real_controllers_commands_late_fault_and_ramp_to_safe(tmp_path, domain,
+                                                                 ros_domains):
+    """The real controller's commands delayed 40 ms on their way to a driver with a
+    25 ms look-ahead (a relay node in between): each arrives about 15 ms after the tick
+    it is stamped for, is counted and
+    dropped, and the stream faults the set within stale_timeout_s + 1 tick of the last
+    one on time ("late commands: ... ms behind ..."), then ramps to the safe voltage
+    within the slew limit. Real time: run once more on a host that starved it."""
+    run_twice_at_most(_late_run, tmp_path, domain, ros_domains)
+
+
+def _late_run(tmp_path, domain):
+    tmp_path.mkdir()
+    d, env = domain
+    bag, flag = str(tmp_path / "late"), str(tmp_path / "late.flag")
+    # the relay (stock rclpy) adds milliseconds of its own (up to 27 ms seen at a 20 ms
+    # look-ahead): a 25 ms look-ahead takes them in, and a 40 ms delay is past it
+    launch = _ControllerBehindARelay(
+        realtime_config(tmp_path, "    lookahead_s: 0.025\n"), record=bag, env=env,
+        exclusive=False,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+    relay = subprocess.Popen([sys.executable, "-c", DELAYING_RELAY, flag, "0.040"], env=env)
+    probe = Probe(d)
+    try:
+        launch.start()
+        assert probe.wait_state("armed", 60), probe.states[-3:]
+        probe.spin(1.5)
+        assert probe.state == "armed", probe.states[-3:]
+        open(flag, "w").close()
+        switched_ns = time.time_ns()
+        k = len(probe.states)
+        assert probe.wait_state("faulted", 5, after=k), probe.states[-3:]
+        reason = next(r for s, r, _ in probe.states[k:] if s == "faulted")
+        probe.spin(1.0)
+    finally:
+        probe.close()
+        launch.stop()
+        relay.send_signal(signal.SIGINT)
+        relay.wait(10)
+    assert reason.startswith("late commands: ") and "ms behind for" in reason, reason
+    assert "arrived after their tick, dropped" in reason, reason
+    run = read_run(bag)
+    fault_ns = min(s for s, n in run.states if n == "faulted" and s > switched_ns - 10**9)
+    # the relay switches within a millisecond of the flag: the last command on time
+    # came by then, and the fault within stale_timeout_s and one tick after it
+    took = (fault_ns - switched_ns) * 1e-9
+    assert 0 < took <= STALE + 0.001 + 0.005, took
+    k = run.t_ns >= fault_ns
+    v0 = np.abs(run.v_V[k][0]).max()
+    done = run.t_ns[k][np.all(np.abs(run.v_V[k]) < 1e-9, axis=1)]
+    assert done.size, "never reached the safe voltage"
+    assert (done[0] - fault_ns) * 1e-9 <= v0 / RAMP + 0.01, (done[0] - fault_ns, v0)
+    assert_never_beyond_slew(run.t_ns, run.v_V)
