@@ -115,11 +115,13 @@ def test_fit_here_use_there_every_written_model_runs_and_memory_beats_the_peer()
     ours: every model `gap --out-model` writes loads and runs through our simulator on
     the held-out excitation; fitted on a constant-amplitude calibration and used on
     nested minor loops, that model (with its play operators) beats the classical
-    Prandtl-Ishlinskii peer by the issue's margin (<= 0.8 x)."""
+    Prandtl-Ishlinskii peer by the issue's margin (<= 0.8 x). Our exact inverse of each
+    written model gives the voltages back."""
     from piezo_stage.apps.studies import conditions
     rows = {(r["stage"], r["case"]): r for r in conditions.run()}
     for r in rows.values():
         assert np.isfinite(r["gap_model_um"]) and np.isfinite(r["ours_um"]), r
+        assert r["inverse_back_V"] < 1e-6, r  # our invert takes it, past its range too
         assert r["own_fit_um"] < 0.2, r  # the class fits each record itself
     nested = rows[("structure", "periodic->nested")]
     assert nested["verdict"] == "structure"

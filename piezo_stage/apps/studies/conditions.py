@@ -17,7 +17,8 @@ and a tanh envelope, not our model class) and our own (config/sim_stage.yaml):
 Scored (``prandtl.held_out_rms``: after the first second, each model's mean offset
 removed) against the measured displacement: ours (``identify``'s fast fit, cubic
 segmented branches), the model ``gap --out-model`` writes (saved, loaded back and run
-through our own simulator, noise free), the peer (a linear term and 12 play operators,
+through our own simulator, noise free; its hysteresis's output also inverted back to
+the voltages by our exact inverse), the peer (a linear term and 12 play operators,
 least squares on the same samples), and ours fitted on HOLDOUT itself (what the model
 class can reach there). A rate case (a loop that widens with frequency) needs a stage
 whose hysteresis is rate dependent, which the simulator does not have yet.
@@ -83,10 +84,13 @@ def case_records(stage: str, case: str, seed: int = 0) -> tuple[Record, Record, 
     return fit, hold, true[k:]
 
 
-def _written_model_prediction(fit: Record, hold: Record) -> np.ndarray:
+def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, str, float]:
     """What `gap --out-model` writes for FIT, saved, loaded and run through our own
-    simulator (noise free) over HOLDOUT's voltages."""
+    simulator (noise free) over HOLDOUT's voltages: (its output [um], the verdict, and
+    how far [V] our exact inverse of its hysteresis's output lands from HOLDOUT's
+    voltages)."""
     from piezo_stage.core.gap import diagnose
+    from piezo_stage.core.inverse import invert_stage
     from piezo_stage.core.plant import Plant, PlantConfig
     from piezo_stage.io.model_file import load_model, save_model
     from piezo_stage.io.plant_file import enabled_effects
@@ -96,12 +100,17 @@ def _written_model_prediction(fit: Record, hold: Record) -> np.ndarray:
         path = os.path.join(d, "model.yaml")
         save_model(path, model, effects=effects or None)
         model, effects = load_model(path)  # loads: our loader accepts it
+    v = hold.v["x"]
+    zero = np.zeros_like(v)
     cfg = PlantConfig.exact(model, FS_HZ)
     cfg.effects = enabled_effects(effects)
-    cfg.noise_rms_um = cfg.quantization_um = 0.0
-    v = hold.v["x"]
-    return Plant(cfg, FS_HZ).run(v, np.zeros_like(v))["x"], res["verdict"]
-
+    pred = Plant(cfg, FS_HZ).run(v, zero)["x"]
+    # the exact inverse takes the hysteresis (the feedforward compensates the effects
+    # apart): the output of the hysteresis alone must invert back to the voltages
+    hyst = Plant(PlantConfig.exact(model, FS_HZ), FS_HZ).run(v, zero)
+    inv = invert_stage(model, hyst["x"], hyst["y"])["x"].v
+    back = float(np.max(np.abs(inv - v))) if np.all(np.isfinite(inv)) else float("nan")
+    return pred, res["verdict"], back
 
 
 def run(stages=tuple(STAGES), cases=CASES, seed: int = 0, progress=None) -> list[dict]:
@@ -118,9 +127,10 @@ def run(stages=tuple(STAGES), cases=CASES, seed: int = 0, progress=None) -> list
             ours = predict_axis(identify_axis(fit, "x"), hold)[2]
             own = predict_axis(identify_axis(hold, "x"), hold)[2]
             peer = fit_prandtl_ishlinskii(fit.v["x"], fit.w["x"]).predict(hold.v["x"])
-            written, verdict = _written_model_prediction(fit, hold)
+            written, verdict, back = _written_model_prediction(fit, hold)
             rows.append({"stage": stage, "case": case, "ours_um": score(ours),
                          "gap_model_um": score(written), "verdict": verdict,
+                         "inverse_back_V": back,
                          "peer_um": score(peer), "own_fit_um": score(own),
                          "noise_um": score(true)})
             if progress:
