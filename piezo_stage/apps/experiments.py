@@ -45,7 +45,8 @@ EVAL_CYCLES = 2
 EVAL_MIN_S = 0.5   # tracking: at least this long (40 Hz: 20 cycles, not 2 = 50 samples)
 LEAD_S, TAIL_S = 0.2, 0.3  # trajectory holds its first point, then its last
 LOCKSTEP_SLACK_S = 0.3  # a lockstep run's steps beyond its trajectory and approach
-REALTIME_SLACK_S = 0.7  # real time: more (the feedforward's phase reaches the driver late)
+# real time: more (the feedforward sees the enable a look-ahead and a transport later)
+REALTIME_SLACK_S = 0.7
 NODES = ("stage_driver", "feedforward", "controller", "trajectory")
 
 

@@ -7,10 +7,10 @@ the first tick and a tick serviced more than a period late skips the missed samp
 backend holds its voltage over them, the stamps show the gap). Commands are applied at
 the tick they are stamped for; late ones are counted and dropped, the newest command on
 time is held, and only commands on time keep the loop fresh (a stream of late ones
-faults it). The
-arming supervisor (core/arming.py) decides what is applied: the safe voltage until the
-loop is proven closed, then commands, and a ramp to the safe voltage on a fault, an
-e-stop or a shutdown. Everything is clamped to the voltage limits and the slew limit.
+faults it). The arming supervisor (core/arming.py) decides what is applied: the safe
+voltage until the loop is proven closed, then commands, and a ramp to the safe voltage
+on a fault, an e-stop or a shutdown. Everything is clamped to the voltage limits and
+the slew limit.
 """
 
 from __future__ import annotations

@@ -107,7 +107,9 @@ def write_report(out_dir, result, holdout):
         ax[1, 1].set(ylabel="held-out gap [um]",
                      title="before / after: each candidate, and as joined")
         ax[1, 1].tick_params(axis="x", labelrotation=30)
-        ax[1, 1].legend()
+        # beside the bars, not over them
+        ax[1, 1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        fig.suptitle(f"axis {axis}: verdict {d.verdict}")
         fig.tight_layout()
         png = f"gap_{axis}.png"
         fig.savefig(os.path.join(out_dir, png), dpi=100)

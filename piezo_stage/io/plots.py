@@ -60,10 +60,11 @@ def tracking_png(path, run, t_track_s, excite_s=0.0, axes=("x", "y")):
     d = np.array([run.desired_um[k] for k in both]).reshape(-1, 2)
     w = np.array([meas[k] for k in both]).reshape(-1, 2)
     fig, ax = plt.subplots(len(axes), 3, figsize=(16, 3.8 * len(axes)), squeeze=False)
+    # one colour per signal in every panel: desired C0 (dashed), measured C1
     for i, axis in enumerate(axes):
         a = ax[i, 0]
-        a.plot(t, run.w_um[:, i], lw=0.6, label="measured")
-        a.plot(ref_t * 1e-9, ref[:, i], lw=0.8, ls="--", label="desired")
+        a.plot(t, run.w_um[:, i], lw=0.6, color="C1", label="measured")
+        a.plot(ref_t * 1e-9, ref[:, i], lw=0.8, ls="--", color="C0", label="desired")
         if excite_s > 0:
             a.axvspan(t[0] if t.size else 0.0, excite_s, color="0.9",
                       label="excitation (identified from)")
@@ -71,8 +72,8 @@ def tracking_png(path, run, t_track_s, excite_s=0.0, axes=("x", "y")):
         a.set(xlabel="time [s]", ylabel="position [um]", title=f"axis {axis}: the whole run")
         a.legend(fontsize=7, loc="upper left")
         a = ax[i, 1]
-        a.plot(tt, d[:, i], lw=1.0, label="desired")
-        a.plot(tt, w[:, i], lw=0.6, label="measured")
+        a.plot(tt, d[:, i], lw=1.0, ls="--", color="C0", label="desired")
+        a.plot(tt, w[:, i], lw=0.6, color="C1", label="measured")
         a.set(xlabel="time [s]", ylabel="position [um]", title=f"axis {axis}: tracking")
         a.legend(fontsize=7)
         e = w[:, i] - d[:, i]
@@ -103,8 +104,10 @@ def experiment_png(path, evals):
                             color="0.7", label=f"{a} measured - desired")
             ax[row, 1].plot(t, ev["true"][:, i] - ev["desired"][:, i], lw=0.7,
                             label=f"{a} true - desired")
-        ax[row, 0].set(ylabel="um", title=case.name)
+        ax[row, 0].set(ylabel="position [um]", title=case.name)
         ax[row, 1].set(ylabel="error [um]", title=case.name + ": error")
+        for a in ax[row]:  # a held axis (30 um +- 0.1) read plainly, not as "+3e1"
+            a.ticklabel_format(axis="y", useOffset=False, style="plain")
         ax[row, 0].legend(fontsize=7, loc="upper right")
         ax[row, 1].legend(fontsize=7, loc="upper right")
     ax[-1, 0].set(xlabel="time in the window [s]")

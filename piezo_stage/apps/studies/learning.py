@@ -202,13 +202,13 @@ def print_report(rows: list[dict]) -> None:
     """The table: per case and axis, the first and the last period without learning
     and with it (mean absolute error, % of the range), a raster's linearity, the true
     position's RMS between samples over the last period [um]."""
-    print(f"{'case':<44} {'axis':>4} {'no learning':>12} {'learning: 1st':>14} "
-          f"{'last':>8} {'linearity rms/max %':>20} {'damped':>7} {'between um':>10}")
+    print(f"{'case':<44} {'axis':>4} {'no_learning':>12} {'learning_1st':>14} "
+          f"{'last':>8} {'linearity_rms/max_%':>20} {'damped':>7} {'between_um':>10}")
     for r in rows:
         for a in r["with"]["per_period"]:
             wo, wi = r["without"]["per_period"][a], r["with"]["per_period"][a]
             lin = r["with"]["linearity_pct"]
-            lin_txt = (f"{lin['rms'][-1]:.3f} / {lin['max'][-1]:.3f}"
+            lin_txt = (f"{lin['rms'][-1]:.3f}/{lin['max'][-1]:.3f}"  # one column, as labelled
                        if lin and a == "x" else "")
             print(f"{r['name']:<44} {a:>4} {wo[-1]:11.3f}% {wi[0]:13.3f}% {wi[-1]:7.3f}% "
                   f"{lin_txt:>20} {r['with']['damped']:>7} "
