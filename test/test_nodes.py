@@ -353,8 +353,10 @@ def test_replay_honours_rate_on_the_bags_time_and_publishes_clock(tmp_path, env)
                           "--rate", "0", "--duration", "0.5"], env=env, capture_output=True,
                          text=True, timeout=60)
     assert cut.returncode == 0, cut.stderr
-    assert cut.stdout.startswith("replayed 501 messages on 1 topics: 0.500 s of the "
-                                 "record's 1.499 s in "), cut.stdout
+    first, last = cut.stdout.splitlines()[0], cut.stdout.splitlines()[-1]
+    assert first.startswith("replay: 501 messages, 0.500 s of the record"), cut.stdout
+    assert last.startswith("replayed 501 messages on 1 topics: 0.500 s of the "
+                           "record's 1.499 s in "), cut.stdout
     assert cut.stdout.endswith(", cut at --duration 0.5 s of the record\n"), cut.stdout
     assert "to the end" in r.stdout
     # a file that is not a bag is named for what it is

@@ -40,6 +40,9 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) 
     span_s = (msgs[-1][2] - t0_log) * 1e-9 if msgs else 0.0
     if duration_s is not None:
         msgs = [m for m in msgs if (m[2] - t0_log) * 1e-9 <= duration_s]
+    print(f"replay: {len(msgs)} messages, {min(span_s, duration_s or span_s):.3f} s of the "
+          f"record at rate {rate:g}; waiting up to 5 s for subscribers, then playing",
+          flush=True)
     rclpy.init()
     node = rclpy.create_node("replay")
     pubs, n, how, log_ns = {}, 0, "to the end", t0_log

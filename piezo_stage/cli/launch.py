@@ -40,6 +40,10 @@ def main(args):
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)
+    print(f"launch: {', '.join(launch.nodes)} in {launch.ns} "
+          f"({'lockstep' if launch.lockstep else 'real time'}"
+          + (f", for {args.duration:g} s" if args.duration else ", until Ctrl-C")
+          + "; Ctrl-C stops them in order, the driver first)", flush=True)
     rc = launch.run(args.duration)
     if record:
         import os
