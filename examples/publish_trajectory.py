@@ -10,7 +10,9 @@ way a lab's own node would:
    moment ahead so the stage starts it at that time. The feedforward republishes what
    it accepted on <namespace>/trajectory/accepted, where the recorder takes it;
 2. wait on <namespace>/state (diagnostic_msgs/DiagnosticArray, latched) until the
-   driver relays "done: trajectory of N points stamped S" for this very trajectory;
+   driver relays the feedforward's phase as done (key-values ``feedforward_phase``
+   "done" and ``feedforward_follows`` "trajectory of N points stamped S") for this very
+   trajectory;
 3. read where the stage is (sensor_msgs/JointState on <namespace>/joint_states) and
    print the error per axis against the last point; exit 0 if both are within the
    tolerance, 1 if not (or on a timeout).
@@ -113,19 +115,24 @@ def main(argv=None):
             msg.points.append(JointTrajectoryPoint(
                 positions=[x * 1e-6, y * 1e-6], time_from_start=Duration(sec=sec, nanosec=nsec)))
         pub.publish(msg)  # latched: a feedforward whose side matched later still gets it
-        mine = f"done: trajectory of {len(pts)} points stamped {start}"
+        mine = ("done", f"trajectory of {len(pts)} points stamped {start}")
+
+        def phase():  # the driver relays the feedforward's phase as two key-values
+            st = seen["state"]
+            return st.get("feedforward_phase"), st.get("feedforward_follows")
         print(f"published {len(pts)} points to {ns}/trajectory, starting "
               f"{f'in {args.start_in:g} s' if start else 'after the approach'}; waiting "
               "for the stage", flush=True)
         end = time.monotonic() + args.timeout
-        while time.monotonic() < end and seen["state"].get("feedforward") != mine:
+        while time.monotonic() < end and phase() != mine:
             rclpy.spin_once(node, timeout_sec=0.05)
             if seen["state"].get("state") == "faulted":
                 print(f"the stage faulted: {seen['state'].get('reason')}", file=sys.stderr)
                 return 1
-        if seen["state"].get("feedforward") != mine:
+        if phase() != mine:
             print(f"the stage did not finish within {args.timeout:g} s (its feedforward: "
-                  f"{seen['state'].get('feedforward') or 'nothing heard'})", file=sys.stderr)
+                  f"{': '.join(x for x in phase() if x) or 'nothing heard'})",
+                  file=sys.stderr)
             return 1
         settle = time.monotonic() + 0.2  # the newest samples at the last point
         while time.monotonic() < settle:

@@ -23,7 +23,7 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
            "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr", "clock_msg",
            "check_trajectory_size", "trajectory_max_bytes", "trajectory_take_bytes",
-           "trajectory_stamp_ns"]
+           "trajectory_stamp_ns", "phase_msg", "phase_from_msg"]
 
 JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
@@ -303,6 +303,18 @@ def model_from_msg(msg: String):
     from piezo_stage.core.model_doc import model_from_dict, parse_yaml
     return model_from_dict(parse_yaml(msg.data, "model message", max_bytes=65536),
                            "model message")
+
+
+def phase_msg(phase: str, follows: str = "") -> KeyValue:
+    """The feedforward's phase as data (diagnostic_msgs/KeyValue): ``key`` the phase
+    (holding, approaching, tracking, done), ``value`` what it follows ("trajectory of
+    N points stamped S", "setpoint" or "")."""
+    return KeyValue(key=str(phase), value=str(follows))
+
+
+def phase_from_msg(msg: KeyValue) -> tuple[str, str]:
+    """-> (phase, what it follows)."""
+    return msg.key, msg.value
 
 
 ARM_LEVEL = {"armed": 0, "approaching": 0, "arming": 1, "disarmed": 1, "faulted": 2}

@@ -126,9 +126,9 @@ def test_a_trajectorys_stamp_sets_its_start_and_an_old_one_is_refused():
 def test_the_phase_says_which_trajectory_runs(model):
     import numpy as np
     core = _core(model)
-    assert core.phase_text() == core.planner.phase  # nothing to follow: the phase alone
+    assert core.phase() == (core.planner.phase, "")  # nothing to follow: the phase alone
     core.planner.hold({"x": 1.0, "y": 1.0})
     t = np.arange(0.0, 0.01, 0.001)
     core.planner.set_trajectory(t, {"x": np.full(t.size, 2.0), "y": np.full(t.size, 2.0)})
     core.traj_text = "trajectory of 10 points stamped 0"
-    assert core.phase_text() == f"{core.planner.phase}: trajectory of 10 points stamped 0"
+    assert core.phase() == (core.planner.phase, "trajectory of 10 points stamped 0")

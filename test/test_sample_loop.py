@@ -102,9 +102,11 @@ def test_clock_and_state_announcement():
     a = s.announced()
     assert a["control_rate_hz"] == RATE and a["lookahead_s"] == pytest.approx(1e-3)
     assert a["voltage_limits_V"][0] < a["voltage_limits_V"][1]
-    assert s.feedforward_phase("tracking: trajectory of 10 points stamped 0")
-    assert not s.feedforward_phase("tracking: trajectory of 10 points stamped 0")
-    assert s.announced()["feedforward"].startswith("tracking")
+    assert s.feedforward_phase("tracking", "trajectory of 10 points stamped 0")
+    assert not s.feedforward_phase("tracking", "trajectory of 10 points stamped 0")
+    a = s.announced()
+    assert (a["feedforward_phase"], a["feedforward_follows"]) == (
+        "tracking", "trajectory of 10 points stamped 0")
 
 
 @pytest.mark.parametrize("backend, mode, sim_time", [("daq", "lockstep", False),

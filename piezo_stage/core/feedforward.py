@@ -212,13 +212,13 @@ class InverseFeedforward:
             self.handover = off if any(off.values()) else None
         return v
 
-    def phase_text(self) -> str:
-        """The planner's phase and what it follows: "tracking: trajectory of 1000 points
-        stamped 1795...", "done: ..." once its last point is reached, "tracking:
-        setpoint", or the phase alone."""
+    def phase(self) -> tuple[str, str]:
+        """(the planner's phase, what it follows): ("tracking", "trajectory of 1000
+        points stamped 1795..."), ("done", ...) once its last point is reached,
+        ("tracking", "setpoint"), or (phase, "")."""
         what = self.traj_text if self.planner.traj is not None else (
             "setpoint" if self.planner.setpoint is not None else "")
-        return f"{self.planner.phase}: {what}" if what else self.planner.phase
+        return self.planner.phase, what
 
     @property
     def saturated(self) -> int:

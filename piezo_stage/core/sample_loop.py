@@ -24,7 +24,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from piezo_stage.core.arming import (
+    DONE,
     ENABLED,
+    TRACK,
     ArmingParams,
     ArmingSupervisor,
     CommandSchedule,
@@ -147,7 +149,7 @@ class SampleLoop:
         self.shutdown_requested, self.shutdown_by = False, None
         self.clock_every = max(1, int(round(clock_period_s * rate_hz))) \
             if clock_period_s else 0
-        self.ff_phase = ""  # what the feedforward last said (the state topic relays it)
+        self.ff_phase = ("", "")  # the feedforward's last (phase, follows): relayed
 
     def stamp(self, j: int) -> int:
         """Sample ``j``'s stamp [ns]."""
@@ -228,11 +230,13 @@ class SampleLoop:
         """Lockstep: the last sample is one /clock is published at."""
         return bool(self.clock_every) and self.j % self.clock_every == 0
 
-    def feedforward_phase(self, text: str) -> bool:
-        """The feedforward's phase ("tracking: trajectory of N points stamped S", "done:
-        ..."): arming follows it. True when it changed (the state topic relays it)."""
-        self.sup.set_tracking(text.split(":")[0] in ("tracking", "done"), self.stamp(self.j))
-        changed, self.ff_phase = text != self.ff_phase, text
+    def feedforward_phase(self, phase: str, follows: str = "") -> bool:
+        """The feedforward's phase (holding, approaching, tracking, done) and what it
+        follows ("trajectory of N points stamped S", "setpoint", ""): arming follows
+        the phase. True when either changed (the state topic relays both)."""
+        self.sup.set_tracking(phase in (TRACK, DONE), self.stamp(self.j))
+        changed = (phase, follows) != self.ff_phase
+        self.ff_phase = (phase, follows)
         return changed
 
     def arm(self, on: bool, link: str = "") -> tuple[bool, str]:
@@ -277,7 +281,8 @@ class SampleLoop:
                 "voltage_limits_V": [max(lo for lo, _ in lim.values()),
                                      min(hi for _, hi in lim.values())],
                 "host": socket.gethostname(), "pid": str(os.getppid()),
-                "feedforward": self.ff_phase}
+                "feedforward_phase": self.ff_phase[0],
+                "feedforward_follows": self.ff_phase[1]}
 
     def status(self) -> tuple[int, str, dict]:
         """(level, message, values) for /diagnostics: 2 when faulted (disarmed is a

@@ -44,10 +44,11 @@ CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag): wh
     "trajectory/accepted": ("trajectory_msgs/msg/JointTrajectory", "latched"),
     "model": ("std_msgs/msg/String", "latched"),
     "state": ("diagnostic_msgs/msg/DiagnosticArray", "events"),
-    "feedforward/phase": ("std_msgs/msg/String", "events"),
+    "feedforward/phase": ("diagnostic_msgs/msg/KeyValue", "events"),
     "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", "diag"),
 }
 STAMPED = {t for t, _ in CONTRACT.values()} - {"std_msgs/msg/String",
+                                               "diagnostic_msgs/msg/KeyValue",
                                                "trajectory_msgs/msg/JointTrajectory"}
 
 

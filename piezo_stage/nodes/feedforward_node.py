@@ -20,6 +20,7 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 
 import time
 
+from diagnostic_msgs.msg import KeyValue
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -41,6 +42,7 @@ from piezo_stage_msgs_adapters import (
     check_trajectory_size,
     joint_state_to_um,
     model_from_msg,
+    phase_msg,
     reference_cdr,
     setpoint_from_msg,
     trajectory_from_cdr,
@@ -88,8 +90,8 @@ class Feedforward(Node):
             from piezo_stage.io.model_file import load_model
             self.set_model(*load_model(p["model_file"]), p["model_file"])
         self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
-        self.phase_pub = self.create_publisher(String, "feedforward/phase", QOS_EVENTS)
-        self.phase_pub.publish(String(data=HOLD))
+        self.phase_pub = self.create_publisher(KeyValue, "feedforward/phase", QOS_EVENTS)
+        self.phase_pub.publish(phase_msg(HOLD))
         # what the stage runs, byte for byte as it came, latched: the recorder takes it
         # from here whenever its own match with the sender came late or not at all
         self.accepted_pub = self.create_publisher(JointTrajectory, "trajectory/accepted",
@@ -171,9 +173,9 @@ class Feedforward(Node):
         self.resume()
 
     def publish_phase(self):
-        """The planner's phase and what it follows (core: ``phase_text``); the driver
+        """The planner's phase and what it follows, as data (core: ``phase``); the driver
         relays it on /stage/state, so an outside node can wait for the end."""
-        self.phase_pub.publish(String(data=self.core.phase_text()))
+        self.phase_pub.publish(phase_msg(*self.core.phase()))
 
     def on_setpoint(self, msg):
         try:

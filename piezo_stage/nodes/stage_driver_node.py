@@ -15,13 +15,12 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 import time
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
 from piezo_stage.core.arming import ENABLED, ArmingParams
@@ -39,6 +38,7 @@ from piezo_stage_msgs_adapters import (
     arming_state_msg,
     clock_msg,
     joint_state_cdr,
+    phase_from_msg,
     point_cdr,
     voltage_from_msg,
 )
@@ -76,7 +76,7 @@ class StageDriver(Node):
                                  p["min_record_subscribers"] * (p["backend"] == "sim"))])
         hot_subscription(self, Vector3Stamped, "command", self.on_command, QOS_DATA,
                          raw=True, with_info=True)
-        self.create_subscription(String, "feedforward/phase", self.on_phase, QOS_EVENTS)
+        self.create_subscription(KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
         self.create_service(SetBool, "arm", self.on_arm)
         self.create_service(Trigger, "estop", self.on_estop)
         steady_timer(self, 0.5, self.check_links)
@@ -201,9 +201,9 @@ class StageDriver(Node):
             self.link = missing_links(self)
 
     def on_phase(self, msg):
-        """The feedforward's phase ("tracking: trajectory of N points stamped S", "done:
-        ..."): the arming state follows it, and /stage/state relays it."""
-        if self.loop.feedforward_phase(msg.data):
+        """The feedforward's phase and what it follows: the arming state follows it,
+        and /stage/state relays it."""
+        if self.loop.feedforward_phase(*phase_from_msg(msg)):
             self.on_state_change(self.sup.state, self.sup.reason, self.state_since,
                                  log=False)  # the same state, from the same sample
 

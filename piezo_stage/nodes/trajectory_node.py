@@ -23,9 +23,9 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 import time
 
 import numpy as np
+from diagnostic_msgs.msg import KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.arming import HOLD
@@ -35,7 +35,7 @@ from piezo_stage.nodes._common import QOS_EVENTS, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare
-from piezo_stage_msgs_adapters import trajectory_msg
+from piezo_stage_msgs_adapters import phase_from_msg, trajectory_msg
 
 RESENDS, RESEND_AFTER_S = 3, 1.0
 
@@ -73,7 +73,7 @@ class Trajectory(Node):
         self.sent_at, self.ff_phase, self.budget = None, None, RESENDS
         self.add_on_set_parameters_callback(self.on_set)
         self.publish(self.build(self.p))
-        self.create_subscription(String, "feedforward/phase", self.on_phase, QOS_EVENTS)
+        self.create_subscription(KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
         steady_timer(self, 0.25, self.resend_if_held)
         Diagnostics(self, lambda: (0, f"{self.published} trajectories published (last: "
                                    f"{self.p.get('kind')})", {"published": self.published,
@@ -109,14 +109,14 @@ class Trajectory(Node):
         self.last, self.sent_at, self.budget = msg, time.monotonic(), RESENDS
 
     def on_phase(self, msg):
-        self.ff_phase = msg.data
-        if msg.data != HOLD:
+        self.ff_phase = phase_from_msg(msg)
+        if self.ff_phase != (HOLD, ""):
             self.budget = RESENDS  # it has one: a later restart may ask again
 
     def resend_if_held(self):
         """The last trajectory again when the feedforward still holds with none a
         second after it was sent (and the gate has let it out)."""
-        if (self.ff_phase == HOLD and self.gate.open and self.last is not None
+        if (self.ff_phase == (HOLD, "") and self.gate.open and self.last is not None
                 and self.budget > 0 and time.monotonic() - self.sent_at > RESEND_AFTER_S):
             self.pub.publish(self.last)
             self.resent += 1
