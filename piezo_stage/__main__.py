@@ -12,7 +12,7 @@ def main():
     code = command()
     # done (or stopped, and said so): a stop arriving now would meet the interpreter's
     # exit, which gives the default handlers back, and end a finished command by the
-    # signal with no word; it is held instead, and the command exits with its own code
+    # signal with no word; it is ignored instead, and the command exits with its own code
     stopping.hold()
     return code
 

@@ -45,8 +45,13 @@ def running() -> None:
 
 
 def hold() -> None:
-    """The command has ended: the stop signals are blocked from here to the exit."""
-    signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
+    """The command has ended: the stop signals are ignored from here to the exit, in
+    every thread (blocking them in this one was not enough: a signal then reached a
+    BLAS or progress-bar thread while the interpreter's exit had given the handlers
+    back to the default action, which killed a finished command; an ignored signal
+    stays ignored through the exit)."""
+    for s in SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
 
 
 def stopped_line() -> tuple[str, int]:

@@ -194,7 +194,8 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path, ros_env
         mo = probe.node.create_publisher(String, "/stage/model", QOS_EVENTS)
         # both nodes up (their diagnostics) and matched: the count alone can be reached
         # by the feedforward's own subscriptions before the identifier's has matched
-        assert probe.wait(lambda: js.get_subscription_count() >= 2 and
+        # (joint_states: the feedforward, the identifier and the recorder, all three)
+        assert probe.wait(lambda: js.get_subscription_count() >= 3 and
                           tr.get_subscription_count() >= 1 and
                           mo.get_subscription_count() >= 1 and
                           {"feedforward", "identifier"} <= set(diag), 60), sorted(diag)

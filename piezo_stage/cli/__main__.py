@@ -3,6 +3,9 @@ also takes stop signals during the command's imports)."""
 
 import sys
 
+from piezo_stage import stopping
 from piezo_stage.cli import main
 
-sys.exit(main())
+code = main()
+stopping.hold()  # as piezo_stage.__main__: a stop after the end is ignored
+sys.exit(code)
