@@ -158,6 +158,23 @@ def test_command_schedule_applies_at_the_stamped_tick_and_counts_late():
     assert c.arrival_lag.percentile(50) == pytest.approx(1e-3, abs=2e-5)  # lags 1, 0, 6 ms
 
 
+def test_command_schedule_reports_its_longest_hold_since_it_was_last_asked():
+    c = CommandSchedule(1000, MS, 5 * MS)
+    for j in (1, 2, 6, 7, 8, 9, 11):  # missing: 3-5 (three in a row), 10
+        c.add(1000 + j * MS, {"x": float(j)}, 1000, last_tick=0)
+    for j in range(1, 12):
+        c.due(j)
+    assert c.held_ticks == 4 and c.longest_hold() == 3
+    assert c.longest_hold() == 0  # asked again: nothing held since
+    c.due(12)
+    c.due(13)  # a hold under way when asked is carried into the next report
+    assert c.longest_hold() == 2
+    c.due(14)
+    assert c.longest_hold() == 3
+    assert c.due(15, count_held=False) == ({"x": 11.0}, False)  # the run ends
+    assert c.longest_hold() == 3 and c.longest_hold() == 0  # reported up to its end
+
+
 def test_state_timeline_newer_announcements_supersede():
     tl = StateTimeline()
     tl.add(100, APPROACHING)

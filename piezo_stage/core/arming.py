@@ -402,6 +402,8 @@ class CommandSchedule:
         self.held = None             # (tick, voltages) applied last
         self.late = 0
         self.held_ticks = 0          # ticks with no command of their own (held the last)
+        self.streak = 0              # such ticks in a row, up to now
+        self.longest = 0             # the longest such run since ``longest_hold()`` last
         self.received = 0
         self.arrival_lag = LatencyHistogram()  # sample taken -> its command arrived [s]
 
@@ -421,12 +423,21 @@ class CommandSchedule:
         self.pending[j] = dict(v)
         return True
 
+    def longest_hold(self) -> int:
+        """The longest run of held ticks since the last call (a stall of the commands'
+        path shows as one long run, where a busy host holds a tick here and there)."""
+        n, self.longest = self.longest, self.streak
+        return n
+
     def due(self, j: int, count_held: bool = True) -> tuple[dict | None, bool]:
         """-> (voltages or None, exactly on time for tick j). With ``count_held`` (the
         stage is applying commands), a tick with no command stamped for it counts as
         held (``held_ticks``)."""
         on_time = j in self.pending
-        self.held_ticks += count_held and not on_time
+        held = count_held and not on_time
+        self.held_ticks += held
+        self.streak = self.streak + 1 if held else 0
+        self.longest = max(self.longest, self.streak)
         ready = [k for k in self.pending if k <= j]
         if ready:
             k = max(ready)

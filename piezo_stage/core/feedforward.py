@@ -14,6 +14,8 @@ armed, the jump between the old model's answer and the new one's is eased out.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from piezo_stage.core.arming import ReferencePlanner
 from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
 from piezo_stage.core.duhem import StageModel, check_model_change
@@ -60,8 +62,8 @@ PARAMETERS = (
 )
 
 # the node's counts on /diagnostics, and those reported as rates (key, name, level)
-COUNTS = ("rejected_trajectories", "rejected_setpoints", "models", "rejected_models",
-          "saturated", "bad_messages", "late_dropped", "stray_stamps")
+COUNTS = ("trajectories", "rejected_trajectories", "rejected_setpoints", "models",
+          "rejected_models", "saturated", "bad_messages", "late_dropped", "stray_stamps")
 RATES = tuple((k, k.replace("_", " "), 0) for k in (
     "rejected_models", "rejected_trajectories", "rejected_setpoints", "bad_messages",
     "late_dropped"))
@@ -75,6 +77,15 @@ def trajectory_start(stamp_ns: int, now_ns: int) -> int | None:
         raise DataError(f"trajectory: stamped {(now_ns - stamp_ns) * 1e-9:.3f} s in the "
                         "past (0: start now; a future stamp: start then)")
     return stamp_ns if stamp_ns > now_ns else None
+
+
+@dataclass(frozen=True)
+class PreparedModel:
+    """A model ready to be used (``InverseFeedforward.prepare_model``)."""
+    model: StageModel
+    effects: dict | None
+    compensator: EffectCompensator | None
+    inverse: StageInverse
 
 
 class InverseFeedforward:
@@ -115,11 +126,19 @@ class InverseFeedforward:
     def set_model(self, model: StageModel, effects: dict | None, name: str,
                   driver_limits: tuple | None = None, range_um: float = 100.0,
                   armed: bool = False) -> None:
-        """Use ``model`` (and its ``effects``) from the next sample. Refused
-        (PiezoStageError, the running model stays) when an axis is missing, its voltage
-        limits do not overlap the driver's, or its gain's sign or size is far from the
-        running model's (check_model_change over ``range_um``). ``armed``: ease the
-        jump to the new model's answer out."""
+        """Use ``model`` (and its ``effects``) from the next sample: ``prepare_model``,
+        then ``use_model``."""
+        self.use_model(self.prepare_model(model, effects, name, driver_limits, range_um),
+                       armed)
+
+    def prepare_model(self, model: StageModel, effects: dict | None, name: str,
+                      driver_limits: tuple | None = None, range_um: float = 100.0,
+                      base: StageModel | None = None) -> PreparedModel:
+        """A model checked and its inverse built (the compiled kernels warmed), ready
+        for ``use_model``; touches nothing the samples use, so it may run off the
+        loop's thread. Refused (PiezoStageError) when an axis is missing, its voltage
+        limits do not overlap the driver's, or its gain's sign or size is far from
+        ``base`` (the running model if None; check_model_change over ``range_um``)."""
         missing = {"x", "y"} - set(model.axes)
         if missing:
             raise PiezoStageError(f"{name} has no model for axis {', '.join(sorted(missing))}")
@@ -132,19 +151,26 @@ class InverseFeedforward:
             model = model.replace(voltage_limits=(lo, hi))
         # gain sign and size against the running model (or the range served): a model
         # scaled by -1 or 0.001 would drive the stage to its limits
-        check_model_change(model, self.model, range_um)
+        check_model_change(model, self.model if base is None else base, range_um)
         comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes),
                                   self.max_res_hz) if effects else None)
         inv = StageInverse(model, use_coupling=self.use_c)
         warm = StageInverse(model, use_coupling=self.use_c)  # compile the kernels now,
         warm.sync(*model.voltage_limits)                      # not at the first sample
         warm.step(0.0, 0.0)
+        return PreparedModel(model, effects, comp, inv)
+
+    def use_model(self, prepared: PreparedModel, armed: bool = False) -> None:
+        """Switch to a prepared model at the next sample. ``armed``: ease the jump to
+        the new model's answer out."""
+        inv = prepared.inverse
         if self.planner.desired is not None:
             inv.reset(v=self.ff, w=self.planner.desired)
         self.handover = {} if self.inv is not None and armed else None
-        self.inv, self.model, self.limits = inv, model, model.voltage_limits
-        self.ref.set_compensator(comp)
-        self.effects, self.comp = effects, comp
+        self.inv, self.model = inv, prepared.model
+        self.limits = prepared.model.voltage_limits
+        self.ref.set_compensator(prepared.compensator)
+        self.effects, self.comp = prepared.effects, prepared.compensator
         self.relearn()
         self.started = self.planner.desired is not None  # else: from the first sample
 

@@ -299,6 +299,7 @@ class SampleLoop:
                   "command_lag_max_ms": lag.max_s * ms,
                   "late_commands": self.sched.late, "commands": self.sched.received,
                   "held_ticks": self.sched.held_ticks,
+                  "longest_hold_ticks": self.sched.longest_hold(),
                   "lookahead_ms": self.lookahead_ns * 1e-6, **self.sup.counts}
         return 2 if st == "faulted" else 0, f"{st}: {self.sup.reason}", values
 

@@ -35,6 +35,7 @@ from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.core.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
 from piezo_stage.nodes._executor import hot_subscription, run_node
+from piezo_stage.nodes._intake import Intake, trajectory_key, warm_up
 from piezo_stage.nodes._latched import LatchedFetch
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare
@@ -78,7 +79,13 @@ class Feedforward(Node):
         self.core.learn_p = {k: p[k] for k in ("learning_period_s", "learning_gain")}
         self.learning.enable(p["learning"])
         self.core.relearn()
-        self.model_name, self.pending, self.traj_key = "nominal", None, None
+        self.model_name, self.pending, self.decoded_key = "nominal", None, None
+        # real time: trajectories and models are taken apart on the intake's thread
+        self.intake = Intake({"trajectory": self.decode_trajectory,
+                              "model": self.prepare_model}, (PiezoStageError,))
+        self.model_base = None  # the model the next one is checked against
+        warm_up(lambda data: trajectory_from_cdr(data, self.p["range_um"], self.max_points),
+                (PiezoStageError,))
         # the driver's announcements: taken before the data in each lean-loop pass
         # in real time: heap for taking the largest trajectory it admits (no page fault)
         self.driver = DriverState(self, self.dt_ns, p["thread_priority"],
@@ -126,22 +133,48 @@ class Feedforward(Node):
             rates=core_ff.RATES)
 
     def set_model(self, model, effects, name):
-        self.core.set_model(model, effects, name, self.driver.limits,
-                            self.p["range_um"][1] - self.p["range_um"][0],
-                            armed=self.core.inv is not None and self.driver.enabled(self.last_ns))
+        self.use_model(self.prepare_model((model, effects, name)))
+
+    def prepare_model(self, item):
+        """(model, effects, name) or a model message's text -> (prepared, name), checked
+        against the last model prepared. Any thread."""
+        if isinstance(item, str):
+            name = f"model message #{self.stats['models'] + 1}"
+            model, effects = model_from_msg(String(data=item))
+        else:
+            model, effects, name = item
+        prepared = self.core.prepare_model(
+            model, effects, name, self.driver.limits,
+            self.p["range_um"][1] - self.p["range_um"][0], base=self.model_base)
+        self.model_base = prepared.model
+        return prepared, name
+
+    def use_model(self, prepared_name):
+        prepared, name = prepared_name
+        self.core.use_model(prepared, armed=self.core.inv is not None and
+                            self.driver.enabled(self.last_ns))
         self.model_name = name
         self.stats["models"] += 1
         self.last_rejection = ""  # the warning clears with a good model
         self.get_logger().info(f"using model {name}")
+        self.resume()
+
+    def reject_model(self, e):
+        self.stats["rejected_models"] += 1
+        self.last_rejection = str(e)
+        self.get_logger().error(f"model rejected, keeping {self.model_name}: {e}")
+        self.resume()
 
     def on_model(self, msg):
+        """A model message: parsed, checked and its inverse built inline in lockstep,
+        on the intake's thread in real time."""
+        if self.driver.realtime:
+            self.intake.submit("model", msg.data)
+            return
         try:
-            self.set_model(*model_from_msg(msg), f"model message #{self.stats['models'] + 1}")
+            self.use_model(self.prepare_model(msg.data))
         except PiezoStageError as e:  # the old model stays
-            self.stats["rejected_models"] += 1
-            self.last_rejection = str(e)
-            self.get_logger().error(f"model rejected, keeping {self.model_name}: {e}")
-        self.resume()
+            self.reject_model(e)
 
     def resume(self):
         """Lockstep: answer the sample the loop was held at, once what it waited for is here."""
@@ -150,26 +183,46 @@ class Feedforward(Node):
             self.on_state(msg, resumed=True)
 
     def on_trajectory(self, msg):
+        """A trajectory's bytes: checked, decoded and republished as accepted inline
+        in lockstep, on the intake's thread in real time (``_intake.py``)."""
+        if self.driver.realtime:
+            self.intake.submit("trajectory", bytes(msg))
+            return
         try:
-            check_trajectory_size(msg, self.max_points)  # before anything else
-            key = hash(bytes(msg))  # ~1 ms for 60,000 points, before any decoding
-            if key == self.traj_key:
-                return  # the same trajectory again (volatile and latched delivery)
-            t, w = trajectory_from_cdr(msg, self.p["range_um"], self.max_points)
-            stamp, now = trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
+            self.take_trajectory(self.decode_trajectory(msg))
+        except PiezoStageError as e:
+            self.reject_trajectory(e)
+
+    def decode_trajectory(self, msg):
+        """-> (t, w, stamp) of a trajectory that is new, republished as accepted; None
+        for the one taken last, delivered again (volatile and latched). Any thread."""
+        check_trajectory_size(msg, self.max_points)  # before anything else
+        key = trajectory_key(msg)
+        if key == self.decoded_key:
+            return None
+        t, w = trajectory_from_cdr(msg, self.p["range_um"], self.max_points)
+        self.decoded_key = key
+        self.accepted_pub.publish(bytes(msg))
+        return t, w, trajectory_stamp_ns(msg)
+
+    def take_trajectory(self, decoded):
+        if decoded is not None:
+            t, w, stamp = decoded
+            now = self.get_clock().now().nanoseconds
             start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
-            self.traj_key = key
+            self.stats["trajectories"] += 1
             self.planner.set_trajectory(t, w, start_ns=start)
-            self.accepted_pub.publish(bytes(msg))
             self.learning.reset()
             self.core.traj_text = f"trajectory of {len(t)} points stamped {stamp}"
             self.get_logger().info(f"trajectory of {len(t)} points accepted" + (
                 f", stamped {stamp}: starts in {(stamp - now) * 1e-9:.3f} s"
                 if stamp > now else ""))
             self.publish_phase()
-        except PiezoStageError as e:
-            self.stats["rejected_trajectories"] += 1
-            self.get_logger().warning(f"trajectory rejected: {e}")
+        self.resume()
+
+    def reject_trajectory(self, e):
+        self.stats["rejected_trajectories"] += 1
+        self.get_logger().warning(f"trajectory rejected: {e}")
         self.resume()
 
     def publish_phase(self):
@@ -186,6 +239,14 @@ class Feedforward(Node):
             self.get_logger().warning(f"setpoint rejected: {e}")
 
     def on_state(self, msg, info=None, resumed=False):
+        if self.driver.realtime and self.intake.thread is None:
+            # twice: the running trajectory and its latched copy live on meanwhile
+            self.intake.start(2 * trajectory_take_bytes(self.max_points))
+        for kind, done in self.intake.ready():  # real time: what the intake finished
+            if isinstance(done, PiezoStageError):
+                (self.reject_trajectory if kind == "trajectory" else self.reject_model)(done)
+            else:
+                (self.take_trajectory if kind == "trajectory" else self.use_model)(done)
         try:
             ns, w, v_applied = joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:

@@ -1,0 +1,128 @@
+"""Intake: what comes from outside the loop (trajectories, models) checked, decoded
+and prepared off the loop's thread.
+
+In real time the feedforward answers every sample within the driver's look-ahead (5 ms
+by default). Taking a 200,000-point trajectory (11.2 MB of CDR) costs its thread about
+10 ms on this host: the middleware's take (1-2 ms on pre-faulted heap), a hash to
+recognise a repeat, the decoding and the republishing on ``trajectory/accepted``. Done
+on the loop's thread that held the driver 4-6 ticks without a command (`bench faults`,
+2026-11-26). Here only the take stays there; one worker thread, at normal priority,
+does the rest (hashlib and numpy release the GIL on large buffers), and the loop's
+thread picks up the result at its next sample (``ready``). A model message is the
+same: parsing its YAML, checking it and building its inverse held the loop 5-8 ticks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import queue
+import sys
+import threading
+
+SWITCH_INTERVAL_S = 0.0005  # the GIL handed over this often while the worker runs
+
+
+def trajectory_key(data: bytes) -> bytes:
+    """What recognises the same trajectory delivered twice (volatile and latched)."""
+    return hashlib.blake2b(data, digest_size=16).digest()
+
+
+def warm_up(decode, errors: tuple) -> None:
+    """Run ``decode`` (CDR bytes -> trajectory) once on each of its paths now: a layout
+    the fast decoder covers, and one it hands to rclpy's ordinary deserialization,
+    whose first call loads the type support's shared library and imports with the GIL
+    held (3-4 ticks of the loop when a malformed trajectory first came, `bench faults`
+    2026-11-26)."""
+    from rclpy.serialization import serialize_message
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+    point = JointTrajectoryPoint(positions=[0.0, 0.0])
+    ragged = JointTrajectoryPoint(positions=[0.0])
+    for points in ([point, point, point], [point, ragged]):
+        try:
+            decode(serialize_message(JointTrajectory(joint_names=["x", "y"], points=points)))
+        except errors:
+            pass
+
+
+def _touch_heap(nbytes: int) -> None:
+    """Allocate ``nbytes`` in this thread's heap, touch every page and free it (kept:
+    the node's real-time recipe stops trimming, ``reserve_heap``). Through ctypes, so
+    the GIL is released meanwhile. glibc only; elsewhere nothing."""
+    if nbytes <= 0:
+        return
+    try:
+        import ctypes
+        import ctypes.util
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+        libc.memset.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_size_t]
+        libc.free.argtypes = [ctypes.c_void_p]
+        block = libc.malloc(nbytes)
+        if block:
+            libc.memset(block, 1, nbytes)
+            libc.free(block)
+    except (OSError, AttributeError):
+        pass
+
+
+def _just_below_the_loop() -> None:
+    """This thread one SCHED_FIFO level below the node's main thread when that runs at
+    SCHED_FIFO (a new thread inherits it, and the driver's mode sets every thread), at
+    normal priority otherwise: the loop's thread preempts it, while a recorder busy
+    compressing does not, so the GIL it holds is handed back at once (at normal
+    priority the worker, preempted while holding it, held the loop up to 7 ticks)."""
+    try:
+        main = os.getpid()
+        if os.sched_getscheduler(main) == os.SCHED_FIFO:
+            prio = os.sched_getparam(main).sched_priority - 1
+            if prio >= 1:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+                return
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass
+
+
+class Intake:
+    """Runs ``works[kind](data)`` for each item on one worker thread, in the order they
+    came; ``ready()`` returns the finished ones [(kind, result or the error of
+    ``errors`` it raised)] for the caller's thread to apply."""
+
+    def __init__(self, works: dict, errors: tuple):
+        self.works, self.errors = works, errors
+        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self.done: queue.SimpleQueue = queue.SimpleQueue()
+        self.thread: threading.Thread | None = None
+
+    def start(self, heap_bytes: int = 0) -> None:
+        """Start the worker (once). ``heap_bytes``: touched first in the worker's own
+        heap, so the largest item's allocations there (decoding, and the middleware's
+        copy when it republishes, made with the GIL held) cost no page faults: the
+        first 200,000-point trajectory held the loop 11 ticks without it."""
+        if self.thread is None:
+            sys.setswitchinterval(SWITCH_INTERVAL_S)
+            self.thread = threading.Thread(target=self._run, args=(int(heap_bytes),),
+                                           name="intake", daemon=True)
+            self.thread.start()
+
+    def submit(self, kind: str, data) -> None:
+        self.start()
+        self.inbox.put((kind, data))
+
+    def ready(self) -> list:
+        out = []
+        while not self.done.empty():
+            out.append(self.done.get_nowait())
+        return out
+
+    def _run(self, heap_bytes: int) -> None:
+        _touch_heap(heap_bytes)
+        while True:
+            kind, data = self.inbox.get()
+            _just_below_the_loop()
+            try:
+                result = self.works[kind](data)
+            except self.errors as e:
+                result = e
+            self.done.put((kind, result))
