@@ -54,6 +54,9 @@ def test_decoupling_cuts_the_coupling(tmp_path, env):
         assert all(key in c for c in doc["cases"])
     assert (tmp_path / "rep" / "decoupling.png").stat().st_size > 10_000
     assert "reduction" in r.stdout
+    # every run ended by itself: no node says it was stopped, the recorder says its bag
+    assert "stopped by" not in r.stderr, r.stderr[-2000:]
+    assert "/stage/recorder: at the run's end: bag " in r.stderr
 
 
 def test_effect_compensation_earns_its_keep_on_a_plant_with_effects(tmp_path, env):
@@ -111,6 +114,7 @@ def test_a_real_time_experiment_ends_by_itself(tmp_path, env):
     r = _experiment(env, "noise", "--model", MODEL, "--mode", "realtime", "--record",
                     tmp_path / "bags", "--json", out, timeout=180)
     assert r.returncode == 0, r.stderr[-2000:]
+    assert "stopped by" not in r.stderr, r.stderr[-2000:]  # it ended; nothing stopped it
     doc = json.loads(out.read_text())
     assert doc["mode"] == "realtime"
     meas = [c for c in doc["cases"] if c["reference"] == "measured"]

@@ -36,6 +36,7 @@ from piezo_stage.nodes.declared import (
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 LOOP_NODES = ("stage_driver", "feedforward", "controller")  # without them nothing arms
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
+RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"        # and this
 # how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
 # down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
 STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
@@ -192,6 +193,8 @@ class Launch:
         self.signalled = set()   # the nodes this launcher sent SIGINT
         self.stopped_by = None   # the signal that told the launcher to stop
         self.quiet_stop = False  # a command that runs sets says a stop in its own line
+        self.ended = False       # the run ended by itself (driver done, duration passed)
+        self._ended_file = None  # made before the SIGINTs of a run that ended (_signals)
 
     def _gates(self):
         has = set(self.nodes)
@@ -253,7 +256,11 @@ class Launch:
             if who:
                 raise ConfigError(f"{self.ns} is already running ({who}): use "
                                   "--namespace or stop it")
-        env = dict(self.env, **{LAUNCHER_PID_ENV: str(os.getpid())})
+        import tempfile
+        self._ended_file = os.path.join(tempfile.mkdtemp(prefix="piezo-stage-run-"),
+                                        "ended")
+        env = dict(self.env, **{LAUNCHER_PID_ENV: str(os.getpid()),
+                                RUN_ENDED_ENV: self._ended_file})
         for n in self.nodes:
             if self.stopped_by is not None:  # told to stop while starting
                 return
@@ -272,6 +279,9 @@ class Launch:
         grace is killed, and that is a failure."""
         producers = [n for n in reversed(self.nodes)
                      if n not in ("recorder", "stage_driver", "live_view")]
+        if self.ended and self.stopped_by is None and self._ended_file:
+            with open(self._ended_file, "w"):  # the nodes' SIGINT is the run's end
+                pass
         for group, grace in ((["stage_driver"], grace_s["stage_driver"]),
                              (producers, grace_s["producers"]),
                              (["recorder", "live_view"], grace_s["recorder"])):
@@ -292,6 +302,10 @@ class Launch:
                     p.wait()
                     self.failed.append(f"{n} did not stop within {grace:g} s of SIGINT "
                                        "(killed)")
+        if self._ended_file:
+            import shutil
+            shutil.rmtree(os.path.dirname(self._ended_file), ignore_errors=True)
+            self._ended_file = None
 
     def wait(self, duration=None):
         """Run until duration [s] passes, a node exits 0 (done) or one dies, or a
@@ -304,8 +318,11 @@ class Launch:
                     if rc is not None:
                         if rc != 0:
                             self.failed.append(f"{n} {_ended(rc)}")
+                        else:
+                            self.ended = True  # done: the run ended by itself
                         return
                 if t_end is not None and time.monotonic() >= t_end:
+                    self.ended = True
                     return
                 if self.stopped_by is not None:
                     return

@@ -277,6 +277,10 @@ def run_node(factory, args=None) -> int:
         return code
     where = "while running" if phase == "running" else "during start-up"
     did = getattr(node, "stop_summary", None)
+    if signum == signal.SIGINT and phase == "running" and signals.run_ended():
+        if callable(did):  # the run ended: what the node leaves, nothing of a stop
+            sys.stderr.write(f"{signals.STATE.name}: at the run's end: {did()}\n")
+        return 0
     sys.stderr.write(f"{signals.STATE.name or _node_name(args)}: stopped by "
                      f"{signal.Signals(signum).name} {where}"
                      f"{': ' + did() if callable(did) else ''}\n")

@@ -51,6 +51,7 @@ from contextlib import contextmanager
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"
+RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"  # a file the launcher makes when the run ended
 _PR_SET_PDEATHSIG = 1
 
 
@@ -97,6 +98,15 @@ def _on_signal(signum, frame):
     watch()
     if STATE.phase == "building" or STATE.raise_depth > 0:
         raise Stopped(signum)
+
+
+def run_ended() -> bool:
+    """Whether the launcher stopped the set because its run ended (its driver finished,
+    or its duration passed), not because it was told to stop: it makes the file named
+    in ``PIEZO_STAGE_RUN_ENDED`` before its SIGINTs. A node's SIGINT then is the run's
+    end, and the node says nothing of being stopped."""
+    path = os.environ.get(RUN_ENDED_ENV, "")
+    return bool(path) and os.path.exists(path)
 
 
 def watch(seconds: float | None = None) -> None:
