@@ -66,6 +66,43 @@ def safe_within(t, v, t_fault_ns):
     return (t[after[0]] - t_fault_ns) * 1e-9, held
 
 
+class HostTooSlow(Exception):
+    """The host paused the loop longer than a judgement can allow for: the run says
+    nothing either way. ``run_twice_at_most`` runs it again, and skips with this reason
+    when the second is no better; never a pass."""
+
+
+def host_pause_s(t, a_ns, b_ns) -> float:
+    """The host's pace as the bag shows it: the longest gap between the driver's
+    samples in [a_ns, b_ns] beyond its one tick [s] (0 when it kept time)."""
+    lo = max(int(np.searchsorted(t, a_ns, side="right")) - 1, 0)  # the sample before
+    hi = min(int(np.searchsorted(t, b_ns, side="left")), len(t) - 1)  # and the one after
+    gaps = np.diff(t[lo:hi + 1]) * 1e-9
+    return max(0.0, float(gaps.max(initial=0.0)) - 1e-3)
+
+
+def judged_within(took, bound, pause, what):
+    """``took <= bound``, with the host's pause in the window added to the bound; a
+    pause of stale_timeout_s or more leaves nothing to judge (HostTooSlow)."""
+    if pause >= STALE:
+        raise HostTooSlow(f"{what}: the host paused the driver {pause * 1e3:.0f} ms "
+                          f"(stale_timeout_s is {STALE * 1e3:.0f} ms)")
+    assert took <= bound + pause, (what, took, bound, pause)
+
+
+def test_the_host_pace_is_read_from_the_samples_and_a_long_pause_judges_nothing():
+    t = np.arange(0, 100) * 1_000_000
+    t[60:] += 30_000_000  # the host stopped the driver 30 ms after sample 59
+    assert host_pause_s(t, 0, 50_000_000) == 0.0
+    assert host_pause_s(t, 55_000_000, 95_000_000) == pytest.approx(0.030)
+    assert host_pause_s(t, 62_000_000, 65_000_000) == pytest.approx(0.030)  # inside it
+    judged_within(0.070, 0.055, 0.030, "a fault")  # within the bound plus the pause
+    with pytest.raises(AssertionError):
+        judged_within(0.090, 0.055, 0.030, "a fault")
+    with pytest.raises(HostTooSlow, match="paused the driver 60 ms"):
+        judged_within(0.001, 0.055, 0.060, "a fault")
+
+
 def never_faulted(states):
     """The states after arming, ``(state, reason, ...)``: tracking throughout, no fault.
     (Until the set left out Fast DDS's shared-memory transport in real time, see
@@ -143,11 +180,15 @@ def run_twice_at_most(run, tmp_path, domain, ros_domains):
     warning, so the suite's summary (and a CI log) shows every run it took twice."""
     try:
         run(tmp_path / "first", domain)
-    except AssertionError as e:
-        warnings.warn(f"{run.__name__}: the first real-time run failed, ran it again on a "
-                      f"fresh domain: {str(e)[:2000]}", stacklevel=2)
+    except (AssertionError, HostTooSlow) as e:
+        what = "could not be judged" if isinstance(e, HostTooSlow) else "failed"
+        warnings.warn(f"{run.__name__}: the first real-time run {what}, ran it again on "
+                      f"a fresh domain: {str(e)[:2000]}", stacklevel=2)
         d = ros_domains()
-        run(tmp_path / "second", (d, dict(domain[1], ROS_DOMAIN_ID=str(d))))
+        try:
+            run(tmp_path / "second", (d, dict(domain[1], ROS_DOMAIN_ID=str(d))))
+        except HostTooSlow as again:
+            pytest.skip(f"the host was too slow to judge this twice: {again}")
 
 
 def test_faults_ramp_to_safe_and_the_set_re_arms_through_the_approach(tmp_path, domain,
@@ -204,9 +245,11 @@ def _faults_run(tmp_path, domain):
     t, v, true, states, ref = run.t_ns, run.v_V, run.true_um, run.states, run.desired_um
     assert_never_beyond_slew(t, v)
     assert [s for _, s in states].count("faulted") >= 3
-    for t_fault in faults:  # safe voltage within stale + V / ramp (+ 5 ms)
-        took, held = safe_within(t, v, t_fault)
-        assert took <= STALE + held / RAMP + 0.005, (took, held)
+    for t_fault in faults:  # safe voltage within stale + V / ramp (+ 5 ms), plus
+        took, held = safe_within(t, v, t_fault)  # any pause of the host in between
+        judged_within(took, STALE + held / RAMP + 0.005,
+                      host_pause_s(t, t_fault, t_fault + int(took * 1e9)),
+                      "to the safe voltage after a fault")
     # no jump at any (re-)arm: through each approach and the first 0.3 s of tracking
     # the true position stays within 1 um of the path asked for; never above the
     # trajectory's 45 um (no overshoot after a stall)
@@ -236,7 +279,9 @@ def _faults_run(tmp_path, domain):
         ks = [k for k in ref if s0 <= k <= s1 and k in true and not (
             volts[k].min() <= 0.05 and (true[k] > ref[k]).any())]
         kept = [k for k in ks if not disturbed(k)]
-        assert len(kept) >= 0.5 * len(ks), (s0, len(kept), len(ks))
+        if len(kept) < 0.5 * len(ks):
+            raise HostTooSlow(f"the host stalled the loop through most of an approach "
+                              f"({len(ks) - len(kept)} of {len(ks)} samples)")
         e = [np.abs(true[k] - ref[k]).max() for k in kept]
         assert max(e, default=0.0) <= 1.0, (s0, max(e), len(e))
     assert np.array(list(true.values())).max() <= 45.0 + 0.5
@@ -740,6 +785,21 @@ def test_a_real_controllers_commands_late_fault_and_ramp_to_safe(tmp_path, domai
     run_twice_at_most(_late_run, tmp_path, domain, ros_domains)
 
 
+class _NotArmed(Exception):
+    pass
+
+
+def _faulted_by_the_host(run, states):
+    """A run that faulted before its test began: HostTooSlow when the driver's own
+    samples show the host paused it near the fault, else the failure it is."""
+    faults = [s for s, n in run.states if n == "faulted"]
+    pause = host_pause_s(run.t_ns, faults[0] - 200_000_000, faults[0]) if faults else 0.0
+    if pause >= 0.5 * STALE:
+        raise HostTooSlow(f"a fault before the test began, the host having paused the "
+                          f"driver {pause * 1e3:.0f} ms: {states}")
+    raise AssertionError(f"not armed before the test began: {states}")
+
+
 def _late_run(tmp_path, domain):
     tmp_path.mkdir()
     d, env = domain
@@ -756,18 +816,24 @@ def _late_run(tmp_path, domain):
         launch.start()
         assert probe.wait_state("armed", 60), probe.states[-3:]
         probe.spin(1.5)
-        assert probe.state == "armed", probe.states[-3:]
+        early = None if probe.state == "armed" else probe.states[-3:]
+        if early:  # before anything was delayed: judged once the set stopped
+            raise _NotArmed()
         open(flag, "w").close()
         switched_ns = time.time_ns()
         k = len(probe.states)
         assert probe.wait_state("faulted", 5, after=k), probe.states[-3:]
         reason = next(r for s, r, _ in probe.states[k:] if s == "faulted")
         probe.spin(1.0)
+    except _NotArmed:
+        pass
     finally:
         probe.close()
         launch.stop()
         relay.send_signal(signal.SIGINT)
         relay.wait(10)
+    if early:  # the host's pace, or a failure
+        _faulted_by_the_host(read_run(bag), early)
     assert reason.startswith("late commands: ") and "ms behind for" in reason, reason
     assert "arrived after their tick, dropped" in reason, reason
     run = read_run(bag)
@@ -775,10 +841,13 @@ def _late_run(tmp_path, domain):
     # the relay switches within a millisecond of the flag: the last command on time
     # came by then, and the fault within stale_timeout_s and one tick after it
     took = (fault_ns - switched_ns) * 1e-9
-    assert 0 < took <= STALE + 0.001 + 0.005, took
+    assert took > 0, took
+    judged_within(took, STALE + 0.001 + 0.005,
+                  host_pause_s(run.t_ns, switched_ns, fault_ns), "late commands to a fault")
     k = run.t_ns >= fault_ns
     v0 = np.abs(run.v_V[k][0]).max()
     done = run.t_ns[k][np.all(np.abs(run.v_V[k]) < 1e-9, axis=1)]
     assert done.size, "never reached the safe voltage"
-    assert (done[0] - fault_ns) * 1e-9 <= v0 / RAMP + 0.01, (done[0] - fault_ns, v0)
+    judged_within((done[0] - fault_ns) * 1e-9, v0 / RAMP + 0.01,
+                  host_pause_s(run.t_ns, fault_ns, int(done[0])), "the ramp to safe")
     assert_never_beyond_slew(run.t_ns, run.v_V)
