@@ -377,19 +377,19 @@ def structure_path():
     return os.path.join(default_config_dir(), "structure_stage.yaml")
 
 
-def test_a_stage_with_memory_is_named_structure_and_its_locked_part_is_the_truth():
+def test_a_stage_with_memory_is_named_memory_and_its_locked_part_is_the_truth():
     """A stage whose hysteresis is not our model class (play operators: memory our
-    Duhem law lacks, branches no cubic follows): structure (play-operator columns beside
-    richer branches) is named, the held-out gap shrinks by far more than 60 % with the
+    Duhem law lacks, branches no cubic follows): memory (the structure candidate with
+    play-operator columns beside richer branches) is named, the held-out gap shrinks by far more than 60 % with the
     stage's coupling, and the budget's input-locked part is within 15 % of the truth
     the plant knows. (Before: the structure class was degree-5 branches only: 1 %
     shrink, verdict inconclusive; the locked part was 0.41 of 0.47 um.)"""
     from piezo_stage.apps.studies.gap_blind import locked_truth, structure_pair
     fit, hold, true = structure_pair()
     res = diagnose(fit, hold, axes=["x"])
-    assert res["verdict"] == "structure", res["reason"]
+    assert res["verdict"] == "memory", res["reason"]
     named = [s["effect"] for s in res["effects"]]
-    assert named[0] == "structure" and "coupling" in named, named
+    assert named[0] == "memory" and "coupling" in named, named
     assert res["effects"][0]["params"]["play_operators"] == 16  # memory was needed
     assert res["effects"][-1]["shrink_pct"] >= 60.0, res["effects"]
     locked_true = locked_truth(fit, hold, true["x"], "x")
@@ -458,11 +458,12 @@ def test_a_scan_cut_from_a_run_of_a_stage_with_memory():
     from the run: the operators did not start at rest). Structure is named and closes
     >= 40 % of the held-out gap; the budget's locked part is the synchronous average
     (the held-out input repeats) and within 10 % of the truth; no candidate is worse on
-    FIT than the base. (Before: structure was degree-5 branches, 1 % at best.)"""
+    FIT than the base. (Before: structure was degree-5 branches, 1 % at best.) Named
+    memory: the play operators are what paid."""
     from piezo_stage.apps.studies.gap_blind import locked_truth, scan_cut
     fit, hold, true = scan_cut()
     res = diagnose(fit, hold)
-    assert res["verdict"] == "structure", res["reason"]
+    assert res["verdict"] == "memory", res["reason"]
     assert res["effects"][0]["shrink_pct"] >= 40.0
     base = next(r for r in res["ranking"] if r["effect"] == "none")["fit_rms_um"]
     assert all(r["fit_rms_um"] <= base * (1 + 1e-9) for r in res["ranking"])

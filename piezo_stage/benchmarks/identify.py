@@ -128,7 +128,7 @@ def _bench_sparse_peer():
         base = fit_candidate(fit, "x", "none")
         mem = fit_candidate(fit, "x", "structure", base, base.effects, memory=True)
         mem_s = time.perf_counter() - t0
-        rows.append(("ours, structure (degree 5 + 16 play operators)", mem_s,
+        rows.append(("ours, memory (degree 5 + 16 play operators)", mem_s,
                      mem.predict(hold, "x")))
         pi = fit_prandtl_ishlinskii(fit.v["x"], fit.w["x"])
         rows.append(("peer, classical Prandtl-Ishlinskii (linear + 12 plays)", pi.fit_s,

@@ -14,6 +14,9 @@ parameters are searched):
     drift      w = H(v) + a t + b (1 - exp(-t / tau)), input independent
     coupling   w = H(v) + H_c(v_other), a Duhem term driven by the other axis
     structure  H with richer branch polynomials (the hysteresis's own shape)
+    memory     structure with play operators beside it (return-point memory the Duhem
+               law lacks); the structure candidate's other form, named so where the
+               operators are what paid on HOLDOUT
     none       the base model alone
 
 Every candidate is scored on HOLDOUT (a different record): the initial Duhem state
@@ -76,8 +79,8 @@ class Diagnosis:
         """The model with every kept effect, as ``gap --out-model`` writes it: (StageModel,
         effects). Each axis's Duhem model (and coupling) from its kept fit; the model
         file holds one parameter set per effect, so where both axes have one, the set of
-        the axis where it explains the most; ``structure`` with memory as the axis's
-        play operators. Voltage limits: the amplifier's ``limits_V``, else 0-150 V
+        the axis where it explains the most; ``memory`` as the axis's play
+        operators. Voltage limits: the amplifier's ``limits_V``, else 0-150 V
         widened to FIT's (core.duhem.voltage_limits_for)."""
         axes, coupling, plays, effects, weight = {}, {}, {}, {}, {}
         self.notes = []
@@ -87,7 +90,7 @@ class Diagnosis:
             axes[a] = main
             if coup is not None:
                 coupling[a] = coup
-            if c.plays_V is not None:  # structure with memory: its play operators
+            if c.plays_V is not None:  # memory: its play operators
                 plays[a] = c.play_operators()
                 if any(n in TRANSFORMS for n, _ in c.effects):
                     # the fit put the operators' sum after the kept transform effects,

@@ -27,6 +27,13 @@ EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
 STRUCTURE_DEGREE = (5, 5)  # the richer branch polynomials of the "structure" class
 
 
+# what changes the hysteresis model itself rather than adding a plant effect: none,
+# coupling (a term of the Duhem model), structure (richer branches) and memory (the
+# structure candidate with play operators beside the Duhem law: return-point memory
+# it lacks; named memory wherever the operators are what paid on HOLDOUT)
+SHAPES = ("none", "coupling", "structure", "memory")
+
+
 STRUCTURE_PLAYS = 16       # and play operators (memory), thresholds up to half the span
 
 
@@ -107,14 +114,12 @@ class Candidate:
 
     def model_effect(self) -> tuple[str, dict] | None:
         """The effect as model-file / plant parameters (None for none and coupling)."""
-        return None if self.effect in ("none", "coupling", "structure") \
-            else dict(self.params)
+        return None if self.effect in SHAPES else dict(self.params)
 
     def model_effects(self) -> dict:
         """Every kept effect as model-file / plant parameters {name: params} (coupling
         is in the Duhem model itself)."""
-        return {n: dict(p) for n, p in self.effects
-                if n not in ("none", "coupling", "structure")}
+        return {n: dict(p) for n, p in self.effects if n not in SHAPES}
 
 
 def _search_1d(f, lo, hi, n_grid=12, log=False):
@@ -189,11 +194,13 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     v_other = rec.v.get(OTHER[axis]) if "coupling" in names else None
     # structure: the hysteresis itself needs a richer branch shape (more polynomial
     # terms); the extra freedom is kept only if it pays on HOLDOUT, like any effect
-    deg = STRUCTURE_DEGREE if "structure" in names else (3, 2)
+    if memory and effect == "structure":
+        effect = "memory"
+        names[-1] = effect
+    deg = STRUCTURE_DEGREE if {"structure", "memory"} & set(names) else (3, 2)
     reg = DuhemRegression(v, w, "segmented", n=deg[0], m=deg[1], v_other=v_other)
     tau, plays, start, extra = None, None, 0.0, []
-    kept_structure = dict(kept).get("structure", {})
-    memory = (memory and effect == "structure") or "play_operators" in kept_structure
+    memory = "memory" in names
     if memory:  # return-point memory: play operators, linear in their weights
         plays = np.ptp(v) * np.arange(1, STRUCTURE_PLAYS + 1) / (2 * STRUCTURE_PLAYS)
         P, start = play_start_columns(v, w, plays, reg.B)
@@ -213,7 +220,7 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     params = {}
     if effect == "coupling" and base.reg.v_other is None:
         alphas = np.append(alphas, alphas.mean())
-    elif effect == "structure":
+    elif effect in ("structure", "memory"):
         params = {"degree": STRUCTURE_DEGREE[0]}
         if memory:
             params["play_operators"] = STRUCTURE_PLAYS

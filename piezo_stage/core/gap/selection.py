@@ -139,8 +139,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         fit.v[axis], fit.fs_hz)
     def candidate(e, on, kept):
         """fit_candidate; structure both ways (richer branches, and with play
-        operators: memory), the one closer on HOLDOUT kept (as every candidate is
-        judged), so memory is named only where it pays."""
+        operators: then named memory), the one closer on HOLDOUT kept (as every
+        candidate is judged), so memory is named only where it pays."""
         c = fit_candidate(fit, axis, e, on, kept)
         if e == "structure":
             m = fit_candidate(fit, axis, e, on, kept, memory=True)
@@ -171,7 +171,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     ranking = []
     for e, c in cands.items():
         g_after = gap_above_floor(scores[e], floor)
-        ranking.append({"effect": e, "rms_before_um": r_before, "rms_after_um": scores[e],
+        ranking.append({"effect": c.effect, "rms_before_um": r_before, "rms_after_um": scores[e],
                         "gap_before_um": g_before, "gap_after_um": g_after,
                         "shrink_pct": 100.0 * (1 - g_after / g_before) if g_before > 0 else 0.0,
                         "shrink_pm_pct": shrink_uncertainty(resid, resids[e], floor,
@@ -230,7 +230,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                  1.02 * g_new + 0.02 * (g_cur - g_new)]
         if steps and len(alike) >= 2 and len(alike) == len(pool) - 1:
             break  # every candidate helps alike: the refit helps, not any one effect
-        steps.append({"effect": e, "params": c.params, "rms_after_um": scores[e],
+        steps.append({"effect": c.effect, "params": c.params, "rms_after_um": scores[e],
                       "gap_after_um": g_new, "step_shrink_pct": step,
                       "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
                       "equally_well": alike, "rule": rule})
