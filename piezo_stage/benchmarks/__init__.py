@@ -2,7 +2,7 @@
 invocation (never timed unit tests); ``piezo-stage bench <what>`` runs one.
 
 One module per benchmark (plant, identify, loop, liveview, gap, realtime, learning,
-faults, signals, experiments, outside) and the equipment they share: ``procs`` (helper
+faults, signals, experiments, outside, refit) and the equipment they share: ``procs`` (helper
 processes, CPU ticks, the progress of repeated runs), ``probe`` (an outside node),
 ``host_pauses`` (when the whole machine stopped), ``foxglove_probe`` (a live-view
 client).
@@ -25,6 +25,7 @@ BENCHMARKS = {
     "signals": ("signals", "main", ("trials",)),
     "experiments": ("experiments", "bench_experiments", ("runs", "kinds")),
     "outside": ("outside", "bench_outside", ("runs",)),
+    "refit": ("refit", "bench_refit", ()),
 }
 
 

@@ -21,7 +21,7 @@ from piezo_stage.core.errors import (
 )
 
 COMMANDS = ("simulate", "invert", "excite", "gap", "launch", "demo", "experiment", "tune",
-            "replay", "bag", "loop", "identify", "study", "bench", "raster", "play")
+            "replay", "bag", "loop", "identify", "refit", "study", "bench", "raster", "play")
 
 
 def build_parser():
@@ -41,7 +41,7 @@ def build_parser():
 
 INPUTS = ("inp", "model", "config", "data", "validate", "fit", "holdout", "bag", "plant")
 FILE_OUTPUTS = ("json", "out_model", "plot")  # and "out" where it names a file (not a folder)
-DIR_COMMANDS = ("study", "demo", "launch", "experiment")  # whose --out is a folder
+DIR_COMMANDS = ("study", "demo", "launch", "experiment", "refit")  # whose --out is a folder
 
 
 def check_paths(args):

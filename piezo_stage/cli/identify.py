@@ -48,13 +48,14 @@ def main(args):
     import json
     import os
 
-    from piezo_stage.core.duhem import StageModel, voltage_limits_for
-    from piezo_stage.core.identify import IdentifyOptions, identify_axis, validate_axis
+    from piezo_stage.core.duhem import voltage_limits_for
+    from piezo_stage.core.identify import IdentifyOptions, validate_axis
+    from piezo_stage.core.identify.api import identify_stage
     from piezo_stage.io.files import atomic_write
     from piezo_stage.io.model_file import save_model
     from piezo_stage.io.records import load_record
     rec = load_record(args.data)
-    lim = voltage_limits_for(rec.v.values(), args.limits)  # before the fit: DataError
+    voltage_limits_for(rec.v.values(), args.limits)  # before any fit: DataError
     val = load_record(args.validate) if args.validate else None
     if args.voltage == "exact":
         rec.voltage_exact = True
@@ -80,12 +81,15 @@ def main(args):
                     for a in axes}
     else:
         opts_for = {a: opts for a in axes}
+    from contextlib import ExitStack
+
     from piezo_stage.progress import bar, best_so_far
-    results, report = {}, {}
-    for a in axes:
-        with bar(f"identify {a} ({opts.method})") as b:
-            r = identify_axis(rec, a, opts_for[a], best_so_far(b))
-        results[a] = r
+    with ExitStack() as bars:
+        def progress_for(a):
+            return best_so_far(bars.enter_context(bar(f"identify {a} ({opts.method})")))
+        fitted = identify_stage(rec, axes, opts_for, args.limits, progress_for)
+    results, report = fitted.results, {}
+    for a, r in results.items():
         report[a] = r.to_json()
         report[a]["degrees"] = {"f": opts_for[a].n, "g": opts_for[a].m}
         if a in chosen:
@@ -105,9 +109,7 @@ def main(args):
     for note in {n for r in results.values() for n in r.notes}:
         print(f"note: {note}")
     if args.out:
-        model = StageModel({a: r.model for a, r in results.items()},
-                           {a: r.coupling for a, r in results.items() if r.coupling},
-                           lim)
+        model = fitted.model
         meta = {"identification": {a: {k: report[a][k] for k in report[a]
                                         if k not in ("history", "parameters")}
                                    for a in report}}

@@ -170,3 +170,45 @@ def scan_png(path, evals):
         a.legend(fontsize=7, ncol=2)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def refit_png(path, rows: list):
+    """An archive's refits over time (``apps/refit`` rows, date order): per axis the
+    gain and the held-out error, the change of each model against the newest and,
+    against a reference, each effect's size (relative to its first value)."""
+    from datetime import datetime
+    plt = _pyplot()
+    axes = [a for a in ("x", "y") if any(a in r["axes"] for r in rows)]
+    against = any("against" in r["axes"].get(a, {}) for r in rows for a in axes)
+    ncol = 3 if against else 2
+    fig, ax = plt.subplots(len(axes), ncol, figsize=(5 * ncol, 3.4 * len(axes)),
+                           squeeze=False)
+    when = [datetime.fromisoformat(r["started_utc"]) for r in rows]
+    for i, a in enumerate(axes):
+        def col(key):
+            return [r["axes"].get(a, {}).get(key, np.nan) for r in rows]
+        ax[i, 0].plot(when, col("gain_um_per_V"), "o-", ms=3, color="tab:blue")
+        ax[i, 0].set(ylabel="gain [um/V]", title=f"axis {a}: gain over its fitted span")
+        ax[i, 1].plot(when, col("held_out_rms_um"), "o-", ms=3, color="tab:orange",
+                      label="its own model, held out")
+        ax[i, 1].plot(when, col("change_um"), "s--", ms=3, color="tab:green",
+                      label="against the newest model")
+        ax[i, 1].set(ylabel="RMS [um]", title=f"axis {a}: error and change")
+        ax[i, 1].legend(fontsize=8)
+        if against:
+            named = sorted({e for r in rows for e in r["axes"].get(a, {})
+                            .get("against", {}).get("effects", {})})
+            for e in named:
+                y = [r["axes"].get(a, {}).get("against", {}).get("effects", {})
+                     .get(e, {}).get("size", 0.0) for r in rows]
+                y0 = next((v for v in y if v), 1.0)
+                ax[i, 2].plot(when, np.asarray(y) / y0, "o-", ms=3, label=e)
+            ax[i, 2].axhline(1.0, color="0.7", lw=0.8)
+            ax[i, 2].set(ylabel="size / first", title=f"axis {a}: effects against the "
+                         "reference")
+            if named:
+                ax[i, 2].legend(fontsize=8)
+        for j in range(ncol):
+            ax[i, j].tick_params(axis="x", labelrotation=30, labelsize=8)
+    fig.tight_layout()
+    return _save(fig, path)

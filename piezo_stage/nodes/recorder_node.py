@@ -39,6 +39,10 @@ class Recorder(Node):
             if path and os.path.isfile(path):
                 meta["piezo_stage_" + key.split("_")[0]] = {"path": path,
                                                             "yaml": open(path).read()}
+        # when the run started, on the wall clock (a lockstep bag's stamps start at 0):
+        # what `refit` dates the run by
+        from datetime import datetime, timezone
+        meta["piezo_stage_run"] = {"started_utc": datetime.now(timezone.utc).isoformat()}
         self.bag = BagWriter(out, metadata=meta)
         # off the loop's critical path: take what arrived every few ms, not per message
         self.lean_batch_s = declare(self, "batch_period_s", 0.004, "wait between takes "

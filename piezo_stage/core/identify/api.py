@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from piezo_stage.core.duhem import OTHER, DuhemModel, DuhemState
+from piezo_stage.core.duhem import OTHER, DuhemModel, DuhemState, StageModel, voltage_limits_for
 from piezo_stage.core.errors import DataError, SolverError
 from piezo_stage.core.identify.options import IdentifyOptions
 from piezo_stage.core.identify.regress import DuhemRegression
@@ -241,3 +241,33 @@ def choose_degree(rec: Record, axis: str, opts: IdentifyOptions,
         held[d] = validate_axis(r, last)["validate_rms_um"]
     best = min(held.values())
     return min(d for d, e in held.items() if e <= 1.02 * best), held
+
+
+@dataclass
+class StageFit:
+    """Every identified axis of a record put together: ``model`` (the StageModel with
+    its coupling terms and the amplifier's voltage limits) and ``results`` {axis:
+    AxisResult}."""
+    model: StageModel
+    results: dict
+
+
+def identify_stage(rec: Record, axes: Sequence[str],
+                   opts: IdentifyOptions | dict | None = None,
+                   limits_V: tuple | None = None,
+                   progress_for: Callable[[str], Callable[..., None] | None] | None = None
+                   ) -> StageFit:
+    """Identify ``axes`` of ``rec`` (``opts`` one IdentifyOptions, or one per axis) and
+    build the stage model. Its voltage limits follow one rule wherever a model is
+    written (``identify``, ``refit``, the identifier node): the amplifier's
+    ``limits_V``, else 0-150 V widened to take the record's voltages
+    (duhem.voltage_limits_for; DataError when the record leaves the amplifier's).
+    ``progress_for(axis)`` gives each axis's solver callback."""
+    lim = voltage_limits_for(list(rec.v.values()), limits_V)  # before any fit
+    results = {}
+    for a in axes:
+        o = opts.get(a) if isinstance(opts, dict) else opts
+        results[a] = identify_axis(rec, a, o, progress_for(a) if progress_for else None)
+    model = StageModel({a: r.model for a, r in results.items()},
+                       {a: r.coupling for a, r in results.items() if r.coupling}, lim)
+    return StageFit(model, results)

@@ -1,0 +1,297 @@
+"""`piezo-stage refit`: a lab's archive of runs re-identified, and how the stage changed.
+
+Each bag is split in two halves: the Duhem model is identified on the first and scored
+on the second (its own later part, held out). Bags run in parallel worker processes.
+Then, over the bags in date order: the model's gain and errors, how far each earlier
+model's response lies from the newest one's on the newest bag's own input ("change"),
+and with a reference model (``--against``) the gap diagnosis of each bag against it:
+which unmodelled effect each shows and how large (creep's gamma, a delay, a
+resonance's frequency, else the held-out gap it explains), its change since the first
+bag and the date it first changed by ``GROWTH_PCT`` or more.
+
+A bag's date: the run's start the recorder stores (MCAP metadata ``piezo_stage_run``),
+else its first sample's stamp when that is wall time (real-time runs), else a
+``YYYYMMDD-HHMMSS`` folder name on its path, else the file's modification time; the
+table says which.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from datetime import datetime, timezone
+
+import numpy as np
+
+from piezo_stage.core.errors import DataError
+
+SPLIT = 0.5          # the share of each bag identified on; the rest is held out
+GROWTH_PCT = 30.0    # an effect's change worth a date
+# an effect's size: its parameter where it has one that scales with it (else the
+# held-out gap it explains, um)
+SIZE_OF = {"creep": "gamma", "delay": "delay_s", "dynamics": "fn_hz"}
+WALL_NS = 10**17     # a stamp past 1973: wall time, not a simulated clock from 0
+
+
+def find_bags(paths) -> list[str]:
+    """The bags named or held in ``paths``: a bag folder (an .mcap file in it) or an
+    .mcap file is itself; any other folder is searched two levels down (a run folder
+    of bags, a folder of run folders). DataError when a path is missing or holds none."""
+    out = []
+    for p in paths:
+        if not os.path.exists(p):
+            raise DataError(f"{p}: no such file or directory")
+        if _is_bag(p):
+            out.append(os.path.normpath(p))
+            continue
+        found = []
+        if os.path.isdir(p):
+            for d1 in sorted(os.listdir(p)):
+                q = os.path.join(p, d1)
+                if _is_bag(q):
+                    found.append(q)
+                elif os.path.isdir(q):
+                    found += [os.path.join(q, d2) for d2 in sorted(os.listdir(q))
+                              if _is_bag(os.path.join(q, d2))]
+        if not found:
+            raise DataError(f"{p}: no bag in it (a bag is a folder with an .mcap file)")
+        out += [os.path.normpath(f) for f in found]
+    seen = set()
+    return [b for b in out if not (b in seen or seen.add(b))]
+
+
+def _is_bag(p) -> bool:
+    if os.path.isfile(p):
+        return p.endswith(".mcap")
+    return os.path.isdir(p) and any(f.endswith(".mcap") for f in os.listdir(p))
+
+
+def run_date(path) -> tuple[datetime, str]:
+    """When a bag's run started (UTC) and how that is known (see the module docstring)."""
+    from piezo_stage.io.bag import iter_messages, read_metadata
+    try:
+        meta = read_metadata(path).get("piezo_stage_run", {})
+        if meta.get("started_utc"):
+            return datetime.fromisoformat(meta["started_utc"]), "recorded start"
+    except (ValueError, OSError, DataError):
+        pass
+    try:
+        for topic, _, log_ns, _ in iter_messages(path):
+            if topic.endswith("/joint_states"):
+                if log_ns > WALL_NS:
+                    return datetime.fromtimestamp(log_ns * 1e-9, timezone.utc), "first stamp"
+                break
+    except (OSError, DataError):
+        pass
+    for part in reversed(os.path.abspath(path).split(os.sep)):
+        m = re.fullmatch(r"(\d{8}-\d{6})", part)
+        if m:
+            return datetime.strptime(m.group(1), "%Y%m%d-%H%M%S").replace(
+                tzinfo=timezone.utc), "folder name"
+    return datetime.fromtimestamp(os.path.getmtime(path), timezone.utc), "file time"
+
+
+def halves(rec, share: float = SPLIT):
+    """(first part, the rest) of a record, each from t = 0."""
+    from piezo_stage.core.record import Record
+    k = int(len(rec) * share)
+    if k < 100 or len(rec) - k < 100:
+        raise DataError(f"{rec.source}: {len(rec)} samples, too few to fit on one part "
+                        "and score on the other")
+
+    def part(sl):
+        t = rec.t[sl]
+        return Record(t - t[0], {a: v[sl] for a, v in rec.v.items()},
+                      {a: w[sl] for a, w in rec.w.items()}, source=rec.source,
+                      voltage_exact=rec.voltage_exact)
+    return part(slice(0, k)), part(slice(k, None))
+
+
+def _moving(rec) -> list[str]:
+    return [a for a in ("x", "y") if a in rec.v and a in rec.w and np.ptp(rec.v[a]) > 1e-6]
+
+
+def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
+    """One bag: identified on its first half, scored on the second, its model written
+    to ``out_dir``; with ``against`` (a model file) the gap diagnosis of the second
+    half against that model, fitted on the first. Returns the bag's row."""
+    import time
+
+    from piezo_stage.core.duhem import stroke_um
+    from piezo_stage.core.identify.api import identify_stage, validate_axis
+    from piezo_stage.io.model_file import load_model, save_model
+    from piezo_stage.io.records import load_record
+    t0 = time.perf_counter()
+    rec = load_record(path)
+    rec.voltage_exact = True  # a bag holds the voltage the driver applied
+    axes = _moving(rec)
+    if not axes:
+        raise DataError(f"{path}: no axis moves")
+    fit, hold = halves(rec)
+    stage = identify_stage(fit, axes, limits_V=limits_V)
+    started, dated_by = run_date(path)
+    name = _bag_name(path)
+    model_path = os.path.join(out_dir, "models", f"{name}.yaml")
+    save_model(model_path, stage.model, extra={"identification": {
+        "bag": os.path.abspath(path), "started_utc": started.isoformat(),
+        "fitted_on": f"the first {SPLIT:.0%} of the bag"}})
+    row = {"bag": os.path.abspath(path), "name": name, "started_utc": started.isoformat(),
+           "dated_by": dated_by, "model": model_path, "axes": {}}
+    for a in axes:
+        r = stage.results[a]
+        span = (float(fit.v[a].min()), float(fit.v[a].max()))
+        row["axes"][a] = {
+            "gain_um_per_V": stroke_um(r.model, span) / max(span[1] - span[0], 1e-12),
+            "fit_rms_um": float(r.fit["rms_um"]),
+            "held_out_rms_um": float(validate_axis(r, hold)["validate_rms_um"])}
+    if against:
+        from piezo_stage.core.gap import diagnose
+        ref, ref_effects = load_model(against)
+        d = diagnose(fit, hold, axes=[a for a in axes if a in ref.axes],
+                     base_model=ref, base_effects=ref_effects)
+        for a, j in d["axes"].items():
+            explained = j.get("budget", {}).get("explained_um", {})
+            effects = {}
+            for st in j["effects"]:
+                key = SIZE_OF.get(st["effect"])
+                val = st["params"].get(key) if key else None
+                if not isinstance(val, (int, float)):
+                    key, val = "explained_um", explained.get(st["effect"], 0.0)
+                effects[st["effect"]] = {"size": float(val), "size_of": key,
+                                         "explained_um": float(explained.get(st["effect"],
+                                                                             0.0))}
+            row["axes"][a]["against"] = {"verdict": j["verdict"], "effects": effects}
+    row["seconds"] = time.perf_counter() - t0
+    return row
+
+
+def _bag_name(path) -> str:
+    """A file name for a bag's model: its folder names from the run folder on."""
+    parts = os.path.normpath(os.path.abspath(path)).split(os.sep)[-2:]
+    name = "_".join(p.removesuffix(".mcap") for p in parts)
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
+
+
+def _worker_init():
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides about stops
+    import piezo_stage.core.gap as gap
+    gap.AXES_IN_PROCESSES = False  # a worker per bag already: its axes in threads
+
+
+def refit(paths, out_dir: str, jobs: int | None = None, limits_V=None, against=None,
+          progress=None) -> list[dict]:
+    """Every bag in ``paths`` refitted (``refit_bag``) on ``jobs`` worker processes (the
+    CPU count by default), rows in date order; ``progress(name)`` after each bag."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    bags = find_bags(paths)
+    os.makedirs(os.path.join(out_dir, "models"), exist_ok=True)
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(bags)))
+    rows = []
+    if jobs == 1:
+        for b in bags:
+            rows.append(refit_bag(b, out_dir, limits_V, against))
+            if progress:
+                progress(rows[-1]["name"])
+    else:
+        with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_init) as pool:
+            futures = {pool.submit(refit_bag, b, out_dir, limits_V, against): b
+                       for b in bags}
+            try:
+                for f in as_completed(futures):
+                    rows.append(f.result())
+                    if progress:
+                        progress(rows[-1]["name"])
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
+    rows.sort(key=lambda r: (r["started_utc"], r["name"]))
+    _changes(rows)
+    return rows
+
+
+def _changes(rows) -> None:
+    """Each row's model against the newest: the RMS difference of their responses to
+    the newest bag's own voltages [um], per axis (``change_um``)."""
+    from piezo_stage.io.model_file import load_model
+    from piezo_stage.io.records import load_record
+    newest = rows[-1]
+    rec = load_record(newest["bag"])
+    v = {a: rec.v.get(a, np.zeros(len(rec))) for a in ("x", "y")}
+    ref = load_model(newest["model"])[0].simulate(v["x"], v["y"])[0]
+    for r in rows:
+        w = load_model(r["model"])[0].simulate(v["x"], v["y"])[0]
+        for a, ax in r["axes"].items():
+            if a in w and a in ref:
+                d = w[a] - ref[a]
+                ax["change_um"] = float(np.sqrt(np.mean((d - d.mean()) ** 2)))
+
+
+def growth(rows) -> list[dict]:
+    """Per axis and effect named against the reference: its size in the first bag and
+    the last, the change [%], and the first date it had changed by GROWTH_PCT or more
+    (an effect absent at first: the date it first appeared)."""
+    out = []
+    for a in ("x", "y"):
+        named = sorted({e for r in rows for e in r["axes"].get(a, {}).get("against", {})
+                        .get("effects", {})})
+        for e in named:
+            series = [(r["started_utc"], r["axes"].get(a, {}).get("against", {})
+                       .get("effects", {}).get(e)) for r in rows]
+            first = next((s for s in series if s[1] is not None), None)
+            size_of = first[1]["size_of"]
+            vals = [(d, x["size"] if x is not None and x["size_of"] == size_of else 0.0)
+                    for d, x in series]
+            v0 = vals[0][1]
+            crossed = None
+            for d, x in vals:
+                if (v0 == 0.0 and x != 0.0) or (v0 != 0.0 and
+                                                abs(x / v0 - 1.0) * 100.0 >= GROWTH_PCT):
+                    crossed = d
+                    break
+            change = (vals[-1][1] / v0 - 1.0) * 100.0 if v0 != 0.0 else math.inf
+            out.append({"axis": a, "effect": e, "size_of": size_of, "first": v0,
+                        "first_utc": vals[0][0], "last": vals[-1][1],
+                        "last_utc": vals[-1][0], "change_pct": change,
+                        "crossed_utc": crossed, "bags_named": sum(x is not None
+                                                                  for _, x in series)})
+    return out
+
+
+def growth_lines(g: list[dict]) -> list[str]:
+    """What changed, one line each ("x: creep +45 % since 2026-11-02 (gamma 0.0300 ->
+    0.0435); changed by 30 % on 2026-11-10")."""
+    lines = []
+    for e in g:
+        since = e["first_utc"][:10]
+        if math.isinf(e["change_pct"]):
+            lines.append(f"{e['axis']}: {e['effect']} appeared on "
+                         f"{(e['crossed_utc'] or since)[:10]} (absent on {since}; "
+                         f"{e['size_of']} {e['last']:.4g} on {e['last_utc'][:10]})")
+            continue
+        when = (f"; changed by {GROWTH_PCT:.0f} % on {e['crossed_utc'][:10]}"
+                if e["crossed_utc"] else f"; never by {GROWTH_PCT:.0f} %")
+        lines.append(f"{e['axis']}: {e['effect']} {e['change_pct']:+.0f} % since {since} "
+                     f"({e['size_of']} {e['first']:.4g} -> {e['last']:.4g}){when}")
+    return lines
+
+
+def table_columns(rows) -> dict:
+    """The CSV's columns: bag, date and per axis the figures (and the effect sizes)."""
+    cols = {"bag": [r["name"] for r in rows], "started_utc": [r["started_utc"] for r in rows],
+            "dated_by": [r["dated_by"] for r in rows]}
+    axes = [a for a in ("x", "y") if any(a in r["axes"] for r in rows)]
+    for a in axes:
+        for k in ("gain_um_per_V", "fit_rms_um", "held_out_rms_um", "change_um"):
+            cols[f"{a}_{k}"] = [r["axes"].get(a, {}).get(k, float("nan")) for r in rows]
+        named = sorted({e for r in rows for e in r["axes"].get(a, {}).get("against", {})
+                        .get("effects", {})})
+        if any("against" in r["axes"].get(a, {}) for r in rows):
+            cols[f"{a}_verdict"] = [r["axes"].get(a, {}).get("against", {})
+                                    .get("verdict", "") for r in rows]
+        for e in named:
+            cols[f"{a}_{e}"] = [r["axes"].get(a, {}).get("against", {}).get("effects", {})
+                                .get(e, {}).get("size", 0.0) for r in rows]
+    return cols
