@@ -8,6 +8,8 @@ from piezo_stage import stopping
 
 def main():
     stopping.install()
+    from piezo_stage.blas import one_thread_unless_set
+    one_thread_unless_set()  # before numpy loads
     from piezo_stage.cli import main as command
     code = command()
     # done (or stopped, and said so): a stop arriving now would meet the interpreter's

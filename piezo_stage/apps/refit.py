@@ -178,6 +178,11 @@ def _worker_init():
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides about stops
     import piezo_stage.core.gap as gap
     gap.AXES_IN_PROCESSES = False  # a worker per bag already: its axes in threads
+    try:  # and one BLAS thread each: workers x BLAS threads beyond the cores fight
+        from threadpoolctl import threadpool_limits
+        threadpool_limits(1)
+    except ImportError:
+        pass
 
 
 def refit(paths, out_dir: str, jobs: int | None = None, limits_V=None, against=None,

@@ -4,7 +4,10 @@ also takes stop signals during the command's imports)."""
 import sys
 
 from piezo_stage import stopping
-from piezo_stage.cli import main
+from piezo_stage.blas import one_thread_unless_set
+
+one_thread_unless_set()  # before numpy loads (see piezo_stage/blas.py)
+from piezo_stage.cli import main  # noqa: E402
 
 code = main()
 stopping.hold()  # as piezo_stage.__main__: a stop after the end is ignored
