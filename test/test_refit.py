@@ -90,10 +90,19 @@ def test_bags_are_found_in_run_folders_and_dated_by_their_folder(tmp_path):
 
 
 def test_refit_bad_input_is_one_line_and_exit_2(tmp_path):
+    import numpy as np
+
+    from piezo_stage.core.record import Record
+    from piezo_stage.io.bag import write_record_bag
     (tmp_path / "empty").mkdir()
+    t = np.arange(400) / 100.0
+    write_record_bag(str(tmp_path / "rest" / "r"), Record(  # a run at rest: skipped
+        t, {"x": np.full(400, 5.0)}, {"x": np.random.default_rng(0).normal(0, 0.1, 400)}))
     for args in ([tmp_path / "missing", "--out", tmp_path / "o"],
-                 [tmp_path / "empty", "--out", tmp_path / "o"]):
+                 [tmp_path / "empty", "--out", tmp_path / "o"],
+                 [tmp_path / "rest", "--out", tmp_path / "o"],
+                 [tmp_path / "rest", "--out", tmp_path / "o", "--against", tmp_path]):
         r = _refit(*args, timeout=60)
         assert r.returncode == 2, (args, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr
-    assert not (tmp_path / "o").exists()  # nothing written for a refused archive
+    assert not (tmp_path / "o" / "refit.csv").exists()  # no table of a refused archive

@@ -185,33 +185,52 @@ def _worker_init():
         pass
 
 
+def _refit_or_skip(path, out_dir, limits_V, against):
+    """``refit_bag``, or {"skipped": path, "why": ...} for a bag that cannot be refitted
+    (no axis moves, too short, unreadable): an archive holds such runs too."""
+    try:
+        return refit_bag(path, out_dir, limits_V, against)
+    except DataError as e:
+        return {"skipped": os.path.abspath(path), "why": str(e)}
+
+
 def refit(paths, out_dir: str, jobs: int | None = None, limits_V=None, against=None,
-          progress=None) -> list[dict]:
+          progress=None, skipped: list | None = None) -> list[dict]:
     """Every bag in ``paths`` refitted (``refit_bag``) on ``jobs`` worker processes (the
-    CPU count by default), rows in date order; ``progress(name)`` after each bag."""
+    CPU count by default), rows in date order; ``progress(name)`` after each bag. A bag
+    that cannot be refitted is left out and listed in ``skipped`` [(path, why)];
+    DataError when none can."""
     from concurrent.futures import ProcessPoolExecutor, as_completed
     bags = find_bags(paths)
     os.makedirs(os.path.join(out_dir, "models"), exist_ok=True)
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(bags)))
     rows = []
+    skipped = [] if skipped is None else skipped
+
+    def take(row):
+        if "skipped" in row:
+            skipped.append((row["skipped"], row["why"]))
+        else:
+            rows.append(row)
+        if progress:
+            progress(os.path.basename(row.get("skipped", row.get("name", ""))))
     if jobs == 1:
         for b in bags:
-            rows.append(refit_bag(b, out_dir, limits_V, against))
-            if progress:
-                progress(rows[-1]["name"])
+            take(_refit_or_skip(b, out_dir, limits_V, against))
     else:
         with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_init) as pool:
-            futures = {pool.submit(refit_bag, b, out_dir, limits_V, against): b
-                       for b in bags}
+            futures = [pool.submit(_refit_or_skip, b, out_dir, limits_V, against)
+                       for b in bags]
             try:
                 for f in as_completed(futures):
-                    rows.append(f.result())
-                    if progress:
-                        progress(rows[-1]["name"])
+                    take(f.result())
             except BaseException:
                 for f in futures:
                     f.cancel()
                 raise
+    if not rows:
+        raise DataError("no bag could be refitted: " + "; ".join(
+            f"{os.path.basename(p)}: {why}" for p, why in skipped[:3]))
     rows.sort(key=lambda r: (r["started_utc"], r["name"]))
     _changes(rows)
     return rows

@@ -40,8 +40,11 @@ def main(args):
     print(f"refit: {len(bags)} bag(s) on {jobs} worker(s)"
           + (f", against {args.against}" if args.against else ""))
     t0 = time.perf_counter()
+    skipped = []
     with bar("refit", total=len(bags), unit="bag") as b:
-        rows = R.refit(bags, args.out, jobs, args.limits, args.against, steps(b))
+        rows = R.refit(bags, args.out, jobs, args.limits, args.against, steps(b), skipped)
+    for path, why in skipped:
+        print(f"skipped: {why}" if path in why else f"skipped {path}: {why}")
     wall = time.perf_counter() - t0
     cols = R.table_columns(rows)
     with atomic_write(os.path.join(args.out, "refit.csv"), newline="") as fh:
@@ -50,7 +53,8 @@ def main(args):
         out.writerows(zip(*cols.values()))
     g = R.growth(rows) if args.against else []
     with atomic_write(os.path.join(args.out, "refit.json")) as fh:
-        json.dump({"bags": rows, "growth": g,
+        json.dump({"bags": rows, "skipped": [{"bag": p, "why": w} for p, w in skipped],
+                   "growth": g,
                    "growth_threshold_pct": R.GROWTH_PCT}, fh, indent=1, default=str)
     from piezo_stage.io.plots import refit_png
     png = refit_png(os.path.join(args.out, "refit.png"), rows)
