@@ -23,7 +23,7 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
            "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr", "clock_msg",
            "check_trajectory_size", "trajectory_max_bytes", "trajectory_take_bytes",
-           "trajectory_stamp_ns", "phase_msg", "phase_from_msg"]
+           "trajectory_stamp_ns", "phase_msg", "phase_from_msg", "driver_announcement"]
 
 JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
@@ -337,6 +337,23 @@ def arming_state_from_msg(msg: DiagnosticArray) -> tuple[int, str, str, dict]:
     if "state" not in kv:
         raise DataError("state: no 'state' value")
     return time_to_ns(msg.header.stamp), kv["state"], kv.get("reason", ""), kv
+
+
+def driver_announcement(values: dict) -> tuple[float, tuple | None, str]:
+    """The driver's announcement in its state's key-values, read in this one place:
+    (look-ahead [s], its voltage limits (lo, hi) [V] or None when it gave none, mode).
+    DataError when a value is not a number or the limits are not lo < hi."""
+    try:
+        lookahead = float(values.get("lookahead_s", 0.0))
+        lo, hi = values.get("voltage_limit_lo_V"), values.get("voltage_limit_hi_V")
+        limits = None if lo is None or hi is None else (float(lo), float(hi))
+    except (TypeError, ValueError) as e:
+        raise DataError(f"state: a driver announcement that is not a number ({e})") from None
+    if limits is not None and not (math.isfinite(limits[0]) and limits[0] < limits[1]):
+        raise DataError(f"state: voltage limits {limits} are not lo < hi")
+    if not (math.isfinite(lookahead) and lookahead >= 0.0):
+        raise DataError(f"state: look-ahead {lookahead} s")
+    return lookahead, limits, str(values.get("mode", ""))
 
 
 def clock_msg(ns: int):

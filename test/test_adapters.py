@@ -67,6 +67,20 @@ def test_reference_and_setpoint_and_model():
         A.arming_state_from_msg(A.diagnostic_array(1, "n", 0, "ok", {}))
 
 
+def test_the_drivers_announcement_is_typed_key_values_read_in_one_place():
+    st = A.arming_state_msg(5, "/stage/stage_driver: arming", "armed", "tracking", {
+        "lookahead_s": 0.005, "voltage_limit_lo_V": 0.0, "voltage_limit_hi_V": 150.0,
+        "mode": "realtime"})
+    values = A.arming_state_from_msg(st)[3]
+    assert A.driver_announcement(values) == (0.005, (0.0, 150.0), "realtime")
+    assert A.driver_announcement({}) == (0.0, None, "")  # an older driver: no limits
+    for bad in ({"voltage_limit_lo_V": "150", "voltage_limit_hi_V": "0"},
+                {"voltage_limit_lo_V": "a", "voltage_limit_hi_V": "1"},
+                {"lookahead_s": "nan"}, {"lookahead_s": "-1"}):
+        with pytest.raises(DataError):
+            A.driver_announcement(bad)
+
+
 # --- CDR codecs of the per-sample topics: checked against rclpy's own serializer ---
 
 W, V, D = {"x": 12.5, "y": -3.0}, {"x": 80.0, "y": 10.0}, {"x": 21.0, "y": 45.0}

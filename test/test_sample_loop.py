@@ -101,7 +101,7 @@ def test_clock_and_state_announcement():
         assert s.clock_due == (j % 10 == 0)
     a = s.announced()
     assert a["control_rate_hz"] == RATE and a["lookahead_s"] == pytest.approx(1e-3)
-    assert a["voltage_limits_V"][0] < a["voltage_limits_V"][1]
+    assert a["voltage_limit_lo_V"] < a["voltage_limit_hi_V"]
     assert s.feedforward_phase("tracking", "trajectory of 10 points stamped 0")
     assert not s.feedforward_phase("tracking", "trajectory of 10 points stamped 0")
     a = s.announced()

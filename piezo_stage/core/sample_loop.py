@@ -278,8 +278,8 @@ class SampleLoop:
         done)."""
         lim = self.backend.limits
         return {"lookahead_s": self.lookahead_ns * 1e-9, "control_rate_hz": self.rate_hz,
-                "voltage_limits_V": [max(lo for lo, _ in lim.values()),
-                                     min(hi for _, hi in lim.values())],
+                "voltage_limit_lo_V": max(lo for lo, _ in lim.values()),
+                "voltage_limit_hi_V": min(hi for _, hi in lim.values()),
                 "host": socket.gethostname(), "pid": str(os.getppid()),
                 "feedforward_phase": self.ff_phase[0],
                 "feedforward_follows": self.ff_phase[1]}

@@ -117,17 +117,15 @@ class DriverState:
         hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
 
     def on_state(self, msg):
-        from piezo_stage_msgs_adapters import arming_state_from_msg
+        from piezo_stage_msgs_adapters import arming_state_from_msg, driver_announcement
         try:
             since, state, _, values = arming_state_from_msg(msg)
-            self.lookahead_ns = int(round(float(values.get("lookahead_s", 0)) * 1e9)) \
-                or self.dt_ns
-            lim = [float(x) for x in values.get("voltage_limits_V", "").strip("[]").split(",")
-                   if x.strip()]
-        except (PiezoStageError, ValueError):
+            lookahead_s, lim, mode = driver_announcement(values)
+        except PiezoStageError:
             self.bad += 1
             return
-        if values.get("mode") == "realtime" and not self.realtime:
+        self.lookahead_ns = int(round(lookahead_s * 1e9)) or self.dt_ns
+        if mode == "realtime" and not self.realtime:
             # the heap first, at normal priority: touching 54 MB takes ~54 ms of a core
             # here, which at SCHED_FIFO another set's loop on this host could not preempt
             reserved = reserve_heap(self.heap_bytes, self.node.get_logger())
@@ -137,8 +135,8 @@ class DriverState:
                     "largest message this node takes then costs no page faults)")
             self.heap_bytes = 0  # once
             set_realtime_priority(self.prio, self.node.get_logger())
-        self.realtime = values.get("mode") == "realtime"
-        self.limits = tuple(lim) if len(lim) == 2 else self.limits
+        self.realtime = mode == "realtime"
+        self.limits = lim or self.limits
         self.timeline.add(since, state)
 
     def enabled(self, ns) -> bool:
