@@ -15,6 +15,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from piezo_stage.core.errors import DataError
 from piezo_stage_msgs_adapters import cdr
+from piezo_stage_msgs_adapters.wire import JOINTS, UM, joint_state_axes
 
 __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "joint_state_to_um", "voltage_msg", "voltage_from_msg", "reference_msg",
@@ -25,9 +26,7 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "check_trajectory_size", "trajectory_max_bytes", "trajectory_take_bytes",
            "trajectory_stamp_ns", "phase_msg", "phase_from_msg", "driver_announcement"]
 
-JOINTS = ("x", "y")
 FRAME = "stage"  # header.frame_id of everything the nodes publish
-UM = 1e-6  # metres per micrometre
 
 
 def ns_to_time(ns: int) -> Time:
@@ -80,16 +79,8 @@ def joint_state_to_um(msg, with_effort=False):
     ns, names, position, effort = _joint_state_fields(msg)
     if len(position) != len(names) or not set(JOINTS) <= set(names):
         raise DataError(f"joint_states: expected joints x, y with positions, got {names}")
-    if len(set(names)) != len(names):
-        raise DataError(f"joint_states: joint names repeat: {names}")
-    w = {n: float(position[i]) / UM for i, n in enumerate(names) if n in JOINTS}
-    _finite(w.values(), "joint_states")
-    if not with_effort:
-        return ns, w
-    v = None
-    if len(effort) == len(names):
-        v = {n: float(effort[i]) for i, n in enumerate(names) if n in JOINTS}
-    return ns, w, v
+    w, v = joint_state_axes(names, position, effort)
+    return (ns, w, v) if with_effort else (ns, w)
 
 
 def voltage_msg(ns: int, v: dict) -> Vector3Stamped:

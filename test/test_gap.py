@@ -381,9 +381,10 @@ def test_a_stage_with_memory_is_named_memory_and_its_locked_part_is_the_truth():
     """A stage whose hysteresis is not our model class (play operators: memory our
     Duhem law lacks, branches no cubic follows): memory (the structure candidate with
     play-operator columns beside richer branches) is named, the held-out gap shrinks by
-    far more than 60 % with the stage's coupling, and the budget's input-locked part is within 15 % of the truth
-    the plant knows. (Before: the structure class was degree-5 branches only: 1 %
-    shrink, verdict inconclusive; the locked part was 0.41 of 0.47 um.)"""
+    far more than 60 % with the stage's coupling, and the budget's input-locked part is
+    within 15 % of the truth the plant knows. (Before: the structure class was degree-5
+    branches only: 1 % shrink, verdict inconclusive; the locked part was 0.41 of 0.47
+    um.)"""
     from piezo_stage.apps.studies.gap_blind import locked_truth, structure_pair
     fit, hold, true = structure_pair()
     res = diagnose(fit, hold, axes=["x"])

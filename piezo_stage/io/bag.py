@@ -448,6 +448,7 @@ def read_bag_record(path, namespace=None):
     import numpy as np
 
     from piezo_stage.core.record import Record
+    from piezo_stage_msgs_adapters.wire import joint_state_um
     pos, volt = {}, {}
     seen = set()
     try:
@@ -457,13 +458,9 @@ def read_bag_record(path, namespace=None):
                 continue
             if namespace and not topic.startswith(namespace):
                 continue
-            m = deserialize(data, msgtype)
-            st = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
-            names = list(m.name)
-            pos[st] = {n: float(m.position[i]) * 1e6 for i, n in enumerate(names)
-                       if n in ("x", "y") and i < len(m.position)}
-            if len(m.effort) == len(names):
-                volt[st] = {n: float(m.effort[i]) for i, n in enumerate(names) if n in ("x", "y")}
+            st, pos[st], v = joint_state_um(data, f"{path}: joint_states")
+            if v is not None:
+                volt[st] = v
     except (DataError, ConfigError):
         raise
     except Exception as e:  # a corrupt message body: one line, not a traceback

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from piezo_stage.io.bag import deserialize, iter_messages
-
-UM = 1e6  # um per metre
+from piezo_stage_msgs_adapters.cdr import decode_joint_state
+from piezo_stage_msgs_adapters.wire import UM, joint_state_um, point_um
 
 
 def _ns(m) -> int:
@@ -58,17 +58,17 @@ def read_run(bag) -> Run:
     t, w, v, recv, true, ref, states, diags, models = [], [], [], [], {}, {}, [], {}, 0
     for topic, msgtype, log_ns, data in iter_messages(bag):
         if topic.endswith("/joint_states"):
-            m = deserialize(data, msgtype)
-            t.append(_ns(m))
+            ns, w_um, v_V = joint_state_um(data)
+            t.append(ns)
             recv.append(log_ns)
-            w.append(np.array(m.position[:2]) * UM)
-            v.append(np.array(m.effort[:2]) if len(m.effort) >= 2 else np.full(2, np.nan))
+            w.append([w_um.get("x", np.nan), w_um.get("y", np.nan)])
+            v.append([v_V["x"], v_V["y"]] if v_V and len(v_V) == 2 else [np.nan, np.nan])
         elif topic.endswith("/sim/true_position"):
-            m = deserialize(data, msgtype)
-            true[_ns(m)] = np.array([m.point.x, m.point.y]) * UM
-        elif topic.endswith("/reference"):
-            m = deserialize(data, msgtype)
-            ref[_ns(m)] = np.array(m.position[:2]) * UM
+            ns, p_um = point_um(data)
+            true[ns] = np.array([p_um["x"], p_um["y"]])
+        elif topic.endswith("/reference"):  # desired x, y: the first two joints
+            ns, _, _, position, _, _ = decode_joint_state(data)
+            ref[ns] = np.array(position[:2]) / UM
         elif topic.endswith("/state") and msgtype.endswith("DiagnosticArray"):
             m = deserialize(data, msgtype)
             if not states or states[-1][1] != m.status[0].message:
