@@ -485,6 +485,8 @@ def write_record_bag(path, rec, namespace="/stage", metadata=None):
     applied voltage in effort; header stamps = record time). For fixtures and for
     converting CSV records into bags."""
     import numpy as np
+
+    from piezo_stage_msgs_adapters.wire import UM
     ts = _typestore()
     Time = ts.types["builtin_interfaces/msg/Time"]
     Header = ts.types["std_msgs/msg/Header"]
@@ -499,7 +501,7 @@ def write_record_bag(path, rec, namespace="/stage", metadata=None):
             h = Header(stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000),
                        frame_id="stage")
             js = JointState(header=h, name=axes,
-                            position=np.array([rec.w[a][k] * 1e-6 for a in axes]),
+                            position=np.array([rec.w[a][k] * UM for a in axes]),
                             velocity=np.zeros(0),
                             effort=np.array([rec.v.get(a, zeros)[k] for a in axes]))
             bag.write(js_t, serialize(js, "sensor_msgs/msg/JointState"), ns)
