@@ -559,3 +559,22 @@ def test_learning_feedforward_through_the_node_set(tmp_path, env):
                     for kv in st.values if kv.key == "learning"]
             assert any("periods learned" in d for d in diag), diag[-3:]
     assert out[True] < 0.35 * out[False], out
+
+
+def test_launch_seed_gives_another_run_to_hold_out(tmp_path, env):
+    """docs/nodes.md's recipe: the held-out run takes another --seed, so its bag is a
+    different record of the same stage (a lockstep run with the same seed is the same
+    bag, byte for byte)."""
+    from piezo_stage.io.bag import read_bag_record
+    runs = {}
+    for name, extra in (("run1", []), ("run2", ["--seed", "7"])):
+        r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "launch", "--record",
+                            str(tmp_path / name), "--duration", "6", *extra], env=env,
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr[-2000:]
+        runs[name] = read_bag_record(str(tmp_path / name))
+    n = min(len(runs["run1"]), len(runs["run2"]))
+    assert n > 300
+    a, b = runs["run1"].w["x"][:n], runs["run2"].w["x"][:n]
+    assert not np.array_equal(a, b)  # another noise draw
+    assert np.sqrt(np.mean((a - b) ** 2)) < 1.0  # of the same stage and trajectory (um)

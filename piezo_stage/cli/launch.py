@@ -24,6 +24,9 @@ def add_arguments(s):
                    "port 8765)")
     s.add_argument("--params", action="append", metavar="FILE",
                    help="more node parameters over CONFIG's (e.g. from `tune`), may repeat")
+    s.add_argument("--seed", type=number(0, 2**31 - 1, integer=True), metavar="N",
+                   help="the simulated stage's noise seed (default: its config's): a "
+                   "second run to hold out must differ from the first")
 
 
 def main(args):
@@ -33,9 +36,12 @@ def main(args):
     record = args.record
     if record == "auto":
         record = new_bag_dir("bags")
+    overrides = param_overrides(args.params)
+    if args.seed is not None:
+        overrides.setdefault("stage_driver", {})["seed"] = args.seed
     launch = Launch(args.config or default_config("stage.yaml"), record=record,
                     namespace=args.namespace, arm=not args.no_arm,
-                    foxglove_port=args.foxglove, overrides=param_overrides(args.params),
+                    foxglove_port=args.foxglove, overrides=overrides,
                     trajectory=not args.no_trajectory)
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
