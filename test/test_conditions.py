@@ -228,3 +228,28 @@ def test_gap_names_each_axis_and_warns_when_holdout_leaves_fits_range(tmp_path):
             "--out", tmp_path / "pred.csv")
     assert r.returncode == 0, r.stderr
     assert [ln for ln in r.stderr.splitlines() if ln.strip()][-1].count("past its fitted") == 1
+
+
+def test_gap_warns_when_the_records_differ_in_units_not_by_an_effect(tmp_path):
+    """FIT written in a 0-10 V control voltage (its amplifier's gain 15 unknown to us),
+    HOLDOUT in the amplifier's volts: the sim misses HOLDOUT by more than FIT's whole
+    stroke, which no unmodelled effect does; one warning line says so (besides the one
+    about HOLDOUT leaving FIT's voltage range)."""
+    from piezo_stage.io.csv_table import read_table, write_table
+
+    def cli(*a):
+        return subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, a)],
+                              capture_output=True, text=True, timeout=300)
+    for name, seed in (("fit", "1"), ("hold", "3")):
+        assert cli("excite", "--rate", "1000", "--out", tmp_path / f"{name}_v.csv",
+                   "--seed", seed).returncode == 0
+        assert cli("simulate", "--in", tmp_path / f"{name}_v.csv", "--out",
+                   tmp_path / f"{name}.csv").returncode == 0
+    c = read_table(tmp_path / "fit.csv", ("t", "vx", "vy", "wx", "wy"))
+    write_table(tmp_path / "fit.csv", {"t": c["t"], "vx": c["vx"] / 15.0,
+                                       "vy": c["vy"] / 15.0, "wx": c["wx"], "wy": c["wy"]})
+    r = cli("gap", tmp_path / "fit.csv", "--holdout", tmp_path / "hold.csv", "--axis", "x")
+    assert r.returncode == 0, r.stderr[-2000:]
+    warned = [ln for ln in r.stderr.splitlines() if "warning" in ln]
+    assert any("more than FIT's whole stroke" in ln and "units and gain" in ln
+               for ln in warned), r.stderr

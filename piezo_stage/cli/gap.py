@@ -41,6 +41,27 @@ def _warn_ranges(fit, hold) -> None:
                          "fitted on, and part of the gap may be that\n")
 
 
+def _warn_implausible(per, fit) -> None:
+    """One line on stderr when the sim misses HOLDOUT by more than FIT's whole stroke on
+    an axis: no unmodelled effect does that; the two records differ in units or gain (a
+    0-10 V control voltage against the amplifier's volts, another sensor scale), and the
+    verdict is not to be trusted."""
+    import sys
+
+    import numpy as np
+    out = []
+    for a, d in per.items():
+        before = d.ranking[0]["rms_before_um"] if d.ranking else 0.0
+        stroke = float(np.ptp(fit.w[a]))
+        if before > stroke:
+            out.append(f"axis {a}: {before:.4g} um against FIT's {stroke:.4g} um")
+    if out:
+        sys.stderr.write("piezo-stage: warning: the sim misses HOLDOUT by more than FIT's "
+                         "whole stroke (" + "; ".join(out) + "): no unmodelled effect "
+                         "does that; are the records in the same units and gain (a 0-10 V "
+                         "control voltage against amplifier volts?)\n")
+
+
 def main(args):
     import json
 
@@ -65,6 +86,8 @@ def main(args):
         res = diagnose(fit, hold, base_model=base, base_effects=base_effects,
                        axes=None if args.axis == "both" else [args.axis], progress=steps(b))
     per = res.per_axis
+    if hold is not None:
+        _warn_implausible(per, fit)
     print(f"verdict: {res['verdict']} ({res['reason']})" if len(per) == 1 else
           f"verdict: {res['verdict']} (the axis with the larger gap, {res['where']['axis']})")
     if len(per) > 1:
