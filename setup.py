@@ -77,10 +77,11 @@ setup(
         # (wheel: the install-layout test builds our wheel without build isolation)
         # (pysindy: the sparse hysteresis peer that bench identify compares with)
         # (pipython: the pi backend on PI's real package, against a controller double)
+        # (mypy: the type checker, on the layers setup.cfg's [mypy] lists)
         "test": ["pytest>=7", "pytest-xdist>=3.5", "pytest-timeout>=2.2", "nidaqmx>=1.0",
                  "pipython>=2.10",
                  "ruff>=0.5", "numpydoc>=1.6", "hypothesis>=6.90",
-                 "wheel>=0.40", "pysindy>=2.0"],
+                 "wheel>=0.40", "pysindy>=2.0", "mypy>=1.10"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",

@@ -124,7 +124,7 @@ def _joint_state_layout(frame_id: str, names: tuple, counts: tuple):
     w._put(struct.pack("<I", len(names)), 4)
     for n in names:
         w.string(n)
-    blocks = []
+    blocks: list[tuple[int, struct.Struct] | None] = []
     for n in counts:
         w._put(struct.pack("<I", n), 4)
         if n:

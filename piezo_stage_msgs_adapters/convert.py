@@ -99,7 +99,7 @@ def voltage_from_msg(msg) -> tuple[int, dict]:
     """Vector3Stamped (message or CDR bytes) -> (ns, {axis: V}). Raises DataError on
     NaN/inf (the driver rejects such commands) or malformed bytes."""
     if isinstance(msg, (bytes, bytearray, memoryview)):
-        ns, _, (x, y, _) = cdr.decode_vector3_stamped(msg)
+        ns, _, (x, y, _) = cdr.decode_vector3_stamped(bytes(msg))
     else:
         ns, x, y = time_to_ns(msg.header.stamp), msg.vector.x, msg.vector.y
     v = {"x": float(x), "y": float(y)}

@@ -1,6 +1,7 @@
 """The linters, run by the test command (as ament_flake8 / ament_pep257 run in a ROS
 package's tests): ruff with ruff.toml (pycodestyle and pyflakes at 99 columns, import
-order, a docstring on every module), and the first docstring line of every module says
+order, a docstring on every module), mypy on the layers setup.cfg lists, and the first
+docstring line of every module says
 what the module holds (a sentence, not a title)."""
 
 import ast
@@ -8,6 +9,8 @@ import os
 import shutil
 import subprocess
 import sys
+
+import pytest
 
 from conftest import ROOT
 
@@ -20,6 +23,18 @@ def test_ruff_passes():
     r = subprocess.run([ruff, "check", "--no-cache", "."], cwd=ROOT, capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-1000:]
+
+
+def test_the_type_checker_passes_on_the_layers_it_covers():
+    """mypy over the files setup.cfg's [mypy] lists (the adapters, io, nodes, launcher,
+    commands): clean. Its cache goes to a temporary folder, not the tree."""
+    import tempfile
+    pytest.importorskip("mypy", reason="mypy is part of the test extra")
+    with tempfile.TemporaryDirectory() as cache:
+        r = subprocess.run([sys.executable, "-m", "mypy", "--cache-dir", cache], cwd=ROOT,
+                           capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-1000:]
+    assert "Success: no issues found" in r.stdout
 
 
 def _modules():

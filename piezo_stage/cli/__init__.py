@@ -98,11 +98,12 @@ def main(argv=None):
 def _stopped_within(error: BaseException) -> bool:
     """Whether a KeyboardInterrupt is in ``error``'s chain (cause or context)."""
     seen = set()
-    while error is not None and id(error) not in seen:
-        if isinstance(error, KeyboardInterrupt):
+    e: BaseException | None = error
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
             return True
-        seen.add(id(error))
-        error = error.__cause__ or error.__context__
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
     return False
 
 

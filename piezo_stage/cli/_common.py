@@ -118,7 +118,7 @@ def port(text):
 def param_overrides(paths) -> dict:
     """Node parameters from parameter files (as `tune` writes), later files win."""
     from piezo_stage.launch.launcher import read_parameters
-    out = {}
+    out: dict[str, dict] = {}
     for p in paths or ():
         for node, params in read_parameters(p).items():
             out.setdefault(node, {}).update(params)

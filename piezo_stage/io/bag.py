@@ -30,7 +30,7 @@ QOS_KINDS = {"data": (5000, False), "latched": (1, True), "events": (20, True),
              "diag": (50, False)}
 
 
-def offered_qos(kind: str = "data") -> list[dict]:
+def offered_qos(kind: str = "data") -> list:
     """A topic's offered QoS profiles in rosbag2's version-9 form (a list of mappings
     with lower-case policy names), made with rosbags' own metadata writer."""
     from rosbags.interfaces import (
@@ -50,7 +50,7 @@ def offered_qos(kind: str = "data") -> list[dict]:
                             zero, False)])
 
 
-def qos_profiles(qos) -> list[dict]:
+def qos_profiles(qos) -> list:
     """``qos`` as a version-9 list: a kind name, a list already, or the YAML text that
     MCAP channels carry (either form, older integer policies converted)."""
     if isinstance(qos, str) and qos in QOS_KINDS:

@@ -55,7 +55,15 @@ def status_node(name: str) -> str:
 
 
 def read_run(bag) -> Run:
-    t, w, v, recv, true, ref, states, diags, models = [], [], [], [], {}, {}, [], {}, 0
+    t: list[int] = []
+    w: list = []
+    v: list = []
+    recv: list[int] = []
+    true: dict = {}
+    ref: dict = {}
+    states: list[tuple[int, str]] = []
+    diags: dict = {}
+    models = 0
     for topic, msgtype, log_ns, data in iter_messages(bag):
         if topic.endswith("/joint_states"):
             ns, w_um, v_V = joint_state_um(data)

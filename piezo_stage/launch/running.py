@@ -38,12 +38,14 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0) -> str | No
                              enable_rosout=False)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
-    who = {}
-    node.create_subscription(DiagnosticArray, f"{ns}/state", lambda m: who.update(
-        {kv.key: kv.value for kv in m.status[0].values} if m.status else {}), QOS_EVENTS)
+    who: dict[str, str] = {}
+
+    def on_state(m: DiagnosticArray) -> None:
+        who.update({kv.key: kv.value for kv in m.status[0].values} if m.status else {})
+    node.create_subscription(DiagnosticArray, f"{ns}/state", on_state, QOS_EVENTS)
     try:
         t0 = time.monotonic()
-        names = []
+        names: list = []
         while not names:
             ex.spin_once(timeout_sec=0.05)
             seen = [(n, s) for n, s in node.get_node_names_and_namespaces()

@@ -214,13 +214,15 @@ def bounded_teardown(code: int, seconds: float = MIDDLEWARE_TEARDOWN_S):
             timers.append(_native_timer(libc, libc._exit, int(code) & 0xFF, seconds + 0.1))
         except (OSError, AttributeError, ValueError):
             for t in timers:
-                libc.timer_delete(t)
+                if libc is not None:
+                    libc.timer_delete(t)
             timers = []
     try:
         yield
     finally:
         for t in timers:
-            libc.timer_delete(t)
+            if libc is not None:
+                libc.timer_delete(t)
         if timers:  # the stop watch again, for what is left (the interpreter's exit)
             faulthandler.cancel_dump_traceback_later()
             STATE.watching = False
