@@ -253,3 +253,42 @@ def test_gap_warns_when_the_records_differ_in_units_not_by_an_effect(tmp_path):
     warned = [ln for ln in r.stderr.splitlines() if "warning" in ln]
     assert any("more than FIT's whole stroke" in ln and "units and gain" in ln
                for ln in warned), r.stderr
+
+
+def test_the_rate_stages_loop_widens_with_the_input_rate_and_the_structure_stages_does_not():
+    """config/rate_stage.yaml: the structure stage's play operators with thresholds
+    r_j + 1 ms x |dv/dt| (filtered): over the full stroke its loop at mid stroke is
+    wider at 10 Hz than at 2 Hz; the structure stage's (rate independent) is not; a
+    batch run and a run one command at a time agree."""
+    from piezo_stage.core.plant import Plant
+    from piezo_stage.io.plant_file import load_plant_config
+    from piezo_stage.paths import default_config
+
+    def width(name, f):
+        cfg = load_plant_config(default_config(name))
+        cfg.model.coupling.clear()
+        cfg.noise_rms_um = 0.0
+        t = np.arange(3000) / 1000.0
+        v = 75.0 - 75.0 * np.cos(2 * np.pi * f * t)
+        w = Plant(cfg, 1000.0).run(v, np.zeros_like(v))["x"]
+        k = t > 2.0
+        vv, ww, dv = v[k], w[k], np.gradient(v[k])
+        mid = np.abs(vv - 75.0) < 3.0
+        return ww[mid & (dv < 0)].mean() - ww[mid & (dv > 0)].mean(), (v, w)
+    slow, (v, w) = width("rate_stage.yaml", 2.0)
+    fast, _ = width("rate_stage.yaml", 10.0)
+    assert fast > 1.2 * slow > 0, (slow, fast)
+    s_slow, _ = width("structure_stage.yaml", 2.0)
+    s_fast, _ = width("structure_stage.yaml", 10.0)
+    assert abs(s_fast - s_slow) < 0.02 * s_slow, (s_slow, s_fast)
+    from piezo_stage.core.plant import Plant as P
+    cfg = load_plant_config(default_config("rate_stage.yaml"))
+    cfg.model.coupling.clear()
+    cfg.noise_rms_um = 0.0
+    one = P(cfg, 1000.0)
+    stepped = np.array([one.step(x, 0.0)[0] for x in v[:500]])
+    cfg2 = load_plant_config(default_config("rate_stage.yaml"))
+    cfg2.model.coupling.clear()
+    cfg2.noise_rms_um = 0.0
+    batch = P(cfg2, 1000.0).run(v[:500], np.zeros(500))["x"]
+    assert np.allclose(stepped, batch, atol=1e-9)

@@ -216,6 +216,28 @@ def play_run(v: F64, r: F64, p: F64, z: F64, out: F64) -> None:
 
 
 @njit
+def play_run_rate(v: F64, state: F64, dt: float, beta: float, smooth: float, r: F64,
+                  p: F64, z: F64, out: F64) -> None:
+    """Rate-dependent play operators (thresholds r_j + beta |dv/dt|: the loop widens
+    with the input's rate, as the rate-dependent Prandtl-Ishlinskii law of Al Janaideh
+    et al. has it) over ``v`` [V], ``dt`` [s] apart; |dv/dt| low-passed (``smooth``:
+    the filter's coefficient per sample; an amplifier's held steps are one rate, not a
+    spike and zeros); ``state`` = [the voltage before, the filtered rate], updated, as
+    ``z``; writes sum_j p_j z_j [um] per sample into ``out``."""
+    v_prev, rate = state[0], state[1]
+    for k in range(v.shape[0]):
+        rate += smooth * (abs(v[k] - v_prev) / dt - rate)
+        v_prev = v[k]
+        widen = beta * rate
+        s = 0.0
+        for j in range(r.shape[0]):
+            z[j] = play_clamp(v[k], r[j] + widen, z[j])
+            s += p[j] * z[j]
+        out[k] = s
+    state[0], state[1] = v_prev, rate
+
+
+@njit
 def sensor_run(true: F64, noise: F64, noise_rms: float, quant: float, out: F64) -> None:
     """The sensor on ``true[2, n]`` [um]: white noise (``noise[n, 2]`` standard normal,
     times ``noise_rms``), then quantisation to ``quant`` (0: none). Writes ``out``."""

@@ -164,6 +164,8 @@ class Plant:
                 e.reset(x0)
         self._z = {a: law.rest(self._vstate[i]) for i, a in enumerate(AXES)
                    if (law := self._play.get(a)) is not None}
+        self._rate = {a: law.rate_state(self._vstate[i]) for i, a in enumerate(AXES)
+                      if (law := self._play.get(a)) is not None}
         self._mz = {a: p.state() for a, p in model.plays.items()}
         self._rng = np.random.default_rng(self.config.seed)
         self.limit_hits = 0
@@ -205,8 +207,9 @@ class Plant:
                                      self._H, self._present, self.v_limits[0],
                                      self.v_limits[1], self._max_step, applied, w)
         for i, a in enumerate(AXES):
-            if a in self._play:
-                w[i] += self._play[a].run(applied[i], self._z[a])
+            if a in self._play:  # (a rate-dependent law: the voltage before, and dt)
+                w[i] += self._play[a].run(applied[i], self._z[a], 1.0 / self.fs_hz,
+                                          self._rate[a])
             elif a in self._mz:  # the model's own play operators, beside its Duhem law
                 w[i] += self.config.model.plays[a].run(applied[i], self._mz[a])
         fine = w

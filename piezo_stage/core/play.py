@@ -34,9 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import play_run
+from piezo_stage.core._jit import play_run, play_run_rate
 from piezo_stage.core.errors import ConfigError, ModelError
 
+RATE_FILTER_S = 2e-3  # s: the rate a rate-dependent law sees is |dv/dt| low-passed
 MAX_OPERATORS = 200  # a model or plant with more is not one we fit (16 by default)
 
 
@@ -99,7 +100,7 @@ class PlayOperators:
     __hash__ = None
 
 KEYS = ("kind", "axes", "operators", "max_threshold_V", "weight_um_per_V", "decay_V",
-        "envelope")
+        "envelope", "rate_widening_s")
 
 
 @dataclass
@@ -111,6 +112,7 @@ class PlayHysteresis:
     scale_um: float
     width_um: float
     centre_um: float
+    rate_widening_s: float = 0.0  # thresholds r_j + this x |dv/dt|: a rate-dependent law
 
     @classmethod
     def from_params(cls, params: dict, where: str = "hysteresis") -> PlayHysteresis:
@@ -141,18 +143,33 @@ class PlayHysteresis:
         if a <= -b:
             raise ConfigError(f"{where}.envelope: scale_um must be > -width_um (a "
                               "monotone envelope)")
+        beta = num(params, "rate_widening_s", 0.0, 0.0, 1.0)
         r = np.linspace(0.0, top, n)
-        return cls(r, w0 * np.exp(-r / decay), a, b, c)
+        return cls(r, w0 * np.exp(-r / decay), a, b, c, beta)
+
+    @staticmethod
+    def rate_state(v0: float = 0.0) -> np.ndarray:
+        """A rate-dependent law's state at rest at ``v0`` [V]: [voltage, rate]."""
+        return np.array([float(v0), 0.0])
 
     def rest(self, v0: float = 0.0) -> np.ndarray:
         """The operators' state at rest at ``v0`` [V]."""
         return np.full(self.thresholds_V.size, float(v0))
 
-    def run(self, v: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """Displacement [um] over ``v`` [V] from state ``z`` (updated in place)."""
+    def run(self, v: np.ndarray, z: np.ndarray, dt_s: float = 0.0,
+            rate_state: np.ndarray | None = None) -> np.ndarray:
+        """Displacement [um] over ``v`` [V] from state ``z`` (updated in place). A
+        rate-dependent law also needs the samples' spacing ``dt_s`` [s] and its rate
+        state (``rate_state()``, updated in place; None: from rest at ``v[0]``)."""
         x = np.empty(v.size)
-        play_run(np.ascontiguousarray(v, dtype=float), self.thresholds_V,
-                 self.weights_um_per_V, z, x)
+        v = np.ascontiguousarray(v, dtype=float)
+        if self.rate_widening_s > 0.0 and dt_s > 0.0 and v.size:
+            st = self.rate_state(v[0]) if rate_state is None else rate_state
+            smooth = 1.0 - np.exp(-dt_s / RATE_FILTER_S)
+            play_run_rate(v, st, float(dt_s), self.rate_widening_s, float(smooth),
+                          self.thresholds_V, self.weights_um_per_V, z, x)
+        else:
+            play_run(v, self.thresholds_V, self.weights_um_per_V, z, x)
         return self.envelope(x)
 
     def envelope(self, x: np.ndarray) -> np.ndarray:
