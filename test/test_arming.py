@@ -24,7 +24,7 @@ from piezo_stage.core.arming import (
     StateTimeline,
 )
 from piezo_stage.core.control import PID, CompositeAxis, PIDGains, clamp_slew
-from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.errors import ConfigError, PiezoStageError
 from piezo_stage.core.metrics import LatencyHistogram
 
 MS = 1_000_000
@@ -315,3 +315,33 @@ def test_a_lockstep_experiment_runs_long_enough_for_its_approach():
     assert far - LOCKSTEP_SLACK_S > 80.0 / 200.0  # the cruise alone
     slow = lockstep_margin_s(case(80.0, approach_speed_um_per_s=20.0), config)
     assert slow - LOCKSTEP_SLACK_S > 80.0 / 20.0
+
+
+def test_the_controllers_law_is_one_call_per_reference():
+    """core.control.CompositeController: v = ff + PID(asked(t_k) - measured(t_k)) while
+    enabled; the feedforward alone (and a restart) while not; the integral holds while
+    the loop is not closed; a gap in the references restarts it; never a non-finite
+    command."""
+    from piezo_stage.core.control import PARAMETERS, CompositeController
+    p = {name: default for name, default, _, _ in PARAMETERS}
+    p.update(kp=0.5, ki=100.0, kd=0.0, control_rate_hz=1000.0, relay_amplitude_V=0.0)
+    c = CompositeController(p)
+    dt = c.dt_ns
+    w, ff = {"x": 10.0, "y": 10.0}, {"x": 20.0, "y": 20.0}
+    v = c.on_sample(2 * dt, dt, {"x": 12.0, "y": 10.0}, ff, w, {"x": 0.0, "y": 0.0}, False)
+    assert v == ff  # not enabled: the feedforward alone
+    # enabled, t_k = 2 dt answered: asked 12 um there, measured 10: a 2 um error on x
+    v = c.on_sample(3 * dt, 2 * dt, {"x": 12.0, "y": 10.0}, ff, w, dict(v), True)
+    assert v["x"] > ff["x"] + 0.5 * 2.0 and v["y"] == pytest.approx(ff["y"])
+    held = c.on_sample(4 * dt, 3 * dt, {"x": 12.0, "y": 10.0}, ff, w,
+                       {"x": 0.0, "y": 0.0}, True)  # its command did not come back
+    assert c.stats["not_closed"] == 1 and held["x"] == pytest.approx(v["x"])
+    c.on_sample(40 * dt, 39 * dt, {"x": 12.0, "y": 10.0}, ff, w, {"x": 0.0, "y": 0.0},
+                True)
+    assert c.stats["restarts"] == 1  # a stall of 36 ticks
+    nan = c.on_sample(41 * dt, 40 * dt, {"x": 12.0, "y": 10.0}, {"x": math.nan, "y": 0.0},
+                      w, {"x": 0.0, "y": 0.0}, True)
+    assert nan is None and c.stats["non_finite"] == 1
+    with pytest.raises(PiezoStageError):
+        c.set_gains(kp=-1.0)
+    assert c.gains.kp == 0.5

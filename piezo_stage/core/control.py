@@ -202,3 +202,96 @@ def clamp_slew(v: dict, prev: dict, limits: tuple[float, float] | dict,
                                    float(step))
         hit |= bool(h)
     return out, hit
+
+
+STALL_TICKS = 10  # references further apart than this: a stall, the integral restarts
+COUNTS = ("commands", "clamped", "bad_messages", "late_dropped", "not_closed",
+          "non_finite", "restarts", "stray_stamps")
+
+
+class CompositeController:
+    """The controller node's per-sample work (the paper's eq. 17-19): for each
+    reference, stamped for a target sample ``ns`` and answering the sample ``t_k`` just
+    measured, v = v_ff + PID(asked(t_k) - measured(t_k)) per axis, clamped to the
+    voltage limits. The feedback acts only while the driver applies commands
+    (``enabled``); the integral holds while the command sent for t_k did not come back
+    as the voltage applied at t_k (the loop is not closed) and while the output is
+    clamped; it restarts after a gap in the references (a stall). With a relay
+    amplitude > 0 the feedback is a relay (core.control.Relay) under the same rules.
+    ``on_sample`` is the one entry; ``stats`` its counts."""
+
+    def __init__(self, p: dict):
+        rate = p["control_rate_hz"]
+        self.dt_ns = int(round(1e9 / rate))
+        self.gains = PIDGains(kp=p["kp"], ki=p["ki"], kd=p["kd"],
+                              i_limit_V=p["integral_limit_V"])
+        self.limits = tuple(p["voltage_limits_V"])
+        self.axes = {a: CompositeAxis(PID(self.gains, 1.0 / rate), self.limits,
+                                      p["feedback"]) for a in ("x", "y")}
+        relay_V, relay_eps = p["relay_amplitude_V"], p["relay_hysteresis_um"]
+        self.relays = {a: Relay(relay_V, relay_eps, 1.0 / rate) for a in self.axes} \
+            if relay_V > 0 else {}
+        self.sent: dict = {}  # target stamp -> (desired um, command V): for t_k's check
+        self.last_ns = -1
+        self.stats = dict.fromkeys(COUNTS, 0)
+
+    @property
+    def feedback(self) -> bool:
+        """Whether the feedback acts (both axes switch together)."""
+        return self.axes["x"].feedback
+
+    def describe(self) -> str:
+        """The law and its gains, for the node's diagnostics."""
+        return (("relay experiment" if self.relays else "composite (feedback on)"
+                 if self.feedback else "feedforward only (feedback off)")
+                + ", kp {kp:g} ki {ki:g} kd {kd:g}".format(**vars(self.gains)))
+
+    def set_gains(self, **gains) -> None:
+        """New kp, ki or kd (PiezoStageError, nothing changed, when refused)."""
+        g = dict(vars(self.gains))
+        g.update({k: float(v) for k, v in gains.items()})
+        new = PIDGains(**g)
+        for k in ("kp", "ki", "kd"):  # one gains object shared by both axes' PIDs
+            setattr(self.gains, k, getattr(new, k))
+
+    def set_feedback(self, on: bool) -> None:
+        """Feedback on or off, bumplessly."""
+        for ax in self.axes.values():
+            ax.set_feedback(bool(on))
+
+    def on_sample(self, ns: int, t_k: int, desired: dict, ff: dict, w: dict,
+                  applied: dict, enabled: bool) -> dict | None:
+        """The command {axis: V} for target ``ns``, from the reference (``desired``
+        for ns, feedforward ``ff``, measured ``w`` and ``applied`` at t_k); None when
+        the result is not finite (never sent)."""
+        if self.last_ns >= 0 and ns - self.last_ns > STALL_TICKS * self.dt_ns:
+            self.restart()  # a stall: what the integral knew is stale
+        self.last_ns = ns
+        if not enabled:
+            self.restart(count=False)
+        asked, sent = self.sent.pop(t_k, (w, None))
+        closed = sent is not None and all(abs(sent[a] - applied[a]) < 1e-6 for a in sent)
+        self.stats["not_closed"] += enabled and not closed
+        v = {}
+        lo, hi = self.limits
+        for a, ax in self.axes.items():
+            if self.relays and enabled:
+                u = ff[a] + self.relays[a].update(asked[a] - w[a])
+                v[a], clamped = min(max(u, lo), hi), (u > hi or u < lo)
+            else:
+                v[a], clamped = ax.update(ff[a], asked[a] - w[a], enabled, hold=not closed)
+            self.stats["clamped"] += clamped
+        if not all(math.isfinite(x) for x in v.values()):
+            self.stats["non_finite"] += 1
+            self.restart(count=False)
+            return None
+        self.sent = {t: s for t, s in self.sent.items() if t > t_k}
+        self.sent[ns] = (desired, v)
+        self.stats["commands"] += 1
+        return v
+
+    def restart(self, count: bool = True) -> None:
+        """Forget the integral and the relays' state (``count``: as a restart)."""
+        self.stats["restarts"] += count
+        for ax in (*self.axes.values(), *self.relays.values()):
+            ax.reset()
