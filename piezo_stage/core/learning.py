@@ -1,83 +1,21 @@
 """Learning feedforward for repeated motion (iterative learning control).
 
-A periodic trajectory (the paper's sines, a raster's line pairs) repeats its error from
-one period to the next: what the model misses (the amplifier's slew, a resonance the
-feedforward cannot invert causally, a model off by some per cent) comes back every
-period. The learner adds a correction c to the desired position before the feedforward
-(before its effect compensation and its hysteresis inverse) and, after each period j,
-updates it from that period's measured error e_j = desired - measured:
+A periodic trajectory repeats its error from one period to the next. The learner adds a
+correction c to the desired position before the feedforward and, after each period j,
+updates it per DFT bin k from that period's measured error E_j:
 
     A_(j+1)(k) = Q(k) ((1 - gain_j) A_j(k) + gain_j (C_j(k) + L(k) E_j(k)))
-                                               (per DFT bin k of the period; C_j is the
-                                                correction applied in period j, A_j soft-
-                                                thresholded by the noise, see below)
 
-Derivation. Around the branches the hysteresis inverse and the plant's hysteresis
-cancel, so from c to the stage's position the loop is linear: the model's effects D
-(creep, dynamics, delay, `core/effects.py`) times what the feedforward does about them,
-C_ff = 1 / D for each effect it compensates and 1 for one it does not (a resonance it
-cannot invert causally). So G = prod over the uncompensated effects of D, and the
-learning filter is L = 1 / G, applied over the whole period at once: the period is known
-in advance, so the inverse is non-causal and stable even where G is not minimum phase
-(the circular form of stable inversion; a notch of G, |G| < 0.1, is not inverted).
-
-Convergence. With the true loop G_true the bin's error shrinks by
-|1 - gain L G_true| per period; learning converges monotonically where
-Q |1 - gain L G_true| < 1. The true loop is not known: :func:`design` evaluates the
-factor with every effect parameter of the model off by +-``perturb`` (1 % by default,
-one at a time and all together), and Q (zero phase: a real gain per bin, so it shifts
-nothing) passes the bins up to the last one where the worst factor is below
-``1 - margin``, rolling off with a raised cosine below that bin. The design reports the
-worst factor over the passed bins (< 1 is the condition). What no model margin covers
-(a model further off, the amplifier's slew, a hysteresis the model does not follow) is
-watched while learning: a bin whose error grows well past the smallest it reached and
-past where it started, beyond what the noise explains, goes back to the correction that
-gave that smallest error and learns at a quarter of the gain from there
-(:attr:`PeriodicLearner.damped` counts them), so learning cannot keep growing what it
-should shrink.
-
-Noise. The measured error carries the sensor's noise, which the learner must not write
-into the command. The gain stays full until ``FULL_GAIN_PERIODS`` (3) periods have been
-learned that ran on a learned correction throughout (a correction reaches the stage a
-look-ahead after its update: in real time, or behind a preview inverse, that can be a
-period or more, and a period run on the old correction says nothing new): the iteration
-reaches what the model allows in a few periods (|1 - L G| is 0.23 at worst on the
-effects plant's design). From there the gain falls, gain_i =
-max(gain_floor, gain / (1 + gain i)) for the i-th period after those: for gain 1 the
-accumulated correction A is then the running mean of what each period asked for,
-C_j + L E_j, from the last full-gain period on, so its noise falls as 1 / sqrt(periods)
-and the first periods' asks, made while the correction was still far off, do not bias
-it (a running mean from the first period carries them as 1 / periods). What is applied
-is A shrunk by that noise bin by bin, with the non-negative garrote: A (1 - (thr /
-|A|)^2), 0 where |A| <= thr, thr = kappa |L| sigma sqrt(n / j) (j the periods
-averaged, at most what the gain's floor holds; kappa 1.5, or sqrt(ln(bins / 2)) where
-the passed band holds more than 19 bins, so that some two bins of pure noise pass,
-whatever the period's length: at 5 kHz a 40 Hz period has 50). A bin at the noise level is not
-applied at all, so the command stays clean where the model is already right, and a bin
-well above it is applied nearly whole (soft thresholding, |A| - thr, takes thr off
-every bin, the strong harmonics of the motion too). Both together, on the effects
-plant's 40 Hz sine at 1 kHz after 20 periods (the offline study, four noise draws,
-2026-11-25): 0.046 / 0.048 % of the range, where a running mean from the first period
-with soft thresholding left 0.073 / 0.071 %. sigma, the sensor
-noise, comes from the data: from one period to the next the error changes by what the
-change of the applied correction does (through the model) plus twice the noise's
-variance (a median absolute deviation, smoothed over the periods). The first period
-only measures. :meth:`PeriodicLearner.noise_factor` says how much of white noise's RMS
-the accumulated correction would carry at the current gain, before the threshold.
-
-Disturbances. A period whose error RMS jumps past twice the last learned period's
-(plus three noise RMS) on some axis is not learned: in real time a host pause holds a
-late command while the motion goes on, and the period that carries it is no sample of
-the loop's repeating error (learned, it went into the running mean, and the guard
-slowed the bins it raised for good: a 50 Hz raster's linearity ended at 0.35 % where
-lockstep reached 0.067 %, 2026-11-25). Three such periods in a row are the loop's own
-change and are learned.
-
-What was applied. C_j is the correction each sample of period j was given, as
-:meth:`PeriodicLearner.offset` handed it out, not the correction of the last update: the
-feedforward computes a sample's command ahead of its tick (the loop's look-ahead, a
-compensator's lead), so the first samples of a period were given the correction from
-before that update, and the period is learned against what they got.
+with L = 1 / G (G: the model's effects the feedforward does not compensate, inverted
+over the whole period: non-causal and stable), Q passing the bins where the design's
+convergence factor stays below 1 - margin with every effect parameter off by
+``perturb``, the gain full for FULL_GAIN_PERIODS and then falling to a running mean,
+the applied correction shrunk by the noise (a non-negative garrote per bin), a bin
+that grows past its best rolled back and damped, and a disturbed period (an error jump
+past twice the last) not learned. C_j is what each sample was given (``offset``), not
+the last update. The derivation, the noise rule and the disturbance rule:
+docs/experiments.md, "How the learner works"; figures: docs/experiments.md and
+docs/benchmarks.md.
 """
 
 from __future__ import annotations
