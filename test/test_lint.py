@@ -26,8 +26,8 @@ def test_ruff_passes():
 
 
 def test_the_type_checker_passes_on_the_layers_it_covers():
-    """mypy over the files setup.cfg's [mypy] lists (the adapters, io, nodes, launcher,
-    commands): clean. Its cache goes to a temporary folder, not the tree."""
+    """mypy over the files setup.cfg's [mypy] lists (every layer but the core): clean.
+    Its cache goes to a temporary folder, not the tree."""
     import tempfile
     pytest.importorskip("mypy", reason="mypy is part of the test extra")
     with tempfile.TemporaryDirectory() as cache:

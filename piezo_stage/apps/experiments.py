@@ -93,7 +93,7 @@ def _controller_params(c):
 
 def merge_params(*ds: dict) -> dict:
     """{node: parameters} mappings merged, later ones over earlier ones, per node."""
-    out = {}
+    out: dict[str, dict] = {}
     for d in ds:
         for node, p in d.items():
             out.setdefault(node, {}).update(p)
@@ -165,7 +165,7 @@ def lockstep_margin_s(case, config, extra=None) -> float:
     from piezo_stage.core.arming import Approach
     from piezo_stage.core.feedforward import PARAMETERS
     from piezo_stage.launch.launcher import read_parameters
-    p = {name: default for name, default, *_ in PARAMETERS}
+    p: dict = {name: default for name, default, *_ in PARAMETERS}
     p.update(read_parameters(config).get("feedforward", {}))
     p.update({**(extra or {}).get("feedforward", {}), **case.params.get("feedforward", {})})
     first = {a: float(v[0]) for a, v in case.w.items()}

@@ -57,8 +57,7 @@ def find_bags(paths) -> list[str]:
         if not found:
             raise DataError(f"{p}: no bag in it (a bag is a folder with an .mcap file)")
         out += [os.path.normpath(f) for f in found]
-    seen = set()
-    return [b for b in out if not (b in seen or seen.add(b))]
+    return list(dict.fromkeys(out))  # in order, each once
 
 
 def _is_bag(p) -> bool:
@@ -136,12 +135,14 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
     save_model(model_path, stage.model, extra={"identification": {
         "bag": os.path.abspath(path), "started_utc": started.isoformat(),
         "fitted_on": f"the first {SPLIT:.0%} of the bag"}})
-    row = {"bag": os.path.abspath(path), "name": name, "started_utc": started.isoformat(),
-           "dated_by": dated_by, "model": model_path, "axes": {}}
+    per_axis: dict[str, dict] = {}
+    row: dict = {"bag": os.path.abspath(path), "name": name,
+                 "started_utc": started.isoformat(), "dated_by": dated_by,
+                 "model": model_path, "axes": per_axis}
     for a in axes:
         r = stage.results[a]
         span = (float(fit.v[a].min()), float(fit.v[a].max()))
-        row["axes"][a] = {
+        per_axis[a] = {
             "gain_um_per_V": stroke_um(r.model, span) / max(span[1] - span[0], 1e-12),
             "fit_rms_um": float(r.fit["rms_um"]),
             "held_out_rms_um": float(validate_axis(r, hold)["validate_rms_um"])}
@@ -150,9 +151,10 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
         ref, ref_effects = load_model(against)
         d = diagnose(fit, hold, axes=[a for a in axes if a in ref.axes],
                      base_model=ref, base_effects=ref_effects)
-        for a, j in d["axes"].items():
+        axes_json: dict = d.json["axes"]
+        for a, j in axes_json.items():
             explained = j.get("budget", {}).get("explained_um", {})
-            effects = {}
+            effects: dict[str, dict] = {}
             for st in j["effects"]:
                 key = SIZE_OF.get(st["effect"])
                 val = st["params"].get(key) if key else None
@@ -161,7 +163,7 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
                 effects[st["effect"]] = {"size": float(val), "size_of": key,
                                          "explained_um": float(explained.get(st["effect"],
                                                                              0.0))}
-            row["axes"][a]["against"] = {"verdict": j["verdict"], "effects": effects}
+            per_axis[a]["against"] = {"verdict": j["verdict"], "effects": effects}
     row["seconds"] = time.perf_counter() - t0
     return row
 
@@ -264,8 +266,8 @@ def growth(rows) -> list[dict]:
         for e in named:
             series = [(r["started_utc"], r["axes"].get(a, {}).get("against", {})
                        .get("effects", {}).get(e)) for r in rows]
-            first = next((s for s in series if s[1] is not None), None)
-            size_of = first[1]["size_of"]
+            first = next(s[1] for s in series if s[1] is not None)
+            size_of = first["size_of"]
             vals = [(d, x["size"] if x is not None and x["size_of"] == size_of else 0.0)
                     for d, x in series]
             v0 = vals[0][1]

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -59,9 +60,19 @@ def _padded(t, w, hold_after_s=1.0, rate_hz=RATE_HZ):
     return np.arange(n) * dt, out, lead
 
 
+@dataclass
+class ScanCase(Case):
+    """A scan case: a Case with what the scan's figures need."""
+    kind: str = "raster"          # raster | seed
+    learning: bool = False
+    periods: int = 0
+    n: int = 0                    # samples a period
+    rate_hz: float = RATE_HZ
+
+
 def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
          mode: str = "lockstep", rate_hz: float = RATE_HZ,
-         learning=(False, True)) -> list[Case]:
+         learning=(False, True)) -> list[ScanCase]:
     """The cases: each trajectory without and with learning (``learning``: which),
     sampled at the control rate ``rate_hz`` (a period must be a whole number of its
     samples: learning needs that)."""
@@ -83,13 +94,13 @@ def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
                               for a, v in w.items()}, HOLD_AFTER_S[mode], rate_hz)
         for learn in learning:
             name = f"{kind} {f:g} Hz{' learning' if learn else ''}"
-            c = Case(name, f, t, w, "feedforward", moving="x",
-                     eval_s=periods / f,
-                     params={"feedforward": {"inverse_feedforward": True,
-                                             "learning": learn,
-                                             "learning_period_s": 1.0 / f},
-                             "controller": {"feedback": False}})
-            c.kind, c.learning, c.periods, c.n, c.rate_hz = kind, learn, periods, n, rate_hz
+            c = ScanCase(name, f, t, w, "feedforward", moving="x",
+                         eval_s=periods / f,
+                         params={"feedforward": {"inverse_feedforward": True,
+                                                 "learning": learn,
+                                                 "learning_period_s": 1.0 / f},
+                                 "controller": {"feedback": False}},
+                         kind=kind, learning=learn, periods=periods, n=n, rate_hz=rate_hz)
             cases.append(c)
     return cases
 

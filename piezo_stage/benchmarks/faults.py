@@ -134,7 +134,7 @@ def _diagnostic_counts(probe, status: str) -> dict:
     ``status``), kept up to date as the probe spins (a dict that fills in); under
     "holds", [(arrival s, longest_hold_ticks)] of every status taken (the driver's)."""
     from diagnostic_msgs.msg import DiagnosticArray
-    latest = {"holds": []}
+    latest: dict = {"holds": []}
 
     def on_diag(msg):
         for st in msg.status:
@@ -321,7 +321,7 @@ def bench_faults() -> int:
         ok_all &= ratio <= 1.0 and bool(rearmed)
         print(f"  {name:<30} {step:10.2f} {ratio:7.2f} {err:10.3f} {safe_txt} {bound_txt} "
               f"{'yes' if rearmed else 'NO':>9}")
-    counts = {}
+    counts: dict[str, int] = {}
     for surface, _, _ in sent:
         counts[surface] = counts.get(surface, 0) + 1
     step, after = _largest_step(t, v, sent, marks[-1][2])

@@ -20,7 +20,9 @@ def connect(port: int, host: str = "127.0.0.1", timeout_s: float = 60.0):
     t_end = time.monotonic() + timeout_s
     while True:
         try:
-            return ws_connect(f"ws://{host}:{port}", subprotocols=SUBPROTOCOLS,
+            from websockets.typing import Subprotocol
+            return ws_connect(f"ws://{host}:{port}",
+                              subprotocols=[Subprotocol(s) for s in SUBPROTOCOLS],
                               open_timeout=2, max_size=None)
         except (OSError, InvalidHandshake):
             if time.monotonic() > t_end:
@@ -34,7 +36,9 @@ def receive(ws, topic: str, want: int = 0, timeout_s: float = 60.0, stop=None):
     closed the connection. -> (the advertised channel or None, [(log_time_ns, payload
     bytes, arrival monotonic s)])."""
     from websockets.exceptions import ConnectionClosed
-    chans, channel, got = {}, None, []
+    chans: dict = {}
+    channel = None
+    got: list = []
     t_end = time.monotonic() + timeout_s
     while (not want or len(got) < want) and time.monotonic() < t_end \
             and not (stop and stop()):

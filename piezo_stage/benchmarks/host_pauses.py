@@ -32,7 +32,11 @@ def _sentinel(cpu: int, period_s: float, threshold_s: float) -> int:
     except (PermissionError, OSError):
         pass  # still useful at normal priority, only less sharp
     gaps, stop = [], threading.Event()
-    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+
+    def until_stdin_closes() -> None:
+        sys.stdin.read()
+        stop.set()
+    threading.Thread(target=until_stdin_closes, daemon=True).start()
     limit = int(threshold_s * 1e9)
     last = time.time_ns()
     while not stop.is_set():
@@ -66,7 +70,9 @@ class HostPauseMonitor:
 
     def __init__(self, period_s: float = 0.001, threshold_s: float = 0.0015):
         self.period_s, self.threshold_s = period_s, threshold_s
-        self.procs, self.pauses, self.per_cpu = [], [], []
+        self.procs: list = []
+        self.pauses: list = []
+        self.per_cpu: list = []
 
     def __enter__(self):
         for cpu in sorted(os.sched_getaffinity(0)):

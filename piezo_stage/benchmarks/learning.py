@@ -60,7 +60,7 @@ def bench_learning(draws: int = 5) -> int:
     from piezo_stage.paths import default_config
     plant = default_config("sim_stage_effects.yaml")
     model = own_model(plant, tmp)
-    res = {"lockstep": [], "realtime": []}
+    res: dict[str, list] = {"lockstep": [], "realtime": []}
     for seed in progress_runs(range(draws), "bench learning: seeds"):
         for mode in ("lockstep", "realtime"):
             res[mode].append(_one(mode, seed, tmp, env, plant, model))

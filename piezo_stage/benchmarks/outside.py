@@ -56,7 +56,7 @@ def _mode(mode: str, runs: int, tmp: str) -> dict:
     bag = os.path.join(tmp, mode)
     launch = Launch(default_config("stage.yaml"), record=bag, env=env, trajectory=False,
                     exclusive=False, overrides={"stage_driver": {"mode": mode}})
-    sent = {k: ([], 0) for k in KINDS}
+    sent: dict[str, tuple[list, int]] = {k: ([], 0) for k in KINDS}
     probe = Probe(domain)
     try:
         launch.start()

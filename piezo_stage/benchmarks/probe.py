@@ -5,6 +5,7 @@ parameters the way a lab's own node or `ros2 param set` would."""
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
@@ -25,14 +26,17 @@ class Probe:
         self.node = rclpy.create_node("probe", context=self.ctx)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
-        self.states, self.effort, self.samples, self.values = [], None, 0, {}
+        self.states: list[tuple[str, str, float]] = []
+        self.effort: list | None = None
+        self.samples, self.values = 0, {}  # type: int, dict
         self.node.create_subscription(DiagnosticArray, f"{ns}/state", self._on_state, QOS_EVENTS)
         # only the newest sample matters here: no backlog to lag behind under load
         newest = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         self.node.create_subscription(JointState, f"{ns}/joint_states", self._on_js, newest)
         self.arm_cli = self.node.create_client(SetBool, f"{ns}/arm")
         self.estop_cli = self.node.create_client(Trigger, f"{ns}/estop")
-        self.ns, self.cmd_pub = ns, None  # made on first use: it would look like a controller
+        self.ns = ns
+        self.cmd_pub: Any = None  # made on first use: it would look like a controller
 
     def _on_state(self, msg):
         kv = {k.key: k.value for k in msg.status[0].values}
@@ -80,11 +84,12 @@ class Probe:
         m = Vector3Stamped()
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
         m.vector.x, m.vector.y = x, y
-        if self.cmd_pub is None:
-            self.cmd_pub = self.node.create_publisher(Vector3Stamped, f"{self.ns}/command",
-                                                      QOS_DATA)
-            self.wait(lambda: self.cmd_pub.get_subscription_count() > 0, 5)
-        self.cmd_pub.publish(m)
+        pub = self.cmd_pub
+        if pub is None:
+            pub = self.cmd_pub = self.node.create_publisher(Vector3Stamped,
+                                                            f"{self.ns}/command", QOS_DATA)
+            self.wait(lambda: pub.get_subscription_count() > 0, 5)
+        pub.publish(m)
 
     def close(self):
         self.node.destroy_node()

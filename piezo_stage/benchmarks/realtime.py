@@ -28,7 +28,7 @@ def _run(mode: str, track_s: float, env: dict, bag: str):
     from piezo_stage.benchmarks.procs import cpu_ticks
     from piezo_stage.launch.launcher import Launch
     from piezo_stage.paths import default_config
-    o = {"stage_driver": {"mode": mode},
+    o: dict[str, dict] = {"stage_driver": {"mode": mode},
          "feedforward": {"model_file": default_config("stage_model.yaml")},
          "trajectory": {"kind": "seed", "frequency_hz": 10.0, "duration_s": track_s}}
     # both modes end on the driver's own count of samples (in real time it then ramps

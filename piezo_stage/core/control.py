@@ -246,7 +246,7 @@ class CompositeController:
                  if self.feedback else "feedforward only (feedback off)")
                 + ", kp {kp:g} ki {ki:g} kd {kd:g}".format(**vars(self.gains)))
 
-    def set_gains(self, **gains) -> None:
+    def set_gains(self, **gains: float) -> None:
         """New kp, ki or kd (PiezoStageError, nothing changed, when refused)."""
         g = dict(vars(self.gains))
         g.update({k: float(v) for k, v in gains.items()})

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import Any
 
 from piezo_stage.core.errors import BackendFault, ConfigError
 
@@ -51,7 +52,7 @@ def parse_address(address: str) -> tuple[str, list]:
     """``tcp:HOST[:PORT]`` | ``serial:DEVICE[:BAUD]`` | ``usb:SERIAL:PID`` (the USB
     product id, e.g. 0x1016) -> (kind, args); ConfigError for anything else."""
     kind, _, rest = str(address).partition(":")
-    parts = rest.rsplit(":", 1) if rest.count(":") else [rest]
+    parts: list = rest.rsplit(":", 1) if rest.count(":") else [rest]
     if kind not in ("tcp", "serial", "usb") or not parts[0] or \
             (kind == "usb" and len(parts) != 2):
         raise ConfigError(f"pi_address {address!r}: use tcp:HOST[:PORT], "
@@ -99,7 +100,7 @@ class PiBackend:
         self.timeout_ms = max(1, int(float(params["pi_timeout_s"]) * 1000))
         kind, args = parse_address(params["pi_address"])
         self.address = params["pi_address"]
-        self.dev = None
+        self.dev: Any = None  # pipython's GCSDevice once connected
         try:
             self.gateway = self._gateway(kind, args)
             self.dev = GCSDevice(gateway=self.gateway)

@@ -74,11 +74,10 @@ def play_record(kind: str, rec: Record, params: dict | None = None, plant_config
     p = {name: default for name, default, _ in BACKEND_PARAMS}
     p.update(params or {})
     if kind in ("pi", "nv200"):
-        if kind == "pi":
-            from piezo_stage.drivers.pi import PiBackend as Backend
-        else:
-            from piezo_stage.drivers.nv200 import Nv200Backend as Backend
-        backend = Backend(rec.fs_hz, p, safe_V)
+        from piezo_stage.drivers.nv200 import Nv200Backend
+        from piezo_stage.drivers.pi import PiBackend
+        backend: PiBackend | Nv200Backend = (PiBackend if kind == "pi" else Nv200Backend)(
+            rec.fs_hz, p, safe_V)
         try:
             _check_limits(rec, backend.limits)
             _check_slew(rec, backend.slew_V_per_s)
@@ -89,28 +88,28 @@ def play_record(kind: str, rec: Record, params: dict | None = None, plant_config
                       voltage_exact=True)
     if kind == "daq":
         from piezo_stage.drivers.daq import DaqBackend
-        backend = DaqBackend(rec.fs_hz, p, safe_V)
+        daq = DaqBackend(rec.fs_hz, p, safe_V)
         try:
-            _check_limits(rec, backend.limits)
-            _check_slew(rec, backend.slew_V_per_s)
+            _check_limits(rec, daq.limits)
+            _check_slew(rec, daq.slew_V_per_s)
             step = ramp_V_per_s / rec.fs_hz
             v = {"x": safe_V, "y": safe_V}
             first = {a: float(rec.v[a][0]) for a in "xy"}
             while any(abs(v[a] - first[a]) > 1e-12 for a in v):
                 v = {a: min(max(first[a], x - step), x + step) for a, x in v.items()}
-                backend.step(v["x"], v["y"])
-            late0 = backend.late
+                daq.step(v["x"], v["y"])
+            late0 = daq.late
             n = len(rec)
             w = {a: np.empty(n) for a in "xy"}
             for k in range(n):
-                m, _, _, _ = backend.step(float(rec.v["x"][k]), float(rec.v["y"][k]))
+                m, _, _, _ = daq.step(float(rec.v["x"][k]), float(rec.v["y"][k]))
                 w["x"][k], w["y"][k] = m["x"], m["y"]
-            if backend.late > late0:
-                raise BackendFault(f"the host missed {backend.late - late0} sample clocks "
+            if daq.late > late0:
+                raise BackendFault(f"the host missed {daq.late - late0} sample clocks "
                                    f"of {n}: the record is not the waveform (play it at a "
                                    "lower rate)")
         finally:
-            backend.close(safe_V, ramp_V_per_s)
-        return Record(rec.t, dict(rec.v), w, f"{rec.source} played on {backend.hardware_id}",
+            daq.close(safe_V, ramp_V_per_s)
+        return Record(rec.t, dict(rec.v), w, f"{rec.source} played on {daq.hardware_id}",
                       voltage_exact=True)
     raise ConfigError(f"unknown backend {kind!r}; use {', '.join(PLAY_BACKENDS)}")

@@ -121,7 +121,7 @@ def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, st
     hyst = Plant(PlantConfig.exact(model, FS_HZ), FS_HZ).run(v, zero)
     inv = invert_stage(model, hyst["x"], hyst["y"])["x"].v
     back = float(np.max(np.abs(inv - v))) if np.all(np.isfinite(inv)) else float("nan")
-    return pred, res["verdict"], back
+    return pred, str(res["verdict"]), back
 
 
 def run(pairs=PAIRS, seed: int = 0, progress=None) -> list[dict]:

@@ -88,8 +88,10 @@ def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
     if comp is not None:
         comp.reset({"x": wx, "y": wy})
     planner.set_trajectory(t, w)
-    err, vs = {a: {} for a in ("x", "y")}, []
-    between = {a: [] for a in ("x", "y")}  # the last period's intersample deviations
+    err: dict[str, dict] = {a: {} for a in ("x", "y")}
+    vs: list = []
+    # the last period's intersample deviations
+    between: dict[str, list] = {a: [] for a in ("x", "y")}
     last = {"x": wx, "y": wy}
     ramp = np.arange(1, plant.substeps + 1) / plant.substeps
     k_end = int(round((t[-1] + 1.0) / (dt_ns * 1e-9)))
