@@ -1,0 +1,245 @@
+"""What the launcher checks and sets before the nodes run: modes, parameters, gates, the
+middleware's transports and threads."""
+
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from conftest import CONFIG, ROOT
+
+MODEL = os.path.join(CONFIG, "stage_model.yaml")
+
+
+def cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=120, cwd=cwd or ROOT)
+
+
+def one_line_exit_2(r):
+    assert r.returncode == 2, (r.returncode, r.stderr[-500:])
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_launch_refuses_an_unknown_mode(tmp_path):
+    cfg = tmp_path / "bogus.yaml"
+    cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: bogus\n")
+    r = cli("launch", cfg, "--duration", "5")
+    one_line_exit_2(r)
+    assert "bogus" in r.stderr
+
+
+@pytest.mark.parametrize("record", [None, "bag"])
+def test_lockstep_gates_count_the_live_view_as_a_subscriber(tmp_path, record):
+    """The live view subscribes to every topic, as the recorder does: with --foxglove
+    every lockstep publisher waits for one subscriber more, so its gate cannot open on
+    the taps before a loop node listens (a lockstep run with the live view once hung:
+    the driver's first sample went out before the feedforward had matched)."""
+    from piezo_stage.launch.launcher import Launch
+    cfg = os.path.join(CONFIG, "stage.yaml")
+    rec = None if record is None else str(tmp_path / record)
+    plain = Launch(cfg, record=rec)._gates()
+    watched = Launch(cfg, record=rec, foxglove_port=0)._gates()
+    for node, gates in plain.items():
+        for key in ("min_subscribers", "min_record_subscribers"):
+            if key in gates:
+                # the trajectory node's one subscriber is the feedforward (the taps take
+                # the trajectory the feedforward accepted)
+                more = 0 if node == "trajectory" else 1
+                assert watched[node][key] == gates[key] + more, (node, key)
+
+
+@pytest.mark.slow
+def test_a_bad_parameter_is_refused_at_start_naming_the_node(ros_env):
+    pytest.importorskip("rclpy")
+    env = ros_env
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.nodes.stage_driver_node",
+                        "--ros-args", "-r", "__ns:=/stage", "-p", "mode:=bogus"], env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2  # a configuration error
+    assert "/stage/stage_driver: fatal:" in r.stderr and "bogus" in r.stderr
+
+
+@pytest.mark.slow
+def test_a_misspelled_parameter_is_refused_by_name_and_an_integer_is_a_float(tmp_path,
+                                                                            ros_env):
+    """kP and frequncy_hz were ignored without a word (exit 0); `kp: 1` killed the
+    controller with a type error. Now the node refuses the unknown name, suggesting the
+    declared one, and takes 1 as 1.0; the launcher checks the whole file first."""
+    pytest.importorskip("rclpy")
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.nodes.controller_node",
+                        "--ros-args", "-r", "__ns:=/stage", "-p", "kP:=0.3"], env=ros_env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == \
+        "/stage/controller: fatal: unknown parameter 'kP' (did you mean 'kp'?)"
+    cfg = tmp_path / "kp.yaml"
+    cfg.write_text("/**/controller:\n  ros__parameters:\n    kp: 1\n"
+                   "    voltage_limits_V: [0, 150]\n")
+    p = subprocess.Popen([sys.executable, "-m", "piezo_stage.nodes.controller_node",
+                          "--ros-args", "-r", "__ns:=/stage", "--params-file", str(cfg)],
+                         env=ros_env, stderr=subprocess.PIPE, text=True)
+    try:
+        with pytest.raises(subprocess.TimeoutExpired):  # it runs
+            p.wait(8)
+    finally:
+        p.send_signal(signal.SIGINT)
+        err = p.communicate(timeout=30)[1]
+    assert p.returncode == 130 and "fatal" not in err, err
+    bad = tmp_path / "typo.yaml"
+    bad.write_text("/**/trajectory:\n  ros__parameters:\n    frequncy_hz: 3.0\n")
+    r = cli("launch", str(bad), "--duration", "5")
+    one_line_exit_2(r)
+    assert "trajectory: unknown parameter 'frequncy_hz' (did you mean 'frequency_hz'?)" \
+        in r.stderr
+    assert "stage_driver" not in r.stderr  # refused before any node started
+
+
+def test_use_sim_time_on_a_real_time_set_is_refused(tmp_path):
+    from piezo_stage.core.errors import ConfigError
+    from piezo_stage.launch.launcher import Launch
+    cfg = tmp_path / "rt.yaml"
+    cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n"
+                   "/**/controller:\n  ros__parameters:\n    use_sim_time: true\n")
+    with pytest.raises(ConfigError, match="use_sim_time on controller"):
+        Launch(str(cfg))
+    r = cli("launch", cfg, "--duration", "1")
+    assert r.returncode == 2 and "use_sim_time" in r.stderr
+
+
+def test_real_time_sets_publish_asynchronously_and_lockstep_does_not(tmp_path):
+    """In real time Fast DDS publishes from its own thread (a publish hands off rather
+    than sends); lockstep keeps the synchronous mode its byte-identical reruns were
+    measured with."""
+    from piezo_stage.launch.launcher import Launch
+    rt = tmp_path / "rt.yaml"
+    rt.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n")
+    from piezo_stage.launch.launcher import LOCKSTEP_PROFILE, LOOPBACK_UDP_PROFILE
+    env = {k: v for k, v in os.environ.items() if k not in (
+        "RMW_FASTRTPS_PUBLICATION_MODE", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
+    real = Launch(str(rt), env=env, arm=False)  # the driver alone
+    assert real.env["RMW_FASTRTPS_PUBLICATION_MODE"] == "ASYNCHRONOUS"
+    assert real.node_env["RMW_FASTRTPS_PUBLICATION_MODE"] == "ASYNCHRONOUS"
+    # and off shared memory: a simulated set on this host gets LOCALHOST's discovery
+    # over loopback UDP (rmw_fastrtps would add shared memory back under LOCALHOST)
+    assert real.node_env["FASTRTPS_DEFAULT_PROFILES_FILE"] == LOOPBACK_UDP_PROFILE
+    assert real.env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+    lock = Launch(os.path.join(CONFIG, "stage.yaml"), env=env)
+    assert "RMW_FASTRTPS_PUBLICATION_MODE" not in lock.env
+    # lockstep: its transports as they were, the writers' heartbeat at 50 ms (the
+    # driver's last wait for acknowledgements), a user's own profile left alone
+    assert lock.node_env == {"FASTRTPS_DEFAULT_PROFILES_FILE": LOCKSTEP_PROFILE}
+    assert lock.env["FASTRTPS_DEFAULT_PROFILES_FILE"] == LOCKSTEP_PROFILE
+    assert lock.env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    own = Launch(os.path.join(CONFIG, "stage.yaml"),
+                 env=dict(env, FASTRTPS_DEFAULT_PROFILES_FILE="/lab/profiles.xml"))
+    assert own.node_env == {} and own.env["FASTRTPS_DEFAULT_PROFILES_FILE"] == \
+        "/lab/profiles.xml"
+    with open(LOCKSTEP_PROFILE) as fh:  # the file Fast DDS reads: the period as said
+        assert "<heartbeatPeriod><sec>0</sec><nanosec>50000000</nanosec>" in fh.read()
+
+
+@pytest.mark.parametrize("given, wanted", [
+    ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, "profile"),
+    ({"ROS_LOCALHOST_ONLY": "1"}, "profile"),
+    ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}, {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}),
+    ({}, {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}),
+    ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}, {}),
+    ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+      "FASTRTPS_DEFAULT_PROFILES_FILE": "/lab/own.xml"}, {}),
+    ({"FASTDDS_BUILTIN_TRANSPORTS": "SHM"}, {}),
+    ({"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}, {}),
+])
+def test_a_real_time_set_leaves_out_shared_memory_unless_told_otherwise(given, wanted):
+    """The real-time transport choice on each discovery range, and a configuration of
+    the user's own (a profiles file, FASTDDS_BUILTIN_TRANSPORTS, another RMW) kept."""
+    from piezo_stage.launch.launcher import LOOPBACK_UDP_PROFILE, realtime_transport_env
+    if wanted == "profile":
+        wanted = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET",
+                  "FASTRTPS_DEFAULT_PROFILES_FILE": LOOPBACK_UDP_PROFILE}
+        assert os.path.isfile(LOOPBACK_UDP_PROFILE)
+    assert realtime_transport_env(given) == wanted
+
+
+LOOPBACK_PROBE = """
+import os, time, rclpy
+from std_msgs.msg import String
+before = set(os.listdir("/dev/shm"))
+rclpy.init()
+node = rclpy.create_node("transport_probe")
+pub = node.create_publisher(String, "chatter", 10)
+sub_seen = []
+node.create_subscription(String, "chatter", lambda m: sub_seen.append(m.data), 10)
+t0 = time.monotonic()
+while not sub_seen and time.monotonic() - t0 < 10:
+    pub.publish(String(data="x"))
+    rclpy.spin_once(node, timeout_sec=0.05)
+print(len(sub_seen) > 0, sorted(set(os.listdir("/dev/shm")) - before))
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+def test_the_loopback_udp_profile_talks_and_opens_no_shared_memory(ros_env):
+    """A participant on the real-time set's profile (fastdds_loopback_udp.xml, the way
+    the launcher applies it) creates no shared-memory segment or port, and still talks
+    (its own subscription hears its publisher)."""
+    pytest.importorskip("rclpy")
+    from piezo_stage.launch.launcher import realtime_transport_env
+    env = dict(ros_env, **realtime_transport_env(ros_env))
+    r = subprocess.run([sys.executable, "-c", LOOPBACK_PROBE], env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split("\n")[0] == "True []", r.stdout
+
+
+PRIORITY_PROBE = """
+import os, sys, rclpy
+from std_msgs.msg import String
+from piezo_stage.nodes._loop import set_realtime_priority
+rclpy.init()
+node = rclpy.create_node("priority_probe")
+node.create_publisher(String, "chatter", 10)
+class Log:
+    def warning(self, text):
+        print("WARN", text)
+got = set_realtime_priority(int(sys.argv[1]), Log(), main_thread=sys.argv[2] == "1")
+for tid in sorted(os.listdir("/proc/self/task")):
+    name = open(f"/proc/self/task/{tid}/comm").read().strip()
+    policy = os.sched_getscheduler(int(tid))
+    prio = os.sched_getparam(int(tid)).sched_priority
+    print(got, int(tid) == os.getpid(), name, int(policy == os.SCHED_FIFO), prio)
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+@pytest.mark.parametrize("main_thread", [True, False])
+def test_fast_dds_writer_threads_run_below_the_threads_that_hold_their_mutex(ros_env,
+                                                                             main_thread):
+    """Fast DDS's asynchronous writer threads poll a writer's mutex in a loop while
+    another thread holds it: at that thread's own SCHED_FIFO priority two of them once
+    filled both cores and the holder never ran again (a controller at 188 % CPU, deaf
+    to signals, its launcher gone). They now sit one level below the node's other
+    threads, or at normal priority where the main thread stays there (the recorder)."""
+    pytest.importorskip("rclpy")
+    env = dict(ros_env, RMW_FASTRTPS_PUBLICATION_MODE="ASYNCHRONOUS")
+    r = subprocess.run([sys.executable, "-c", PRIORITY_PROBE, "45", str(int(main_thread))],
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    rows = [line.split() for line in r.stdout.splitlines() if not line.startswith("WARN")]
+    if "WARN" in r.stdout or rows[0][0] == "0":
+        pytest.skip("SCHED_FIFO is not permitted here")
+    asyn = [row for row in rows if row[2].startswith("dds.asyn")]
+    rest = [row for row in rows if not row[2].startswith("dds.asyn") and
+            (main_thread or row[1] == "False")]
+    assert asyn and rest
+    if main_thread:
+        assert all(row[3:] == ["1", "44"] for row in asyn), asyn
+    else:
+        assert all(row[3] == "0" for row in asyn), asyn
+        assert [row[3] for row in rows if row[1] == "True"] == ["0"]
+    assert all(row[3:] == ["1", "45"] for row in rest), rest
