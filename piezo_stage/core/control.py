@@ -17,7 +17,7 @@ from piezo_stage.core.errors import ConfigError
 # the controller node's parameters: name, default, description, limits (the node's
 # ``declare``; the launcher checks a parameter file against the same table). The gains
 # and ``feedback`` are live (they take effect at run time).
-PARAMETERS = (
+PARAMETERS: tuple[tuple[str, object, str, dict], ...] = (
     ("control_rate_hz", 1000.0, "control rate [Hz]", {"lo": 1.0, "hi": 1e5}),
     ("kp", 0.2, "proportional gain [V/um]", {"lo": 0.0, "hi": 100.0}),
     ("ki", 150.0, "integral gain [V/(um s)]", {"lo": 0.0, "hi": 1e5}),
@@ -68,7 +68,7 @@ class PID:
     def reset(self) -> None:
         """Forget the integral and the derivative's memory."""
         self.integral = 0.0
-        self.prev_e = None
+        self.prev_e: float | None = None
         self.d = 0.0
 
     def update(self, e: float, hold_integral: bool = False) -> float:
@@ -104,7 +104,7 @@ class CompositeAxis:
         self.fade = math.exp(-pid.dt / fade_s) if fade_s > 0 else 0.0
         self.carry = 0.0        # feedback output being faded out after a switch-off
         self.last_fb = 0.0      # the feedback contribution of the last update [V]
-        self._bump_e = None     # switch-on: take the first error without a step
+        self._bump_e: bool | None = None  # switch-on: take the first error without a step
 
     def set_feedback(self, on: bool) -> None:
         """Switch the feedback on or off, bumplessly."""
@@ -293,5 +293,7 @@ class CompositeController:
     def restart(self, count: bool = True) -> None:
         """Forget the integral and the relays' state (``count``: as a restart)."""
         self.stats["restarts"] += count
-        for ax in (*self.axes.values(), *self.relays.values()):
+        for ax in self.axes.values():
             ax.reset()
+        for relay in self.relays.values():
+            relay.reset()

@@ -29,7 +29,7 @@ PAST_TRAJECTORY_NS = 1_000_000_000  # a trajectory stamped up to 1 s ago: start 
 
 # the feedforward node's parameters: name, default, description, limits and choices
 # (nodes/_params.declare); the node makes compensate_effects and the learning ones live
-PARAMETERS = (
+PARAMETERS: tuple[tuple[str, object, str, dict], ...] = (
     ("control_rate_hz", 1000.0, "control rate [Hz]", {"lo": 1.0, "hi": 1e5}),
     ("model_file", "", "initial model YAML ('' = none until one arrives on model)", {}),
     ("nominal_um_per_V", 0.5, "gain used before any model [um/V]",
@@ -117,10 +117,15 @@ class InverseFeedforward:
         self.max_res_hz = max_resonance_hz
         self.learn_p = {"learning_period_s": 0.0, "learning_gain": 1.0}
         self.limits = (0.0, 150.0)
-        self.inv, self.model, self.handover = None, None, None
-        self.effects, self.comp = None, None
+        self.inv: StageInverse | None = None
+        self.model: StageModel | None = None
+        self.handover: dict | None = None
+        self.effects: dict | None = None
+        self.comp: EffectCompensator | None = None
         self.started = False  # the inverse has been put where the stage is
-        self.ff, self.planned, self.last_target = {"x": 0.0, "y": 0.0}, {}, None
+        self.ff: dict[str, float] = {"x": 0.0, "y": 0.0}
+        self.planned: dict = {}
+        self.last_target: int | None = None
         self.traj_text = ""  # which trajectory runs: "trajectory of N points stamped S"
 
     def set_model(self, model: StageModel, effects: dict | None, name: str,
@@ -204,7 +209,7 @@ class InverseFeedforward:
                      self.dt_ns)
 
     def answer(self, ns: int, target: int, w: dict, applied: dict,
-               enabled: bool) -> tuple[dict, PiezoStageError | None]:
+               enabled: bool) -> tuple[dict | None, PiezoStageError | None]:
         """(desired position [um], the error that held the last feedforward or None) for
         ``target``; the feedforward [V] is ``self.ff``. Not ``enabled`` (the driver does
         not apply commands): hold where the stage is, at the applied voltage."""

@@ -103,7 +103,7 @@ class Plant:
         lo, hi = config.model.voltage_limits
         self.v_limits = (float(lo), float(hi))
         self._max_step = config.slew_V_per_s / self.fs_hz
-        self._effects = {a: [] for a in AXES}
+        self._effects: dict[str, list] = {a: [] for a in AXES}
         unknown = set(config.effects) - set(EFFECT_ORDER)
         if unknown:
             raise ConfigError(f"unknown effect(s) {sorted(unknown)}; known: "

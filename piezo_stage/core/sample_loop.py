@@ -15,6 +15,7 @@ the slew limit.
 
 from __future__ import annotations
 
+import math
 import os
 import socket
 import time
@@ -37,7 +38,7 @@ from piezo_stage.core.errors import DataError
 
 # the driver node's parameters: name (one name: the parameter's), default, description,
 # limits (nodes/_params.declare)
-PARAMETERS = (
+PARAMETERS: tuple[tuple[str, object, str, dict], ...] = (
     ("backend", "sim", "stage backend", {"choices": ("sim", "daq", "pi", "nv200",
                                                   "replay")}),
     ("mode", "lockstep", "lockstep (sim, replay) | realtime",
@@ -136,7 +137,7 @@ class SampleLoop:
         self.j, self.t0_ns = -1, 0
         self.stats = {"samples": 0, "rejected": 0, "limit_hits": 0, "unexpected_stamp": 0,
                       "missed_ticks": 0, "late_commands": 0}
-        self.step_times = deque(maxlen=1_000_000)  # lockstep: the loop's pace
+        self.step_times: deque[float] = deque(maxlen=1_000_000)  # lockstep: the loop's pace
         def on_change(state: str, reason: str, since_ns: int) -> None:
             if state in ENABLED and self.enabled_j is None:
                 self.enabled_j = max(self.j, 0)  # max_steps_from_arming counts from here
@@ -146,7 +147,8 @@ class SampleLoop:
                                         3 * self.dt_ns, 20_000_000), on_change)
         self.sched = CommandSchedule(0, self.dt_ns, self.lookahead_ns)
         self.clock = SampleClock(self.dt_ns * 1e-9, backend.paced)
-        self.shutdown_requested, self.shutdown_by = False, None
+        self.shutdown_requested = False
+        self.shutdown_by = math.inf  # monotonic [s]: when a stop gives up waiting
         self.clock_every = max(1, int(round(clock_period_s * rate_hz))) \
             if clock_period_s else 0
         self.ff_phase = ("", "")  # the feedforward's last (phase, follows): relayed

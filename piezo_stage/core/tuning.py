@@ -162,7 +162,7 @@ def tune(model: StageModel, effects: dict | None = None, rate_hz: float = 1000.0
                              "voltage range (largest "
                              f"{hi:.3g}, median {md:.3g} um/V): not enough data to tune from")
         gains[a] = (hi, md)
-        H, _ = effects_response(effects, a, rate_hz, z)
+        H, _ = effects_response(effects or {}, a, rate_hz, z)
         plants[a] = hi * H * z ** (-L)
     if not plants:
         raise ModelError("tune: the model has no axes")

@@ -82,7 +82,11 @@ class Diagnosis:
         the axis where it explains the most; ``memory`` as the axis's play
         operators. Voltage limits: the amplifier's ``limits_V``, else 0-150 V
         widened to FIT's (core.duhem.voltage_limits_for)."""
-        axes, coupling, plays, effects, weight = {}, {}, {}, {}, {}
+        axes: dict = {}
+        coupling: dict = {}
+        plays: dict = {}
+        effects: dict[str, dict] = {}
+        weight: dict[str, float] = {}
         self.notes = []
         for a, d in self.per_axis.items():
             c = d.model or d.candidates["none"]
