@@ -20,9 +20,10 @@ def _refit(*args, timeout=600):
                           capture_output=True, text=True, timeout=timeout)
 
 
-def test_refit_names_the_growing_creep_and_the_day_it_crossed_30_percent(tmp_path):
+def test_refit_names_the_growing_creep_the_drifting_resonance_and_the_day_30_percent(
+        tmp_path):
     arch = tmp_path / "archive"
-    make_archive(str(arch), runs=6, fs_hz=500.0)
+    make_archive(str(arch), runs=6, fs_hz=500.0, resonance=True)
     out = tmp_path / "refit"
     r = _refit(arch, "--out", out, "--against", arch / "reference.yaml", "--jobs", 2)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -30,14 +31,17 @@ def test_refit_names_the_growing_creep_and_the_day_it_crossed_30_percent(tmp_pat
     rows = doc["bags"]
     assert [b["name"] for b in rows] == [f"archive_run{d:02d}" for d in range(6)]
     assert all(b["dated_by"] == "recorded start" for b in rows)
-    assert all(b["axes"]["x"]["against"]["verdict"] == "creep" for b in rows)
+    assert all(b["axes"]["x"]["against"]["verdict"] in ("creep", "dynamics") for b in rows)
     g = {(e["axis"], e["effect"]): e for e in doc["growth"]}
-    creep = g[("x", "creep")]
+    creep, res = g[("x", "creep")], g[("x", "dynamics")]
     # the truth: gamma 0.03 + 0.004 a day, +66.7 % by day 5, 30 % first on day 3
     assert 45.0 <= creep["change_pct"] <= 90.0, creep
     day = (datetime.fromisoformat(creep["crossed_utc"]) - START).days
     assert abs(day - crossing_day()) <= 1, (day, creep)
     assert f"x: creep +{creep['change_pct']:.0f} % since 2026-11-02" in r.stdout
+    # and the resonance 125 Hz, 2 % lower a day: -10 % by day 5, never 30 %
+    assert res["size_of"] == "fn_hz" and -15.0 <= res["change_pct"] <= -5.0, res
+    assert res["crossed_utc"] is None and "x: dynamics -" in r.stdout
     # one model per bag, loadable; the table and the picture
     for b in rows:
         assert os.path.isfile(b["model"])
@@ -45,7 +49,7 @@ def test_refit_names_the_growing_creep_and_the_day_it_crossed_30_percent(tmp_pat
     assert rows[-1]["axes"]["x"]["change_um"] == 0.0  # the newest against itself
     with open(out / "refit.csv", newline="") as fh:
         table = list(csv.DictReader(fh))
-    assert len(table) == 6 and table[0]["x_verdict"] == "creep"
+    assert len(table) == 6 and table[0]["x_verdict"] in ("creep", "dynamics")
     assert float(table[-1]["x_creep"]) > float(table[0]["x_creep"])
     assert (out / "refit.png").stat().st_size > 10_000
 

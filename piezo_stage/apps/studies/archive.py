@@ -21,6 +21,12 @@ def creep_gamma(day: int, gamma0: float = 0.03, per_day: float = 0.004) -> float
     return gamma0 + per_day * day
 
 
+def resonance_hz(day: int, fs_hz: float = 1000.0, per_day: float = 0.02) -> float:
+    """The stage's resonance on ``day``: 0.25 fs_hz at first, 2 % lower a day (a mount
+    loosening), so 30 % lower from day 15 on."""
+    return 0.25 * fs_hz * (1.0 - per_day * day)
+
+
 def crossing_day(pct: float = 30.0, **kw) -> int:
     """The first day whose creep exceeds the first day's by ``pct`` or more."""
     day = 0
@@ -29,9 +35,11 @@ def crossing_day(pct: float = 30.0, **kw) -> int:
     return day
 
 
-def make_archive(out_dir: str, runs: int = 20, fs_hz: float = 1000.0) -> list[str]:
+def make_archive(out_dir: str, runs: int = 20, fs_hz: float = 1000.0,
+                 resonance: bool = False) -> list[str]:
     """``runs`` bags in ``out_dir`` (run00, run01, ...), one a day from START; returns
-    their paths. Also writes ``out_dir/reference.yaml``: the stage's model without its
+    their paths. ``resonance``: the stage also has a resonance that drifts down
+    (``resonance_hz``). Also writes ``out_dir/reference.yaml``: the stage's model without its
     creep (the lab's calibration)."""
     from piezo_stage.core.excitation import gap_protocol
     from piezo_stage.core.plant import Plant
@@ -46,6 +54,9 @@ def make_archive(out_dir: str, runs: int = 20, fs_hz: float = 1000.0) -> list[st
     for day in range(runs):
         cfg = copy.deepcopy(base)
         cfg.effects = {"creep": {"gamma": creep_gamma(day)}}
+        if resonance:
+            cfg.effects["dynamics"] = {"kind": "resonance", "zeta": 0.1,
+                                       "fn_hz": resonance_hz(day, fs_hz)}
         cfg.seed = 100 + day
         parts = [gap_protocol(fs_hz, seed=2 * day + k)[1] for k in range(2)]  # x only
         vx = np.concatenate(parts)
