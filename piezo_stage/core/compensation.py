@@ -200,7 +200,9 @@ class EffectCompensator:
         self.rate_hz = float(rate_hz)
         T = 1.0 / self.rate_hz
         max_fn = float(max_resonance_hz) if max_resonance_hz else math.inf
-        self.creep, self.dynamics, self.lead_ticks = {}, {}, {a: 0 for a in axes}
+        self.creep: dict = {}
+        self.dynamics: dict[str, DynamicsInverse | PreviewDynamicsInverse] = {}
+        self.lead_ticks = {a: 0 for a in axes}
         # of lead_ticks, the samples a stable inverse previews (not a time advance)
         self.preview_ticks = {a: 0 for a in axes}
         self.compensated, self.uncompensated, self.notes = set(), {}, {}
@@ -328,8 +330,10 @@ class PreviewedReference:
 
     def __init__(self, planner: ReferencePlanner, dt_ns: int):
         self.planner, self.dt_ns = planner, int(dt_ns)
-        self.comp, self.on, self.ahead = None, True, {}
-        self.learner = None  # a core.learning.PeriodicLearner, or None
+        self.comp: EffectCompensator | None = None
+        self.on = True
+        self.ahead: dict = {}
+        self.learner: LearnedOffsets | None = None  # a core.learning.PeriodicLearner
 
     def set_compensator(self, comp: EffectCompensator | None) -> None:
         """A new model's compensator (None: no effects)."""
@@ -380,7 +384,7 @@ class PreviewedReference:
             d = self.planner.sample(target_ns)
             return d, self._learned(d, {a: target_ns for a in d})
         preview = self.planner.traj is not None
-        held = dict(self.planner.desired)
+        held: dict = dict(self.planner.desired or {})
         lead = comp.max_lead_ticks if preview else 0
         t_lead = target_ns + lead * self.dt_ns
         self.ahead[t_lead] = self.planner.sample(t_lead)

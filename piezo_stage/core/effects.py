@@ -338,7 +338,7 @@ def validate_effects(effects: dict | None, where: str = "effects") -> dict:
         if unknown:
             raise ConfigError(f"{w}: unknown parameter(s) {unknown}; known: "
                               f"{', '.join(sorted(known))}")
-        q = {}
+        q: dict[str, object] = {}
         for k, x in p.items():
             if k == "enabled":
                 if not isinstance(x, bool):

@@ -196,7 +196,7 @@ def _plays(d, v0, where) -> PlayOperators:
     z = (_numbers(d["initial_V"], f"{where}.initial_V") if "initial_V" in d
          else [v0] * len(r))
     try:
-        return PlayOperators(r, p, z)
+        return PlayOperators(np.asarray(r, float), np.asarray(p, float), np.asarray(z, float))
     except ModelError as e:
         raise ModelError(f"{where}: {e}") from None
 
@@ -280,8 +280,9 @@ def _branch_doc(b: DuhemBranch, ascending: bool):
 
 
 def _duhem_doc(m: DuhemModel):
-    d = {"structure": m.structure,
-         "initial_state": {"v_V": float(m.initial.v), "w_um": float(m.initial.w)}}
+    d: dict[str, object] = {"structure": m.structure,
+                            "initial_state": {"v_V": float(m.initial.v),
+                                              "w_um": float(m.initial.w)}}
     if m.fit_range_V is not None:
         d["fitted_range_V"] = [float(x) for x in m.fit_range_V]
     if m.structure == "whole":
@@ -299,13 +300,14 @@ def model_to_dict(model: StageModel, effects: dict | None = None,
                   extra: dict | None = None) -> dict:
     """The model document (the schema above) of ``model``, its ``effects`` and any
     ``extra`` top-level keys (identification figures)."""
-    doc = {
+    axes: dict[str, dict] = {}
+    doc: dict[str, object] = {
         SCHEMA_KEY: SCHEMA_VERSION,
         "convention": "seed-eq6",
         "units": {"voltage": "V", "displacement": "um", "alpha": "1/V",
                   "f": "um/V per V^i", "g": "um/V per V^i"},
         "voltage_limits_V": [float(x) for x in model.voltage_limits],
-        "axes": {},
+        "axes": axes,
     }
     for a, m in model.axes.items():
         d = _duhem_doc(m)
@@ -316,7 +318,7 @@ def model_to_dict(model: StageModel, effects: dict | None = None,
             d["play_operators"] = {"thresholds_V": _floats(p.thresholds_V),
                                    "weights_um_per_V": _floats(p.weights_um_per_V),
                                    "initial_V": _floats(p.initial_V)}
-        doc["axes"][a] = d
+        axes[a] = d
     if effects:
         doc["effects"] = effects
     if extra:

@@ -75,7 +75,7 @@ class PlayOperators:
         """Operators whose state is z_j = v0 + start * r_j: at rest at ``v0`` (0), as
         a fall (+1) or a rise (-1) to v0 leaves them."""
         r = np.asarray(thresholds_V, dtype=float)
-        return cls(r, weights_um_per_V, float(v0) + float(start) * r)
+        return cls(r, np.asarray(weights_um_per_V, dtype=float), float(v0) + float(start) * r)
 
     def state(self) -> np.ndarray:
         """A fresh copy of the initial state (for ``run``)."""
@@ -97,7 +97,7 @@ class PlayOperators:
             np.array_equal(getattr(self, k), getattr(other, k))
             for k in ("thresholds_V", "weights_um_per_V", "initial_V"))
 
-    __hash__ = None
+    __hash__ = None  # type: ignore[assignment]  # arrays inside: equal, not hashable
 
 KEYS = ("kind", "axes", "operators", "max_threshold_V", "weight_um_per_V", "decay_V",
         "envelope", "rate_widening_s")

@@ -70,7 +70,7 @@ LOCK_BLOCK_S = 0.2                    # cross-validation folds: alternating bloc
 LOCK_PLAYS = 8                        # play operators per input (hysteresis memory)
 
 
-def input_locked(v: np.ndarray, v_other: np.ndarray, fs: float,
+def input_locked(v: np.ndarray, v_other: np.ndarray | None, fs: float,
                  resid: np.ndarray) -> np.ndarray:
     """The part of ``resid`` that a rich hysteretic and dynamic function of the inputs
     (``v`` and ``v_other`` [V], sampled at ``fs``) predicts, two-fold cross-validated
@@ -113,7 +113,7 @@ def input_locked(v: np.ndarray, v_other: np.ndarray, fs: float,
     # ridge: the features overlap (that is what makes them rich), and a fit meant to
     # predict the other fold must not extrapolate along directions its own fold
     # barely saw; its weight is the one that predicts the other fold best
-    best = (np.inf, None)
+    best: tuple[float, np.ndarray] = (np.inf, np.zeros_like(resid))
     for ridge in RIDGES:
         pred = np.empty_like(resid)
         for (G, b), tr in folds:

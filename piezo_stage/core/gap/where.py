@@ -35,7 +35,7 @@ def hold_runs(v: ArrayLike, fs: float, min_s: float = 0.2,
 
 def held(v: ArrayLike, fs: float, min_s: float = 0.2, tol_frac: float = 1e-3) -> np.ndarray:
     """Mask of the samples inside holds (see ``hold_runs``)."""
-    mask = np.zeros(len(v), bool)
+    mask = np.zeros(np.size(v), dtype=np.bool_)
     for a, b in hold_runs(v, fs, min_s, tol_frac):
         mask[a:b] = True
     return mask
@@ -81,7 +81,7 @@ def where(rec: Record, axis: str, resid: np.ndarray, nf: float) -> dict:
              "turning_points": turn & ~still, "holds": still}
     seg_rms = {k: rms(resid[m]) for k, m in parts.items() if m.sum() > 10}
     out["segment_rms_um"] = seg_rms
-    out["segment"] = max(seg_rms, key=seg_rms.get)
+    out["segment"] = max(seg_rms, key=lambda k: seg_rms[k])
     q = np.quantile(v, [1 / 3, 2 / 3])
     amp = {"low": v <= q[0], "mid": (v > q[0]) & (v <= q[1]), "high": v > q[1]}
     out["amplitude_rms_um"] = {k: rms(resid[m]) for k, m in amp.items() if m.sum() > 10}

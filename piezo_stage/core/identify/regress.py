@@ -38,7 +38,7 @@ def legendre_basis(v: np.ndarray, lo: float, hi: float, deg: int) -> np.ndarray:
 
 def legendre_to_power(c: ArrayLike, lo: float, hi: float) -> np.ndarray:
     """Legendre coefficients on [lo, hi] -> power coefficients in v."""
-    return Legendre(c, domain=[lo, hi]).convert(kind=Polynomial).coef
+    return Legendre(np.asarray(c, float), domain=[lo, hi]).convert(kind=Polynomial).coef
 
 
 @dataclass
@@ -172,7 +172,7 @@ class DuhemRegression:
                              self.Bo, self._Xo)
         return fold_branches(X, self.cdeg + 1, self.cstate, self._Xc)
 
-    def blocks(self, alphas: Sequence[float]) -> list[np.ndarray]:
+    def blocks(self, alphas: ArrayLike) -> list[np.ndarray]:
         """The regressor columns for these alphas as blocks [main, coupling] (the main
         block is a buffer reused by the next call: use or copy it before then)."""
         alphas = np.atleast_1d(np.asarray(alphas, float))
@@ -213,7 +213,7 @@ class DuhemRegression:
         """The fitted output for these alphas and coefficients [um]."""
         return self.columns(alphas) @ theta
 
-    def models(self, alphas: Sequence[float],
+    def models(self, alphas: ArrayLike,
                theta: np.ndarray) -> tuple[DuhemModel, DuhemModel | None]:
         """(main DuhemModel, coupling DuhemModel or None) in power coefficients [V]."""
         alphas = np.atleast_1d(np.asarray(alphas, float))
