@@ -14,6 +14,11 @@ def add_arguments(s):
     s.add_argument("data", help="record: CSV (t,vx,vy,wx,wy or one axis) or a bag")
     s.add_argument("--axis", choices=("x", "y", "both"), default="both")
     s.add_argument("--method", choices=("fast", "afsa", "afsa-bat"), default="fast")
+    s.add_argument("--class", dest="model_class", choices=("duhem", "pi", "auto"),
+                   default="duhem", help="the hysteresis model class: duhem (the paper's "
+                   "law), pi (Prandtl-Ishlinskii: a linear term and 12 play operators with "
+                   "non-negative weights, return-point memory, exact inverse), or auto (the "
+                   "one that predicts the record's own last 40 %% best, said per axis)")
     g = s.add_mutually_exclusive_group()
     g.add_argument("--whole", action="store_true", help="one parameter set for both branches")
     g.add_argument("--segmented", action="store_true", help="a set per branch (default)")
@@ -67,6 +72,15 @@ def main(args):
                            structure="whole" if args.whole else "segmented",
                            budget=args.budget, seed=args.seed, coupling=args.coupling,
                            n=n, m=m)
+    classes = {a: args.model_class for a in axes}
+    if args.model_class == "auto":
+        from piezo_stage.core.identify.api import choose_class
+        for a in axes:
+            classes[a], held = choose_class(rec, a, opts)
+            print(f"class {a}: {classes[a]} (held-out RMS on the record's last 40 %: "
+                  + ", ".join(f"{k} {e:.4f} um" for k, e in held.items()) + ")")
+    pi_axes = [a for a in axes if classes[a] == "pi"]
+    axes = [a for a in axes if classes[a] == "duhem"]
     chosen = {}
     if args.structure == "auto":
         from dataclasses import replace
@@ -87,8 +101,9 @@ def main(args):
     with ExitStack() as bars:
         def progress_for(a):
             return best_so_far(bars.enter_context(bar(f"identify {a} ({opts.method})")))
-        fitted = identify_stage(rec, axes, opts_for, args.limits, progress_for)
-    results, report = fitted.results, {}
+        fitted = identify_stage(rec, axes, opts_for, args.limits, progress_for) \
+            if axes else None
+    results, report = (fitted.results if fitted else {}), {}
     for a, r in results.items():
         report[a] = r.to_json()
         report[a]["degrees"] = {"f": opts_for[a].n, "g": opts_for[a].m}
@@ -106,10 +121,11 @@ def main(args):
         print(f"{a:>4} {j['method']:>8} {j['structure']:>9} {j['fit_rms_um']:10.4f} "
               f"{j['fit_rms_pct']:8.4f} {j['max_err_um']:10.4f} {j['noise_floor_um']:8.4f} "
               f"{vr:10.4f} {vp:8.4f} {j['evaluations']:7d} {j['seconds']:7.2f}")
+    pis = _fit_pi(rec, pi_axes, val, report)
     for note in {n for r in results.values() for n in r.notes}:
         print(f"note: {note}")
     if args.out:
-        model = fitted.model
+        model = _stage_model(fitted, pis, rec, args.limits)
         meta = {"identification": {a: {k: report[a][k] for k in report[a]
                                         if k not in ("history", "parameters")}
                                    for a in report}}
@@ -123,8 +139,53 @@ def main(args):
         from piezo_stage.core.identify.api import predict_axis
         from piezo_stage.io.plots import identification_png
         curves = {a: predict_axis(r, rec) for a, r in results.items()}
+        curves.update({a: (rec.v[a], rec.w[a], _pi_output(p, rec, a)) for a, p in pis.items()})
         print(f"plot: {identification_png(plot, rec.t, curves)}")
     return 0
+
+
+def _pi_output(pi, rec, a):
+    """A Prandtl-Ishlinskii axis's output over ``rec``, its offset fitted there."""
+    pred = pi.predict(rec.v[a])
+    return pred + float(np.mean(rec.w[a] - pred))
+
+
+def _fit_pi(rec, axes, val, report) -> dict:
+    """The Prandtl-Ishlinskii class on ``axes``: monotone weights (non-negative least
+    squares); one table row each, into ``report`` too. -> {axis: PrandtlIshlinskii}."""
+    from piezo_stage.core.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
+    from piezo_stage.core.metrics import noise_floor
+    out = {}
+    for a in axes:
+        pi = fit_prandtl_ishlinskii(rec.v[a], rec.w[a], monotone=True)
+        out[a] = pi
+        e = rec.w[a] - _pi_output(pi, rec, a)
+        j = {"class": "pi", "method": "nnls", "structure": "plays",
+             "fit_rms_um": float(np.sqrt(np.mean(e ** 2))),
+             "max_err_um": float(np.max(np.abs(e))),
+             "noise_floor_um": noise_floor(rec.w[a]), "seconds": pi.fit_s,
+             "linear_um_per_V": pi.linear_um_per_V,
+             "play_operators": len(pi.operators.thresholds_V)}
+        if val is not None:
+            j["validate_rms_um"] = held_out_rms(pi.predict(val.v[a]), val.w[a], val.fs_hz, 0.0)
+        report[a] = j
+        print(f"{a:>4} {'pi':>8} {'plays':>9} {j['fit_rms_um']:10.4f} {'':>8} "
+              f"{j['max_err_um']:10.4f} {j['noise_floor_um']:8.4f} "
+              f"{j.get('validate_rms_um', float('nan')):10.4f} {'':>8} {'':>7} "
+              f"{j['seconds']:7.2f}")
+    return out
+
+
+def _stage_model(fitted, pis, rec, limits):
+    """The stage model of the Duhem axes (``fitted``) and the Prandtl-Ishlinskii ones
+    (a Duhem law that is exactly their linear term, their play operators beside it)."""
+    from piezo_stage.core.duhem import StageModel, voltage_limits_for
+    axes = dict(fitted.model.axes) if fitted else {}
+    coupling = dict(fitted.model.coupling) if fitted else {}
+    plays = {}
+    for a, pi in pis.items():  # at rest at the record's first voltage, as fitted
+        axes[a], plays[a] = pi.to_model(float(rec.v[a][0]))
+    return StageModel(axes, coupling, voltage_limits_for(list(rec.v.values()), limits), plays)
 
 
 def _axes(rec, args) -> list:

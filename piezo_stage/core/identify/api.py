@@ -243,6 +243,44 @@ def choose_degree(rec: Record, axis: str, opts: IdentifyOptions,
     return min(d for d, e in held.items() if e <= 1.02 * best), held
 
 
+CLASSES = ("duhem", "pi", "auto")  # identify --class
+
+
+def _later_cycles(rec: Record, axis: str) -> tuple[Record, Record]:
+    """(the first 60 % of the span where ``axis`` moves, the last 40 %)."""
+    v = np.asarray(rec.v[axis], float)
+    moves = np.flatnonzero(np.abs(np.diff(v)) > 1e-9 * max(np.ptp(v), 1e-300))
+    lo, hi = (int(moves[0]), int(moves[-1]) + 2) if moves.size else (0, len(v))
+    cut = lo + int((hi - lo) * (1 - HELD_OUT_FRACTION))
+
+    def part(sl, name):
+        return Record(rec.t[sl], {a: x[sl] for a, x in rec.v.items()},
+                      {a: x[sl] for a, x in rec.w.items()}, source=f"{rec.source} ({name})",
+                      voltage_exact=rec.voltage_exact)
+    first, last = part(slice(lo, cut), "first 60 %"), part(slice(cut, hi), "last 40 %")
+    for piece in (first, last):
+        check_identifiable(piece.v[axis], piece.source)
+    return first, last
+
+
+def choose_class(rec: Record, axis: str, opts: IdentifyOptions | None = None
+                 ) -> tuple[str, dict]:
+    """``identify --class auto``: the model class that predicts the record's own later
+    cycles best, each fitted on the first 60 % of the span where the axis moves and
+    judged on the last 40 % (offset removed; the first 10 % of it, where each model's
+    unknown start state shows, left out). The Duhem law wins ties within 2 %: the
+    Prandtl-Ishlinskii class must pay. -> (class, {class: held-out RMS um})."""
+    from piezo_stage.core.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
+    first, last = _later_cycles(rec, axis)
+    skip = 0.1 * (last.t[-1] - last.t[0])
+    w = last.w[axis]
+    duhem = predict_axis(identify_axis(first, axis, opts), last)[2]
+    pi = fit_prandtl_ishlinskii(first.v[axis], first.w[axis], monotone=True)
+    held = {"duhem": held_out_rms(duhem, w, last.fs_hz, skip),
+            "pi": held_out_rms(pi.predict(last.v[axis]), w, last.fs_hz, skip)}
+    return ("pi" if held["pi"] < 0.98 * held["duhem"] else "duhem"), held
+
+
 @dataclass
 class StageFit:
     """Every identified axis of a record put together: ``model`` (the StageModel with

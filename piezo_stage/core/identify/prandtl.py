@@ -25,10 +25,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from piezo_stage.core.duhem import DuhemModel, DuhemState
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.play import PlayOperators
 
 OPERATORS = 12
+LINEAR_ALPHA = 1e-3  # [1/V]: the Duhem law standing for the linear term (any > 0 is exact)
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,18 @@ class PrandtlIshlinskii:
     offset_um: float
     fit_s: float = 0.0
 
+    def to_model(self, v0: float) -> tuple[DuhemModel, PlayOperators]:
+        """This model in our model file's terms, at rest at ``v0`` [V]: a whole-curve
+        Duhem law that is exactly the linear term and the constant (f = alpha (c + a v),
+        g = a: its output stays on w = a v + c), and the play operators beside it, which
+        the file's ``play_operators`` hold. Simulate, invert and the feedforward take it
+        as they take any model with play operators."""
+        a, c = self.linear_um_per_V, self.offset_um
+        duhem = DuhemModel.whole(LINEAR_ALPHA, [LINEAR_ALPHA * c, LINEAR_ALPHA * a], [a],
+                                 DuhemState(float(v0), a * float(v0) + c))
+        ops = self.operators
+        return duhem, PlayOperators.at_rest(ops.thresholds_V, ops.weights_um_per_V, v0)
+
     def predict(self, v: ArrayLike) -> np.ndarray:
         """Displacement [um] over the voltages ``v`` [V], the operators at rest at the
         first voltage."""
@@ -69,8 +83,8 @@ def _plays(v: np.ndarray, r: np.ndarray) -> np.ndarray:
     return cols
 
 
-def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike,
-                           n: int = OPERATORS) -> PrandtlIshlinskii:
+def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
+                           monotone: bool = False) -> PrandtlIshlinskii:
     """The classical Prandtl-Ishlinskii model of one axis's record.
 
     Parameters
@@ -79,6 +93,11 @@ def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike,
         Voltage [V] and displacement [um], one sample each.
     n : int
         Play operators besides the linear term.
+    monotone : bool
+        The linear term and every weight non-negative (non-negative least squares):
+        the model then rises with the voltage on every branch, keeps the wiping-out
+        and congruency properties of its class, and has an exact inverse (``identify
+        --class pi``); else plain least squares (the peer of the benchmarks).
 
     Returns
     -------
@@ -93,7 +112,12 @@ def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike,
         raise DataError("Prandtl-Ishlinskii: a record of >= 10 samples whose voltage moves")
     r = np.arange(1, n + 1) * span / (2 * (n + 1))
     X = np.column_stack([v, _plays(v, r), np.ones_like(v)])
-    theta, *_ = np.linalg.lstsq(X, w, rcond=None)
+    if monotone:  # the constant free: +1 and -1 columns, both non-negative
+        from scipy.optimize import nnls
+        coef, _ = nnls(np.column_stack([X, -np.ones_like(v)]), w)
+        theta = np.append(coef[:-2], coef[-2] - coef[-1])
+    else:
+        theta, *_ = np.linalg.lstsq(X, w, rcond=None)
     ops = PlayOperators.at_rest(r, theta[1:-1], float(v[0]))
     return PrandtlIshlinskii(float(theta[0]), ops, float(theta[-1]),
                              time.perf_counter() - t0)
