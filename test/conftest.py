@@ -20,6 +20,20 @@ def plant_config_path():
     return os.path.join(CONFIG, "sim_stage.yaml")
 
 
+def cli(*args, cwd=None):
+    """`piezo-stage ARGS` as a user runs it, in the repository root by default."""
+    import subprocess
+    return subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=120, cwd=cwd or ROOT)
+
+
+def one_line_exit_2(r):
+    """Bad input: exit 2 and one line on stderr, no traceback."""
+    assert r.returncode == 2, (r.returncode, r.stderr[-500:])
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "Traceback" not in r.stderr
+
+
 def sine_v(freq, fs, cycles, lo=0.0, hi=150.0, phase=0.0):
     t = np.arange(int(round(cycles * fs / freq))) / fs
     return t, lo + (hi - lo) / 2 * (1 - np.cos(2 * np.pi * freq * t + phase))

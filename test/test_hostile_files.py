@@ -2,30 +2,17 @@
 and plant files, outputs that never overwrite inputs, one line and exit 2."""
 
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
-from conftest import CONFIG, ROOT
+from conftest import CONFIG, cli, one_line_exit_2
 from piezo_stage.benchmarks.faults import ALIAS_BOMB, scaled_model
 from piezo_stage.core.errors import ModelError
 from piezo_stage.io.model_file import load_model, parse_yaml
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
 GOOD = open(MODEL).read()
-
-
-def cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=120, cwd=cwd or ROOT)
-
-
-def one_line_exit_2(r):
-    assert r.returncode == 2, (r.returncode, r.stderr[-500:])
-    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
-    assert "Traceback" not in r.stderr
 
 
 BOMB = ALIAS_BOMB

@@ -8,20 +8,9 @@ import sys
 
 import pytest
 
-from conftest import CONFIG, ROOT
+from conftest import CONFIG, cli, one_line_exit_2
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
-
-
-def cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "piezo_stage.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=120, cwd=cwd or ROOT)
-
-
-def one_line_exit_2(r):
-    assert r.returncode == 2, (r.returncode, r.stderr[-500:])
-    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
-    assert "Traceback" not in r.stderr
 
 
 def test_launch_refuses_an_unknown_mode(tmp_path):

@@ -223,18 +223,7 @@ def choose_degree(rec: Record, axis: str, opts: IdentifyOptions,
     best wins (a higher degree must pay on held-out data). -> (d, {d: held-out RMS})."""
     from dataclasses import replace
     # the span where this axis moves (a protocol drives the axes in turn), split there
-    v = np.asarray(rec.v[axis], float)
-    moves = np.flatnonzero(np.abs(np.diff(v)) > 1e-9 * max(np.ptp(v), 1e-300))
-    lo, hi = (int(moves[0]), int(moves[-1]) + 2) if moves.size else (0, len(v))
-    cut = lo + int((hi - lo) * (1 - HELD_OUT_FRACTION))
-
-    def part(sl, name):
-        return Record(rec.t[sl], {a: v[sl] for a, v in rec.v.items()},
-                      {a: w[sl] for a, w in rec.w.items()}, source=f"{rec.source} ({name})",
-                      voltage_exact=rec.voltage_exact)
-    first, last = part(slice(lo, cut), "first 60 %"), part(slice(cut, hi), "last 40 %")
-    for piece in (first, last):
-        check_identifiable(piece.v[axis], piece.source)
+    first, last = _later_cycles(rec, axis)
     held = {}
     for d in degrees:
         r = identify_axis(first, axis, replace(opts, n=d, m=max(d - 1, 0)))
