@@ -252,3 +252,35 @@ def test_metadata_is_rosbag2_v9_with_qos_as_offered(tmp_path):
         assert qos["/s/model"][0].durability == QosDurability.TRANSIENT_LOCAL
         assert qos["/s/state"][0].depth == 20
         assert r.message_count == 1
+
+
+def test_joint_states_an_outside_node_sent_are_left_out_of_the_record(tmp_path, capfd):
+    """A bag also holds what outside nodes sent on joint_states (the faults bench sends
+    repeated and foreign joints): both readers leave such messages out, the record
+    reader saying how many in one line, instead of refusing the whole bag."""
+    import numpy as np
+
+    from piezo_stage.core.record import Record
+    from piezo_stage.io.bag import BagWriter, read_bag_record, write_record_bag
+    from piezo_stage.io.run_bag import read_run
+    from piezo_stage_msgs_adapters.cdr import encode_joint_state
+    path = str(tmp_path / "run")
+    t = np.arange(200) / 100.0
+    write_record_bag(path, Record(t, {"x": np.sin(t), "y": np.cos(t)},
+                                  {"x": np.sin(t), "y": np.cos(t)}))
+    hostile = str(tmp_path / "hostile")
+    with BagWriter(hostile) as bag:
+        bag.add_topic("/stage/joint_states", "sensor_msgs/msg/JointState")
+        for k in range(200):
+            ns = int(k * 1e7)
+            bag.write("/stage/joint_states", encode_joint_state(
+                ns, "stage", ["x", "y"], [1e-6 * k, 2e-6], (), [1.0, 2.0]), ns)
+        for names in (["x", "x"], ["a", "b"]):
+            bag.write("/stage/joint_states", encode_joint_state(
+                5_000_000, "stage", names, [1e-6, 1e-6], (), [1.0, 1.0]), 5_000_000)
+    rec = read_bag_record(hostile)
+    assert len(rec) == 200 and set(rec.w) == {"x", "y"}
+    assert "2 joint_states message(s) that are not the stage's samples" in capfd.readouterr().err
+    run = read_run(hostile)
+    assert len(run.t_ns) == 200 and run.skipped == 2
+    assert len(read_bag_record(path)) == 200

@@ -449,7 +449,7 @@ def read_bag_record(path, namespace=None):
 
     from piezo_stage.core.record import Record
     from piezo_stage_msgs_adapters.wire import joint_state_um
-    pos, volt = {}, {}
+    pos, volt, bad = {}, {}, 0
     seen = set()
     try:
         for topic, msgtype, _, data in iter_messages(path):
@@ -458,13 +458,24 @@ def read_bag_record(path, namespace=None):
                 continue
             if namespace and not topic.startswith(namespace):
                 continue
-            st, pos[st], v = joint_state_um(data, f"{path}: joint_states")
+            try:  # an outside node's malformed joint state is not the stage's sample
+                st, w, v = joint_state_um(data, f"{path}: joint_states")
+            except DataError:
+                bad += 1
+                continue
+            if not w:  # foreign joints only
+                bad += 1
+                continue
+            pos[st] = w
             if v is not None:
                 volt[st] = v
     except (DataError, ConfigError):
         raise
     except Exception as e:  # a corrupt message body: one line, not a traceback
         raise DataError(f"{path}: unreadable bag ({type(e).__name__}: {e})") from None
+    if bad:
+        _warn(f"{path}: {bad} joint_states message(s) that are not the stage's samples "
+              "(malformed, or foreign joints) left out")
     if not pos or not volt:
         raise DataError(f"{path}: bag lacks the needed topic (<ns>/joint_states, "
                         f"sensor_msgs/JointState with the applied voltage in effort); it has "

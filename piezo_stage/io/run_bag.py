@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from piezo_stage.core.errors import DataError
 from piezo_stage.io.bag import deserialize, iter_messages
 from piezo_stage_msgs_adapters.cdr import decode_joint_state
 from piezo_stage_msgs_adapters.wire import UM, joint_state_um, point_um
@@ -34,6 +35,7 @@ class Run:
     driver: dict = field(default_factory=dict)        # last driver diagnostics
     diagnostics: dict = field(default_factory=dict)   # node name -> its last ones
     models: int = 0                                   # models handed over (on model)
+    skipped: int = 0                                  # joint states not the driver's
 
     def state_times(self, name: str) -> list:
         return [s for s, n in self.states if n == name]
@@ -63,10 +65,17 @@ def read_run(bag) -> Run:
     ref: dict = {}
     states: list[tuple[int, str]] = []
     diags: dict = {}
-    models = 0
+    models = skipped = 0
     for topic, msgtype, log_ns, data in iter_messages(bag):
         if topic.endswith("/joint_states"):
-            ns, w_um, v_V = joint_state_um(data)
+            try:  # an outside node's malformed or foreign joint state is not a sample
+                ns, w_um, v_V = joint_state_um(data)
+            except DataError:
+                skipped += 1
+                continue
+            if not {"x", "y"} <= set(w_um):
+                skipped += 1
+                continue
             t.append(ns)
             recv.append(log_ns)
             w.append([w_um.get("x", np.nan), w_um.get("y", np.nan)])
@@ -93,4 +102,4 @@ def read_run(bag) -> Run:
     order = np.argsort(t, kind="stable")
     arr = lambda x, shape: np.array(x).reshape(shape)[order]  # noqa: E731
     return Run(arr(t, -1), arr(w, (-1, 2)), arr(v, (-1, 2)), arr(recv, -1), true, ref,
-               states, diags.get("stage_driver", {}), diags, models)
+               states, diags.get("stage_driver", {}), diags, models, skipped)
