@@ -194,22 +194,23 @@ class Feedforward(Node):
             self.reject_trajectory(e)
 
     def decode_trajectory(self, msg):
-        """-> (t, w, stamp) of a trajectory that is new, republished as accepted; None
-        for the one taken last, delivered again (volatile and latched). Any thread."""
+        """-> (t, w, stamp, start, now) of a trajectory that is new and accepted (every
+        check passed, its stamp's too), republished as accepted; None for the one taken
+        last, delivered again (volatile and latched). Any thread."""
         check_trajectory_size(msg, self.max_points)  # before anything else
         key = trajectory_key(msg)
         if key == self.decoded_key:
             return None
         t, w = trajectory_from_cdr(msg, self.p["range_um"], self.max_points)
+        stamp, now = trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
+        start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
         self.decoded_key = key
-        self.accepted_pub.publish(bytes(msg))
-        return t, w, trajectory_stamp_ns(msg)
+        self.accepted_pub.publish(bytes(msg))  # only what the stage will run
+        return t, w, stamp, start, now
 
     def take_trajectory(self, decoded):
         if decoded is not None:
-            t, w, stamp = decoded
-            now = self.get_clock().now().nanoseconds
-            start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
+            t, w, stamp, start, now = decoded
             self.stats["trajectories"] += 1
             self.planner.set_trajectory(t, w, start_ns=start)
             self.learning.reset()
