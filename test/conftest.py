@@ -39,19 +39,40 @@ def sine_v(freq, fs, cycles, lo=0.0, hi=150.0, phase=0.0):
     return t, lo + (hi - lo) / 2 * (1 - np.cos(2 * np.pi * freq * t + phase))
 
 
-# -- ROS domains: each test its own, never shared between parallel workers ------------
-# Fast DDS takes domain ids 0-232; 0 is left to the user's own graph. With pytest-xdist
-# each worker has its own slice of 1-230 and hands its ids out in turn, so no two tests
-# running at the same time ever share a domain (random ids did, now and then).
-_DOMAINS = {"next": 0}
+# -- ROS domains: each test its own, never shared between parallel runs --------------
+# Fast DDS takes domain ids 0-232; 0 is left to the user's own graph. Each test process
+# (a pytest-xdist worker, or pytest alone) claims a slice of 1-228 that no other process
+# on this host holds (a lock file, held while it runs) and hands its ids out in turn,
+# so no two tests running at the same time ever share a domain: not two workers (random
+# ids did, now and then), and not two suites on one host (a second suite's `demo` test
+# once found the first one's set on its domain: "/stage is already running", exit 2).
+SLICE = 38
+_DOMAINS: dict = {"next": 0}
 
 
 def _domain_slice():
-    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
-    index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
-    size = 230 // max(1, workers)
-    return 1 + index * size, size
+    if "slice" not in _DOMAINS:
+        _DOMAINS["slice"] = _claim_slice()
+    return _DOMAINS["slice"]
+
+
+def _claim_slice():
+    """The first slice no other process on this host holds: (first id, size)."""
+    import fcntl
+    import tempfile
+    where = os.path.join(tempfile.gettempdir(), "piezo_stage_test_domains")
+    os.makedirs(where, exist_ok=True)
+    for k in range(228 // SLICE):
+        fh = open(os.path.join(where, f"slice{k}.lock"), "w")
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.close()
+            continue
+        _DOMAINS["lock"] = fh  # held until this process ends (the OS lets it go then)
+        return 1 + k * SLICE, SLICE
+    raise RuntimeError(f"every slice of ROS domain ids is held by other test processes "
+                       f"on this host ({228 // SLICE} at most at a time)")
 
 
 @pytest.fixture

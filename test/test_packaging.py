@@ -12,6 +12,7 @@ from conftest import ROOT
 ROS_PACKAGES = {
     "rclpy", "rcl_interfaces", "builtin_interfaces", "rosgraph_msgs", "std_msgs",
     "std_srvs", "geometry_msgs", "sensor_msgs", "trajectory_msgs", "diagnostic_msgs",
+    "lifecycle_msgs",  # (ros2/rcl_interfaces, as rcl_interfaces itself)
     "ament_index_python", "launch", "launch_ros",
 }
 # The keys we use, each found in rosdistro's rosdep/python.yaml (read 2026-11-25 from a

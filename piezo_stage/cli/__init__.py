@@ -21,7 +21,8 @@ from piezo_stage.core.errors import (
 )
 
 COMMANDS = ("simulate", "invert", "excite", "gap", "launch", "demo", "experiment", "tune",
-            "replay", "bag", "loop", "identify", "refit", "study", "bench", "raster", "play")
+            "replay", "bag", "loop", "identify", "refit", "study", "bench", "raster", "play",
+            "lifecycle")
 
 
 def build_parser():

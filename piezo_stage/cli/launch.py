@@ -15,6 +15,11 @@ def add_arguments(s):
     s.add_argument("--namespace", default="/stage")
     s.add_argument("--no-arm", action="store_true", help="start disarmed and stay so "
                    "until armed on the arm service")
+    s.add_argument("--managed", action="store_true",
+                   help="leave the stage driver's lifecycle to an outside manager: it "
+                   "starts unconfigured (backend closed) and waits for configure and "
+                   "activate on its lifecycle services (`piezo-stage lifecycle`, or any "
+                   "lifecycle_msgs client)")
     s.add_argument("--no-trajectory", action="store_true",
                    help="leave the built-in trajectory node out: the set arms, holds "
                    "position and follows trajectories published by other nodes (the same "
@@ -42,13 +47,15 @@ def main(args):
     launch = Launch(args.config or default_config("stage.yaml"), record=record,
                     namespace=args.namespace, arm=not args.no_arm,
                     foxglove_port=args.foxglove, overrides=overrides,
-                    trajectory=not args.no_trajectory)
+                    trajectory=not args.no_trajectory, managed=args.managed)
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)
     print(f"launch: {', '.join(launch.nodes)} in {launch.ns} "
           f"({'lockstep' if launch.lockstep else 'real time'}"
           + (f", for {args.duration:g} s" if args.duration else ", until Ctrl-C")
+          + ("; the driver unconfigured until a manager configures and activates it"
+             if args.managed else "")
           + "; Ctrl-C stops them in order, the driver first)", flush=True)
     rc = launch.run(args.duration)
     if record:

@@ -59,6 +59,9 @@ PARAMETERS: tuple[tuple[str, object, str, dict], ...] = (
      "use_sim_time) every this much sample time [s]; 0: not at all", {"lo": 0.0, "hi": 10.0}),
     ("thread_priority", 50, "real time: SCHED_FIFO priority of the sample loop (0: leave "
      "the scheduler alone)", {"lo": 0, "hi": 99}),
+    ("managed", False, "lifecycle: start unconfigured and leave every transition "
+     "(configure, activate, deactivate, cleanup, shutdown) to an outside manager; false: "
+     "configure and activate at start, as a launch without --managed does", {}),
 )
 
 # backends that run on their hardware's clock
@@ -120,12 +123,18 @@ class SampleLoop:
         ``max_steps`` counts from the sample the stage first enabled, so a run's length
         after arming does not depend on how long arming took; before the first enable
         at most ``max_steps`` samples are taken.
+    first_j : int
+        Lockstep: the first sample's index, so a loop built again for the same run (the
+        driver configured again after a cleanup or an error) goes on where the last one
+        ended and the set's simulated time never runs back. Real time maps its first
+        tick to the ROS time of that tick, so its stamps go on by themselves.
     """
 
     def __init__(self, backend: Any, arm: ArmingParams, rate_hz: float, lockstep: bool,
                  lookahead_s: float, max_steps: int,
                  on_state_change: Callable[[str, str, int], None],
-                 clock_period_s: float = 0.0, from_arming: bool = False):
+                 clock_period_s: float = 0.0, from_arming: bool = False,
+                 first_j: int = 0):
         self.backend, self.lock, self.max_steps = backend, bool(lockstep), int(max_steps)
         self.from_arming, self.enabled_j = bool(from_arming), None
         self.rate_hz = float(rate_hz)
@@ -134,7 +143,7 @@ class SampleLoop:
             self.dt_ns, int(round(lookahead_s * 1e9)))
         self.max_step = {a: s / rate_hz for a, s in backend.slew_V_per_s.items()}
         self.v = {"x": arm.safe_V, "y": arm.safe_V}
-        self.j, self.t0_ns = -1, 0
+        self.j, self.t0_ns = (int(first_j) - 1 if self.lock else -1), 0
         self.stats = {"samples": 0, "rejected": 0, "limit_hits": 0, "unexpected_stamp": 0,
                       "missed_ticks": 0, "late_commands": 0}
         self.step_times: deque[float] = deque(maxlen=1_000_000)  # lockstep: the loop's pace

@@ -131,7 +131,7 @@ def _fmt(v):
 class Launch:
     def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
                  nodes=None, env=None, arm=True, foxglove_port=None, trajectory=True,
-                 exclusive=True):
+                 exclusive=True, managed=False):
         self.config_path = os.path.abspath(config_path)
         params = read_parameters(self.config_path)
         # outside trajectories only (--no-trajectory, or the trajectory node's kind: none):
@@ -169,6 +169,7 @@ class Launch:
                 "close its loop, so it would never arm (a file of changes goes with "
                 "--params, over config/stage.yaml; --no-arm starts such a set anyway)")
         self.arm = bool(arm)
+        self.managed = bool(managed)  # the driver's lifecycle left to an outside manager
         self.exclusive = bool(exclusive)  # refuse a namespace where a set runs already
         self.backend = drv.get("backend", "sim")
         self.overrides = {n: dict(o) for n, o in (overrides or {}).items()}
@@ -219,6 +220,8 @@ class Launch:
                  "stage_driver": g["stage_driver"],
                  "feedforward": {"wait_for_trajectory": "trajectory" in has}}
         g.setdefault("stage_driver", {})["auto_arm"] = self.arm
+        if self.managed:
+            g["stage_driver"]["managed"] = True
         return g
 
     def command(self, node):

@@ -5,6 +5,24 @@ parameters and topics: commands in, joint_states (and the simulated stage's true
 position) out, the latched ``state`` topic and /diagnostics; ``arm`` (std_srvs/SetBool)
 arms and disarms; ``estop`` (std_srvs/Trigger). In real time the executor calls
 ``on_lean_tick`` at each tick (the DAQ's read blocks until its clock).
+
+A managed (lifecycle) node, with the standard services (``change_state``,
+``get_state``, ``get_available_states``, ``get_available_transitions``) and
+``transition_event``:
+
+- configure: open the backend and read its limits (no voltage change); the sample loop
+  starts, disarmed at the safe voltage, publishing -> inactive;
+- activate: arm, through the approach, once the loop is closed -> active;
+- deactivate: disarm, ramping to the safe voltage, still publishing -> inactive;
+- cleanup: the backend closes (ramping to safe), the loop stops -> unconfigured;
+- shutdown: ramp to safe, close, and the node exits 0 -> finalized;
+- a fault while active (stale or late commands, an e-stop, a hardware error) ramps to
+  the safe voltage, then goes through the error transition: the backend closes and the
+  node waits unconfigured for configure and activate (the reason on ``state``, as ever).
+
+With ``managed: false`` (the launcher's default) the node configures and activates
+itself at start and keeps its own recovery: a stale fault re-arms through the approach
+within active (``auto_arm``), as a set without a manager always did.
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
@@ -18,14 +36,14 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rclpy.duration import Duration
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from piezo_stage.core.arming import ENABLED, ArmingParams
+from piezo_stage.core.arming import ENABLED, FAULTED, ArmingParams
 from piezo_stage.core.arming import PARAMETERS as ARMING
-from piezo_stage.core.errors import BackendFault, DataError
+from piezo_stage.core.errors import BackendFault, ConfigError, DataError
 from piezo_stage.core.sample_loop import PARAMETERS, RATES, SampleLoop, check_mode
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
@@ -43,8 +61,17 @@ from piezo_stage_msgs_adapters import (
     voltage_from_msg,
 )
 
+SUCCESS, FAILURE, ERROR = (TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE,
+                           TransitionCallbackReturn.ERROR)
 
-class StageDriver(Node):
+
+# a transition's state -> the state it leads to when it succeeds
+SETTLES_TO = {"configuring": "inactive", "activating": "active", "deactivating": "inactive",
+              "cleaningup": "unconfigured", "shuttingdown": "finalized",
+              "errorprocessing": "unconfigured"}
+
+
+class StageDriver(LifecycleNode):
     def __init__(self):
         super().__init__("stage_driver")
         STOP_STATE.watch_s = 12.0  # its stop ramps and closes the backend (see below)
@@ -53,54 +80,190 @@ class StageDriver(Node):
                       for name, default, desc, kw in PARAMETERS}
         check_mode(p["backend"], p["mode"], self.get_parameter("use_sim_time").value)
         defaults = ArmingParams()
-        arm = ArmingParams(**{field: d(name, getattr(defaults, field), desc, **(
+        self.arm_params = ArmingParams(**{field: d(name, getattr(defaults, field), desc, **(
             {"lo": r[0], "hi": r[1]} if r else {})) for name, field, desc, r in ARMING})
-        bp = {k: d(k, default, desc) for k, default, desc in BACKEND_PARAMS}
-        self.backend = make_backend(p["backend"], p["control_rate_hz"], bp, arm.safe_V)
+        self.bp = {k: d(k, default, desc) for k, default, desc in BACKEND_PARAMS}
+        self.managed = bool(p["managed"])
+        self.backend = self.loop = self.sup = None  # open from configure to cleanup
         self.lock = p["mode"] == "lockstep"
         self.link, self.failed = "", None  # the missing links; the hardware's fault
+        self.next_j = 0  # lockstep: the first sample of the next configure
+        self.last_values: dict = {}  # the last announcement's values (for unconfigured)
+        self.why_error = ""  # a fault that takes the error transition
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
         self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
         self.spub = self.create_publisher(DiagnosticArray, "state", QOS_EVENTS)
         # lockstep: the sample clock is the set's clock (a bag then has one time base)
         self.clock_pub = self.create_publisher(Clock, "/clock", 10) \
             if self.lock and p["clock_period_s"] > 0 else None
-        self.loop = SampleLoop(self.backend, arm, p["control_rate_hz"], self.lock,
-                               p["lookahead_s"], p["max_steps"], self.on_state_change,
-                               p["clock_period_s"], p["max_steps_from_arming"])
-        self.sup = self.loop.sup
-        # lockstep: nothing is published before every consumer listens; real time: the
-        # sample clock starts then (the first publishes to new readers are slow)
-        self.gate = Gate(self, [(self.jpub, p["min_subscribers"]),
-                                (self.tpub,
-                                 p["min_record_subscribers"] * (p["backend"] == "sim"))])
         hot_subscription(self, Vector3Stamped, "command", self.on_command, QOS_DATA,
                          raw=True, with_info=True)
         self.create_subscription(KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
         self.create_service(SetBool, "arm", self.on_arm)
         self.create_service(Trigger, "estop", self.on_estop)
         steady_timer(self, 0.5, self.check_links)
-        self.diag = Diagnostics(self, self.status, "sample loop", self.backend.hardware_id,
+        self.diag = Diagnostics(self, self.status, "sample loop", self.hardware_id,
                                 rates=RATES)
-        self.on_state_change(self.sup.state, self.sup.reason, 0)
-        if self.lock:
-            self.tick(0, None, False)  # sample 0: the stage at rest
-        else:
-            self.lean_deadline = 0.0   # the first real-time tick: now
+        self.lean_deadline = None  # real time: no tick until configured
+        if not self.lock:
             self.lean_take_at_tick = True  # commands are due at a later tick: no wake each
             self.rt_priority = set_realtime_priority(p["thread_priority"], self.get_logger())
+        if not self.managed:  # the launcher's way: configured and active from the start
+            for step in (self.trigger_configure, self.trigger_activate):
+                if step() != SUCCESS:
+                    raise self.transition_error or RuntimeError(f"{step.__name__} failed")
 
+    def hardware_id(self) -> str:
+        return self.backend.hardware_id if self.backend is not None else \
+            f"{self.p['backend']} stage (closed)"
+
+    # -- lifecycle transitions ----------------------------------------------------------
+    def _transition(self, name, body):
+        """Run a transition's ``body``: SUCCESS, or FAILURE with the reason logged (a
+        backend that cannot open, bad limits), ERROR for anything else; rclpy's own
+        wrapper would turn an exception into ERROR without a word."""
+        self.transition_error = None
+        try:
+            return body()
+        except Exception as e:  # noqa: BLE001 - said, then the state machine decides
+            self.transition_error = e
+            self.get_logger().error(f"{name} failed: {e}")
+            return FAILURE if isinstance(e, (ConfigError, DataError, BackendFault)) \
+                else ERROR
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Open the backend and start the sample loop, disarmed at the safe voltage."""
+        def body():
+            p, arm = self.p, self.arm_params
+            self.backend = make_backend(p["backend"], p["control_rate_hz"], self.bp,
+                                        arm.safe_V)
+            self.failed, self.why_error = None, ""
+            try:
+                start(p, arm)
+            except Exception:
+                self.loop = self.sup = None
+                self.close()  # nothing left open by a configure that failed
+                raise
+            return SUCCESS
+
+        def start(p, arm):
+            self.loop = SampleLoop(self.backend, arm, p["control_rate_hz"], self.lock,
+                                   p["lookahead_s"], p["max_steps"], self.on_state_change,
+                                   p["clock_period_s"], p["max_steps_from_arming"],
+                                   first_j=self.next_j)
+            self.sup = self.loop.sup
+            self.sup.arm_requested = False  # arming is activate's (or the arm service's)
+            # lockstep: nothing is published before every consumer listens; real time:
+            # the sample clock starts then (the first publishes to new readers are slow)
+            self.gate = Gate(self, [(self.jpub, p["min_subscribers"]),
+                                    (self.tpub,
+                                     p["min_record_subscribers"] * (p["backend"] == "sim"))])
+            self.on_state_change(self.sup.state,
+                                 "configured: started disarmed at the safe voltage",
+                                 self.loop.stamp(self.loop.j + 1))
+            if self.lock:
+                self.tick(self.loop.j + 1, None, False)  # the first sample: at rest
+            else:
+                self.lean_deadline = 0.0  # the first real-time tick: now
+        return self._transition("configure", body)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Arm once the loop is closed (managed, or ``auto_arm``), then the approach."""
+        def body():
+            if self.sup.estop:  # a latched e-stop: activate is the explicit re-arm
+                self.sup.request_disarm(self.loop.stamp(self.loop.j))
+            self.sup.arm_requested = self.managed or self.arm_params.auto_arm
+            self.sup.reason = "activated: waiting for the loop to close" \
+                if self.sup.arm_requested else "activated: arm on the arm service"
+            self.on_state_change(self.sup.state, self.sup.reason,
+                                 self.loop.stamp(self.loop.j), log=False)
+            return SUCCESS
+        return self._transition("activate", body)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Disarm: ramp to the safe voltage, still publishing. A fault's own deactivate
+        (``why_error``) is an error: the error transition follows."""
+        if self.why_error:
+            return ERROR
+        def body():
+            self.loop.arm(False)
+            self.sup.reason = "deactivated: ramping to the safe voltage"
+            self.on_state_change(self.sup.state, self.sup.reason,
+                                 self.loop.stamp(self.loop.j), log=False)
+            return SUCCESS
+        return self._transition("deactivate", body)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Close the backend (ramping to safe) and stop the sample loop."""
+        def body():
+            self._close("cleaned up")
+            return SUCCESS
+        return self._transition("cleanup", body)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Ramp to safe and close (real time: over the next ticks), then exit 0."""
+        def body():
+            self.get_logger().info("shutdown: ramping to the safe voltage, then exiting")
+            if self.loop is None or self.lock:
+                self._close("shut down")
+                self._exit_timer = steady_timer(self, 0.2, rclpy.try_shutdown)
+            else:
+                self.request_shutdown()
+            return SUCCESS
+        return self._transition("shutdown", body)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """After a fault (at the safe voltage by then) or a failed transition: close the
+        backend; unconfigured, from where configure can be tried again."""
+        reason = self.why_error or f"{state.label}: {self.transition_error}"
+        self.get_logger().warning(f"error transition: {reason}; unconfigured, the "
+                                  "backend closed: configure and activate to go on")
+        self._close(f"error: {reason}")
+        self.why_error = ""
+        return SUCCESS
+
+    def _close(self, why: str) -> None:
+        """The backend ramps to the safe voltage and closes; no tick until configured
+        again; ``state`` says so (disarmed, the last values, unconfigured)."""
+        self.lean_deadline = None
+        if self.loop is not None:
+            self.next_j = self.loop.j + 1
+        try:
+            self.close()
+        except Exception as e:  # noqa: BLE001 - a link already lost cannot close
+            self.get_logger().error(f"{why}: the backend's close failed: {e}")
+        if self.loop is not None:
+            self.loop = self.sup = None
+            self._announce("disarmed", f"{why}: the backend is closed", log=True)
+
+    def _check_fault(self) -> None:
+        """Managed and active: a fault, once at the safe voltage, takes the error
+        transition (a deactivate that reports the fault)."""
+        if not (self.managed and self.sup.state == FAULTED
+                and self.lifecycle_label() == "active"):
+            return
+        if all(abs(x - self.sup.p.safe_V) < 1e-9 for x in self.loop.v.values()):
+            self.why_error = f"faulted: {self.sup.reason}"
+            self.trigger_deactivate()
+
+    # -- the sample loop ----------------------------------------------------------------
     def on_lean_tick(self):
         """Real time: the sample clock's tick."""
+        if self.loop is None:
+            self.lean_deadline = None
+            return
         if not self.gate.open:
             self.lean_deadline = time.monotonic() + 0.01  # consumers still matching
             return
         j, cmd, on_time, missed = self.loop.next_tick(
             time.monotonic(), lambda: self.get_clock().now().nanoseconds)
         self.tick(j, cmd, on_time, missed)
-        self.lean_deadline = self.loop.clock.deadline(self.loop.j + 1)
+        if self.loop is not None:
+            self.lean_deadline = self.loop.clock.deadline(self.loop.j + 1)
 
     def on_command(self, msg, info):
+        if self.loop is None:  # unconfigured: no sample to answer
+            return
         try:
             ns, v = voltage_from_msg(msg)
         except DataError:  # NaN/inf or malformed: never counts as a fresh command
@@ -113,6 +276,8 @@ class StageDriver(Node):
 
     def tick(self, j, cmd, on_time, missed=0):
         """Take sample ``j`` and publish it; exit once a stop has ramped down."""
+        if self.loop is None:
+            return None
         if self.loop.ended(j):
             return self.done()
         if self.loop.past_max_steps(j):
@@ -130,17 +295,29 @@ class StageDriver(Node):
         if self.loop.shut_down:
             self.final_report()
             rclpy.try_shutdown()  # at the safe voltage (or out of time): exit
+        else:
+            self._check_fault()
 
     def hardware_failed(self, error):
         """A lost link or a controller error: faulted, said on state and diagnostics,
         then the node exits 1 with the reason (the backend's close ramps to safe where
-        the link still allows it). No sample is taken after it."""
+        the link still allows it). No sample is taken after it. Managed: the error
+        transition instead (the backend closed where it can be), and the node waits
+        unconfigured for a manager to configure it again."""
         if self.failed is None:
             self.failed = error
             self.sup.fault(f"hardware: {error}", self.loop.stamp(self.loop.j))
             self.get_logger().error(f"faulted: hardware: {error}")
             self.final_report()
             self.spub.wait_for_all_acked(Duration(seconds=1))
+        if self.managed and self.lifecycle_label() == "active":
+            self.why_error = f"faulted: hardware: {error}"
+            self.trigger_deactivate()
+            return None
+        if self.managed and self.lifecycle_label() == "inactive":
+            self.why_error = f"faulted: hardware: {error}"  # inactive has no error edge:
+            self.trigger_cleanup()  # cleanup, closing what the link still allows
+            return None
         raise error
 
     def done(self):
@@ -167,11 +344,15 @@ class StageDriver(Node):
     @property
     def shutdown_requested(self) -> bool:
         """A stop is under way (the executor's StopsInOrder hook)."""
-        return self.loop.shutdown_requested
+        return self.loop is not None and self.loop.shutdown_requested
 
     def request_shutdown(self) -> None:
         """SIGINT/SIGTERM or max_steps: ramp to the safe voltage, still publishing, then
-        exit. Lockstep (a simulation waiting for commands) exits at once."""
+        exit. Lockstep (a simulation waiting for commands) and an unconfigured driver
+        (nothing open) exit at once."""
+        if self.loop is None:
+            rclpy.try_shutdown()
+            return
         if self.lock:
             self.loop.shutdown_requested = True
             rclpy.try_shutdown()
@@ -182,13 +363,20 @@ class StageDriver(Node):
     # -- arming ---------------------------------------------------------------------------
     def on_state_change(self, state, reason, since_ns, log=True):
         self.state_since = since_ns
-        values = {**self.loop.announced(), "mode": self.p["mode"]}
-        # announced a few samples ahead of when it applies, and before the next sample
-        # is published: the loop nodes take `state` before their data in every pass, so
-        # in lockstep each has it before the sample it must act on (reruns identical)
+        self.last_values = {**self.loop.announced(), "mode": self.p["mode"]}
+        self._announce(state, reason, log)
+
+    def _announce(self, state, reason, log=True):
+        """The state topic: the arming state, the driver's values and its lifecycle
+        state. Announced a few samples ahead of when it applies, and before the next
+        sample is published: the loop nodes take `state` before their data in every
+        pass, so in lockstep each has it before the sample it must act on (reruns
+        identical)."""
+        label = self.lifecycle_label()  # within a transition: the state it leads to
+        values = {**self.last_values, "lifecycle": SETTLES_TO.get(label, label)}
         name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}: arming"
-        self.spub.publish(arming_state_msg(since_ns, name, state, reason, values,
-                                           self.backend.hardware_id))
+        self.spub.publish(arming_state_msg(self.state_since, name, state, reason, values,
+                                           self.hardware_id()))
         if log and state == "faulted":  # (one call site per severity: rclpy's rule)
             self.get_logger().warning(f"{state}: {reason}")
         elif log:
@@ -197,39 +385,64 @@ class StageDriver(Node):
     def check_links(self):
         """Graph queries cost the loop thread ~1 ms: only while not armed, where a
         refusal or the arming reason needs them."""
-        if self.sup.state not in ENABLED:
+        if self.sup is not None and self.sup.state not in ENABLED:
             self.link = missing_links(self)
 
     def on_phase(self, msg):
         """The feedforward's phase and what it follows: the arming state follows it,
         and /stage/state relays it."""
-        if self.loop.feedforward_phase(*phase_from_msg(msg)):
+        if self.loop is not None and self.loop.feedforward_phase(*phase_from_msg(msg)):
             self.on_state_change(self.sup.state, self.sup.reason, self.state_since,
                                  log=False)  # the same state, from the same sample
 
     def on_arm(self, request, response):
+        """Arm or disarm within active (the lifecycle's activate and deactivate do the
+        same and move its state; this service is the finer switch a set without a
+        manager has always had)."""
+        if self.lifecycle_label() != "active":
+            response.success = False
+            response.message = (f"{self.lifecycle_label()}: the driver arms only when "
+                                "active (lifecycle: configure, then activate)")
+            return response
         self.check_links()
         response.success, response.message = self.loop.arm(request.data, self.link)
         return response
 
     def on_estop(self, request, response):
+        if self.loop is None:
+            response.success, response.message = True, "unconfigured: nothing is driven"
+            return response
         response.success, response.message = True, self.loop.estop()
         return response
 
+    def lifecycle_label(self) -> str:
+        """The lifecycle state's label (unconfigured, inactive, active, finalized; a
+        transition's own label while it runs, such as deactivating)."""
+        return self._state_machine.current_state[1]
+
     def status(self):
-        level, message, values = self.loop.status()
+        if self.loop is None:
+            level, message = 0, f"{self.lifecycle_label()}: the backend is closed"
+            values = {"state": "disarmed", "reason": message}
+        else:
+            level, message, values = self.loop.status()
         values.update(backend=self.p["backend"], mode=self.p["mode"],
+                      lifecycle=self.lifecycle_label(),
                       thread_priority=getattr(self, "rt_priority", 0))
         return level, message, values
 
     def stop_summary(self) -> str:
         """What a stop left the stage at (run_node prints it)."""
+        if self.loop is None:
+            return f"{self.lifecycle_label()}, the backend closed"
         return f"{self.loop.summary()}; the backend then ramps to safe and closes"
 
     def close(self):
         """The backend ramps to the safe voltage and closes before the node goes
         (run_node calls this, then destroys the node)."""
-        self.backend.close(self.sup.p.safe_V, self.sup.p.ramp_V_per_s)
+        if self.backend is not None:
+            backend, self.backend = self.backend, None
+            backend.close(self.arm_params.safe_V, self.arm_params.ramp_V_per_s)
 
 
 def main(args=None):
