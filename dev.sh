@@ -14,23 +14,66 @@ if [ -z "$py" ]; then
 fi
 [ -n "$py" ] || { echo "dev.sh: error: python3.11 not found" >&2; exit 2; }
 
+cmd=${1:-demo}
+# what a command needs installed: the demo and the other commands the package and ROS;
+# the tests also their tools (pytest, linters, the vendors' packages)
+extras=ros
+[ "$cmd" = test ] && extras=ros,test
+
+# uv installs the wheels in seconds where pip takes half a minute: it comes from PATH or,
+# through pip, from the package index into .venv/tools; it is given pip's own
+# configuration (indexes, find-links, constraints, certificate). Without uv, pip.
+# PIEZO_STAGE_INSTALLER=pip: pip alone (as before uv; scripts/bench_setup.sh's baseline).
+uv=$(command -v uv || true)
+[ -z "$uv" ] && [ -x .venv/tools/bin/uv ] && uv=.venv/tools/bin/uv
+only_pip=$([ "${PIEZO_STAGE_INSTALLER:-}" = pip ] && echo 1 || true)
+[ -n "$only_pip" ] && uv=""
 if [ ! -x .venv/bin/python ]; then
-  "$py" -m venv .venv
+  if [ -z "$only_pip" ] && [ -z "$uv" ] && "$py" -m venv --without-pip .venv \
+       && "$py" -m pip install --quiet --disable-pip-version-check --target .venv/tools \
+            uv >/dev/null 2>&1; then
+    uv=.venv/tools/bin/uv
+  elif [ -z "$only_pip" ] && [ -n "$uv" ]; then
+    "$py" -m venv --without-pip .venv
+  else
+    rm -rf .venv
+    "$py" -m venv .venv
+  fi
 fi
 stamp=.venv/.piezo_stage_install_stamp
-want=$(cat setup.py setup.cfg package.xml | sha256sum | cut -d' ' -f1)
-if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
-  .venv/bin/python -m pip install --quiet --disable-pip-version-check --upgrade pip
-  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[ros,test]"
-  # the nv200 backend's package (and its tests): it declares Python >= 3.12 but runs on
-  # 3.11 (every module imports and its tests pass here), so it is installed past that
-  # check, after the test extra, never as a dependency pip would refuse
-  .venv/bin/python -m pip install --quiet --disable-pip-version-check \
-    --ignore-requires-python "nv200==1.6.0"
-  echo "$want" > "$stamp"
+want=$(cat setup.py setup.cfg package.xml dev.sh | sha256sum | cut -d' ' -f1)
+have=$(cat "$stamp" 2>/dev/null || true)
+if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" != ros,test ]; }; then
+  uv_flags=()
+  while IFS= read -r line; do
+    key=${line%%=*}; key=${key#*.}; val=${line#*=}; val=${val#\'}; val=${val%\'}
+    for v in $val; do
+      case "$key" in
+        index-url) uv_flags+=(--index-url "$v") ;;
+        extra-index-url) uv_flags+=(--extra-index-url "$v") ;;
+        find-links) uv_flags+=(--find-links "$v") ;;
+        constraint) uv_flags+=(--constraint "$v") ;;
+        cert) export SSL_CERT_FILE="$v" ;;
+      esac
+    done
+  done < <("$py" -m pip config list 2>/dev/null || true)
+  if ! { [ -n "$uv" ] && "$uv" pip install --quiet --python .venv/bin/python \
+           --index-strategy unsafe-best-match "${uv_flags[@]}" -e ".[$extras]"; }; then
+    [ -n "$uv" ] && echo "dev.sh: uv could not install; pip takes over" >&2
+    .venv/bin/python -m pip --version >/dev/null 2>&1 || .venv/bin/python -m ensurepip >/dev/null
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[$extras]"
+  fi
+  if [ "$extras" = ros,test ]; then
+    # the nv200 backend's package (and its tests): it declares Python >= 3.12 but runs
+    # on 3.11 (every module imports and its tests pass here), so pip installs it past
+    # that check, after the test extra, never as a dependency pip would refuse
+    .venv/bin/python -m pip --version >/dev/null 2>&1 || .venv/bin/python -m ensurepip >/dev/null
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check \
+      --ignore-requires-python "nv200==1.6.0"
+  fi
+  echo "$want $extras" > "$stamp"
 fi
 
-cmd=${1:-demo}
 [ $# -gt 0 ] && shift
 case "$cmd" in
   test)

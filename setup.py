@@ -74,14 +74,15 @@ setup(
         # (pytest-xdist: two workers, each test on its own ROS domain; pytest-timeout: a
         # hung test fails with every thread's stack instead of hanging the suite)
         # (hypothesis: the trajectory decoder against rclpy's own, on generated messages)
-        # (wheel: the install-layout test builds our wheel without build isolation)
+        # (wheel, setuptools: the install-layout tests build our wheel and a colcon-style
+        # install without build isolation; a venv uv made has no setuptools of its own)
         # (pysindy: the sparse hysteresis peer that bench identify compares with)
         # (pipython: the pi backend on PI's real package, against a controller double)
         # (mypy: the type checker, on the layers setup.cfg's [mypy] lists)
         "test": ["pytest>=7", "pytest-xdist>=3.5", "pytest-timeout>=2.2", "nidaqmx>=1.0",
                  "pipython>=2.10",
                  "ruff>=0.5", "numpydoc>=1.6", "hypothesis>=6.90",
-                 "wheel>=0.40", "pysindy>=2.0", "mypy>=1.10"],
+                 "wheel>=0.40", "setuptools>=61", "pysindy>=2.0", "mypy>=1.10"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",

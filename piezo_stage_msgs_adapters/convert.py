@@ -291,7 +291,7 @@ def model_msg(yaml_text: str) -> String:
 
 def model_from_msg(msg: String):
     """std_msgs/String with a model file's YAML -> (StageModel, effects)."""
-    from piezo_stage.core.model_doc import model_from_dict, parse_yaml
+    from piezo_stage.core.model.model_doc import model_from_dict, parse_yaml
     return model_from_dict(parse_yaml(msg.data, "model message", max_bytes=65536),
                            "model message")
 

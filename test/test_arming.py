@@ -7,24 +7,20 @@ import os
 import numpy as np
 import pytest
 
-from piezo_stage.core.arming import (
-    APPROACH,
+from piezo_stage.core.errors import ConfigError, PiezoStageError
+from piezo_stage.core.loop.arming import (
     APPROACHING,
     ARMED,
     ARMING,
     DISARMED,
     FAULTED,
-    HOLD,
-    TRACK,
-    Approach,
     ArmingParams,
     ArmingSupervisor,
-    CommandSchedule,
-    ReferencePlanner,
     StateTimeline,
 )
-from piezo_stage.core.control import PID, CompositeAxis, PIDGains, clamp_slew
-from piezo_stage.core.errors import ConfigError, PiezoStageError
+from piezo_stage.core.loop.clock import CommandSchedule
+from piezo_stage.core.loop.control import PID, CompositeAxis, PIDGains, clamp_slew
+from piezo_stage.core.loop.planner import APPROACH, HOLD, TRACK, Approach, ReferencePlanner
 from piezo_stage.core.metrics import LatencyHistogram
 
 MS = 1_000_000
@@ -277,7 +273,7 @@ def test_host_pauses_are_where_every_cpu_sentinel_stopped_at_once():
 def test_a_trajectory_starts_at_its_stamp_and_ends_done():
     """A future start time holds the first point after the approach until then; past
     the last point the phase is done and the last point is held."""
-    from piezo_stage.core.arming import DONE, TRACK, ReferencePlanner
+    from piezo_stage.core.loop.planner import DONE, TRACK, ReferencePlanner
     p = ReferencePlanner()
     p.hold({"x": 10.0, "y": 10.0})
     t = np.array([0.0, 0.1])
@@ -299,7 +295,7 @@ def test_a_lockstep_experiment_runs_long_enough_for_its_approach():
     import numpy as np
 
     from piezo_stage.apps.experiments import LOCKSTEP_SLACK_S, Case, lockstep_margin_s
-    from piezo_stage.core.arming import Approach
+    from piezo_stage.core.loop.planner import Approach
 
     config = os.path.join(os.path.dirname(os.path.dirname(__file__)), "config", "stage.yaml")
     t = np.arange(11) * 1e-3
@@ -322,7 +318,7 @@ def test_the_controllers_law_is_one_call_per_reference():
     enabled; the feedforward alone (and a restart) while not; the integral holds while
     the loop is not closed; a gap in the references restarts it; never a non-finite
     command."""
-    from piezo_stage.core.control import PARAMETERS, CompositeController
+    from piezo_stage.core.loop.control import PARAMETERS, CompositeController
     p = {name: default for name, default, _, _ in PARAMETERS}
     p.update(kp=0.5, ki=100.0, kd=0.0, control_rate_hz=1000.0, relay_amplitude_V=0.0)
     c = CompositeController(p)

@@ -9,7 +9,7 @@ import pytest
 
 from conftest import ROOT
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.record import Record
 from piezo_stage.io.bag import (
     BagWriter,
     iter_messages,
@@ -123,7 +123,7 @@ def test_bag_without_needed_topics(tmp_path):
 
 
 def test_identify_on_a_bag(tmp_path, plant_config_path):
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.plant_file import load_plant_config
     cfg = load_plant_config(plant_config_path)
     t = np.arange(2000) / 1000
@@ -260,7 +260,7 @@ def test_joint_states_an_outside_node_sent_are_left_out_of_the_record(tmp_path, 
     reader saying how many in one line, instead of refusing the whole bag."""
     import numpy as np
 
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
     from piezo_stage.io.bag import BagWriter, read_bag_record, write_record_bag
     from piezo_stage.io.run_bag import read_run
     from piezo_stage_msgs_adapters.cdr import encode_joint_state

@@ -1,24 +1,24 @@
-"""Effect compensation (core/compensation.py): the inverse of each effect, run through
+"""Effect compensation (core/loop/compensation.py): the inverse of each effect, run through
 the plant's own effect operators at the plant's internal rate, gives back the wanted
 positions at the control rate."""
 
 import numpy as np
 import pytest
 
-from piezo_stage.core.compensation import (
+from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.loop.compensation import (
     DynamicsInverse,
     EffectCompensator,
     PreviewDynamicsInverse,
 )
-from piezo_stage.core.effects import Creep, Delay, Dynamics
-from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.model.effects import Creep, Delay, Dynamics
 
 FS, R = 1000.0, 10  # control rate, plant substeps per period
 
 
 def _through_plant(h, makers):
     """Hysteresis targets held over each period, through the plant's effects at its
-    internal rate, sampled at the end of each period (as core/plant.py does)."""
+    internal rate, sampled at the end of each period (as core/model/plant.py does)."""
     y = np.repeat(h, R)
     for make in makers:
         e = make()
@@ -142,8 +142,8 @@ def test_previewed_reference_runs_the_planner_ahead_by_the_delay():
     target commanded at a tick is what the stage should be 2 ticks later, and the
     desired position reported for a tick is the planner's value for that tick (its
     clock started when it was first asked, 2 ticks earlier than without the lead)."""
-    from piezo_stage.core.arming import ReferencePlanner
-    from piezo_stage.core.compensation import PreviewedReference
+    from piezo_stage.core.loop.compensation import PreviewedReference
+    from piezo_stage.core.loop.planner import ReferencePlanner
     dt = 1_000_000
     t = np.arange(200) * 1e-3
     traj = {"x": 10 + 5 * np.sin(2 * np.pi * 5 * t), "y": np.full_like(t, 3.0)}

@@ -12,7 +12,11 @@ import numpy as np
 import pytest
 
 from conftest import sine_v
-from piezo_stage.core.duhem import (
+from piezo_stage.core.errors import DataError
+from piezo_stage.core.estimation.identify import identify_axis
+from piezo_stage.core.estimation.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
+from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.model.duhem import (
     POLY_MARGIN,
     DuhemBranch,
     DuhemModel,
@@ -23,13 +27,9 @@ from piezo_stage.core.duhem import (
     polynomial_range,
     voltage_limits_for,
 )
-from piezo_stage.core.errors import DataError
-from piezo_stage.core.identify import identify_axis
-from piezo_stage.core.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
-from piezo_stage.core.inverse import invert_stage
-from piezo_stage.core.model_doc import model_from_dict, model_to_dict
-from piezo_stage.core.play import PlayOperators
-from piezo_stage.core.record import Record
+from piezo_stage.core.model.inverse import invert_stage
+from piezo_stage.core.model.model_doc import model_from_dict, model_to_dict
+from piezo_stage.core.model.play import PlayOperators
 
 # a degree-5 branch whose tail runs away past 60 V (as a fit on a small stroke gives)
 H5 = [0.45, 2e-3, -1e-4, 3e-6, -2e-8, 1e-10]
@@ -145,7 +145,7 @@ def test_every_identified_model_loads_simulates_and_inverts_over_the_amplifier_r
     """A record on any part of the stroke: the model identify writes (limits 0-150 V,
     the amplifier's) is accepted by our loader and runs finite through simulate and the
     exact inverse over the whole 0-150 V, past its fitted range."""
-    from piezo_stage.core.plant import Plant, PlantConfig
+    from piezo_stage.core.model.plant import Plant, PlantConfig
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     hi = min(lo + span, 150.0)
     _, v = sine_v(1.0, 1000.0, cycles, lo, hi)
@@ -260,7 +260,7 @@ def test_the_rate_stages_loop_widens_with_the_input_rate_and_the_structure_stage
     r_j + 1 ms x |dv/dt| (filtered): over the full stroke its loop at mid stroke is
     wider at 10 Hz than at 2 Hz; the structure stage's (rate independent) is not; a
     batch run and a run one command at a time agree."""
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.plant_file import load_plant_config
     from piezo_stage.paths import default_config
 
@@ -281,7 +281,7 @@ def test_the_rate_stages_loop_widens_with_the_input_rate_and_the_structure_stage
     s_slow, _ = width("structure_stage.yaml", 2.0)
     s_fast, _ = width("structure_stage.yaml", 10.0)
     assert abs(s_fast - s_slow) < 0.02 * s_slow, (s_slow, s_fast)
-    from piezo_stage.core.plant import Plant as P
+    from piezo_stage.core.model.plant import Plant as P
     cfg = load_plant_config(default_config("rate_stage.yaml"))
     cfg.model.coupling.clear()
     cfg.noise_rms_um = 0.0
@@ -306,7 +306,7 @@ def test_any_input_units_identify_and_run_through_the_written_model(tmp_path, un
     an amplifier of unknown gain, a sensor with an offset): `identify` fits it, writes
     the amplifier's limits, and the written model run through `simulate` over a held-out
     record in the same units is within the sensor's noise plus a little."""
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.csv_table import read_table, write_table
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
 

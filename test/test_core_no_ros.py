@@ -23,7 +23,7 @@ for m in mods:
 import piezo_stage.io.model_file, piezo_stage.io.plant_file, piezo_stage.io.csv_table
 import numpy as np
 from piezo_stage.io.plant_file import load_plant_config, default_plant_config_path
-from piezo_stage.core.plant import Plant
+from piezo_stage.core.model.plant import Plant
 p = Plant(load_plant_config(default_plant_config_path()), 1000.0)
 w = p.run(np.linspace(0, 100, 50), np.zeros(50))
 assert w['x'][-1] > 10

@@ -218,8 +218,8 @@ def test_play_on_the_daq_double_records_the_waveform_and_fails_on_missed_clocks(
     waveform and its positions the simulated stage's; a missed sample clock fails the
     play (the record would not be the waveform)."""
     from piezo_stage.core.errors import BackendFault
-    from piezo_stage.core.plant import Plant
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.drivers.playback import play_record
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     t = np.arange(0, 0.5, 1e-3)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import sine_v
-from piezo_stage.core.duhem import DuhemBranch, DuhemHysteresis, DuhemModel, DuhemState
+from piezo_stage.core.model.duhem import DuhemBranch, DuhemHysteresis, DuhemModel, DuhemState
 
 
 @pytest.fixture

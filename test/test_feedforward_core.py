@@ -1,4 +1,4 @@
-"""The feedforward's per-sample work without ROS (core/feedforward.py): bumpless while
+"""The feedforward's per-sample work without ROS (core/loop/feedforward.py): bumpless while
 the driver does not apply commands, the model's inverse once it does, a new model eased
 in while armed, missed ticks answered, a bad model refused with the old one kept."""
 
@@ -7,10 +7,10 @@ import os
 import pytest
 
 from conftest import CONFIG
-from piezo_stage.core.arming import ReferencePlanner
-from piezo_stage.core.duhem import AXES
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.feedforward import HANDOVER_V_PER_TICK, InverseFeedforward
+from piezo_stage.core.loop.feedforward import HANDOVER_V_PER_TICK, InverseFeedforward
+from piezo_stage.core.loop.planner import ReferencePlanner
+from piezo_stage.core.model.duhem import AXES
 from piezo_stage.io.model_file import load_model
 
 DT = 1_000_000  # 1 kHz
@@ -114,7 +114,7 @@ def test_a_model_missing_an_axis_or_outside_the_drivers_limits_is_refused(model)
 
 def test_a_trajectorys_stamp_sets_its_start_and_an_old_one_is_refused():
     from piezo_stage.core.errors import DataError
-    from piezo_stage.core.feedforward import PAST_TRAJECTORY_NS, trajectory_start
+    from piezo_stage.core.loop.feedforward import PAST_TRAJECTORY_NS, trajectory_start
     now = 10**18
     assert trajectory_start(0, now) is None  # zero: now
     assert trajectory_start(now - PAST_TRAJECTORY_NS + 1, now) is None  # just sent: now

@@ -13,7 +13,7 @@ import pytest
 from conftest import ROOT
 from piezo_stage.apps.studies.gap_blind import make_pair
 from piezo_stage.core.errors import ConfigError
-from piezo_stage.core.gap import diagnose
+from piezo_stage.core.estimation.gap import diagnose
 from piezo_stage.io.csv_table import read_table, write_table
 
 
@@ -132,7 +132,7 @@ def test_excite_command(tmp_path):
     assert 25 < c["t"][-1] < 40
     assert c["vx"].min() >= 0 and c["vx"].max() <= 150
     assert np.all((c["vx"] == 0) | (c["vy"] == 0))  # each axis driven alone
-    from piezo_stage.core.gap import broadband, holds
+    from piezo_stage.core.estimation.gap import broadband, holds
     assert len(holds(c["vx"], 1000.0)) >= 3           # multi-second holds
     assert broadband(c["vx"], 1000.0)                 # the chirp, by default
     r = _cli("excite", "--chirp", 0, "--out", tmp_path / "e0.csv", "--rate", 1000)
@@ -198,7 +198,7 @@ def test_the_given_model_s_own_parts_are_not_candidates(tmp_path, stage_model):
 
 
 def test_holds_are_held_voltages_not_slow_turning_points_or_dac_steps():
-    from piezo_stage.core.gap import held, holds
+    from piezo_stage.core.estimation.gap import held, holds
     fs = 5000.0
     t = np.arange(int(10 * fs)) / fs
     sine = 75 - 75 * np.cos(2 * np.pi * 1.0 * t)              # a plain 1 Hz sine
@@ -245,10 +245,10 @@ def test_a_richer_hysteresis_shape_is_the_structure_class():
     closes the gap, and no effect is named for it."""
     import copy
 
-    from piezo_stage.core.duhem import DuhemBranch, DuhemModel
-    from piezo_stage.core.excitation import gap_protocol
-    from piezo_stage.core.plant import Plant
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.excitation import gap_protocol
+    from piezo_stage.core.estimation.record import Record
+    from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     cfg = copy.deepcopy(load_plant_config(default_plant_config_path()))
     cfg.model.coupling.clear()
@@ -280,7 +280,7 @@ def test_dynamics_read_before_the_hold_ends_is_the_plants_sampled_form():
     that long before the sample's end, against a fine simulation of the same."""
     from scipy import signal
 
-    from piezo_stage.core.effects import Dynamics
+    from piezo_stage.core.model.effects import Dynamics
     fs, fine, delta = 5000.0, 100, 0.1e-3
     wn = 2 * np.pi * 800.0
     u = np.random.default_rng(0).standard_normal(300)
@@ -316,8 +316,8 @@ def test_a_resonance_and_a_delay_are_both_found_with_the_chirp():
 
 
 def test_a_delay_on_a_record_without_a_chirp_says_what_would_separate_it():
-    from piezo_stage.core.excitation import gap_protocol
-    from piezo_stage.core.gap import broadband
+    from piezo_stage.core.estimation.excitation import gap_protocol
+    from piezo_stage.core.estimation.gap import broadband
     fit, hold = make_pair("delay", "own", 0, chirp_s=0.0)  # excite --chirp 0
     res = diagnose(fit, hold, axes=["x"])
     assert res["verdict"] == "delay"
@@ -334,7 +334,7 @@ def test_two_axes_run_apart_with_progress_results_and_errors_relayed():
     from threadpoolctl import threadpool_limits
 
     from piezo_stage.core.errors import DataError
-    from piezo_stage.core.gap import diagnose_axis
+    from piezo_stage.core.estimation.gap import diagnose_axis
     fit, hold = make_pair("creep", "own", 0)
     seen = []
     res = diagnose(fit, hold, progress=seen.append)
@@ -356,7 +356,7 @@ def test_two_axes_run_apart_with_progress_results_and_errors_relayed():
 def test_one_column_search_finds_what_the_exact_search_finds(kind, monkeypatch):
     """The effect's parameters searched on the held fit's one-column prediction,
     alternating with the exact refit, end where the search on every column ends."""
-    from piezo_stage.core.gap import candidates
+    from piezo_stage.core.estimation.gap import candidates
     fit, _ = make_pair(kind, "own", 5)
     base = candidates.fit_candidate(fit, "x", "none")
     fast = candidates.fit_candidate(fit, "x", kind, base, base.effects)
@@ -399,9 +399,9 @@ def test_a_stage_with_memory_is_named_memory_and_its_locked_part_is_the_truth():
     # --out-model writes the play operators, and the inverse of that model tracks the
     # stage with memory (noise-free, a 2 + 7 Hz target) far better than the Duhem law
     # identified alone: 0.064 against 0.568 um RMS when written
-    from piezo_stage.core.gap import fit_candidate
-    from piezo_stage.core.inverse import invert
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.estimation.gap import fit_candidate
+    from piezo_stage.core.model.inverse import invert
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.model_file import model_from_dict, model_to_dict
     from piezo_stage.io.plant_file import load_plant_config
     model, _ = model_from_dict(model_to_dict(*res.model(fit)))
@@ -429,8 +429,8 @@ def test_a_repeating_input_gets_a_model_free_locked_part():
     locked residual (0.2 um RMS, bumps at the turning points) under 0.1 um of white
     noise comes back within 5 %, and the JSON names the estimator. An input that does
     not repeat (the gap protocol) gets the regression estimate, named as such."""
-    from piezo_stage.core.gap import gap_budget, input_period
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.gap import gap_budget, input_period
+    from piezo_stage.core.estimation.record import Record
     fs = 1000.0
     t = np.arange(int(8 * fs)) / fs
     v = 75 - 75 * np.cos(2 * np.pi * t)

@@ -132,8 +132,8 @@ def test_every_effect_key_and_range_is_checked(effects, why):
 def test_an_implausible_model_change_is_refused(k):
     import yaml
 
-    from piezo_stage.core.duhem import check_model_change
     from piezo_stage.core.errors import ModelError
+    from piezo_stage.core.model.duhem import check_model_change
     from piezo_stage.io.model_file import model_from_dict
     running, _ = model_from_dict(yaml.safe_load(GOOD))
     new, _ = model_from_dict(yaml.safe_load(scaled_model(GOOD, k)))

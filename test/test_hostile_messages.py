@@ -134,7 +134,7 @@ def test_nodes_survive_malformed_messages_and_keep_their_model(tmp_path, ros_env
 
 def test_trajectory_parameters_the_loop_cannot_follow_are_refused():
     from piezo_stage.core.errors import ConfigError
-    from piezo_stage.core.trajectory import generate
+    from piezo_stage.core.loop.trajectory import generate
     with pytest.raises(ConfigError, match="Nyquist"):
         generate("sine", 1.0, 1e-3, 1e9)
     with pytest.raises(ConfigError, match="points"):

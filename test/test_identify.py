@@ -11,12 +11,12 @@ import pytest
 import yaml
 
 from conftest import ROOT
-from piezo_stage.core.duhem import DuhemModel
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.identify import IdentifyOptions, identify_axis, validate_axis
-from piezo_stage.core.identify.segmentation import segment
-from piezo_stage.core.plant import Plant
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.identify import IdentifyOptions, identify_axis, validate_axis
+from piezo_stage.core.estimation.identify.segmentation import segment
+from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.model.duhem import DuhemModel
+from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.csv_table import read_table, write_table
 from piezo_stage.io.plant_file import load_plant_config
 
@@ -272,7 +272,7 @@ def test_noisy_measured_voltage(cfg):
 
 def _richer_cfg(cfg, bend=0.3):
     """The default plant's x with quintic branch terms (a bend no cubic follows)."""
-    from piezo_stage.core.duhem import DuhemBranch, DuhemModel
+    from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel
     c = copy.deepcopy(cfg)
     m = c.model.axes["x"]
 
@@ -346,7 +346,7 @@ def test_the_sparse_peer_recovers_an_ode_in_its_library():
     and sampled at 5 kHz) it finds those terms and predicts another amplitude and rate
     (held out) to well under a nanometre RMS."""
     from piezo_stage.apps.studies import sparse_peer
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
 
     def record(freq, amp, fs=5000.0, sub=20):
         t = np.arange(int(3.0 * fs * sub)) / (fs * sub)

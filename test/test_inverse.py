@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import sine_v
-from piezo_stage.core.inverse import invert, invert_seed_eq12, invert_stage
+from piezo_stage.core.model.inverse import invert, invert_seed_eq12, invert_stage
 
 
 @pytest.mark.parametrize("axis", ["x", "y"])
@@ -87,7 +87,7 @@ def test_joint_inverse_with_coupling(stage_model):
 
 
 def test_stage_inverse_per_sample_matches_the_model(stage_model):
-    from piezo_stage.core.inverse import StageInverse
+    from piezo_stage.core.model.inverse import StageInverse
     t = np.arange(2000) / 2000
     wx = 30 + 20 * np.sin(2 * np.pi * 2 * t)
     wy = 25 + 15 * np.cos(2 * np.pi * 3 * t)
@@ -111,7 +111,7 @@ def test_stage_inverse_per_sample_matches_the_model(stage_model):
 def _with_plays(stage_model, start=0.0):
     """The stage model with 12 play operators per axis (return-point memory; weights
     of both signs, as a least-squares fit gives them)."""
-    from piezo_stage.core.play import PlayOperators
+    from piezo_stage.core.model.play import PlayOperators
     r = np.linspace(0.0, 60.0, 12)
     p = 0.04 * np.exp(-r / 15.0) * np.where(np.arange(12) % 5 == 4, -0.5, 1.0)
     plays = {a: PlayOperators.at_rest(r, p * (1.0 + 0.3 * (a == "y")), 10.0, start)
@@ -124,7 +124,7 @@ def test_play_operators_give_memory_and_are_inverted_exactly(stage_model):
     memory, which the Duhem law alone lacks), the batch inverse (coupling included) and
     the per-sample inverse both make the model reach a target with nested loops to
     rounding, and a reset from a measured position starts the operators at rest."""
-    from piezo_stage.core.inverse import StageInverse
+    from piezo_stage.core.model.inverse import StageInverse
     m = _with_plays(stage_model, start=1.0)
     # memory: 20 -> 120 -> 60 -> 90 -> 60 V: the minor loop 60-90-60 closes on itself
     v = np.concatenate([np.linspace(20, 120, 400), np.linspace(120, 60, 200),

@@ -1,4 +1,4 @@
-"""Raster trajectories and learning feedforward (core/trajectory.py, core/learning.py),
+"""Raster trajectories and learning feedforward (core/loop/trajectory.py, core/loop/learning.py),
 and the offline study that closes them around the simulated stage."""
 
 import os
@@ -8,8 +8,8 @@ import pytest
 
 from conftest import CONFIG
 from piezo_stage.core.errors import ConfigError
-from piezo_stage.core.learning import PeriodicLearner, design, loop_response
-from piezo_stage.core.trajectory import generate, raster, rounded_triangle
+from piezo_stage.core.loop.learning import PeriodicLearner, design, loop_response
+from piezo_stage.core.loop.trajectory import generate, raster, rounded_triangle
 
 
 def test_rounded_triangle_is_linear_between_its_rounded_turnarounds():
@@ -256,7 +256,7 @@ def test_the_gain_falls_only_after_periods_run_on_a_learned_correction(ahead, fi
     FULL_GAIN_PERIODS periods have run on a learned correction throughout, and falls
     from there. Periods of 10 samples: the first only measures, the second learns; with
     no look-ahead the third runs on what it learned, with 15 samples the fifth."""
-    from piezo_stage.core.learning import FULL_GAIN_PERIODS
+    from piezo_stage.core.loop.learning import FULL_GAIN_PERIODS
     n = 10
     k = np.arange(n)
     target = np.sin(2 * np.pi * k / n)

@@ -244,6 +244,32 @@ def _layer(path):
     return next((k for k in LAYERS if rel.startswith(k + "/")), None)
 
 
+# the core by job: what a stage is, what a record says, what runs each sample; the
+# shared pieces (errors, metrics, the compiled kernels) at its top
+CORE_JOBS = {"model": set(), "estimation": {"model"}, "loop": {"model"}}
+
+
+def test_the_core_s_jobs_use_only_the_model_and_the_shared_pieces():
+    """core/model imports no other job; core/estimation and core/loop build on the
+    model and never on each other, so the loop's per-sample code carries nothing of
+    identification and the diagnosis nothing of the loop."""
+    core = os.path.join(ROOT, "piezo_stage", "core")
+    bad = []
+    for path in _modules():
+        rel = os.path.relpath(path, core)
+        mine = rel.split(os.sep)[0]
+        if mine not in CORE_JOBS:
+            continue
+        for line, module, _ in _imports(path):
+            if module.startswith("piezo_stage.core."):
+                job = module.split(".")[2]
+                if job in CORE_JOBS and job != mine and job not in CORE_JOBS[mine]:
+                    bad.append(f"core/{rel}:{line}: {module}")
+    assert not bad, "\n".join(bad)
+    assert sorted(d for d in os.listdir(core) if os.path.isdir(os.path.join(core, d))
+                  and not d.startswith("__")) == sorted(CORE_JOBS)
+
+
 def test_each_folder_uses_only_the_layers_below_it():
     """library (core; the adapters on it; io on both, for the ROS-free wire reading of
     the bag readers), drivers, nodes, launcher, applications,

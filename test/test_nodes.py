@@ -314,7 +314,7 @@ def test_replay_honours_rate_on_the_bags_time_and_publishes_clock(tmp_path, env)
 
     from rosgraph_msgs.msg import Clock
 
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
     from piezo_stage.io.bag import write_record_bag
     from ros_probe import Probe
     t = np.arange(1500) / 1000.0

@@ -130,7 +130,7 @@ def test_a_wave_played_on_the_generators_is_recorded_as_the_sim_gives_it(stage):
     (started by them) read back: the voltage is the wave, the position what the
     simulated stage gives for it; then back to the set command at the safe voltage. A
     waveform beyond the 1024-point table or off the 20 kHz clock is refused."""
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.model.plant import Plant
     b = backend(stage, rate=5000.0)
     fs = 5000.0
     t = np.arange(0, 0.1, 1 / fs)

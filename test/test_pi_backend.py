@@ -116,7 +116,7 @@ def test_streamed_steps_drive_the_stage_and_never_leave_the_limits(controller):
     """SVA then POS? per step: the stage moves to what the voltages give (the double's
     plant, fed the same voltages, agrees), and a command beyond the limits is clamped
     before it is sent."""
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.model.plant import Plant
     b = backend(controller, output_limits_V=[0.0, 100.0, 0.0, 100.0])
     try:
         b.start()
@@ -167,7 +167,7 @@ def test_a_wave_played_on_the_controller_clock_is_recorded_as_the_sim_gives_it(c
     """Wave tables loaded in bunches, both generators started in one command, recorder
     read back: the applied voltage is the wave and the position what the simulated stage
     gives for it; the outputs start from and end at the safe voltage."""
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.model.plant import Plant
     b = backend(controller)
     fs = 2000.0
     t = np.arange(0, 0.5, 1 / fs)

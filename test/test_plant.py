@@ -7,7 +7,7 @@ import pytest
 
 from conftest import sine_v
 from piezo_stage.core.errors import ConfigError
-from piezo_stage.core.plant import Plant, PlantConfig
+from piezo_stage.core.model.plant import Plant, PlantConfig
 from piezo_stage.io.plant_file import load_plant_config
 
 
@@ -174,7 +174,7 @@ def test_compiled_step_matches_batch_at_limits(cfg):
 def test_effect_operator_on_columns_equals_the_stateful_effect(effect, params):
     """The compiled column operators (gap diagnosis) and the plant's chunked effect are
     the same linear map, from rest."""
-    from piezo_stage.core.effects import make_effect
+    from piezo_stage.core.model.effects import make_effect
     rng = np.random.default_rng(5)
     X = np.cumsum(rng.normal(size=(3000, 3)), axis=0)
     op = make_effect(effect, 1000.0, params)
@@ -250,7 +250,7 @@ def test_a_model_with_play_operators_is_the_plant_exactly():
     writes structure with memory): the exact plant (no noise, no slew limit reached)
     gives the model's own output, in one batch or a command at a time, and the
     operators are really in it."""
-    from piezo_stage.core.play import PlayOperators
+    from piezo_stage.core.model.play import PlayOperators
     model = load_plant_config(_default_path()).model
     r = np.linspace(0.0, 50.0, 8)
     plays = {"x": PlayOperators.at_rest(r, 0.05 * np.exp(-r / 20.0), 0.0)}

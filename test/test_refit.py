@@ -75,7 +75,7 @@ def test_growth_dates_the_first_crossing_and_an_effect_that_appears():
 def test_bags_are_found_in_run_folders_and_dated_by_their_folder(tmp_path):
     import numpy as np
 
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
     from piezo_stage.io.bag import write_record_bag
     run = tmp_path / "bags" / "20261103-101500"
     t = np.arange(300) / 100.0
@@ -96,7 +96,7 @@ def test_bags_are_found_in_run_folders_and_dated_by_their_folder(tmp_path):
 def test_refit_bad_input_is_one_line_and_exit_2(tmp_path):
     import numpy as np
 
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
     from piezo_stage.io.bag import write_record_bag
     (tmp_path / "empty").mkdir()
     t = np.arange(400) / 100.0

@@ -1,10 +1,10 @@
-"""The driver's sample loop without ROS (core/sample_loop.py), on the simulated stage."""
+"""The driver's sample loop without ROS (core/loop/sample_loop.py), on the simulated stage."""
 
 import pytest
 
-from piezo_stage.core.arming import ArmingParams
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.sample_loop import COMMAND_WINDOW_NS, SampleLoop, check_mode
+from piezo_stage.core.loop.arming import ArmingParams
+from piezo_stage.core.loop.sample_loop import COMMAND_WINDOW_NS, SampleLoop, check_mode
 from piezo_stage.drivers import SimBackend
 
 RATE = 1000.0

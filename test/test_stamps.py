@@ -1,7 +1,7 @@
 """StampGuard: a stray stamp is counted and dropped, never taken; a stream that really
 moved is followed after a run of consistent stamps."""
 
-from piezo_stage.core.stamps import StampGuard
+from piezo_stage.core.loop.stamps import StampGuard
 
 MS = 1_000_000
 

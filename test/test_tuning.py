@@ -1,4 +1,4 @@
-"""`tune` (core/tuning.py): the margins it states are the loop's, checked by running
+"""`tune` (core/loop/tuning.py): the margins it states are the loop's, checked by running
 the discrete loop itself; a model it cannot tune from is refused."""
 
 import math
@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import ModelError
-from piezo_stage.core.tuning import model_gain, tune
+from piezo_stage.core.loop.tuning import model_gain, tune
+from piezo_stage.core.model.duhem import StageModel
 from piezo_stage.io.model_file import load_model
 from piezo_stage.paths import default_config
 
@@ -21,7 +21,7 @@ def _closed_loop_step(kp, ki, k, n=3000, T=1e-3, latency=1, effects=None):
     """The controller's own PID law (core.control.PID) around a plant of static gain k
     with ``latency`` periods: the measured response to a 1 um step of the asked
     position."""
-    from piezo_stage.core.control import PID, PIDGains
+    from piezo_stage.core.loop.control import PID, PIDGains
     pid = PID(PIDGains(kp=kp, ki=ki, kd=0.0, i_limit_V=1e9), T)
     u = [0.0] * latency
     y = np.zeros(n)
@@ -89,7 +89,7 @@ def test_tune_writes_a_parameter_file_launch_takes(tmp_path):
     assert math.isfinite(p["controller"]["kp"])
     # ROS parameters are typed: every gain must read back as a double, 0 included
     assert all(type(v) is float for v in p["controller"].values()), p
-    from piezo_stage.core.tuning import Tuning
+    from piezo_stage.core.loop.tuning import Tuning
     zero = Tuning(0.0, 150.0, 0.0, 1.0, 1.0, 60.0, 10.0, 0.1).params_yaml()
     assert "kp: 0.0" in zero and "kd: 0.0" in zero
 
@@ -100,7 +100,7 @@ def _relay_loop(k, latency, n=4000, asked=40.0, hold_V=50.0, offset_um=30.0, sid
     """core.control.Relay around a plant of static gain k with ``latency`` periods (the
     command computed from sample i applies at i + latency): applied voltages and
     measured positions. The hold voltage is deliberately wrong (the bias must adapt)."""
-    from piezo_stage.core.control import Relay
+    from piezo_stage.core.loop.control import Relay
     relay = Relay(amplitude, 0.0, 1e-3)
     relay.side = side
     cmd = [hold_V] * latency
@@ -114,7 +114,7 @@ def _relay_loop(k, latency, n=4000, asked=40.0, hold_V=50.0, offset_um=30.0, sid
 
 @pytest.mark.parametrize("latency", [1, 3, 5])
 def test_relay_point_is_the_loops_ultimate_point(latency):
-    from piezo_stage.core.tuning import relay_point
+    from piezo_stage.core.loop.tuning import relay_point
     u, y, relay = _relay_loop(0.6, latency)
     p = relay_point(u[2000:], y[2000:], 1000.0, 2.0, latency)
     # a gain with L periods of delay: -180 deg where w L = pi (or an odd multiple)
@@ -128,7 +128,7 @@ def test_relay_point_is_the_loops_ultimate_point(latency):
 
 
 def test_relay_tuned_gains_keep_their_stated_margin_in_the_running_loop():
-    from piezo_stage.core.tuning import relay_point, tune_relay
+    from piezo_stage.core.loop.tuning import relay_point, tune_relay
     k, latency = 0.45, 3
     u, y, _ = _relay_loop(k, latency)
     r = tune_relay({"x": relay_point(u[2000:], y[2000:], 1000.0, 2.0, latency)})
@@ -142,7 +142,7 @@ def test_relay_tuned_gains_keep_their_stated_margin_in_the_running_loop():
 def test_relay_harmonic_mode_gives_the_same_loop_model():
     """With several periods of latency a relay may settle at 3x the fundamental; the
     unwrapped phase still gives the latency, so the tuning is the same."""
-    from piezo_stage.core.tuning import RelayPoint, tune_relay
+    from piezo_stage.core.loop.tuning import RelayPoint, tune_relay
     base = RelayPoint(100.0, 0.4, -180.0, 1.0, 100, 5)
     third = RelayPoint(300.0, 0.4, -540.0, 1.0, 100, 5)
     a, b = tune_relay({"x": base}), tune_relay({"x": third})
@@ -150,7 +150,7 @@ def test_relay_harmonic_mode_gives_the_same_loop_model():
 
 
 def test_no_sustained_oscillation_is_refused():
-    from piezo_stage.core.tuning import relay_point
+    from piezo_stage.core.loop.tuning import relay_point
     u = np.full(1000, 50.0)
     y = 30.0 + 0.01 * np.random.default_rng(0).standard_normal(1000)
     with pytest.raises(ModelError, match="no sustained oscillation"):

@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from piezo_stage.core.arming import ENABLED
 from piezo_stage.core.errors import ConfigError, DataError, RunError
+from piezo_stage.core.loop.arming import ENABLED
 from piezo_stage.io.files import atomic_write
 
 EXPERIMENTS = ("decoupling", "tracking", "amplitude", "noise")
@@ -162,8 +162,8 @@ def lockstep_margin_s(case, config, extra=None) -> float:
     speed and acceleration, and LOCKSTEP_SLACK_S for arming (a few samples). A stage
     resting elsewhere needs a longer approach: its run then ends before the trajectory
     does and the evaluation says so (RunError), nothing is judged on a short run."""
-    from piezo_stage.core.arming import Approach
-    from piezo_stage.core.feedforward import PARAMETERS
+    from piezo_stage.core.loop.feedforward import PARAMETERS
+    from piezo_stage.core.loop.planner import Approach
     from piezo_stage.launch.launcher import read_parameters
     p: dict = {name: default for name, default, *_ in PARAMETERS}
     p.update(read_parameters(config).get("feedforward", {}))
@@ -397,7 +397,7 @@ def relay_points(bag, amplitude_V: float, settle_s: float = 1.0) -> dict:
     samples of the enabled stretch from ``settle_s`` after its start to the end of the
     held trajectory, on the driver's sample grid (a missed tick holds its voltage and
     its position is interpolated); the latency is the driver's look-ahead."""
-    from piezo_stage.core.tuning import relay_point
+    from piezo_stage.core.loop.tuning import relay_point
     from piezo_stage.io.run_bag import read_run
     run = read_run(bag)
     span = enabled_span(run.states)

@@ -93,7 +93,7 @@ def run_date(path) -> tuple[datetime, str]:
 
 def halves(rec, share: float = SPLIT):
     """(first part, the rest) of a record, each from t = 0."""
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
     k = int(len(rec) * share)
     if k < 100 or len(rec) - k < 100:
         raise DataError(f"{rec.source}: {len(rec)} samples, too few to fit on one part "
@@ -117,8 +117,8 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
     half against that model, fitted on the first. Returns the bag's row."""
     import time
 
-    from piezo_stage.core.duhem import stroke_um
-    from piezo_stage.core.identify.api import identify_stage, validate_axis
+    from piezo_stage.core.estimation.identify.api import identify_stage, validate_axis
+    from piezo_stage.core.model.duhem import stroke_um
     from piezo_stage.io.model_file import load_model, save_model
     from piezo_stage.io.records import load_record
     t0 = time.perf_counter()
@@ -147,7 +147,7 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
             "fit_rms_um": float(r.fit["rms_um"]),
             "held_out_rms_um": float(validate_axis(r, hold)["validate_rms_um"])}
     if against:
-        from piezo_stage.core.gap import diagnose
+        from piezo_stage.core.estimation.gap import diagnose
         ref, ref_effects = load_model(against)
         d = diagnose(fit, hold, axes=[a for a in axes if a in ref.axes],
                      base_model=ref, base_effects=ref_effects)
@@ -178,7 +178,7 @@ def _bag_name(path) -> str:
 def _worker_init():
     import signal
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides about stops
-    import piezo_stage.core.gap as gap
+    import piezo_stage.core.estimation.gap as gap
     gap.AXES_IN_PROCESSES = False  # a worker per bag already: its axes in threads
     try:  # and one BLAS thread each: workers x BLAS threads beyond the cores fight
         from threadpoolctl import threadpool_limits

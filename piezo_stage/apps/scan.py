@@ -76,7 +76,7 @@ def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
     """The cases: each trajectory without and with learning (``learning``: which),
     sampled at the control rate ``rate_hz`` (a period must be a whole number of its
     samples: learning needs that)."""
-    from piezo_stage.core.trajectory import generate, raster
+    from piezo_stage.core.loop.trajectory import generate, raster
     cases = []
     trajs = []
     for f in raster_hz:

@@ -2,8 +2,9 @@
 invocation (never timed unit tests); ``piezo-stage bench <what>`` runs one.
 
 One module per benchmark (plant, identify, loop, liveview, gap, realtime, learning,
-faults, signals, experiments, outside, refit) and the equipment they share: ``procs`` (helper
-processes, CPU ticks, the progress of repeated runs), ``probe`` (an outside node),
+faults, signals, experiments, outside, refit, setup) and the equipment they share:
+``procs`` (helper processes, CPU ticks, the progress of repeated runs), ``probe`` (an
+outside node),
 ``host_pauses`` (when the whole machine stopped), ``foxglove_probe`` (a live-view
 client).
 """
@@ -26,6 +27,7 @@ BENCHMARKS = {
     "experiments": ("experiments", "bench_experiments", ("runs", "kinds")),
     "outside": ("outside", "bench_outside", ("runs",)),
     "refit": ("refit", "bench_refit", ()),
+    "setup": ("setup", "bench_setup", ("runs",)),
 }
 
 

@@ -11,7 +11,7 @@ import numpy as np
 def bench_gap(seeds=3):
 
     from piezo_stage.apps.studies import gap_blind
-    from piezo_stage.core.gap import diagnose
+    from piezo_stage.core.estimation.gap import diagnose
     print("bench gap: blind suite, one unmodelled effect per record pair (FIT, HOLDOUT), "
           "diagnosis not told which; axis x, 1 kHz, ~36 s protocol records (its chirp "
           "included)")
@@ -57,8 +57,8 @@ def bench_gap(seeds=3):
     # (every search step on every column, the axes in threads) in the same run. The
     # issue's figures: 36 s per single-effect case, 134 s for our stage with three
     # effects (its machine)
-    from piezo_stage.core import gap as gap_mod
-    from piezo_stage.core.gap import candidates as gap_candidates
+    from piezo_stage.core.estimation import gap as gap_mod
+    from piezo_stage.core.estimation.gap import candidates as gap_candidates
 
     def timed(fit, hold, fast=True):
         gap_candidates.ONE_COLUMN_SEARCH = gap_mod.AXES_IN_PROCESSES = fast
@@ -113,7 +113,7 @@ def _bench_structure():
     real stages give (gap_blind.scan_cut). The truth of the locked part: the base
     model's error against the plant's true displacement (gap_blind.locked_truth)."""
     from piezo_stage.apps.studies.gap_blind import locked_truth, scan_cut, structure_pair
-    from piezo_stage.core.gap import diagnose
+    from piezo_stage.core.estimation.gap import diagnose
     print("\n  structure stage (play-operator hysteresis: memory, tanh envelope; our "
           "coupling): protocol with nested loops, 1 kHz, both axes")
     worse = total = 0

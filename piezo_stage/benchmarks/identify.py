@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from piezo_stage.core.plant import Plant
+from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
 
 
 def sim_record(n, fs, seed=11):
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
     cfg = load_plant_config(default_plant_config_path())
     cfg.seed = seed
     t = np.arange(n) / fs
@@ -26,7 +26,7 @@ def _baseline_least_squares(rec, x0_model):
     started from the same shared-alpha grid guess the fast solver starts from."""
     from scipy.optimize import least_squares
 
-    from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
+    from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel, DuhemState
     v, w = rec.v["x"], rec.w["x"]
     s = 150.0
     p0 = np.concatenate([[np.log(x0_model.ascending.alpha), np.log(x0_model.descending.alpha)],
@@ -47,9 +47,9 @@ def _baseline_least_squares(rec, x0_model):
 def bench_identify():
     import time
 
-    from piezo_stage.core.identify import IdentifyOptions, identify_axis
-    from piezo_stage.core.identify.fast import fit_fast
-    from piezo_stage.core.identify.regress import DuhemRegression
+    from piezo_stage.core.estimation.identify import IdentifyOptions, identify_axis
+    from piezo_stage.core.estimation.identify.fast import fit_fast
+    from piezo_stage.core.estimation.identify.regress import DuhemRegression
     cfg, rec = sim_record(10_000, 10_000.0)
     identify_axis(rec, "x")  # warm the compiled kernels
     t0 = time.perf_counter()
@@ -106,10 +106,10 @@ def _bench_sparse_peer():
     from piezo_stage.apps.studies import sparse_peer
     from piezo_stage.apps.studies.gap_blind import scan_cut
     from piezo_stage.core.errors import ConfigError
-    from piezo_stage.core.gap import fit_candidate
-    from piezo_stage.core.identify import identify_axis
-    from piezo_stage.core.identify.api import predict_axis
-    from piezo_stage.core.identify.prandtl import fit_prandtl_ishlinskii
+    from piezo_stage.core.estimation.gap import fit_candidate
+    from piezo_stage.core.estimation.identify import identify_axis
+    from piezo_stage.core.estimation.identify.api import predict_axis
+    from piezo_stage.core.estimation.identify.prandtl import fit_prandtl_ishlinskii
 
     def rms(e):
         return float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else float("nan")

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from piezo_stage.core.plant import Plant
+from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
 
 

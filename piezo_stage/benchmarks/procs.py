@@ -21,7 +21,7 @@ import numpy as np
 
 
 def plain(n: int, fs: float, out: str):
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     t = np.arange(n) / fs
     vx = 75 - 75 * np.cos(2 * np.pi * 1.0 * t)

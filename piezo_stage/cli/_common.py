@@ -32,7 +32,7 @@ def die(msg: str, code: int = EXIT_USAGE):
 def load_plant(args, rate_hz):
     """The plant a command simulates: --model exactly (with its effects), else the
     plant config (--config or the default); --no-noise, --seed applied."""
-    from piezo_stage.core.plant import PlantConfig
+    from piezo_stage.core.model.plant import PlantConfig
     from piezo_stage.io.model_file import load_model
     from piezo_stage.io.plant_file import (
         default_plant_config_path,
@@ -67,7 +67,7 @@ def check_voltages(rec, limits, source):
 def warn_past_fit_range(model, v: dict, source: str) -> None:
     """One line on stderr when the voltages ``v`` take ``model`` past the range it was
     fitted on (it runs there, its branches continuing straight from their ends)."""
-    from piezo_stage.core.duhem import past_fit_range
+    from piezo_stage.core.model.duhem import past_fit_range
     past = past_fit_range(model, v)
     if past:
         sys.stderr.write(f"piezo-stage: warning: {source}: the model is used past its "

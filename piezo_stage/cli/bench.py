@@ -17,7 +17,8 @@ def add_arguments(s):
     s.add_argument("--samples", type=number(1000, 10**9, integer=True), default=2_000_000)
     s.add_argument("--runs", type=number(1, 1000, integer=True), default=10, metavar="N",
                    help="experiments: runs of each kind, with and without --model; "
-                   "outside: trajectories from each publisher")
+                   "outside: trajectories from each publisher; setup: fresh clones of "
+                   "each kind")
     s.add_argument("--kinds", type=_kinds, default=None, metavar="K1,K2",
                    help="experiments: which (default tracking,noise,amplitude,"
                    "decoupling,scan)")

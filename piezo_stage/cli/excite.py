@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from piezo_stage.cli._common import number
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.excitation import CHIRP_S
+from piezo_stage.core.estimation.excitation import CHIRP_S
 
 HELP = "write a diagnostic excitation (t,vx,vy)"
 
@@ -26,7 +26,7 @@ def add_arguments(s):
 
 
 def main(args):
-    from piezo_stage.core.excitation import gap_protocol
+    from piezo_stage.core.estimation.excitation import gap_protocol
     from piezo_stage.io.csv_table import write_table
     if not 0 <= args.chirp <= 60:
         raise DataError(f"--chirp {args.chirp:g}: give 0 (none) to 60 seconds")

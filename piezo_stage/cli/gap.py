@@ -65,13 +65,13 @@ def _warn_implausible(per, fit) -> None:
 def main(args):
     import json
 
-    from piezo_stage.core.gap import diagnose
+    from piezo_stage.core.estimation.gap import diagnose
     from piezo_stage.io.files import atomic_write
     from piezo_stage.io.records import load_record
     fit = load_record(args.fit)
     hold = load_record(args.holdout) if args.holdout else None
     if args.out_model:  # the limits, before the diagnosis: DataError (exit 2)
-        from piezo_stage.core.duhem import voltage_limits_for
+        from piezo_stage.core.model.duhem import voltage_limits_for
         voltage_limits_for(fit.v.values(), args.limits)
     base, base_effects = None, None
     if args.model:

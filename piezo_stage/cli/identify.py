@@ -53,9 +53,9 @@ def main(args):
     import json
     import os
 
-    from piezo_stage.core.duhem import voltage_limits_for
-    from piezo_stage.core.identify import IdentifyOptions, validate_axis
-    from piezo_stage.core.identify.api import identify_stage
+    from piezo_stage.core.estimation.identify import IdentifyOptions, validate_axis
+    from piezo_stage.core.estimation.identify.api import identify_stage
+    from piezo_stage.core.model.duhem import voltage_limits_for
     from piezo_stage.io.files import atomic_write
     from piezo_stage.io.model_file import save_model
     from piezo_stage.io.records import load_record
@@ -74,7 +74,7 @@ def main(args):
                            n=n, m=m)
     classes = {a: args.model_class for a in axes}
     if args.model_class == "auto":
-        from piezo_stage.core.identify.api import choose_class
+        from piezo_stage.core.estimation.identify.api import choose_class
         for a in axes:
             classes[a], held = choose_class(rec, a, opts)
             print(f"class {a}: {classes[a]} (held-out RMS on the record's last 40 %: "
@@ -85,7 +85,7 @@ def main(args):
     if args.structure == "auto":
         from dataclasses import replace
 
-        from piezo_stage.core.identify.api import choose_degree
+        from piezo_stage.core.estimation.identify.api import choose_degree
         for a in axes:
             d, held = choose_degree(rec, a, opts)
             chosen[a] = (d, held)
@@ -136,7 +136,7 @@ def main(args):
             json.dump(report, fh, indent=1)
     plot = args.plot or (os.path.splitext(args.out)[0] + ".png" if args.out else None)
     if plot:
-        from piezo_stage.core.identify.api import predict_axis
+        from piezo_stage.core.estimation.identify.api import predict_axis
         from piezo_stage.io.plots import identification_png
         curves = {a: predict_axis(r, rec) for a, r in results.items()}
         curves.update({a: (rec.v[a], rec.w[a], _pi_output(p, rec, a)) for a, p in pis.items()})
@@ -153,7 +153,7 @@ def _pi_output(pi, rec, a):
 def _fit_pi(rec, axes, val, report) -> dict:
     """The Prandtl-Ishlinskii class on ``axes``: monotone weights (non-negative least
     squares); one table row each, into ``report`` too. -> {axis: PrandtlIshlinskii}."""
-    from piezo_stage.core.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
+    from piezo_stage.core.estimation.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
     from piezo_stage.core.metrics import noise_floor
     out = {}
     for a in axes:
@@ -179,7 +179,7 @@ def _fit_pi(rec, axes, val, report) -> dict:
 def _stage_model(fitted, pis, rec, limits):
     """The stage model of the Duhem axes (``fitted``) and the Prandtl-Ishlinskii ones
     (a Duhem law that is exactly their linear term, their play operators beside it)."""
-    from piezo_stage.core.duhem import StageModel, voltage_limits_for
+    from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
     axes = dict(fitted.model.axes) if fitted else {}
     coupling = dict(fitted.model.coupling) if fitted else {}
     plays = {}
@@ -194,7 +194,7 @@ def _axes(rec, args) -> list:
     leaves nothing; one line on stderr when --axis both fits the other alone."""
     import sys
 
-    from piezo_stage.core.identify.segmentation import voltage_noise
+    from piezo_stage.core.estimation.identify.segmentation import voltage_noise
     wanted = ["x", "y"] if args.axis == "both" else [args.axis]
     present = [a for a in ("x", "y") if a in rec.v and a in rec.w]
     moving = [a for a in present

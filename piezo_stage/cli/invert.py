@@ -23,8 +23,8 @@ def add_arguments(s):
 
 
 def main(args):
-    from piezo_stage.core.inverse import invert_seed_eq12, invert_stage
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
+    from piezo_stage.core.model.inverse import invert_seed_eq12, invert_stage
     from piezo_stage.io.csv_table import read_table, write_table
     from piezo_stage.io.model_file import load_model
     model, effects = load_model(args.model)
@@ -66,7 +66,7 @@ def compensate_effects(effects: dict, rec) -> dict:
     """The hysteresis targets {axis: um} that make the model's effects give ``rec``'s
     positions at its samples: each axis's inverse fed its target ``lead_ticks`` ahead
     (the last target held past the end); the record must be uniformly sampled."""
-    from piezo_stage.core.compensation import EffectCompensator
+    from piezo_stage.core.loop.compensation import EffectCompensator
     dt = np.diff(rec.t)
     if dt.size == 0 or np.ptp(dt) > 1e-6 * float(np.median(dt)):
         raise DataError("--effects needs a uniformly sampled target (one rate)")

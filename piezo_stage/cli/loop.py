@@ -22,7 +22,7 @@ def add_arguments(s):
 
 def main(args):
     from piezo_stage.core.metrics import loop_figures
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.model.plant import Plant
     fs = args.rate
     cfg = load_plant(args, fs)
     lo, hi = cfg.model.voltage_limits

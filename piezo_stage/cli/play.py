@@ -37,9 +37,9 @@ def add_arguments(s):
 
 def main(args):
     from piezo_stage.cli._common import load_plant, param_overrides
-    from piezo_stage.core.arming import ArmingParams
     from piezo_stage.core.errors import DataError
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
+    from piezo_stage.core.loop.arming import ArmingParams
     from piezo_stage.drivers.playback import play_record
     from piezo_stage.io.csv_table import read_table, write_table
     cols = read_table(args.inp, ["t", "vx", "vy"])

@@ -39,7 +39,7 @@ def add_arguments(s):
 
 
 def main(args):
-    from piezo_stage.core.trajectory import raster
+    from piezo_stage.core.loop.trajectory import raster
     from piezo_stage.io.csv_table import write_table
     t, w = raster(args.line_rate, args.lines, args.size, args.center, args.corner,
                   args.slow, args.fast_axis, args.dt)

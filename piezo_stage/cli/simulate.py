@@ -22,8 +22,8 @@ def add_arguments(s):
 
 
 def main(args):
-    from piezo_stage.core.plant import Plant
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.csv_table import read_table, write_table
     cols = read_table(args.inp, ["t", "vx", "vy"])
     rec = Record(cols["t"], {"x": cols["vx"], "y": cols["vy"]}, source=args.inp)

@@ -43,7 +43,7 @@ def add_arguments(s):
 
 
 def main(args):
-    from piezo_stage.core.tuning import tune
+    from piezo_stage.core.loop.tuning import tune
     from piezo_stage.io.files import atomic_write
     if (args.model is None) == (args.relay is None):
         die("tune: give a MODEL or --relay [CONFIG], one of them")
@@ -70,7 +70,7 @@ def _relay(args):
     import tempfile
 
     from piezo_stage.apps.experiments import run_relay
-    from piezo_stage.core.tuning import tune_relay
+    from piezo_stage.core.loop.tuning import tune_relay
     from piezo_stage.paths import default_config
     if args.rate != 1000.0:
         die("tune --relay: the node set runs at 1000 Hz (--rate is for a model)")

@@ -1,6 +1,5 @@
 """Pure numerical core: numpy, scipy and (optionally) numba only; never rclpy or messages."""
 
-from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState  # noqa: F401
 from piezo_stage.core.errors import (  # noqa: F401
     ConfigError,
     DataError,
@@ -8,3 +7,4 @@ from piezo_stage.core.errors import (  # noqa: F401
     PiezoStageError,
     SolverError,
 )
+from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel, DuhemState  # noqa: F401

@@ -48,7 +48,7 @@ class SimBackend:
     paced = False  # the driver paces it (lockstep: by commands; real time: wall clock)
 
     def __init__(self, config_path: str, rate_hz: float, seed=None):
-        from piezo_stage.core.plant import Plant
+        from piezo_stage.core.model.plant import Plant
         from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
         cfg = load_plant_config(config_path or default_plant_config_path())
         if seed is not None and seed >= 0:

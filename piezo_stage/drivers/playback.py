@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.record import Record
 
 PLAY_BACKENDS = ("sim", "pi", "nv200", "daq")
 
@@ -62,7 +62,7 @@ def play_record(kind: str, rec: Record, params: dict | None = None, plant_config
     if set(rec.v) != {"x", "y"}:
         raise DataError(f"{rec.source}: a waveform needs both vx and vy")
     if kind == "sim":
-        from piezo_stage.core.plant import Plant
+        from piezo_stage.core.model.plant import Plant
         if plant_config is None:
             raise ConfigError("backend sim needs a plant config")
         _check_limits(rec, {a: tuple(plant_config.model.voltage_limits) for a in "xy"})

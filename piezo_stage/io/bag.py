@@ -447,7 +447,7 @@ def read_bag_record(path, namespace=None):
     """
     import numpy as np
 
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.record import Record
     from piezo_stage_msgs_adapters.wire import joint_state_um
     pos, volt, bad = {}, {}, 0
     seen = set()

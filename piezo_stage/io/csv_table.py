@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from piezo_stage.core.errors import DataError, printable
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.record import Record
 from piezo_stage.io.files import atomic_write, check_input
 
 

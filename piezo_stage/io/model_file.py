@@ -1,13 +1,13 @@
 """The model file on disk: read (bounded, checked) and written (atomically); the schema
-and its checks are core/model_doc.py's, shared with the model message."""
+and its checks are core/model/model_doc.py's, shared with the model message."""
 
 from __future__ import annotations
 
 import yaml
 
-from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import ModelError
-from piezo_stage.core.model_doc import (  # noqa: F401 - the file's names, as before
+from piezo_stage.core.model.duhem import StageModel
+from piezo_stage.core.model.model_doc import (  # noqa: F401 - the file's names, as before
     MAX_YAML_BYTES,
     SCHEMA_KEY,
     as_number,

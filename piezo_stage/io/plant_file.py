@@ -20,9 +20,9 @@ from __future__ import annotations
 import math
 import os
 
-from piezo_stage.core.effects import validate_effects
 from piezo_stage.core.errors import ConfigError, ModelError
-from piezo_stage.core.plant import PlantConfig
+from piezo_stage.core.model.effects import validate_effects
+from piezo_stage.core.model.plant import PlantConfig
 from piezo_stage.io.model_file import as_number, load_model, load_yaml
 
 SCHEMA_KEY = "piezo_stage_plant"
@@ -41,7 +41,7 @@ def _num(d, key, default, where, lo=-math.inf, hi=math.inf):
 def enabled_effects(effects: dict, where="effects") -> dict:
     """Keep the effects with enabled: true (default true when the key is absent);
     the block checked by the one validation every model and plant file shares
-    (core/effects.py validate_effects)."""
+    (core/model/effects.py validate_effects)."""
     out = {}
     for name, p in validate_effects(effects, where).items():
         if p.pop("enabled", True):
@@ -78,7 +78,7 @@ def plant_config_from_dict(doc, base_dir=".", source="plant config") -> PlantCon
     if not isinstance(hyst, dict):
         raise ConfigError(f"{source}: hysteresis must be a mapping")
     if hyst:  # checked here, so a bad block fails when the file is read
-        from piezo_stage.core.play import PlayHysteresis
+        from piezo_stage.core.model.play import PlayHysteresis
         PlayHysteresis.from_params({k: v for k, v in hyst.items() if k != "axes"},
                                    f"{source}: hysteresis")
     return PlantConfig(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.record import Record
 from piezo_stage.io.csv_table import read_record
 
 

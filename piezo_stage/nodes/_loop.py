@@ -110,7 +110,7 @@ class DriverState:
     def __init__(self, node, dt_ns, prio, heap_bytes: int = 0):
         from diagnostic_msgs.msg import DiagnosticArray
 
-        from piezo_stage.core.arming import StateTimeline
+        from piezo_stage.core.loop.arming import StateTimeline
         self.node, self.prio, self.heap_bytes = node, prio, int(heap_bytes)
         self.timeline, self.lookahead_ns, self.dt_ns = StateTimeline(), dt_ns, dt_ns
         self.realtime, self.limits, self.bad = False, None, 0

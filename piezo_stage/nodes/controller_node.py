@@ -2,7 +2,7 @@
 
 Each reference, stamped for the target sample, carries the desired position and the
 feedforward for it, and the measurement of the sample t_k it answers with the voltage
-applied for t_k. The law is the core's (core/control.py ``CompositeController``, one
+applied for t_k. The law is the core's (core/loop/control.py ``CompositeController``, one
 ``on_sample`` call per reference); this node decodes the reference, drops a stray stamp
 and, in real time, a reference whose target has already passed (its command could only
 arrive late), and publishes ``command`` (geometry_msgs/Vector3Stamped, volts) stamped
@@ -23,9 +23,9 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from piezo_stage.core.control import LIVE, PARAMETERS, CompositeController
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.stamps import StampGuard
+from piezo_stage.core.loop.control import LIVE, PARAMETERS, CompositeController
+from piezo_stage.core.loop.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
@@ -40,7 +40,7 @@ class Controller(Node):
         super().__init__("controller")
         p = {name: declare(self, name, default, desc, live=True if name in LIVE else None,
                            **kw) for name, default, desc, kw in PARAMETERS}
-        self.core = CompositeController(p)  # the control law (core/control.py)
+        self.core = CompositeController(p)  # the control law (core/loop/control.py)
         self.stats = self.core.stats
         # the driver's announcements: taken before the data in each lean-loop pass
         self.driver = DriverState(self, self.core.dt_ns, p["thread_priority"])

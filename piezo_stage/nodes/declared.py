@@ -46,7 +46,7 @@ def parameter_limits() -> dict:
     """{node: {name: {"lo": .., "hi": .., "choices": ..}}}: the ranges and choices the
     loop nodes declare, from the core's parameter tables they declare from (the driver's
     sample loop and arming supervisor, the feedforward, the controller)."""
-    from piezo_stage.core import arming, control, feedforward, sample_loop
+    from piezo_stage.core.loop import arming, control, feedforward, sample_loop
     driver = {name: kw for name, _, _, kw in sample_loop.PARAMETERS}
     driver.update({name: {"lo": r[0], "hi": r[1]} for name, _, _, r in arming.PARAMETERS
                    if r})

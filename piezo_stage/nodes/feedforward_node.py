@@ -5,7 +5,7 @@ Clocked by joint_states: sample k (stamp t_k) is answered by the internal ``refe
 measurement of t_k and the voltage applied for it) stamped t_k + lookahead, the
 driver's look-ahead (one period in lockstep; in real time the loop's latency budget,
 announced on the driver's ``state``), so a command reaches the driver before the tick
-it is for. The planner (core/arming.py) decides the desired position: while the driver
+it is for. The planner (core/loop/planner.py) decides the desired position: while the driver
 does not apply commands it holds where the stage is (feedforward = the applied voltage,
 so enabling is bumpless); enabled, it approaches the goal and then runs the trajectory
 clock. The inverse is synced to the voltages really applied and steps through the
@@ -28,11 +28,11 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
-from piezo_stage.core import feedforward as core_ff
-from piezo_stage.core.arming import HOLD, ReferencePlanner
 from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.loop import feedforward as core_ff
+from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
+from piezo_stage.core.loop.stamps import StampGuard
 from piezo_stage.core.metrics import LatencyHistogram
-from piezo_stage.core.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._intake import Intake, trajectory_key, warm_up
@@ -59,26 +59,22 @@ class Feedforward(Node):
         p = self.p = {name: declare(self, name, default, desc, **kw)
                       for name, default, desc, kw in core_ff.PARAMETERS if name not in live}
         self.dt_ns = int(round(1e9 / p["control_rate_hz"]))
-        self.max_points, self.wait_traj = p["max_trajectory_points"], p["wait_for_trajectory"]
+        self.max_points = p["max_trajectory_points"]
         self.planner = ReferencePlanner(p["approach_speed_um_per_s"],
                                         p["approach_accel_um_per_s2"])
-        # the per-sample work (core/feedforward.py): reference, learning, inverse
+        # the per-sample work (core/loop/feedforward.py): reference, learning, inverse
         self.core = core_ff.InverseFeedforward(
             self.planner, self.dt_ns, p["nominal_um_per_V"], p["use_coupling"],
-            p["inverse_feedforward"], p["max_resonance_inverse_hz"])
+            p["inverse_feedforward"], p["max_resonance_inverse_hz"],
+            p["wait_for_trajectory"], p["model_required_after_s"])
         self.ref, self.learning = self.core.ref, self.core.learning
         # the live ones once the core is there (a start-up override calls them at once):
-        # effect compensation and learning feedforward (core/learning.py)
-        on_set = {"compensate_effects": lambda on: setattr(self.ref, "on", bool(on)),
-                  "learning_period_s": lambda v: self.core.relearn(period=v),
-                  "learning_gain": lambda v: self.core.relearn(gain=v),
-                  "learning": self.learning.enable}
-        p.update({name: declare(self, name, default, desc, live=on_set[name], **kw)
+        # effect compensation and learning feedforward (core/loop/learning.py)
+        p.update({name: declare(self, name, default, desc,
+                                live=lambda v, name=name: self.core.set_live(name, v), **kw)
                   for name, default, desc, kw in core_ff.PARAMETERS if name in live})
-        self.ref.on = p["compensate_effects"]
-        self.core.learn_p = {k: p[k] for k in ("learning_period_s", "learning_gain")}
-        self.learning.enable(p["learning"])
-        self.core.relearn()
+        for name in live:
+            self.core.set_live(name, p[name])
         self.model_name, self.pending, self.decoded_key = "nominal", None, None
         # real time: trajectories and models are taken apart on the intake's thread
         self.intake = Intake({"trajectory": self.decode_trajectory,
@@ -212,9 +208,7 @@ class Feedforward(Node):
         if decoded is not None:
             t, w, stamp, start, now = decoded
             self.stats["trajectories"] += 1
-            self.planner.set_trajectory(t, w, start_ns=start)
-            self.learning.reset()
-            self.core.traj_text = f"trajectory of {len(t)} points stamped {stamp}"
+            self.core.set_trajectory(t, w, stamp, start)
             self.get_logger().info(f"trajectory of {len(t)} points accepted" + (
                 f", stamped {stamp}: starts in {(stamp - now) * 1e-9:.3f} s"
                 if stamp > now else ""))
@@ -258,40 +252,35 @@ class Feedforward(Node):
             return  # a duplicate changes nothing; a stray stamp is counted
         if self.driver.realtime and info:
             self.lag.add((info["received_timestamp"] - ns) * 1e-9)
-        self.learning.measured(ns, w)
-        target = ns + self.driver.lookahead_ns
-        clock, hold_s = self.planner.clock_s(target), self.p["model_required_after_s"]
-        waiting = (self.wait_traj and self.planner.traj is None) or (
-            self.core.inv is None and 0 < hold_s <= (clock if clock is not None else -1))
-        if waiting and not self.driver.realtime:
+        # the per-sample work, one call: reference, learning, inverse (core/loop)
+        r = self.core.on_sample(ns, w, v_applied, self.driver.lookahead_ns,
+                                self.driver.enabled, self.driver.realtime)
+        if r.wait:
             self.pending = msg  # lockstep: the loop waits here
             return
-        if self.wait_traj and self.planner.traj is None and self.driver.realtime:
-            return  # real time: no answer, so the loop is not closed and nothing arms
+        if r.silent:
+            return
         self.last_ns = ns
-        applied = v_applied or self.core.ff
-        self.core.measured(ns, w, applied)
-        for t in self.core.targets(target):
-            self.answer(ns, t, w, applied)
-
-    def answer(self, ns, target, w, applied):
-        phase, enabled = self.planner.phase, self.driver.enabled(target)
-        desired, error = self.core.answer(ns, target, w, applied, enabled)
-        if error is not None:
-            self.stats["bad_messages"] += 1
-            self.get_logger().error(f"feedforward for {desired}: {error}",
-                                    throttle_duration_sec=1.0)
+        for a in r.answers:
+            self.publish_answer(a, w, r.applied)
         self.stats["saturated"] = self.core.saturated
-        if self.planner.phase != phase:
+
+    def publish_answer(self, a, w, applied):
+        """One target's reference (and the phase first, when it changed)."""
+        if a.error is not None:
+            self.stats["bad_messages"] += 1
+            self.get_logger().error(f"feedforward for {a.desired}: {a.error}",
+                                    throttle_duration_sec=1.0)
+        if a.phase_changed:
             self.publish_phase()
-        if self.setpoint_arrival and self.driver.realtime and enabled:
+        if self.setpoint_arrival and self.driver.realtime and a.enabled:
             # a streamed setpoint cannot be previewed: it starts at this target tick
-            self.sp_latency.add((target - self.setpoint_arrival) * 1e-9)
+            self.sp_latency.add((a.target - self.setpoint_arrival) * 1e-9)
             self.setpoint_arrival = None
-        if self.driver.realtime and target < time.time_ns():
+        if self.driver.realtime and a.target < time.time_ns():
             self.stats["late_dropped"] += 1  # it could only reach the driver too late
             return
-        self.gate.publish(self.pub, reference_cdr(target, desired, self.core.ff, w, applied))
+        self.gate.publish(self.pub, reference_cdr(a.target, a.desired, a.ff, w, applied))
 
 
 def main(args=None):

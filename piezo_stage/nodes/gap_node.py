@@ -19,7 +19,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.plant import Plant, PlantConfig
+from piezo_stage.core.model.plant import Plant, PlantConfig
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir, enabled_effects
 from piezo_stage.nodes._common import QOS_DATA

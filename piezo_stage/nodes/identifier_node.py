@@ -20,12 +20,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from piezo_stage.core.duhem import StageModel, voltage_limits_for
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.identify import IdentifyOptions, identify_axis
-from piezo_stage.core.identify.segmentation import segment
-from piezo_stage.core.record import Record
-from piezo_stage.core.stamps import StampGuard
+from piezo_stage.core.estimation.identify import IdentifyOptions, identify_axis
+from piezo_stage.core.estimation.identify.segmentation import segment
+from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.loop.stamps import StampGuard
+from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
 from piezo_stage.io.model_file import model_to_dict
 from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node

@@ -19,7 +19,7 @@ import sys
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
 
-from piezo_stage.core.stamps import MAX_STAMP_NS
+from piezo_stage.core.loop.stamps import MAX_STAMP_NS
 from piezo_stage.io.bag import BagWriter, new_bag_dir
 from piezo_stage.nodes._common import steady_timer
 from piezo_stage.nodes._executor import run_node

@@ -1,6 +1,6 @@
 """stage_driver: the stage (sim, NI-DAQ, PI, NV200 or replay) on topics; the last line of
 defence. The sample loop itself (the sample clock, the command schedule, the arming
-supervisor, the voltage and slew clamp) is core/sample_loop.py; this node gives it its
+supervisor, the voltage and slew clamp) is core/loop/sample_loop.py; this node gives it its
 parameters and topics: commands in, joint_states (and the simulated stage's true
 position) out, the latched ``state`` topic and /diagnostics; ``arm`` (std_srvs/SetBool)
 arms and disarms; ``estop`` (std_srvs/Trigger). In real time the executor calls
@@ -41,10 +41,10 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from piezo_stage.core.arming import ENABLED, FAULTED, ArmingParams
-from piezo_stage.core.arming import PARAMETERS as ARMING
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
-from piezo_stage.core.sample_loop import PARAMETERS, RATES, SampleLoop, check_mode
+from piezo_stage.core.loop.arming import ENABLED, FAULTED, ArmingParams
+from piezo_stage.core.loop.arming import PARAMETERS as ARMING
+from piezo_stage.core.loop.sample_loop import PARAMETERS, RATES, SampleLoop, check_mode
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node

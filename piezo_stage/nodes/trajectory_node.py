@@ -28,9 +28,9 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectory
 
-from piezo_stage.core.arming import HOLD
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.trajectory import KINDS, generate
+from piezo_stage.core.loop.planner import HOLD
+from piezo_stage.core.loop.trajectory import KINDS, generate
 from piezo_stage.nodes._common import QOS_EVENTS, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate

@@ -68,7 +68,7 @@ def _plant():
         import sys
         sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(
             os.path.abspath(__file__)))))
-        from piezo_stage.core.plant import Plant
+        from piezo_stage.core.model.plant import Plant
         from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
         cfg, rate = load_plant_config(default_plant_config_path()), DEVICE.get("rate", 1000.0)
         Plant(cfg, rate).run([0.0], [0.0])  # compile the kernels now, not at a clock edge

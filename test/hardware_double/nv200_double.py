@@ -8,7 +8,7 @@ server speaking the NV200 command protocol as the package reads it: one command 
 line (``cmd`` or ``cmd,arg,...`` ended by CR LF), a reply ``cmd,value,...`` CR LF for a
 query, every reply ended by XON (0x11, the flow control an NV200 passes to the host),
 ``error,N`` for an error, and the device type (``NV200/D_NET``) for an empty line.
-Both drive the project's simulated stage (piezo_stage.core.plant) on one 20 kHz clock
+Both drive the project's simulated stage (piezo_stage.core.model.plant) on one 20 kHz clock
 (the NV200's 50 us cycle), on the wall clock: x's output and y's output as they are at
 each tick, so the stage's coupling sees both.
 
@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-from piezo_stage.core.plant import Plant
+from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
 
 DEVICE_TYPE = "NV200/D_NET"

@@ -7,7 +7,7 @@ controller at the far end of the cable: ``PIControllerDouble`` is a TCP server o
 127.0.0.1 that speaks the GCS 2 text protocol (one command per line, answers of one or
 more lines, every line but the last ending in a space before the line feed; errors kept
 until ``ERR?`` reads and clears them) and drives the project's simulated stage
-(piezo_stage.core.plant) with its output voltages.
+(piezo_stage.core.model.plant) with its output voltages.
 
 What it models, per axis 1 (x) and 2 (y), servo off (open loop, the stage driven by
 the open-loop control value in volts) or on (refused: we never close PI's own loop):
@@ -36,7 +36,7 @@ import time
 
 import numpy as np
 
-from piezo_stage.core.plant import Plant
+from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
 
 AXES = ("1", "2")

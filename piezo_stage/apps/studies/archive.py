@@ -41,9 +41,9 @@ def make_archive(out_dir: str, runs: int = 20, fs_hz: float = 1000.0,
     their paths. ``resonance``: the stage also has a resonance that drifts down
     (``resonance_hz``). Also writes ``out_dir/reference.yaml``: the stage's model without its
     creep (the lab's calibration)."""
-    from piezo_stage.core.excitation import gap_protocol
-    from piezo_stage.core.plant import Plant
-    from piezo_stage.core.record import Record
+    from piezo_stage.core.estimation.excitation import gap_protocol
+    from piezo_stage.core.estimation.record import Record
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.bag import write_record_bag
     from piezo_stage.io.model_file import save_model
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config

@@ -1,5 +1,5 @@
 """Fit here, use there: models scored on an excitation other than the one they were
-fitted on, beside the classical Prandtl-Ishlinskii peer (core/identify/prandtl.py).
+fitted on, beside the classical Prandtl-Ishlinskii peer (core/estimation/identify/prandtl.py).
 
 A lab identifies its stage once, on one excitation, and drives it with another. Each
 case fits on FIT and scores on HOLDOUT, one axis, 1 kHz, on two simulated stages: the
@@ -34,7 +34,7 @@ import tempfile
 
 import numpy as np
 
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.record import Record
 
 FS_HZ = 1000.0
 STAGES = {"structure": "structure_stage.yaml", "ours": "sim_stage.yaml",
@@ -80,7 +80,7 @@ def excitations(case: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray, int]:
 
 def case_records(stage: str, case: str, seed: int = 0) -> tuple[Record, Record, np.ndarray]:
     """(FIT, HOLDOUT, HOLDOUT's true displacement [um]) of axis x (y held at 0 V)."""
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.plant_file import load_plant_config
     from piezo_stage.paths import default_config
     cfg = load_plant_config(default_config(STAGES[stage]))
@@ -100,9 +100,9 @@ def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, st
     simulator (noise free) over HOLDOUT's voltages: (its output [um], the verdict, and
     how far [V] our exact inverse of its hysteresis's output lands from HOLDOUT's
     voltages)."""
-    from piezo_stage.core.gap import diagnose
-    from piezo_stage.core.inverse import invert_stage
-    from piezo_stage.core.plant import Plant, PlantConfig
+    from piezo_stage.core.estimation.gap import diagnose
+    from piezo_stage.core.model.inverse import invert_stage
+    from piezo_stage.core.model.plant import Plant, PlantConfig
     from piezo_stage.io.model_file import load_model, save_model
     from piezo_stage.io.plant_file import enabled_effects
     res = diagnose(fit, hold, axes=["x"])
@@ -126,9 +126,9 @@ def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, st
 
 def run(pairs=PAIRS, seed: int = 0, progress=None) -> list[dict]:
     """Each (stage, case) of ``pairs``: the held-out RMS of each model [um]."""
-    from piezo_stage.core.identify import identify_axis
-    from piezo_stage.core.identify.api import predict_axis
-    from piezo_stage.core.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
+    from piezo_stage.core.estimation.identify import identify_axis
+    from piezo_stage.core.estimation.identify.api import predict_axis
+    from piezo_stage.core.estimation.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
     rows = []
     for stage, case in pairs:
         fit, hold, true = case_records(stage, case, seed)

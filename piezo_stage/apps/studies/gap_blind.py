@@ -2,7 +2,7 @@
 random magnitudes within physical ranges, diagnosed without being told which.
 
 Two plant families:
-* ``own``: this project's simulator with one effect from core/effects.py switched on;
+* ``own``: this project's simulator with one effect from core/model/effects.py switched on;
 * ``independent``: the same hysteresis, then effect forms written here and NOT used by
   the diagnosis (creep as two unequal relaxations, dynamics as a resonance followed by
   a lag, delay as a whole-sample shift, drift as a ramp plus a slow thermal sine,
@@ -19,10 +19,10 @@ import time
 import numpy as np
 from scipy import signal
 
-from piezo_stage.core.excitation import CHIRP_S, gap_protocol
-from piezo_stage.core.gap import diagnose, fit_candidate
-from piezo_stage.core.plant import Plant
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.excitation import CHIRP_S, gap_protocol
+from piezo_stage.core.estimation.gap import diagnose, fit_candidate
+from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.plant_file import (
     default_config_dir,
     default_plant_config_path,

@@ -17,9 +17,9 @@ import time
 
 import numpy as np
 
-from piezo_stage.core.identify import IdentifyOptions, identify_axis, validate_axis
-from piezo_stage.core.plant import Plant
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.identify import IdentifyOptions, identify_axis, validate_axis
+from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.files import atomic_write
 from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
 
@@ -114,7 +114,7 @@ def _plots(out_dir, rec, results):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from piezo_stage.core.identify.api import simulate_axis
+    from piezo_stage.core.estimation.identify.api import simulate_axis
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, branch in zip(axes, ("ascending", "descending")):

@@ -59,11 +59,11 @@ def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
     """
     from dataclasses import replace
 
-    from piezo_stage.core.arming import ReferencePlanner
-    from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
-    from piezo_stage.core.inverse import StageInverse
-    from piezo_stage.core.learning import PeriodicLearner, design
-    from piezo_stage.core.plant import Plant
+    from piezo_stage.core.loop.compensation import EffectCompensator, PreviewedReference
+    from piezo_stage.core.loop.learning import PeriodicLearner, design
+    from piezo_stage.core.loop.planner import ReferencePlanner
+    from piezo_stage.core.model.inverse import StageInverse
+    from piezo_stage.core.model.plant import Plant
 
     dt_ns = int(round(1e9 / rate_hz))
     n = int(round(rate_hz / freq_hz))
@@ -158,7 +158,7 @@ def cases(periods: int = 20) -> list[dict]:
 
 def trajectory(kind: str, freq_hz: float, periods: int, rate_hz: float = RATE_HZ) -> tuple:
     """(t, w, fast axis or None) of a case, sampled at ``rate_hz``."""
-    from piezo_stage.core.trajectory import generate, raster
+    from piezo_stage.core.loop.trajectory import generate, raster
     if kind == "raster":
         t, w = raster(freq_hz, periods, (40.0, 40.0), (45.0, 45.0), dt_s=1.0 / rate_hz)
         return t, w, "x"

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from piezo_stage.core.errors import ConfigError
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.record import Record
 
 THRESHOLD = 0.01  # STLSQ's, as published
 SIGNALS = ("w", "v", "dv/dt", "|dv/dt|", "|w|")

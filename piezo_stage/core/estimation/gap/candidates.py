@@ -13,13 +13,13 @@ from scipy import signal
 from scipy.optimize import minimize, minimize_scalar
 
 from piezo_stage.core._jit import play_run
-from piezo_stage.core.duhem import OTHER
-from piezo_stage.core.effects import Creep, Delay, Drift, Dynamics
-from piezo_stage.core.identify.api import free_response
-from piezo_stage.core.identify.fast import fit_fast
-from piezo_stage.core.identify.regress import DuhemRegression, gram_blocks, solve_gram
-from piezo_stage.core.play import PlayOperators
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.identify.api import free_response
+from piezo_stage.core.estimation.identify.fast import fit_fast
+from piezo_stage.core.estimation.identify.regress import DuhemRegression, gram_blocks, solve_gram
+from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.model.duhem import OTHER
+from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
+from piezo_stage.core.model.play import PlayOperators
 
 EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
 
@@ -303,7 +303,7 @@ PLAY_STARTS = (0.0, 1.0, -1.0)  # operators at rest at v[0], after a fall, after
 
 def play_columns(v: np.ndarray, thresholds_V: np.ndarray, start: float = 0.0) -> np.ndarray:
     """One column per play operator (threshold r [V]): the memory a Duhem law lacks, as
-    regressors (core/play.py's law, unit weights). Each starts at v[0] + start * r: at
+    regressors (core/model/play.py's law, unit weights). Each starts at v[0] + start * r: at
     rest (0), or as left by a fall (+1) or a rise (-1) to v[0] before the record."""
     v = np.ascontiguousarray(v, dtype=float)
     out = np.empty((v.size, len(thresholds_V)))

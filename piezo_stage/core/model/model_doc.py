@@ -24,11 +24,11 @@ Schema (version 1)::
           f: [...]
           g: [...]
         play_operators:         # optional: return-point memory, sum_j p_j z_j added to
-          thresholds_V: [...]   #   the Duhem output (core/play.py); r_j >= 0
+          thresholds_V: [...]   #   the Duhem output (core/model/play.py); r_j >= 0
           weights_um_per_V: [...]
           initial_V: [...]      #   z_j at the start (default: at rest at initial_state)
       y: ...
-    effects: {}                 # optional unmodelled effects (see core/effects.py)
+    effects: {}                 # optional unmodelled effects (see core/model/effects.py)
 
 Coefficients are lowest power first. Unknown keys are rejected so a typo is not
 silently ignored.
@@ -39,7 +39,8 @@ from __future__ import annotations
 import numpy as np
 import yaml
 
-from piezo_stage.core.duhem import (
+from piezo_stage.core.errors import ConfigError, ModelError
+from piezo_stage.core.model.duhem import (
     AXES,
     DuhemBranch,
     DuhemModel,
@@ -48,9 +49,8 @@ from piezo_stage.core.duhem import (
     branch_values,
     polynomial_range,
 )
-from piezo_stage.core.effects import validate_effects
-from piezo_stage.core.errors import ConfigError, ModelError
-from piezo_stage.core.play import MAX_OPERATORS, PlayOperators
+from piezo_stage.core.model.effects import validate_effects
+from piezo_stage.core.model.play import MAX_OPERATORS, PlayOperators
 
 SCHEMA_KEY = "piezo_stage_model"
 
@@ -232,7 +232,7 @@ def model_from_dict(doc: object, source: str = "model") -> tuple[StageModel, dic
         raise ModelError(f"{source}: voltage_limits_V {list(lim)} must have min < max "
                          f"within +-{MAX_VOLTS:g} V")
     _check_magnitudes(axes, coupling, lim, source, plays)
-    try:  # every effect key known, every value in a physical range (core/effects.py)
+    try:  # every effect key known, every value in a physical range (core/model/effects.py)
         effects = validate_effects(doc.get("effects"), f"{source}: effects")
     except ConfigError as e:
         raise ModelError(str(e)) from None

@@ -7,7 +7,7 @@ Signal path per axis, at the internal rate (10 kHz by default)::
     -> dynamics -> drift -> delay -> sensor (noise, quantisation) -> sampled at the command rate
 
 ``hysteresis`` (a plant option) replaces the Duhem law on the axes it names with a
-law that is not our model class (core/play.py: play operators with return-point
+law that is not our model class (core/model/play.py: play operators with return-point
 memory and a tanh envelope); the coupling and everything after stay.
 
 Every unmodelled effect is off unless configured. A run is deterministic for a given
@@ -23,10 +23,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, plant_run, sensor_run
-from piezo_stage.core.duhem import AXES, StageModel
-from piezo_stage.core.effects import EFFECTS, make_effect
 from piezo_stage.core.errors import ConfigError
-from piezo_stage.core.play import PlayHysteresis
+from piezo_stage.core.model.duhem import AXES, StageModel
+from piezo_stage.core.model.effects import EFFECTS, make_effect
+from piezo_stage.core.model.play import PlayHysteresis
 
 # Order in which effects act on the displacement (see module docstring).
 EFFECT_ORDER = ("creep", "dynamics", "drift", "delay")
@@ -51,7 +51,7 @@ class PlantConfig:
         effect name -> parameter dict (plus optional 'axes': ['x', 'y']); only the
         effects listed here are on.
     hysteresis : dict
-        {} for the model file's Duhem law; else core/play.py's parameters (plus
+        {} for the model file's Duhem law; else core/model/play.py's parameters (plus
         'axes'): that law replaces the Duhem one on those axes.
     seed : int
         Seed of the sensor-noise generator.

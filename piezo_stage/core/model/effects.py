@@ -14,7 +14,7 @@ and a sample-by-sample run give identical results; ``reset`` returns to rest.
 * drift     -- slow thermal trend that ignores the input: a ramp plus a first-order
                settling term.
 Coupling (displacement caused by the other axis) is part of the hysteresis model
-(:class:`piezo_stage.core.duhem.StageModel`) since it has its own hysteresis.
+(:class:`piezo_stage.core.model.duhem.StageModel`) since it has its own hysteresis.
 """
 
 from __future__ import annotations

@@ -1,5 +1,7 @@
-"""Safe start-up and faults: the driver's arming supervisor, the smooth approach, and
-the feedforward's reference planner (hold, approach, track).
+"""Safe start-up and faults: the driver's arming supervisor and the state timeline the
+loop nodes keep of its announcements (the approach and the feedforward's reference
+planner: core/loop/planner.py; the sample clock and the command schedule:
+core/loop/clock.py).
 
 The node set starts *disarmed*: the driver holds the safe voltage, the trajectory clock
 does not run and the feedback integrators are held. It arms only when the loop is
@@ -20,170 +22,20 @@ is bumpless for the same reason. Times are integers in ns; voltages in V; positi
 in um.
 """
 
+
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-import numpy as np
-from numpy.typing import ArrayLike
-
-from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.loop.control import clamp_slew
 
 DISARMED, ARMING, APPROACHING, ARMED, FAULTED = (
     "disarmed", "arming", "approaching", "armed", "faulted")
 STATES = (DISARMED, ARMING, APPROACHING, ARMED, FAULTED)
 ENABLED = (APPROACHING, ARMED)  # the driver applies commands
-
-
-# -- approach -----------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Approach:
-    """A straight move from ``start`` to ``end`` (um per axis) with a trapezoidal speed
-    profile: speed <= ``speed_um_s`` and acceleration <= ``accel_um_s2`` along the path,
-    all axes arriving together. ``at(tau)`` gives the position tau seconds in."""
-
-    start: dict
-    end: dict
-    speed_um_s: float
-    accel_um_s2: float
-    duration_s: float = field(init=False)
-    _t_acc: float = field(init=False)
-    _dist: float = field(init=False)
-
-    def __post_init__(self):
-        if not (self.speed_um_s > 0 and self.accel_um_s2 > 0):
-            raise ConfigError("approach speed and acceleration must be > 0")
-        d = math.sqrt(sum((self.end[a] - self.start[a]) ** 2 for a in self.start))
-        vmax, amax = self.speed_um_s, self.accel_um_s2
-        t_acc = vmax / amax
-        if amax * t_acc ** 2 >= d:  # triangular: never reaches vmax
-            t_acc = math.sqrt(d / amax)
-            dur = 2 * t_acc
-        else:
-            dur = 2 * t_acc + (d - amax * t_acc ** 2) / vmax
-        object.__setattr__(self, "_t_acc", t_acc)
-        object.__setattr__(self, "_dist", d)
-        object.__setattr__(self, "duration_s", dur)
-
-    def fraction(self, tau: float) -> float:
-        """Share of the path covered after tau seconds (0..1)."""
-        if self._dist == 0.0 or tau >= self.duration_s:
-            return 1.0
-        if tau <= 0.0:
-            return 0.0
-        a, ta, T = self.accel_um_s2, self._t_acc, self.duration_s
-        if tau < ta:
-            s = 0.5 * a * tau ** 2
-        elif tau > T - ta:
-            s = self._dist - 0.5 * a * (T - tau) ** 2
-        else:
-            s = 0.5 * a * ta ** 2 + a * ta * (tau - ta)
-        return min(max(s / self._dist, 0.0), 1.0)
-
-    def at(self, tau: float) -> dict:
-        """The position [um] ``tau`` seconds into the approach."""
-        f = self.fraction(tau)
-        return {a: self.start[a] + f * (self.end[a] - self.start[a]) for a in self.start}
-
-
-# -- the feedforward's reference planner -------------------------------------------------
-
-HOLD, APPROACH, TRACK, DONE = "holding", "approaching", "tracking", "done"
-
-
-class ReferencePlanner:
-    """What the stage is asked to be at a target time, given the driver's state.
-
-    Disabled (the driver holds its safe voltage): *holding* where the stage is.
-    Enabled: an approach from the held position to the goal (the trajectory's first
-    point, or a streamed setpoint), then *tracking*: the trajectory clock starts when
-    the approach ends, or at the trajectory's start time if that is later (its first
-    point held until then); past its last point the phase is *done* and the last point
-    is held. A new trajectory or setpoint while enabled is approached from the
-    present desired position; a re-enable after a fault restarts the trajectory from
-    its beginning, through the approach. Pure and deterministic: times are the target
-    stamps [ns] the caller asks for.
-    """
-
-    def __init__(self, speed_um_s: float = 200.0, accel_um_s2: float = 20000.0):
-        Approach({"x": 0.0}, {"x": 0.0}, speed_um_s, accel_um_s2)  # validates
-        self.speed, self.accel = float(speed_um_s), float(accel_um_s2)
-        self.traj = None           # (t [s], {axis: um})
-        self.setpoint = None       # {axis: um}
-        self.phase = HOLD
-        self.desired = None        # {axis: um}: last position asked for
-        self._approach = None      # (Approach, start ns)
-        self._track_ns = None      # trajectory clock origin [ns]
-        self.start_ns = None       # the trajectory's own start time, if it asked for one
-
-    def set_trajectory(self, t: ArrayLike, w: dict, start_ns: int | None = None) -> None:
-        """A new trajectory (t [s], {axis: um}): approached from where the stage is
-        asked to be; its clock starts when the approach ends, or at ``start_ns`` if
-        that is later."""
-        self.traj, self.setpoint = (np.asarray(t, float), {a: np.asarray(x, float)
-                                                          for a, x in w.items()}), None
-        self.start_ns = None if start_ns is None else int(start_ns)
-        self._restart()
-
-    def set_setpoint(self, w: dict) -> None:
-        """A new streamed setpoint {axis: um}: approached, then held."""
-        self.setpoint, self.traj = dict(w), None
-        self._restart()
-
-    def _restart(self):
-        if self.phase != HOLD:
-            self.phase, self._approach, self._track_ns = APPROACH, None, None
-
-    def hold(self, w_now: dict) -> None:
-        """Disabled: ask for where the stage is; the next enable starts over."""
-        self.phase, self._approach, self._track_ns = HOLD, None, None
-        self.desired = dict(w_now)
-
-    def clock_s(self, target_ns: int) -> float | None:
-        """Seconds the trajectory clock will have run at target_ns (None: not running)."""
-        if self.phase not in (TRACK, DONE) or self._track_ns is None:
-            return None
-        return (target_ns - self._track_ns) * 1e-9
-
-    def _goal(self) -> dict:
-        if self.traj is not None:
-            t, w = self.traj
-            return {a: float(w[a][0]) if a in w else self.desired[a] for a in self.desired}
-        if self.setpoint is not None:
-            return {a: self.setpoint.get(a, self.desired[a]) for a in self.desired}
-        return dict(self.desired)
-
-    def sample(self, target_ns: int) -> dict:
-        """The desired position [um] for ``target_ns`` while enabled."""
-        if self.desired is None:
-            raise ConfigError("planner: hold() must give the start position first")
-        if self.phase == HOLD:
-            self.phase = APPROACH
-        if self.phase == APPROACH:
-            if self._approach is None:
-                self._approach = (Approach(dict(self.desired), self._goal(), self.speed,
-                                           self.accel), int(target_ns))
-            ap, t0 = self._approach
-            tau = (target_ns - t0) * 1e-9
-            if tau < ap.duration_s:
-                self.desired = ap.at(tau)
-                return dict(self.desired)
-            self.phase, self._track_ns = TRACK, max(t0 + int(round(ap.duration_s * 1e9)),
-                                                    self.start_ns or 0)
-        if self.traj is not None:
-            t, w = self.traj
-            tau = (target_ns - self._track_ns) * 1e-9
-            self.desired = {a: float(np.interp(tau, t, w[a])) if a in w else self.desired[a]
-                            for a in self.desired}
-            if tau > t[-1]:
-                self.phase = DONE  # the last point, held
-        elif self.setpoint is not None:
-            self.desired = {a: self.setpoint.get(a, self.desired[a]) for a in self.desired}
-        return dict(self.desired)
 
 
 # -- the driver's supervisor -----------------------------------------------------------
@@ -236,13 +88,13 @@ class ArmingSupervisor:
         self.ramp_step_V = params.ramp_V_per_s * dt_s  # per tick
         self.lead_ns = int(lead_ns)     # an enable takes effect this far ahead
         self.state, self.reason = DISARMED, "started disarmed"
-        self.enable_ns = None
+        self.enable_ns: int | None = None  # the first sample stamp commands apply from
         self.v = dict(v0)               # the voltage applied last
         self.evidence = 0               # consecutive ticks with a holding command
         self.link = "no command received yet"
         self.arm_requested = params.auto_arm
         self.estop = False
-        self.last_fresh_ns = None       # receipt time of the last valid command on time
+        self.last_fresh_ns: int | None = None  # receipt of the last valid command on time
         self.late_since_fresh = 0       # valid commands after their tick since then
         self.late_lag_ns = 0            # how far behind their tick the latest of them came
         self.tracking = False           # the feedforward reports its trajectory clock runs
@@ -375,77 +227,10 @@ class ArmingSupervisor:
             self.enable_ns = None
         changed = state != self.state
         since = self.enable_ns if state == APPROACHING and self.state not in ENABLED \
-            else stamp_ns
+            and self.enable_ns is not None else stamp_ns
         self.state, self.reason = state, reason
         if changed:
             self.on_change(state, reason, since)
-
-
-
-class CommandSchedule:
-    """Commands by the sample tick they are stamped for (real time).
-
-    The driver's samples sit on a grid ``t0_ns + j * dt_ns``; a command stamped ``s``
-    is for tick ``round((s - t0_ns) / dt_ns)``. ``due(j)`` gives the newest command for
-    tick j or earlier (so the last one is held when none is new) and whether one
-    stamped exactly for j arrived before j was executed. A command that arrives after
-    its tick is counted late and dropped: applying it would put the stage that far
-    behind its path (a stream of them faults the loop: ArmingSupervisor).
-    ``lookahead_ns``: how far ahead of the sample it answers a command is stamped, so
-    ``add`` can measure the sample-to-arrival latency.
-    """
-
-    def __init__(self, t0_ns: int, dt_ns: int, lookahead_ns: int):
-        from piezo_stage.core.metrics import LatencyHistogram
-        self.t0, self.dt, self.lookahead = int(t0_ns), int(dt_ns), int(lookahead_ns)
-        self.pending = {}            # tick -> voltages
-        self.held = None             # (tick, voltages) applied last
-        self.late = 0
-        self.held_ticks = 0          # ticks with no command of their own (held the last)
-        self.streak = 0              # such ticks in a row, up to now
-        self.longest = 0             # the longest such run since ``longest_hold()`` last
-        self.received = 0
-        self.arrival_lag = LatencyHistogram()  # sample taken -> its command arrived [s]
-
-    def tick_of(self, stamp_ns: int) -> int:
-        """The sample tick a command stamped ``ns`` is for."""
-        return (int(stamp_ns) - self.t0 + self.dt // 2) // self.dt
-
-    def add(self, stamp_ns: int, v: dict, recv_ns: int, last_tick: int) -> bool:
-        """Keep a command for its tick (late ones are counted and dropped). -> whether
-        it arrived before its tick."""
-        j = self.tick_of(stamp_ns)
-        self.received += 1
-        self.arrival_lag.add((int(recv_ns) - (int(stamp_ns) - self.lookahead)) * 1e-9)
-        if j <= last_tick:
-            self.late += 1
-            return False
-        self.pending[j] = dict(v)
-        return True
-
-    def longest_hold(self) -> int:
-        """The longest run of held ticks since the last call (a stall of the commands'
-        path shows as one long run, where a busy host holds a tick here and there)."""
-        n, self.longest = self.longest, self.streak
-        return n
-
-    def due(self, j: int, count_held: bool = True) -> tuple[dict | None, bool]:
-        """-> (voltages or None, exactly on time for tick j). With ``count_held`` (the
-        stage is applying commands), a tick with no command stamped for it counts as
-        held (``held_ticks``)."""
-        on_time = j in self.pending
-        held = count_held and not on_time
-        self.held_ticks += held
-        self.streak = self.streak + 1 if held else 0
-        self.longest = max(self.longest, self.streak)
-        ready = [k for k in self.pending if k <= j]
-        if ready:
-            k = max(ready)
-            if self.held is None or k > self.held[0]:
-                self.held = (k, self.pending[k])
-            for k in ready:
-                del self.pending[k]
-        return (dict(self.held[1]) if self.held else None), on_time
 
 
 class StateTimeline:
@@ -472,27 +257,3 @@ class StateTimeline:
     def enabled(self, ns: int) -> bool:
         """Whether the driver applies commands at stamp ``ns``."""
         return self.at(ns) in ENABLED
-
-
-class SampleClock:
-    """The stage's sample clock in real time, on the host's monotonic clock: tick j is
-    due at ``mono0 + j * dt``; a tick serviced late belongs to the latest deadline
-    passed (the ones skipped are missed ticks). ``late`` holds how late each serviced
-    tick ran. A hardware-paced backend (the DAQ) counts its own ticks instead."""
-
-    def __init__(self, dt_s: float, paced: bool):
-        from piezo_stage.core.metrics import LatencyHistogram
-        self.dt, self.paced, self.mono0 = float(dt_s), bool(paced), None
-        self.late = LatencyHistogram()
-
-    def tick(self, now: float, last_j: int) -> int:
-        """The index of the tick serviced at monotonic time ``now``."""
-        if self.mono0 is None:
-            self.mono0 = now
-        j = last_j + 1 if self.paced else int((now - self.mono0) // self.dt)
-        self.late.add(now - self.mono0 - j * self.dt)
-        return j
-
-    def deadline(self, j: int) -> float:
-        """When to service tick j (0.0: at once; the hardware paces)."""
-        return 0.0 if self.paced else self.mono0 + j * self.dt

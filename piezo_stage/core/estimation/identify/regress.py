@@ -27,7 +27,7 @@ from numpy.polynomial import legendre as L
 from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, duhem_regressors, fold_branches
-from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
+from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel, DuhemState
 
 
 def legendre_basis(v: np.ndarray, lo: float, hi: float, deg: int) -> np.ndarray:

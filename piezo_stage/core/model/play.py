@@ -5,7 +5,7 @@ stage's ``hysteresis`` option).
 
 ``PlayOperators`` is what a model file's ``play_operators`` block holds (the gap
 diagnosis's ``structure`` with memory fits it): its output, linear in the weights, is
-added to the axis's Duhem output, and the exact inverse (core/inverse.py) solves for
+added to the axis's Duhem output, and the exact inverse (core/model/inverse.py) solves for
 both at once.
 
 The Duhem law we identify has polynomial branch shapes and no return-point memory: a

@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from scipy.optimize import minimize
 
-from piezo_stage.core.identify.regress import DuhemRegression, Fit
+from piezo_stage.core.estimation.identify.regress import DuhemRegression, Fit
 
 LOG_ALPHA_BOUNDS = (np.log(1e-5), np.log(10.0))
 # A coupling term's alpha stays above 1e-3 1/V and above a third of the smallest branch

@@ -3,7 +3,7 @@ unmodelled effects cause it, and how far the gap shrinks once they are added.
 
 Base model ("the sim"): the segmented Duhem model per axis, identified on FIT (or
 given: then what it has is not a candidate). Candidates, each a small physical
-operator from core/effects.py added to the sim and fitted on FIT *together with* the
+operator from core/model/effects.py added to the sim and fitted on FIT *together with* the
 Duhem coefficients (the effect operator is linear, so E(X theta) = E(X) theta: for
 fixed alphas and effect parameters it is one least-squares problem; the effect's own
 parameters are searched):
@@ -37,12 +37,11 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from piezo_stage.core.duhem import StageModel, voltage_limits_for
 from piezo_stage.core.errors import DataError
 
 # the package's public names, here as before it was split by concern
-from piezo_stage.core.gap.budget import gap_budget, input_period  # noqa: F401
-from piezo_stage.core.gap.candidates import (  # noqa: F401
+from piezo_stage.core.estimation.gap.budget import gap_budget, input_period  # noqa: F401
+from piezo_stage.core.estimation.gap.candidates import (  # noqa: F401
     EFFECTS,
     TRANSFORMS,
     Candidate,
@@ -50,9 +49,10 @@ from piezo_stage.core.gap.candidates import (  # noqa: F401
     fit_candidate,
     play_columns,
 )
-from piezo_stage.core.gap.selection import AxisDiagnosis, diagnose_axis  # noqa: F401
-from piezo_stage.core.gap.where import held, holds  # noqa: F401
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.gap.selection import AxisDiagnosis, diagnose_axis  # noqa: F401
+from piezo_stage.core.estimation.gap.where import held, holds  # noqa: F401
+from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
 
 # The other speed-up (see candidates.ONE_COLUMN_SEARCH): the axes in processes
 # (False: threads), switchable so that ``bench gap`` measures the path without it

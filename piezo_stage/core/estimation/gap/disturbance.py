@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import signal
 
-from piezo_stage.core.duhem import OTHER
-from piezo_stage.core.gap.where import held
-from piezo_stage.core.record import Record
+from piezo_stage.core.estimation.gap.where import held
+from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.model.duhem import OTHER
 
 PEAK_RATIO = 20.0   # a narrowband line: this many times the residual's median PSD
 

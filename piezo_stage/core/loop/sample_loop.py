@@ -7,7 +7,7 @@ the first tick and a tick serviced more than a period late skips the missed samp
 backend holds its voltage over them, the stamps show the gap). Commands are applied at
 the tick they are stamped for; late ones are counted and dropped, the newest command on
 time is held, and only commands on time keep the loop fresh (a stream of late ones
-faults it). The arming supervisor (core/arming.py) decides what is applied: the safe
+faults it). The arming supervisor (core/loop/arming.py) decides what is applied: the safe
 voltage until the loop is proven closed, then commands, and a ramp to the safe voltage
 on a fault, an e-stop or a shutdown. Everything is clamped to the voltage limits and
 the slew limit.
@@ -24,17 +24,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from piezo_stage.core.arming import (
-    DONE,
-    ENABLED,
-    TRACK,
-    ArmingParams,
-    ArmingSupervisor,
-    CommandSchedule,
-    SampleClock,
-)
-from piezo_stage.core.control import clamp_slew
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.loop.arming import ENABLED, ArmingParams, ArmingSupervisor
+from piezo_stage.core.loop.clock import CommandSchedule, SampleClock
+from piezo_stage.core.loop.control import clamp_slew
+from piezo_stage.core.loop.planner import DONE, TRACK
 
 # the driver node's parameters: name (one name: the parameter's), default, description,
 # limits (nodes/_params.declare)

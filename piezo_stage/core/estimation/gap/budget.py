@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from piezo_stage.core.duhem import OTHER
-from piezo_stage.core.effects import Dynamics
-from piezo_stage.core.gap.candidates import play_columns
-from piezo_stage.core.identify.regress import gram
+from piezo_stage.core.estimation.gap.candidates import play_columns
+from piezo_stage.core.estimation.identify.regress import gram
+from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.metrics import rms
-from piezo_stage.core.record import Record
+from piezo_stage.core.model.duhem import OTHER
+from piezo_stage.core.model.effects import Dynamics
 
 
 def gap_above_floor(r: float, nf: float) -> float:
@@ -77,7 +77,7 @@ def input_locked(v: np.ndarray, v_other: np.ndarray | None, fs: float,
     on the record itself (fitted on one fold, predicted on the other), so it holds
     what repeats with the input and not noise. -> that component (like resid)."""
     from piezo_stage.core._jit import duhem_regressors, lowpass_mean_columns
-    from piezo_stage.core.identify.regress import legendre_basis
+    from piezo_stage.core.estimation.identify.regress import legendre_basis
     cols = []
     for u in (v, v_other):
         if u is None or np.ptp(u) <= 0:
@@ -131,7 +131,7 @@ def input_period(v: np.ndarray, v_other: np.ndarray | None, fs: float,
                  min_s: float = 0.05) -> int | None:
     """The input's period in samples when the whole record repeats it (both axes'
     inputs, to within 0.1 % of the span), at least MIN_PERIODS times; else None."""
-    from piezo_stage.core.identify.segmentation import voltage_noise
+    from piezo_stage.core.estimation.identify.segmentation import voltage_noise
     v = np.asarray(v, float)
     n = v.size
     span = float(np.ptp(v))

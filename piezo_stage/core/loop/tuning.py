@@ -10,7 +10,7 @@ applied over the next period, L = 1), k the hysteresis model's largest increment
 gain dw/dv over its voltage range (the plant is steepest there, so margins that hold
 for it hold everywhere along the branches), and P_fx the model's unmodelled effects at
 the control rate (creep, dynamics with the delay's fraction, the delay's whole periods),
-exactly as core/compensation.py inverts them. Among PI gains on a log grid the largest
+exactly as core/loop/compensation.py inverts them. Among PI gains on a log grid the largest
 crossover frequency is chosen whose loop has at least the asked phase and gain margins
 on both axes (the phase margin at every unity-gain crossing, the gain margin at every
 -180 deg crossing: with a stable plant the closed loop is then stable); kd stays
@@ -25,9 +25,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from piezo_stage.core.compensation import CREEP_TAUS_S, DynamicsInverse
-from piezo_stage.core.duhem import StageModel
 from piezo_stage.core.errors import ModelError
+from piezo_stage.core.loop.compensation import CREEP_TAUS_S, DynamicsInverse
+from piezo_stage.core.model.duhem import StageModel
 
 
 def model_gain(model: StageModel, axis: str, n: int = 2001) -> tuple[float, float]:

@@ -2,7 +2,7 @@
 
 The plant acts on each axis's hysteresis output h (what the Duhem model gives for the
 applied voltage) with creep, then linear dynamics, then drift, then a transport delay
-(``core/plant.py``). A command is held over one control period, so at the control rate
+(``core/model/plant.py``). A command is held over one control period, so at the control rate
 these operators are discrete and exactly invertible:
 
 * delay d = n T + delta: n whole periods are taken by previewing the known trajectory
@@ -35,7 +35,7 @@ from scipy.linalg import expm
 from piezo_stage.core.errors import ConfigError
 
 if TYPE_CHECKING:
-    from piezo_stage.core.arming import ReferencePlanner
+    from piezo_stage.core.loop.planner import ReferencePlanner
 
 CREEP_TAUS_S = (0.05, 0.5, 5.0, 50.0)
 

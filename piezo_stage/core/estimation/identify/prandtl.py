@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from piezo_stage.core.duhem import DuhemModel, DuhemState
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.play import PlayOperators
+from piezo_stage.core.model.duhem import DuhemModel, DuhemState
+from piezo_stage.core.model.play import PlayOperators
 
 OPERATORS = 12
 LINEAR_ALPHA = 1e-3  # [1/V]: the Duhem law standing for the linear term (any > 0 is exact)

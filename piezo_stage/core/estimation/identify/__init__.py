@@ -5,7 +5,7 @@ coefficients for fixed alpha, a search over alpha only; the default), ``afsa`` (
 standard artificial fish swarm) and ``afsa-bat`` (the paper's bat-improved swarm).
 """
 
-from piezo_stage.core.identify.api import (  # noqa: F401
+from piezo_stage.core.estimation.identify.api import (  # noqa: F401
     METHODS,
     AxisResult,
     IdentifyOptions,

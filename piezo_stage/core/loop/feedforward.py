@@ -2,10 +2,10 @@
 shell: parameters, topics, statistics, logs).
 
 Per measured sample k (stamp t_k, position w, voltages applied for it) the feedforward
-answers the target ticks t_k + look-ahead: the planner (core/arming.py) gives the
+answers the target ticks t_k + look-ahead: the planner (core/loop/planner.py) gives the
 desired position, the previewed reference compensates the model's effects and applies
-what learning learned (core/compensation.py, core/learning.py), and the exact inverse
-(core/inverse.py), synced to the voltages really applied and stepped through the
+what learning learned (core/loop/compensation.py, core/loop/learning.py), and the exact inverse
+(core/model/inverse.py), synced to the voltages really applied and stepped through the
 commands still in flight, turns it into voltages. While the driver does not apply
 commands the reference holds where the stage is and the feedforward is the applied
 voltage, so enabling is bumpless. A new model replaces the inverse at once; while
@@ -14,14 +14,17 @@ armed, the jump between the old model's answer and the new one's is eased out.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
-from piezo_stage.core.arming import ReferencePlanner
-from piezo_stage.core.compensation import EffectCompensator, PreviewedReference
-from piezo_stage.core.duhem import StageModel, check_model_change
+from numpy.typing import ArrayLike
+
 from piezo_stage.core.errors import DataError, PiezoStageError
-from piezo_stage.core.inverse import StageInverse
-from piezo_stage.core.learning import LearnedFeedforward
+from piezo_stage.core.loop.compensation import EffectCompensator, PreviewedReference
+from piezo_stage.core.loop.learning import LearnedFeedforward
+from piezo_stage.core.loop.planner import ReferencePlanner
+from piezo_stage.core.model.duhem import StageModel, check_model_change
+from piezo_stage.core.model.inverse import StageInverse
 
 HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
 MAX_FILLED_TICKS = 20  # after a skipped sample, at most this many targets answered
@@ -80,6 +83,35 @@ def trajectory_start(stamp_ns: int, now_ns: int) -> int | None:
 
 
 @dataclass(frozen=True)
+class Answer:
+    """What the node publishes for one target tick: the reference (``desired`` [um],
+    the feedforward ``ff`` [V]) stamped ``target`` [ns]; ``error``, the reason the last
+    feedforward was held (logged); ``phase_changed``: the planner's phase changed on
+    the way (the node publishes it before this reference); ``enabled``: the driver
+    applies commands at ``target``."""
+
+    target: int
+    desired: dict | None
+    ff: dict
+    error: PiezoStageError | None
+    phase_changed: bool
+    enabled: bool
+
+
+@dataclass(frozen=True)
+class SampleResult:
+    """``on_sample``'s verdict on one sample: ``wait`` (lockstep: hold this sample until
+    what it waits for is here, ``resume``), ``silent`` (real time, no trajectory yet:
+    no answer, so the loop is not closed and nothing arms), or the ``answers`` with the
+    voltage ``applied`` [V] they took the stage to be at."""
+
+    answers: tuple[Answer, ...] = ()
+    wait: bool = False
+    silent: bool = False
+    applied: dict | None = None
+
+
+@dataclass(frozen=True)
 class PreparedModel:
     """A model ready to be used (``InverseFeedforward.prepare_model``)."""
     model: StageModel
@@ -105,11 +137,18 @@ class InverseFeedforward:
         False: the feedforward stays at the voltage applied when enabled (feedback only).
     max_resonance_hz : float
         A model's resonance above this is taken as its group delay (0: no limit).
+    wait_for_trajectory : bool
+        Answer no sample before a trajectory is here (lockstep: hold the sample).
+    model_required_after_s : float
+        Lockstep: hold the trajectory clock at this many seconds until a model is here
+        (0: never).
     """
 
     def __init__(self, planner: ReferencePlanner, dt_ns: int, nominal_um_per_V: float = 0.5,
                  use_coupling: bool = True, inverse: bool = True,
-                 max_resonance_hz: float = 0.0):
+                 max_resonance_hz: float = 0.0, wait_for_trajectory: bool = False,
+                 model_required_after_s: float = 0.0):
+        self.wait_traj, self.model_after_s = bool(wait_for_trajectory), model_required_after_s
         self.planner, self.dt_ns = planner, int(dt_ns)
         self.ref = PreviewedReference(planner, self.dt_ns)  # effects compensated
         self.learning = LearnedFeedforward(self.ref, self.dt_ns)
@@ -187,6 +226,55 @@ class InverseFeedforward:
             self.learn_p["learning_gain"] = gain
         self.learning.configure(self.learn_p["learning_period_s"],
                                 self.learn_p["learning_gain"], self.effects, self.comp)
+
+    def set_trajectory(self, t: ArrayLike, w: dict, stamp_ns: int,
+                       start_ns: int | None) -> None:
+        """Run a new trajectory (t [s], {axis: um}), stamped ``stamp_ns`` by its sender,
+        from ``start_ns`` (None: once approached): the learner starts over, and the
+        phase names it ("trajectory of N points stamped S")."""
+        self.planner.set_trajectory(t, w, start_ns=start_ns)
+        self.learning.reset()
+        points = len(self.planner.traj[0]) if self.planner.traj is not None else 0
+        self.traj_text = f"trajectory of {points} points stamped {stamp_ns}"
+
+    def set_live(self, name: str, value: object) -> None:
+        """A parameter that takes effect at once: ``compensate_effects`` (bool),
+        ``learning`` (bool), ``learning_period_s`` [s], ``learning_gain``."""
+        if name == "compensate_effects":
+            self.ref.on = bool(value)
+        elif name == "learning":
+            self.learning.enable(bool(value))
+        elif name in ("learning_period_s", "learning_gain"):
+            self.learn_p[name] = float(value)  # type: ignore[arg-type]
+            self.relearn()
+        else:
+            raise DataError(f"feedforward: {name} is no live parameter")
+
+    def on_sample(self, ns: int, w: dict, v_applied: dict | None, lookahead_ns: int,
+                  enabled: Callable[[int], bool], realtime: bool) -> SampleResult:
+        """The sample stamped ``ns``: the stage at ``w`` [um] with ``v_applied`` [V]
+        (None: not reported, the last feedforward stands for it). Its answers are for
+        ``ns + lookahead_ns`` (and the ticks a skipped sample leaves unanswered);
+        ``enabled(target)`` says whether the driver applies commands there."""
+        self.learning.measured(ns, w)
+        target = ns + lookahead_ns
+        clock = self.planner.clock_s(target)
+        no_trajectory = self.wait_traj and self.planner.traj is None
+        waiting = no_trajectory or (self.inv is None and 0 < self.model_after_s <= (
+            clock if clock is not None else -1))
+        if waiting and not realtime:
+            return SampleResult(wait=True)
+        if no_trajectory:
+            return SampleResult(silent=True)
+        applied = v_applied or self.ff
+        self.measured(ns, w, applied)
+        answers = []
+        for t in self.targets(target):
+            phase, on = self.planner.phase, enabled(t)
+            desired, error = self.answer(ns, t, w, applied, on)
+            answers.append(Answer(t, desired, dict(self.ff), error,
+                                  self.planner.phase != phase, on))
+        return SampleResult(tuple(answers), applied=applied)
 
     def measured(self, ns: int, w: dict, applied: dict) -> None:
         """The sample at ``ns``: the stage at ``w`` with ``applied`` [V]. The inverse

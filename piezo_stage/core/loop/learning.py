@@ -24,8 +24,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from piezo_stage.core.compensation import DynamicsInverse, EffectCompensator, PreviewedReference
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.loop.compensation import (
+    DynamicsInverse,
+    EffectCompensator,
+    PreviewedReference,
+)
 
 EFFECTS_WITH_DYNAMICS = ("creep", "dynamics", "delay")  # drift ignores the input
 NOISE_KAPPA = 1.5  # a bin is learned where it exceeds this many noise RMS
@@ -44,7 +48,7 @@ def _scaled(params: dict, scale: dict | None) -> dict:
 
 
 def creep_response(params: dict, rate_hz: float, freqs_hz: np.ndarray) -> np.ndarray:
-    """Creep (core/effects.py's form) at the control rate: 1 - gamma (1 - the mean of
+    """Creep (core/model/effects.py's form) at the control rate: 1 - gamma (1 - the mean of
     its low-passes (1 - p) / (1 - p z^-1), p = exp(-T / tau))."""
     z1 = np.exp(-2j * np.pi * np.asarray(freqs_hz, float) / rate_hz)
     poles = np.exp(-1.0 / (rate_hz * np.atleast_1d(np.asarray(

@@ -7,11 +7,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import signal
 
-from piezo_stage.core.duhem import OTHER
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.identify.segmentation import segment
+from piezo_stage.core.estimation.identify.segmentation import segment
+from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.metrics import rms
-from piezo_stage.core.record import Record
+from piezo_stage.core.model.duhem import OTHER
 
 MIN_HOLD_S = 1.0
 

@@ -13,7 +13,7 @@ Exact inverse
     reach saturates at the limit and is flagged; the state then follows what the
     model really does at that voltage.
 
-    With play operators (a model's ``plays``: return-point memory, core/play.py) the
+    With play operators (a model's ``plays``: return-point memory, core/model/play.py) the
     target is the Duhem step plus the operators' sum P(v_k) from their state; P is
     continuous and piecewise linear in v_k, so the same scan and regula falsi find the
     nearest root, and forward(inverse(w*)) is w* again.
@@ -35,7 +35,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import as_f64, duhem_inverse_run, stage_inverse_step, stage_sync
-from piezo_stage.core.duhem import (
+from piezo_stage.core.errors import DataError, ModelError
+from piezo_stage.core.model.duhem import (
     AXES,
     OTHER,
     DuhemModel,
@@ -43,8 +44,7 @@ from piezo_stage.core.duhem import (
     StageModel,
     branch_values,
 )
-from piezo_stage.core.errors import DataError, ModelError
-from piezo_stage.core.play import PlayOperators
+from piezo_stage.core.model.play import PlayOperators
 
 # Scan resolution for the first root: the voltage span is split into this many
 # intervals; a branch would need two roots within span/64 (> 2 V) to fool it.

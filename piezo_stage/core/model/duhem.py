@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike
 
 from piezo_stage.core._jit import PREFIX, as_f64, duhem_run, duhem_step
 from piezo_stage.core.errors import DataError, ModelError
-from piezo_stage.core.play import PlayOperators
+from piezo_stage.core.model.play import PlayOperators
 
 
 def _coeffs(x, name):
@@ -312,7 +312,7 @@ class StageModel:
     play operators.
 
     ``coupling['x']`` is the displacement on x caused by the y voltage (the paper's H_xy),
-    itself a Duhem model driven by v_y; ``plays['x']`` (core/play.py's PlayOperators,
+    itself a Duhem model driven by v_y; ``plays['x']`` (core/model/play.py's PlayOperators,
     optional) adds return-point memory driven by v_x; the axis output is the sum
     w_x = H_xx(v_x) + P_x(v_x) + H_xy(v_y). Axes absent from ``axes`` are not modelled.
     """

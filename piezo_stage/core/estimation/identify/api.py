@@ -8,18 +8,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from piezo_stage.core.duhem import OTHER, DuhemModel, DuhemState, StageModel, voltage_limits_for
 from piezo_stage.core.errors import DataError, SolverError
-from piezo_stage.core.identify.options import IdentifyOptions
-from piezo_stage.core.identify.regress import DuhemRegression
-from piezo_stage.core.identify.segmentation import (
+from piezo_stage.core.estimation.identify.options import IdentifyOptions
+from piezo_stage.core.estimation.identify.regress import DuhemRegression
+from piezo_stage.core.estimation.identify.segmentation import (
     Segmentation,
     branch_monotone,
     segment,
     voltage_noise,
 )
+from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.metrics import error_figures, noise_floor
-from piezo_stage.core.record import Record
+from piezo_stage.core.model.duhem import (
+    OTHER,
+    DuhemModel,
+    DuhemState,
+    StageModel,
+    voltage_limits_for,
+)
 
 METHODS = ("fast", "afsa", "afsa-bat")
 MIN_BRANCH_SAMPLES = 20
@@ -156,7 +162,7 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
                      "h = g - f (descending) are identifiable; reported as h")
     t0 = time.perf_counter()
     if opts.method == "fast":
-        from piezo_stage.core.identify.fast import fit_fast
+        from piezo_stage.core.estimation.identify.fast import fit_fast
         reg = DuhemRegression(v, w, opts.structure, opts.n, opts.m,
                               v_other if use_c else None, coupling_state=False)
         alphas, fit, hist = fit_fast(reg, opts.budget, progress)
@@ -164,7 +170,7 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
         evaluations = reg.evaluations
         history = {"best_rms_um": hist}
     else:
-        from piezo_stage.core.identify.afsa import fit_swarm
+        from piezo_stage.core.estimation.identify.afsa import fit_swarm
         model, evaluations, history = fit_swarm(v, w, seg, opts, progress)
         model = model.with_fit_range(float(v.min()), float(v.max()))
         coupling = None
@@ -259,7 +265,7 @@ def choose_class(rec: Record, axis: str, opts: IdentifyOptions | None = None
     judged on the last 40 % (offset removed; the first 10 % of it, where each model's
     unknown start state shows, left out). The Duhem law wins ties within 2 %: the
     Prandtl-Ishlinskii class must pay. -> (class, {class: held-out RMS um})."""
-    from piezo_stage.core.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
+    from piezo_stage.core.estimation.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
     first, last = _later_cycles(rec, axis)
     skip = 0.1 * (last.t[-1] - last.t[0])
     w = last.w[axis]

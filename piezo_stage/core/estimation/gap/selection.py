@@ -8,10 +8,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from piezo_stage.core.duhem import OTHER, StageModel
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.gap.budget import gap_above_floor, gap_budget, shrink_uncertainty
-from piezo_stage.core.gap.candidates import (
+from piezo_stage.core.estimation.gap.budget import gap_above_floor, gap_budget, shrink_uncertainty
+from piezo_stage.core.estimation.gap.candidates import (
     EFFECTS,
     TRANSFORMS,
     Candidate,
@@ -19,12 +18,13 @@ from piezo_stage.core.gap.candidates import (
     fit_candidate,
     with_drift,
 )
-from piezo_stage.core.gap.disturbance import disturbance
-from piezo_stage.core.gap.where import MIN_HOLD_S, holds, where
-from piezo_stage.core.identify.api import check_identifiable
-from piezo_stage.core.identify.fast import fit_fast
+from piezo_stage.core.estimation.gap.disturbance import disturbance
+from piezo_stage.core.estimation.gap.where import MIN_HOLD_S, holds, where
+from piezo_stage.core.estimation.identify.api import check_identifiable
+from piezo_stage.core.estimation.identify.fast import fit_fast
+from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.metrics import noise_floor, rms
-from piezo_stage.core.record import Record
+from piezo_stage.core.model.duhem import OTHER, StageModel
 
 
 class GivenModel:
@@ -39,7 +39,7 @@ class GivenModel:
 
     def predict(self, rec: Record, axis: str) -> np.ndarray:
         """The given model's prediction on a record (no fit)."""
-        from piezo_stage.core.identify.api import simulate_axis
+        from piezo_stage.core.estimation.identify.api import simulate_axis
         m = self.model.axes[axis]
         c = self.model.coupling.get(axis)
         vo = rec.v.get(OTHER[axis])

@@ -34,12 +34,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from piezo_stage.core._jit import as_f64, branch_rms_batch, duhem_rms_batch, unbounded_rows
-from piezo_stage.core.duhem import DuhemBranch, DuhemModel, DuhemState
-from piezo_stage.core.identify.regress import legendre_to_power
+from piezo_stage.core.estimation.identify.regress import legendre_to_power
+from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel, DuhemState
 
 if TYPE_CHECKING:  # annotations only (api imports this module)
-    from piezo_stage.core.identify.options import IdentifyOptions
-    from piezo_stage.core.identify.segmentation import Segmentation
+    from piezo_stage.core.estimation.identify.options import IdentifyOptions
+    from piezo_stage.core.estimation.identify.segmentation import Segmentation
 
 DEFAULTS = {"fish": 30, "iterations": 200, "visual": 0.3, "step": 0.1, "delta": 0.618,
             "try_number": 5, "f_min": 0.0, "f_max": 0.9,

@@ -1,0 +1,63 @@
+"""`piezo-stage bench setup`: a new user's first minute, from a source checkout. Fresh
+clones of the checkout's HEAD, each `./dev.sh` from nothing: the set-up alone
+(`./dev.sh --version`) with pip alone (PIEZO_STAGE_INSTALLER=pip, the baseline, as
+dev.sh installed before uv) and as dev.sh does it now; then a fresh clone's whole
+`./dev.sh demo`, and `./dev.sh --version` once set up. Each is a wall time on this
+host, the pip one paired in the same run."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+
+
+def _checkout() -> str:
+    """The source checkout this package runs from (a git work tree)."""
+    here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    if not os.path.isfile(os.path.join(here, "dev.sh")) or not os.path.isdir(
+            os.path.join(here, ".git")):
+        from piezo_stage.core.errors import DataError
+        raise DataError(f"bench setup needs a source checkout with dev.sh; {here} is none")
+    return here
+
+
+def _timed(argv, cwd, env) -> float:
+    t0 = time.monotonic()
+    subprocess.run(argv, cwd=cwd, env=env, check=True, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL)
+    return time.monotonic() - t0
+
+
+def bench_setup(runs: int = 2) -> int:
+    src = _checkout()
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("VIRTUAL_ENV",
+                                                                      "PIEZO_STAGE_"))}
+    env["ROS_DOMAIN_ID"] = env.get("ROS_DOMAIN_ID", "97")
+    rows: dict[str, list[float]] = {"pip": [], "uv": [], "demo": [], "again": []}
+    with tempfile.TemporaryDirectory(prefix="piezo-stage-setup-") as d:
+        for i in range(runs):
+            for how in ("pip", "uv"):
+                clone = os.path.join(d, f"{how}{i}")
+                subprocess.run(["git", "clone", "-q", src, clone], check=True)
+                e = dict(env, PIEZO_STAGE_INSTALLER="pip") if how == "pip" else env
+                rows[how].append(_timed(["./dev.sh", "--version"], clone, e))
+                shutil.rmtree(clone)
+            clone = os.path.join(d, f"demo{i}")
+            subprocess.run(["git", "clone", "-q", src, clone], check=True)
+            rows["demo"].append(_timed(["./dev.sh", "demo"], clone, env))
+            rows["again"].append(_timed(["./dev.sh", "--version"], clone, env))
+            shutil.rmtree(clone)
+            print(f"run {i + 1}/{runs}: " + ", ".join(f"{k} {v[-1]:.1f} s"
+                                                     for k, v in rows.items()), flush=True)
+    mid = {k: sorted(v)[len(v) // 2] for k, v in rows.items()}
+    print(f"\nbench setup: {runs} run(s), medians; fresh clones of {src}")
+    print(f"{'what':<44} {'s':>7} {'x pip':>7}")
+    print(f"{'set-up, pip alone (the baseline)':<44} {mid['pip']:7.1f} {1.0:7.2f}")
+    print(f"{'set-up, as dev.sh does it (uv)':<44} {mid['uv']:7.1f} "
+          f"{mid['uv'] / mid['pip']:7.2f}")
+    print(f"{'./dev.sh demo from a fresh clone (target 30)':<44} {mid['demo']:7.1f}")
+    print(f"{'./dev.sh --version once set up (target 8)':<44} {mid['again']:7.1f}")
+    return 0

@@ -1,0 +1,164 @@
+"""The feedforward's reference planner and the smooth approach: what the stage is asked
+to be at a target time, given the driver's state (hold where it is while disabled; once
+enabled, a speed- and acceleration-limited straight approach to the goal, then track the
+trajectory or hold the setpoint). Times are integers in ns; positions in um.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from piezo_stage.core.errors import ConfigError
+
+# -- approach -----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Approach:
+    """A straight move from ``start`` to ``end`` (um per axis) with a trapezoidal speed
+    profile: speed <= ``speed_um_s`` and acceleration <= ``accel_um_s2`` along the path,
+    all axes arriving together. ``at(tau)`` gives the position tau seconds in."""
+
+    start: dict
+    end: dict
+    speed_um_s: float
+    accel_um_s2: float
+    duration_s: float = field(init=False)
+    _t_acc: float = field(init=False)
+    _dist: float = field(init=False)
+
+    def __post_init__(self):
+        if not (self.speed_um_s > 0 and self.accel_um_s2 > 0):
+            raise ConfigError("approach speed and acceleration must be > 0")
+        d = math.sqrt(sum((self.end[a] - self.start[a]) ** 2 for a in self.start))
+        vmax, amax = self.speed_um_s, self.accel_um_s2
+        t_acc = vmax / amax
+        if amax * t_acc ** 2 >= d:  # triangular: never reaches vmax
+            t_acc = math.sqrt(d / amax)
+            dur = 2 * t_acc
+        else:
+            dur = 2 * t_acc + (d - amax * t_acc ** 2) / vmax
+        object.__setattr__(self, "_t_acc", t_acc)
+        object.__setattr__(self, "_dist", d)
+        object.__setattr__(self, "duration_s", dur)
+
+    def fraction(self, tau: float) -> float:
+        """Share of the path covered after tau seconds (0..1)."""
+        if self._dist == 0.0 or tau >= self.duration_s:
+            return 1.0
+        if tau <= 0.0:
+            return 0.0
+        a, ta, T = self.accel_um_s2, self._t_acc, self.duration_s
+        if tau < ta:
+            s = 0.5 * a * tau ** 2
+        elif tau > T - ta:
+            s = self._dist - 0.5 * a * (T - tau) ** 2
+        else:
+            s = 0.5 * a * ta ** 2 + a * ta * (tau - ta)
+        return min(max(s / self._dist, 0.0), 1.0)
+
+    def at(self, tau: float) -> dict:
+        """The position [um] ``tau`` seconds into the approach."""
+        f = self.fraction(tau)
+        return {a: self.start[a] + f * (self.end[a] - self.start[a]) for a in self.start}
+
+
+# -- the feedforward's reference planner -------------------------------------------------
+
+HOLD, APPROACH, TRACK, DONE = "holding", "approaching", "tracking", "done"
+
+
+class ReferencePlanner:
+    """What the stage is asked to be at a target time, given the driver's state.
+
+    Disabled (the driver holds its safe voltage): *holding* where the stage is.
+    Enabled: an approach from the held position to the goal (the trajectory's first
+    point, or a streamed setpoint), then *tracking*: the trajectory clock starts when
+    the approach ends, or at the trajectory's start time if that is later (its first
+    point held until then); past its last point the phase is *done* and the last point
+    is held. A new trajectory or setpoint while enabled is approached from the
+    present desired position; a re-enable after a fault restarts the trajectory from
+    its beginning, through the approach. Pure and deterministic: times are the target
+    stamps [ns] the caller asks for.
+    """
+
+    def __init__(self, speed_um_s: float = 200.0, accel_um_s2: float = 20000.0):
+        Approach({"x": 0.0}, {"x": 0.0}, speed_um_s, accel_um_s2)  # validates
+        self.speed, self.accel = float(speed_um_s), float(accel_um_s2)
+        self.traj: tuple[np.ndarray, dict[str, np.ndarray]] | None = None  # (t [s], {axis: um})
+        self.setpoint: dict[str, float] | None = None  # {axis: um}
+        self.phase = HOLD
+        self.desired: dict[str, float] | None = None  # {axis: um}: last position asked for
+        self._approach: tuple[Approach, int] | None = None  # (Approach, start ns)
+        self._track_ns: int | None = None  # trajectory clock origin [ns]
+        self.start_ns: int | None = None  # the trajectory's own start time, if it asked
+
+    def set_trajectory(self, t: ArrayLike, w: dict, start_ns: int | None = None) -> None:
+        """A new trajectory (t [s], {axis: um}): approached from where the stage is
+        asked to be; its clock starts when the approach ends, or at ``start_ns`` if
+        that is later."""
+        self.traj, self.setpoint = (np.asarray(t, float), {a: np.asarray(x, float)
+                                                          for a, x in w.items()}), None
+        self.start_ns = None if start_ns is None else int(start_ns)
+        self._restart()
+
+    def set_setpoint(self, w: dict) -> None:
+        """A new streamed setpoint {axis: um}: approached, then held."""
+        self.setpoint, self.traj = dict(w), None
+        self._restart()
+
+    def _restart(self):
+        if self.phase != HOLD:
+            self.phase, self._approach, self._track_ns = APPROACH, None, None
+
+    def hold(self, w_now: dict) -> None:
+        """Disabled: ask for where the stage is; the next enable starts over."""
+        self.phase, self._approach, self._track_ns = HOLD, None, None
+        self.desired = dict(w_now)
+
+    def clock_s(self, target_ns: int) -> float | None:
+        """Seconds the trajectory clock will have run at target_ns (None: not running)."""
+        if self.phase not in (TRACK, DONE) or self._track_ns is None:
+            return None
+        return (target_ns - self._track_ns) * 1e-9
+
+    def _goal(self, desired: dict[str, float]) -> dict:
+        if self.traj is not None:
+            t, w = self.traj
+            return {a: float(w[a][0]) if a in w else desired[a] for a in desired}
+        if self.setpoint is not None:
+            return {a: self.setpoint.get(a, desired[a]) for a in desired}
+        return dict(desired)
+
+    def sample(self, target_ns: int) -> dict:
+        """The desired position [um] for ``target_ns`` while enabled."""
+        desired = self.desired
+        if desired is None:
+            raise ConfigError("planner: hold() must give the start position first")
+        if self.phase == HOLD:
+            self.phase = APPROACH
+        if self.phase == APPROACH:
+            if self._approach is None:
+                self._approach = (Approach(dict(desired), self._goal(desired), self.speed,
+                                           self.accel), int(target_ns))
+            ap, t0 = self._approach
+            tau = (target_ns - t0) * 1e-9
+            if tau < ap.duration_s:
+                self.desired = ap.at(tau)
+                return dict(self.desired)
+            self.phase, self._track_ns = TRACK, max(t0 + int(round(ap.duration_s * 1e9)),
+                                                    self.start_ns or 0)
+        if self.traj is not None:
+            t, w = self.traj
+            tau = (target_ns - (self._track_ns or 0)) * 1e-9
+            desired = {a: float(np.interp(tau, t, w[a])) if a in w else desired[a]
+                       for a in desired}
+            if tau > t[-1]:
+                self.phase = DONE  # the last point, held
+        elif self.setpoint is not None:
+            desired = {a: self.setpoint.get(a, desired[a]) for a in desired}
+        self.desired = desired
+        return dict(desired)
