@@ -6,6 +6,8 @@ import ast
 import os
 import xml.etree.ElementTree as ET
 
+import pytest
+
 from conftest import ROOT
 
 # ROS 2 Jazzy packages (rosdep resolves them from the distribution file)
@@ -122,3 +124,35 @@ def test_package_xml_declares_what_the_code_imports():
     pip_lines = [line for line in docs.splitlines() if line.strip().startswith("pip install")]
     for module, package in PIP_ONLY.items():
         assert module not in used or any(package in line for line in pip_lines), package
+
+
+@pytest.mark.slow
+def test_dev_sh_sets_up_a_fresh_checkout_for_the_demo_alone(tmp_path):
+    """A new user's first `./dev.sh`: a fresh copy of the tracked files gets its .venv
+    with uv (fetched into .venv/tools unless one is on PATH), the ROS extra and not
+    the test tools, and runs the command; the second call installs nothing."""
+    import subprocess
+    import sys
+    src = tmp_path / "checkout"
+    subprocess.run(f"git -C {ROOT} ls-files -z | (cd {ROOT} && xargs -0 tar -cf -) | "
+                   f"(mkdir -p {src} && tar -xf - -C {src})", shell=True, check=True)
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("VIRTUAL_ENV", "PIEZO_STAGE_", "PYTHON"))}
+    env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep)
+                                  if not p.startswith(os.path.dirname(sys.executable)))
+    r = subprocess.run(["./dev.sh", "--version"], cwd=src, env=env, capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0 and r.stdout.strip() == "piezo-stage 0.1.0", r
+    venv = src / ".venv"
+    assert (venv / ".piezo_stage_install_stamp").read_text().split()[1] == "ros"
+    import shutil
+    assert shutil.which("uv", path=env["PATH"]) or (venv / "tools" / "bin" / "uv").exists()
+    have = lambda m: subprocess.run([str(venv / "bin" / "python"), "-c", f"import {m}"],  # noqa: E731
+                                    capture_output=True).returncode == 0
+    assert have("rclpy") and have("piezo_stage.core.model.duhem")
+    assert not have("pytest")  # the demo's set-up leaves the test tools out
+    stamp = (venv / ".piezo_stage_install_stamp").stat().st_mtime
+    again = subprocess.run(["./dev.sh", "--version"], cwd=src, env=env, capture_output=True,
+                           text=True, timeout=120)
+    assert again.returncode == 0 and again.stderr == ""
+    assert (venv / ".piezo_stage_install_stamp").stat().st_mtime == stamp
