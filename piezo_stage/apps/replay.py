@@ -30,6 +30,7 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) 
     from piezo_stage import stopping
     from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED
     from piezo_stage.nodes._tap import msg_class
+    from piezo_stage.progress import bar
     from piezo_stage_msgs_adapters import clock_msg
     # the node modules' import took the stop signals for a node's start-up (nodes/
     # _signals.py); this is a command: a stop unwinds it, and it says how far it got
@@ -62,16 +63,19 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) 
                                                        pubs.values()):
             rclpy.spin_once(node, timeout_sec=0.05)
         t0_wall = time.monotonic()
-        for topic, _, log_ns, data in msgs:
-            if rate > 0:
-                due = t0_wall + (log_ns - t0_log) * 1e-9 / rate
-                while (left := due - time.monotonic()) > 0:  # one reading per check:
-                    time.sleep(min(0.001, left))  # never a negative sleep
-            if clock_period_s > 0 and (next_clock is None or log_ns >= next_clock):
-                clock.publish(clock_msg(log_ns))
-                next_clock = log_ns + int(clock_period_s * 1e9)
-            pubs[topic].publish(data)
-            n += 1
+        # on a terminal: how far the replay is, in the record's seconds
+        with bar("replay", total=round(span_s, 1), unit="s of record") as b:
+            for topic, _, log_ns, data in msgs:
+                if rate > 0:
+                    due = t0_wall + (log_ns - t0_log) * 1e-9 / rate
+                    while (left := due - time.monotonic()) > 0:  # one reading per check:
+                        time.sleep(min(0.001, left))  # never a negative sleep
+                if clock_period_s > 0 and (next_clock is None or log_ns >= next_clock):
+                    clock.publish(clock_msg(log_ns))
+                    next_clock = log_ns + int(clock_period_s * 1e9)
+                    b.update(round((log_ns - t0_log) * 1e-9, 1) - b.n)
+                pubs[topic].publish(data)
+                n += 1
         for p in pubs.values():
             p.wait_for_all_acked()
         if duration_s is not None and duration_s < span_s:

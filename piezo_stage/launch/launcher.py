@@ -313,9 +313,16 @@ class Launch:
     def wait(self, duration=None):
         """Run until duration [s] passes, a node exits 0 (done) or one dies, or a
         signal comes (SIGINT, SIGTERM, SIGHUP: see run)."""
-        t_end = None if duration is None else time.monotonic() + duration
+        t0 = time.monotonic()
+        t_end = None if duration is None else t0 + duration
+        from piezo_stage.progress import bar
+        with bar("launch", total=duration, unit="s") as b:  # on a terminal only
+            self._wait(t0, t_end, b)
+
+    def _wait(self, t0, t_end, b):
         try:
             while True:
+                b.update(round(time.monotonic() - t0, 1) - b.n)
                 for n, p in self.procs.items():
                     rc = p.poll()
                     if rc is not None:
