@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -74,8 +75,7 @@ class DuhemBranch:
     @classmethod
     def from_h(cls, alpha: float, h: ArrayLike) -> DuhemBranch:
         """A branch known only by its identifiable polynomial h (f = 0, g = h)."""
-        h = _coeffs(h, "h")
-        return cls(alpha, np.zeros(1), h, reduced=True)
+        return cls(alpha, np.zeros(1), _coeffs(h, "h"), reduced=True)
 
     def h(self, ascending: bool) -> np.ndarray:
         """The polynomial this branch applies: f + g ascending, g - f descending."""
@@ -88,7 +88,7 @@ class DuhemBranch:
         return (isinstance(other, DuhemBranch) and self.alpha == other.alpha
                 and np.array_equal(self.f, other.f) and np.array_equal(self.g, other.g))
 
-    __hash__ = None
+    __hash__ = None  # type: ignore[assignment]  # equal by value, mutable arrays: unhashable
 
 
 @dataclass(frozen=True)
@@ -133,7 +133,7 @@ class DuhemModel:
     def whole(cls, alpha: float, f: ArrayLike, g: ArrayLike,
               initial: DuhemState | None = None) -> DuhemModel:
         """A whole-curve model: one (alpha, f, g) for both branches."""
-        b = DuhemBranch(alpha, f, g)
+        b = DuhemBranch(alpha, _coeffs(f, "f"), _coeffs(g, "g"))
         return cls(b, b, initial or DuhemState())
 
     @property
@@ -370,8 +370,8 @@ class StageModel:
     def replace(self, **changes: object) -> "StageModel":
         """The same model with some fields changed (axes, coupling, voltage_limits,
         plays)."""
-        fields = {"axes": self.axes, "coupling": self.coupling,
-                  "voltage_limits": self.voltage_limits, "plays": self.plays}
+        fields: dict[str, Any] = {"axes": self.axes, "coupling": self.coupling,
+                                  "voltage_limits": self.voltage_limits, "plays": self.plays}
         fields.update(changes)
         return StageModel(**fields)
 

@@ -10,6 +10,7 @@ takes a fraction of a second.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
@@ -35,8 +36,8 @@ def fit_fast(reg: DuhemRegression, budget: int | None = None,
 
     ``x0`` (alphas) skips the grid and polishes from there with a simplex of ``step``
     in log(alpha) (refits after a small change of the problem)."""
-    history = []
-    best = {"rms": np.inf, "alphas": None, "fit": None}
+    history: list[float] = []
+    best: dict[str, Any] = {"rms": np.inf, "alphas": None, "fit": None}
     k = reg.n_alpha
     lo, hi = LOG_ALPHA_BOUNDS
     lows = np.full(k, lo)
@@ -59,14 +60,14 @@ def fit_fast(reg: DuhemRegression, budget: int | None = None,
     if x0 is None:
         g = np.linspace(lo, hi, grid)
         g_vals = [objective(np.full(k, x)) for x in g[: max(2, min(grid, budget // 3))]]
-        x0 = np.full(k, g[int(np.argmin(g_vals))])
+        start = np.full(k, g[int(np.argmin(g_vals))])
     else:
-        x0 = np.log(np.resize(np.asarray(x0, float), k))
-        objective(x0)
+        start = np.log(np.resize(np.asarray(x0, float), k))
+        objective(start)
     remaining = budget - len(history)
     if remaining > 0:
-        simplex = [x0] + [x0 + step * e for e in np.eye(k)]
-        minimize(objective, x0, method="Nelder-Mead",
+        simplex = [start] + [start + step * e for e in np.eye(k)]
+        minimize(objective, start, method="Nelder-Mead",
                  options={"maxfev": remaining, "xatol": 1e-4, "fatol": 1e-9,
                           "initial_simplex": np.array(simplex)})
     return best["alphas"], best["fit"], history
