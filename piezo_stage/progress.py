@@ -7,7 +7,7 @@ from __future__ import annotations
 import sys
 
 
-def bar(desc: str, total: int | None = None, unit: str = "it"):
+def bar(desc: str, total: float | None = None, unit: str = "it"):
     """A tqdm bar on stderr, disabled unless stderr is a terminal (a context manager)."""
     from tqdm import tqdm
     return tqdm(total=total, desc=desc, unit=unit, leave=False, file=sys.stderr,
