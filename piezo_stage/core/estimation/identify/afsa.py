@@ -29,7 +29,7 @@ over the whole record. Evaluations are batched and compiled; all runs are seeded
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -41,9 +41,9 @@ if TYPE_CHECKING:  # annotations only (api imports this module)
     from piezo_stage.core.estimation.identify.options import IdentifyOptions
     from piezo_stage.core.estimation.identify.segmentation import Segmentation
 
-DEFAULTS = {"fish": 30, "iterations": 200, "visual": 0.3, "step": 0.1, "delta": 0.618,
-            "try_number": 5, "f_min": 0.0, "f_max": 0.9,
-            "alpha_bounds": (1e-3, 0.3)}
+DEFAULTS: dict[str, Any] = {"fish": 30, "iterations": 200, "visual": 0.3, "step": 0.1,
+                             "delta": 0.618, "try_number": 5, "f_min": 0.0, "f_max": 0.9,
+                             "alpha_bounds": (1e-3, 0.3)}
 
 
 def _leg2pow_matrix(lo, hi, deg):
@@ -137,7 +137,7 @@ def swarm_minimize(J: Callable[[np.ndarray], np.ndarray], dim: int, rng: np.rand
 
     history: {"best": best value per iteration, "evaluations": cumulative count}.
     """
-    p = {**DEFAULTS, **kw}
+    p: dict[str, Any] = {**DEFAULTS, **kw}
     N, iters = int(p["fish"]), int(p["iterations"])
     visual, step, delta, tries = p["visual"], p["step"], p["delta"], int(p["try_number"])
     X = rng.random((N, dim))
@@ -146,7 +146,7 @@ def swarm_minimize(J: Callable[[np.ndarray], np.ndarray], dim: int, rng: np.rand
     V = np.zeros((N, dim))
     b = int(np.argmin(Y))
     best_x, best_y = X[b].copy(), float(Y[b])
-    hist = {"best": [best_y], "evaluations": [evals]}
+    hist: dict[str, list] = {"best": [best_y], "evaluations": [evals]}
 
     def toward(xi, target, scale):
         d = target - xi
@@ -237,12 +237,12 @@ def fit_swarm(v: np.ndarray, w: np.ndarray, seg: Segmentation, opts: IdentifyOpt
     swarm_kw = {k: kw[k] for k in ("fish", "iterations", "visual", "step", "delta",
                                    "try_number", "f_min", "f_max")}
     if opts.structure == "whole":
-        prob = _WholeProblem(v, w, opts.n, opts.m, B, kw["alpha_bounds"])
-        x, _, h = swarm_minimize(prob, prob.dim, rng, bat, opts.budget, progress, "whole",
+        whole = _WholeProblem(v, w, opts.n, opts.m, B, kw["alpha_bounds"])
+        x, _, h = swarm_minimize(whole, whole.dim, rng, bat, opts.budget, progress, "whole",
                                  **swarm_kw)
-        alpha, F, G = prob.fg(x)
-        model = DuhemModel.whole(alpha[0], F[0], G[0], DuhemState(v[0], prob.w0))
-        return model, prob.evaluations, {"whole": h["best"], "evaluations": h["evaluations"]}
+        alpha, F, G = whole.fg(x)
+        model = DuhemModel.whole(alpha[0], F[0], G[0], DuhemState(v[0], whole.w0))
+        return model, whole.evaluations, {"whole": h["best"], "evaluations": h["evaluations"]}
     deg = max(opts.n, opts.m)
     branches, hist, total = {}, {}, 0
     for name, asc in (("ascending", True), ("descending", False)):

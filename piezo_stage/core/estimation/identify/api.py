@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -55,8 +56,8 @@ class AxisResult:
     def to_json(self) -> dict:
         """The result as the --json report's dict."""
         m = self.model
-        params = {"structure": m.structure, "initial_state": {"v_V": m.initial.v,
-                                                              "w_um": m.initial.w}}
+        params: dict[str, Any] = {"structure": m.structure,
+                                  "initial_state": {"v_V": m.initial.v, "w_um": m.initial.w}}
         for name, b, asc in (("ascending", m.ascending, True),
                              ("descending", m.descending, False)):
             if m.structure == "whole":
@@ -96,7 +97,7 @@ def check_identifiable(v: np.ndarray, source: str = "record") -> Segmentation:
     return seg
 
 
-def free_response(v: np.ndarray, alpha: Sequence[float]) -> np.ndarray:
+def free_response(v: np.ndarray, alpha: Sequence[float] | np.ndarray) -> np.ndarray:
     """The Duhem output's response to its initial value (w0 = 1): the running product
     of 1 / (1 + alpha |dv|), alpha = (ascending, descending) [1/V]."""
     dv = np.diff(v, prepend=v[0])
@@ -111,14 +112,14 @@ def simulate_axis(model: DuhemModel, coupling: DuhemModel | None, v: np.ndarray,
         st = DuhemState(float(v[0]), 0.0)
         base, _ = model.simulate(v, st)
         free = free_response(v, model.kernel_params()[0])
-        wc = 0.0
-        if coupling is not None:
+        wc: np.ndarray | float = 0.0
+        if coupling is not None and v_other is not None:
             wc, _ = coupling.simulate(v_other)
         r = w_meas - base - wc
         w0 = float(free @ r / (free @ free))
         return base + w0 * free + wc
     w, _ = model.simulate(v)
-    if coupling is not None:
+    if coupling is not None and v_other is not None:
         w = w + coupling.simulate(v_other)[0]
     return w
 
