@@ -94,3 +94,32 @@ def ros_env(ros_domains):
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # in-process probes too
     return dict(os.environ, ROS_DOMAIN_ID=str(ros_domains()),
                 ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONPATH=ROOT)
+
+
+def on_a_terminal(argv, env=None, cwd=None, timeout=300) -> str:
+    """What ``argv`` writes (stdout and stderr) to a 100-column terminal, a
+    pseudo-terminal here, as text; asserts it exited 0."""
+    import fcntl
+    import pty
+    import struct
+    import subprocess
+    import termios
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))
+    try:
+        p = subprocess.Popen([str(a) for a in argv], stdout=slave, stderr=slave, cwd=cwd,
+                             env=env)
+        os.close(slave)
+        seen = b""
+        while True:
+            try:
+                chunk = os.read(master, 4096)
+            except OSError:  # the child closed the terminal
+                break
+            if not chunk:
+                break
+            seen += chunk
+        assert p.wait(timeout=timeout) == 0, seen[-2000:]
+    finally:
+        os.close(master)
+    return seen.decode(errors="replace")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import ROOT
+from conftest import ROOT, on_a_terminal
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.estimation.identify import IdentifyOptions, identify_axis, validate_axis
 from piezo_stage.core.estimation.identify.segmentation import segment
@@ -204,33 +204,12 @@ def test_identify_command_writes_model_and_json(cfg, tmp_path):
 def test_identify_shows_progress_on_a_terminal_only(cfg, tmp_path):
     """On a terminal (a pseudo-terminal here) a tqdm bar with the best objective so
     far; to a pipe, nothing (checked above)."""
-    import fcntl
-    import pty
-    import struct
-    import termios
     fit = record(cfg, seed=1)
     write_table(tmp_path / "fit.csv", {"t": fit.t, "vx": fit.v["x"], "wx": fit.w["x"]})
-    master, slave = pty.openpty()
-    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # 100 cols
-    try:
-        p = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", "identify",
-                              tmp_path / "fit.csv", "--axis", "x", "--plot",
-                              tmp_path / "fit.png"], stdout=subprocess.DEVNULL,
-                             stderr=slave, cwd=ROOT, env=dict(os.environ, PYTHONPATH=ROOT))
-        os.close(slave)
-        seen = b""
-        while True:
-            try:
-                chunk = os.read(master, 4096)
-            except OSError:  # the child closed the terminal
-                break
-            if not chunk:
-                break
-            seen += chunk
-        assert p.wait(timeout=300) == 0
-    finally:
-        os.close(master)
-    text = seen.decode(errors="replace")
+    text = on_a_terminal([sys.executable, "-m", "piezo_stage.cli", "identify",
+                          tmp_path / "fit.csv", "--axis", "x", "--plot",
+                          tmp_path / "fit.png"], env=dict(os.environ, PYTHONPATH=ROOT),
+                         cwd=ROOT)
     assert "identify x (fast)" in text and "best" in text and "um" in text
     assert (tmp_path / "fit.png").stat().st_size > 20_000
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
-from conftest import CONFIG, ROOT  # noqa: E402
+from conftest import CONFIG, ROOT, on_a_terminal  # noqa: E402
 from piezo_stage.io.bag import deserialize, iter_messages, read_bag_record  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 
@@ -593,43 +593,15 @@ def test_launch_seed_gives_another_run_to_hold_out(tmp_path, env):
     assert np.sqrt(np.mean((a - b) ** 2)) < 1.0  # of the same stage and trajectory (um)
 
 
-def _on_a_terminal(argv, env, cwd, timeout=120) -> str:
-    """What ``argv`` writes to a 100-column terminal (a pseudo-terminal), as text."""
-    import fcntl
-    import pty
-    import struct
-    import termios
-    pid, fd = pty.fork()
-    if pid == 0:  # the child: its stdout and stderr are the terminal
-        try:
-            fcntl.ioctl(1, termios.TIOCSWINSZ, struct.pack("HHHH", 30, 100, 0, 0))
-            os.chdir(cwd)
-            os.execve(argv[0], argv, env)
-        finally:
-            os._exit(127)
-    out, t_end = b"", time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        try:
-            chunk = os.read(fd, 65536)
-        except OSError:  # the child closed the terminal
-            break
-        if not chunk:
-            break
-        out += chunk
-    _, status = os.waitpid(pid, 0)
-    assert os.waitstatus_to_exitcode(status) == 0, out[-2000:]
-    return out.decode(errors="replace")
-
-
 @pytest.mark.slow
 def test_launch_and_replay_show_their_progress_on_a_terminal(tmp_path, env):
     """On a terminal, launch's progress (seconds of its --duration) and replay's (seconds
     of the record) stand on one redrawn line; piped, as everywhere else, neither."""
     exe = os.path.join(os.path.dirname(sys.executable), "piezo-stage")
-    said = _on_a_terminal([exe, "launch", "--duration", "4", "--record", "bag"], env,
+    said = on_a_terminal([exe, "launch", "--duration", "4", "--record", "bag"], env,
                           tmp_path)
     assert "launch: " in said and "/4.0 [" in said and "%|" in said, said[-1500:]
-    said = _on_a_terminal([exe, "replay", "bag", "--rate", "0"], env, tmp_path)
+    said = on_a_terminal([exe, "replay", "bag", "--rate", "0"], env, tmp_path)
     assert "replay: " in said and "s of record" in said and "%|" in said, said[-1500:]
     piped = subprocess.run([exe, "replay", "bag", "--rate", "0"], env=env, cwd=tmp_path,
                            capture_output=True, text=True, timeout=120)
