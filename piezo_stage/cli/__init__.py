@@ -85,15 +85,21 @@ def main(argv=None):
     except PiezoStageError as e:
         die(str(e))
     except KeyboardInterrupt:
-        line, code = stopping.stopped_line()
-        sys.stderr.write(line + "\n")
-        return code
+        return _stopped()
     except SystemError as e:  # a stop inside a compiled kernel: numba's dispatcher
         if not _stopped_within(e):  # returns with the KeyboardInterrupt set
             raise
-        line, code = stopping.stopped_line()
-        sys.stderr.write(line + "\n")
-        return code
+        return _stopped()
+
+
+def _stopped() -> int:
+    """A stop: later signals are ignored from here to the exit (a second Ctrl-C, or a
+    stop meeting the line being written, once escaped as a KeyboardInterrupt and the
+    interpreter then died by the signal: exit -2 after the line), then the one line."""
+    stopping.hold()
+    line, code = stopping.stopped_line()
+    sys.stderr.write(line + "\n")
+    return code
 
 
 def _stopped_within(error: BaseException) -> bool:
