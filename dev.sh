@@ -57,6 +57,13 @@ if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" 
       esac
     done
   done < <("$py" -m pip config list 2>/dev/null || true)
+  # uv writes no bytecode unless asked (pip does): where Python will not write it either
+  # (PYTHONDONTWRITEBYTECODE, as on this project's CI hosts) every process compiles
+  # numpy, scipy and rclpy again at each start (2-3 s each: the suite ran 1.3 x slower);
+  # the tests' set-up compiles it (about 10 s more), the demo's stays quick
+  if [ "$extras" = ros,test ]; then
+    uv_flags+=(--compile-bytecode)
+  fi
   if ! { [ -n "$uv" ] && "$uv" pip install --quiet --python .venv/bin/python \
            --index-strategy unsafe-best-match "${uv_flags[@]}" -e ".[$extras]"; }; then
     [ -n "$uv" ] && echo "dev.sh: uv could not install; pip takes over" >&2
