@@ -33,6 +33,45 @@ def test_every_node_and_the_launcher_stop_at_random_moments(ros_domains):
     assert any("while running" in t.said or "in order" in t.said for t in trials)
 
 
+ENDS_BY_ITSELF = r"""
+import signal, sys
+from piezo_stage.nodes import _signals as signals
+signals.install()
+import rclpy
+from rclpy.node import Node
+from piezo_stage.nodes._executor import run_node
+
+class Ends(Node):  # a node whose run ends by itself after a few passes
+    def __init__(self):
+        super().__init__("ends_by_itself")
+        self.create_timer(0.05, lambda: rclpy.try_shutdown())
+
+code = run_node(Ends)
+held = all(signal.getsignal(s) == signal.SIG_IGN for s in (signal.SIGINT, signal.SIGTERM))
+print("ended", code, held, flush=True)
+sys.exit(code)
+"""
+
+
+def test_a_node_that_ended_by_itself_is_not_killed_by_a_late_stop(ros_env):
+    """The launcher's SIGINT can meet a node that has just ended by itself (the run's
+    end): once its teardown is done the stop signals are ignored, so one arriving while
+    the interpreter exits (which gives the default handlers back) cannot kill it. Here
+    SIGINTs rain on the node from its last line to its exit: it exits 0 every time."""
+    for _ in range(3):
+        p = subprocess.Popen([sys.executable, "-c", ENDS_BY_ITSELF], env=ros_env,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert p.stdout.readline().split() == ["ended", "0", "True"]
+        while p.poll() is None:
+            try:
+                os.kill(p.pid, signal.SIGINT)
+            except ProcessLookupError:
+                break
+            time.sleep(0.0005)
+        _, err = p.communicate(timeout=30)
+        assert p.returncode == 0, (p.returncode, err[-1000:])
+
+
 def test_a_killed_launcher_leaves_no_node_behind(tmp_path, ros_env):
     """SIGKILL cannot be caught: the nodes' parent-death signal stops them (each as on
     SIGTERM: the recorder finishes its bag)."""

@@ -272,6 +272,10 @@ def run_node(factory, args=None) -> int:
                 if node is not None:
                     node.destroy_node()
                 rclpy.try_shutdown()
+    # the node is done: a stop arriving from here would meet the interpreter's exit,
+    # which gives the default handlers back, and kill a node that had ended by itself
+    # by the signal (the demo's driver, once: "killed by SIGINT"); ignored instead
+    signals.hold()
     signum = signals.requested()
     if signum is None:
         return code

@@ -100,6 +100,14 @@ def _on_signal(signum, frame):
         raise Stopped(signum)
 
 
+def hold() -> None:
+    """The node has ended: the stop signals are ignored from here to the exit (an
+    ignored signal stays ignored through the interpreter's exit, a handled one does
+    not), and one that came before counts (:func:`requested`)."""
+    for s in SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
+
+
 def run_ended() -> bool:
     """Whether the launcher stopped the set because its run ended (its driver finished,
     or its duration passed), not because it was told to stop: it makes the file named
