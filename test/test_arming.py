@@ -319,7 +319,8 @@ def test_the_controllers_law_is_one_call_per_reference():
     the loop is not closed; a gap in the references restarts it; never a non-finite
     command."""
     from piezo_stage.core.loop.control import PARAMETERS, CompositeController
-    p = {name: default for name, default, _, _ in PARAMETERS}
+    from piezo_stage.core.params import defaults
+    p = defaults(PARAMETERS)
     p.update(kp=0.5, ki=100.0, kd=0.0, control_rate_hz=1000.0, relay_amplitude_V=0.0)
     c = CompositeController(p)
     dt = c.dt_ns

@@ -16,11 +16,12 @@ DOUBLE = os.path.join(ROOT, "test", "hardware_double")
 sys.path.insert(0, DOUBLE)
 import ni_driver_double as dd  # noqa: E402
 
+from piezo_stage.core.params import defaults  # noqa: E402
 from piezo_stage.drivers import BACKEND_PARAMS  # noqa: E402
 from piezo_stage.drivers.daq import DaqBackend  # noqa: E402
 from piezo_stage.io.run_bag import status_node  # noqa: E402
 
-PARAMS = {k: v for k, v, _ in BACKEND_PARAMS}
+PARAMS = defaults(BACKEND_PARAMS)
 
 
 def test_the_package_is_nis_and_only_the_driver_layer_is_replaced():

@@ -62,6 +62,7 @@ def test_every_command_named_exists(page):
 def test_the_parameter_blocks_shown_are_declared_and_typed_as_declared(tmp_path):
     """The daq block of docs/hardware.md and config/realtime.yaml pass the launcher's
     check, and every value has the declared default's shape (a list where it is one)."""
+    from piezo_stage.core.params import defaults as declared
     from piezo_stage.drivers.daq import DAQ_PARAMS
     from piezo_stage.launch.launcher import read_parameters
     block = re.search(r"```yaml\n(.*?)```", _text("docs/hardware.md"), flags=re.S).group(1)
@@ -69,7 +70,7 @@ def test_the_parameter_blocks_shown_are_declared_and_typed_as_declared(tmp_path)
     path.write_text(block)
     params = read_parameters(str(path))["stage_driver"]
     assert params["backend"] == "daq"
-    defaults = {name: default for name, default, *_ in DAQ_PARAMS}
+    defaults = declared(DAQ_PARAMS)
     for name, value in params.items():
         if name in defaults:
             assert type(value) is type(defaults[name]), name

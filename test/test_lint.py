@@ -1,6 +1,6 @@
 """The linters, run by the test command (as ament_flake8 / ament_pep257 run in a ROS
 package's tests): ruff with ruff.toml (pycodestyle and pyflakes at 99 columns, import
-order, a docstring on every module), mypy on the layers setup.cfg lists, and the first
+order, a docstring on every module), mypy on the whole package, and the first
 docstring line of every module says
 what the module holds (a sentence, not a title)."""
 
@@ -26,7 +26,7 @@ def test_ruff_passes():
 
 
 def test_the_type_checker_passes_on_the_layers_it_covers():
-    """mypy over the files setup.cfg's [mypy] lists (every layer but the core): clean.
+    """mypy over the files setup.cfg's [mypy] lists (both packages, every module): clean.
     Its cache goes to a temporary folder, not the tree."""
     import tempfile
     pytest.importorskip("mypy", reason="mypy is part of the test extra")

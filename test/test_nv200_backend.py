@@ -17,10 +17,11 @@ sys.path.insert(0, DOUBLE)
 from nv200_double import NV200StageDouble  # noqa: E402
 
 from piezo_stage.core.errors import BackendFault, ConfigError  # noqa: E402
+from piezo_stage.core.params import defaults  # noqa: E402
 from piezo_stage.drivers import BACKEND_PARAMS  # noqa: E402
 from piezo_stage.drivers.nv200 import Nv200Backend  # noqa: E402
 
-PARAMS = {k: v for k, v, _ in BACKEND_PARAMS}
+PARAMS = defaults(BACKEND_PARAMS)
 SOURCE = os.path.join(ROOT, "piezo_stage", "drivers", "nv200.py")
 
 

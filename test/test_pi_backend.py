@@ -18,10 +18,11 @@ sys.path.insert(0, DOUBLE)
 from pi_controller_double import PIControllerDouble  # noqa: E402
 
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError  # noqa: E402
+from piezo_stage.core.params import defaults  # noqa: E402
 from piezo_stage.drivers import BACKEND_PARAMS  # noqa: E402
 from piezo_stage.drivers.pi import PiBackend  # noqa: E402
 
-PARAMS = {k: v for k, v, _ in BACKEND_PARAMS}
+PARAMS = defaults(BACKEND_PARAMS)
 RT_RATE = 500.0  # the rate the tests run the set at (1 kHz works too: docs/hardware.md)
 PI_SOURCE = os.path.join(ROOT, "piezo_stage", "drivers", "pi.py")
 

@@ -151,3 +151,10 @@ def test_real_time_a_stream_of_late_commands_faults_like_none():
     assert len(faulted) == 1 and 0.05 < (faulted[0] - last_on_time) / ms <= 52
     assert s.sup.reason.startswith("late commands: 30 ms behind for 5"), s.sup.reason
     assert "arrived after their tick, dropped" in s.sup.reason
+    # the fault's ramp (5 V at 500 V/s) has ended at the safe voltage: what a managed
+    # driver's error transition waits for, and reports; never before a fault
+    assert s.at_safe and s.faulted_at_safe == "faulted: " + s.sup.reason
+    s.v = {"x": 1.0, "y": 0.0}  # (the safe voltage is 0 V)
+    assert s.faulted_at_safe is None  # faulted, on the way to safe
+    fresh = loop()
+    assert fresh.at_safe and fresh.faulted_at_safe is None  # at safe, not faulted

@@ -164,8 +164,9 @@ def lockstep_margin_s(case, config, extra=None) -> float:
     does and the evaluation says so (RunError), nothing is judged on a short run."""
     from piezo_stage.core.loop.feedforward import PARAMETERS
     from piezo_stage.core.loop.planner import Approach
+    from piezo_stage.core.params import defaults
     from piezo_stage.launch.launcher import read_parameters
-    p: dict = {name: default for name, default, *_ in PARAMETERS}
+    p: dict = defaults(PARAMETERS)
     p.update(read_parameters(config).get("feedforward", {}))
     p.update({**(extra or {}).get("feedforward", {}), **case.params.get("feedforward", {})})
     first = {a: float(v[0]) for a, v in case.w.items()}

@@ -14,15 +14,16 @@ ramp_V_per_s)``, which leaves the outputs at the safe voltage.
 from __future__ import annotations
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.params import Param, Schema
 from piezo_stage.drivers.daq import DAQ_PARAMS
 from piezo_stage.drivers.nv200 import NV200_PARAMS
 from piezo_stage.drivers.pi import PI_PARAMS
 
-# Backend configuration (name, default, description): the driver declares them read-only.
-BACKEND_PARAMS = (
-    ("plant_config", "", "sim: plant YAML ('' = the package's config/sim_stage.yaml)"),
-    ("seed", -1, "sim: noise seed (-1: the plant config's)"),
-    ("replay_bag", "", "replay: the bag to play"),
+# The backends' configuration (core/params.py): the driver declares it read-only.
+BACKEND_PARAMS: Schema = (
+    Param("plant_config", "", "sim: plant YAML ('' = the package's config/sim_stage.yaml)"),
+    Param("seed", -1, "sim: noise seed (-1: the plant config's)"),
+    Param("replay_bag", "", "replay: the bag to play"),
 ) + DAQ_PARAMS + PI_PARAMS + NV200_PARAMS
 
 

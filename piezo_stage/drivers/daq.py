@@ -33,24 +33,25 @@ from __future__ import annotations
 import warnings
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.params import Param, Schema
 
 LATE_CODES = {209800, 209801, 209802, 209803}  # |code|: read/write not complete before
 # the sample clock, missed sample clock, three or more missed sample clocks
 
-DAQ_PARAMS = (  # (name, default, description): the driver node declares them read-only
-    ("ao_channels", ["Dev1/ao0", "Dev1/ao1"], "NI-DAQ output channels [x, y]"),
-    ("ai_channels", ["Dev1/ai0", "Dev1/ai1"], "NI-DAQ input channels [x, y]"),
-    ("ai_terminal_config", "DEFAULT", "AI terminal configuration: DEFAULT | RSE | NRSE "
-     "| DIFF | PSEUDO_DIFF"),
-    ("ai_range_V", [-10.0, 10.0], "AI input range [V]"),
-    ("amplifier_gain", [15.0, 15.0], "amplifier gain per axis [V out / V in]"),
-    ("sensor_um_per_V", [10.0, 10.0], "sensor scale per axis [um/V]"),
-    ("sensor_offset_um", [0.0, 0.0], "sensor offset per axis [um]"),
-    ("output_limits_V", [0.0, 150.0, 0.0, 150.0], "stage voltage limits [x_lo, x_hi, "
-     "y_lo, y_hi] [V]"),
-    ("slew_V_per_s", [1.0e5, 1.0e5], "stage voltage slew limit per axis [V/s]"),
-    ("watchdog_timeout_s", 0.0, "hardware watchdog: outputs go to the safe voltage when "
-     "the driver stops for this long (0: off)"),
+DAQ_PARAMS: Schema = (  # the driver node declares them read-only (core/params.py)
+    Param("ao_channels", ["Dev1/ao0", "Dev1/ao1"], "NI-DAQ output channels [x, y]"),
+    Param("ai_channels", ["Dev1/ai0", "Dev1/ai1"], "NI-DAQ input channels [x, y]"),
+    Param("ai_terminal_config", "DEFAULT", "AI terminal configuration: DEFAULT | RSE | NRSE "
+          "| DIFF | PSEUDO_DIFF"),
+    Param("ai_range_V", [-10.0, 10.0], "AI input range [V]"),
+    Param("amplifier_gain", [15.0, 15.0], "amplifier gain per axis [V out / V in]"),
+    Param("sensor_um_per_V", [10.0, 10.0], "sensor scale per axis [um/V]"),
+    Param("sensor_offset_um", [0.0, 0.0], "sensor offset per axis [um]"),
+    Param("output_limits_V", [0.0, 150.0, 0.0, 150.0], "stage voltage limits [x_lo, x_hi, "
+          "y_lo, y_hi] [V]"),
+    Param("slew_V_per_s", [1.0e5, 1.0e5], "stage voltage slew limit per axis [V/s]"),
+    Param("watchdog_timeout_s", 0.0, "hardware watchdog: outputs go to the safe voltage when "
+          "the driver stops for this long (0: off)"),
 )
 
 

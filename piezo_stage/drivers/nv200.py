@@ -31,11 +31,12 @@ import asyncio
 import numpy as np
 
 from piezo_stage.core.errors import BackendFault, ConfigError
+from piezo_stage.core.params import Param, Schema
 
-NV200_PARAMS = (  # (name, default, description): the driver node declares them read-only
-    ("nv200_addresses", ["tcp:192.168.0.20", "tcp:192.168.0.21"], "NV200 amplifiers "
-     "[x, y]: tcp:HOST[:PORT] (the Ethernet model's telnet port, 23) | serial:DEVICE"),
-    ("nv200_timeout_s", 1.0, "NV200: answer timeout [s] (a lost link faults after this)"),
+NV200_PARAMS: Schema = (  # the driver node declares them read-only (core/params.py)
+    Param("nv200_addresses", ["tcp:192.168.0.20", "tcp:192.168.0.21"], "NV200 amplifiers "
+          "[x, y]: tcp:HOST[:PORT] (the Ethernet model's telnet port, 23) | serial:DEVICE"),
+    Param("nv200_timeout_s", 1.0, "NV200: answer timeout [s] (a lost link faults after this)"),
 )
 TICK_S = 50e-6           # the amplifier's cycle
 WAVE_POINTS = 1024       # its generator table

@@ -33,13 +33,14 @@ import time
 from typing import Any
 
 from piezo_stage.core.errors import BackendFault, ConfigError
+from piezo_stage.core.params import Param, Schema
 
-PI_PARAMS = (  # (name, default, description): the driver node declares them read-only
-    ("pi_address", "tcp:192.168.0.10:50000", "PI controller: tcp:HOST[:PORT] | "
-     "serial:DEVICE[:BAUD] | usb:SERIALNUMBER:PID"),
-    ("pi_axes", ["1", "2"], "PI controller axes driving [x, y]"),
-    ("pi_timeout_s", 0.2, "PI controller: answer timeout in the loop [s] (a lost link "
-     "faults after this)"),
+PI_PARAMS: Schema = (  # the driver node declares them read-only (core/params.py)
+    Param("pi_address", "tcp:192.168.0.10:50000", "PI controller: tcp:HOST[:PORT] | "
+          "serial:DEVICE[:BAUD] | usb:SERIALNUMBER:PID"),
+    Param("pi_axes", ["1", "2"], "PI controller axes driving [x, y]"),
+    Param("pi_timeout_s", 0.2, "PI controller: answer timeout in the loop [s] (a lost link "
+          "faults after this)"),
 )
 SERVO_UPDATE_TIME = 0x0E000200  # the controller parameter: servo cycle [s]
 RECORD_POSITION, RECORD_VOLTAGE = 2, 7  # data recorder options: actual position of

@@ -70,8 +70,9 @@ def play_record(kind: str, rec: Record, params: dict | None = None, plant_config
         w = plant.run(rec.v["x"], rec.v["y"])
         applied = {a: np.array(x) for a, x in plant.last_applied.items()}
         return Record(rec.t, applied, w, f"{rec.source} played on sim", voltage_exact=True)
+    from piezo_stage.core.params import defaults
     from piezo_stage.drivers import BACKEND_PARAMS
-    p = {name: default for name, default, _ in BACKEND_PARAMS}
+    p = defaults(BACKEND_PARAMS)
     p.update(params or {})
     if kind in ("pi", "nv200"):
         from piezo_stage.drivers.nv200 import Nv200Backend

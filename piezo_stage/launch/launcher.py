@@ -28,8 +28,7 @@ from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
 from piezo_stage.nodes.declared import (
     DECLARED,
     RCLPY_OWN,
-    check_value,
-    parameter_limits,
+    refusal,
     unknown_parameter,
 )
 
@@ -100,7 +99,7 @@ def read_parameters(config_path) -> dict:
         raise ConfigError(str(e)) from None
     if not isinstance(doc, dict):
         raise ConfigError(f"{config_path}: expected '<node>: ros__parameters:' sections")
-    out, limits = {}, None
+    out = {}
     for key, sec in doc.items():
         node = str(key).rsplit("/", 1)[-1]  # '/**/stage_driver' or 'stage_driver'
         if node not in ORDER:
@@ -113,8 +112,7 @@ def read_parameters(config_path) -> dict:
                     not str(name).startswith("qos_overrides"):
                 raise ConfigError(f"{config_path}: {node}: "
                                   f"{unknown_parameter(str(name), DECLARED[node])}")
-            limits = limits or parameter_limits()
-            why = check_value(node, name, out[node][name], limits)
+            why = refusal(node, name, out[node][name])
             if why:  # a value the node would refuse, refused before any node starts
                 raise ConfigError(f"{config_path}: {node}: {why}")
     return out

@@ -13,6 +13,7 @@ from rcl_interfaces.msg import (
 )
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.params import Schema
 
 
 def declare(node, name, default, description, lo=None, hi=None, choices=None, live=None):
@@ -51,6 +52,16 @@ def declare(node, name, default, description, lo=None, hi=None, choices=None, li
         raise ConfigError(f"parameter {name} = {value!r}: must be one of "
                           f"{', '.join(choices)}")
     return value
+
+
+def declare_schema(node, schema: Schema, live: dict | None = None) -> dict:
+    """Declare every parameter of ``schema`` (core/params.py) and return {name: value}.
+    A live one is applied by ``live[name]`` (called with each new value) when given,
+    else by the node's own on-set callback; the others are read-only."""
+    live = live or {}
+    return {p.name: declare(node, p.name, p.default, p.description, p.lo, p.hi,
+                            p.choices or None, live=live.get(p.name, True) if p.live else None)
+            for p in schema}
 
 
 def _check_choices(node, params):

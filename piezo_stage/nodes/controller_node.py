@@ -24,12 +24,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.loop.control import LIVE, PARAMETERS, CompositeController
+from piezo_stage.core.loop.control import PARAMETERS, CompositeController
 from piezo_stage.core.loop.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
-from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._params import declare_schema
 from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
 
 GAINS = ("kp", "ki", "kd")
@@ -38,8 +38,7 @@ GAINS = ("kp", "ki", "kd")
 class Controller(Node):
     def __init__(self):
         super().__init__("controller")
-        p = {name: declare(self, name, default, desc, live=True if name in LIVE else None,
-                           **kw) for name, default, desc, kw in PARAMETERS}
+        p = declare_schema(self, PARAMETERS)  # the gains live through on_set
         self.core = CompositeController(p)  # the control law (core/loop/control.py)
         self.stats = self.core.stats
         # the driver's announcements: taken before the data in each lean-loop pass

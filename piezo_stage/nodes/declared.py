@@ -1,73 +1,110 @@
-"""The parameters each node declares, for the launcher to check a whole parameter file
-before it starts any node (each node also refuses an undeclared name itself:
-``nodes/_params.check_overrides``). The suite compares this table with what the
-running nodes list (test_realtime.py), so it cannot drift. rclpy's own parameters
-(``use_sim_time``, ``start_type_description_service``, ``qos_overrides.*``) are
-taken by every node."""
+"""Every node's parameter schema (core/params.py), in one table: the loop nodes' from
+their cores (core/loop), the others' here. Each node declares its parameters from its
+schema (nodes/_params.declare_schema), so the launcher, which checks a whole parameter
+file against this table before it starts any node, and the nodes cannot disagree; the
+suite also compares it with what the running nodes list (test_realtime.py). rclpy's own
+parameters (``use_sim_time``, ``start_type_description_service``, ``qos_overrides.*``)
+are taken by every node. No rclpy here: the launcher reads it before any node exists."""
 
 from __future__ import annotations
 
+from piezo_stage.core.loop import arming, control, feedforward, sample_loop
+from piezo_stage.core.loop.trajectory import KINDS
+from piezo_stage.core.params import Param, Schema, names
+from piezo_stage.drivers import BACKEND_PARAMS
+
 RCLPY_OWN = frozenset({"use_sim_time", "start_type_description_service"})
 
-DECLARED = {
-    "stage_driver": frozenset({"ai_channels", "ai_range_V", "ai_terminal_config",
-        "amplifier_gain", "ao_channels", "arm_confirm_ticks", "arm_tolerance_V",
-        "auto_arm", "backend", "clock_period_s", "control_rate_hz", "exit_after_max_steps",
-        "lookahead_s", "managed", "max_steps", "max_steps_from_arming",
-        "min_record_subscribers",
-        "min_subscribers", "mode",
-        "nv200_addresses", "nv200_timeout_s",
-        "output_limits_V", "pi_address", "pi_axes", "pi_timeout_s", "plant_config",
-        "replay_bag", "safe_ramp_V_per_s", "safe_voltage_V", "seed", "sensor_offset_um",
-        "sensor_um_per_V", "slew_V_per_s",
-        "stale_timeout_s", "thread_priority", "watchdog_timeout_s"}),
-    "feedforward": frozenset({"approach_accel_um_per_s2", "approach_speed_um_per_s",
-        "compensate_effects", "control_rate_hz", "inverse_feedforward", "learning",
-        "learning_gain", "learning_period_s",
-        "max_resonance_inverse_hz", "max_trajectory_points", "min_subscribers",
-        "model_file", "model_required_after_s", "nominal_um_per_V", "range_um",
-        "thread_priority", "use_coupling", "wait_for_trajectory"}),
-    "controller": frozenset({"control_rate_hz", "feedback", "integral_limit_V", "kd", "ki",
-        "kp", "min_subscribers", "relay_amplitude_V", "relay_hysteresis_um",
-        "thread_priority", "voltage_limits_V"}),
-    "trajectory": frozenset({"amplitude_um", "center_um", "corner", "csv_path", "dt_s",
-        "duration_s", "excite_amplitude_um", "excite_center_um", "excite_s", "excite_y_hz",
-        "fast_axis", "frequency_hz", "kind", "lines", "min_subscribers", "scan_center_um",
-        "scan_size_um", "slow"}),
-    "identifier": frozenset({"auto_cycles", "max_samples", "method", "structure"}),
-    "gap": frozenset({"control_rate_hz", "min_subscribers", "model_file", "window"}),
-    "recorder": frozenset({"batch_period_s", "config_file", "flush_period_s", "log_time",
-        "model_file", "output", "thread_priority"}),
-    "live_view": frozenset({"batch_period_s", "host", "max_rate_hz", "port"}),
+
+
+def _live(name: str, default: object, description: str) -> Param:
+    return Param(name, default, description, live=True)
+
+
+# live: a set builds and publishes the new trajectory (or is refused with why)
+TRAJECTORY: Schema = tuple(_live(*a) for a in (
+    ("kind", "seed", "one of: " + ", ".join(KINDS)),
+    ("frequency_hz", 10.0, "frequency [Hz]"),
+    ("duration_s", 1.0, "length [s]"),
+    ("center_um", 21.0, "centre [um]"),
+    ("amplitude_um", 24.0, "amplitude [um]"),
+    ("dt_s", 0.001, "point spacing [s]"),
+    ("csv_path", "", "CSV t,wx,wy for kind csv"),
+    ("lines", 16, "raster: line periods (trace and retrace) in the scan"),
+    ("scan_size_um", [40.0, 40.0], "raster: scan size [fast, slow] [um]"),
+    ("scan_center_um", [40.0, 40.0], "raster: scan centre [fast, slow] [um]"),
+    ("corner", 0.1, "raster: share of each line spent turning around, 0-0.5"),
+    ("slow", "steps", "raster: slow axis, steps (a line at a time) or ramp"),
+    ("fast_axis", "x", "raster: the fast axis, x or y"),
+    ("excite_s", 0.0, "prepended excitation [s] (0: none)"),
+    ("excite_center_um", 35.0, "excitation centre [um]"),
+    ("excite_amplitude_um", 34.0, "excitation amplitude [um]"),
+    ("excite_y_hz", 1.5, "y excitation frequency [Hz] (x: 1 Hz); unequal, so the axes' "
+     "coupling is identifiable"),
+)) + (Param("min_subscribers", 1, "trajectory subscribers to wait for"),)
+
+# live: the next fit uses them
+IDENTIFIER: Schema = (
+    Param("method", "fast", "fast | afsa | afsa-bat", choices=("fast", "afsa", "afsa-bat"),
+          live=True),
+    Param("structure", "segmented", "segmented | whole", choices=("segmented", "whole"),
+          live=True),
+    Param("auto_cycles", 0, "identify after this many complete cycles (0: on request "
+          "only)", lo=0, hi=1000, live=True),
+    Param("max_samples", 200_000, "buffer length", lo=100, hi=10_000_000),
+)
+
+GAP: Schema = (
+    Param("control_rate_hz", 1000.0, "control rate [Hz]", lo=1.0, hi=1e5),
+    Param("model_file", "", "the twin's model ('' = config/stage_model.yaml)"),
+    Param("window", 1000, "samples in the rolling RMS", lo=10, hi=10_000_000),
+    Param("min_subscribers", 0, "residual subscribers to wait for"),
+)
+
+RECORDER: Schema = (
+    Param("output", "", "bag directory ('' = bags/<timestamp>)"),
+    Param("config_file", "", "config to store as metadata"),
+    Param("model_file", "", "model to store as metadata"),
+    Param("batch_period_s", 0.004, "wait between takes [s]; queues hold 5000 samples per "
+          "topic", lo=0.0, hi=60.0, live=True),
+    Param("log_time", "stamp", "bag log time: stamp (lockstep) | receive (real time)",
+          choices=("stamp", "receive")),
+    Param("thread_priority", 40, "real-time recording (log_time receive): SCHED_FIFO "
+          "priority of the middleware's receiving threads (the writing stays at normal "
+          "priority; 0: leave the scheduler alone)", lo=0, hi=99),
+    Param("flush_period_s", 0.5, "chunk flush period [s]", lo=0.01, hi=60.0),
+)
+
+LIVE_VIEW: Schema = (
+    Param("host", "127.0.0.1", "address the WebSocket server binds (0.0.0.0: every "
+          "interface; mind who can reach it)"),
+    Param("port", 8765, "WebSocket port (foxglove.websocket.v1)", lo=0, hi=65535),
+    Param("max_rate_hz", 200.0, "per topic, at most this many messages per wall-clock "
+          "second to the viewers (0: all)", lo=0.0, hi=1e6, live=True),
+    Param("batch_period_s", 0.01, "wait between takes [s] (off the loop's path)", lo=0.0,
+          hi=1.0, live=True),
+)
+
+SCHEMAS: dict[str, Schema] = {
+    "stage_driver": sample_loop.PARAMETERS + arming.PARAMETERS + BACKEND_PARAMS,
+    "feedforward": feedforward.PARAMETERS,
+    "controller": control.PARAMETERS,
+    "trajectory": TRAJECTORY,
+    "identifier": IDENTIFIER,
+    "gap": GAP,
+    "recorder": RECORDER,
+    "live_view": LIVE_VIEW,
 }
 
-
-def parameter_limits() -> dict:
-    """{node: {name: {"lo": .., "hi": .., "choices": ..}}}: the ranges and choices the
-    loop nodes declare, from the core's parameter tables they declare from (the driver's
-    sample loop and arming supervisor, the feedforward, the controller)."""
-    from piezo_stage.core.loop import arming, control, feedforward, sample_loop
-    driver = {name: kw for name, _, _, kw in sample_loop.PARAMETERS}
-    driver.update({name: {"lo": r[0], "hi": r[1]} for name, _, _, r in arming.PARAMETERS
-                   if r})
-    return {"stage_driver": driver,
-            "feedforward": {name: kw for name, _, _, kw in feedforward.PARAMETERS},
-            "controller": {name: kw for name, _, _, kw in control.PARAMETERS}}
+DECLARED = {node: names(schema) for node, schema in SCHEMAS.items()}
 
 
-def check_value(node: str, name: str, value, limits: dict) -> str | None:
-    """Why ``value`` is refused for ``node``'s parameter ``name`` (None: it is not):
-    outside its declared range, not one of its choices, or not a number where one is
-    declared."""
-    kw = limits.get(node, {}).get(name) or {}
-    if "choices" in kw and value not in kw["choices"]:
-        return f"{name} = {value!r}: must be one of {', '.join(map(str, kw['choices']))}"
-    if "lo" in kw:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            return f"{name} = {value!r}: must be a number in [{kw['lo']:g}, {kw['hi']:g}]"
-        if not kw["lo"] <= value <= kw["hi"]:
-            return f"{name} = {value!r} is outside its range [{kw['lo']:g}, {kw['hi']:g}]"
-    return None
+def refusal(node: str, name: str, value: object) -> str | None:
+    """Why ``value`` is refused for ``node``'s parameter ``name`` (None: it is not, or
+    no such parameter): outside its declared range, not one of its choices, or not a
+    number where one is declared."""
+    found = next((p for p in SCHEMAS.get(node, ()) if p.name == name), None)
+    return found.refuses(value) if found is not None else None
 
 
 def unknown_parameter(key: str, declared) -> str:

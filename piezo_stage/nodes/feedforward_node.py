@@ -38,7 +38,7 @@ from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._intake import Intake, trajectory_key, warm_up
 from piezo_stage.nodes._latched import LatchedFetch
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
-from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._params import declare_schema
 from piezo_stage_msgs_adapters import (
     check_trajectory_size,
     joint_state_to_um,
@@ -55,9 +55,8 @@ from piezo_stage_msgs_adapters import (
 class Feedforward(Node):
     def __init__(self):
         super().__init__("feedforward")
-        live = ("compensate_effects", "learning_period_s", "learning_gain", "learning")
-        p = self.p = {name: declare(self, name, default, desc, **kw)
-                      for name, default, desc, kw in core_ff.PARAMETERS if name not in live}
+        live = tuple(q for q in core_ff.PARAMETERS if q.live)
+        p = self.p = declare_schema(self, tuple(q for q in core_ff.PARAMETERS if not q.live))
         self.dt_ns = int(round(1e9 / p["control_rate_hz"]))
         self.max_points = p["max_trajectory_points"]
         self.planner = ReferencePlanner(p["approach_speed_um_per_s"],
@@ -70,11 +69,10 @@ class Feedforward(Node):
         self.ref, self.learning = self.core.ref, self.core.learning
         # the live ones once the core is there (a start-up override calls them at once):
         # effect compensation and learning feedforward (core/loop/learning.py)
-        p.update({name: declare(self, name, default, desc,
-                                live=lambda v, name=name: self.core.set_live(name, v), **kw)
-                  for name, default, desc, kw in core_ff.PARAMETERS if name in live})
-        for name in live:
-            self.core.set_live(name, p[name])
+        p.update(declare_schema(self, live, {q.name: lambda v, name=q.name: self.core.set_live(
+            name, v) for q in live}))
+        for q in live:
+            self.core.set_live(q.name, p[q.name])
         self.model_name, self.pending, self.decoded_key = "nominal", None, None
         # real time: trajectories and models are taken apart on the intake's thread
         self.intake = Intake({"trajectory": self.decode_trajectory,

@@ -25,20 +25,17 @@ from piezo_stage.io.plant_file import default_config_dir, enabled_effects
 from piezo_stage.nodes._common import QOS_DATA
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
-from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._params import declare_schema
+from piezo_stage.nodes.declared import GAP
 from piezo_stage_msgs_adapters import joint_state_to_um, point_cdr
 
 
 class Gap(Node):
     def __init__(self):
         super().__init__("gap")
-        rate = declare(self, "control_rate_hz", 1000.0, "control rate [Hz]",
-                       lo=1.0, hi=1e5)
-        path = (declare(self, "model_file", "", "the twin's model ('' = "
-                        "config/stage_model.yaml)")
-                or f"{default_config_dir()}/stage_model.yaml")
-        self.window = declare(self, "window", 1000, "samples in the rolling RMS", lo=10,
-                              hi=10_000_000)
+        p = declare_schema(self, GAP)
+        rate, self.window = p["control_rate_hz"], p["window"]
+        path = p["model_file"] or f"{default_config_dir()}/stage_model.yaml"
         model, effects = load_model(path)
         cfg = PlantConfig.exact(model, rate)
         cfg.effects = enabled_effects(effects)
@@ -47,8 +44,7 @@ class Gap(Node):
         self.res = {a: deque(maxlen=self.window) for a in ("x", "y")}
         self.offset, self.n0 = {"x": 0.0, "y": 0.0}, 0
         self.pub = self.create_publisher(PointStamped, "gap/residual", QOS_DATA)
-        self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 0,
-                                                   "residual subscribers to wait for"))])
+        self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
                          raw=True)
         Diagnostics(self, self.status, "sim-to-real residual")

@@ -30,24 +30,20 @@ from piezo_stage.io.model_file import model_to_dict
 from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics
-from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes._signals import interruptible
+from piezo_stage.nodes.declared import IDENTIFIER
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
 
 
 class Identifier(Node):
     def __init__(self):
         super().__init__("identifier")
-        live = lambda attr: lambda v: setattr(self, attr, v)  # noqa: E731 - next fit uses it
-        self.method = declare(self, "method", "fast", "fast | afsa | afsa-bat",
-                              choices=("fast", "afsa", "afsa-bat"), live=live("method"))
-        self.structure = declare(self, "structure", "segmented", "segmented | whole",
-                                 choices=("segmented", "whole"), live=live("structure"))
-        self.auto_cycles = declare(self, "auto_cycles", 0, "identify after this many "
-                                   "complete cycles (0: on request only)", lo=0, hi=1000,
-                                   live=live("auto_cycles"))
-        self.max_samples = declare(self, "max_samples", 200_000, "buffer length", lo=100,
-                                   hi=10_000_000)
+        # the live ones as attributes the next fit reads
+        p = declare_schema(self, IDENTIFIER, {q.name: lambda v, name=q.name: setattr(
+            self, name, v) for q in IDENTIFIER if q.live})
+        self.method, self.structure = p["method"], p["structure"]
+        self.auto_cycles, self.max_samples = p["auto_cycles"], p["max_samples"]
         # samples in stamp order, bounded: the oldest fall off the front (no re-sort)
         self.buf, self.done_auto = deque(maxlen=self.max_samples), False
         self.stamps = StampGuard()  # one stray stamp must not make every later sample old

@@ -26,8 +26,9 @@ from rclpy.node import Node
 from piezo_stage.io.bag import msgdef
 from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics
-from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes._tap import TopicTap
+from piezo_stage.nodes.declared import LIVE_VIEW
 
 
 class _Subscriptions(ServerListener):
@@ -46,17 +47,13 @@ class _Subscriptions(ServerListener):
 class LiveView(Node):
     def __init__(self):
         super().__init__("live_view")
-        host = declare(self, "host", "127.0.0.1", "address the WebSocket server binds "
-                       "(0.0.0.0: every interface; mind who can reach it)")
-        port = declare(self, "port", 8765, "WebSocket port (foxglove.websocket.v1)",
-                       lo=0, hi=65535)
         self.min_gap_ns = 0
-        declare(self, "max_rate_hz", 200.0, "per topic, at most this many messages per "
-                "wall-clock second to the viewers (0: all)", lo=0.0, hi=1e6, live=self.set_rate)
-        self.set_rate(self.get_parameter("max_rate_hz").value)
-        self.lean_batch_s = declare(self, "batch_period_s", 0.01, "wait between takes [s] "
-                                   "(off the loop's path)", lo=0.0, hi=1.0,
-                                   live=lambda v: setattr(self, "lean_batch_s", v))
+        p = declare_schema(self, LIVE_VIEW, {
+            "max_rate_hz": self.set_rate,
+            "batch_period_s": lambda v: setattr(self, "lean_batch_s", v)})
+        host, port = p["host"], p["port"]
+        self.set_rate(p["max_rate_hz"])
+        self.lean_batch_s = p["batch_period_s"]
         self.channels, self.last_ns, self.sent = {}, {}, 0
         # the contract's channels exist before the server listens: a client's first
         # subscription then never races a channel's registration (the SDK advertises a

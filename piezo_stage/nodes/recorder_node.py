@@ -24,18 +24,20 @@ from piezo_stage.io.bag import BagWriter, new_bag_dir
 from piezo_stage.nodes._common import steady_timer
 from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
-from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes._tap import TopicTap
+from piezo_stage.nodes.declared import RECORDER
 
 
 class Recorder(Node):
     def __init__(self):
         super().__init__("recorder")
-        out = (declare(self, "output", "", "bag directory ('' = bags/<timestamp>)")
-               or new_bag_dir("bags"))
+        p = declare_schema(self, RECORDER, {
+            "batch_period_s": lambda v: setattr(self, "lean_batch_s", v)})
+        out = p["output"] or new_bag_dir("bags")
         meta = {}
         for key in ("config_file", "model_file"):
-            path = declare(self, key, "", f"{key.split('_')[0]} to store as metadata")
+            path = p[key]
             if path and os.path.isfile(path):
                 meta["piezo_stage_" + key.split("_")[0]] = {"path": path,
                                                             "yaml": open(path).read()}
@@ -45,23 +47,14 @@ class Recorder(Node):
         meta["piezo_stage_run"] = {"started_utc": datetime.now(timezone.utc).isoformat()}
         self.bag = BagWriter(out, metadata=meta)
         # off the loop's critical path: take what arrived every few ms, not per message
-        self.lean_batch_s = declare(self, "batch_period_s", 0.004, "wait between takes "
-                                   "[s]; queues hold 5000 samples per topic", lo=0.0, hi=60.0,
-                                   live=lambda v: setattr(self, "lean_batch_s", v))
-        self.log_received = declare(self, "log_time", "stamp", "bag log time: stamp "
-                                    "(lockstep) | receive (real time)",
-                                    choices=("stamp", "receive")) == "receive"
-        prio = declare(self, "thread_priority", 40, "real-time recording (log_time "
-                       "receive): SCHED_FIFO priority of the middleware's receiving threads "
-                       "(the writing stays at normal priority; 0: leave the scheduler "
-                       "alone)", lo=0, hi=99)
+        self.lean_batch_s = p["batch_period_s"]
+        self.log_received = p["log_time"] == "receive"
         if self.log_received:
-            set_realtime_priority(prio, self.get_logger(), main_thread=False)
+            set_realtime_priority(p["thread_priority"], self.get_logger(), main_thread=False)
         self.get_logger().info(f"recording to {out}")
         self.bad_stamps = 0
         self.tap = TopicTap(self, self.add_topic, self.write)
-        steady_timer(self, declare(self, "flush_period_s", 0.5, "chunk flush period [s]",
-                                  lo=0.01, hi=60.0), self.bag.flush)
+        steady_timer(self, p["flush_period_s"], self.bag.flush)
         Diagnostics(self, lambda: (0, f"recording to {out}: {sum(self.bag.counts.values())} "
                                    f"messages on {len(self.bag.counts)} topics",
                                    {"bag": out, "batch_period_s": self.lean_batch_s,

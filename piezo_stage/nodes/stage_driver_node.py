@@ -42,14 +42,14 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
-from piezo_stage.core.loop.arming import ENABLED, FAULTED, ArmingParams
+from piezo_stage.core.loop.arming import ENABLED, ArmingParams
 from piezo_stage.core.loop.arming import PARAMETERS as ARMING
 from piezo_stage.core.loop.sample_loop import PARAMETERS, RATES, SampleLoop, check_mode
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
-from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes._signals import STATE as STOP_STATE
 from piezo_stage.nodes._signals import watch as watch_stop
 from piezo_stage_msgs_adapters import (
@@ -75,14 +75,11 @@ class StageDriver(LifecycleNode):
     def __init__(self):
         super().__init__("stage_driver")
         STOP_STATE.watch_s = 12.0  # its stop ramps and closes the backend (see below)
-        d = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
-        p = self.p = {name: d(name, default, desc, **kw)
-                      for name, default, desc, kw in PARAMETERS}
+        p = self.p = declare_schema(self, PARAMETERS)
         check_mode(p["backend"], p["mode"], self.get_parameter("use_sim_time").value)
-        defaults = ArmingParams()
-        self.arm_params = ArmingParams(**{field: d(name, getattr(defaults, field), desc, **(
-            {"lo": r[0], "hi": r[1]} if r else {})) for name, field, desc, r in ARMING})
-        self.bp = {k: d(k, default, desc) for k, default, desc in BACKEND_PARAMS}
+        arm = declare_schema(self, ARMING)
+        self.arm_params = ArmingParams(**{q.field: arm[q.name] for q in ARMING})
+        self.bp = declare_schema(self, BACKEND_PARAMS)
         self.managed = bool(p["managed"])
         self.backend = self.loop = self.sup = None  # open from configure to cleanup
         self.lock = p["mode"] == "lockstep"
@@ -239,11 +236,9 @@ class StageDriver(LifecycleNode):
     def _check_fault(self) -> None:
         """Managed and active: a fault, once at the safe voltage, takes the error
         transition (a deactivate that reports the fault)."""
-        if not (self.managed and self.sup.state == FAULTED
-                and self.lifecycle_label() == "active"):
-            return
-        if all(abs(x - self.sup.p.safe_V) < 1e-9 for x in self.loop.v.values()):
-            self.why_error = f"faulted: {self.sup.reason}"
+        why = self.loop.faulted_at_safe if self.managed else None
+        if why and self.lifecycle_label() == "active":
+            self.why_error = why
             self.trigger_deactivate()
 
     # -- the sample loop ----------------------------------------------------------------

@@ -30,45 +30,24 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.planner import HOLD
-from piezo_stage.core.loop.trajectory import KINDS, generate
+from piezo_stage.core.loop.trajectory import generate
 from piezo_stage.nodes._common import QOS_EVENTS, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
-from piezo_stage.nodes._params import declare
+from piezo_stage.nodes._params import declare_schema
+from piezo_stage.nodes.declared import TRAJECTORY
 from piezo_stage_msgs_adapters import phase_from_msg, trajectory_msg
 
 RESENDS, RESEND_AFTER_S = 3, 1.0
-
-PARAMS = {  # name: (default, description)
-    "kind": ("seed", "one of: " + ", ".join(KINDS)),
-    "frequency_hz": (10.0, "frequency [Hz]"),
-    "duration_s": (1.0, "length [s]"),
-    "center_um": (21.0, "centre [um]"),
-    "amplitude_um": (24.0, "amplitude [um]"),
-    "dt_s": (0.001, "point spacing [s]"),
-    "csv_path": ("", "CSV t,wx,wy for kind csv"),
-    "lines": (16, "raster: line periods (trace and retrace) in the scan"),
-    "scan_size_um": ([40.0, 40.0], "raster: scan size [fast, slow] [um]"),
-    "scan_center_um": ([40.0, 40.0], "raster: scan centre [fast, slow] [um]"),
-    "corner": (0.1, "raster: share of each line spent turning around, 0-0.5"),
-    "slow": ("steps", "raster: slow axis, steps (a line at a time) or ramp"),
-    "fast_axis": ("x", "raster: the fast axis, x or y"),
-    "excite_s": (0.0, "prepended excitation [s] (0: none)"),
-    "excite_center_um": (35.0, "excitation centre [um]"),
-    "excite_amplitude_um": (34.0, "excitation amplitude [um]"),
-    "excite_y_hz": (1.5, "y excitation frequency [Hz] (x: 1 Hz); unequal, so the "
-                    "axes' coupling is identifiable"),
-}
-
 
 class Trajectory(Node):
     def __init__(self):
         super().__init__("trajectory")
         # live: a set builds and publishes the new trajectory (or is refused with why)
-        self.p = {k: declare(self, k, d, desc, live=True) for k, (d, desc) in PARAMS.items()}
+        self.p = declare_schema(self, TRAJECTORY)
+        wait_for = self.p.pop("min_subscribers")  # (of the publisher, not the trajectory)
         self.pub = self.create_publisher(JointTrajectory, "trajectory", QOS_LATCHED)
-        self.gate = Gate(self, [(self.pub, declare(self, "min_subscribers", 1,
-                                                   "trajectory subscribers to wait for"))])
+        self.gate = Gate(self, [(self.pub, wait_for)])
         self.published, self.resent, self.last = 0, 0, None
         self.sent_at, self.ff_phase, self.budget = None, None, RESENDS
         self.add_on_set_parameters_callback(self.on_set)
@@ -125,7 +104,7 @@ class Trajectory(Node):
 
     def on_set(self, params):
         p = dict(self.p)
-        p.update({x.name: x.value for x in params if x.name in PARAMS})
+        p.update({x.name: x.value for x in params if x.name in p})
         try:
             msg = self.build(p)
         except PiezoStageError as e:

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.loop.control import clamp_slew
+from piezo_stage.core.params import Param, Schema
 
 DISARMED, ARMING, APPROACHING, ARMED, FAULTED = (
     "disarmed", "arming", "approaching", "armed", "faulted")
@@ -57,19 +58,22 @@ class ArmingParams:
                               "must be > 0 and the safe voltage finite")
 
 
-# The supervisor's settings as node parameters: (parameter name, ArmingParams field,
-# description with unit, (lo, hi) or None). Defaults are the dataclass's.
-PARAMETERS = (
-    ("safe_voltage_V", "safe_V", "disarmed/faulted output [V]", (-200.0, 200.0)),
-    ("safe_ramp_V_per_s", "ramp_V_per_s", "ramp rate to the safe voltage [V/s]", (1.0, 1e6)),
-    ("stale_timeout_s", "stale_s", "real time: no valid command arriving before its "
-     "tick for this long faults the stage [s]", (0.001, 10.0)),
-    ("arm_confirm_ticks", "confirm_ticks", "ticks of a closed loop before arming",
-     (1, 100000)),
-    ("arm_tolerance_V", "tolerance_V", "|command - applied| that counts as holding [V]",
-     (1e-9, 10.0)),
-    ("auto_arm", "auto_arm", "arm once the loop is closed, and re-arm after a stale "
-     "fault", None),
+# The supervisor's settings as the driver's parameters (core/params.py), each filling
+# the ArmingParams field it names; defaults are the dataclass's.
+_D = ArmingParams()
+PARAMETERS: Schema = (
+    Param("safe_voltage_V", _D.safe_V, "disarmed/faulted output [V]", lo=-200.0, hi=200.0,
+          field="safe_V"),
+    Param("safe_ramp_V_per_s", _D.ramp_V_per_s, "ramp rate to the safe voltage [V/s]",
+          lo=1.0, hi=1e6, field="ramp_V_per_s"),
+    Param("stale_timeout_s", _D.stale_s, "real time: no valid command arriving before its "
+          "tick for this long faults the stage [s]", lo=0.001, hi=10.0, field="stale_s"),
+    Param("arm_confirm_ticks", _D.confirm_ticks, "ticks of a closed loop before arming",
+          lo=1, hi=100000, field="confirm_ticks"),
+    Param("arm_tolerance_V", _D.tolerance_V, "|command - applied| that counts as holding "
+          "[V]", lo=1e-9, hi=10.0, field="tolerance_V"),
+    Param("auto_arm", _D.auto_arm, "arm once the loop is closed, and re-arm after a stale "
+          "fault", field="auto_arm"),
 )
 
 

@@ -13,28 +13,36 @@ import math
 from dataclasses import dataclass
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.params import Param, Schema
 
-# the controller node's parameters: name, default, description, limits (the node's
-# ``declare``; the launcher checks a parameter file against the same table). The gains
-# and ``feedback`` are live (they take effect at run time).
-PARAMETERS: tuple[tuple[str, object, str, dict], ...] = (
-    ("control_rate_hz", 1000.0, "control rate [Hz]", {"lo": 1.0, "hi": 1e5}),
-    ("kp", 0.2, "proportional gain [V/um]", {"lo": 0.0, "hi": 100.0}),
-    ("ki", 150.0, "integral gain [V/(um s)]", {"lo": 0.0, "hi": 1e5}),
-    ("kd", 0.0, "derivative gain [V s/um]", {"lo": 0.0, "hi": 10.0}),
-    ("integral_limit_V", 30.0, "|integral contribution| <= this [V] (feedback only: the "
-     "whole voltage span)", {"lo": 0.0, "hi": 1000.0}),
-    ("feedback", True, "PID on (false: feedforward only); switches bumplessly", {}),
-    ("voltage_limits_V", [0.0, 150.0], "clamp [V]", {}),
-    ("relay_amplitude_V", 0.0, "relay experiment (tune --relay): the feedback is a relay "
-     "of this amplitude [V]; 0: PID", {"lo": 0.0, "hi": 75.0}),
-    ("relay_hysteresis_um", 0.0, "relay experiment: its hysteresis band [um] (0 unless "
-     "noise makes it chatter)", {"lo": 0.0, "hi": 50.0}),
-    ("thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the scheduler "
-     "alone; lockstep never changes it)", {"lo": 0, "hi": 99}),
-    ("min_subscribers", 0, "command subscribers to wait for", {}),
+# the controller node's parameters (core/params.py: the node declares them from here,
+# the launcher checks a parameter file against them); the gains and ``feedback`` are
+# live (they take effect at run time)
+PARAMETERS: Schema = (
+    Param("control_rate_hz", 1000.0, "control rate [Hz]", lo=1.0, hi=1e5),
+    Param("kp", 0.2, "proportional gain [V/um]", lo=0.0, hi=100.0, live=True),
+    Param("ki", 150.0, "integral gain [V/(um s)]", lo=0.0, hi=1e5, live=True),
+    Param("kd", 0.0, "derivative gain [V s/um]", lo=0.0, hi=10.0, live=True),
+    Param("integral_limit_V", 30.0,
+          "|integral contribution| <= this [V] (feedback only: the whole voltage span)",
+          lo=0.0, hi=1000.0),
+    Param("feedback", True,
+          "PID on (false: feedforward only); switches bumplessly",
+          live=True),
+    Param("voltage_limits_V", [0.0, 150.0], "clamp [V]"),
+    Param("relay_amplitude_V", 0.0,
+          "relay experiment (tune --relay): the feedback is a relay of this amplitude [V]; "
+          "0: PID",
+          lo=0.0, hi=75.0),
+    Param("relay_hysteresis_um", 0.0,
+          "relay experiment: its hysteresis band [um] (0 unless noise makes it chatter)",
+          lo=0.0, hi=50.0),
+    Param("thread_priority", 45,
+          "real time: SCHED_FIFO priority (0: leave the scheduler alone; lockstep never "
+          "changes it)",
+          lo=0, hi=99),
+    Param("min_subscribers", 0, "command subscribers to wait for"),
 )
-LIVE = ("kp", "ki", "kd", "feedback")
 
 
 @dataclass

@@ -25,43 +25,51 @@ from piezo_stage.core.loop.learning import LearnedFeedforward
 from piezo_stage.core.loop.planner import ReferencePlanner
 from piezo_stage.core.model.duhem import StageModel, check_model_change
 from piezo_stage.core.model.inverse import StageInverse
+from piezo_stage.core.params import Param, Schema
 
 HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
 MAX_FILLED_TICKS = 20  # after a skipped sample, at most this many targets answered
 PAST_TRAJECTORY_NS = 1_000_000_000  # a trajectory stamped up to 1 s ago: start now
 
-# the feedforward node's parameters: name, default, description, limits and choices
-# (nodes/_params.declare); the node makes compensate_effects and the learning ones live
-PARAMETERS: tuple[tuple[str, object, str, dict], ...] = (
-    ("control_rate_hz", 1000.0, "control rate [Hz]", {"lo": 1.0, "hi": 1e5}),
-    ("model_file", "", "initial model YAML ('' = none until one arrives on model)", {}),
-    ("nominal_um_per_V", 0.5, "gain used before any model [um/V]",
-     {"lo": 0.01, "hi": 100.0}),
-    ("use_coupling", True, "invert the coupling (decoupling)", {}),
-    ("inverse_feedforward", True, "false: hold the feedforward at the voltage applied "
-     "when enabled (feedback only)", {}),
-    ("range_um", [-10.0, 90.0], "accepted target range [um]", {}),
-    ("model_required_after_s", 0.0, "lockstep: hold the loop at this trajectory time "
-     "until a model arrives (0: never)", {}),
-    ("max_trajectory_points", 200_000, "longer trajectories are refused (memory, parse "
-     "time)", {"lo": 2, "hi": 10_000_000}),
-    ("wait_for_trajectory", False, "answer no sample before a trajectory has arrived "
-     "(lockstep: the loop waits; real time: the loop does not close, so the set does not "
-     "arm)", {}),
-    ("approach_speed_um_per_s", 200.0, "approach speed [um/s]", {"lo": 0.1, "hi": 1e6}),
-    ("approach_accel_um_per_s2", 20000.0, "approach acceleration [um/s^2]",
-     {"lo": 1.0, "hi": 1e9}),
-    ("max_resonance_inverse_hz", 0.0, "a model's resonance above this is taken as its "
-     "group delay, not inverted (0: no limit)", {"lo": 0.0, "hi": 1e6}),
-    ("compensate_effects", True, "compensate the model's unmodelled effects", {}),
-    ("learning_period_s", 0.0, "learning: the trajectory's period [s] (0: none)",
-     {"lo": 0.0, "hi": 60.0}),
-    ("learning_gain", 1.0, "learning: first gain (it falls with the periods learned)",
-     {"lo": 0.01, "hi": 1.0}),
-    ("learning", False, "learn the periodic error into the feedforward", {}),
-    ("thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the scheduler "
-     "alone; lockstep never changes it)", {"lo": 0, "hi": 99}),
-    ("min_subscribers", 0, "reference subscribers to wait for", {}),
+# the feedforward node's parameters (core/params.py); effect compensation and the
+# learning ones are live
+PARAMETERS: Schema = (
+    Param("control_rate_hz", 1000.0, "control rate [Hz]", lo=1.0, hi=1e5),
+    Param("model_file", "", "initial model YAML ('' = none until one arrives on model)"),
+    Param("nominal_um_per_V", 0.5, "gain used before any model [um/V]", lo=0.01, hi=100.0),
+    Param("use_coupling", True, "invert the coupling (decoupling)"),
+    Param("inverse_feedforward", True,
+          "false: hold the feedforward at the voltage applied when enabled (feedback only)"),
+    Param("range_um", [-10.0, 90.0], "accepted target range [um]"),
+    Param("model_required_after_s", 0.0,
+          "lockstep: hold the loop at this trajectory time until a model arrives (0: never)"),
+    Param("max_trajectory_points", 200000,
+          "longer trajectories are refused (memory, parse time)",
+          lo=2, hi=10_000_000),
+    Param("wait_for_trajectory", False,
+          "answer no sample before a trajectory has arrived (lockstep: the loop waits; real"
+          " time: the loop does not close, so the set does not arm)"),
+    Param("approach_speed_um_per_s", 200.0, "approach speed [um/s]", lo=0.1, hi=1e6),
+    Param("approach_accel_um_per_s2", 20000.0,
+          "approach acceleration [um/s^2]",
+          lo=1.0, hi=1e9),
+    Param("max_resonance_inverse_hz", 0.0,
+          "a model's resonance above this is taken as its group delay, not inverted (0: no "
+          "limit)",
+          lo=0.0, hi=1e6),
+    Param("compensate_effects", True, "compensate the model's unmodelled effects", live=True),
+    Param("learning_period_s", 0.0,
+          "learning: the trajectory's period [s] (0: none)",
+          lo=0.0, hi=60.0, live=True),
+    Param("learning_gain", 1.0,
+          "learning: first gain (it falls with the periods learned)",
+          lo=0.01, hi=1.0, live=True),
+    Param("learning", False, "learn the periodic error into the feedforward", live=True),
+    Param("thread_priority", 45,
+          "real time: SCHED_FIFO priority (0: leave the scheduler alone; lockstep never "
+          "changes it)",
+          lo=0, hi=99),
+    Param("min_subscribers", 0, "reference subscribers to wait for"),
 )
 
 # the node's counts on /diagnostics, and those reported as rates (key, name, level)

@@ -108,7 +108,7 @@ def loop_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: np.
     run ahead, creep divided out, and where the dynamics are inverted, the dynamics read
     at the delay's fraction divided out."""
     f = np.asarray(freqs_hz, float)
-    model = effects if model is None else model
+    model = (effects or {}) if model is None else model
     g = effects_response(effects, axis, rate_hz, f, scale)
     if compensator is None:
         return g
@@ -154,7 +154,7 @@ def _scales(effects: dict, perturb: float) -> list[dict]:
     """Every parameter of the effects off by +-perturb, one at a time and all together."""
     names = {"delay_s", "fn_hz", "zeta", "gamma", "tau_s"}
     present = sorted({k for p in (effects or {}).values() for k in p} & names)
-    out = [{}]
+    out: list[dict] = [{}]
     for k in present:
         out += [{k: 1 + perturb}, {k: 1 - perturb}]
     if present:
@@ -249,22 +249,28 @@ class PeriodicLearner:
         self.c = {a: np.zeros(self.n) for a in self.designs}
         self.acc = {a: np.zeros(self.n // 2 + 1, complex) for a in self.designs}
         self.bin_gain = {a: np.ones(d.q.size) for a, d in self.designs.items()}
-        self._best = {a: None for a in self.designs}  # each bin's smallest error so far
-        self._best_acc = {a: None for a in self.designs}  # and the correction that gave it
-        self._first = {a: None for a in self.designs}  # each bin's error before learning
+        # each bin's smallest error so far, the correction that gave it, and each bin's
+        # error before learning
+        self._best: dict[str, np.ndarray | None] = {a: None for a in self.designs}
+        self._best_acc: dict[str, np.ndarray | None] = {a: None for a in self.designs}
+        self._first: dict[str, np.ndarray | None] = {a: None for a in self.designs}
         self.periods, self.learned, self.skipped, self.damped = 0, 0, 0, 0
         self.applied = 0  # periods learned that ran on a learned correction throughout
         self.disturbed = 0  # periods not learned: their error jumped (a host pause)
-        self._last_rms, self._run = None, 0
-        self.noise_um = {a: None for a in self.designs}  # sensor noise, from the data
-        self._e_prev = {a: None for a in self.designs}
-        self._j, self._done = None, False
+        self._last_rms: dict[str, float] | None = None
+        self._run = 0
+        # sensor noise, from the data
+        self.noise_um: dict[str, float | None] = {a: None for a in self.designs}
+        self._e_prev: dict[str, tuple[np.ndarray, np.ndarray] | None] = {
+            a: None for a in self.designs}
+        self._j: int | None = None
+        self._done = False
         self._buf = {a: np.full(self.n, np.nan) for a in self.designs}
         self._ubuf = {a: np.full(self.n, np.nan) for a in self.designs}
-        self._used = {}  # trajectory sample -> the correction it was given (offset)
+        self._used: dict[int, dict] = {}  # trajectory sample -> its correction (offset)
         self._gen = 0    # updates so far: the generation of the present correction
         self._gbuf = np.zeros(self.n, int)  # each sample's correction's generation
-        self._period_gen = None
+        self._period_gen: int | None = None
 
     def observe(self, k: int, error: dict) -> bool:
         """One sample's error [um] (desired - measured) at trajectory sample ``k``;
@@ -356,8 +362,9 @@ class PeriodicLearner:
             self.acc[a] = d.q * ((1 - gk) * self.acc[a] + gk * asked)
             # what the running mean of the periods can tell from noise: each bin of the
             # accumulated correction carries |L| sigma sqrt(n / periods) of it
-            thr = self.kappa(a) * self.noise_um[a] * np.abs(d.learn) * np.sqrt(
-                self.n / self.averaged)
+            sigma = self.noise_um[a]  # (measured: _noise returned True)
+            assert sigma is not None
+            thr = self.kappa(a) * sigma * np.abs(d.learn) * np.sqrt(self.n / self.averaged)
             mag = np.abs(self.acc[a])
             keep = mag > thr
             ratio = np.where(keep, thr / np.where(keep, mag, 1.0), 1.0)
@@ -420,8 +427,8 @@ class PeriodicLearner:
         drops to a quarter. Called before the period's update, with the error the
         present correction gave."""
         mag = np.abs(E)
-        best, kept = self._best[a], self._best_acc[a]
-        if best is None:
+        best, kept, first = self._best[a], self._best_acc[a], self._first[a]
+        if best is None or kept is None or first is None:
             self._best[a], self._best_acc[a] = mag.copy(), self.acc[a].copy()
             self._first[a] = mag.copy()
             return
@@ -431,7 +438,7 @@ class PeriodicLearner:
         # after an unusually good one (a saturated command answers a change of the
         # correction out of proportion) but stays below where it started is still
         # learning, and slowing it there stalled it for good
-        worse &= mag > self._first[a] + noise
+        worse &= mag > first + noise
         worse[0] = False  # an offset that grows is drift or creep: learned, not damped
         self.acc[a][worse] = kept[worse]
         self.bin_gain[a][worse] *= 0.25
@@ -462,8 +469,9 @@ class LearnedFeedforward:
 
     def __init__(self, reference: PreviewedReference, dt_ns: int, axes: tuple = ("x", "y")):
         self.ref, self.dt_ns, self.axes = reference, int(dt_ns), tuple(axes)
-        self.learner, self.enabled, self.why = None, False, "off"
-        self.asked = {}  # stamp [ns] -> (trajectory sample, {axis: desired um})
+        self.learner: PeriodicLearner | None = None
+        self.enabled, self.why = False, "off"
+        self.asked: dict[int, tuple] = {}  # stamp [ns] -> (trajectory sample, {axis: um})
 
     def configure(self, period_s: float, gain: float = 1.0, effects: dict | None = None,
                   compensator: EffectCompensator | None = None) -> None:

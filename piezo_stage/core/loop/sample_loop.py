@@ -25,37 +25,44 @@ from dataclasses import dataclass
 from typing import Any
 
 from piezo_stage.core.errors import DataError
-from piezo_stage.core.loop.arming import ENABLED, ArmingParams, ArmingSupervisor
+from piezo_stage.core.loop.arming import ENABLED, FAULTED, ArmingParams, ArmingSupervisor
 from piezo_stage.core.loop.clock import CommandSchedule, SampleClock
 from piezo_stage.core.loop.control import clamp_slew
 from piezo_stage.core.loop.planner import DONE, TRACK
+from piezo_stage.core.params import Param, Schema
 
-# the driver node's parameters: name (one name: the parameter's), default, description,
-# limits (nodes/_params.declare)
-PARAMETERS: tuple[tuple[str, object, str, dict], ...] = (
-    ("backend", "sim", "stage backend", {"choices": ("sim", "daq", "pi", "nv200",
-                                                  "replay")}),
-    ("mode", "lockstep", "lockstep (sim, replay) | realtime",
-     {"choices": ("lockstep", "realtime")}),
-    ("control_rate_hz", 1000.0, "sample rate [Hz]", {"lo": 1.0, "hi": 1e5}),
-    ("lookahead_s", 0.005, "real time: commands are computed this far ahead of the "
-     "sample they answer [s]", {"lo": 0.0, "hi": 1.0}),
-    ("max_steps", 0, "stop after this many samples (0: never)", {"lo": 0, "hi": 2**31 - 1}),
-    ("exit_after_max_steps", False, "exit (code 0) after max_steps", {}),
-    ("max_steps_from_arming", False, "count max_steps from the sample the stage first "
-     "enabled (the approach's start), not from the first sample; before that at most "
-     "max_steps samples wait for arming", {}),
-    ("min_subscribers", 0, "lockstep: joint_states subscribers to wait for",
-     {"lo": 0, "hi": 100}),
-    ("min_record_subscribers", 0, "lockstep: true_position subscribers to wait for "
-     "(recorders)", {"lo": 0, "hi": 100}),
-    ("clock_period_s", 0.05, "lockstep: publish /clock (simulated time for nodes on "
-     "use_sim_time) every this much sample time [s]; 0: not at all", {"lo": 0.0, "hi": 10.0}),
-    ("thread_priority", 50, "real time: SCHED_FIFO priority of the sample loop (0: leave "
-     "the scheduler alone)", {"lo": 0, "hi": 99}),
-    ("managed", False, "lifecycle: start unconfigured and leave every transition "
-     "(configure, activate, deactivate, cleanup, shutdown) to an outside manager; false: "
-     "configure and activate at start, as a launch without --managed does", {}),
+# the driver node's parameters (core/params.py); its arming supervisor's are arming.py's
+PARAMETERS: Schema = (
+    Param("backend", "sim", "stage backend", choices=("sim", "daq", "pi", "nv200", "replay")),
+    Param("mode", "lockstep",
+          "lockstep (sim, replay) | realtime",
+          choices=("lockstep", "realtime")),
+    Param("control_rate_hz", 1000.0, "sample rate [Hz]", lo=1.0, hi=1e5),
+    Param("lookahead_s", 0.005,
+          "real time: commands are computed this far ahead of the sample they answer [s]",
+          lo=0.0, hi=1.0),
+    Param("max_steps", 0, "stop after this many samples (0: never)", lo=0, hi=2**31 - 1),
+    Param("exit_after_max_steps", False, "exit (code 0) after max_steps"),
+    Param("max_steps_from_arming", False,
+          "count max_steps from the sample the stage first enabled (the approach's start), "
+          "not from the first sample; before that at most max_steps samples wait for arming"),
+    Param("min_subscribers", 0,
+          "lockstep: joint_states subscribers to wait for",
+          lo=0, hi=100),
+    Param("min_record_subscribers", 0,
+          "lockstep: true_position subscribers to wait for (recorders)",
+          lo=0, hi=100),
+    Param("clock_period_s", 0.05,
+          "lockstep: publish /clock (simulated time for nodes on use_sim_time) every this "
+          "much sample time [s]; 0: not at all",
+          lo=0.0, hi=10.0),
+    Param("thread_priority", 50,
+          "real time: SCHED_FIFO priority of the sample loop (0: leave the scheduler alone)",
+          lo=0, hi=99),
+    Param("managed", False,
+          "lifecycle: start unconfigured and leave every transition (configure, activate, "
+          "deactivate, cleanup, shutdown) to an outside manager; false: configure and "
+          "activate at start, as a launch without --managed does"),
 )
 
 # backends that run on their hardware's clock
@@ -269,11 +276,23 @@ class SampleLoop:
         return 2 * span / self.sup.p.ramp_V_per_s + 6.0
 
     @property
+    def at_safe(self) -> bool:
+        """Every axis at the safe voltage (the ramp to it has ended)."""
+        return all(abs(x - self.sup.p.safe_V) < 1e-9 for x in self.v.values())
+
+    @property
     def shut_down(self) -> bool:
         """After ``begin_shutdown``: at the safe voltage and disabled, or out of time."""
-        return self.shutdown_requested and (self.sup.state not in ENABLED and all(
-            abs(x - self.sup.p.safe_V) < 1e-9 for x in self.v.values())
+        return self.shutdown_requested and (
+            self.sup.state not in ENABLED and self.at_safe
             or time.monotonic() > self.shutdown_by)
+
+    @property
+    def faulted_at_safe(self) -> str | None:
+        """A fault whose ramp has reached the safe voltage: its reason (what a managed
+        driver's error transition reports), else None."""
+        return f"faulted: {self.sup.reason}" if self.sup.state == FAULTED and \
+            self.at_safe else None
 
     def announced(self) -> dict:
         """What the state topic tells: the look-ahead, the rate and the voltage range

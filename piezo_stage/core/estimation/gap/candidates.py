@@ -54,7 +54,7 @@ class Candidate:
     theta: np.ndarray
     reg: DuhemRegression
     fit_rms_um: float
-    op: object = None              # callable X -> E(X) (columns) or None
+    op: Callable[[np.ndarray], np.ndarray] | None = None  # X -> E(X) (columns) or None
     drift_tau_s: float | None = None
     effects: list = field(default_factory=list)
     reg_fs: float = 0.0            # the rate of the record it was fitted on [Hz]
@@ -70,15 +70,15 @@ class Candidate:
         st0 = main.initial.__class__(float(v[0]), 0.0)
         base, _ = main.simulate(v, st0)
         a, _ = main.kernel_params()
-        cols = [base, free_response(v, a)]
-        if coup is not None:
+        parts = [base, free_response(v, a)]
+        if coup is not None and v_other is not None:
             # the coupling term from its fitted state (its constant part is tied to its
             # f_0), plus its own free response, re-estimated like the main one
             ac, _ = coup.kernel_params()
-            cols[0] = base + coup.simulate(v_other, coup.initial.__class__(
+            parts[0] = base + coup.simulate(v_other, coup.initial.__class__(
                 float(v_other[0]), coup.initial.w))[0]
-            cols.append(free_response(v_other, ac))
-        cols = np.column_stack(cols)
+            parts.append(free_response(v_other, ac))
+        cols = np.column_stack(parts)
         # the effects at the record's own rate (HOLDOUT need not share FIT's)
         op = self.op if rec.fs_hz == self.reg_fs else transform_ops(self.effects, rec.fs_hz)
         if op is not None:
@@ -90,7 +90,7 @@ class Candidate:
             fixed = fixed + Drift.columns(len(v), rec.fs_hz, self.drift_tau_s) @ self.theta[k:]
         if self.plays_V is not None:  # (their coefficients before the drift's)
             n = len(self.plays_V)
-            best = None
+            best: tuple[float, np.ndarray] | None = None
             for start in PLAY_STARTS:  # the start that fits this record best
                 f = fixed + play_columns(v, self.plays_V, start) @ self.theta[k - n:k]
                 A = np.column_stack([cols[:, 1:], np.ones(len(v))])
@@ -98,6 +98,7 @@ class Candidate:
                 err = float(np.sum((rec.w[axis] - f - A @ c) ** 2))
                 if best is None or err < best[0]:
                     best = (err, f)
+            assert best is not None  # (PLAY_STARTS is not empty)
             fixed = best[1]
         A = np.column_stack([cols[:, 1:], np.ones(len(v))])
         coef, *_ = np.linalg.lstsq(A, rec.w[axis] - fixed, rcond=None)
@@ -112,7 +113,7 @@ class Candidate:
         return PlayOperators.at_rest(self.plays_V, self.theta[k - n:k], float(self.reg.v[0]),
                                      self.plays_start)
 
-    def model_effect(self) -> tuple[str, dict] | None:
+    def model_effect(self) -> dict | None:
         """The effect as model-file / plant parameters (None for none and coupling)."""
         return None if self.effect in SHAPES else dict(self.params)
 
@@ -199,7 +200,9 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
         names[-1] = effect
     deg = STRUCTURE_DEGREE if {"structure", "memory"} & set(names) else (3, 2)
     reg = DuhemRegression(v, w, "segmented", n=deg[0], m=deg[1], v_other=v_other)
-    tau, plays, start, extra = None, None, 0.0, []
+    tau: float | None = None
+    plays: np.ndarray | None = None
+    start, extra = 0.0, []
     memory = "memory" in names
     if memory:  # return-point memory: play operators, linear in their weights
         plays = np.ptp(v) * np.arange(1, STRUCTURE_PLAYS + 1) / (2 * STRUCTURE_PLAYS)
@@ -217,7 +220,7 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
         return Candidate(effect, {}, alphas, fit.theta, reg, fit.rms, fixed_op, tau,
                          with_drift(list(kept), reg, fit.theta, tau), fs, plays, start)
     alphas = np.asarray(base.alphas, float)
-    params = {}
+    params: dict = {}
     if effect == "coupling" and base.reg.v_other is None:
         alphas = np.append(alphas, alphas.mean())
     elif effect in ("structure", "memory"):
@@ -321,7 +324,7 @@ def play_start_columns(v: np.ndarray, w: np.ndarray, thresholds_V: np.ndarray,
     before a record is not known, and a record cut from a run (a scan's later cycles)
     did not start at rest. Chosen like the free response and the offset, from the
     record itself."""
-    best = (np.inf, None, 0.0)
+    best: tuple[float, np.ndarray | None, float] = (np.inf, None, 0.0)
     for start in PLAY_STARTS:
         P = play_columns(v, thresholds_V, start)
         A = np.column_stack([P] + ([others] if others is not None else [])
@@ -330,6 +333,7 @@ def play_start_columns(v: np.ndarray, w: np.ndarray, thresholds_V: np.ndarray,
         err = float(np.sum((w - A @ coef) ** 2))
         if err < best[0]:
             best = (err, P, start)
+    assert best[1] is not None  # (PLAY_STARTS is not empty)
     return best[1], best[2]
 
 
@@ -435,7 +439,7 @@ def with_drift(effects: list, reg: DuhemRegression, theta: np.ndarray,
         if n == "drift":
             k = len(theta) - 2
             p = {"rate_um_per_s": float(theta[k]), "amplitude_um": float(theta[k + 1]),
-                 "tau_s": float(tau)}
+                 "tau_s": float(tau or 0.0)}
         out.append((n, p))
     return out
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -105,6 +106,10 @@ def _given_effects(base_model, base_effects, axis):
     return out
 
 
+def _quiet(what: str) -> None:
+    """No progress to show."""
+
+
 def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str] = EFFECTS,
                   base_model: StageModel | None = None,
                   progress: Callable[[str], None] | None = None,
@@ -115,7 +120,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     StageModel, with ``base_effects`` from its file) replaces the FIT-identified Duhem
     model as the sim to compare with; what it already has is not a candidate.
     ``progress(what)`` is called after each candidate is fitted."""
-    progress = progress or (lambda what="": None)
+    if progress is None:
+        progress = _quiet
     for rec in (fit, holdout):
         if axis not in rec.v or axis not in rec.w:
             raise DataError(f"{rec.source}: no v{axis}/w{axis} for axis {axis}")
@@ -167,8 +173,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     floor = float(np.hypot(nf, dist0["rms_um"])) if dist0 else nf
     g_before = gap_above_floor(r_before, floor)
     resids = {e: c.predict(holdout, axis) - w_h for e, c in cands.items()}
-    scores = {e: rms(r) for e, r in resids.items()}
-    ranking = []
+    scores: dict[str, float] = {e: rms(r) for e, r in resids.items()}
+    ranking: list[dict[str, Any]] = []
     for e, c in cands.items():
         g_after = gap_above_floor(scores[e], floor)
         ranking.append({"effect": c.effect, "rms_before_um": r_before, "rms_after_um": scores[e],
@@ -180,7 +186,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     ranking.sort(key=lambda r: r["gap_after_um"])
     # forward selection: the best candidate joins when it shrinks the held-out gap
     # clearly; the rest are refitted with it in place and tried again
-    steps, model, r_cur = [], None, r_before
+    steps: list[dict[str, Any]] = []
+    model, r_cur = None, r_before
     # (every candidate stays in: one that explains nothing on its own, as creep
     # beside a larger coupling, can show once the larger one is modelled)
     pool = {e: cands[e] for e in testable}
@@ -198,11 +205,12 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
             # effects of similar size: none alone closes 30 %, two of the three best
             # together may (the better one of the best such pair joins first; the other
             # must then still earn its place as a later step)
-            top = sorted(pool, key=scores.get)[:PAIR_POOL]
+            top = sorted(pool, key=scores.__getitem__)[:PAIR_POOL]
             pairs = [(a, b) for i, a in enumerate(top) for b in top[i + 1:]]
             if "delay" in pool and "dynamics" in pool and not {"delay", "dynamics"} <= set(top):
                 # a resonance seen through a delay: neither alone may fit at all
-                pairs.append(tuple(sorted(("delay", "dynamics"), key=scores.get)))
+                d0, d1 = sorted(("delay", "dynamics"), key=scores.__getitem__)
+                pairs.append((d0, d1))
             best_pair = None
             for a, b in pairs:
                 pair = candidate(b, pool[a], pool[a].effects)

@@ -9,10 +9,11 @@ takes a fraction of a second.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.optimize import minimize
 
 from piezo_stage.core.estimation.identify.regress import DuhemRegression, Fit
@@ -30,7 +31,7 @@ GRID = 21
 
 def fit_fast(reg: DuhemRegression, budget: int | None = None,
              progress: Callable[[int, float], None] | None = None,
-             x0: Sequence[float] | None = None, grid: int = GRID,
+             x0: ArrayLike | None = None, grid: int = GRID,
              step: float = 0.7) -> tuple[np.ndarray, Fit, list[float]]:
     """Returns (alphas, Fit, history) where history is the best RMS after each evaluation.
 

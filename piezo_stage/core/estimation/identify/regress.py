@@ -18,7 +18,7 @@ Parameterisations (honest about identifiability):
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -129,8 +129,9 @@ class DuhemRegression:
             self.olo, self.ohi = float(self.v_other.min()), float(self.v_other.max())
             self.Bo = legendre_basis(self.v_other, self.olo, self.ohi, self.cdeg)
         self.evaluations = 0
-        self.transform = None
-        self.extra = None
+        # an operator on the columns (the gap's effects) and more columns after them
+        self.transform: Callable[[np.ndarray], np.ndarray] | None = None
+        self.extra: np.ndarray | None = None
         self._X = np.empty((self.v.size, 2 * (self.D + 1) + 1))
         if self.v_other is not None:
             self._Xo = np.empty((self.v.size, 2 * (self.cdeg + 1) + 1))
@@ -184,7 +185,7 @@ class DuhemRegression:
             out.append(self._coupling_columns(alphas[-1]))
         return out
 
-    def design(self, alphas: Sequence[float]) -> np.ndarray:
+    def design(self, alphas: ArrayLike) -> np.ndarray:
         """The regressor columns (N, p) for these alphas."""
         b = self.blocks(alphas)
         return b[0] if len(b) == 1 else np.hstack(b)
