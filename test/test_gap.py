@@ -326,6 +326,29 @@ def test_a_delay_on_a_record_without_a_chirp_says_what_would_separate_it():
     assert broadband(vx, 1000.0) and not broadband(fit.v["x"], 1000.0)
 
 
+def test_a_fit_at_one_rate_used_at_another_says_what_would_separate_a_rate_effect():
+    """FIT at one rate (2 Hz), HOLDOUT at 10 Hz, on the stage whose loop widens with
+    rate: nothing fitted at one rate shows how the loop grows, and the diagnosis says so
+    and names the calibration that would (two rates). A FIT at 2 and 5 Hz, or the same
+    rate on both sides (a larger stroke), gets no such note."""
+    from piezo_stage.apps.studies.conditions import _sine, case_records, excitations
+    from piezo_stage.core.estimation.gap.where import main_tones, one_rate_note
+    from piezo_stage.core.estimation.record import Record
+    fit, hold, _ = case_records("rate", "slow->fast")
+    assert main_tones(fit.v["x"], fit.fs_hz) == pytest.approx([2.0] * 4, abs=0.05)
+    res = diagnose(fit, hold, axes=["x"])
+    assert "FIT runs at one rate (2 Hz) and HOLDOUT at another (10 Hz)" in res["reason"]
+    assert "calibrate at two rates at least" in res["reason"]
+    t = fit.t
+    two = np.where(t < 3.0, _sine(2.0 * t), _sine(5.0 * (t - 3.0)))
+    assert main_tones(two, 1000.0) == pytest.approx([2.0, 2.0, 5.0, 5.0], abs=0.05)
+    assert one_rate_note(Record(t, {"x": two}, {"x": 0.3 * two}), hold, "x") is None
+    t, v, k = excitations("small->large")
+    big = Record(t[k:] - t[k], {"x": v[k:]}, {"x": v[k:] * 0.3}, source="larger")
+    small = Record(t[:k], {"x": v[:k]}, {"x": v[:k] * 0.3}, source="smaller")
+    assert one_rate_note(small, big, "x") is None
+
+
 def test_two_axes_run_apart_with_progress_results_and_errors_relayed():
     """Two axes run in two forked processes: the parent receives each axis's progress
     and its full diagnosis (the kept model too: ``model`` works from it), the same as

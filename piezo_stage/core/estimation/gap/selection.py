@@ -20,7 +20,7 @@ from piezo_stage.core.estimation.gap.candidates import (
     with_drift,
 )
 from piezo_stage.core.estimation.gap.disturbance import disturbance
-from piezo_stage.core.estimation.gap.where import MIN_HOLD_S, holds, where
+from piezo_stage.core.estimation.gap.where import MIN_HOLD_S, holds, one_rate_note, where
 from piezo_stage.core.estimation.identify.api import check_identifiable
 from piezo_stage.core.estimation.identify.fast import fit_fast
 from piezo_stage.core.estimation.record import Record
@@ -285,6 +285,9 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         notes.append("no broadband excitation (no chirp): a resonance above the "
                      "excitation's tones cannot be told from a delay (record the "
                      "protocol with its chirp: `excite` without `--chirp 0`)")
+    rate_note = one_rate_note(fit, holdout, axis) if fit is not holdout else None
+    if rate_note:
+        notes.append(rate_note)
     if notes:
         reason = (reason + "; " if reason else "") + "; ".join(notes)
     final = (model.predict(holdout, axis) - w_h) if model is not None else resid

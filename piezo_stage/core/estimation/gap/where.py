@@ -14,6 +14,44 @@ from piezo_stage.core.metrics import rms
 from piezo_stage.core.model.duhem import OTHER
 
 MIN_HOLD_S = 1.0
+RATE_PARTS = 4  # a record's main tone, read in this many parts (one rate: all alike)
+
+
+def main_tones(v: ArrayLike, fs: float, parts: int = RATE_PARTS) -> list[float]:
+    """The main tone [Hz] of each of ``parts`` equal parts of ``v`` (the largest
+    spectral line above 0.5 Hz and one cycle of the part; 0 for a part that does not
+    move)."""
+    v = np.asarray(v, dtype=float)
+    n = v.size // parts
+    out = []
+    for k in range(parts):
+        seg = v[k * n:(k + 1) * n]
+        if seg.size < 8 or np.ptp(seg) <= 0:
+            out.append(0.0)
+            continue
+        m = 8 * seg.size  # zero-padded: the peak read finer than 1 / the part's length
+        spec = np.abs(np.fft.rfft((seg - seg.mean()) * np.hanning(seg.size), m))
+        f = np.fft.rfftfreq(m, 1.0 / fs)
+        spec[f < max(0.5, fs / seg.size)] = 0.0
+        out.append(float(f[int(np.argmax(spec))]) if spec.any() else 0.0)
+    return out
+
+
+def one_rate_note(fit: Record, holdout: Record, axis: str) -> str | None:
+    """When FIT runs at one rate (every part's main tone alike) and HOLDOUT at another
+    (its main tone at least twice or at most half FIT's): what the diagnosis cannot
+    tell from such a FIT, and the calibration that would (None otherwise)."""
+    f_fit = main_tones(fit.v[axis], fit.fs_hz)
+    f_hold = main_tones(holdout.v[axis], holdout.fs_hz, 1)[0]
+    if min(f_fit) <= 0 or f_hold <= 0 or max(f_fit) > 1.25 * min(f_fit):
+        return None
+    f0 = float(np.median(f_fit))
+    if 0.5 * f0 < f_hold < 2.0 * f0:
+        return None
+    return (f"FIT runs at one rate ({f0:.3g} Hz) and HOLDOUT at another ({f_hold:.3g} Hz): "
+            "an effect that grows with the rate (a loop that widens, a lag) cannot be "
+            "identified from one rate; calibrate at two rates at least (e.g. "
+            f"{f0:.3g} and {2.5 * f0:.3g} Hz, each for a few cycles)")
 
 
 def hold_runs(v: ArrayLike, fs: float, min_s: float = 0.2,
