@@ -15,6 +15,11 @@ from dataclasses import dataclass
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.params import Param, Schema
 
+# the real-time priority of a loop node that answers samples (the controller's and the
+# feedforward's: the driver's own sample loop runs above them)
+THREAD_PRIORITY = Param("thread_priority", 45, "real time: SCHED_FIFO priority (0: leave the "
+                        "scheduler alone; lockstep never changes it)", lo=0, hi=99)
+
 # the controller node's parameters (core/params.py: the node declares them from here,
 # the launcher checks a parameter file against them); the gains and ``feedback`` are
 # live (they take effect at run time)
@@ -37,10 +42,7 @@ PARAMETERS: Schema = (
     Param("relay_hysteresis_um", 0.0,
           "relay experiment: its hysteresis band [um] (0 unless noise makes it chatter)",
           lo=0.0, hi=50.0),
-    Param("thread_priority", 45,
-          "real time: SCHED_FIFO priority (0: leave the scheduler alone; lockstep never "
-          "changes it)",
-          lo=0, hi=99),
+    THREAD_PRIORITY,
     Param("min_subscribers", 0, "command subscribers to wait for"),
 )
 

@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import DataError, PiezoStageError
 from piezo_stage.core.loop.compensation import EffectCompensator, PreviewedReference
+from piezo_stage.core.loop.control import THREAD_PRIORITY
 from piezo_stage.core.loop.learning import LearnedFeedforward
 from piezo_stage.core.loop.planner import ReferencePlanner
 from piezo_stage.core.model.duhem import StageModel, check_model_change
@@ -65,10 +66,7 @@ PARAMETERS: Schema = (
           "learning: first gain (it falls with the periods learned)",
           lo=0.01, hi=1.0, live=True),
     Param("learning", False, "learn the periodic error into the feedforward", live=True),
-    Param("thread_priority", 45,
-          "real time: SCHED_FIFO priority (0: leave the scheduler alone; lockstep never "
-          "changes it)",
-          lo=0, hi=99),
+    THREAD_PRIORITY,
     Param("min_subscribers", 0, "reference subscribers to wait for"),
 )
 
