@@ -221,7 +221,7 @@ STOPPED = {  # command -> (its arguments, the moments to stop it at [s], its las
                  (1.0, 3.5), "piezo-stage: stopped by SIGINT"),
     "gap": (lambda d, f, h, b: [f, "--holdout", h, "--out-model", d / "g.yaml"], (1.5, 7.0),
             "piezo-stage: stopped by SIGINT"),
-    "play": (lambda d, f, h, b: [d / "exc.csv", "--out", d / "played"], (0.8, 2.2),
+    "play": (lambda d, f, h, b: [f.parent / "exc.csv", "--out", d / "played"], (0.8, 2.2),
              "piezo-stage: stopped by SIGINT"),
     "experiment": (lambda d, f, h, b: ["noise", "--model", os.path.join(CONFIG,
                                        "stage_model.yaml"), "--record", d / "bags"],
@@ -236,20 +236,28 @@ STOPPED = {  # command -> (its arguments, the moments to stop it at [s], its las
 }
 
 
+@pytest.fixture(scope="module")
+def stop_inputs(tmp_path_factory):
+    """What the stopped commands read, made once for all of them: the excitation, a fit
+    and a held-out record, and a bag of the excitation played on the simulated stage."""
+    d = tmp_path_factory.mktemp("stop_inputs")
+    fit, hold = _records(d)
+    subprocess.run([sys.executable, "-m", "piezo_stage.cli", "play", d / "exc.csv",
+                    "--out", d / "bag"], capture_output=True, timeout=120, check=True)
+    return fit, hold, d / "bag"
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("command", sorted(STOPPED))
 def test_ctrl_c_at_a_random_moment_ends_a_command_with_130_and_its_line(tmp_path, ros_env,
-                                                                      command):
+                                                                      command, stop_inputs):
     """Ctrl-C (SIGINT to the command's whole process group, as a terminal sends it) at a
     random moment of the command's run: exit 130, the command's own stop line last, no
     traceback from it or its worker processes, no half-written output."""
     import random
     import signal
     import time
-    fit, hold = _records(tmp_path)
-    bag = tmp_path / "bag"
-    subprocess.run([sys.executable, "-m", "piezo_stage.cli", "play", tmp_path / "exc.csv",
-                    "--out", bag], capture_output=True, timeout=120, check=True)
+    fit, hold, bag = stop_inputs
     args, (lo, hi), last = STOPPED[command]
     for _ in range(3):
         # (a faster host can end the command before the moment drawn: that run says
@@ -268,9 +276,8 @@ def test_ctrl_c_at_a_random_moment_ends_a_command_with_130_and_its_line(tmp_path
         assert p.returncode == 0, (command, p.returncode)
         took = time.monotonic() - began
         lo, hi = 0.4 * min(lo, took), 0.8 * min(hi, took)
-        for f in tmp_path.glob("*"):
-            if f.name not in ("exc.csv", "fit.csv", "hold.csv", "bag"):
-                shutil.rmtree(f) if f.is_dir() else f.unlink()
+        for out in tmp_path.glob("*"):  # (what the ended run wrote)
+            shutil.rmtree(out) if out.is_dir() else out.unlink()
     else:
         pytest.fail(f"{command} ended before each moment drawn (last {at:.2f} s)")
     out, err = p.communicate(timeout=120)
