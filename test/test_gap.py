@@ -349,6 +349,33 @@ def test_a_fit_at_one_rate_used_at_another_says_what_would_separate_a_rate_effec
     assert one_rate_note(small, big, "x") is None
 
 
+STOP_AT_FORK = r"""
+import os, signal, sys
+def stop(signum, frame):  # as the command's own handler does
+    raise KeyboardInterrupt
+signal.signal(signal.SIGINT, stop)
+# a Ctrl-C that reaches an axis's process the moment it is forked, before it has
+# handlers of its own (the whole process group gets a terminal's Ctrl-C)
+os.register_at_fork(after_in_child=lambda: os.kill(os.getpid(), signal.SIGINT))
+from piezo_stage.apps.studies.gap_blind import make_pair
+from piezo_stage.core.estimation.gap import diagnose
+fit, hold = make_pair("creep", "own", 0)
+res = diagnose(fit, hold)
+print(sorted(res["axes"]))
+"""
+
+
+def test_a_stop_at_the_moment_an_axis_process_is_forked_leaves_it_quiet():
+    """The axes' processes are forked with the stop signals blocked until they ignore
+    them (the parent decides about stops): a SIGINT that reaches a child in between is
+    not raised there, so no child prints a traceback and both axes finish."""
+    r = subprocess.run([sys.executable, "-c", STOP_AT_FORK], capture_output=True,
+                       text=True, timeout=300, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "['x', 'y']"
+    assert "KeyboardInterrupt" not in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 def test_two_axes_run_apart_with_progress_results_and_errors_relayed():
     """Two axes run in two forked processes: the parent receives each axis's progress
     and its full diagnosis (the kept model too: ``model`` works from it), the same as

@@ -33,6 +33,7 @@ reported with the feedback bandwidth that rejects it.
 from __future__ import annotations
 
 import contextlib
+import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -113,14 +114,20 @@ class Diagnosis:
         return StageModel(axes, coupling, lim, plays), effects
 
 
+# the stop signals, blocked from the fork until a child has its own handlers: a stop
+# in between reached the child with the parent's handler, and it printed a traceback
+_STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 def _axis_child(conn, fit, holdout, axis, args):
-    import signal
     # the parent decides about stops: a terminal's Ctrl-C reaches the whole process
     # group, and a child that raised it too printed its traceback; the parent ends the
     # children (SIGTERM, the default action: quiet) when it stops
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     for s in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(s, signal.SIG_DFL)
+    # (the parent forked with the stops blocked: one that came since is handled so now)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOPS)
     effects, base_model, base_effects = args
     try:
         d = diagnose_axis(fit, holdout, axis, effects, base_model,
@@ -153,7 +160,11 @@ def _axes_apart(fit, holdout, axes, args, progress):
         for a in axes:
             r, w = ctx.Pipe(duplex=False)
             p = ctx.Process(target=_axis_child, args=(w, fit, holdout, a, args), daemon=True)
-            p.start()
+            held = signal.pthread_sigmask(signal.SIG_BLOCK, _STOPS)
+            try:
+                p.start()
+            finally:  # (here a stop that came meanwhile is raised, after the fork)
+                signal.pthread_sigmask(signal.SIG_SETMASK, held)
             w.close()
             procs[a], conns[r] = p, a
         while conns:
