@@ -376,6 +376,32 @@ def test_a_stop_at_the_moment_an_axis_process_is_forked_leaves_it_quiet():
     assert "KeyboardInterrupt" not in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
+WORKER_STOPPED_EARLY = r"""
+import os, signal, sys
+def stop(signum, frame):
+    raise KeyboardInterrupt
+signal.signal(signal.SIGINT, stop)
+from piezo_stage.core.workers import forking, quiet_worker
+with forking():
+    pid = os.fork()
+    if pid == 0:  # a worker (it never leaves): a Ctrl-C before its first line, and after
+        os.kill(os.getpid(), signal.SIGINT)
+        quiet_worker()
+        os.kill(os.getpid(), signal.SIGINT)
+        os._exit(0)
+_, status = os.waitpid(pid, 0)
+print(os.waitstatus_to_exitcode(status))
+"""
+
+
+def test_a_worker_forked_with_the_stops_held_never_raises_them():
+    """core/workers.py, as refit's and gap's workers use it: a SIGINT before the
+    worker's first line and one after it are both ignored; the worker exits 0."""
+    r = subprocess.run([sys.executable, "-c", WORKER_STOPPED_EARLY], capture_output=True,
+                       text=True, timeout=60, cwd=ROOT)
+    assert (r.returncode, r.stdout.strip(), r.stderr) == (0, "0", "")
+
+
 def test_two_axes_run_apart_with_progress_results_and_errors_relayed():
     """Two axes run in two forked processes: the parent receives each axis's progress
     and its full diagnosis (the kept model too: ``model`` works from it), the same as

@@ -176,8 +176,8 @@ def _bag_name(path) -> str:
 
 
 def _worker_init():
-    import signal
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides about stops
+    from piezo_stage.core.workers import quiet_worker
+    quiet_worker()  # the parent decides about stops
     import piezo_stage.core.estimation.gap as gap
     gap.AXES_IN_PROCESSES = False  # a worker per bag already: its axes in threads
     try:  # and one BLAS thread each: workers x BLAS threads beyond the cores fight
@@ -220,9 +220,11 @@ def refit(paths, out_dir: str, jobs: int | None = None, limits_V=None, against=N
         for b in bags:
             take(_refit_or_skip(b, out_dir, limits_V, against))
     else:
+        from piezo_stage.core.workers import forking
         with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_init) as pool:
-            futures = [pool.submit(_refit_or_skip, b, out_dir, limits_V, against)
-                       for b in bags]
+            with forking():  # (the workers are forked as the first bags are submitted)
+                futures = [pool.submit(_refit_or_skip, b, out_dir, limits_V, against)
+                           for b in bags]
             try:
                 for f in as_completed(futures):
                     take(f.result())

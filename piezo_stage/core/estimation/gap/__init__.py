@@ -33,7 +33,6 @@ reported with the feedback bandwidth that rejects it.
 from __future__ import annotations
 
 import contextlib
-import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -54,6 +53,7 @@ from piezo_stage.core.estimation.gap.selection import AxisDiagnosis, diagnose_ax
 from piezo_stage.core.estimation.gap.where import held, holds  # noqa: F401
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
+from piezo_stage.core.workers import forking, quiet_worker
 
 # The other speed-up (see candidates.ONE_COLUMN_SEARCH): the axes in processes
 # (False: threads), switchable so that ``bench gap`` measures the path without it
@@ -114,20 +114,8 @@ class Diagnosis:
         return StageModel(axes, coupling, lim, plays), effects
 
 
-# the stop signals, blocked from the fork until a child has its own handlers: a stop
-# in between reached the child with the parent's handler, and it printed a traceback
-_STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-
-
 def _axis_child(conn, fit, holdout, axis, args):
-    # the parent decides about stops: a terminal's Ctrl-C reaches the whole process
-    # group, and a child that raised it too printed its traceback; the parent ends the
-    # children (SIGTERM, the default action: quiet) when it stops
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    for s in (signal.SIGTERM, signal.SIGHUP):
-        signal.signal(s, signal.SIG_DFL)
-    # (the parent forked with the stops blocked: one that came since is handled so now)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOPS)
+    quiet_worker()  # the parent decides about stops (core/workers.py)
     effects, base_model, base_effects = args
     try:
         d = diagnose_axis(fit, holdout, axis, effects, base_model,
@@ -160,11 +148,8 @@ def _axes_apart(fit, holdout, axes, args, progress):
         for a in axes:
             r, w = ctx.Pipe(duplex=False)
             p = ctx.Process(target=_axis_child, args=(w, fit, holdout, a, args), daemon=True)
-            held = signal.pthread_sigmask(signal.SIG_BLOCK, _STOPS)
-            try:
+            with forking():
                 p.start()
-            finally:  # (here a stop that came meanwhile is raised, after the fork)
-                signal.pthread_sigmask(signal.SIG_SETMASK, held)
             w.close()
             procs[a], conns[r] = p, a
         while conns:
