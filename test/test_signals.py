@@ -13,7 +13,7 @@ import time
 import pytest
 
 pytest.importorskip("rclpy")
-from conftest import CONFIG  # noqa: E402
+from conftest import CONFIG, ROOT  # noqa: E402
 from piezo_stage.benchmarks import signals as bench_signals  # noqa: E402
 
 pytestmark = pytest.mark.slow
@@ -70,6 +70,38 @@ def test_a_node_that_ended_by_itself_is_not_killed_by_a_late_stop(ros_env):
             time.sleep(0.0005)
         _, err = p.communicate(timeout=30)
         assert p.returncode == 0, (p.returncode, err[-1000:])
+
+
+STOP_IN_A_CALLBACK = r"""
+import os, signal, sys
+from piezo_stage.nodes import _signals as signals
+signals.set_phase("building", "/stage/builder")
+import llvmlite.binding.executionengine as ee
+find = ee.ExecutionEngine._find_module_ptr  # (what LLVM's callback into Python calls)
+sent = []
+def at_the_callback(self, ptr):  # a Ctrl-C while LLVM has called back into Python
+    if not sent:
+        sent.append(os.kill(os.getpid(), signal.SIGINT))
+    return find(self, ptr)
+ee.ExecutionEngine._find_module_ptr = at_the_callback
+from numba import njit
+try:
+    njit(lambda x: x + 1)(1)  # compiling: LLVM hands its object cache to Python
+except signals.Stopped:
+    print("raised outside the callback"); sys.exit(3)
+print("noted", signals.requested(), len(sent))
+"""
+
+
+def test_a_stop_inside_a_compilers_callback_is_noted_not_printed_and_lost():
+    """A node building its kernels (numba, through llvmlite) gets a Ctrl-C while LLVM is
+    calling back into Python through ctypes, where a raised exception is printed with
+    its traceback and dropped: the stop is only noted there (the spin's first pass then
+    stops the node), nothing is printed."""
+    r = subprocess.run([sys.executable, "-c", STOP_IN_A_CALLBACK], capture_output=True,
+                       text=True, timeout=120, env=dict(os.environ, PYTHONPATH=ROOT))
+    assert (r.returncode, r.stdout.strip()) == (0, f"noted {int(signal.SIGINT)} 1"), r.stderr
+    assert "Traceback" not in r.stderr and "Exception ignored" not in r.stderr, r.stderr
 
 
 def test_a_killed_launcher_leaves_no_node_behind(tmp_path, ros_env):

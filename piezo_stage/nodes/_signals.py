@@ -96,8 +96,23 @@ def _on_signal(signum, frame):
         sys.stderr.flush()
         os._exit(128 + signum)
     watch()
-    if STATE.phase == "building" or STATE.raise_depth > 0:
+    if (STATE.phase == "building" or STATE.raise_depth > 0) and not _in_ctypes_callback(frame):
         raise Stopped(signum)
+    # (otherwise only noted: the spin's first pass, or its next, stops the node)
+
+
+def _in_ctypes_callback(frame) -> bool:
+    """Whether ``frame`` runs inside a function C calls back through ctypes, where an
+    exception is printed with its traceback and dropped: numba's compiler, building a
+    node's kernels, hands LLVM's object cache to Python so (llvmlite's
+    ``_raw_object_cache_*``; a Ctrl-C there printed "Exception ignored on calling ctypes
+    callback function" and the node ran on)."""
+    while frame is not None:
+        code = frame.f_code
+        if code.co_name.startswith("_raw_object_cache") and "llvmlite" in code.co_filename:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def hold() -> None:
