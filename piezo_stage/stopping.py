@@ -29,7 +29,32 @@ def _on_signal(signum, frame):
                          "start-up\n")
         sys.stderr.flush()
         os._exit(128 + signum)
+    if in_ctypes_callback(frame):  # raised there it would be printed and dropped: the
+        again_soon(signum)         # same stop again in a moment, once back in Python
+        return
     raise KeyboardInterrupt
+
+
+def again_soon(signum: int) -> None:
+    """Send ``signum`` to this process again in 5 ms (a stop that could not be raised
+    where it landed)."""
+    import threading
+    t = threading.Timer(0.005, os.kill, (os.getpid(), signum))
+    t.daemon = True
+    t.start()
+
+
+def in_ctypes_callback(frame) -> bool:
+    """Whether ``frame`` runs inside a function C calls back through ctypes, where an
+    exception is printed with its traceback and dropped: numba's compiler hands LLVM's
+    object cache to Python so (llvmlite's ``_raw_object_cache_*``); a Ctrl-C there was
+    printed as "Exception ignored on calling ctypes callback function" and lost."""
+    while frame is not None:
+        code = frame.f_code
+        if code.co_name.startswith("_raw_object_cache") and "llvmlite" in code.co_filename:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def install() -> None:

@@ -49,6 +49,8 @@ import signal
 import sys
 from contextlib import contextmanager
 
+from piezo_stage.stopping import again_soon, in_ctypes_callback
+
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"
 RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"  # a file the launcher makes when the run ended
@@ -70,6 +72,7 @@ class _State:
     count = 0                  # how many have come
     name = ""                  # the node's name, for the one line a stop prints
     raise_depth = 0            # > 0 inside interruptible()
+    again = False              # a stop sent again, out of a ctypes callback
     watch_s = 4.0              # a stop that takes longer prints the stacks and exits 1
     watching = False
 
@@ -87,6 +90,8 @@ def _name() -> str:
 
 
 def _on_signal(signum, frame):
+    if STATE.again:  # the stop we sent again ourselves (below): counted already
+        STATE.again, STATE.count = False, STATE.count - 1
     STATE.count += 1
     if STATE.signum is None:
         STATE.signum = signum
@@ -96,23 +101,13 @@ def _on_signal(signum, frame):
         sys.stderr.flush()
         os._exit(128 + signum)
     watch()
-    if (STATE.phase == "building" or STATE.raise_depth > 0) and not _in_ctypes_callback(frame):
-        raise Stopped(signum)
-    # (otherwise only noted: the spin's first pass, or its next, stops the node)
-
-
-def _in_ctypes_callback(frame) -> bool:
-    """Whether ``frame`` runs inside a function C calls back through ctypes, where an
-    exception is printed with its traceback and dropped: numba's compiler, building a
-    node's kernels, hands LLVM's object cache to Python so (llvmlite's
-    ``_raw_object_cache_*``; a Ctrl-C there printed "Exception ignored on calling ctypes
-    callback function" and the node ran on)."""
-    while frame is not None:
-        code = frame.f_code
-        if code.co_name.startswith("_raw_object_cache") and "llvmlite" in code.co_filename:
-            return True
-        frame = frame.f_back
-    return False
+    if STATE.phase == "building" or STATE.raise_depth > 0:
+        if not in_ctypes_callback(frame):
+            raise Stopped(signum)
+        # raised there it would be printed and dropped: the same stop again in a moment,
+        # once back in Python (or, running by then, noted: the spin stops the node)
+        STATE.again = True
+        again_soon(signum)
 
 
 def hold() -> None:
