@@ -28,6 +28,7 @@ no watchdog on the host link, so the ramp to safe is only possible once the link
 
 from __future__ import annotations
 
+import gc
 import sys
 import time
 from typing import Any
@@ -261,7 +262,11 @@ class PiBackend:
         also takes it off pipython's class-wide list of connection callbacks, which would
         otherwise keep it alive and call it on the next connection this process opens.
         Its ``__del__`` closes once more; on a lost link both closes raise OSError, which
-        the fault has said already: not again as an ignored-exception traceback."""
+        the fault has said already: not again as an ignored-exception traceback. The
+        device sits in reference cycles of pipython's own objects, so it is collected
+        here (``gc.collect``), not at a later moment the collector picks: in the middle
+        of an import, its ``__del__`` broke Python 3.11's import lock (a KeyError from
+        importlib, CI run on a80849e)."""
         dev, self.dev, self.gateway = self.dev, None, None
         hook = sys.unraisablehook
         sys.unraisablehook = lambda u: None if isinstance(u.exc_value, OSError) else hook(u)
@@ -271,5 +276,6 @@ class PiBackend:
             except OSError:
                 pass
             del dev
+            gc.collect()
         finally:
             sys.unraisablehook = hook
