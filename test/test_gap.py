@@ -347,6 +347,14 @@ def test_a_fit_at_one_rate_used_at_another_says_what_would_separate_a_rate_effec
     big = Record(t[k:] - t[k], {"x": v[k:]}, {"x": v[k:] * 0.3}, source="larger")
     small = Record(t[:k], {"x": v[:k]}, {"x": v[:k] * 0.3}, source="smaller")
     assert one_rate_note(small, big, "x") is None
+    # which FIT the rate candidate is tried on: several rates (two tones, a growing
+    # slope), not one sine nor the gap protocol (whose holds have no rate)
+    from piezo_stage.core.estimation.excitation import gap_protocol
+    from piezo_stage.core.estimation.gap.where import several_rates
+    assert several_rates(two, 1000.0) and several_rates(small.v["x"], 1000.0)
+    assert not several_rates(fit.v["x"], 1000.0)
+    assert not any(several_rates(v, 1000.0) for v in gap_protocol(1000.0, seed=1)[1:])
+    assert res["verdict"] != "rate"
 
 
 STOP_AT_FORK = r"""

@@ -155,3 +155,55 @@ def test_play_operators_give_memory_and_are_inverted_exactly(stage_model):
     inv.reset(v={"x": 50.0, "y": 50.0}, w={"x": 12.0, "y": 11.0})
     np.testing.assert_array_equal(inv.pz[0, :12], 50.0)
     assert inv.w["x"] == pytest.approx(12.0 + inv.cwp[0], abs=1e-9)
+
+
+def test_rate_dependent_play_operators_widen_with_rate_and_are_inverted_exactly(
+        stage_model, tmp_path):
+    """Play operators whose thresholds widen by beta x |dv/dt| (the gap diagnosis's
+    `rate`): the loop is wider at 10 Hz than at 2 Hz over the same stroke, the model
+    file keeps beta, the batch and the per-sample inverse make the model reach a
+    target to rounding at the target's own rate, and a model without the sample rate,
+    or with beta at the rate filter's time constant (where the operators' sum would
+    fall while the voltage rises), is refused."""
+    from piezo_stage.core.errors import ModelError
+    from piezo_stage.core.model.inverse import StageInverse
+    from piezo_stage.core.model.play import PlayOperators
+    from piezo_stage.io.model_file import load_model, save_model
+    r = np.linspace(0.0, 60.0, 12)
+    p = 0.04 * np.exp(-r / 15.0)
+    beta = 1.5e-3
+    m = stage_model.replace(plays={a: PlayOperators.at_rest(r, p, 10.0, 0.0, beta)
+                                   for a in stage_model.axes})
+    fs = 1000.0
+
+    def width(f):  # the operators' loop at mid-stroke, one period after the first
+        t = np.arange(int(2 * fs / f)) / fs
+        v = 75 - 60 * np.cos(2 * np.pi * f * t)
+        w = m.plays["x"].run(v, m.plays["x"].state(), 1 / fs)
+        half = t >= 1 / f
+        up = half & (np.gradient(v) > 0)
+        down = half & (np.gradient(v) < 0)
+        return float(np.interp(75, v[down][::-1], w[down][::-1]) -
+                     np.interp(75, v[up], w[up]))
+    assert width(10.0) > 1.3 * width(2.0) > 0
+    save_model(tmp_path / "m.yaml", m)
+    back, _ = load_model(str(tmp_path / "m.yaml"))
+    assert back.plays["x"].rate_widening_s == beta and back.plays == m.plays
+    t = np.arange(3000) / fs
+    wx = 20 + 8 * np.sin(2 * np.pi * 5 * t) + 3 * np.sin(2 * np.pi * 19 * t)
+    wy = 18 + 6 * np.cos(2 * np.pi * 3 * t) * np.exp(-t)
+    res = invert_stage(m, wx, wy, dt_s=1 / fs)
+    w, _ = m.simulate(res["x"].v, res["y"].v, dt_s=1 / fs)
+    assert res["x"].n_saturated == res["y"].n_saturated == 0
+    np.testing.assert_allclose(w["x"], wx, atol=1e-6)
+    np.testing.assert_allclose(w["y"], wy, atol=1e-6)
+    slow, _ = m.simulate(res["x"].v, res["y"].v, dt_s=1.0)  # no widening to speak of
+    assert np.max(np.abs(slow["x"] - wx)) > 0.05   # the widening matters here
+    inv = StageInverse(m, dt_s=1 / fs)
+    v = np.array([inv.step(a, b)[:2] for a, b in zip(wx[:1000], wy[:1000])])
+    np.testing.assert_allclose(v[:, 0], res["x"].v[:1000], atol=1e-6)
+    assert inv.w["x"] == pytest.approx(wx[999], abs=1e-6)
+    with pytest.raises(ModelError, match="sample rate"):
+        m.simulate(res["x"].v, res["y"].v)
+    with pytest.raises(ModelError, match="rate_widening_s"):
+        PlayOperators.at_rest(r, p, 10.0, 0.0, 2e-3)

@@ -248,9 +248,10 @@ def _changes(rows) -> None:
     newest = rows[-1]
     rec = load_record(newest["bag"])
     v = {a: rec.v.get(a, np.zeros(len(rec))) for a in ("x", "y")}
-    ref = load_model(newest["model"])[0].simulate(v["x"], v["y"])[0]
+    dt = 1.0 / rec.fs_hz
+    ref = load_model(newest["model"])[0].simulate(v["x"], v["y"], dt_s=dt)[0]
     for r in rows:
-        w = load_model(r["model"])[0].simulate(v["x"], v["y"])[0]
+        w = load_model(r["model"])[0].simulate(v["x"], v["y"], dt_s=dt)[0]
         for a, ax in r["axes"].items():
             if a in w and a in ref:
                 d = w[a] - ref[a]

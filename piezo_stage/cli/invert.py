@@ -42,7 +42,8 @@ def main(args):
                             "writes them)")
         rec = Record(rec.t, w=compensate_effects(effects, rec), source=args.inp)
     if args.method == "exact":
-        res = invert_stage(model, rec.w["x"], rec.w["y"])
+        res = invert_stage(model, rec.w["x"], rec.w["y"],
+                           dt_s=1.0 / rec.fs_hz if model.rate_dependent else 0.0)
     else:
         res = {a: invert_seed_eq12(m, rec.w[a], model.voltage_limits)
                for a, m in model.axes.items()}

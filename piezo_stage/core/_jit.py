@@ -188,23 +188,33 @@ def play_clamp(vk: float, r: float, z: float) -> float:
 
 
 @njit
-def play_sum(vk: float, r: F64, p: F64, z: F64) -> float:
+def play_sum(vk: float, r: F64, p: F64, z: F64, widen: float = 0.0) -> float:
     """The operators' sum_j p_j z_j [um] after voltage ``vk`` from state ``z`` (left
-    as it is)."""
+    as it is); every threshold widened by ``widen`` [V] (a rate-dependent law)."""
     s = 0.0
     for j in range(r.shape[0]):
-        s += p[j] * play_clamp(vk, r[j], z[j])
+        s += p[j] * play_clamp(vk, r[j] + widen, z[j])
     return s
 
 
 @njit
-def play_advance(vk: float, r: F64, p: F64, z: F64) -> float:
+def play_advance(vk: float, r: F64, p: F64, z: F64, widen: float = 0.0) -> float:
     """``play_sum``, with the state ``z`` moved to voltage ``vk``."""
     s = 0.0
     for j in range(r.shape[0]):
-        z[j] = play_clamp(vk, r[j], z[j])
+        z[j] = play_clamp(vk, r[j] + widen, z[j])
         s += p[j] * z[j]
     return s
+
+
+@njit
+def rate_widen(vk: float, vp: float, rate: F64) -> float:
+    """The thresholds' widening [V] at voltage ``vk`` after ``vp``, for a rate-dependent
+    law's ``rate`` = [decay, gain, widening before] (a rate-independent law: zeros):
+    beta times the low-passed |dv/dt|, which is decay x the widening before plus
+    gain x |vk - vp| (decay = 1 - s, gain = beta s / dt for the filter's coefficient s
+    per sample). The operators' sum is monotone in vk while gain < 1."""
+    return rate[0] * rate[2] + rate[1] * abs(vk - vp)
 
 
 @njit
@@ -251,25 +261,27 @@ def sensor_run(true: F64, noise: F64, noise_rms: float, quant: float, out: F64) 
 
 @njit
 def _branch_residual(dv: float, vp: float, wp: float, wt: float, alpha: float,
-                     H: F64, r: F64, p: F64, z: F64) -> float:
+                     H: F64, r: F64, p: F64, z: F64, q: F64) -> float:
     # r(dv) = (w_prev + dv H(v_prev+dv)) - (1 + alpha |dv|) (w_target - P(v_prev+dv)):
     # zero where the forward step from (v_prev, w_prev), plus the play operators' sum P
-    # from their state z, lands exactly on w_target (P is 0 without operators)
+    # from their state z (thresholds widened as ``q`` says), lands exactly on w_target
+    # (P is 0 without operators)
     vk = vp + dv
-    return wp + dv * horner(H, vk) - (1.0 + alpha * abs(dv)) * (wt - play_sum(vk, r, p, z))
+    return wp + dv * horner(H, vk) - (1.0 + alpha * abs(dv)) * (
+        wt - play_sum(vk, r, p, z, q[0] * q[2] + q[1] * abs(dv)))
 
 
 @njit
 def _first_root(vp: float, wp: float, wt: float, alpha: float, H: F64, span: float,
-                n_scan: int, r: F64, p: F64, z: F64) -> tuple[float, bool]:
+                n_scan: int, r: F64, p: F64, z: F64, q: F64) -> tuple[float, bool]:
     # Smallest |dv| in (0, span] (span signed) where the residual changes sign: scan,
     # then bisect-polish the first bracket to machine precision. Returns (dv, found).
-    r0 = _branch_residual(0.0, vp, wp, wt, alpha, H, r, p, z)
+    r0 = _branch_residual(0.0, vp, wp, wt, alpha, H, r, p, z, q)
     lo = 0.0
     rlo = r0
     for j in range(1, n_scan + 1):
         hi = span * j / n_scan
-        rhi = _branch_residual(hi, vp, wp, wt, alpha, H, r, p, z)
+        rhi = _branch_residual(hi, vp, wp, wt, alpha, H, r, p, z, q)
         if rlo == 0.0:
             return lo, True
         if (rlo < 0.0) != (rhi < 0.0) or rhi == 0.0:
@@ -278,7 +290,7 @@ def _first_root(vp: float, wp: float, wt: float, alpha: float, H: F64, span: flo
             side = 0
             for _ in range(200):
                 c = (a * fb - b * fa) / (fb - fa)
-                fc = _branch_residual(c, vp, wp, wt, alpha, H, r, p, z)
+                fc = _branch_residual(c, vp, wp, wt, alpha, H, r, p, z, q)
                 if fc == 0.0 or abs(b - a) < 1e-13 * (1.0 + abs(c)):
                     return c, True
                 if (fc < 0.0) == (fb < 0.0):
@@ -301,10 +313,11 @@ def _first_root(vp: float, wp: float, wt: float, alpha: float, H: F64, span: flo
 @njit
 def inverse_one(wt: float, v_prev: float, w_prev: float, alpha: F64, H: F64, v_min: float,
                 v_max: float, n_scan: int, r: F64, p: F64,
-                z: F64) -> tuple[float, float, bool]:
+                z: F64, q: F64) -> tuple[float, float, bool]:
     """Exact inverse for one sample: (v, Duhem w after v, saturated) from (v_prev,
     w_prev) and the play operators' state ``z`` (thresholds ``r``, weights ``p``; empty
-    for none), which is left as it is: the caller advances it with the voltage used.
+    for none; ``q`` their rate widening, see ``rate_widen``), which is left as it is:
+    the caller advances it with the voltage used.
 
     Picks the branch by the sign of the requested change, finds the voltage nearest to
     v_prev that makes the forward step hit ``wt`` (the Duhem output plus the operators'
@@ -312,49 +325,62 @@ def inverse_one(wt: float, v_prev: float, w_prev: float, alpha: F64, H: F64, v_m
     (the root search can fail on rounding right at a limit, where the target is in fact
     reached, which is why the flag is decided on the result).
     """
-    now = w_prev + play_sum(v_prev, r, p, z)
+    now = w_prev + play_sum(v_prev, r, p, z, q[0] * q[2])
     if wt > now and v_max > v_prev:
         dv = _first_root(v_prev, w_prev, wt, alpha[0], H[0], v_max - v_prev, n_scan,
-                         r, p, z)[0]
+                         r, p, z, q)[0]
     elif wt < now and v_min < v_prev:
         dv = _first_root(v_prev, w_prev, wt, alpha[1], H[1], v_min - v_prev, n_scan,
-                         r, p, z)[0]
+                         r, p, z, q)[0]
     else:
         dv = 0.0
     vk = min(max(v_prev + dv, v_min), v_max)
     w = duhem_step(v_prev, w_prev, vk, alpha, H)
-    total = w + play_sum(vk, r, p, z)
+    total = w + play_sum(vk, r, p, z, rate_widen(vk, v_prev, q))
     return vk, w, abs(total - wt) > 1e-9 * (1.0 + abs(wt))
+
+
+@njit
+def play_commit(vk: float, vp: float, r: F64, p: F64, z: F64, q: F64) -> float:
+    """Move the operators' state ``z`` (and ``q``'s widening) to voltage ``vk`` after
+    ``vp``; returns their sum [um]."""
+    widen = rate_widen(vk, vp, q)
+    q[2] = widen
+    return play_advance(vk, r, p, z, widen)
 
 
 @njit
 def duhem_inverse_run(w_target: F64, v_prev: float, w_prev: float, alpha: F64, H: F64,
                       v_min: float, v_max: float, n_scan: int, r: F64, p: F64, z: F64,
-                      out_v: F64, out_w: F64,
+                      q: F64, out_v: F64, out_w: F64,
                       out_sat: NDArray[np.int8]) -> tuple[float, float]:
     """Exact per-sample inverse of :func:`duhem_run` plus play operators (``z`` their
-    state, advanced in place) over a target sequence; the state follows what the model
-    really does at the chosen (possibly saturated) voltage. ``out_w`` is the total."""
+    state, ``q`` their rate widening, both advanced in place) over a target sequence;
+    the state follows what the model really does at the chosen (possibly saturated)
+    voltage. ``out_w`` is the total."""
     for k in range(w_target.shape[0]):
-        v_prev, w_prev, sat = inverse_one(w_target[k], v_prev, w_prev, alpha, H, v_min,
-                                          v_max, n_scan, r, p, z)
-        out_v[k] = v_prev
-        out_w[k] = w_prev + play_advance(v_prev, r, p, z)
+        vk, wk, sat = inverse_one(w_target[k], v_prev, w_prev, alpha, H, v_min,
+                                  v_max, n_scan, r, p, z, q)
+        out_w[k] = wk + play_commit(vk, v_prev, r, p, z, q)
+        v_prev, w_prev = vk, wk
+        out_v[k] = vk
         out_sat[k] = 1 if sat else 0
     return v_prev, w_prev
 
 
 @njit
 def stage_sync(vx: float, vy: float, vp: F64, wp: F64, alpha: F64, H: F64, cvp: F64,
-               cwp: F64, calpha: F64, cH: F64, pr: F64, pp: F64, pz: F64) -> None:
+               cwp: F64, calpha: F64, cH: F64, pr: F64, pp: F64, pz: F64,
+               pq: F64) -> None:
     """Advance a 2-axis model (direct part, play operators, coupling) by the applied
     voltages (``pr``, ``pp``, ``pz``: the operators' thresholds, weights and state per
-    axis, shape (2, P), zero weights as padding)."""
+    axis, shape (2, P), zero weights as padding; ``pq``: their rate widening per axis,
+    shape (2, 3), see ``rate_widen``)."""
     for a in range(2):
         va = vx if a == 0 else vy
         vo = vy if a == 0 else vx
         wp[a] = duhem_step(vp[a], wp[a], va, alpha[a], H[a])
-        play_advance(va, pr[a], pp[a], pz[a])
+        play_commit(va, vp[a], pr[a], pp[a], pz[a], pq[a])
         cwp[a] = duhem_step(cvp[a], cwp[a], vo, calpha[a], cH[a])
         vp[a] = va
         cvp[a] = vo
@@ -363,8 +389,8 @@ def stage_sync(vx: float, vy: float, vp: F64, wp: F64, alpha: F64, H: F64, cvp: 
 @njit
 def stage_inverse_step(target: F64, vp: F64, wp: F64, alpha: F64, H: F64, cvp: F64,
                        cwp: F64, calpha: F64, cH: F64, pr: F64, pp: F64, pz: F64,
-                       use_c: bool, v_min: float, v_max: float, sweeps: int, n_scan: int,
-                       out: F64) -> F64:
+                       pq: F64, use_c: bool, v_min: float, v_max: float, sweeps: int,
+                       n_scan: int, out: F64) -> F64:
     """Joint inverse of a 2-axis model with coupling for one sample (axis 0 = x, 1 = y).
 
     w_a = H_aa(v_a) + P_a(v_a) + H_ab(v_b): Gauss-Seidel sweeps, each solving one axis
@@ -379,13 +405,14 @@ def stage_inverse_step(target: F64, vp: F64, wp: F64, alpha: F64, H: F64, cvp: F
             vo = v1 if a == 0 else v0
             wc = duhem_step(cvp[a], cwp[a], vo, calpha[a], cH[a]) if use_c else 0.0
             va, wa, sat = inverse_one(target[a] - wc, vp[a], wp[a], alpha[a], H[a],
-                                      v_min, v_max, n_scan, pr[a], pp[a], pz[a])
+                                      v_min, v_max, n_scan, pr[a], pp[a], pz[a], pq[a])
             if a == 0:
                 v0 = va
             else:
                 v1 = va
             out[0, a] = va
-            out[1, a] = wa + play_sum(va, pr[a], pp[a], pz[a])
+            out[1, a] = wa + play_sum(va, pr[a], pp[a], pz[a],
+                                      rate_widen(va, vp[a], pq[a]))
             out[2, a] = wc
             out[3, a] = 1.0 if sat else 0.0
     return out

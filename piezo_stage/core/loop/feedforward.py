@@ -204,8 +204,9 @@ class InverseFeedforward:
         check_model_change(model, self.model if base is None else base, range_um)
         comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes),
                                   self.max_res_hz) if effects else None)
-        inv = StageInverse(model, use_coupling=self.use_c)
-        warm = StageInverse(model, use_coupling=self.use_c)  # compile the kernels now,
+        inv = StageInverse(model, use_coupling=self.use_c, dt_s=self.dt_ns * 1e-9)
+        warm = StageInverse(model, use_coupling=self.use_c,  # compile the kernels now,
+                            dt_s=self.dt_ns * 1e-9)
         warm.sync(*model.voltage_limits)                      # not at the first sample
         warm.step(0.0, 0.0)
         return PreparedModel(model, effects, comp, inv)

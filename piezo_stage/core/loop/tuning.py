@@ -37,7 +37,9 @@ def model_gain(model: StageModel, axis: str, n: int = 2001) -> tuple[float, floa
     up = np.linspace(lo, hi, n)
     v = np.concatenate([up, up[::-1][1:], up[1:]])
     other = np.full_like(v, lo)
-    w, _ = model.simulate(v, other) if axis == "x" else model.simulate(other, v)
+    # (a slow sweep: 1 s between samples, a rate-dependent law barely widens)
+    w, _ = model.simulate(v, other, dt_s=1.0) if axis == "x" else \
+        model.simulate(other, v, dt_s=1.0)
     dw, dv = np.diff(w[axis]), np.diff(v)
     slope = dw / dv
     if not np.all(np.isfinite(slope)):

@@ -334,19 +334,21 @@ class StageModel:
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise ModelError(f"voltage limits must be finite with min < max, got {lo}, {hi}")
 
-    def simulate(self, vx: ArrayLike, vy: ArrayLike,
-                 states: dict | None = None) -> tuple[dict[str, np.ndarray], dict]:
+    def simulate(self, vx: ArrayLike, vy: ArrayLike, states: dict | None = None,
+                 dt_s: float = 0.0) -> tuple[dict[str, np.ndarray], dict]:
         """Noise-free response [um] of each modelled axis to voltages [V].
 
-        ``states`` maps 'x', 'y', 'cx', 'cy' to DuhemState and 'px', 'py' to the play
-        operators' state (an array); returns (w dict, states).
+        ``states`` maps 'x', 'y', 'cx', 'cy' to DuhemState, 'px', 'py' to the play
+        operators' state (an array) and 'qx', 'qy' to a rate-dependent law's rate
+        state; ``dt_s`` is the samples' spacing [s] (rate-dependent play operators need
+        it). Returns (w dict, states).
         """
         v = {"x": vx, "y": vy}
         states = {k: s.copy() if isinstance(s, np.ndarray) else s
                   for k, s in (states or {}).items()}
         out = {}
         for a in self.axes:
-            w, states[a] = self.axis_simulate(a, v[a], states)
+            w, states[a] = self.axis_simulate(a, v[a], states, dt_s)
             c = self.coupling.get(a)
             if c is not None:
                 wc, states["c" + a] = c.simulate(v[OTHER[a]], states.get("c" + a))
@@ -354,18 +356,30 @@ class StageModel:
             out[a] = w
         return out, states
 
-    def axis_simulate(self, axis: str, v: ArrayLike,
-                      states: dict | None = None) -> tuple[np.ndarray, DuhemState]:
+    def axis_simulate(self, axis: str, v: ArrayLike, states: dict | None = None,
+                      dt_s: float = 0.0) -> tuple[np.ndarray, DuhemState]:
         """One axis's own response [um] (its Duhem model and play operators, no
-        coupling) to ``v`` [V]; ``states`` as for ``simulate`` (the play state, when
-        given there, is advanced in place). Returns (w, the Duhem model's final state)."""
+        coupling) to ``v`` [V]; ``states`` and ``dt_s`` as for ``simulate`` (the play
+        state, when given there, is advanced in place). Returns (w, the Duhem model's
+        final state)."""
         states = states if states is not None else {}
         w, final = self.axes[axis].simulate(v, states.get(axis))
         p = self.plays.get(axis)
         if p is not None:
             z = states.setdefault("p" + axis, p.state())
-            w = w + p.run(as_f64(v), z)
+            q = None
+            if p.rate_dependent:
+                v0 = states[axis].v if states.get(axis) is not None else \
+                    self.axes[axis].initial.v
+                q = states.setdefault("q" + axis, np.array([float(v0), 0.0]))
+            w = w + p.run(as_f64(v), z, dt_s, q)
         return w, final
+
+    @property
+    def rate_dependent(self) -> bool:
+        """Whether any axis's play operators widen with the input's rate (simulating
+        and inverting it then need the samples' spacing)."""
+        return any(p.rate_dependent for p in self.plays.values())
 
     def replace(self, **changes: object) -> "StageModel":
         """The same model with some fields changed (axes, coupling, voltage_limits,
@@ -461,7 +475,8 @@ def stroke_um(model: DuhemModel, limits: tuple[float, float], n: int = 301,
     with np.errstate(all="ignore"):
         w, _ = model.simulate(v, DuhemState(hi, 0.0))
         if plays is not None:
-            w = w + plays.run(v, np.full(plays.thresholds_V.size, hi))
+            # (slow: a rate-dependent law's thresholds widen by beta x ~0.5 V/s)
+            w = w + plays.run(v, np.full(plays.thresholds_V.size, hi), 1.0)
     return float(w[-1] - w[n - 1])
 
 

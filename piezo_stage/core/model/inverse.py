@@ -71,10 +71,13 @@ _NO_PLAYS = (np.zeros(0), np.zeros(0))
 
 def invert(model: DuhemModel, w_target: ArrayLike, v_limits: tuple[float, float] = (0.0, 150.0),
            state: DuhemState | None = None, plays: PlayOperators | None = None,
-           play_state: np.ndarray | None = None) -> InverseResult:
+           play_state: np.ndarray | None = None, dt_s: float = 0.0,
+           rate_state: np.ndarray | None = None) -> InverseResult:
     """Exact inverse of one axis's Duhem model (plus its play operators, when given:
     ``play_state`` their state, advanced in place; default their initial state) over a
-    target sequence [um]."""
+    target sequence [um]. Rate-dependent operators need the targets' spacing ``dt_s``
+    [s] and take ``rate_state`` ([voltage before, low-passed rate], updated in place;
+    None: at rest)."""
     wt = as_f64(w_target)
     if not np.all(np.isfinite(wt)):
         raise DataError("target displacement has NaN or inf")
@@ -83,11 +86,14 @@ def invert(model: DuhemModel, w_target: ArrayLike, v_limits: tuple[float, float]
     r, p = (plays.thresholds_V, plays.weights_um_per_V) if plays is not None else _NO_PLAYS
     z = play_state if play_state is not None else (
         plays.state() if plays is not None else np.zeros(0))
+    q = plays.widening(dt_s, rate_state) if plays is not None else np.zeros(3)
     n = wt.size
     v, w, sat = np.empty(n), np.empty(n), np.zeros(n, dtype=np.int8)
     vp, wp = duhem_inverse_run(wt, float(st.v), float(st.w), alpha, H,
-                               float(v_limits[0]), float(v_limits[1]), N_SCAN, r, p, z,
+                               float(v_limits[0]), float(v_limits[1]), N_SCAN, r, p, z, q,
                                v, w, sat)
+    if rate_state is not None and plays is not None and plays.rate_dependent:
+        rate_state[0], rate_state[1] = vp, q[2] / plays.rate_widening_s
     return InverseResult(v, w, sat.astype(bool), DuhemState(float(vp), float(wp)))
 
 
@@ -124,12 +130,14 @@ def invert_seed_eq12(model: DuhemModel, w_target: ArrayLike,
 
 
 def invert_stage(model: StageModel, wx: ArrayLike, wy: ArrayLike, states: dict | None = None,
-                 tol_V: float = 1e-10, max_iter: int = 50) -> dict[str, InverseResult]:
+                 tol_V: float = 1e-10, max_iter: int = 50,
+                 dt_s: float = 0.0) -> dict[str, InverseResult]:
     """Joint inverse of a 2-axis model with coupling.
 
     w_x = H_xx(v_x) + P_x(v_x) + H_xy(v_y) and likewise for y: Gauss-Seidel on whole
     sequences (v_x from w_x minus the coupling of the current v_y, then v_y likewise),
-    which converges because the coupling is small against the direct gain.
+    which converges because the coupling is small against the direct gain. ``dt_s``:
+    the targets' spacing [s] (rate-dependent play operators need it).
 
     Returns dict axis -> InverseResult (w is the model's total output on that axis).
     """
@@ -148,13 +156,14 @@ def invert_stage(model: StageModel, wx: ArrayLike, wy: ArrayLike, states: dict |
             wc = c.simulate(v[OTHER[a]], states.get("c" + a))[0] if c else 0.0
             p = model.plays.get(a)
             z = states["p" + a].copy() if "p" + a in states else None
-            r = invert(model.axes[a], targets[a] - wc, lo_hi, states.get(a), p, z)
+            q = states["q" + a].copy() if "q" + a in states else None
+            r = invert(model.axes[a], targets[a] - wc, lo_hi, states.get(a), p, z, dt_s, q)
             change = max(change, float(np.max(np.abs(r.v - v[a]), initial=0.0)))
             v[a] = r.v
             res[a] = r
         if change < tol_V or not model.coupling:
             break
-    w, _ = model.simulate(v["x"], v["y"], states)
+    w, _ = model.simulate(v["x"], v["y"], states, dt_s=dt_s)
     for a in res:
         res[a].w = w[a]
     return res
@@ -168,10 +177,13 @@ class StageInverse:
     one compiled call), and advances the model state. ``sync(vx, vy)`` advances the
     state with the voltages really applied instead. ``saturated`` counts unreachable
     targets. An axis absent from the model is held at the lower voltage limit.
+    ``dt_s``: the samples' spacing [s] (rate-dependent play operators need it).
     """
 
-    def __init__(self, model: StageModel, use_coupling: bool = True, sweeps: int = 4):
+    def __init__(self, model: StageModel, use_coupling: bool = True, sweeps: int = 4,
+                 dt_s: float = 0.0):
         self.model = model
+        self.dt_s = float(dt_s)
         self.use_coupling = bool(use_coupling and model.coupling)
         self.sweeps = sweeps if self.use_coupling else 1
         lo, hi = model.voltage_limits
@@ -200,6 +212,7 @@ class StageInverse:
                 self._pr[i, :k] = model.plays[a].thresholds_V
                 self._pp[i, :k] = model.plays[a].weights_um_per_V
         self.pz = np.zeros((2, P))
+        self.pq = np.zeros((2, 3))  # the rate widening per axis (zeros: none)
         self._out = np.zeros((4, 2))
         self._target = np.zeros(2)
         self._present = tuple(bool(p) for p in self.present)
@@ -221,6 +234,7 @@ class StageInverse:
             if a in self.model.plays:
                 p = self.model.plays[a]
                 self.pz[i, :p.thresholds_V.size] = p.initial_V
+                self.pq[i] = p.widening(self.dt_s)
         if v:
             self.vp = np.array([float(v.get(a, 0.0)) for a in AXES])
             self.pz[:] = self.vp[:, None]  # the operators at rest at v
@@ -248,11 +262,11 @@ class StageInverse:
     def snapshot(self) -> tuple[np.ndarray, ...]:
         """A copy of the hysteresis state (for stepping ahead and coming back)."""
         return (self.vp.copy(), self.wp.copy(), self.cvp.copy(), self.cwp.copy(),
-                self.pz.copy())
+                self.pz.copy(), self.pq.copy())
 
     def restore(self, snap: tuple[np.ndarray, ...]) -> None:
         """Go back to a state taken with ``snapshot``."""
-        self.vp[:], self.wp[:], self.cvp[:], self.cwp[:], self.pz[:] = snap
+        self.vp[:], self.wp[:], self.cvp[:], self.cwp[:], self.pz[:], self.pq[:] = snap
 
     def step_ahead(self, in_flight: Sequence[dict[str, float]], wx: float,
                    wy: float) -> dict[str, float]:
@@ -275,7 +289,7 @@ class StageInverse:
         feedback, after the driver's limits), so the next inverse starts from the
         state the stage is actually in rather than from the feedforward's own output."""
         stage_sync(float(vx), float(vy), self.vp, self.wp, self._alpha, self._H, self.cvp,
-                   self.cwp, self._calpha, self._cH, self._pr, self._pp, self.pz)
+                   self.cwp, self._calpha, self._cH, self._pr, self._pp, self.pz, self.pq)
 
     def step(self, wx: float, wy: float,
              commit: bool = True) -> tuple[float, float, dict[str, bool]]:
@@ -284,7 +298,7 @@ class StageInverse:
         t[0], t[1] = wx, wy
         o = stage_inverse_step(t, self.vp, self.wp, self._alpha, self._H, self.cvp,
                                self.cwp, self._calpha, self._cH, self._pr, self._pp,
-                               self.pz, self.use_coupling,
+                               self.pz, self.pq, self.use_coupling,
                                self.limits[0], self.limits[1], self.sweeps, N_SCAN,
                                self._out)
         vx, vy, sx, sy = o[0, 0], o[0, 1], o[3, 0], o[3, 1]

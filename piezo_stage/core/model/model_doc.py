@@ -27,6 +27,9 @@ Schema (version 1)::
           thresholds_V: [...]   #   the Duhem output (core/model/play.py); r_j >= 0
           weights_um_per_V: [...]
           initial_V: [...]      #   z_j at the start (default: at rest at initial_state)
+          rate_widening_s: 0.0  #   optional beta [s], < 1.9 ms: thresholds r_j + beta
+                                #   |dv/dt| (low-passed over 2 ms): a loop that widens
+                                #   with the input's rate (the gap diagnosis's `rate`)
       y: ...
     effects: {}                 # optional unmodelled effects (see core/model/effects.py)
 
@@ -185,7 +188,8 @@ def _duhem(d, where) -> DuhemModel:
 
 
 def _plays(d, v0, where) -> PlayOperators:
-    _check_keys(d, ("thresholds_V", "weights_um_per_V", "initial_V"), where)
+    _check_keys(d, ("thresholds_V", "weights_um_per_V", "initial_V", "rate_widening_s"),
+                where)
     for k in ("thresholds_V", "weights_um_per_V"):
         if k not in d:
             raise ModelError(f"{where}: missing {k}")
@@ -195,8 +199,10 @@ def _plays(d, v0, where) -> PlayOperators:
     p = _numbers(d["weights_um_per_V"], f"{where}.weights_um_per_V")
     z = (_numbers(d["initial_V"], f"{where}.initial_V") if "initial_V" in d
          else [v0] * len(r))
+    beta = d.get("rate_widening_s", 0.0)
     try:
-        return PlayOperators(np.asarray(r, float), np.asarray(p, float), np.asarray(z, float))
+        return PlayOperators(np.asarray(r, float), np.asarray(p, float), np.asarray(z, float),
+                             beta)
     except ModelError as e:
         raise ModelError(f"{where}: {e}") from None
 
@@ -318,6 +324,8 @@ def model_to_dict(model: StageModel, effects: dict | None = None,
             d["play_operators"] = {"thresholds_V": _floats(p.thresholds_V),
                                    "weights_um_per_V": _floats(p.weights_um_per_V),
                                    "initial_V": _floats(p.initial_V)}
+            if p.rate_dependent:
+                d["play_operators"]["rate_widening_s"] = p.rate_widening_s
         axes[a] = d
     if effects:
         doc["effects"] = effects

@@ -167,6 +167,7 @@ class Plant:
         self._rate = {a: law.rate_state(self._vstate[i]) for i, a in enumerate(AXES)
                       if (law := self._play.get(a)) is not None}
         self._mz = {a: p.state() for a, p in model.plays.items()}
+        self._mq = {a: np.array([self._vstate[AXES.index(a)], 0.0]) for a in model.plays}
         self._rng = np.random.default_rng(self.config.seed)
         self.limit_hits = 0
         self.samples = 0
@@ -211,7 +212,8 @@ class Plant:
                 w[i] += self._play[a].run(applied[i], self._z[a], 1.0 / self.fs_hz,
                                           self._rate[a])
             elif a in self._mz:  # the model's own play operators, beside its Duhem law
-                w[i] += self.config.model.plays[a].run(applied[i], self._mz[a])
+                w[i] += self.config.model.plays[a].run(applied[i], self._mz[a],
+                                                       1.0 / self.fs_hz, self._mq[a])
         fine = w
         if self._has_effects:
             fine = np.empty_like(w)

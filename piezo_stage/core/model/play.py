@@ -38,6 +38,9 @@ from piezo_stage.core._jit import play_run, play_run_rate
 from piezo_stage.core.errors import ConfigError, ModelError
 
 RATE_FILTER_S = 2e-3  # s: the rate a rate-dependent law sees is |dv/dt| low-passed
+# s: a model's rate widening stays below the filter's time constant, so that the
+# operators' sum never falls while the voltage rises (the exact inverse's one root)
+MAX_RATE_WIDENING_S = 0.95 * RATE_FILTER_S
 MAX_OPERATORS = 200  # a model or plant with more is not one we fit (16 by default)
 
 
@@ -46,11 +49,16 @@ class PlayOperators:
     """Play operators' sum_j p_j z_j: thresholds ``thresholds_V`` (r_j >= 0 [V]),
     weights ``weights_um_per_V`` (p_j, any sign: fitted by least squares) and the
     state they start from, ``initial_V`` (z_j [V]). Rate independent, like the Duhem
-    law; a state is an array of z_j, updated in place by ``run``."""
+    law, unless ``rate_widening_s`` (beta [s], below ``RATE_FILTER_S``) widens every
+    threshold by beta x |dv/dt| low-passed (the loop widening with the input's rate:
+    the gap diagnosis's ``rate``); a state is an array of z_j, updated in place by
+    ``run``, and a rate-dependent law's also ``rate_state`` (the voltage before and
+    the low-passed rate)."""
 
     thresholds_V: np.ndarray
     weights_um_per_V: np.ndarray
     initial_V: np.ndarray
+    rate_widening_s: float = 0.0
 
     def __post_init__(self):
         arrays = []
@@ -66,38 +74,86 @@ class PlayOperators:
                              f"(got {r.size}, {p.size}, {z.size})")
         if np.any(r < 0):
             raise ModelError("play operators: thresholds_V must be >= 0")
+        beta = self.rate_widening_s
+        if isinstance(beta, bool) or not isinstance(beta, (int, float)) or \
+                not 0.0 <= float(beta) < MAX_RATE_WIDENING_S:
+            raise ModelError(f"play operators: rate_widening_s = {beta!r}: a number of "
+                             f"seconds in [0, {MAX_RATE_WIDENING_S:g}) (at or past the "
+                             f"rate filter's {RATE_FILTER_S:g} s the operators' sum "
+                             "would fall while the voltage rises)")
         for name, a in zip(("thresholds_V", "weights_um_per_V", "initial_V"), arrays):
             object.__setattr__(self, name, a)
+        object.__setattr__(self, "rate_widening_s", float(beta))
 
     @classmethod
     def at_rest(cls, thresholds_V: ArrayLike, weights_um_per_V: ArrayLike, v0: float = 0.0,
-                start: float = 0.0) -> PlayOperators:
+                start: float = 0.0, rate_widening_s: float = 0.0) -> PlayOperators:
         """Operators whose state is z_j = v0 + start * r_j: at rest at ``v0`` (0), as
         a fall (+1) or a rise (-1) to v0 leaves them."""
         r = np.asarray(thresholds_V, dtype=float)
-        return cls(r, np.asarray(weights_um_per_V, dtype=float), float(v0) + float(start) * r)
+        return cls(r, np.asarray(weights_um_per_V, dtype=float), float(v0) + float(start) * r,
+                   rate_widening_s)
+
+    @property
+    def rate_dependent(self) -> bool:
+        """Whether the thresholds widen with the input's rate."""
+        return self.rate_widening_s > 0.0
 
     def state(self) -> np.ndarray:
         """A fresh copy of the initial state (for ``run``)."""
         return self.initial_V.copy()
 
+    def widening(self, dt_s: float, rate_state: np.ndarray | None = None) -> np.ndarray:
+        """The compiled inverse's view of the rate widening, [decay, gain, widening
+        before [V]] (core/_jit.py's ``rate_widen``), for samples ``dt_s`` [s] apart
+        from ``rate_state`` ([voltage before, low-passed rate]; None: at rest); zeros
+        for a rate-independent law."""
+        if not self.rate_dependent:
+            return np.zeros(3)
+        dt = _check_dt(dt_s)
+        s = 1.0 - np.exp(-dt / RATE_FILTER_S)
+        rate = 0.0 if rate_state is None else float(rate_state[1])
+        return np.array([1.0 - s, self.rate_widening_s * s / dt,
+                         self.rate_widening_s * rate])
+
     def output(self, z: np.ndarray) -> float:
         """The operators' sum [um] in state ``z`` (z already at the present voltage)."""
         return float(self.weights_um_per_V @ z)
 
-    def run(self, v: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """The operators' sum [um] over ``v`` [V] from state ``z`` (updated in place)."""
-        out = np.empty(np.size(v))
-        play_run(np.ascontiguousarray(v, dtype=float), self.thresholds_V,
-                 self.weights_um_per_V, z, out)
+    def run(self, v: np.ndarray, z: np.ndarray, dt_s: float = 0.0,
+            rate_state: np.ndarray | None = None) -> np.ndarray:
+        """The operators' sum [um] over ``v`` [V] from state ``z`` (updated in place).
+        A rate-dependent law needs the samples' spacing ``dt_s`` [s] (ModelError
+        without it) and its ``rate_state`` ([voltage before, low-passed rate], updated
+        in place; None: from rest at ``v[0]``)."""
+        v = np.ascontiguousarray(v, dtype=float)
+        out = np.empty(v.size)
+        if self.rate_dependent and v.size:
+            dt = _check_dt(dt_s)
+            st = rate_state if rate_state is not None else np.array([v[0], 0.0])
+            play_run_rate(v, st, dt, self.rate_widening_s,
+                          float(1.0 - np.exp(-dt / RATE_FILTER_S)), self.thresholds_V,
+                          self.weights_um_per_V, z, out)
+        else:
+            play_run(v, self.thresholds_V, self.weights_um_per_V, z, out)
         return out
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, PlayOperators) and all(
             np.array_equal(getattr(self, k), getattr(other, k))
-            for k in ("thresholds_V", "weights_um_per_V", "initial_V"))
+            for k in ("thresholds_V", "weights_um_per_V", "initial_V")) and \
+            self.rate_widening_s == other.rate_widening_s
 
     __hash__ = None  # type: ignore[assignment]  # arrays inside: equal, not hashable
+
+
+def _check_dt(dt_s: float) -> float:
+    dt = float(dt_s)
+    if not (np.isfinite(dt) and dt > 0.0):
+        raise ModelError("play operators whose thresholds widen with the rate need the "
+                         "samples' spacing (a sample rate)")
+    return dt
+
 
 KEYS = ("kind", "axes", "operators", "max_threshold_V", "weight_um_per_V", "decay_V",
         "envelope", "rate_widening_s")

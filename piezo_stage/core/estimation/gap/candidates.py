@@ -12,14 +12,14 @@ from numpy.typing import ArrayLike
 from scipy import signal
 from scipy.optimize import minimize, minimize_scalar
 
-from piezo_stage.core._jit import play_run
+from piezo_stage.core._jit import play_run, play_run_rate
 from piezo_stage.core.estimation.identify.api import free_response
 from piezo_stage.core.estimation.identify.fast import fit_fast
 from piezo_stage.core.estimation.identify.regress import DuhemRegression, gram_blocks, solve_gram
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.model.duhem import OTHER
 from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
-from piezo_stage.core.model.play import PlayOperators
+from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, RATE_FILTER_S, PlayOperators
 
 EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
 
@@ -30,8 +30,11 @@ STRUCTURE_DEGREE = (5, 5)  # the richer branch polynomials of the "structure" cl
 # what changes the hysteresis model itself rather than adding a plant effect: none,
 # coupling (a term of the Duhem model), structure (richer branches) and memory (the
 # structure candidate with play operators beside the Duhem law: return-point memory
-# it lacks; named memory wherever the operators are what paid on HOLDOUT)
-SHAPES = ("none", "coupling", "structure", "memory")
+# it lacks; named memory wherever the operators are what paid on HOLDOUT) and rate
+# (memory whose play thresholds widen with the input's rate, beta x |dv/dt|: a loop that
+# widens with the rate, which neither a resonance nor a delay is; tried where FIT holds
+# several rates, named where it pays on HOLDOUT)
+SHAPES = ("none", "coupling", "structure", "memory", "rate")
 
 
 STRUCTURE_PLAYS = 16       # and play operators (memory), thresholds up to half the span
@@ -60,6 +63,7 @@ class Candidate:
     reg_fs: float = 0.0            # the rate of the record it was fitted on [Hz]
     plays_V: np.ndarray | None = None  # structure: play-operator thresholds [V]
     plays_start: float = 0.0           # and their state at the start (PLAY_STARTS)
+    plays_beta: float = 0.0            # rate: their thresholds' widening [s]
 
     def predict(self, rec: Record, axis: str) -> np.ndarray:
         """Prediction on another record; initial state and offset re-estimated."""
@@ -92,7 +96,8 @@ class Candidate:
             n = len(self.plays_V)
             best: tuple[float, np.ndarray] | None = None
             for start in PLAY_STARTS:  # the start that fits this record best
-                f = fixed + play_columns(v, self.plays_V, start) @ self.theta[k - n:k]
+                f = fixed + play_columns(v, self.plays_V, start, self.plays_beta,
+                                         rec.fs_hz) @ self.theta[k - n:k]
                 A = np.column_stack([cols[:, 1:], np.ones(len(v))])
                 c, *_ = np.linalg.lstsq(A, rec.w[axis] - f, rcond=None)
                 err = float(np.sum((rec.w[axis] - f - A @ c) ** 2))
@@ -111,7 +116,7 @@ class Candidate:
             return None
         n, k = len(self.plays_V), len(self.theta) - (2 if self.drift_tau_s is not None else 0)
         return PlayOperators.at_rest(self.plays_V, self.theta[k - n:k], float(self.reg.v[0]),
-                                     self.plays_start)
+                                     self.plays_start, self.plays_beta)
 
     def model_effect(self) -> dict | None:
         """The effect as model-file / plant parameters (None for none and coupling)."""
@@ -184,29 +189,35 @@ def _compose(ops):
 
 
 def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = None,
-                  kept: Sequence[tuple[str, dict]] = (), memory: bool = False) -> Candidate:
+                  kept: Sequence[tuple[str, dict]] = (), memory: bool = False,
+                  rate: bool = False) -> Candidate:
     """Fit the Duhem model, the effects already ``kept`` ([(name, params)], their
     parameters fixed) and ``effect`` (its parameters searched) together on rec. The
     transform effects are linear and time invariant, so they commute: the new one is
-    searched on the kept ones' output. Returns a Candidate."""
+    searched on the kept ones' output. ``memory`` (structure with play operators) and
+    ``rate`` (their thresholds widened with the rate, beta searched) are the structure
+    candidate's other forms. Returns a Candidate."""
     v, w = rec.v[axis], rec.w[axis]
     fs = rec.fs_hz
     names = [n for n, _ in kept] + [effect]
     v_other = rec.v.get(OTHER[axis]) if "coupling" in names else None
     # structure: the hysteresis itself needs a richer branch shape (more polynomial
     # terms); the extra freedom is kept only if it pays on HOLDOUT, like any effect
-    if memory and effect == "structure":
-        effect = "memory"
+    if (memory or rate) and effect == "structure":
+        effect = "rate" if rate else "memory"
         names[-1] = effect
-    deg = STRUCTURE_DEGREE if {"structure", "memory"} & set(names) else (3, 2)
+    deg = STRUCTURE_DEGREE if {"structure", "memory", "rate"} & set(names) else (3, 2)
     reg = DuhemRegression(v, w, "segmented", n=deg[0], m=deg[1], v_other=v_other)
     tau: float | None = None
     plays: np.ndarray | None = None
     start, extra = 0.0, []
-    memory = "memory" in names
+    memory = bool({"memory", "rate"} & set(names))
+    beta = float(dict(kept).get("rate", {}).get("rate_widening_s", 0.0))
     if memory:  # return-point memory: play operators, linear in their weights
         plays = np.ptp(v) * np.arange(1, STRUCTURE_PLAYS + 1) / (2 * STRUCTURE_PLAYS)
-        P, start = play_start_columns(v, w, plays, reg.B)
+        if effect == "rate" and base is not None:
+            beta = rate_search(reg, base.alphas, kept, plays, v, w, fs, tau)
+        P, start = play_start_columns(v, w, plays, reg.B, beta, fs)
         extra.append(P)
     if "drift" in names:  # (last: its coefficients come last in theta)
         tau = max(rec.t[-1] - rec.t[0], 1.0) / 3.0
@@ -218,15 +229,17 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     if effect == "none" or base is None:
         alphas, fit, _ = fit_fast(reg, budget=100, grid=11)
         return Candidate(effect, {}, alphas, fit.theta, reg, fit.rms, fixed_op, tau,
-                         with_drift(list(kept), reg, fit.theta, tau), fs, plays, start)
+                         with_drift(list(kept), reg, fit.theta, tau), fs, plays, start, beta)
     alphas = np.asarray(base.alphas, float)
     params: dict = {}
     if effect == "coupling" and base.reg.v_other is None:
         alphas = np.append(alphas, alphas.mean())
-    elif effect in ("structure", "memory"):
+    elif effect in ("structure", "memory", "rate"):
         params = {"degree": STRUCTURE_DEGREE[0]}
         if memory:
             params["play_operators"] = STRUCTURE_PLAYS
+        if effect == "rate":
+            params["rate_widening_s"] = beta
     elif effect in TRANSFORMS:
         # the kept operators applied once for these alphas; the new effect's parameter
         # search then filters only what it must (creep: once in all)
@@ -298,27 +311,60 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     effects = with_drift(list(kept) + [(effect, params)], reg, fit.theta, tau)
     params = dict(effects[-1][1])
     return Candidate(effect, params, alphas, fit.theta, reg, fit.rms, reg.transform, tau,
-                     effects, fs, plays, start)
+                     effects, fs, plays, start, beta)
 
 
 PLAY_STARTS = (0.0, 1.0, -1.0)  # operators at rest at v[0], after a fall, after a rise
 
 
-def play_columns(v: np.ndarray, thresholds_V: np.ndarray, start: float = 0.0) -> np.ndarray:
+def play_columns(v: np.ndarray, thresholds_V: np.ndarray, start: float = 0.0,
+                 beta: float = 0.0, fs: float = 0.0) -> np.ndarray:
     """One column per play operator (threshold r [V]): the memory a Duhem law lacks, as
     regressors (core/model/play.py's law, unit weights). Each starts at v[0] + start * r: at
-    rest (0), or as left by a fall (+1) or a rise (-1) to v[0] before the record."""
+    rest (0), or as left by a fall (+1) or a rise (-1) to v[0] before the record.
+    ``beta`` > 0 [s] widens the thresholds by beta x |dv/dt| (low-passed; the samples
+    ``fs`` [Hz] apart), as the model file's ``rate_widening_s``."""
     v = np.ascontiguousarray(v, dtype=float)
     out = np.empty((v.size, len(thresholds_V)))
     one, col = np.ones(1), np.empty(v.size)
     for j, r in enumerate(thresholds_V):
-        play_run(v, np.array([float(r)]), one, np.array([v[0] + start * float(r)]), col)
+        z0 = np.array([v[0] + start * float(r)])
+        if beta > 0.0 and v.size:
+            dt = 1.0 / fs
+            play_run_rate(v, np.array([v[0], 0.0]), dt, float(beta),
+                          float(1.0 - np.exp(-dt / RATE_FILTER_S)), np.array([float(r)]),
+                          one, z0, col)
+        else:
+            play_run(v, np.array([float(r)]), one, z0, col)
         out[:, j] = col
     return out
 
 
+RATE_MIN_GAIN = 0.01  # relative FIT RMS a widening must win over none to be kept
+
+
+def rate_search(reg: DuhemRegression, alphas: ArrayLike, kept: Sequence[tuple[str, dict]],
+                plays: np.ndarray, v: np.ndarray, w: np.ndarray, fs: float,
+                tau: float | None) -> float:
+    """The play thresholds' rate widening beta [s] that fits FIT best, the Duhem alphas
+    held at ``alphas`` (each trial is one exact least squares over the operators'
+    columns at that beta); 0 unless it beats no widening on FIT by ``RATE_MIN_GAIN``
+    (a record at one rate does not show how the loop grows with the rate)."""
+    fixed_op = transform_ops(kept, fs)
+    KX = reg.design(np.asarray(alphas, float))
+    KX = fixed_op(KX) if fixed_op is not None else KX
+    drift = [Drift.columns(len(v), fs, tau)] if tau is not None else []
+
+    def cost(beta):
+        P, _ = play_start_columns(v, w, plays, reg.B, float(beta), fs)
+        return solve_gram(*gram_blocks([KX, P] + drift, w), len(w)).rms
+    beta, best = _search_1d(cost, 0.0, MAX_RATE_WIDENING_S * 0.999, n_grid=8)
+    return float(beta) if best < cost(0.0) * (1.0 - RATE_MIN_GAIN) else 0.0
+
+
 def play_start_columns(v: np.ndarray, w: np.ndarray, thresholds_V: np.ndarray,
-                       others: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+                       others: np.ndarray | None = None, beta: float = 0.0,
+                       fs: float = 0.0) -> tuple[np.ndarray, float]:
     """(columns, start): the play columns of the start (PLAY_STARTS) that, with
     ``others`` (columns) and a constant, explains ``w`` best: the operators' state
     before a record is not known, and a record cut from a run (a scan's later cycles)
@@ -326,7 +372,7 @@ def play_start_columns(v: np.ndarray, w: np.ndarray, thresholds_V: np.ndarray,
     record itself."""
     best: tuple[float, np.ndarray | None, float] = (np.inf, None, 0.0)
     for start in PLAY_STARTS:
-        P = play_columns(v, thresholds_V, start)
+        P = play_columns(v, thresholds_V, start, beta, fs)
         A = np.column_stack([P] + ([others] if others is not None else [])
                             + [np.ones(len(v))])
         coef, *_ = np.linalg.lstsq(A, w, rcond=None)
@@ -345,7 +391,7 @@ def no_effect_limit(base: Candidate, effect: str) -> Candidate:
     name (params say so), so its FIT RMS is the base's and it can never be kept."""
     return Candidate(effect, {"no_effect_limit": True}, base.alphas, base.theta, base.reg,
                      base.fit_rms_um, base.op, base.drift_tau_s, list(base.effects),
-                     base.reg_fs, base.plays_V, base.plays_start)
+                     base.reg_fs, base.plays_V, base.plays_start, base.plays_beta)
 
 
 def _without(reg, alphas, kept, names, fs):

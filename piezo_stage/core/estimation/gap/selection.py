@@ -20,7 +20,13 @@ from piezo_stage.core.estimation.gap.candidates import (
     with_drift,
 )
 from piezo_stage.core.estimation.gap.disturbance import disturbance
-from piezo_stage.core.estimation.gap.where import MIN_HOLD_S, holds, one_rate_note, where
+from piezo_stage.core.estimation.gap.where import (
+    MIN_HOLD_S,
+    holds,
+    one_rate_note,
+    several_rates,
+    where,
+)
 from piezo_stage.core.estimation.identify.api import check_identifiable
 from piezo_stage.core.estimation.identify.fast import fit_fast
 from piezo_stage.core.estimation.record import Record
@@ -143,16 +149,24 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         testable.append(e)
     no_band = "dynamics" in testable and "delay" in testable and not broadband(
         fit.v[axis], fit.fs_hz)
+    rates = several_rates(fit.v[axis], fit.fs_hz)
+
     def candidate(e, on, kept):
-        """fit_candidate; structure both ways (richer branches, and with play
-        operators: then named memory), the one closer on HOLDOUT kept (as every
-        candidate is judged), so memory is named only where it pays."""
+        """fit_candidate; structure in its forms (richer branches; with play
+        operators: memory; where FIT holds several rates, with their thresholds
+        widened by the rate: rate), the one closest on HOLDOUT kept (as every
+        candidate is judged), so memory and rate are named only where they pay."""
         c = fit_candidate(fit, axis, e, on, kept)
         if e == "structure":
-            m = fit_candidate(fit, axis, e, on, kept, memory=True)
-            if rms(m.predict(holdout, axis) - holdout.w[axis]) < \
-                    rms(c.predict(holdout, axis) - holdout.w[axis]):
-                c = m
+            best = rms(c.predict(holdout, axis) - holdout.w[axis])
+            for form in (("memory", "rate") if rates else ("memory",)):
+                m = fit_candidate(fit, axis, e, on, kept, memory=True,
+                                  rate=form == "rate")
+                if m.effect == "rate" and not m.params.get("rate_widening_s"):
+                    continue  # no widening fits FIT better: memory already
+                r = rms(m.predict(holdout, axis) - holdout.w[axis])
+                if r < best:
+                    c, best = m, r
         return c
     base = fit_candidate(fit, axis, "none", kept=given)
     progress(f"{axis} none")

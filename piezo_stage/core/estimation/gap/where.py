@@ -37,6 +37,26 @@ def main_tones(v: ArrayLike, fs: float, parts: int = RATE_PARTS) -> list[float]:
     return out
 
 
+SEVERAL_RATES = 2.0  # peak rates this far apart (max / min) are several rates
+
+
+def several_rates(v: ArrayLike, fs: float, parts: int = RATE_PARTS) -> bool:
+    """Whether ``v`` moves at several rates: the peak |dv/dt| (its 95th percentile) of
+    the parts of ``v`` that move (``parts`` equal parts) at least ``SEVERAL_RATES``
+    apart: a calibration at 2 Hz then 5 Hz, or rising-amplitude triangles (their slope
+    grows), and not one sine or the gap protocol's 0.5 and 0.8 Hz sines alike."""
+    v = np.asarray(v, dtype=float)
+    n = v.size // parts
+    span = float(np.ptp(v)) if v.size else 0.0
+    peaks = []
+    for k in range(parts):
+        seg = v[k * n:(k + 1) * n]
+        if seg.size < 8 or np.ptp(seg) < 0.05 * span:
+            continue  # a hold (or nearly): no rate of its own
+        peaks.append(float(np.percentile(np.abs(np.diff(seg)), 95)) * fs)
+    return len(peaks) >= 2 and min(peaks) > 0 and max(peaks) >= SEVERAL_RATES * min(peaks)
+
+
 def one_rate_note(fit: Record, holdout: Record, axis: str) -> str | None:
     """When FIT runs at one rate (every part's main tone alike) and HOLDOUT at another
     (its main tone at least twice or at most half FIT's): what the diagnosis cannot
