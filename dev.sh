@@ -84,13 +84,15 @@ fi
 [ $# -gt 0 ] && shift
 case "$cmd" in
   test)
-    # with no test selection: the tests that start no node process on two workers, then
-    # those that do (marked slow or realtime) one at a time: a node set's timing does not
-    # survive a second worker's CPU load on a 2-core machine
+    # with no test selection: every test but the real-time ones on two workers (a
+    # lockstep node set waits for each sample, so a second worker's load slows it and
+    # changes nothing it computes; one alone keeps a core idle), then the real-time
+    # ones (marked realtime) one at a time: their timing does not survive a second
+    # worker's CPU load on a 2-core machine
     if [ $# -eq 0 ] || [ "$*" = "-q" ]; then
       # (each phase ends with its 15 slowest tests: where the suite's time goes)
-      .venv/bin/python -m pytest "$@" -m "not slow and not realtime" --durations=15
-      exec .venv/bin/python -m pytest "$@" -m "slow or realtime" -n 0 --durations=15
+      .venv/bin/python -m pytest "$@" -m "not realtime" --durations=15
+      exec .venv/bin/python -m pytest "$@" -m "realtime" -n 0 --durations=15
     fi
     exec .venv/bin/python -m pytest "$@" ;;
   demo) exec .venv/bin/piezo-stage demo "$@" ;;
