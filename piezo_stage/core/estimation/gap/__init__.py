@@ -45,6 +45,7 @@ from piezo_stage.core.estimation.gap.candidates import (  # noqa: F401
     EFFECTS,
     TRANSFORMS,
     Candidate,
+    ClassCandidate,
     broadband,
     fit_candidate,
     play_columns,
@@ -91,6 +92,9 @@ class Diagnosis:
         self.notes = []
         for a, d in self.per_axis.items():
             c = d.model or d.candidates["none"]
+            if isinstance(c, ClassCandidate):  # memory as the other class: its parts
+                axes[a], plays[a] = c.stage_parts()
+                continue
             main, coup = c.reg.models(c.alphas, c.theta)
             axes[a] = main
             if coup is not None:

@@ -15,9 +15,14 @@ from scipy.optimize import minimize, minimize_scalar
 from piezo_stage.core._jit import play_run, play_run_rate
 from piezo_stage.core.estimation.identify.api import free_response
 from piezo_stage.core.estimation.identify.fast import fit_fast
+from piezo_stage.core.estimation.identify.prandtl import (
+    OPERATORS,
+    PrandtlIshlinskii,
+    fit_prandtl_ishlinskii,
+)
 from piezo_stage.core.estimation.identify.regress import DuhemRegression, gram_blocks, solve_gram
 from piezo_stage.core.estimation.record import Record
-from piezo_stage.core.model.duhem import OTHER
+from piezo_stage.core.model.duhem import OTHER, DuhemModel
 from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, RATE_FILTER_S, PlayOperators
 
@@ -126,6 +131,60 @@ class Candidate:
         """Every kept effect as model-file / plant parameters {name: params} (coupling
         is in the Duhem model itself)."""
         return {n: dict(p) for n, p in self.effects if n not in SHAPES}
+
+
+@dataclass
+class ClassCandidate:
+    """``memory`` as the issue's other model class: the Prandtl-Ishlinskii class (a
+    linear term and play operators, non-negative weights: monotone, with return-point
+    memory and an exact inverse; core/estimation/identify/prandtl.py) in place of the
+    Duhem law, fitted on FIT alone (no effect kept before it). Its branches continue
+    past FIT's range along the linear term and the operators' own lines, where a
+    polynomial branch continues straight from its end: the candidate for a stroke
+    larger than calibrated. Read like a Candidate (``predict``, ``play_operators``,
+    ``effects``); ``stage_parts`` gives the model file's terms."""
+
+    pi: PrandtlIshlinskii
+    fit_rms_um: float
+    v0: float
+    effect: str = "memory"
+    params: dict = field(default_factory=dict)
+    effects: list = field(default_factory=list)
+    reg_fs: float = 0.0
+
+    def predict(self, rec: Record, axis: str) -> np.ndarray:
+        """Prediction on another record; the constant re-estimated (the operators start
+        at rest at the record's first voltage)."""
+        p = self.pi.predict(rec.v[axis])
+        return p + float(np.mean(rec.w[axis] - p))
+
+    def play_operators(self) -> PlayOperators:
+        """The class's play operators, at rest at FIT's first voltage."""
+        return self.stage_parts()[1]
+
+    def stage_parts(self) -> tuple[DuhemModel, PlayOperators]:
+        """(Duhem law that is exactly the linear term, play operators), as ``identify
+        --class pi`` writes them."""
+        return self.pi.to_model(self.v0)
+
+    def model_effect(self) -> dict | None:
+        """None: the class is the hysteresis itself, not a plant effect."""
+        return None
+
+    def model_effects(self) -> dict:
+        """No plant effects (the class is fitted alone)."""
+        return {}
+
+
+def fit_class_candidate(rec: Record, axis: str) -> ClassCandidate:
+    """The Prandtl-Ishlinskii class (``identify --class pi``'s fit: non-negative
+    weights) on ``rec``'s axis, as the memory candidate's other form."""
+    v, w = rec.v[axis], rec.w[axis]
+    pi = fit_prandtl_ishlinskii(v, w, monotone=True)
+    fit_rms = float(np.sqrt(np.mean((pi.predict(v) - w) ** 2)))
+    params = {"class": "prandtl-ishlinskii", "play_operators": OPERATORS}
+    return ClassCandidate(pi, fit_rms, float(v[0]), params=params,
+                          effects=[("memory", dict(params))], reg_fs=rec.fs_hz)
 
 
 def _search_1d(f, lo, hi, n_grid=12, log=False):

@@ -15,8 +15,10 @@ from piezo_stage.core.estimation.gap.candidates import (
     EFFECTS,
     TRANSFORMS,
     Candidate,
+    ClassCandidate,
     broadband,
     fit_candidate,
+    fit_class_candidate,
     with_drift,
 )
 from piezo_stage.core.estimation.gap.disturbance import disturbance
@@ -154,11 +156,18 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     def candidate(e, on, kept):
         """fit_candidate; structure in its forms (richer branches; with play
         operators: memory; where FIT holds several rates, with their thresholds
-        widened by the rate: rate), the one closest on HOLDOUT kept (as every
-        candidate is judged), so memory and rate are named only where they pay."""
-        c = fit_candidate(fit, axis, e, on, kept)
+        widened by the rate: rate; with nothing kept before it, memory as the
+        Prandtl-Ishlinskii class in place of the Duhem law), the one closest on
+        HOLDOUT kept (as every candidate is judged), so memory and rate are named
+        only where they pay."""
+        c: Candidate | ClassCandidate = fit_candidate(fit, axis, e, on, kept)
         if e == "structure":
             best = rms(c.predict(holdout, axis) - holdout.w[axis])
+            if not kept:
+                k = fit_class_candidate(fit, axis)
+                r = rms(k.predict(holdout, axis) - holdout.w[axis])
+                if r < best:
+                    c, best = k, r
             for form in (("memory", "rate") if rates else ("memory",)):
                 m = fit_candidate(fit, axis, e, on, kept, memory=True,
                                   rate=form == "rate")
@@ -227,6 +236,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 pairs.append((d0, d1))
             best_pair = None
             for a, b in pairs:
+                if isinstance(pool[a], ClassCandidate):
+                    continue  # the other class, fitted alone: nothing on top of it
                 pair = candidate(b, pool[a], pool[a].effects)
                 progress(f"{axis} {a}+{b}")
                 r_pair = rms(pair.predict(holdout, axis) - w_h)
@@ -257,9 +268,10 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                       "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
                       "equally_well": alike, "rule": rule})
         # polish the kept model's alphas fully, so that what the next candidates earn
-        # is theirs and not a better alpha search riding along
-        alphas, fitted, _ = fit_fast(c.reg, budget=POLISH_BUDGET, x0=c.alphas, step=0.1)
-        if fitted.rms < c.fit_rms_um:
+        # is theirs and not a better alpha search riding along (the other class has none)
+        if isinstance(c, Candidate):
+            alphas, fitted, _ = fit_fast(c.reg, budget=POLISH_BUDGET, x0=c.alphas, step=0.1)
+        if isinstance(c, Candidate) and fitted.rms < c.fit_rms_um:
             was = (c.alphas, c.theta, c.fit_rms_um, c.effects)
             c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
             c.effects = with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
@@ -276,8 +288,9 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
             resid, c.predict(holdout, axis) - w_h, floor, holdout.fs_hz)
         model, r_cur = c, scores[e]
         del pool[e]
-        if g_new <= NOISE_STOP * floor:
-            break  # at the noise floor (itself estimated): nothing left to explain
+        if g_new <= NOISE_STOP * floor or isinstance(c, ClassCandidate):
+            break  # at the noise floor (itself estimated): nothing left to explain; or
+            # the other class, fitted alone: no effect is fitted on top of it
         for e2 in list(pool):
             if len(steps) == 1 and (e, e2) in tried:
                 # fitted already as a pair on top of the effect just kept
