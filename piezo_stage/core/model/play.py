@@ -111,7 +111,7 @@ class PlayOperators:
         if not self.rate_dependent:
             return np.zeros(3)
         dt = _check_dt(dt_s)
-        s = 1.0 - np.exp(-dt / RATE_FILTER_S)
+        s = rate_smoothing(dt)
         rate = 0.0 if rate_state is None else float(rate_state[1])
         return np.array([1.0 - s, self.rate_widening_s * s / dt,
                          self.rate_widening_s * rate])
@@ -132,7 +132,7 @@ class PlayOperators:
             dt = _check_dt(dt_s)
             st = rate_state if rate_state is not None else np.array([v[0], 0.0])
             play_run_rate(v, st, dt, self.rate_widening_s,
-                          float(1.0 - np.exp(-dt / RATE_FILTER_S)), self.thresholds_V,
+                          rate_smoothing(dt), self.thresholds_V,
                           self.weights_um_per_V, z, out)
         else:
             play_run(v, self.thresholds_V, self.weights_um_per_V, z, out)
@@ -145,6 +145,12 @@ class PlayOperators:
             self.rate_widening_s == other.rate_widening_s
 
     __hash__ = None  # type: ignore[assignment]  # arrays inside: equal, not hashable
+
+
+def rate_smoothing(dt_s: float) -> float:
+    """The rate filter's coefficient per sample ``dt_s`` [s] apart (first order, time
+    constant ``RATE_FILTER_S``)."""
+    return float(1.0 - np.exp(-float(dt_s) / RATE_FILTER_S))
 
 
 def _check_dt(dt_s: float) -> float:
@@ -221,7 +227,7 @@ class PlayHysteresis:
         v = np.ascontiguousarray(v, dtype=float)
         if self.rate_widening_s > 0.0 and dt_s > 0.0 and v.size:
             st = self.rate_state(v[0]) if rate_state is None else rate_state
-            smooth = 1.0 - np.exp(-dt_s / RATE_FILTER_S)
+            smooth = rate_smoothing(dt_s)
             play_run_rate(v, st, float(dt_s), self.rate_widening_s, float(smooth),
                           self.thresholds_V, self.weights_um_per_V, z, x)
         else:

@@ -12,7 +12,6 @@ from numpy.typing import ArrayLike
 from scipy import signal
 from scipy.optimize import minimize, minimize_scalar
 
-from piezo_stage.core._jit import play_run, play_run_rate
 from piezo_stage.core.estimation.identify.api import free_response
 from piezo_stage.core.estimation.identify.fast import fit_fast
 from piezo_stage.core.estimation.identify.prandtl import (
@@ -24,7 +23,7 @@ from piezo_stage.core.estimation.identify.regress import DuhemRegression, gram_b
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.model.duhem import OTHER, DuhemModel
 from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
-from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, RATE_FILTER_S, PlayOperators
+from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, PlayOperators
 
 EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
 
@@ -385,17 +384,10 @@ def play_columns(v: np.ndarray, thresholds_V: np.ndarray, start: float = 0.0,
     ``fs`` [Hz] apart), as the model file's ``rate_widening_s``."""
     v = np.ascontiguousarray(v, dtype=float)
     out = np.empty((v.size, len(thresholds_V)))
-    one, col = np.ones(1), np.empty(v.size)
+    dt = 1.0 / fs if beta > 0.0 else 0.0
     for j, r in enumerate(thresholds_V):
-        z0 = np.array([v[0] + start * float(r)])
-        if beta > 0.0 and v.size:
-            dt = 1.0 / fs
-            play_run_rate(v, np.array([v[0], 0.0]), dt, float(beta),
-                          float(1.0 - np.exp(-dt / RATE_FILTER_S)), np.array([float(r)]),
-                          one, z0, col)
-        else:
-            play_run(v, np.array([float(r)]), one, z0, col)
-        out[:, j] = col
+        op = PlayOperators.at_rest([float(r)], [1.0], float(v[0]), start, beta)
+        out[:, j] = op.run(v, op.state(), dt)
     return out
 
 

@@ -271,19 +271,19 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         # is theirs and not a better alpha search riding along (the other class has none)
         if isinstance(c, Candidate):
             alphas, fitted, _ = fit_fast(c.reg, budget=POLISH_BUDGET, x0=c.alphas, step=0.1)
-        if isinstance(c, Candidate) and fitted.rms < c.fit_rms_um:
-            was = (c.alphas, c.theta, c.fit_rms_um, c.effects)
-            c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
-            c.effects = with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
-            polished = rms(c.predict(holdout, axis) - w_h)
-            if polished <= scores[e]:
-                scores[e] = polished
-                g_new = gap_above_floor(scores[e], floor)
-                steps[-1].update(rms_after_um=scores[e], gap_after_um=g_new,
-                                 shrink_pct=100.0 * (1 - g_new / g_before)
-                                 if g_before else 0.0)
-            else:  # closer on FIT, further on HOLDOUT: the extra freedom overfits
-                c.alphas, c.theta, c.fit_rms_um, c.effects = was
+            if fitted.rms < c.fit_rms_um:
+                was = (c.alphas, c.theta, c.fit_rms_um, c.effects)
+                c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
+                c.effects = with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
+                polished = rms(c.predict(holdout, axis) - w_h)
+                if polished <= scores[e]:
+                    scores[e] = polished
+                    g_new = gap_above_floor(scores[e], floor)
+                    steps[-1].update(rms_after_um=scores[e], gap_after_um=g_new,
+                                     shrink_pct=100.0 * (1 - g_new / g_before)
+                                     if g_before else 0.0)
+                else:  # closer on FIT, further on HOLDOUT: the extra freedom overfits
+                    c.alphas, c.theta, c.fit_rms_um, c.effects = was
         steps[-1]["shrink_pm_pct"] = shrink_uncertainty(
             resid, c.predict(holdout, axis) - w_h, floor, holdout.fs_hz)
         model, r_cur = c, scores[e]
