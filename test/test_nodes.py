@@ -46,6 +46,7 @@ def lockstep(tmp_path, env, name, steps=400, nodes=None, overrides=None):
     return bag
 
 
+@pytest.mark.alone  # (a rerun compared byte for byte: see setup.cfg's markers)
 def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env, capfd):
     nodes = ["stage_driver", "feedforward", "controller", "trajectory"]
     a = lockstep(tmp_path, env, "a", nodes=nodes, steps=1500)  # > 1 s: diagnostics at 1 Hz
