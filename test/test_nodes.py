@@ -482,11 +482,13 @@ def test_the_bag_holds_the_trajectories_the_stage_accepted(tmp_path, env):
     recorder takes: one accepted before the recorder started is in the bag; one sent
     once by a default-QoS publisher as soon as its one subscriber matched reached the
     stage and the bag; one refused (out of range) is in neither, and said."""
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.qos import QoSProfile
     from trajectory_msgs.msg import JointTrajectory
 
     import piezo_stage_msgs_adapters as A
     from piezo_stage.benchmarks.probe import Probe
+    from piezo_stage.io.run_bag import status_node
     from piezo_stage.nodes._common import QOS_LATCHED
     probe = Probe(int(env["ROS_DOMAIN_ID"]))
     t = np.arange(0, 0.1, 1e-3)
@@ -496,6 +498,16 @@ def test_the_bag_holds_the_trajectories_the_stage_accepted(tmp_path, env):
     ff = node("feedforward")
     bag = tmp_path / "accepted"
     rec = None
+    # what the recorder holds, from its own diagnostics (1 Hz): the test waits for
+    # that, not for a time (discovery between two nodes took over 1.5 s on CI's host
+    # loaded by other work, and the recorder was stopped before it matched)
+    recorded: dict = {}
+    probe.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: recorded.update(
+        {kv.key: kv.value for st in m.status if status_node(st.name) == "recorder"
+         for kv in st.values}), 10)
+
+    def accepted_in_bag() -> int:
+        return int(recorded.get("/stage/trajectory/accepted", 0))
     try:
         latched = probe.node.create_publisher(JointTrajectory, "/stage/trajectory",
                                               QOS_LATCHED)
@@ -504,11 +516,9 @@ def test_the_bag_holds_the_trajectories_the_stage_accepted(tmp_path, env):
                                              "y": np.full(t.size, 5.0)}))
         probe.spin(1.0)
         rec = node("recorder", "-p", f"output:={bag}")
-        # the recorder up and subscribed (its start takes longer on a loaded host), then
-        # its latched match with the feedforward made
-        assert probe.wait(lambda: probe.node.count_subscribers(
-            "/stage/trajectory/accepted") >= 1, 60)
-        probe.spin(1.5)
+        # the recorder up, and the latched trajectory in its bag (its start and its
+        # match with the feedforward take longer on a loaded host)
+        assert probe.wait(lambda: accepted_in_bag() >= 1, 60), recorded
         plain = probe.node.create_publisher(JointTrajectory, "/stage/trajectory",
                                             QoSProfile(depth=10))
         assert probe.wait(lambda: plain.get_subscription_count() >= 1, 10)
@@ -518,7 +528,8 @@ def test_the_bag_holds_the_trajectories_the_stage_accepted(tmp_path, env):
                                            "y": np.full(t.size, 7.0)}))
         from rclpy.duration import Duration
         assert plain.wait_for_all_acked(Duration(seconds=10))
-        probe.spin(1.5)
+        assert probe.wait(lambda: accepted_in_bag() >= 2, 30), recorded
+        probe.spin(1.0)  # (room for a third, which must not come: the refused one)
         assert plain.get_subscription_count() == 1  # the feedforward alone
     finally:
         probe.close()
