@@ -110,15 +110,48 @@ def test_the_prandtl_ishlinskii_peer_recovers_a_law_of_its_own_class():
         fit_prandtl_ishlinskii(np.zeros(50), np.zeros(50))
 
 
+def test_the_pi_class_reaches_the_amplifiers_range_and_carries_a_widening_loop():
+    """The class we identify (``fit_pi_class``): non-negative weights, thresholds at the
+    record's spacing on to half the amplifier's range. Fitted on the first 40-75 V of a
+    Rayleigh law's rising-amplitude triangles (one weight per operator) it predicts the
+    triangles up to 150 V far closer than the same class stopped at the record's span
+    (the peer's thresholds) and than the peer: the operators past the record move on
+    its monotone excursions, and the weights past them follow a smooth density."""
+    from piezo_stage.core.estimation.identify.prandtl import SMOOTHNESS, fit_pi_class
+    t = np.arange(12000) / 1000.0
+    amp = 20.0 + 130.0 * t / t[-1]
+    v = amp * (1 - np.abs(((2.0 * t) % 1.0) * 2 - 1))
+    r = np.linspace(0.0, 75.0, 16)
+    law = PlayOperators.at_rest(r, np.full(16, 0.012), 0.0)
+    w = law.run(v, law.state()) + np.random.default_rng(0).normal(0, 0.05, v.size)
+    k = 4000  # FIT: up to ~63 V
+    cls = fit_pi_class(v[:k], w[:k], reach_V=75.0)
+    ops = cls.operators
+    step = ops.thresholds_V[1] - ops.thresholds_V[0]
+    top = ops.thresholds_V[-1]
+    assert ops.thresholds_V.size > 12 and top <= 75.0 < top + step
+    assert np.all(ops.weights_um_per_V >= 0) and cls.linear_um_per_V >= 0
+    assert cls.smoothness in SMOOTHNESS
+    short = fit_pi_class(v[:k], w[:k])  # stopped at the record's span
+    assert short.operators.thresholds_V.size == 12
+    peer = fit_prandtl_ishlinskii(v[:k], w[:k])
+
+    def held(m):
+        return held_out_rms(m.predict(v)[k:], w[k:], 1000.0, 0.0)
+    assert held(cls) < 0.3 * held(short) and held(cls) < 0.3 * held(peer), \
+        (held(cls), held(short), held(peer))
+
+
 def test_fit_here_use_there_every_written_model_runs_and_memory_beats_the_peer():
-    """On the structure stage (memory and a tanh envelope: not our model class) and on
-    ours: every model `gap --out-model` writes loads and runs through our simulator on
-    the held-out excitation, never worse than the base model; fitted on a
+    """On the structure stage (memory and a tanh envelope: not our model class), the
+    Rayleigh stage and ours: every model `gap --out-model` writes loads and runs
+    through our simulator on the held-out excitation, never worse than the base
+    model; fitted on a
     constant-amplitude calibration and used on nested minor loops, that model (with its
     play operators) beats the classical Prandtl-Ishlinskii peer by the issue's margin
     (<= 0.8 x); used on a larger stroke than fitted, memory as the Prandtl-Ishlinskii
-    class carries as far as the peer (the Duhem law alone: 2.2 x). Our exact inverse of
-    each written model gives the voltages back."""
+    class carries further than the peer (the Duhem law alone: 2.2 x). The same on the
+    Rayleigh stage. Our exact inverse of each written model gives the voltages back."""
     from piezo_stage.apps.studies import conditions
     pairs = [p for p in conditions.PAIRS if p[1] != "two-rate->fast"]  # (the next test's)
     rows = {(r["stage"], r["case"]): r for r in conditions.run(pairs)}
@@ -129,10 +162,21 @@ def test_fit_here_use_there_every_written_model_runs_and_memory_beats_the_peer()
     for r in rows.values():  # never worse than the base model (identify's)
         assert r["gap_model_um"] <= 1.02 * r["ours_um"] + 1e-3, r
     # a larger stroke than fitted: memory as the Prandtl-Ishlinskii class (its branches
-    # continue along its operators' lines, not straight from a polynomial's end)
+    # continue along its operators' lines, not straight from a polynomial's end; its
+    # thresholds reach half the amplifier's range: 0.87 x the peer here, 0.08 x on the
+    # Rayleigh stage, whose loop keeps widening with the stroke)
     large = rows[("structure", "small->large")]
     assert large["verdict"] == "memory", large
-    assert large["gap_model_um"] <= 1.05 * large["peer_um"] < 0.6 * large["ours_um"], large
+    assert large["gap_model_um"] <= 0.92 * large["peer_um"] < 0.6 * large["ours_um"], large
+    rayleigh = rows[("rayleigh", "small->large")]
+    assert rayleigh["verdict"] == "memory", rayleigh
+    assert rayleigh["gap_model_um"] <= 0.2 * rayleigh["peer_um"], rayleigh
+    # nested loops on the Rayleigh stage: the Duhem law with play operators turns a
+    # branch back there (its inverse missed by 1.9 V) and is not kept; the class is
+    # (the peer, of the stage's own class, is at the noise: as close, not 0.8 x)
+    nested = rows[("rayleigh", "periodic->nested")]
+    assert nested["verdict"] == "memory", nested
+    assert nested["gap_model_um"] <= nested["peer_um"], nested
     nested = rows[("structure", "periodic->nested")]
     assert nested["verdict"] == "memory"  # the play operators are what carries over
     assert nested["gap_model_um"] <= 0.8 * nested["peer_um"], nested

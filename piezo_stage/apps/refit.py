@@ -150,7 +150,7 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
         from piezo_stage.core.estimation.gap import diagnose
         ref, ref_effects = load_model(against)
         d = diagnose(fit, hold, axes=[a for a in axes if a in ref.axes],
-                     base_model=ref, base_effects=ref_effects)
+                     base_model=ref, base_effects=ref_effects, limits_V=limits_V)
         axes_json: dict = d.json["axes"]
         for a, j in axes_json.items():
             explained = j.get("budget", {}).get("explained_um", {})

@@ -16,8 +16,9 @@ def add_arguments(s):
     s.add_argument("--json", metavar="FILE")
     s.add_argument("--report", metavar="DIR", help="Markdown report with PNG plots")
     s.add_argument("--limits", type=limits, metavar="LO,HI", help="the amplifier's "
-                   "voltage limits [V] for --out-model's model, e.g. --limits=-90,90 "
-                   "(default: 0,150 widened to take FIT)")
+                   "voltage limits [V], e.g. --limits=-90,90: --out-model's model's, "
+                   "and how far the memory class's play operators reach (half their "
+                   "range; default: 0,150 widened to take FIT)")
     s.add_argument("--out-model", metavar="MODEL.yaml",
                    help="write the model with the found effect (simulate --model uses it)")
 
@@ -70,9 +71,9 @@ def main(args):
     from piezo_stage.io.records import load_record
     fit = load_record(args.fit)
     hold = load_record(args.holdout) if args.holdout else None
-    if args.out_model:  # the limits, before the diagnosis: DataError (exit 2)
-        from piezo_stage.core.model.duhem import voltage_limits_for
-        voltage_limits_for(fit.v.values(), args.limits)
+    # the limits, before the diagnosis: DataError (exit 2)
+    from piezo_stage.core.model.duhem import voltage_limits_for
+    voltage_limits_for(fit.v.values(), args.limits)
     base, base_effects = None, None
     if args.model:
         from piezo_stage.io.model_file import load_model
@@ -84,7 +85,8 @@ def main(args):
     from piezo_stage.progress import bar, steps
     with bar("gap: candidate fits", unit=" fits") as b:
         res = diagnose(fit, hold, base_model=base, base_effects=base_effects,
-                       axes=None if args.axis == "both" else [args.axis], progress=steps(b))
+                       axes=None if args.axis == "both" else [args.axis], progress=steps(b),
+                       limits_V=args.limits)
     per = res.per_axis
     if hold is not None:
         _warn_implausible(per, fit)

@@ -76,7 +76,7 @@ def main(args):
     if args.model_class == "auto":
         from piezo_stage.core.estimation.identify.api import choose_class
         for a in axes:
-            classes[a], held = choose_class(rec, a, opts)
+            classes[a], held = choose_class(rec, a, opts, args.limits)
             print(f"class {a}: {classes[a]} (held-out RMS on the record's last 40 %: "
                   + ", ".join(f"{k} {e:.4f} um" for k, e in held.items()) + ")")
     pi_axes = [a for a in axes if classes[a] == "pi"]
@@ -121,7 +121,7 @@ def main(args):
         print(f"{a:>4} {j['method']:>8} {j['structure']:>9} {j['fit_rms_um']:10.4f} "
               f"{j['fit_rms_pct']:8.4f} {j['max_err_um']:10.4f} {j['noise_floor_um']:8.4f} "
               f"{vr:10.4f} {vp:8.4f} {j['evaluations']:7d} {j['seconds']:7.2f}")
-    pis = _fit_pi(rec, pi_axes, val, report)
+    pis = _fit_pi(rec, pi_axes, val, report, args.limits)
     for note in {n for r in results.values() for n in r.notes}:
         print(f"note: {note}")
     if args.out:
@@ -150,14 +150,18 @@ def _pi_output(pi, rec, a):
     return pred + float(np.mean(rec.w[a] - pred))
 
 
-def _fit_pi(rec, axes, val, report) -> dict:
+def _fit_pi(rec, axes, val, report, limits) -> dict:
     """The Prandtl-Ishlinskii class on ``axes``: monotone weights (non-negative least
-    squares); one table row each, into ``report`` too. -> {axis: PrandtlIshlinskii}."""
-    from piezo_stage.core.estimation.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
+    squares), thresholds up to half the amplifier's range (``limits``, else 0-150 V
+    widened to the record's); one table row each, into ``report`` too. -> {axis:
+    PrandtlIshlinskii}."""
+    from piezo_stage.core.estimation.identify.prandtl import fit_pi_class, held_out_rms
     from piezo_stage.core.metrics import noise_floor
+    from piezo_stage.core.model.duhem import voltage_limits_for
+    lo, hi = voltage_limits_for(list(rec.v.values()), limits)
     out = {}
     for a in axes:
-        pi = fit_prandtl_ishlinskii(rec.v[a], rec.w[a], monotone=True)
+        pi = fit_pi_class(rec.v[a], rec.w[a], reach_V=(hi - lo) / 2)
         out[a] = pi
         e = rec.w[a] - _pi_output(pi, rec, a)
         j = {"class": "pi", "method": "nnls", "structure": "plays",
@@ -165,7 +169,9 @@ def _fit_pi(rec, axes, val, report) -> dict:
              "max_err_um": float(np.max(np.abs(e))),
              "noise_floor_um": noise_floor(rec.w[a]), "seconds": pi.fit_s,
              "linear_um_per_V": pi.linear_um_per_V,
-             "play_operators": len(pi.operators.thresholds_V)}
+             "play_operators": len(pi.operators.thresholds_V),
+             "reach_V": float(pi.operators.thresholds_V[-1]),
+             "smoothness": pi.smoothness}
         if val is not None:
             j["validate_rms_um"] = held_out_rms(pi.predict(val.v[a]), val.w[a], val.fs_hz, 0.0)
         report[a] = j

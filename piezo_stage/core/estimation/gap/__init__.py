@@ -120,10 +120,10 @@ class Diagnosis:
 
 def _axis_child(conn, fit, holdout, axis, args):
     quiet_worker()  # the parent decides about stops (core/workers.py)
-    effects, base_model, base_effects = args
+    effects, base_model, base_effects, limits_V = args
     try:
         d = diagnose_axis(fit, holdout, axis, effects, base_model,
-                          lambda what: conn.send(("progress", what)), base_effects)
+                          lambda what: conn.send(("progress", what)), base_effects, limits_V)
         conn.send(("done", d))
     except BaseException as e:  # noqa: BLE001 -- re-raised in the parent
         conn.send(("error", e))
@@ -143,7 +143,7 @@ def _axes_apart(fit, holdout, axes, args, progress):
         from concurrent.futures import ThreadPoolExecutor
         with ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
             futures = {a: pool.submit(diagnose_axis, fit, holdout, a, args[0], args[1],
-                                      progress, args[2]) for a in axes}
+                                      progress, args[2], args[3]) for a in axes}
             return {a: f.result() for a, f in futures.items()}
     from multiprocessing.connection import wait
     ctx = mp.get_context("fork")
@@ -184,9 +184,11 @@ def _axes_apart(fit, holdout, axes, args, progress):
 def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] = EFFECTS,
              axes: Sequence[str] | None = None, base_model: StageModel | None = None,
              progress: Callable[[str], None] | None = None,
-             base_effects: dict | None = None) -> Diagnosis:
+             base_effects: dict | None = None, limits_V: tuple | None = None) -> Diagnosis:
     """Diagnose the gap on every axis (see the module docstring). ``progress(what)`` is
-    called after each candidate fit (in this thread: relayed from the axes' processes)."""
+    called after each candidate fit (in this thread: relayed from the axes' processes);
+    ``limits_V`` are the amplifier's (the memory class's thresholds reach half its
+    range; None: 0-150 V widened to FIT's)."""
     t0 = time.perf_counter()
     holdout = holdout or fit
     axes = axes or [a for a in ("x", "y") if a in fit.w and a in holdout.w]
@@ -205,7 +207,7 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
     except ImportError:
         def threadpool_limits(_n):
             return contextlib.nullcontext()
-    args = (effects, base_model, base_effects)
+    args = (effects, base_model, base_effects, limits_V)
     with threadpool_limits(1 if len(axes) > 1 else None):
         per = _axes_apart(fit, holdout, axes, args, progress or (lambda what: None))
     worst = max(per.values(), key=lambda d: d.ranking[0]["gap_before_um"])

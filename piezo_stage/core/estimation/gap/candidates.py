@@ -17,12 +17,13 @@ from piezo_stage.core.estimation.identify.fast import fit_fast
 from piezo_stage.core.estimation.identify.prandtl import (
     OPERATORS,
     PrandtlIshlinskii,
-    fit_prandtl_ishlinskii,
+    fit_pi_class,
 )
 from piezo_stage.core.estimation.identify.regress import DuhemRegression, gram_blocks, solve_gram
 from piezo_stage.core.estimation.record import Record
-from piezo_stage.core.model.duhem import OTHER, DuhemModel
+from piezo_stage.core.model.duhem import OTHER, DuhemModel, voltage_limits_for
 from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
+from piezo_stage.core.model.inverse import invert
 from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, PlayOperators
 
 EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
@@ -48,6 +49,12 @@ CREEP_TAUS = (0.05, 0.5, 5.0, 50.0)
 
 
 TRANSFORMS = ("creep", "dynamics", "delay")  # linear time-invariant: they commute
+
+
+# a form whose exact inverse misses the voltages by more than this fraction of the
+# amplifier's range is not kept (0.15 V of 0-150 V: on a 0.3 um/V stage 0.05 um, below
+# a capacitive sensor's noise; a branch that turns back misses by volts)
+INVERSE_MISS_FRACTION = 1e-3
 
 
 @dataclass
@@ -113,6 +120,27 @@ class Candidate:
         coef, *_ = np.linalg.lstsq(A, rec.w[axis] - fixed, rcond=None)
         return fixed + A @ coef
 
+    def inverse_miss(self, v: np.ndarray, fs_hz: float,
+                       limits_V: tuple | None = None) -> float:
+        """How far our exact inverse of the hysteresis it would write (the Duhem law
+        and its play operators, from the state they were fitted in: ``v`` [V] starts
+        with the fit record's voltages) lands from ``v``: rounding for a law whose
+        branches rise with the voltage, volts where one turns back (least-squares play
+        weights of any sign beside a Duhem law can bend a branch back near a reversal,
+        and the inverse then takes another root). ``limits_V``: the amplifier's; the
+        miss is a fraction of their range (INVERSE_MISS_FRACTION)."""
+        main, _ = self.reg.models(self.alphas, self.theta)
+        v = np.ascontiguousarray(v, dtype=float)
+        dt = 1.0 / fs_hz
+        out, _ = main.simulate(v, main.initial)
+        ops = self.play_operators()
+        if ops is not None:
+            out = out + ops.run(v, ops.state(), dt)
+        lo, hi = voltage_limits_for([v], limits_V)
+        back = invert(main, out, (lo, hi), plays=ops, dt_s=dt).v
+        miss = float(np.max(np.abs(back - v))) if np.all(np.isfinite(back)) else np.inf
+        return miss / (hi - lo)
+
     def play_operators(self) -> PlayOperators | None:
         """The fitted play operators (thresholds, weights, the state they started the
         fit record in), as a model file holds them; None without memory."""
@@ -152,10 +180,22 @@ class ClassCandidate:
     reg_fs: float = 0.0
 
     def predict(self, rec: Record, axis: str) -> np.ndarray:
-        """Prediction on another record; the constant re-estimated (the operators start
-        at rest at the record's first voltage)."""
-        p = self.pi.predict(rec.v[axis])
-        return p + float(np.mean(rec.w[axis] - p))
+        """Prediction on another record; the constant re-estimated, the operators'
+        start the one of PLAY_STARTS (at rest at the record's first voltage, after a
+        fall to it, after a rise) that fits the record best, as for the Duhem law's
+        play operators."""
+        v, w = np.ascontiguousarray(rec.v[axis], dtype=float), rec.w[axis]
+        ops = self.pi.operators
+        best: tuple[float, np.ndarray] | None = None
+        for start in PLAY_STARTS:
+            z = float(v[0]) + start * ops.thresholds_V
+            p = self.pi.linear_um_per_V * v + ops.run(v, z)
+            p = p + float(np.mean(w - p))
+            err = float(np.sum((w - p) ** 2))
+            if best is None or err < best[0]:
+                best = (err, p)
+        assert best is not None  # (PLAY_STARTS is not empty)
+        return best[1]
 
     def play_operators(self) -> PlayOperators:
         """The class's play operators, at rest at FIT's first voltage."""
@@ -175,11 +215,15 @@ class ClassCandidate:
         return {}
 
 
-def fit_class_candidate(rec: Record, axis: str) -> ClassCandidate:
+def fit_class_candidate(rec: Record, axis: str,
+                        limits_V: tuple | None = None) -> ClassCandidate:
     """The Prandtl-Ishlinskii class (``identify --class pi``'s fit: non-negative
-    weights) on ``rec``'s axis, as the memory candidate's other form."""
+    weights, thresholds up to half the amplifier's range ``limits_V``, else 0-150 V
+    widened to the record's: duhem.voltage_limits_for) on ``rec``'s axis, as the memory
+    candidate's other form."""
     v, w = rec.v[axis], rec.w[axis]
-    pi = fit_prandtl_ishlinskii(v, w, monotone=True)
+    lo, hi = voltage_limits_for([v], limits_V)
+    pi = fit_pi_class(v, w, reach_V=(hi - lo) / 2)
     fit_rms = float(np.sqrt(np.mean((pi.predict(v) - w) ** 2)))
     params = {"class": "prandtl-ishlinskii", "play_operators": OPERATORS}
     return ClassCandidate(pi, fit_rms, float(v[0]), params=params,

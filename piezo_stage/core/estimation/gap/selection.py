@@ -13,6 +13,7 @@ from piezo_stage.core.errors import DataError
 from piezo_stage.core.estimation.gap.budget import gap_above_floor, gap_budget, shrink_uncertainty
 from piezo_stage.core.estimation.gap.candidates import (
     EFFECTS,
+    INVERSE_MISS_FRACTION,
     TRANSFORMS,
     Candidate,
     ClassCandidate,
@@ -118,16 +119,23 @@ def _quiet(what: str) -> None:
     """No progress to show."""
 
 
+# a structure form whose exact inverse misses the records' voltages (its branch turns
+# back: candidates.INVERSE_MISS_FRACTION) replaces an exactly invertible one only when
+# its held-out RMS is below this fraction of that one's
+NOT_INVERTIBLE_PAYS = 0.9
+
 def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str] = EFFECTS,
                   base_model: StageModel | None = None,
                   progress: Callable[[str], None] | None = None,
-                  base_effects: dict | None = None) -> AxisDiagnosis:
+                  base_effects: dict | None = None,
+                  limits_V: tuple | None = None) -> AxisDiagnosis:
     """Fit every candidate on FIT, score on HOLDOUT, then add effects one at a time
     (forward selection, each refitted jointly with the Duhem model and the effects
     kept before it) while the held-out gap keeps shrinking clearly. ``base_model`` (a
     StageModel, with ``base_effects`` from its file) replaces the FIT-identified Duhem
     model as the sim to compare with; what it already has is not a candidate.
-    ``progress(what)`` is called after each candidate is fitted."""
+    ``progress(what)`` is called after each candidate is fitted; ``limits_V``, the
+    amplifier's, bound the memory class's thresholds (fit_class_candidate)."""
     if progress is None:
         progress = _quiet
     for rec in (fit, holdout):
@@ -159,12 +167,14 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         widened by the rate: rate; with nothing kept before it, memory as the
         Prandtl-Ishlinskii class in place of the Duhem law), the one closest on
         HOLDOUT kept (as every candidate is judged), so memory and rate are named
-        only where they pay."""
+        only where they pay. A form whose exact inverse does not give the records'
+        voltages back (a branch turning back) must be closer by 10 % than the best
+        before it (NOT_INVERTIBLE_PAYS)."""
         c: Candidate | ClassCandidate = fit_candidate(fit, axis, e, on, kept)
         if e == "structure":
             best = rms(c.predict(holdout, axis) - holdout.w[axis])
             if not kept:
-                k = fit_class_candidate(fit, axis)
+                k = fit_class_candidate(fit, axis, limits_V)
                 r = rms(k.predict(holdout, axis) - holdout.w[axis])
                 if r < best:
                     c, best = k, r
@@ -175,6 +185,10 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                     continue  # no widening fits FIT better: memory already
                 r = rms(m.predict(holdout, axis) - holdout.w[axis])
                 if r < best:
+                    both = np.concatenate([fit.v[axis], holdout.v[axis]])
+                    if r > NOT_INVERTIBLE_PAYS * best and \
+                            m.inverse_miss(both, fit.fs_hz, limits_V) > INVERSE_MISS_FRACTION:
+                        continue  # a branch turns back, for little: the exact inverse wins
                     c, best = m, r
         return c
     base = fit_candidate(fit, axis, "none", kept=given)

@@ -259,19 +259,22 @@ def _later_cycles(rec: Record, axis: str) -> tuple[Record, Record]:
     return first, last
 
 
-def choose_class(rec: Record, axis: str, opts: IdentifyOptions | None = None
-                 ) -> tuple[str, dict]:
+def choose_class(rec: Record, axis: str, opts: IdentifyOptions | None = None,
+                 limits_V: tuple | None = None) -> tuple[str, dict]:
     """``identify --class auto``: the model class that predicts the record's own later
     cycles best, each fitted on the first 60 % of the span where the axis moves and
     judged on the last 40 % (offset removed; the first 10 % of it, where each model's
     unknown start state shows, left out). The Duhem law wins ties within 2 %: the
-    Prandtl-Ishlinskii class must pay. -> (class, {class: held-out RMS um})."""
-    from piezo_stage.core.estimation.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
+    Prandtl-Ishlinskii class must pay; its thresholds reach half the amplifier's
+    ``limits_V`` (else 0-150 V widened to the record's). -> (class, {class: held-out
+    RMS um})."""
+    from piezo_stage.core.estimation.identify.prandtl import fit_pi_class, held_out_rms
     first, last = _later_cycles(rec, axis)
     skip = 0.1 * (last.t[-1] - last.t[0])
     w = last.w[axis]
     duhem = predict_axis(identify_axis(first, axis, opts), last)[2]
-    pi = fit_prandtl_ishlinskii(first.v[axis], first.w[axis], monotone=True)
+    lo, hi = voltage_limits_for(list(rec.v.values()), limits_V)
+    pi = fit_pi_class(first.v[axis], first.w[axis], reach_V=(hi - lo) / 2)
     held = {"duhem": held_out_rms(duhem, w, last.fs_hz, skip),
             "pi": held_out_rms(pi.predict(last.v[axis]), w, last.fs_hz, skip)}
     return ("pi" if held["pi"] < 0.98 * held["duhem"] else "duhem"), held

@@ -15,6 +15,19 @@ shape than the one its weights give; it is rate independent. Prediction on anoth
 record starts the operators at rest at that record's first voltage: its first
 samples carry that unknown state, which is why the scores leave out the first second
 and each model's mean offset (``held_out_rms``).
+
+The class we identify (``identify --class pi``, the gap's ``memory`` in its class
+form: ``fit_pi_class``) differs from the peer in three ways: non-negative weights
+(monotone branches, the class's wiping-out and congruency properties, an exact
+inverse); thresholds that reach on, at the same spacing, to half the amplifier's
+range (``reach_V``), where the peer's stop at half the record's span; and, where they
+reach past the record, a choice between free weights and a weight density that varies
+smoothly with the threshold (a first-difference penalty), made on the record's own
+later parts. A play of threshold r larger than the record's loops still moves on the
+record's monotone excursions (from rest, one rise of more than r), so these weights are
+not free guesses; a smooth density continues the loop's widening with the stroke
+(with a constant density it is the Rayleigh law of piezoceramics below their coercive
+field), where the peer's loop stops widening at the record's stroke.
 """
 
 from __future__ import annotations
@@ -27,9 +40,15 @@ from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.model.duhem import DuhemModel, DuhemState
-from piezo_stage.core.model.play import PlayOperators
+from piezo_stage.core.model.play import MAX_OPERATORS, PlayOperators
 
 OPERATORS = 12
+# the class's weight-density penalties past the record (fit_pi_class): free weights, or
+# first differences penalised as much as the operators' columns weigh
+SMOOTHNESS = (0.0, 1.0)
+# the record's first parts that predict the rest, to choose between them (rolling
+# origin: one split alone chose differently from one split to the next)
+LATER_FROM = (1 / 2, 2 / 3, 3 / 4)
 LINEAR_ALPHA = 1e-3  # [1/V]: the Duhem law standing for the linear term (any > 0 is exact)
 
 
@@ -47,12 +66,15 @@ class PrandtlIshlinskii:
         The constant c [um].
     fit_s : float
         The fit's wall time [s].
+    smoothness : float
+        The weight-density penalty it was fitted with (0: free weights).
     """
 
     linear_um_per_V: float
     operators: PlayOperators
     offset_um: float
     fit_s: float = 0.0
+    smoothness: float = 0.0
 
     def to_model(self, v0: float) -> tuple[DuhemModel, PlayOperators]:
         """This model in our model file's terms, at rest at ``v0`` [V]: a whole-curve
@@ -84,7 +106,8 @@ def _plays(v: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
-                           monotone: bool = False) -> PrandtlIshlinskii:
+                           monotone: bool = False, reach_V: float | None = None,
+                           smoothness: float = 0.0) -> PrandtlIshlinskii:
     """The classical Prandtl-Ishlinskii model of one axis's record.
 
     Parameters
@@ -92,12 +115,18 @@ def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
     v, w : array_like
         Voltage [V] and displacement [um], one sample each.
     n : int
-        Play operators besides the linear term.
+        Play operators besides the linear term, over half the record's span.
     monotone : bool
         The linear term and every weight non-negative (non-negative least squares):
         the model then rises with the voltage on every branch, keeps the wiping-out
         and congruency properties of its class, and has an exact inverse (``identify
         --class pi``); else plain least squares (the peer of the benchmarks).
+    reach_V : float or None
+        More operators at the same spacing, up to this threshold [V] (half the
+        amplifier's range); None: the ``n`` alone.
+    smoothness : float
+        The weights' first differences penalised, this times the operators' mean
+        column norm (monotone fits only; 0: none).
 
     Returns
     -------
@@ -110,17 +139,69 @@ def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
     span = float(np.ptp(v)) if v.size else 0.0
     if v.size < 10 or v.size != w.size or not span > 0:
         raise DataError("Prandtl-Ishlinskii: a record of >= 10 samples whose voltage moves")
-    r = np.arange(1, n + 1) * span / (2 * (n + 1))
-    X = np.column_stack([v, _plays(v, r), np.ones_like(v)])
+    step = span / (2 * (n + 1))
+    m = n if reach_V is None else int(min(max(n, reach_V // step), MAX_OPERATORS))
+    r = np.arange(1, m + 1) * step
+    plays = _plays(v, r)
+    X = np.column_stack([v, plays, np.ones_like(v)])
     if monotone:  # the constant free: +1 and -1 columns, both non-negative
         from scipy.optimize import nnls
-        coef, _ = nnls(np.column_stack([X, -np.ones_like(v)]), w)
+        A, b = np.column_stack([X, -np.ones_like(v)]), w
+        if smoothness > 0 and m > 1:
+            D = np.zeros((m - 1, A.shape[1]))
+            i = np.arange(m - 1)
+            D[i, 1 + i], D[i, 2 + i] = -1.0, 1.0
+            scale = np.sqrt(smoothness) * float(np.mean(np.linalg.norm(plays, axis=0)))
+            A, b = np.vstack([A, scale * D]), np.append(w, np.zeros(m - 1))
+        coef, _ = nnls(A, b, maxiter=50 * A.shape[1])
         theta = np.append(coef[:-2], coef[-2] - coef[-1])
     else:
         theta, *_ = np.linalg.lstsq(X, w, rcond=None)
     ops = PlayOperators.at_rest(r, theta[1:-1], float(v[0]))
     return PrandtlIshlinskii(float(theta[0]), ops, float(theta[-1]),
-                             time.perf_counter() - t0)
+                             time.perf_counter() - t0, float(smoothness) if monotone else 0.0)
+
+
+def fit_pi_class(v: ArrayLike, w: ArrayLike, reach_V: float | None = None,
+                 n: int = OPERATORS) -> PrandtlIshlinskii:
+    """The Prandtl-Ishlinskii class we identify (``identify --class pi``, the gap's
+    memory in its class form): non-negative weights, operators up to ``reach_V`` [V]
+    (half the amplifier's range; None: half the record's span, as the peer). Where they
+    reach past the record, the weights past it are free or follow a smooth density
+    (``SMOOTHNESS``), whichever, fitted on the record's first half, two thirds and three
+    quarters (``LATER_FROM``), predicts the rest better (summed RMS, offsets removed);
+    the whole record is then fitted so.
+
+    Parameters
+    ----------
+    v, w : array_like
+        Voltage [V] and displacement [um], one sample each.
+    reach_V : float or None
+        The largest threshold [V].
+    n : int
+        Operators over half the record's span.
+
+    Returns
+    -------
+    PrandtlIshlinskii
+        The fitted model (its ``smoothness`` the one chosen).
+    """
+    t0 = time.perf_counter()
+    v = np.ascontiguousarray(v, dtype=float)
+    w = np.asarray(w, dtype=float)
+    span = float(np.ptp(v)) if v.size else 0.0
+    smooth = 0.0
+    cuts = [int(f * v.size) for f in LATER_FROM]
+    if reach_V is not None and span > 0 and reach_V > span / 2 and v.size >= 30 and \
+            all(np.ptp(v[:k]) > 0 for k in cuts):
+        def later(s: float) -> float:
+            """The RMS of each first part's prediction of the rest, offset removed."""
+            return sum(float(np.std(fit_prandtl_ishlinskii(
+                v[:k], w[:k], n, True, reach_V, s).predict(v)[k:] - w[k:])) for k in cuts)
+        smooth = min(SMOOTHNESS, key=later)
+    pi = fit_prandtl_ishlinskii(v, w, n, True, reach_V, smooth)
+    return PrandtlIshlinskii(pi.linear_um_per_V, pi.operators, pi.offset_um,
+                             time.perf_counter() - t0, smooth)
 
 
 def held_out_rms(pred: ArrayLike, w: ArrayLike, fs_hz: float, skip_s: float = 1.0) -> float:
