@@ -473,25 +473,36 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
     assert (~real).sum() == 3
     t, v = run.t_ns[real], run.v_V[real]
     assert_never_beyond_slew(t, v)
-    # the feedforward's answers, target tick by target tick (a stall of the loop shows
-    # in the applied voltage, not here): after the model, no jump beyond what the
-    # trajectory itself asks per tick plus the 1 V a tick of the hand-over
+    # the feedforward's answers, target tick by target tick: after the model, no jump
+    # beyond what the trajectory itself asks per tick plus the 1 V a tick of the
+    # hand-over. A stall of the driver is not the hand-over: the feedforward's inverse
+    # is synced to the voltages really applied, so after a sample where the driver
+    # held its voltage (its commands late) the next answers jump by what the stage
+    # really did (7.1 V once at a reversal, after a 4 ms host stall: CI run 40 on
+    # f7c4be5). Those ticks and the five after each are not judged; held samples over
+    # 5 % of the ticks leave the test unjudged (a skip that says so, never a pass).
     from piezo_stage.io.bag import iter_messages
     from piezo_stage_msgs_adapters import reference_from_msg
-    ff_at = {}
+    ff_at, applied = {}, {}
     for topic, _, _, data in iter_messages(bag):
         if topic.endswith("/reference"):
-            ns, _, ffv, _, _ = reference_from_msg(data)
-            ff_at[ns] = (ffv["x"], ffv["y"])
+            ns, _, ffv, _, v_applied = reference_from_msg(data)
+            ff_at[ns], applied[ns] = (ffv["x"], ffv["y"]), (v_applied["x"], v_applied["y"])
     ks = np.array(sorted(ff_at))
     ffs = np.array([ff_at[k] for k in ks])
+    held = np.r_[False, np.all(np.diff([applied[k] for k in ks], axis=0) == 0, axis=1)]
+    near = np.convolve(held, np.ones(6), mode="full")[:ks.size] > 0  # and 5 after
     next_tick = np.diff(ks) == 1_000_000
     jump = np.abs(np.diff(ffs, axis=0)).max(axis=1)
     after = next_tick & (ks[1:] >= t_model) & (ks[1:] <= t_model + 1_000_000_000)
     before = next_tick & (ks[1:] >= t_model - 1_000_000_000) & (ks[1:] < t_model)
     assert after.sum() > 500 and before.sum() > 500
-    assert jump[after].max() <= jump[before].max() + 1.2, (jump[after].max(),
-                                                           jump[before].max())
+    if near[1:][after | before].mean() > 0.05:
+        pytest.skip(f"the driver held its voltage on {int(held.sum())} samples (its "
+                    "commands late): the hand-over cannot be judged in this run")
+    calm = ~near[1:]
+    assert jump[after & calm].max() <= jump[before & calm].max() + 1.2, (
+        jump[after & calm].max(), jump[before & calm].max())
 
 
 def _tracking_figures(run, span, over_um=0.3, apart_ms=3.0, trim=0.0025):
