@@ -43,6 +43,29 @@ def test_frames_before_the_handlers_are_python_s_own_and_any_later_one_is_not():
     assert not before_our_handlers("KeyboardInterrupt\n")  # no traceback: not this case
 
 
+def test_an_editable_installs_finder_run_by_site_is_start_up_too():
+    """CI run 44 (4466eeb): a SIGINT 0.11 s after the launcher's start landed in the
+    editable install's finder, which site imports from a .pth line (its file name holds
+    the package's name, but it is site-packages', not ours): "Fatal Python error:
+    init_import_site", exit 1, nothing of ours had run. Its frames, as printed there."""
+    site_packages = os.path.join(sys.prefix, "lib", "python3.11", "site-packages")
+    finder = os.path.join(site_packages, "__editable___piezo_stage_0_1_0_finder.py")
+    text = ("Fatal Python error: init_import_site: Failed to import the site module\n"
+            + _traceback(("<frozen importlib._bootstrap>", 1176, "_find_and_load"),
+                         ("<frozen site>", 186, "addpackage"), ("<string>", 1, "<module>"),
+                         (finder, 7, "<module>"),
+                         ("/usr/lib/python3.11/urllib/parse.py", 331, "<module>")))
+    assert before_our_handlers(text)
+    t = Trial("launcher", 0.11, signal.SIGINT, False, rc=1, stop_s=0.02, traceback=True,
+              text=text)
+    assert t.python_startup and t.ok
+    # the same stack reaching into one of our modules past its handlers is a miss
+    numpy_line = _line(NODE, "import numpy as np")
+    assert not before_our_handlers(text.replace(
+        'KeyboardInterrupt', f'  File "{NODE}", line {numpy_line}, in <module>\n    x\n'
+        'KeyboardInterrupt'))
+
+
 def test_a_sigint_during_site_ends_the_process_at_once_and_is_told_apart(tmp_path):
     """A sitecustomize that signals its own process stands for a SIGINT landing while
     site runs; a trial judged on that real output is Python's start-up, not a miss."""

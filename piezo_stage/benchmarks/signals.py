@@ -73,21 +73,25 @@ class Trial:
 
 
 _FRAME = re.compile(r'File "([^"]+)", line (\d+), in (\S+)')
+# the package's own files; the editable install's finder (site-packages'
+# ``__editable___piezo_stage_*_finder.py``, run by site from a .pth line) is start-up
+_PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
 
 
 def before_our_handlers(text: str) -> bool:
     """Whether ``text`` holds a KeyboardInterrupt traceback raised before the process's
     own handlers were in place: each of its frames is the interpreter's (runpy,
-    importlib, site) or one of ours on the way to the handlers (a package's
-    ``__init__``, the line of the entry module that imports them, that module's own
-    top level or its ``install``). A frame anywhere else means the handler missed."""
+    importlib, site and what site runs, such as an editable install's finder) or one
+    of ours on the way to the handlers (a package's ``__init__``, the line of the entry
+    module that imports them, that module's own top level or its ``install``). A frame
+    anywhere else in the package means the handler missed."""
     if "KeyboardInterrupt" not in text or "Traceback" not in text:
         return False
     frames = _FRAME.findall(text)
     if not frames:
         return False
     for path, line, func in frames:
-        if "piezo_stage" not in path:
+        if not (os.path.isabs(path) and path.startswith(_PACKAGE)):
             continue
         name = os.path.basename(path)
         if name in ("_signals.py", "stopping.py") and func in ("<module>", "install"):
