@@ -46,6 +46,71 @@ def lockstep(tmp_path, env, name, steps=400, nodes=None, overrides=None):
     return bag
 
 
+STALLED_STATE_READER = r"""
+import os, signal, rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from piezo_stage.nodes._common import QOS_EVENTS
+rclpy.init()
+node = rclpy.create_node("stalled_state_reader")
+got = []
+node.create_subscription(DiagnosticArray, "/stage/state", got.append, QOS_EVENTS)
+while not got:
+    rclpy.spin_once(node, timeout_sec=0.1)
+print("matched", flush=True)
+os.kill(os.getpid(), signal.SIGSTOP)  # every thread: its reader acknowledges nothing
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+def test_lockstep_sends_no_sample_before_every_reader_holds_the_state(env, capfd):
+    """A loop node that took a sample before the state announced ahead of it ran the
+    approach a tick late, and reruns differed (CI runs 27 and 48): in lockstep the
+    driver publishes no sample after a change announced ahead (the enable) until every
+    reader of ``state`` acknowledged it. Here an outside reader of ``state`` is stopped
+    (SIGSTOP) before the set is armed: the enable then waits out the bound (1 s) and
+    says so, and the set still arms."""
+    from ros_probe import Probe
+    o = {"stage_driver": {"seed": 3}, "feedforward": {"model_file": MODEL},
+         "trajectory": {"kind": "seed", "duration_s": 1.0}}
+    launch = Launch(STAGE, overrides=o, env=env, arm=False, exclusive=False,
+                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+    launch.start()
+    reader = subprocess.Popen([sys.executable, "-c", STALLED_STATE_READER], env=env,
+                              stdout=subprocess.PIPE, text=True)
+    probe = Probe(int(env["ROS_DOMAIN_ID"]))
+    try:
+        assert reader.stdout.readline().strip() == "matched"
+        for _ in range(100):
+            with open(f"/proc/{reader.pid}/stat") as fh:
+                if fh.read().rsplit(")", 1)[1].split()[0] == "T":
+                    break
+            time.sleep(0.05)
+        else:
+            pytest.fail("the outside reader did not stop")
+        t_end = time.monotonic() + 60
+        while True:  # refused until the loop closed (saying so)
+            t0 = time.monotonic()
+            if probe.arm(True).success:
+                break
+            assert t0 < t_end, probe.states[-3:]
+            probe.spin(0.2)
+        assert probe.wait_state("armed", 60)
+        took = time.monotonic() - t0
+        reader.send_signal(signal.SIGCONT)
+        assert reader.wait(30) == 0
+    finally:
+        if reader.poll() is None:
+            reader.send_signal(signal.SIGCONT)
+            reader.kill()
+        probe.close()
+        launch.stop()
+    err = capfd.readouterr().err
+    assert "a reader of state did not acknowledge it within 1 s; going on" in err, err[-3000:]
+    # the enable, announced ahead of its sample, waited out the bound for the stopped reader
+    assert took >= 1.0, took
+
+
 @pytest.mark.alone  # (a rerun compared byte for byte: see setup.cfg's markers)
 def test_lockstep_tracks_records_everything_and_is_deterministic(tmp_path, env, capfd):
     nodes = ["stage_driver", "feedforward", "controller", "trajectory"]

@@ -61,6 +61,8 @@ from piezo_stage_msgs_adapters import (
     voltage_from_msg,
 )
 
+STATE_ACK_S = 1.0  # lockstep: the longest wait for the state's readers (see _announce)
+
 SUCCESS, FAILURE, ERROR = (TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE,
                            TransitionCallbackReturn.ERROR)
 
@@ -372,6 +374,19 @@ class StageDriver(LifecycleNode):
         name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}: arming"
         self.spub.publish(arming_state_msg(self.state_since, name, state, reason, values,
                                            self.hardware_id()))
+        # lockstep, a change announced ahead of the sample it applies at (the enable):
+        # no sample goes out before every reader holds it. Sent first is not received
+        # first: a state lost on the way (a full shared-memory queue on a busy host) is
+        # repaired only after the next heartbeat, and a loop node that took its samples
+        # meanwhile started the approach late (CI runs 27 and 48: a tick late, reruns no
+        # longer identical). A change that applies at once (a disarm, a fault) cannot
+        # be known ahead by anyone, and a lockstep run has none it did not ask for.
+        ahead = self.loop is not None and self.state_since > self.loop.stamp(self.loop.j)
+        if self.lock and ahead and not self.spub.wait_for_all_acked(
+                Duration(seconds=STATE_ACK_S)):
+            self.get_logger().warning(f"{state}: a reader of state did not acknowledge it "
+                                      f"within {STATE_ACK_S:g} s; going on",
+                                      throttle_duration_sec=10.0)
         if log and state == "faulted":  # (one call site per severity: rclpy's rule)
             self.get_logger().warning(f"{state}: {reason}")
         elif log:
