@@ -204,6 +204,28 @@ def test_a_wave_played_on_the_controller_clock_is_recorded_as_the_sim_gives_it(c
     b.close(0.0, 1e5)
 
 
+def test_a_slow_upload_is_not_a_lost_link(tmp_path):
+    """CI run 52: one of the 3,620 checked WAV commands of a 181,000-point upload was
+    answered after 0.2 s (the loop's pi_timeout_s) on a loaded host, and `play` said the
+    link was lost. The upload is not the loop: here each WAV command's points take
+    0.3 s to store, and the wave plays and is recorded."""
+    d = PIControllerDouble(clock="virtual", wave_store_s=0.3)
+    b = backend(d, pi_timeout_s=0.2)
+    fs = 2000.0
+    t = np.arange(0, 0.1, 1 / fs)  # 200 points: 2 WAV commands per axis
+    vx = vy = 5 + 5 * np.sin(2 * np.pi * 10 * t)
+    try:
+        applied, _ = b.play(vx, vy, fs, 1e5)
+        # the loop's own timeout is back: a lost link still shows within it
+        assert b.dev.timeout == 200
+    finally:
+        b.close(0.0, 1e5)
+        d.close()
+    np.testing.assert_allclose(applied["x"], vx, atol=1e-5)
+    assert sum(c.startswith("WAV ") for c in d.commands) == 4
+    assert not d.unmodelled, d.unmodelled
+
+
 def test_play_refuses_a_wave_beyond_the_limits_before_sending_anything(tmp_path,
                                                                       controller):
     wave = tmp_path / "wave.csv"

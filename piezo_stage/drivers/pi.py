@@ -47,6 +47,7 @@ SERVO_UPDATE_TIME = 0x0E000200  # the controller parameter: servo cycle [s]
 RECORD_POSITION, RECORD_VOLTAGE = 2, 7  # data recorder options: actual position of
 # axis, piezo voltage of output (pipython's RecordOptions ACTUAL_POSITION_2 and
 # PIEZO_VOLTAGE_7)
+PLAY_TIMEOUT_MS = 5000  # play: the answer timeout of the upload, the wave and the read-back
 WAV_BUNCH = 100  # wave points per WAV command (as pipython's writewavepoints bunches)
 
 
@@ -208,6 +209,11 @@ class PiBackend:
                   3: (self.axes[0], RECORD_VOLTAGE), 4: (self.axes[1], RECORD_VOLTAGE)}
         try:
             self.ramp_to({"x": float(vx[0]), "y": float(vy[0])}, ramp_V_per_s)
+            # the upload and the wave are not the loop: each answer may take its time
+            # (pi_timeout_s bounds the streamed loop's; a 181,000-point upload is 3,620
+            # WAV commands, each checked, and one answer past 0.2 s on a loaded host
+            # failed the upload once, CI run 52)
+            self.dev.timeout = max(self.timeout_ms, PLAY_TIMEOUT_MS)
             for g, wave in zip(gens, (vx, vy)):
                 for k in range(0, wave.size, WAV_BUNCH):
                     part = [float(x) for x in wave[k:k + WAV_BUNCH]]
@@ -219,7 +225,6 @@ class PiBackend:
                          [o for _, o in tables.values()])
             self.dev.RTR(rate)
             self.dev.WGO(gens, [1, 1])  # both axes in one command: one start
-            self.dev.timeout = max(self.timeout_ms, 5000)
             end = time.monotonic() + vx.size / fs_hz + 10.0
             while any(self.dev.qWGO(gens).values()):
                 if time.monotonic() > end:

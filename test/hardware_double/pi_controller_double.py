@@ -24,8 +24,11 @@ there, so a call we make that the double does not know fails loudly, naming it.
 Time: the servo cycle is ``servo_s`` (100 us here: the plant's own rate; an E-727's is
 50 us). With ``clock="wall"`` the stage advances with the wall clock between commands
 (the streamed loop) and a wave takes its real duration; ``clock="virtual"`` completes
-a wave at once (fast tests). Faults on demand: ``drop()`` closes every connection (a
-pulled cable), ``set_error(code)`` makes the next ``ERR?`` report a controller error.
+a wave at once (fast tests). ``wave_store_s``: the time a ``WAV`` command's points take
+to store before the next line is read (a loaded host, or a controller writing its wave
+table), so the ``ERR?`` after it answers that much later. Faults on demand: ``drop()``
+closes every connection (a pulled cable), ``set_error(code)`` makes the next ``ERR?``
+report a controller error.
 """
 
 from __future__ import annotations
@@ -50,11 +53,12 @@ class PIControllerDouble:
 
     def __init__(self, plant_config: str = "", clock: str = "wall", servo_s: float = 1e-4,
                  recorder_points: int = 262144, seed: int | None = None,
-                 gcs: str = "2.0000"):
+                 gcs: str = "2.0000", wave_store_s: float = 0.0):
         cfg = load_plant_config(plant_config or default_plant_config_path())
         if seed is not None:
             cfg.seed = seed
         self.servo_s, self.clock, self.gcs = servo_s, clock, gcs
+        self.wave_store_s = float(wave_store_s)
         self.plant = Plant(cfg, 1.0 / servo_s)
         self.recorder_points = recorder_points
         self.servo = {a: True for a in AXES}     # an E-727 starts in closed loop
@@ -105,6 +109,8 @@ class PIControllerDouble:
                 line, buf = buf.split(b"\n", 1)
                 with self.lock:
                     answer = self.handle(line.decode("cp1252").strip())
+                if self.wave_store_s and line.startswith(b"WAV"):
+                    time.sleep(self.wave_store_s)  # storing the points: the next line waits
                 if answer:
                     try:
                         conn.sendall(answer.encode("cp1252"))
