@@ -148,10 +148,11 @@ def test_fit_here_use_there_every_written_model_runs_and_memory_beats_the_peer()
     through our simulator on the held-out excitation, never worse than the base
     model; fitted on a
     constant-amplitude calibration and used on nested minor loops, that model (with its
-    play operators) beats the classical Prandtl-Ishlinskii peer by the issue's margin
-    (<= 0.8 x); used on a larger stroke than fitted, memory as the Prandtl-Ishlinskii
-    class carries further than the peer (the Duhem law alone: 2.2 x). The same on the
-    Rayleigh stage. Our exact inverse of each written model gives the voltages back."""
+    memory) beats the classical Prandtl-Ishlinskii peer by the issue's margin
+    (<= 0.8 x); used on a larger stroke than fitted, memory as a class of its own
+    carries further than the peer by that margin too (the Duhem law alone: 2.2 x),
+    on the structure stage, ours and the Rayleigh stage. Our exact inverse of each
+    written model gives the voltages back."""
     from piezo_stage.apps.studies import conditions
     pairs = [p for p in conditions.PAIRS if p[1] != "two-rate->fast"]  # (the next test's)
     rows = {(r["stage"], r["case"]): r for r in conditions.run(pairs)}
@@ -161,13 +162,18 @@ def test_fit_here_use_there_every_written_model_runs_and_memory_beats_the_peer()
         assert r["own_fit_um"] < 0.2, r  # the class fits each record itself
     for r in rows.values():  # never worse than the base model (identify's)
         assert r["gap_model_um"] <= 1.02 * r["ours_um"] + 1e-3, r
-    # a larger stroke than fitted: memory as the Prandtl-Ishlinskii class (its branches
-    # continue along its operators' lines, not straight from a polynomial's end; its
-    # thresholds reach half the amplifier's range: 0.87 x the peer here, 0.08 x on the
-    # Rayleigh stage, whose loop keeps widening with the stroke)
-    large = rows[("structure", "small->large")]
-    assert large["verdict"] == "memory", large
-    assert large["gap_model_um"] <= 0.92 * large["peer_um"] < 0.6 * large["ours_um"], large
+    # a larger stroke than fitted: memory as a class with memory in place of the Duhem
+    # law (its branches continue along its operators' lines, not straight from a
+    # polynomial's end; its thresholds reach half the amplifier's range): the Preisach
+    # class, whose density varies along the stroke, 0.62 x the peer here and 0.35 x on
+    # our own stage (2026-11-27; the Prandtl-Ishlinskii class alone: 0.87 x and not
+    # named), the Prandtl-Ishlinskii class 0.08 x on the Rayleigh stage, whose loop
+    # keeps widening with the stroke
+    for stage in ("structure", "ours"):
+        large = rows[(stage, "small->large")]
+        assert large["verdict"] == "memory", large
+        assert large["gap_model_um"] <= 0.8 * large["peer_um"] < 0.8 * large["ours_um"], \
+            large
     rayleigh = rows[("rayleigh", "small->large")]
     assert rayleigh["verdict"] == "memory", rayleigh
     assert rayleigh["gap_model_um"] <= 0.2 * rayleigh["peer_um"], rayleigh
@@ -178,10 +184,16 @@ def test_fit_here_use_there_every_written_model_runs_and_memory_beats_the_peer()
     assert nested["verdict"] == "memory", nested
     assert nested["gap_model_um"] <= nested["peer_um"], nested
     nested = rows[("structure", "periodic->nested")]
-    assert nested["verdict"] == "memory"  # the play operators are what carries over
-    assert nested["gap_model_um"] <= 0.8 * nested["peer_um"], nested
+    assert nested["verdict"] == "memory"  # the class's memory is what carries over
+    assert nested["gap_model_um"] <= 0.5 * nested["peer_um"], nested  # 0.32 x
     same = rows[("structure", "periodic->periodic")]
     assert same["gap_model_um"] <= same["peer_um"], same
+    # where both are near the sensor's noise (0.1 um) the RMS ratio is near 1 whatever
+    # they do: above the noise, 0.71 x and 0.27 x (2026-11-27)
+    for key in (("structure", "slow->fast"), ("rayleigh", "periodic->nested")):
+        r = rows[key]
+        ours = conditions.above_noise(r["gap_model_um"], r["noise_um"])
+        assert ours <= 0.8 * conditions.above_noise(r["peer_um"], r["noise_um"]), r
     # our own stage: the same conditions are the noise
     assert rows[("ours", "periodic->periodic")]["ours_um"] < 0.12
 
@@ -430,11 +442,12 @@ def test_any_input_units_identify_and_run_through_the_written_model(tmp_path, un
 
 
 def test_identify_class_pi_carries_memory_to_nested_loops_and_inverts_exactly(tmp_path):
-    """`identify --class pi` on the structure stage's constant-amplitude calibration: a
-    Prandtl-Ishlinskii model (non-negative weights) written as a model file our
-    simulate and invert take; on nested minor loops it predicts far better than the
-    Duhem law fitted on the same record, and its exact inverse gives the voltages back.
-    `--class auto` says per axis which class it chose and why."""
+    """`identify --class pi` and `--class preisach` on the structure stage's
+    constant-amplitude calibration: a Prandtl-Ishlinskii model and a discretized
+    Preisach model (non-negative weights) written as model files our simulate and
+    invert take; on nested minor loops they predict far better than the Duhem law
+    fitted on the same record (Preisach better still), and their exact inverses give
+    the voltages back. `--class auto` says per axis which class it chose and why."""
     from piezo_stage.apps.studies import conditions
     from piezo_stage.io.csv_table import read_table, write_table
 
@@ -449,7 +462,7 @@ def test_identify_class_pi_carries_memory_to_nested_loops_and_inverts_exactly(tm
     write_table(tmp_path / "hold_v.csv", {"t": hold.t, "vx": hold.v["x"],
                                           "vy": hold.v["x"]})
     held = {}
-    for cls in ("duhem", "pi"):
+    for cls in ("duhem", "pi", "preisach"):
         r = cli("identify", tmp_path / "fit.csv", "--class", cls, "--coupling", "off",
                 "--out", tmp_path / f"{cls}.yaml")
         assert r.returncode == 0, r.stderr[-1500:]
@@ -459,13 +472,18 @@ def test_identify_class_pi_carries_memory_to_nested_loops_and_inverts_exactly(tm
         w = read_table(tmp_path / f"{cls}_w.csv", ("t", "wx"))["wx"]
         held[cls] = held_out_rms(w, hold.w["x"], 1000.0)
     assert held["pi"] <= 0.5 * held["duhem"], held  # 0.58 against 2.2 um when written
-    out = read_table(tmp_path / "pi_w.csv", ("t", "wx", "wy"))
-    write_table(tmp_path / "target.csv", {"t": out["t"], "wx": out["wx"], "wy": out["wy"]})
-    r = cli("invert", "--model", tmp_path / "pi.yaml", "--in", tmp_path / "target.csv",
-            "--out", tmp_path / "v.csv")
-    assert r.returncode == 0, r.stderr[-1500:]
-    v = read_table(tmp_path / "v.csv", ("t", "vx"))["vx"]
-    assert np.max(np.abs(v - hold.v["x"])) < 1e-6
+    # the Preisach class's density varies along the stroke as the tanh envelope does
+    assert held["preisach"] <= 0.6 * held["pi"], held
+    for cls in ("pi", "preisach"):
+        out = read_table(tmp_path / f"{cls}_w.csv", ("t", "wx", "wy"))
+        write_table(tmp_path / "target.csv", {"t": out["t"], "wx": out["wx"],
+                                              "wy": out["wy"]})
+        r = cli("invert", "--model", tmp_path / f"{cls}.yaml", "--in",
+                tmp_path / "target.csv", "--out", tmp_path / "v.csv")
+        assert r.returncode == 0, r.stderr[-1500:]
+        v = read_table(tmp_path / "v.csv", ("t", "vx"))["vx"]
+        assert np.max(np.abs(v - hold.v["x"])) < 1e-6, cls
     r = cli("identify", tmp_path / "fit.csv", "--class", "auto", "--coupling", "off")
     assert r.returncode == 0, r.stderr[-1500:]
-    assert "class x: " in r.stdout and "class y: " in r.stdout and "pi " in r.stdout
+    assert "class x: " in r.stdout and "class y: " in r.stdout
+    assert "pi " in r.stdout and "preisach " in r.stdout

@@ -202,6 +202,14 @@ def test_echoed_text_is_escaped_and_cut(tmp_path):
     ({"thresholds_V": [0, 10], "weights_um_per_V": [1e4, 1e4]}, "weights sum"),
     ({"thresholds_V": [0, 10]}, "missing weights_um_per_V"),
     ({"thresholds_V": [0], "weights_um_per_V": [0.1], "start": 1}, "unknown key"),
+    ({"thresholds_V": [0, 10], "weights_um_per_V": [0.1, 0.1], "bands_V": [[0, 50]]},
+     "one \\[low, high\\] pair per operator"),
+    ({"thresholds_V": [0, 10], "weights_um_per_V": [0.1, 0.1],
+      "bands_V": [[0, 50], [60, 60]]}, "low < high"),
+    ({"thresholds_V": [0, 10], "weights_um_per_V": [0.1, 0.1],
+      "bands_V": [[0, 50], [0, 50, 70]]}, "pair per operator"),
+    ({"thresholds_V": [0, 10], "weights_um_per_V": [0.1, 0.1],
+      "bands_V": [[0, 50], [0, "x"]]}, "bands_V\\[1\\]"),
 ])
 def test_play_operators_in_a_model_file_are_checked(plays, why):
     """A model file's play operators (return-point memory) round-trip through the
@@ -218,6 +226,12 @@ def test_play_operators_in_a_model_file_are_checked(plays, why):
     assert list(p.initial_V) == [model.axes["x"].initial.v] * 2  # at rest by default
     again, _ = model_from_dict(yaml.safe_load(yaml.safe_dump(model_to_dict(model))))
     assert again.plays == model.plays and "y" not in again.plays
+    # banded operators (a discretized Preisach law) keep their bands
+    doc["axes"]["x"]["play_operators"]["bands_V"] = [[0.0, 50.0], [20.0, 40.0]]
+    model, _ = model_from_dict(doc)
+    again, _ = model_from_dict(yaml.safe_load(yaml.safe_dump(model_to_dict(model))))
+    assert again.plays == model.plays and again.plays["x"].banded
+    assert again.plays["x"].table[1:].tolist() == [[0.0, 20.0], [50.0, 40.0]]
     doc["axes"]["x"]["play_operators"] = plays
     with pytest.raises(ModelError, match=why):
         model_from_dict(doc)

@@ -226,6 +226,27 @@ def test_a_slow_upload_is_not_a_lost_link(tmp_path):
     assert not d.unmodelled, d.unmodelled
 
 
+def test_a_slow_answer_after_the_record_is_not_a_lost_link():
+    """The full suite, run locally beside the CI runs' hold (2026-11-27): after a
+    181,000-point record was read back, the outputs' query (SVA?) was answered after
+    the loop's 0.2 s, and `play` failed with pipython's timeout. The read-back is part
+    of the play: here the line after the record waits 0.3 s, and the play ends and
+    returns the record."""
+    d = PIControllerDouble(clock="virtual", after_record_s=0.3)
+    b = backend(d, pi_timeout_s=0.2)
+    fs = 2000.0
+    t = np.arange(0, 0.1, 1 / fs)
+    vx = vy = 5 + 5 * np.sin(2 * np.pi * 10 * t)
+    try:
+        applied, _ = b.play(vx, vy, fs, 1e5)
+        assert b.dev.timeout == 200
+    finally:
+        b.close(0.0, 1e5)
+        d.close()
+    np.testing.assert_allclose(applied["x"], vx, atol=1e-5)
+    assert not d.unmodelled, d.unmodelled
+
+
 def test_play_refuses_a_wave_beyond_the_limits_before_sending_anything(tmp_path,
                                                                       controller):
     wave = tmp_path / "wave.csv"

@@ -87,8 +87,9 @@ def bench_identify():
 
 
 def _pi_on(pi, fit, hold):
-    """The PI peer over HOLDOUT, its operators' state carried from FIT (HOLDOUT is cut
-    from the same run, as ours and the sparse peer are given it)."""
+    """The PI peer (or a class with memory) over HOLDOUT, its operators' state carried
+    from FIT (HOLDOUT is cut from the same run, as ours and the sparse peer are given
+    it)."""
     import numpy as np
     v = np.concatenate([fit.v["x"], hold.v["x"]])
     return pi.predict(v)[fit.v["x"].size:]
@@ -109,7 +110,11 @@ def _bench_sparse_peer():
     from piezo_stage.core.estimation.gap import fit_candidate
     from piezo_stage.core.estimation.identify import identify_axis
     from piezo_stage.core.estimation.identify.api import predict_axis
-    from piezo_stage.core.estimation.identify.prandtl import fit_prandtl_ishlinskii
+    from piezo_stage.core.estimation.identify.prandtl import (
+        fit_pi_class,
+        fit_prandtl_ishlinskii,
+    )
+    from piezo_stage.core.estimation.identify.preisach import fit_preisach_class
 
     def rms(e):
         return float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else float("nan")
@@ -130,6 +135,12 @@ def _bench_sparse_peer():
         mem_s = time.perf_counter() - t0
         rows.append(("ours, memory (degree 5 + 16 play operators)", mem_s,
                      mem.predict(hold, "x")))
+        for name, fit_class in (("ours, Prandtl-Ishlinskii class (--class pi)",
+                                 fit_pi_class),
+                                ("ours, Preisach class (--class preisach)",
+                                 fit_preisach_class)):
+            cls = fit_class(fit.v["x"], fit.w["x"], reach_V=75.0)
+            rows.append((name, cls.fit_s, _pi_on(cls, fit, hold)))
         pi = fit_prandtl_ishlinskii(fit.v["x"], fit.w["x"])
         rows.append(("peer, classical Prandtl-Ishlinskii (linear + 12 plays)", pi.fit_s,
                      _pi_on(pi, fit, hold)))

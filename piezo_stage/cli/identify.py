@@ -14,11 +14,14 @@ def add_arguments(s):
     s.add_argument("data", help="record: CSV (t,vx,vy,wx,wy or one axis) or a bag")
     s.add_argument("--axis", choices=("x", "y", "both"), default="both")
     s.add_argument("--method", choices=("fast", "afsa", "afsa-bat"), default="fast")
-    s.add_argument("--class", dest="model_class", choices=("duhem", "pi", "auto"),
+    s.add_argument("--class", dest="model_class",
+                   choices=("duhem", "pi", "preisach", "auto"),
                    default="duhem", help="the hysteresis model class: duhem (the paper's "
                    "law), pi (Prandtl-Ishlinskii: a linear term and 12 play operators with "
-                   "non-negative weights, return-point memory, exact inverse), or auto (the "
-                   "one that predicts the record's own last 40 %% best, said per axis)")
+                   "non-negative weights, return-point memory, exact inverse), preisach (a "
+                   "discretized Preisach law: its density varies along the stroke too), or "
+                   "auto (the one that predicts the record's own last 40 %% best, said per "
+                   "axis)")
     g = s.add_mutually_exclusive_group()
     g.add_argument("--whole", action="store_true", help="one parameter set for both branches")
     g.add_argument("--segmented", action="store_true", help="a set per branch (default)")
@@ -79,7 +82,7 @@ def main(args):
             classes[a], held = choose_class(rec, a, opts, args.limits)
             print(f"class {a}: {classes[a]} (held-out RMS on the record's last 40 %: "
                   + ", ".join(f"{k} {e:.4f} um" for k, e in held.items()) + ")")
-    pi_axes = [a for a in axes if classes[a] == "pi"]
+    pi_axes = {a: classes[a] for a in axes if classes[a] in ("pi", "preisach")}
     axes = [a for a in axes if classes[a] == "duhem"]
     chosen = {}
     if args.structure == "auto":
@@ -151,20 +154,24 @@ def _pi_output(pi, rec, a):
 
 
 def _fit_pi(rec, axes, val, report, limits) -> dict:
-    """The Prandtl-Ishlinskii class on ``axes``: monotone weights (non-negative least
-    squares), thresholds up to half the amplifier's range (``limits``, else 0-150 V
-    widened to the record's); one table row each, into ``report`` too. -> {axis:
-    PrandtlIshlinskii}."""
+    """The classes with memory on ``axes`` ({axis: 'pi' or 'preisach'}): the
+    Prandtl-Ishlinskii class or the discretized Preisach class, monotone weights
+    (non-negative least squares), thresholds up to half the amplifier's range
+    (``limits``, else 0-150 V widened to the record's); one table row each, into
+    ``report`` too. -> {axis: PrandtlIshlinskii (banded operators for Preisach)}."""
     from piezo_stage.core.estimation.identify.prandtl import fit_pi_class, held_out_rms
+    from piezo_stage.core.estimation.identify.preisach import fit_preisach_class
     from piezo_stage.core.metrics import noise_floor
     from piezo_stage.core.model.duhem import voltage_limits_for
     lo, hi = voltage_limits_for(list(rec.v.values()), limits)
     out = {}
-    for a in axes:
-        pi = fit_pi_class(rec.v[a], rec.w[a], reach_V=(hi - lo) / 2)
+    for a, kind in axes.items():
+        fit = fit_preisach_class if kind == "preisach" else fit_pi_class
+        pi = fit(rec.v[a], rec.w[a], reach_V=(hi - lo) / 2)
         out[a] = pi
         e = rec.w[a] - _pi_output(pi, rec, a)
-        j = {"class": "pi", "method": "nnls", "structure": "plays",
+        j = {"class": kind, "method": "nnls",
+             "structure": "cells" if kind == "preisach" else "plays",
              "fit_rms_um": float(np.sqrt(np.mean(e ** 2))),
              "max_err_um": float(np.max(np.abs(e))),
              "noise_floor_um": noise_floor(rec.w[a]), "seconds": pi.fit_s,
@@ -175,7 +182,7 @@ def _fit_pi(rec, axes, val, report, limits) -> dict:
         if val is not None:
             j["validate_rms_um"] = held_out_rms(pi.predict(val.v[a]), val.w[a], val.fs_hz, 0.0)
         report[a] = j
-        print(f"{a:>4} {'pi':>8} {'plays':>9} {j['fit_rms_um']:10.4f} {'':>8} "
+        print(f"{a:>4} {kind:>8} {j['structure']:>9} {j['fit_rms_um']:10.4f} {'':>8} "
               f"{j['max_err_um']:10.4f} {j['noise_floor_um']:8.4f} "
               f"{j.get('validate_rms_um', float('nan')):10.4f} {'':>8} {'':>7} "
               f"{j['seconds']:7.2f}")

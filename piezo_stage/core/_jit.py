@@ -188,12 +188,21 @@ def play_clamp(vk: float, r: float, z: float) -> float:
 
 
 @njit
+def band(z: float, lo: float, hi: float) -> float:
+    """A play operator's output: its state ``z`` clipped to its band [lo, hi] (a
+    discretized Preisach law's cell; +-inf for a plain play operator)."""
+    return lo if z < lo else (hi if z > hi else z)
+
+
+@njit
 def play_sum(vk: float, r: F64, p: F64, z: F64, widen: float = 0.0) -> float:
-    """The operators' sum_j p_j z_j [um] after voltage ``vk`` from state ``z`` (left
-    as it is); every threshold widened by ``widen`` [V] (a rate-dependent law)."""
+    """The operators' sum_j p_j band_j(z_j) [um] after voltage ``vk`` from state ``z``
+    (left as it is); ``r`` the operators' table (3, n): thresholds, band lows, band
+    highs (core/model/play.py's ``table``); every threshold widened by ``widen`` [V]
+    (a rate-dependent law)."""
     s = 0.0
-    for j in range(r.shape[0]):
-        s += p[j] * play_clamp(vk, r[j] + widen, z[j])
+    for j in range(r.shape[1]):
+        s += p[j] * band(play_clamp(vk, r[0, j] + widen, z[j]), r[1, j], r[2, j])
     return s
 
 
@@ -201,9 +210,9 @@ def play_sum(vk: float, r: F64, p: F64, z: F64, widen: float = 0.0) -> float:
 def play_advance(vk: float, r: F64, p: F64, z: F64, widen: float = 0.0) -> float:
     """``play_sum``, with the state ``z`` moved to voltage ``vk``."""
     s = 0.0
-    for j in range(r.shape[0]):
-        z[j] = play_clamp(vk, r[j] + widen, z[j])
-        s += p[j] * z[j]
+    for j in range(r.shape[1]):
+        z[j] = play_clamp(vk, r[0, j] + widen, z[j])
+        s += p[j] * band(z[j], r[1, j], r[2, j])
     return s
 
 
@@ -219,8 +228,8 @@ def rate_widen(vk: float, vp: float, rate: F64) -> float:
 
 @njit
 def play_run(v: F64, r: F64, p: F64, z: F64, out: F64) -> None:
-    """Play operators (thresholds ``r``, weights ``p``, state ``z``, updated in place)
-    over ``v`` [V]; writes sum_j p_j z_j [um] per sample into ``out``."""
+    """Play operators (table ``r``: see ``play_sum``; weights ``p``, state ``z``,
+    updated in place) over ``v`` [V]; writes their sum [um] per sample into ``out``."""
     for k in range(v.shape[0]):
         out[k] = play_advance(v[k], r, p, z)
 
@@ -233,17 +242,13 @@ def play_run_rate(v: F64, state: F64, dt: float, beta: float, smooth: float, r: 
     et al. has it) over ``v`` [V], ``dt`` [s] apart; |dv/dt| low-passed (``smooth``:
     the filter's coefficient per sample; an amplifier's held steps are one rate, not a
     spike and zeros); ``state`` = [the voltage before, the filtered rate], updated, as
-    ``z``; writes sum_j p_j z_j [um] per sample into ``out``."""
+    ``z``; ``r`` the operators' table (see ``play_sum``); writes their sum [um] per
+    sample into ``out``."""
     v_prev, rate = state[0], state[1]
     for k in range(v.shape[0]):
         rate += smooth * (abs(v[k] - v_prev) / dt - rate)
         v_prev = v[k]
-        widen = beta * rate
-        s = 0.0
-        for j in range(r.shape[0]):
-            z[j] = play_clamp(v[k], r[j] + widen, z[j])
-            s += p[j] * z[j]
-        out[k] = s
+        out[k] = play_advance(v[k], r, p, z, beta * rate)
     state[0], state[1] = v_prev, rate
 
 
@@ -315,8 +320,8 @@ def inverse_one(wt: float, v_prev: float, w_prev: float, alpha: F64, H: F64, v_m
                 v_max: float, n_scan: int, r: F64, p: F64,
                 z: F64, q: F64) -> tuple[float, float, bool]:
     """Exact inverse for one sample: (v, Duhem w after v, saturated) from (v_prev,
-    w_prev) and the play operators' state ``z`` (thresholds ``r``, weights ``p``; empty
-    for none; ``q`` their rate widening, see ``rate_widen``), which is left as it is:
+    w_prev) and the play operators' state ``z`` (table ``r``, see ``play_sum``; weights
+    ``p``; empty for none; ``q`` their rate widening, see ``rate_widen``), which is left as it is:
     the caller advances it with the voltage used.
 
     Picks the branch by the sign of the requested change, finds the voltage nearest to
@@ -373,8 +378,8 @@ def stage_sync(vx: float, vy: float, vp: F64, wp: F64, alpha: F64, H: F64, cvp: 
                cwp: F64, calpha: F64, cH: F64, pr: F64, pp: F64, pz: F64,
                pq: F64) -> None:
     """Advance a 2-axis model (direct part, play operators, coupling) by the applied
-    voltages (``pr``, ``pp``, ``pz``: the operators' thresholds, weights and state per
-    axis, shape (2, P), zero weights as padding; ``pq``: their rate widening per axis,
+    voltages (``pr``, ``pp``, ``pz``: the operators' tables (2, 3, P), weights and state
+    (2, P) per axis, zero weights as padding; ``pq``: their rate widening per axis,
     shape (2, 3), see ``rate_widen``)."""
     for a in range(2):
         va = vx if a == 0 else vy

@@ -234,13 +234,16 @@ class PiBackend:
             while self.dev.bufstate is not True:
                 time.sleep(0.01)
             cols = self.dev.bufdata
+            # the outputs the wave left, still within the play's timeout: the host may
+            # still be busy with the record just read (CI run 59's full suite, locally:
+            # this answer came after 0.2 s following a 181,000-point record)
+            ov = self.dev.qSVA(self.axes)
         except GCSError as e:
             raise BackendFault(self._fault_text(e)) from None
         except OSError as e:
             raise BackendFault(self._fault_text(e)) from None
         finally:
             self.dev.timeout = self.timeout_ms
-        ov = self.dev.qSVA(self.axes)
         self.v = {"x": float(ov[self.axes[0]]), "y": float(ov[self.axes[1]])}
         self.ramp_to({"x": self.safe_V, "y": self.safe_V}, ramp_V_per_s)
         n = min(len(c) for c in cols)

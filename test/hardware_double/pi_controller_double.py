@@ -26,7 +26,9 @@ Time: the servo cycle is ``servo_s`` (100 us here: the plant's own rate; an E-72
 (the streamed loop) and a wave takes its real duration; ``clock="virtual"`` completes
 a wave at once (fast tests). ``wave_store_s``: the time a ``WAV`` command's points take
 to store before the next line is read (a loaded host, or a controller writing its wave
-table), so the ``ERR?`` after it answers that much later. Faults on demand: ``drop()``
+table), so the ``ERR?`` after it answers that much later. ``after_record_s``: the time
+the first ``SVA?`` after a ``DRR?`` waits (a host still busy with the record it sent). Faults on
+demand: ``drop()``
 closes every connection (a pulled cable), ``set_error(code)`` makes the next ``ERR?``
 report a controller error.
 """
@@ -53,12 +55,15 @@ class PIControllerDouble:
 
     def __init__(self, plant_config: str = "", clock: str = "wall", servo_s: float = 1e-4,
                  recorder_points: int = 262144, seed: int | None = None,
-                 gcs: str = "2.0000", wave_store_s: float = 0.0):
+                 gcs: str = "2.0000", wave_store_s: float = 0.0,
+                 after_record_s: float = 0.0):
         cfg = load_plant_config(plant_config or default_plant_config_path())
         if seed is not None:
             cfg.seed = seed
         self.servo_s, self.clock, self.gcs = servo_s, clock, gcs
         self.wave_store_s = float(wave_store_s)
+        self.after_record_s = float(after_record_s)
+        self._busy_after_record = False
         self.plant = Plant(cfg, 1.0 / servo_s)
         self.recorder_points = recorder_points
         self.servo = {a: True for a in AXES}     # an E-727 starts in closed loop
@@ -107,6 +112,11 @@ class PIControllerDouble:
             buf += data
             while b"\n" in buf:
                 line, buf = buf.split(b"\n", 1)
+                if self._busy_after_record and line.startswith(b"SVA?"):
+                    self._busy_after_record = False  # busy with the record: it waits
+                    time.sleep(self.after_record_s)
+                if self.after_record_s and line.startswith(b"DRR?"):
+                    self._busy_after_record = True
                 with self.lock:
                     answer = self.handle(line.decode("cp1252").strip())
                 if self.wave_store_s and line.startswith(b"WAV"):

@@ -66,7 +66,7 @@ class InverseResult:
         return int(np.count_nonzero(self.saturated))
 
 
-_NO_PLAYS = (np.zeros(0), np.zeros(0))
+_NO_PLAYS = (np.zeros((3, 0)), np.zeros(0))
 
 
 def invert(model: DuhemModel, w_target: ArrayLike, v_limits: tuple[float, float] = (0.0, 150.0),
@@ -83,7 +83,7 @@ def invert(model: DuhemModel, w_target: ArrayLike, v_limits: tuple[float, float]
         raise DataError("target displacement has NaN or inf")
     st = state or model.initial
     alpha, H = model.kernel_params()
-    r, p = (plays.thresholds_V, plays.weights_um_per_V) if plays is not None else _NO_PLAYS
+    r, p = (plays.table, plays.weights_um_per_V) if plays is not None else _NO_PLAYS
     z = play_state if play_state is not None else (
         plays.state() if plays is not None else np.zeros(0))
     q = plays.widening(dt_s, rate_state) if plays is not None else np.zeros(3)
@@ -203,13 +203,14 @@ class StageInverse:
         self._cH = np.zeros((2, 2, Dc))
         for i, k in enumerate(ckp):
             self._cH[i, :, :k[1].shape[1]] = k[1]
-        # play operators per axis, padded with zero weights to one length
+        # play operators per axis (their tables, weights), padded with zero weights to
+        # one length
         P = max([p.thresholds_V.size for p in model.plays.values()] or [0])
-        self._pr, self._pp = np.zeros((2, P)), np.zeros((2, P))
+        self._pr, self._pp = np.zeros((2, 3, P)), np.zeros((2, P))
         for i, a in enumerate(AXES):
             if a in model.plays:
                 k = model.plays[a].thresholds_V.size
-                self._pr[i, :k] = model.plays[a].thresholds_V
+                self._pr[i, :, :k] = model.plays[a].table
                 self._pp[i, :k] = model.plays[a].weights_um_per_V
         self.pz = np.zeros((2, P))
         self.pq = np.zeros((2, 3))  # the rate widening per axis (zeros: none)
@@ -244,7 +245,8 @@ class StageInverse:
 
     def _play_w(self) -> np.ndarray:
         """The play operators' sum per axis [um] in the present state."""
-        return np.einsum("ij,ij->i", self._pp, self.pz)
+        return np.einsum("ij,ij->i", self._pp,
+                         np.clip(self.pz, self._pr[:, 1], self._pr[:, 2]))
 
     @property
     def v(self) -> dict[str, float]:

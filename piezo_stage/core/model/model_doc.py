@@ -30,6 +30,8 @@ Schema (version 1)::
           rate_widening_s: 0.0  #   optional beta [s], < 1.9 ms: thresholds r_j + beta
                                 #   |dv/dt| (low-passed over 2 ms): a loop that widens
                                 #   with the input's rate (the gap diagnosis's `rate`)
+          bands_V: [[lo, hi], ...]  # optional: operator j's output is z_j clipped to
+                                #   [lo, hi] (a discretized Preisach law, --class preisach)
       y: ...
     effects: {}                 # optional unmodelled effects (see core/model/effects.py)
 
@@ -188,8 +190,8 @@ def _duhem(d, where) -> DuhemModel:
 
 
 def _plays(d, v0, where) -> PlayOperators:
-    _check_keys(d, ("thresholds_V", "weights_um_per_V", "initial_V", "rate_widening_s"),
-                where)
+    _check_keys(d, ("thresholds_V", "weights_um_per_V", "initial_V", "rate_widening_s",
+                    "bands_V"), where)
     for k in ("thresholds_V", "weights_um_per_V"):
         if k not in d:
             raise ModelError(f"{where}: missing {k}")
@@ -200,9 +202,20 @@ def _plays(d, v0, where) -> PlayOperators:
     z = (_numbers(d["initial_V"], f"{where}.initial_V") if "initial_V" in d
          else [v0] * len(r))
     beta = d.get("rate_widening_s", 0.0)
+    bands = None
+    if "bands_V" in d:
+        rows = d["bands_V"]
+        if not isinstance(rows, list) or len(rows) != len(r):
+            raise ModelError(f"{where}.bands_V: one [low, high] pair per operator "
+                             f"({len(r)})")
+        bands = np.array([_numbers(b, f"{where}.bands_V[{i}]") for i, b in enumerate(rows)],
+                         dtype=object)
+        if bands.ndim != 2 or bands.shape[1] != 2:
+            raise ModelError(f"{where}.bands_V: one [low, high] pair per operator")
+        bands = bands.astype(float)
     try:
         return PlayOperators(np.asarray(r, float), np.asarray(p, float), np.asarray(z, float),
-                             beta)
+                             beta, bands)
     except ModelError as e:
         raise ModelError(f"{where}: {e}") from None
 
@@ -326,6 +339,8 @@ def model_to_dict(model: StageModel, effects: dict | None = None,
                                    "initial_V": _floats(p.initial_V)}
             if p.rate_dependent:
                 d["play_operators"]["rate_widening_s"] = p.rate_widening_s
+            if p.bands_V is not None:
+                d["play_operators"]["bands_V"] = [_floats(b) for b in p.bands_V]
         axes[a] = d
     if effects:
         doc["effects"] = effects

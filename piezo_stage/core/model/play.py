@@ -29,7 +29,7 @@ plant's ``last_true`` is the true displacement as for every effect.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -53,12 +53,24 @@ class PlayOperators:
     threshold by beta x |dv/dt| low-passed (the loop widening with the input's rate:
     the gap diagnosis's ``rate``); a state is an array of z_j, updated in place by
     ``run``, and a rate-dependent law's also ``rate_state`` (the voltage before and
-    the low-passed rate)."""
+    the low-passed rate).
+
+    With ``bands_V`` (one [low, high] pair [V] per operator) each operator's output is
+    its state clipped to its band: sum_j p_j clip(z_j, low_j, high_j). A relay of the
+    Preisach law with half-width r and centre c is up exactly when the play of
+    threshold r is above c, so a band's output is the relays of half-width r_j and
+    centres in [low_j, high_j] integrated: a discretized Preisach law whose density
+    varies with the relay's centre as well as its width (``fit_preisach_class``). It
+    keeps the play operators' wiping-out and congruency, and with non-negative weights
+    it rises with the voltage on every branch. ``table`` is the compiled kernels' view
+    (3, n): thresholds, band lows, band highs (+-inf without bands)."""
 
     thresholds_V: np.ndarray
     weights_um_per_V: np.ndarray
     initial_V: np.ndarray
     rate_widening_s: float = 0.0
+    bands_V: np.ndarray | None = None
+    table: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         arrays = []
@@ -84,15 +96,40 @@ class PlayOperators:
         for name, a in zip(("thresholds_V", "weights_um_per_V", "initial_V"), arrays):
             object.__setattr__(self, name, a)
         object.__setattr__(self, "rate_widening_s", float(beta))
+        if self.bands_V is not None:
+            b = np.array(self.bands_V, dtype=float)
+            if b.shape != (r.size, 2) or not np.all(np.isfinite(b)) or \
+                    np.any(b[:, 0] >= b[:, 1]):
+                raise ModelError("play operators: bands_V must hold one [low, high] pair "
+                                 "of finite numbers, low < high, per operator")
+            object.__setattr__(self, "bands_V", b)
+        table = np.empty((3, r.size))
+        table[0] = r
+        table[1], table[2] = (-np.inf, np.inf) if self.bands_V is None else \
+            (self.bands_V[:, 0], self.bands_V[:, 1])
+        object.__setattr__(self, "table", table)
+
+    @property
+    def banded(self) -> bool:
+        """Whether each operator's output is its state clipped to a band of its own (a
+        discretized Preisach law: ``fit_preisach_class``)."""
+        return self.bands_V is not None
 
     @classmethod
     def at_rest(cls, thresholds_V: ArrayLike, weights_um_per_V: ArrayLike, v0: float = 0.0,
-                start: float = 0.0, rate_widening_s: float = 0.0) -> PlayOperators:
+                start: float = 0.0, rate_widening_s: float = 0.0,
+                bands_V: ArrayLike | None = None) -> PlayOperators:
         """Operators whose state is z_j = v0 + start * r_j: at rest at ``v0`` (0), as
         a fall (+1) or a rise (-1) to v0 leaves them."""
         r = np.asarray(thresholds_V, dtype=float)
         return cls(r, np.asarray(weights_um_per_V, dtype=float), float(v0) + float(start) * r,
-                   rate_widening_s)
+                   rate_widening_s, None if bands_V is None else np.asarray(bands_V, float))
+
+    def moved(self, initial_V: ArrayLike) -> PlayOperators:
+        """The same operators from the state ``initial_V`` [V]."""
+        return PlayOperators(self.thresholds_V, self.weights_um_per_V,
+                             np.asarray(initial_V, float), self.rate_widening_s,
+                             self.bands_V)
 
     @property
     def rate_dependent(self) -> bool:
@@ -118,7 +155,7 @@ class PlayOperators:
 
     def output(self, z: np.ndarray) -> float:
         """The operators' sum [um] in state ``z`` (z already at the present voltage)."""
-        return float(self.weights_um_per_V @ z)
+        return float(self.weights_um_per_V @ np.clip(z, self.table[1], self.table[2]))
 
     def run(self, v: np.ndarray, z: np.ndarray, dt_s: float = 0.0,
             rate_state: np.ndarray | None = None) -> np.ndarray:
@@ -132,19 +169,26 @@ class PlayOperators:
             dt = _check_dt(dt_s)
             st = rate_state if rate_state is not None else np.array([v[0], 0.0])
             play_run_rate(v, st, dt, self.rate_widening_s,
-                          rate_smoothing(dt), self.thresholds_V,
+                          rate_smoothing(dt), self.table,
                           self.weights_um_per_V, z, out)
         else:
-            play_run(v, self.thresholds_V, self.weights_um_per_V, z, out)
+            play_run(v, self.table, self.weights_um_per_V, z, out)
         return out
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, PlayOperators) and all(
             np.array_equal(getattr(self, k), getattr(other, k))
-            for k in ("thresholds_V", "weights_um_per_V", "initial_V")) and \
+            for k in ("table", "weights_um_per_V", "initial_V")) and \
             self.rate_widening_s == other.rate_widening_s
 
     __hash__ = None  # type: ignore[assignment]  # arrays inside: equal, not hashable
+
+
+def unbanded(thresholds_V: ArrayLike) -> np.ndarray:
+    """The compiled kernels' operator table (3, n) of plain play operators: thresholds
+    ``thresholds_V`` [V], bands unbounded."""
+    r = np.asarray(thresholds_V, dtype=float)
+    return np.vstack([r, np.full(r.size, -np.inf), np.full(r.size, np.inf)])
 
 
 def rate_smoothing(dt_s: float) -> float:
@@ -161,6 +205,22 @@ def _check_dt(dt_s: float) -> float:
     return dt
 
 
+def play_columns(v: np.ndarray, thresholds_V: np.ndarray, start: float = 0.0,
+                 beta: float = 0.0, fs: float = 0.0) -> np.ndarray:
+    """One column per play operator (threshold r [V]): the memory a Duhem law lacks, as
+    regressors (core/model/play.py's law, unit weights). Each starts at v[0] + start * r: at
+    rest (0), or as left by a fall (+1) or a rise (-1) to v[0] before the record.
+    ``beta`` > 0 [s] widens the thresholds by beta x |dv/dt| (low-passed; the samples
+    ``fs`` [Hz] apart), as the model file's ``rate_widening_s``."""
+    v = np.ascontiguousarray(v, dtype=float)
+    out = np.empty((v.size, len(thresholds_V)))
+    dt = 1.0 / fs if beta > 0.0 else 0.0
+    for j, r in enumerate(thresholds_V):
+        op = PlayOperators.at_rest([float(r)], [1.0], float(v[0]), start, beta)
+        out[:, j] = op.run(v, op.state(), dt)
+    return out
+
+
 KEYS = ("kind", "axes", "operators", "max_threshold_V", "weight_um_per_V", "decay_V",
         "envelope", "rate_widening_s")
 
@@ -175,6 +235,10 @@ class PlayHysteresis:
     width_um: float
     centre_um: float
     rate_widening_s: float = 0.0  # thresholds r_j + this x |dv/dt|: a rate-dependent law
+    table: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        self.table = unbanded(self.thresholds_V)  # the compiled kernels' view
 
     @classmethod
     def from_params(cls, params: dict, where: str = "hysteresis") -> PlayHysteresis:
@@ -225,13 +289,14 @@ class PlayHysteresis:
         state (``rate_state()``, updated in place; None: from rest at ``v[0]``)."""
         x = np.empty(v.size)
         v = np.ascontiguousarray(v, dtype=float)
+        table = self.table
         if self.rate_widening_s > 0.0 and dt_s > 0.0 and v.size:
             st = self.rate_state(v[0]) if rate_state is None else rate_state
             smooth = rate_smoothing(dt_s)
             play_run_rate(v, st, float(dt_s), self.rate_widening_s, float(smooth),
-                          self.thresholds_V, self.weights_um_per_V, z, x)
+                          table, self.weights_um_per_V, z, x)
         else:
-            play_run(v, self.thresholds_V, self.weights_um_per_V, z, x)
+            play_run(v, table, self.weights_um_per_V, z, x)
         return self.envelope(x)
 
     def envelope(self, x: np.ndarray) -> np.ndarray:

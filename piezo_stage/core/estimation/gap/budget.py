@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from piezo_stage.core.estimation.gap.candidates import play_columns
 from piezo_stage.core.estimation.identify.regress import gram
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.metrics import rms
 from piezo_stage.core.model.duhem import OTHER
 from piezo_stage.core.model.effects import Dynamics
+from piezo_stage.core.model.play import play_columns
 
 
 def gap_above_floor(r: float, nf: float) -> float:

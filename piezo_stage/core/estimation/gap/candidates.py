@@ -19,12 +19,13 @@ from piezo_stage.core.estimation.identify.prandtl import (
     PrandtlIshlinskii,
     fit_pi_class,
 )
+from piezo_stage.core.estimation.identify.preisach import fit_preisach_class
 from piezo_stage.core.estimation.identify.regress import DuhemRegression, gram_blocks, solve_gram
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.model.duhem import OTHER, DuhemModel, voltage_limits_for
 from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.model.inverse import invert
-from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, PlayOperators
+from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, PlayOperators, play_columns
 
 EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
 
@@ -215,17 +216,25 @@ class ClassCandidate:
         return {}
 
 
-def fit_class_candidate(rec: Record, axis: str,
-                        limits_V: tuple | None = None) -> ClassCandidate:
-    """The Prandtl-Ishlinskii class (``identify --class pi``'s fit: non-negative
-    weights, thresholds up to half the amplifier's range ``limits_V``, else 0-150 V
-    widened to the record's: duhem.voltage_limits_for) on ``rec``'s axis, as the memory
-    candidate's other form."""
+MEMORY_CLASSES = ("pi", "preisach")  # the memory candidate's class forms
+
+
+def fit_class_candidate(rec: Record, axis: str, limits_V: tuple | None = None,
+                        kind: str = "pi") -> ClassCandidate:
+    """A class with memory in place of the Duhem law, as the memory candidate's other
+    forms, fitted as ``identify --class`` fits it on ``rec``'s axis: ``kind`` 'pi'
+    (the Prandtl-Ishlinskii class) or 'preisach' (the discretized Preisach class);
+    non-negative weights, thresholds up to half the amplifier's range ``limits_V``,
+    else 0-150 V widened to the record's (duhem.voltage_limits_for)."""
+    if kind not in MEMORY_CLASSES:
+        raise ValueError(f"memory class {kind!r}: one of {MEMORY_CLASSES}")
     v, w = rec.v[axis], rec.w[axis]
     lo, hi = voltage_limits_for([v], limits_V)
-    pi = fit_pi_class(v, w, reach_V=(hi - lo) / 2)
+    fit = fit_pi_class if kind == "pi" else fit_preisach_class
+    pi = fit(v, w, reach_V=(hi - lo) / 2)
     fit_rms = float(np.sqrt(np.mean((pi.predict(v) - w) ** 2)))
-    params = {"class": "prandtl-ishlinskii", "play_operators": OPERATORS}
+    params = {"class": "prandtl-ishlinskii", "play_operators": OPERATORS} if kind == "pi" \
+        else {"class": "preisach", "cells": int(pi.operators.thresholds_V.size)}
     return ClassCandidate(pi, fit_rms, float(v[0]), params=params,
                           effects=[("memory", dict(params))], reg_fs=rec.fs_hz)
 
@@ -417,22 +426,6 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
 
 
 PLAY_STARTS = (0.0, 1.0, -1.0)  # operators at rest at v[0], after a fall, after a rise
-
-
-def play_columns(v: np.ndarray, thresholds_V: np.ndarray, start: float = 0.0,
-                 beta: float = 0.0, fs: float = 0.0) -> np.ndarray:
-    """One column per play operator (threshold r [V]): the memory a Duhem law lacks, as
-    regressors (core/model/play.py's law, unit weights). Each starts at v[0] + start * r: at
-    rest (0), or as left by a fall (+1) or a rise (-1) to v[0] before the record.
-    ``beta`` > 0 [s] widens the thresholds by beta x |dv/dt| (low-passed; the samples
-    ``fs`` [Hz] apart), as the model file's ``rate_widening_s``."""
-    v = np.ascontiguousarray(v, dtype=float)
-    out = np.empty((v.size, len(thresholds_V)))
-    dt = 1.0 / fs if beta > 0.0 else 0.0
-    for j, r in enumerate(thresholds_V):
-        op = PlayOperators.at_rest([float(r)], [1.0], float(v[0]), start, beta)
-        out[:, j] = op.run(v, op.state(), dt)
-    return out
 
 
 RATE_MIN_GAIN = 0.01  # relative FIT RMS a widening must win over none to be kept

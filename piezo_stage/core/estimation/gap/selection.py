@@ -14,6 +14,7 @@ from piezo_stage.core.estimation.gap.budget import gap_above_floor, gap_budget, 
 from piezo_stage.core.estimation.gap.candidates import (
     EFFECTS,
     INVERSE_MISS_FRACTION,
+    MEMORY_CLASSES,
     TRANSFORMS,
     Candidate,
     ClassCandidate,
@@ -165,19 +166,20 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         """fit_candidate; structure in its forms (richer branches; with play
         operators: memory; where FIT holds several rates, with their thresholds
         widened by the rate: rate; with nothing kept before it, memory as the
-        Prandtl-Ishlinskii class in place of the Duhem law), the one closest on
+        Prandtl-Ishlinskii or the discretized Preisach class in place of the Duhem
+        law), the one closest on
         HOLDOUT kept (as every candidate is judged), so memory and rate are named
         only where they pay. A form whose exact inverse does not give the records'
         voltages back (a branch turning back) must be closer by 10 % than the best
         before it (NOT_INVERTIBLE_PAYS)."""
-        c: Candidate | ClassCandidate = fit_candidate(fit, axis, e, on, kept)
+        law = fit_candidate(fit, axis, e, on, kept)  # the best form of the Duhem law
+        c: Candidate | ClassCandidate = law
         if e == "structure":
-            best = rms(c.predict(holdout, axis) - holdout.w[axis])
-            if not kept:
-                k = fit_class_candidate(fit, axis, limits_V)
-                r = rms(k.predict(holdout, axis) - holdout.w[axis])
-                if r < best:
-                    c, best = k, r
+            both = np.concatenate([fit.v[axis], holdout.v[axis]])
+            best = rms(law.predict(holdout, axis) - holdout.w[axis])
+            classes = [(k, rms(k.predict(holdout, axis) - holdout.w[axis]))
+                       for k in (fit_class_candidate(fit, axis, limits_V, kind)
+                                 for kind in (MEMORY_CLASSES if not kept else ()))]
             for form in (("memory", "rate") if rates else ("memory",)):
                 m = fit_candidate(fit, axis, e, on, kept, memory=True,
                                   rate=form == "rate")
@@ -185,12 +187,21 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                     continue  # no widening fits FIT better: memory already
                 r = rms(m.predict(holdout, axis) - holdout.w[axis])
                 if r < best:
-                    both = np.concatenate([fit.v[axis], holdout.v[axis]])
-                    if r > NOT_INVERTIBLE_PAYS * best and \
-                            m.inverse_miss(both, fit.fs_hz, limits_V) > INVERSE_MISS_FRACTION:
+                    if r > NOT_INVERTIBLE_PAYS * min([best] + [x[1] for x in classes]) \
+                            and m.inverse_miss(both, fit.fs_hz, limits_V) > \
+                            INVERSE_MISS_FRACTION:
                         continue  # a branch turns back, for little: the exact inverse wins
-                    c, best = m, r
+                    law, best = m, r
+            c = law
+            for k, r in classes:
+                if r < best:
+                    c, best = k, r
+            if c is not law:
+                duhem_forms[e] = law
         return c
+    # an effect whose candidate is a class in place of the Duhem law: its best form
+    # on the Duhem law (a pair starts from it)
+    duhem_forms: dict[str, Candidate] = {}
     base = fit_candidate(fit, axis, "none", kept=given)
     progress(f"{axis} none")
     cands = {"none": base}
@@ -250,9 +261,13 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 pairs.append((d0, d1))
             best_pair = None
             for a, b in pairs:
-                if isinstance(pool[a], ClassCandidate):
-                    continue  # the other class, fitted alone: nothing on top of it
-                pair = candidate(b, pool[a], pool[a].effects)
+                # a class in place of the Duhem law is fitted alone (nothing on top of
+                # it): a pair starts from the Duhem law's best form of that effect
+                first = duhem_forms.get(a) if isinstance(pool[a], ClassCandidate) \
+                    else pool[a]
+                if not isinstance(first, Candidate):
+                    continue
+                pair = candidate(b, first, first.effects)
                 progress(f"{axis} {a}+{b}")
                 r_pair = rms(pair.predict(holdout, axis) - w_h)
                 tried[(a, b)] = (pair, r_pair)
@@ -264,6 +279,9 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                     best_pair = (g_pair, a, b)
             if best_pair is not None:
                 e = best_pair[1]
+                if isinstance(pool[e], ClassCandidate):  # the pair's first, as fitted
+                    pool[e] = duhem_forms[e]
+                    scores[e] = rms(pool[e].predict(holdout, axis) - w_h)
                 c, g_new = pool[e], gap_above_floor(scores[e], floor)
                 step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
                 rule = (f"the pair rule: {e} and {best_pair[2]} together close "

@@ -40,7 +40,7 @@ from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.model.duhem import DuhemModel, DuhemState
-from piezo_stage.core.model.play import MAX_OPERATORS, PlayOperators
+from piezo_stage.core.model.play import MAX_OPERATORS, PlayOperators, play_columns
 
 OPERATORS = 12
 # the class's weight-density penalties past the record (fit_pi_class): free weights, or
@@ -49,6 +49,7 @@ SMOOTHNESS = (0.0, 1.0)
 # the record's first parts that predict the rest, to choose between them (rolling
 # origin: one split alone chose differently from one split to the next)
 LATER_FROM = (1 / 2, 2 / 3, 3 / 4)
+MIN_SLOPE = 0.01  # of the record's mean slope: every branch of a class rises at least so
 LINEAR_ALPHA = 1e-3  # [1/V]: the Duhem law standing for the linear term (any > 0 is exact)
 
 
@@ -86,7 +87,12 @@ class PrandtlIshlinskii:
         duhem = DuhemModel.whole(LINEAR_ALPHA, [LINEAR_ALPHA * c, LINEAR_ALPHA * a], [a],
                                  DuhemState(float(v0), a * float(v0) + c))
         ops = self.operators
-        return duhem, PlayOperators.at_rest(ops.thresholds_V, ops.weights_um_per_V, v0)
+        return duhem, ops.moved(np.full(ops.thresholds_V.size, float(v0)))
+
+    @property
+    def kind(self) -> str:
+        """'preisach' when its operators are banded (fit_preisach_class), else 'pi'."""
+        return "preisach" if self.operators.banded else "pi"
 
     def predict(self, v: ArrayLike) -> np.ndarray:
         """Displacement [um] over the voltages ``v`` [V], the operators at rest at the
@@ -96,13 +102,25 @@ class PrandtlIshlinskii:
         return self.linear_um_per_V * v + self.operators.run(v, z) + self.offset_um
 
 
-def _plays(v: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """(N, n) outputs of unit-weight play operators of thresholds ``r`` over ``v``."""
-    cols = np.empty((v.size, r.size))
-    for j, rj in enumerate(r):
-        cols[:, j] = PlayOperators.at_rest([rj], [1.0], float(v[0])).run(
-            v, np.array([v[0]]))
-    return cols
+def gram_factors(A: np.ndarray, w: np.ndarray,
+                 cuts: list[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(R, q) of the first ``cuts`` rows of ``A`` (ascending; the last may be all rows),
+    with ||A x - w||^2 = ||R x - q||^2 + a constant: the same minimiser, a small
+    problem. R is the Cholesky factor of the Gram matrix, summed block by block (one
+    pass over the rows in all); a column the record never moves is a multiple of the
+    constant's, so the diagonal gets 1e-12 of its scale (the LEVEL penalty decides
+    such a column's weight anyway: the Preisach class's ``LEVEL``, the
+    Prandtl-Ishlinskii class's linear term and operators, which always move)."""
+    out, k0 = [], 0
+    G, g = np.zeros((A.shape[1], A.shape[1])), np.zeros(A.shape[1])
+    for k in cuts:
+        G += A[k0:k].T @ A[k0:k]
+        g += A[k0:k].T @ w[k0:k]
+        k0 = k
+        jitter = 1e-12 * float(np.trace(G)) / G.shape[0] + 1e-300
+        L = np.linalg.cholesky(G + jitter * np.eye(G.shape[0]))
+        out.append((L.T.copy(), np.linalg.solve(L, g)))
+    return out
 
 
 def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
@@ -117,8 +135,9 @@ def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
     n : int
         Play operators besides the linear term, over half the record's span.
     monotone : bool
-        The linear term and every weight non-negative (non-negative least squares):
-        the model then rises with the voltage on every branch, keeps the wiping-out
+        The linear term at least ``min_slope`` and every weight non-negative
+        (non-negative least squares): the model then rises with the voltage on every
+        branch, keeps the wiping-out
         and congruency properties of its class, and has an exact inverse (``identify
         --class pi``); else plain least squares (the peer of the benchmarks).
     reach_V : float or None
@@ -142,24 +161,37 @@ def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
     step = span / (2 * (n + 1))
     m = n if reach_V is None else int(min(max(n, reach_V // step), MAX_OPERATORS))
     r = np.arange(1, m + 1) * step
-    plays = _plays(v, r)
+    plays = play_columns(v, r)
     X = np.column_stack([v, plays, np.ones_like(v)])
+    floor = min_slope(v, w) if monotone else 0.0
     if monotone:  # the constant free: +1 and -1 columns, both non-negative
         from scipy.optimize import nnls
-        A, b = np.column_stack([X, -np.ones_like(v)]), w
+        [(R, q)] = gram_factors(X, w - floor * v, [v.size])  # the same minimiser, small
+        A, b = np.column_stack([R, -R[:, -1]]), q
         if smoothness > 0 and m > 1:
             D = np.zeros((m - 1, A.shape[1]))
             i = np.arange(m - 1)
             D[i, 1 + i], D[i, 2 + i] = -1.0, 1.0
             scale = np.sqrt(smoothness) * float(np.mean(np.linalg.norm(plays, axis=0)))
-            A, b = np.vstack([A, scale * D]), np.append(w, np.zeros(m - 1))
+            A, b = np.vstack([A, scale * D]), np.append(b, np.zeros(m - 1))
         coef, _ = nnls(A, b, maxiter=50 * A.shape[1])
         theta = np.append(coef[:-2], coef[-2] - coef[-1])
+        theta[0] += floor
     else:
         theta, *_ = np.linalg.lstsq(X, w, rcond=None)
     ops = PlayOperators.at_rest(r, theta[1:-1], float(v[0]))
     return PrandtlIshlinskii(float(theta[0]), ops, float(theta[-1]),
                              time.perf_counter() - t0, float(smoothness) if monotone else 0.0)
+
+
+def min_slope(v: ArrayLike, w: ArrayLike) -> float:
+    """The least slope [um/V] a class with memory keeps on every branch, its linear
+    term's floor: ``MIN_SLOPE`` of the record's mean slope |ptp(w) / ptp(v)|. Right
+    after a reversal every play operator of threshold > 0 stands still; with a linear
+    term of 0 the branch would be flat there, and a flat branch has no one voltage for
+    its displacement (the exact inverse would pick one of many)."""
+    span = float(np.ptp(np.asarray(v, float)))
+    return MIN_SLOPE * abs(float(np.ptp(np.asarray(w, float)))) / span if span > 0 else 0.0
 
 
 def fit_pi_class(v: ArrayLike, w: ArrayLike, reach_V: float | None = None,
