@@ -227,8 +227,8 @@ def test_a_slow_upload_is_not_a_lost_link(tmp_path):
 
 
 def test_a_slow_answer_after_the_record_is_not_a_lost_link():
-    """The full suite, run locally beside the CI runs' hold (2026-11-27): after a
-    181,000-point record was read back, the outputs' query (SVA?) was answered after
+    """The full suite, run locally (2026-11-27, on abca2a4's parent with its changes):
+    after a 181,000-point record was read back, the outputs' query (SVA?) was answered after
     the loop's 0.2 s, and `play` failed with pipython's timeout. The read-back is part
     of the play: here the line after the record waits 0.3 s, and the play ends and
     returns the record."""

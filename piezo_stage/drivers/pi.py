@@ -235,8 +235,9 @@ class PiBackend:
                 time.sleep(0.01)
             cols = self.dev.bufdata
             # the outputs the wave left, still within the play's timeout: the host may
-            # still be busy with the record just read (CI run 59's full suite, locally:
-            # this answer came after 0.2 s following a 181,000-point record)
+            # still be busy with the record just read (the full suite, run locally on
+            # abca2a4's parent: this answer came after 0.2 s following a 181,000-point
+            # record)
             ov = self.dev.qSVA(self.axes)
         except GCSError as e:
             raise BackendFault(self._fault_text(e)) from None
