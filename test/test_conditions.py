@@ -196,6 +196,14 @@ def test_fit_here_use_there_every_written_model_runs_and_memory_beats_the_peer()
         assert ours <= 0.8 * conditions.above_noise(r["peer_um"], r["noise_um"]), r
     # our own stage: the same conditions are the noise
     assert rows[("ours", "periodic->periodic")]["ours_um"] < 0.12
+    # memory with one of our effects: the class is fitted with the effect (creep on top
+    # of it, or the coupling from the other axis), and carries both: 0.33 x and 0.60 x
+    # the peer (2026-11-27; test_class_effects.py holds the effects' own share)
+    for key in (("structure+creep", "periodic->nested"),
+                ("structure+coupling", "small->large")):
+        r = rows[key]
+        assert r["verdict"] == "memory", r
+        assert r["gap_model_um"] <= 0.8 * r["peer_um"], r
 
 
 def test_a_calibration_at_two_rates_names_rate_and_carries_to_a_faster_line_rate(tmp_path):

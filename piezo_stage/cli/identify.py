@@ -124,8 +124,8 @@ def main(args):
         print(f"{a:>4} {j['method']:>8} {j['structure']:>9} {j['fit_rms_um']:10.4f} "
               f"{j['fit_rms_pct']:8.4f} {j['max_err_um']:10.4f} {j['noise_floor_um']:8.4f} "
               f"{vr:10.4f} {vp:8.4f} {j['evaluations']:7d} {j['seconds']:7.2f}")
-    pis = _fit_pi(rec, pi_axes, val, report, args.limits)
-    for note in {n for r in results.values() for n in r.notes}:
+    pis = _fit_pi(rec, pi_axes, val, report, args.limits, opts)
+    for note in {n for r in list(results.values()) + list(pis.values()) for n in r.notes}:
         print(f"note: {note}")
     if args.out:
         model = _stage_model(fitted, pis, rec, args.limits)
@@ -142,34 +142,26 @@ def main(args):
         from piezo_stage.core.estimation.identify.api import predict_axis
         from piezo_stage.io.plots import identification_png
         curves = {a: predict_axis(r, rec) for a, r in results.items()}
-        curves.update({a: (rec.v[a], rec.w[a], _pi_output(p, rec, a)) for a, p in pis.items()})
+        curves.update({a: (rec.v[a], rec.w[a], p.predict(rec, a)) for a, p in pis.items()})
         print(f"plot: {identification_png(plot, rec.t, curves)}")
     return 0
 
 
-def _pi_output(pi, rec, a):
-    """A Prandtl-Ishlinskii axis's output over ``rec``, its offset fitted there."""
-    pred = pi.predict(rec.v[a])
-    return pred + float(np.mean(rec.w[a] - pred))
-
-
-def _fit_pi(rec, axes, val, report, limits) -> dict:
+def _fit_pi(rec, axes, val, report, limits, opts) -> dict:
     """The classes with memory on ``axes`` ({axis: 'pi' or 'preisach'}): the
     Prandtl-Ishlinskii class or the discretized Preisach class, monotone weights
     (non-negative least squares), thresholds up to half the amplifier's range
-    (``limits``, else 0-150 V widened to the record's); one table row each, into
-    ``report`` too. -> {axis: PrandtlIshlinskii (banded operators for Preisach)}."""
-    from piezo_stage.core.estimation.identify.prandtl import fit_pi_class, held_out_rms
-    from piezo_stage.core.estimation.identify.preisach import fit_preisach_class
+    (``limits``, else 0-150 V widened to the record's), a coupling term as
+    ``--coupling`` asks (core/estimation/identify/api.py's ``fit_class_axis``); one
+    table row each, into ``report`` too. -> {axis: ClassFit}."""
+    from piezo_stage.core.estimation.identify.api import fit_class_axis
+    from piezo_stage.core.estimation.identify.prandtl import held_out_rms
     from piezo_stage.core.metrics import noise_floor
-    from piezo_stage.core.model.duhem import voltage_limits_for
-    lo, hi = voltage_limits_for(list(rec.v.values()), limits)
     out = {}
     for a, kind in axes.items():
-        fit = fit_preisach_class if kind == "preisach" else fit_pi_class
-        pi = fit(rec.v[a], rec.w[a], reach_V=(hi - lo) / 2)
-        out[a] = pi
-        e = rec.w[a] - _pi_output(pi, rec, a)
+        fitted = fit_class_axis(rec, a, kind, opts, limits)
+        out[a], pi = fitted, fitted.law
+        e = rec.w[a] - fitted.predict(rec, a)
         j = {"class": kind, "method": "nnls",
              "structure": "cells" if kind == "preisach" else "plays",
              "fit_rms_um": float(np.sqrt(np.mean(e ** 2))),
@@ -178,9 +170,11 @@ def _fit_pi(rec, axes, val, report, limits) -> dict:
              "linear_um_per_V": pi.linear_um_per_V,
              "play_operators": len(pi.operators.thresholds_V),
              "reach_V": float(pi.operators.thresholds_V[-1]),
-             "smoothness": pi.smoothness}
+             "smoothness": pi.smoothness, "coupling": fitted.coupling is not None,
+             "notes": fitted.notes}
         if val is not None:
-            j["validate_rms_um"] = held_out_rms(pi.predict(val.v[a]), val.w[a], val.fs_hz, 0.0)
+            j["validate_rms_um"] = held_out_rms(fitted.predict(val, a), val.w[a],
+                                                val.fs_hz, 0.0)
         report[a] = j
         print(f"{a:>4} {kind:>8} {j['structure']:>9} {j['fit_rms_um']:10.4f} {'':>8} "
               f"{j['max_err_um']:10.4f} {j['noise_floor_um']:8.4f} "
@@ -190,14 +184,17 @@ def _fit_pi(rec, axes, val, report, limits) -> dict:
 
 
 def _stage_model(fitted, pis, rec, limits):
-    """The stage model of the Duhem axes (``fitted``) and the Prandtl-Ishlinskii ones
-    (a Duhem law that is exactly their linear term, their play operators beside it)."""
+    """The stage model of the Duhem axes (``fitted``) and the classes with memory
+    (a Duhem law that is exactly their linear term, their play operators beside it,
+    their coupling term)."""
     from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
     axes = dict(fitted.model.axes) if fitted else {}
     coupling = dict(fitted.model.coupling) if fitted else {}
     plays = {}
-    for a, pi in pis.items():  # at rest at the record's first voltage, as fitted
-        axes[a], plays[a] = pi.to_model(float(rec.v[a][0]))
+    for a, p in pis.items():  # at rest at the record's first voltage, as fitted
+        axes[a], plays[a] = p.law.to_model(float(rec.v[a][0]))
+        if p.coupling is not None:
+            coupling[a] = p.coupling
     return StageModel(axes, coupling, voltage_limits_for(list(rec.v.values()), limits), plays)
 
 

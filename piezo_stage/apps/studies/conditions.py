@@ -23,7 +23,11 @@ and a tanh envelope, not our model class) and our own (config/sim_stage.yaml):
   (config/rayleigh_stage.yaml: play operators of one weight up to half the stroke, no
   envelope: a uniform Preisach density along the diagonal, the Rayleigh law of
   piezoceramics below their coercive field, whose loop widens with the stroke as a
-  stack's does: 5.2 um of stroke on FIT's 20-63 V triangles, 19 um on HOLDOUT's).
+  stack's does: 5.2 um of stroke on FIT's 20-63 V triangles, 19 um on HOLDOUT's);
+* ``periodic->nested`` on the structure stage with creep (``structure+creep``: 12 %
+  of each step over 0.05-50 s), and ``small->large`` on it with its cross-axis
+  coupling and the other axis driven apart (``structure+coupling``): memory with one
+  of our effects, which the class with memory is fitted with as the Duhem law is.
 
 Scored (``prandtl.held_out_rms``: after the first second, each model's mean offset
 removed) against the measured displacement: ours (``identify``'s fast fit, cubic
@@ -52,7 +56,15 @@ CASES = ("periodic->periodic", "periodic->nested", "small->large", "slow->fast")
 # Rayleigh stage where memory and stroke do
 PAIRS = tuple((s, c) for s in ("structure", "ours") for c in CASES) + \
     (("rate", "periodic->periodic"), ("rate", "slow->fast"), ("rate", "two-rate->fast"),
-     ("rayleigh", "periodic->nested"), ("rayleigh", "small->large"))
+     ("rayleigh", "periodic->nested"), ("rayleigh", "small->large"),
+     ("structure+creep", "periodic->nested"), ("structure+coupling", "small->large"))
+# a stage with one of our effects besides its memory: (the stage, its effects, whether
+# the other axis moves and couples in)
+WITH_EFFECTS = {
+    "structure+creep": ("structure", {"creep": {"gamma": 0.12,
+                                                "tau_s": [0.05, 0.5, 5.0, 50.0]}}, False),
+    "structure+coupling": ("structure", {}, True),
+}
 
 
 def _sine(t, phase=0.0, lo=0.0, hi=150.0):
@@ -93,19 +105,29 @@ def excitations(case: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray, int]:
 
 
 def case_records(stage: str, case: str, seed: int = 0) -> tuple[Record, Record, np.ndarray]:
-    """(FIT, HOLDOUT, HOLDOUT's true displacement [um]) of axis x (y held at 0 V)."""
+    """(FIT, HOLDOUT, HOLDOUT's true displacement [um]) of axis x: y held at 0 V, or,
+    on a stage of ``WITH_EFFECTS`` whose other axis couples in, driven by a 0.37 Hz
+    sine over 15-135 V (apart from x, so that the coupling is identifiable)."""
     from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.plant_file import load_plant_config
     from piezo_stage.paths import default_config
-    cfg = load_plant_config(default_config(STAGES[stage]))
-    cfg.model.coupling.clear()
+    base, effects, coupled = WITH_EFFECTS.get(stage, (stage, {}, False))
+    cfg = load_plant_config(default_config(STAGES[base]))
+    if not coupled:
+        cfg.model.coupling.clear()
+    if effects:
+        cfg.effects = {n: dict(p) for n, p in effects.items()}
     cfg.seed = seed
     t, v, k = excitations(case, seed)
+    vy = 75.0 + 60.0 * np.sin(2 * np.pi * 0.37 * t) if coupled else np.zeros_like(v)
     plant = Plant(cfg, FS_HZ)
-    w = plant.run(v, np.zeros_like(v))["x"]
+    w = plant.run(v, vy)["x"]
     true = plant.last_true["x"]
-    fit = Record(t[:k], {"x": v[:k]}, {"x": w[:k]}, source=f"{stage} {case} FIT")
-    hold = Record(t[k:] - t[k], {"x": v[k:]}, {"x": w[k:]}, source=f"{stage} {case} HOLDOUT")
+    both = {"x": v, "y": vy} if coupled else {"x": v}
+    fit = Record(t[:k], {a: x[:k] for a, x in both.items()}, {"x": w[:k]},
+                 source=f"{stage} {case} FIT")
+    hold = Record(t[k:] - t[k], {a: x[k:] for a, x in both.items()}, {"x": w[k:]},
+                  source=f"{stage} {case} HOLDOUT")
     return fit, hold, true[k:]
 
 
@@ -115,7 +137,7 @@ def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, st
     how far [V] our exact inverse of its hysteresis's output lands from HOLDOUT's
     voltages)."""
     from piezo_stage.core.estimation.gap import diagnose
-    from piezo_stage.core.model.inverse import invert_stage
+    from piezo_stage.core.model.inverse import invert, invert_stage
     from piezo_stage.core.model.plant import Plant, PlantConfig
     from piezo_stage.io.model_file import load_model, save_model
     from piezo_stage.io.plant_file import enabled_effects
@@ -126,14 +148,21 @@ def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, st
         save_model(path, model, effects=effects or None)
         model, effects = load_model(path)  # loads: our loader accepts it
     v = hold.v["x"]
-    zero = np.zeros_like(v)
+    vy = hold.v.get("y", np.zeros_like(v))
     cfg = PlantConfig.exact(model, FS_HZ)
     cfg.effects = enabled_effects(effects)
-    pred = Plant(cfg, FS_HZ).run(v, zero)["x"]
+    pred = Plant(cfg, FS_HZ).run(v, vy)["x"]
     # the exact inverse takes the hysteresis (the feedforward compensates the effects
-    # apart): the output of the hysteresis alone must invert back to the voltages
-    hyst = Plant(PlantConfig.exact(model, FS_HZ), FS_HZ).run(v, zero)
-    inv = invert_stage(model, hyst["x"], hyst["y"], dt_s=1.0 / FS_HZ)["x"].v
+    # apart): the output of the hysteresis alone must invert back to the voltages (a
+    # coupling from y, whose voltages the model of x alone does not solve for, taken
+    # out at y's known voltages)
+    hyst = Plant(PlantConfig.exact(model, FS_HZ), FS_HZ).run(v, vy)
+    if "x" in model.coupling and "y" not in model.axes:
+        wc = model.coupling["x"].simulate(vy)[0]
+        inv = invert(model.axes["x"], hyst["x"] - wc, model.voltage_limits,
+                     plays=model.plays.get("x"), dt_s=1.0 / FS_HZ).v
+    else:
+        inv = invert_stage(model, hyst["x"], hyst["y"], dt_s=1.0 / FS_HZ)["x"].v
     back = float(np.max(np.abs(inv - v))) if np.all(np.isfinite(inv)) else float("nan")
     return pred, str(res["verdict"]), back
 
@@ -173,14 +202,14 @@ def table(rows: list[dict]) -> str:
     """The rows as a fixed-width table, ours against the peer as ratios: of the
     held-out RMS, and of the part of it above the sensor's noise (where both models
     are near the noise the first ratio is near 1 whatever they do)."""
-    out = [f"{'stage':<10} {'case':<20} {'identify':>9} {'gap model':>9} {'PI peer':>8} "
+    out = [f"{'stage':<18} {'case':<20} {'identify':>9} {'gap model':>9} {'PI peer':>8} "
            f"{'own fit':>8} {'noise':>6} {'identify/PI':>11} {'gap/PI':>7} "
            f"{'above noise':>11}  verdict"]
     for r in rows:
         n = r["noise_um"]
         peer = above_noise(r["peer_um"], n)
         ratio = above_noise(r["gap_model_um"], n) / peer if peer > 0 else float("nan")
-        out.append(f"{r['stage']:<10} {r['case']:<20} {r['ours_um']:9.3f} "
+        out.append(f"{r['stage']:<18} {r['case']:<20} {r['ours_um']:9.3f} "
                    f"{r['gap_model_um']:9.3f} {r['peer_um']:8.3f} {r['own_fit_um']:8.3f} "
                    f"{n:6.3f} {r['ours_um'] / r['peer_um']:11.2f} "
                    f"{r['gap_model_um'] / r['peer_um']:7.2f} {ratio:11.2f}  {r['verdict']}")

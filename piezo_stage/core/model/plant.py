@@ -158,8 +158,10 @@ class Plant:
         self._vstate[:] = max(self.v_limits[0], min(self.v_limits[1], 0.0))
         for i, m in enumerate(self._models):
             self._dstate[i] = (m.initial.v, m.initial.w) if m is not None else (0.0, 0.0)
-        for a in AXES:
+        for a in AXES:  # at rest at the hysteresis's initial output (its plays' too)
             x0 = model.axes[a].initial.w if a in model.axes else 0.0
+            if a in model.plays:
+                x0 += model.plays[a].output(model.plays[a].state())
             for e in self._effects[a]:
                 e.reset(x0)
         self._z = {a: law.rest(self._vstate[i]) for i, a in enumerate(AXES)

@@ -175,6 +175,14 @@ class PlayOperators:
             play_run(v, self.table, self.weights_um_per_V, z, out)
         return out
 
+    def columns(self, v: ArrayLike) -> np.ndarray:
+        """(N, n): each operator's output at unit weight over ``v`` [V], at rest at
+        ``v[0]``, clipped to its band (the rate widening left out): the operators as
+        regressors, their sum at these weights ``columns(v) @ weights_um_per_V``."""
+        r, inv = np.unique(self.thresholds_V, return_inverse=True)
+        z = play_columns(np.ascontiguousarray(v, dtype=float), r)[:, inv]
+        return np.clip(z, self.table[1], self.table[2])
+
     def __eq__(self, other: object) -> bool:
         return isinstance(other, PlayOperators) and all(
             np.array_equal(getattr(self, k), getattr(other, k))

@@ -93,13 +93,12 @@ class Diagnosis:
         for a, d in self.per_axis.items():
             c = d.model or d.candidates["none"]
             if isinstance(c, ClassCandidate):  # memory as the other class: its parts
-                axes[a], plays[a] = c.stage_parts()
-                continue
-            main, coup = c.reg.models(c.alphas, c.theta)
-            axes[a] = main
+                axes[a], plays[a], coup = c.stage_parts()
+            else:
+                axes[a], coup = c.reg.models(c.alphas, c.theta)
             if coup is not None:
                 coupling[a] = coup
-            if c.plays_V is not None:  # memory: its play operators
+            if isinstance(c, Candidate) and c.plays_V is not None:  # memory: its plays
                 plays[a] = c.play_operators()
                 if any(n in TRANSFORMS for n, _ in c.effects):
                     # the fit put the operators' sum after the kept transform effects,

@@ -12,17 +12,25 @@ from numpy.typing import ArrayLike
 from scipy import signal
 from scipy.optimize import minimize, minimize_scalar
 
+from piezo_stage.core.errors import DataError
 from piezo_stage.core.estimation.identify.api import free_response
 from piezo_stage.core.estimation.identify.fast import fit_fast
 from piezo_stage.core.estimation.identify.prandtl import (
     OPERATORS,
+    Around,
     PrandtlIshlinskii,
     fit_pi_class,
+    nonneg_family_rms,
 )
 from piezo_stage.core.estimation.identify.preisach import fit_preisach_class
-from piezo_stage.core.estimation.identify.regress import DuhemRegression, gram_blocks, solve_gram
+from piezo_stage.core.estimation.identify.regress import (
+    DuhemRegression,
+    coupling_term,
+    gram_blocks,
+    solve_gram,
+)
 from piezo_stage.core.estimation.record import Record
-from piezo_stage.core.model.duhem import OTHER, DuhemModel, voltage_limits_for
+from piezo_stage.core.model.duhem import OTHER, DuhemModel, DuhemState, voltage_limits_for
 from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.model.inverse import invert
 from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, PlayOperators, play_columns
@@ -163,14 +171,18 @@ class Candidate:
 
 @dataclass
 class ClassCandidate:
-    """``memory`` as the issue's other model class: the Prandtl-Ishlinskii class (a
-    linear term and play operators, non-negative weights: monotone, with return-point
-    memory and an exact inverse; core/estimation/identify/prandtl.py) in place of the
-    Duhem law, fitted on FIT alone (no effect kept before it). Its branches continue
-    past FIT's range along the linear term and the operators' own lines, where a
-    polynomial branch continues straight from its end: the candidate for a stroke
+    """``memory`` as the issue's other model class: the Prandtl-Ishlinskii class or
+    the discretized Preisach class (a linear term and play operators, non-negative
+    weights: monotone, with return-point memory and an exact inverse;
+    core/estimation/identify/prandtl.py, preisach.py) in place of the Duhem law, fitted
+    on FIT with the effects kept before it (the transform effects acting on its output
+    and the coupling's, a coupling term, a drift), as the Duhem law is. Its branches
+    continue past FIT's range along the linear term and the operators' own lines, where
+    a polynomial branch continues straight from its end: the candidate for a stroke
     larger than calibrated. Read like a Candidate (``predict``, ``play_operators``,
-    ``effects``); ``stage_parts`` gives the model file's terms."""
+    ``effects``); ``stage_parts`` gives the model file's terms; ``twin`` is the Duhem
+    law's best form with the same effects, on which a further effect's parameters are
+    searched (``fit_class_candidate``'s ``base``)."""
 
     pi: PrandtlIshlinskii
     fit_rms_um: float
@@ -179,18 +191,30 @@ class ClassCandidate:
     params: dict = field(default_factory=dict)
     effects: list = field(default_factory=list)
     reg_fs: float = 0.0
+    coupling: DuhemModel | None = None   # from the other axis's voltage (whole law)
+    drift_tau_s: float | None = None
+    twin: Candidate | None = None
+
+    @property
+    def kind(self) -> str:
+        """'pi' or 'preisach'."""
+        return self.pi.kind
 
     def predict(self, rec: Record, axis: str) -> np.ndarray:
-        """Prediction on another record; the constant re-estimated, the operators'
-        start the one of PLAY_STARTS (at rest at the record's first voltage, after a
-        fall to it, after a rise) that fits the record best, as for the Duhem law's
-        play operators."""
-        v, w = np.ascontiguousarray(rec.v[axis], dtype=float), rec.w[axis]
-        ops = self.pi.operators
+        """Prediction on another record: the kept effects at the record's own rate, the
+        coupling term from rest at the other axis's first voltage, the drift as fitted;
+        the constant re-estimated, the operators' start the one of PLAY_STARTS (at rest
+        at the record's first voltage, after a fall to it, after a rise) that fits the
+        record best, as for the Duhem law's play operators."""
+        w = rec.w[axis]
+        op = transform_ops(self.effects, rec.fs_hz)
+        drift: np.ndarray | float = 0.0
+        if self.drift_tau_s is not None:
+            drift = Drift.columns(len(w), rec.fs_hz, self.drift_tau_s) @ self.pi.around[-2:]
         best: tuple[float, np.ndarray] | None = None
         for start in PLAY_STARTS:
-            z = float(v[0]) + start * ops.thresholds_V
-            p = self.pi.linear_um_per_V * v + ops.run(v, z)
+            h = self.hysteresis(rec, axis, start)
+            p = (h[0] + op((h - h[0])[:, None])[:, 0] if op is not None else h) + drift
             p = p + float(np.mean(w - p))
             err = float(np.sum((w - p) ** 2))
             if best is None or err < best[0]:
@@ -198,45 +222,193 @@ class ClassCandidate:
         assert best is not None  # (PLAY_STARTS is not empty)
         return best[1]
 
+    def hysteresis(self, rec: Record, axis: str, start: float = 0.0) -> np.ndarray:
+        """The class's output and the coupling term's over ``rec`` [um], before the
+        effects and without the constant: the operators from ``start`` (PLAY_STARTS)
+        at the record's first voltage, the coupling from rest at the other axis's."""
+        v = np.ascontiguousarray(rec.v[axis], dtype=float)
+        ops = self.pi.operators
+        h = self.pi.linear_um_per_V * v + ops.run(v, float(v[0]) + start * ops.thresholds_V)
+        if self.coupling is not None:
+            vo = rec.v.get(OTHER[axis])
+            if vo is None:
+                raise DataError(f"{rec.source}: the model has coupling but the record "
+                                f"has no v{OTHER[axis]}")
+            vo = np.ascontiguousarray(vo, dtype=float)
+            h = h + self.coupling.simulate(vo, DuhemState(float(vo[0]), 0.0))[0]
+        return h
+
     def play_operators(self) -> PlayOperators:
         """The class's play operators, at rest at FIT's first voltage."""
         return self.stage_parts()[1]
 
-    def stage_parts(self) -> tuple[DuhemModel, PlayOperators]:
-        """(Duhem law that is exactly the linear term, play operators), as ``identify
-        --class pi`` writes them."""
-        return self.pi.to_model(self.v0)
+    def stage_parts(self) -> tuple[DuhemModel, PlayOperators, DuhemModel | None]:
+        """(Duhem law that is exactly the linear term, play operators, the coupling
+        term or None), as ``identify --class`` writes them."""
+        return (*self.pi.to_model(self.v0), self.coupling)
 
     def model_effect(self) -> dict | None:
-        """None: the class is the hysteresis itself, not a plant effect."""
-        return None
+        """The effect as model-file / plant parameters (None for the shapes: memory,
+        coupling)."""
+        return None if self.effect in SHAPES else dict(self.params)
 
     def model_effects(self) -> dict:
-        """No plant effects (the class is fitted alone)."""
-        return {}
+        """Every kept plant effect as model-file parameters {name: params} (coupling is
+        a term of the model itself, memory the class)."""
+        return {n: dict(p) for n, p in self.effects if n not in SHAPES}
 
 
 MEMORY_CLASSES = ("pi", "preisach")  # the memory candidate's class forms
 
 
 def fit_class_candidate(rec: Record, axis: str, limits_V: tuple | None = None,
-                        kind: str = "pi") -> ClassCandidate:
+                        kind: str = "pi", base: Candidate | None = None,
+                        kept: Sequence[tuple[str, dict]] = (),
+                        effect: str = "memory") -> ClassCandidate:
     """A class with memory in place of the Duhem law, as the memory candidate's other
     forms, fitted as ``identify --class`` fits it on ``rec``'s axis: ``kind`` 'pi'
     (the Prandtl-Ishlinskii class) or 'preisach' (the discretized Preisach class);
     non-negative weights, thresholds up to half the amplifier's range ``limits_V``,
-    else 0-150 V widened to the record's (duhem.voltage_limits_for)."""
+    else 0-150 V widened to the record's (duhem.voltage_limits_for).
+
+    ``kept`` ([(name, params)], their parameters fixed) are fitted with it: the
+    transform effects act on the class's output and the coupling's, a kept coupling is
+    a whole-curve Duhem term of the other axis's voltage at ``base``'s coupling alpha
+    (its coefficients fitted with the class's weights), a kept drift has ``base``'s
+    time constant; the Duhem law's other shapes (structure, memory, rate) are what the
+    class replaces. ``base`` (a Candidate with those effects, the Duhem law's) becomes
+    the candidate's ``twin``; ``effect`` names the candidate (the last effect added)."""
     if kind not in MEMORY_CLASSES:
         raise ValueError(f"memory class {kind!r}: one of {MEMORY_CLASSES}")
-    v, w = rec.v[axis], rec.w[axis]
+    v = np.ascontiguousarray(rec.v[axis], dtype=float)
+    w = rec.w[axis]
+    fs = rec.fs_hz
     lo, hi = voltage_limits_for([v], limits_V)
+    kept = [(n, dict(p)) for n, p in kept
+            if n not in ("structure", "memory", "rate", "none")]
+    names = [n for n, _ in kept]
+    coupled = coupling_model = None
+    if "coupling" in names:
+        if base is None:
+            raise ValueError("a kept coupling needs the Duhem law's fit with it (base)")
+        if base.reg.v_other is not None:
+            coupled, coupling_model = coupling_term(rec.v[OTHER[axis]],
+                                                    float(base.alphas[-1]))
+        else:  # the record has no other axis (a given model's coupling): no term, as
+            kept = [x for x in kept if x[0] != "coupling"]  # the Duhem law's fit has
+    tau = None
+    if "drift" in names:
+        tau = base.drift_tau_s if base is not None and base.drift_tau_s else \
+            max(rec.t[-1] - rec.t[0], 1.0) / 3.0
+    around = Around(transform_ops(kept, fs), coupled,
+                    Drift.columns(len(v), fs, tau) if tau is not None else None)
     fit = fit_pi_class if kind == "pi" else fit_preisach_class
-    pi = fit(v, w, reach_V=(hi - lo) / 2)
-    fit_rms = float(np.sqrt(np.mean((pi.predict(v) - w) ** 2)))
+    pi = fit(v, w, reach_V=(hi - lo) / 2, around=around)
+    coupling = None
+    if coupling_model is not None and coupled is not None:
+        coupling = coupling_model(pi.around[:coupled.shape[1]])
     params = {"class": "prandtl-ishlinskii", "play_operators": OPERATORS} if kind == "pi" \
         else {"class": "preisach", "cells": int(pi.operators.thresholds_V.size)}
-    return ClassCandidate(pi, fit_rms, float(v[0]), params=params,
-                          effects=[("memory", dict(params))], reg_fs=rec.fs_hz)
+    effects = []
+    for n, p in kept:
+        if n == "drift":
+            p = {"rate_um_per_s": float(pi.around[-2]),
+                 "amplitude_um": float(pi.around[-1]), "tau_s": float(tau or 0.0)}
+        effects.append((n, p))
+    effects.append(("memory", dict(params)))
+    if effect != "memory":  # the last effect added: it names the candidate
+        effects.append(effects.pop(names.index(effect)))
+        params = dict(effects[-1][1])
+    cand = ClassCandidate(pi, 0.0, float(v[0]), effect, params, effects, fs, coupling,
+                          tau, base)
+    cand.fit_rms_um = float(np.sqrt(np.mean((cand.predict(rec, axis) - w) ** 2)))
+    return cand
+
+
+def fit_class_effect(rec: Record, axis: str, on: ClassCandidate, effect: str,
+                     law: Candidate, limits_V: tuple | None = None) -> ClassCandidate | None:
+    """``effect`` added to a class kept before it (``on``), the class refitted.
+
+    Every effect is in place in the refit:
+
+    - creep: its fraction searched exactly, every weight refitted at each trial
+      (``nonneg_family_rms``: creep is linear in its fraction);
+    - a delay, dynamics: their parameters searched with the class's output held in
+      its shape (its scale, the constant and a kept drift refitted at each step:
+      ``search_transform``), then the class refitted; the two alternate, each from the
+      other's last result, while FIT gets closer (CLASS_ALTERNATIONS at most);
+    - coupling: at the alpha the Duhem law found for it (``law``, the twin's
+      candidate for the same effect);
+    - drift: its two shapes.
+
+    None where the effect cannot be added so, or the refit is no closer on FIT (the
+    search ended in the wrong place)."""
+    kept = [(n, dict(p)) for n, p in on.effects if n != "memory"]
+    if effect not in TRANSFORMS:
+        if effect == "coupling" and law.reg.v_other is not None:
+            kept.append(("coupling", {}))
+        elif effect == "drift":
+            kept.append(("drift", {}))
+        else:
+            return None
+        k = fit_class_candidate(rec, axis, limits_V, on.kind, law, kept, effect)
+        return k if k.fit_rms_um < on.fit_rms_um else None
+    if effect == "creep":  # linear in its fraction: searched exactly, the class refitted
+        gamma = _class_creep(rec, axis, on, kept)
+        k = fit_class_candidate(rec, axis, limits_V, on.kind, law,
+                                kept + [("creep", {"gamma": gamma,
+                                                   "tau_s": list(CREEP_TAUS)})], effect)
+        return k if k.fit_rms_um < on.fit_rms_um else None
+    best: ClassCandidate | None = None
+    shape = on
+    for _ in range(CLASS_ALTERNATIONS):  # the shape held, the effect searched; refitted
+        h = shape.hysteresis(rec, axis)
+        B = (h - h[0])[:, None]  # from rest (the constant is a column of its own)
+        extra = [np.ones((len(h), 1))]
+        if on.drift_tau_s is not None:
+            extra.append(Drift.columns(len(h), rec.fs_hz, on.drift_tau_s))
+
+        def design_without(names, kept=kept):
+            op = transform_ops([x for x in kept if x[0] not in names], rec.fs_hz)
+            return op(B) if op is not None else B
+        params, now = search_transform(effect, design_without, extra, rec.w[axis],
+                                       rec.fs_hz, kept)
+        k = fit_class_candidate(rec, axis, limits_V, on.kind, law, now + [(effect, params)],
+                                effect)
+        if best is not None and k.fit_rms_um >= best.fit_rms_um * (1 - 1e-3):
+            if k.fit_rms_um < best.fit_rms_um:
+                best = k
+            break
+        best = shape = k
+    return best if best is not None and best.fit_rms_um < on.fit_rms_um else None
+
+
+def _class_creep(rec: Record, axis: str, on: ClassCandidate,
+                 kept: Sequence[tuple[str, dict]]) -> float:
+    """Creep's fraction gamma for a class (``on``: its operators as regressors, the
+    coupling's output as one column), every weight refitted at each gamma
+    (``nonneg_family_rms``), the kept transform effects in place."""
+    v = np.ascontiguousarray(rec.v[axis], dtype=float)
+    H = np.column_stack([v, on.pi.operators.columns(v)])
+    n_pos = H.shape[1]
+    if on.coupling is not None:
+        H = np.column_stack([H, on.hysteresis(rec, axis) - H @ np.concatenate(
+            [[on.pi.linear_um_per_V], on.pi.operators.weights_um_per_V])])
+    H = H - H[0]  # from rest (the constant is a column of its own)
+    op = transform_ops(kept, rec.fs_hz)
+    if op is not None:
+        H = op(H)
+    F = Creep(rec.fs_hz, tau_s=CREEP_TAUS).fast_part(H)
+    extra = [np.ones((len(v), 1))]
+    if on.drift_tau_s is not None:
+        extra.append(Drift.columns(len(v), rec.fs_hz, on.drift_tau_s))
+    E = np.column_stack(extra)
+    cost = nonneg_family_rms(np.column_stack([H, E]),
+                             np.column_stack([F, np.zeros_like(E)]), rec.w[axis], n_pos)
+    return float(_search_1d(cost, 0.0, 0.3)[0])
+
+
+CLASS_ALTERNATIONS = 4  # an effect added to a class: its search and the refit, alternated
 
 
 def _search_1d(f, lo, hi, n_grid=12, log=False):
@@ -352,65 +524,12 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
         if effect == "rate":
             params["rate_widening_s"] = beta
     elif effect in TRANSFORMS:
-        # the kept operators applied once for these alphas; the new effect's parameter
-        # search then filters only what it must (creep: once in all)
-        KX = reg.design(alphas)
-        KX = fixed_op(KX) if fixed_op is not None else KX.copy()
         extra = [] if reg.extra is None else [reg.extra]
+        held = list(kept)
 
-        def solve(cols):
-            return solve_gram(*gram_blocks([cols] + extra, w), len(w)).rms
-
-        if effect == "creep":
-            F = Creep(fs, tau_s=CREEP_TAUS).fast_part(KX)
-            g, _ = _search_1d(lambda g: solve(KX - g * F), 0.0, 0.3)
-            params = {"gamma": float(g), "tau_s": list(CREEP_TAUS)}
-        elif effect == "delay":
-            dmax = min(0.02, 50 / fs)
-
-            def search(cost, p0):
-                return {"delay_s": float(_search_1d(lambda d: cost({"delay_s": d}), 0.0,
-                                                    dmax, n_grid=15)[0])}
-            if "dynamics" in dict(kept):  # the pair's exact sampled form
-                dyn = dict(kept)["dynamics"]
-                KB = _without(reg, alphas, kept, ("delay", "dynamics"), fs)
-                params = _alternate(KB, extra, w, search, {"delay_s": 0.0},
-                                    lambda p: transform_ops([("dynamics", dyn),
-                                                             ("delay", p)], fs))
-            else:
-                params = _alternate(KX, extra, w, search, {"delay_s": 0.0},
-                                    lambda p: Delay(fs, delay_s=p["delay_s"]).apply)
-        else:
-            seeds = _resonance_seeds(KX, w, fs, extra)
-
-            def search(cost, p0):  # from the data's peak and the last alternation's end
-                last = [(p0["fn_hz"], p0["zeta"])] if p0 and p0["kind"] == "resonance" \
-                    else []
-                return _search_dynamics(fs, cost, seeds + last if seeds else seeds)
-            if "delay" in dict(kept):
-                d0 = dict(kept)["delay"]
-                KB = _without(reg, alphas, kept, ("delay",), fs)
-
-                def dyn_op(p):
-                    return transform_ops([("dynamics", p), ("delay", d0)], fs)
-                params = _alternate(KB, extra, w, search, None, dyn_op,
-                                    start=Delay(fs, **d0).apply)
-            else:
-                params = _alternate(KX, extra, w, search, None,
-                                    lambda p: Dynamics(fs, **p).apply, start=_identity)
-            if seeds and "delay" in dict(kept) and params["kind"] == "resonance":
-                # a delay fitted before the resonance took the resonance's phase as
-                # well (on a record whose chirp excites it): the resonance and the
-                # delay polished together
-                def pair_op(p):
-                    dyn_p = {k: v for k, v in p.items() if k != "delay_s"}
-                    return transform_ops([("dynamics", dyn_p),
-                                          ("delay", {"delay_s": p["delay_s"]})], fs)
-                both = _alternate(KB, extra, w, lambda cost, p0: _polish_pair(p0, fs, cost),
-                                  {**params, "delay_s": float(d0["delay_s"])}, pair_op)
-                d = both.pop("delay_s")
-                params = both
-                kept = [(n, {**p, "delay_s": d} if n == "delay" else p) for n, p in kept]
+        def design_without(names: Sequence[str]) -> np.ndarray:
+            return _without(reg, alphas, held, names, fs)
+        params, kept = search_transform(effect, design_without, extra, w, fs, held)
         reg.transform = transform_ops(list(kept) + [(effect, params)], fs)
     # the alphas again, with the effect in place (base and effects fitted together)
     alphas, fit, _ = fit_fast(reg, budget=TRIAL_BUDGET, x0=alphas, step=0.2)
@@ -423,6 +542,71 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
     params = dict(effects[-1][1])
     return Candidate(effect, params, alphas, fit.theta, reg, fit.rms, reg.transform, tau,
                      effects, fs, plays, start, beta)
+
+
+def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.ndarray],
+                     extra: list, w: np.ndarray, fs: float,
+                     kept: Sequence[tuple[str, dict]]) -> tuple[dict, list]:
+    """A transform effect's parameters (creep, delay, dynamics) searched on FIT, the
+    model's other coefficients refitted by least squares at each step.
+    ``design_without(names)`` gives the model's columns through the kept transform
+    effects except ``names``; ``extra`` are columns after them (a constant, a drift).
+    -> (params, kept: a kept delay polished together with a resonance found now)."""
+    kept = list(kept)
+    # the kept operators applied once; the new effect's parameter search then filters
+    # only what it must (creep: once in all)
+    KX = np.array(design_without(()))  # (a copy: a design may be a reused buffer)
+
+    def solve(cols):
+        return solve_gram(*gram_blocks([cols] + extra, w), len(w)).rms
+
+    if effect == "creep":
+        F = Creep(fs, tau_s=CREEP_TAUS).fast_part(KX)
+        g, _ = _search_1d(lambda g: solve(KX - g * F), 0.0, 0.3)
+        return {"gamma": float(g), "tau_s": list(CREEP_TAUS)}, kept
+    if effect == "delay":
+        dmax = min(0.02, 50 / fs)
+
+        def search_delay(cost, p0):
+            return {"delay_s": float(_search_1d(lambda d: cost({"delay_s": d}), 0.0,
+                                                dmax, n_grid=15)[0])}
+        if "dynamics" in dict(kept):  # the pair's exact sampled form
+            dyn = dict(kept)["dynamics"]
+            KB = design_without(("delay", "dynamics"))
+            return _alternate(KB, extra, w, search_delay, {"delay_s": 0.0},
+                              lambda p: transform_ops([("dynamics", dyn), ("delay", p)],
+                                                      fs)), kept
+        return _alternate(KX, extra, w, search_delay, {"delay_s": 0.0},
+                          lambda p: Delay(fs, delay_s=p["delay_s"]).apply), kept
+    if effect != "dynamics":
+        raise ValueError(f"{effect} is not a transform effect")
+    seeds = _resonance_seeds(KX, w, fs, extra)
+
+    def search(cost, p0):  # from the data's peak and the last alternation's end
+        last = [(p0["fn_hz"], p0["zeta"])] if p0 and p0["kind"] == "resonance" else []
+        return _search_dynamics(fs, cost, seeds + last if seeds else seeds)
+    if "delay" not in dict(kept):
+        return _alternate(KX, extra, w, search, None, lambda p: Dynamics(fs, **p).apply,
+                          start=_identity), kept
+    d0 = dict(kept)["delay"]
+    KB = design_without(("delay",))
+
+    def dyn_op(p):
+        return transform_ops([("dynamics", p), ("delay", d0)], fs)
+    params = _alternate(KB, extra, w, search, None, dyn_op, start=Delay(fs, **d0).apply)
+    if seeds and params["kind"] == "resonance":
+        # a delay fitted before the resonance took the resonance's phase as well (on a
+        # record whose chirp excites it): the resonance and the delay polished together
+        def pair_op(p):
+            dyn_p = {k: v for k, v in p.items() if k != "delay_s"}
+            return transform_ops([("dynamics", dyn_p),
+                                  ("delay", {"delay_s": p["delay_s"]})], fs)
+        both = _alternate(KB, extra, w, lambda cost, p0: _polish_pair(p0, fs, cost),
+                          {**params, "delay_s": float(d0["delay_s"])}, pair_op)
+        d = both.pop("delay_s")
+        params = both
+        kept = [(n, {**p, "delay_s": d} if n == "delay" else p) for n, p in kept]
+    return params, kept
 
 
 PLAY_STARTS = (0.0, 1.0, -1.0)  # operators at rest at v[0], after a fall, after a rise

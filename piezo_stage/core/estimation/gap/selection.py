@@ -21,6 +21,7 @@ from piezo_stage.core.estimation.gap.candidates import (
     broadband,
     fit_candidate,
     fit_class_candidate,
+    fit_class_effect,
     with_drift,
 )
 from piezo_stage.core.estimation.gap.disturbance import disturbance
@@ -73,7 +74,7 @@ class AxisDiagnosis:
     candidates: dict = field(default_factory=dict)
     effects: list = field(default_factory=list)    # forward selection: kept, in order
     budget: dict = field(default_factory=dict)
-    model: Candidate | None = None                   # the model with every kept effect
+    model: Candidate | ClassCandidate | None = None  # the model with every kept effect
 
 
 FIRST_SHRINK_PCT = 30.0  # the dominant effect must close this much of the held-out gap
@@ -165,21 +166,32 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     def candidate(e, on, kept):
         """fit_candidate; structure in its forms (richer branches; with play
         operators: memory; where FIT holds several rates, with their thresholds
-        widened by the rate: rate; with nothing kept before it, memory as the
-        Prandtl-Ishlinskii or the discretized Preisach class in place of the Duhem
-        law), the one closest on
-        HOLDOUT kept (as every candidate is judged), so memory and rate are named
-        only where they pay. A form whose exact inverse does not give the records'
-        voltages back (a branch turning back) must be closer by 10 % than the best
-        before it (NOT_INVERTIBLE_PAYS)."""
+        widened by the rate: rate; memory as the Prandtl-Ishlinskii or the discretized
+        Preisach class in place of the Duhem law, with the effects kept before it), the
+        one closest on HOLDOUT kept (as every candidate is judged), so memory and rate
+        are named only where they pay. A form whose exact inverse does not give the
+        records' voltages back (a branch turning back) must be closer by 10 % than the
+        best before it (NOT_INVERTIBLE_PAYS). On a class (``on`` a ClassCandidate) the
+        effect is added to the class (fit_class_effect) and to its twin, the Duhem
+        law's best form with the same effects; the closer of the two on HOLDOUT is the
+        candidate (the class's twin the law's)."""
+        if isinstance(on, ClassCandidate):
+            law = candidate(e, on.twin, on.twin.effects)
+            k = fit_class_effect(fit, axis, on, e, law, limits_V) \
+                if isinstance(law, Candidate) else None
+            if k is None:
+                return law
+            k.twin = law
+            r_law = rms(law.predict(holdout, axis) - holdout.w[axis])
+            return k if rms(k.predict(holdout, axis) - holdout.w[axis]) <= r_law else law
         law = fit_candidate(fit, axis, e, on, kept)  # the best form of the Duhem law
         c: Candidate | ClassCandidate = law
         if e == "structure":
             both = np.concatenate([fit.v[axis], holdout.v[axis]])
             best = rms(law.predict(holdout, axis) - holdout.w[axis])
             classes = [(k, rms(k.predict(holdout, axis) - holdout.w[axis]))
-                       for k in (fit_class_candidate(fit, axis, limits_V, kind)
-                                 for kind in (MEMORY_CLASSES if not kept else ()))]
+                       for k in (fit_class_candidate(fit, axis, limits_V, kind, on, kept)
+                                 for kind in MEMORY_CLASSES)]
             for form in (("memory", "rate") if rates else ("memory",)):
                 m = fit_candidate(fit, axis, e, on, kept, memory=True,
                                   rate=form == "rate")
@@ -197,11 +209,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 if r < best:
                     c, best = k, r
             if c is not law:
-                duhem_forms[e] = law
+                c.twin = law
         return c
-    # an effect whose candidate is a class in place of the Duhem law: its best form
-    # on the Duhem law (a pair starts from it)
-    duhem_forms: dict[str, Candidate] = {}
     base = fit_candidate(fit, axis, "none", kept=given)
     progress(f"{axis} none")
     cands = {"none": base}
@@ -261,12 +270,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 pairs.append((d0, d1))
             best_pair = None
             for a, b in pairs:
-                # a class in place of the Duhem law is fitted alone (nothing on top of
-                # it): a pair starts from the Duhem law's best form of that effect
-                first = duhem_forms.get(a) if isinstance(pool[a], ClassCandidate) \
-                    else pool[a]
-                if not isinstance(first, Candidate):
-                    continue
+                first = pool[a]
                 pair = candidate(b, first, first.effects)
                 progress(f"{axis} {a}+{b}")
                 r_pair = rms(pair.predict(holdout, axis) - w_h)
@@ -279,9 +283,6 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                     best_pair = (g_pair, a, b)
             if best_pair is not None:
                 e = best_pair[1]
-                if isinstance(pool[e], ClassCandidate):  # the pair's first, as fitted
-                    pool[e] = duhem_forms[e]
-                    scores[e] = rms(pool[e].predict(holdout, axis) - w_h)
                 c, g_new = pool[e], gap_above_floor(scores[e], floor)
                 step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
                 rule = (f"the pair rule: {e} and {best_pair[2]} together close "
@@ -320,9 +321,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
             resid, c.predict(holdout, axis) - w_h, floor, holdout.fs_hz)
         model, r_cur = c, scores[e]
         del pool[e]
-        if g_new <= NOISE_STOP * floor or isinstance(c, ClassCandidate):
-            break  # at the noise floor (itself estimated): nothing left to explain; or
-            # the other class, fitted alone: no effect is fitted on top of it
+        if g_new <= NOISE_STOP * floor:
+            break  # at the noise floor (itself estimated): nothing left to explain
         for e2 in list(pool):
             if len(steps) == 1 and (e, e2) in tried:
                 # fitted already as a pair on top of the effect just kept

@@ -11,7 +11,14 @@ import numpy as np
 
 from piezo_stage.core.errors import DataError, SolverError
 from piezo_stage.core.estimation.identify.options import IdentifyOptions
-from piezo_stage.core.estimation.identify.regress import DuhemRegression
+from piezo_stage.core.estimation.identify.prandtl import (
+    Around,
+    PrandtlIshlinskii,
+    fit_pi_class,
+    held_out_rms,
+)
+from piezo_stage.core.estimation.identify.preisach import fit_preisach_class
+from piezo_stage.core.estimation.identify.regress import DuhemRegression, coupling_term
 from piezo_stage.core.estimation.identify.segmentation import (
     Segmentation,
     branch_monotone,
@@ -124,6 +131,32 @@ def simulate_axis(model: DuhemModel, coupling: DuhemModel | None, v: np.ndarray,
     return w
 
 
+def coupling_wanted(v: np.ndarray, v_other: np.ndarray | None, axis: str,
+                    opts: IdentifyOptions, notes: list) -> bool:
+    """Whether axis ``axis`` gets a coupling term from the other axis's voltage
+    ``v_other``: ``opts.coupling`` 'on', or 'auto' (the fast method) where the other
+    axis moves (over 5 % of this one's span) and not in step with this one (a reason
+    appended to ``notes`` where it does); DataError where 'on' cannot be met."""
+    other = OTHER[axis]
+    use_c = (opts.coupling == "on" or (opts.coupling == "auto" and opts.method == "fast"
+             and v_other is not None and np.ptp(v_other) > 0.05 * np.ptp(v)))
+    if use_c and v_other is None:
+        raise DataError(f"coupling requested but the record has no v{other}")
+    if use_c and v_other is not None:  # a coupling term needs the other axis on its own
+        r = abs(float(np.corrcoef(v, v_other)[0, 1]))
+        if r > COLLINEAR:
+            why = (f"v{other} moved in step with v{axis} (correlation {r:.4f}), so a "
+                   f"coupling term is not identifiable from this record; excite the axes "
+                   f"separately or at different frequencies")
+            if opts.coupling == "on":
+                raise DataError(why)
+            use_c = False
+            notes.append("no coupling term: " + why)
+    if use_c and opts.method != "fast":
+        raise DataError("a coupling term is fitted by the fast method only")
+    return use_c
+
+
 def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
                   progress: Callable[..., None] | None = None) -> AxisResult:
     """Identify one axis of a record. Raises DataError on unusable data and
@@ -140,24 +173,8 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
         v = branch_monotone(v, seg)
         notes.append("the voltage is noisy (measured, not commanded): micro-reversals "
                      "inside each branch were removed before fitting")
-    other = OTHER[axis]
-    v_other = rec.v.get(other)
-    use_c = (opts.coupling == "on" or (opts.coupling == "auto" and opts.method == "fast"
-             and v_other is not None and np.ptp(v_other) > 0.05 * np.ptp(v)))
-    if use_c and v_other is None:
-        raise DataError(f"coupling requested but the record has no v{other}")
-    if use_c:  # a coupling term needs the other axis to move on its own
-        r = abs(float(np.corrcoef(v, v_other)[0, 1]))
-        if r > COLLINEAR:
-            why = (f"v{other} moved in step with v{axis} (correlation {r:.4f}), so a "
-                   f"coupling term is not identifiable from this record; excite the axes "
-                   f"separately or at different frequencies")
-            if opts.coupling == "on":
-                raise DataError(why)
-            use_c = False
-            notes.append("no coupling term: " + why)
-    if use_c and opts.method != "fast":
-        raise DataError("a coupling term is fitted by the fast method only")
+    v_other = rec.v.get(OTHER[axis])
+    use_c = coupling_wanted(v, v_other, axis, opts, notes)
     if opts.structure == "segmented":
         notes.append("segmented: within one branch only h = f + g (ascending) and "
                      "h = g - f (descending) are identifiable; reported as h")
@@ -269,22 +286,72 @@ def choose_class(rec: Record, axis: str, opts: IdentifyOptions | None = None,
     Preisach class, in that order): it wins only 2 % closer; the memory classes'
     thresholds reach half the amplifier's ``limits_V`` (else 0-150 V widened to the
     record's). -> (class, {class: held-out RMS um})."""
-    from piezo_stage.core.estimation.identify.prandtl import fit_pi_class, held_out_rms
-    from piezo_stage.core.estimation.identify.preisach import fit_preisach_class
     first, last = _later_cycles(rec, axis)
     skip = 0.1 * (last.t[-1] - last.t[0])
     w = last.w[axis]
     duhem = predict_axis(identify_axis(first, axis, opts), last)[2]
-    lo, hi = voltage_limits_for(list(rec.v.values()), limits_V)
     held = {"duhem": held_out_rms(duhem, w, last.fs_hz, skip)}
-    for name, fit in (("pi", fit_pi_class), ("preisach", fit_preisach_class)):
-        model = fit(first.v[axis], first.w[axis], reach_V=(hi - lo) / 2)
-        held[name] = held_out_rms(model.predict(last.v[axis]), w, last.fs_hz, skip)
+    for name in ("pi", "preisach"):
+        model = fit_class_axis(first, axis, name, opts, limits_V)
+        held[name] = held_out_rms(model.predict(last, axis), w, last.fs_hz, skip)
     best = "duhem"
     for name in ("pi", "preisach"):
         if held[name] < 0.98 * held[best]:
             best = name
     return best, held
+
+
+@dataclass
+class ClassFit:
+    """One axis's class with memory (``identify --class pi|preisach``): ``law`` (a
+    PrandtlIshlinskii, banded operators for Preisach), its ``coupling`` term (a
+    DuhemModel driven by the other axis's voltage, or None) and ``notes``."""
+    law: PrandtlIshlinskii
+    coupling: DuhemModel | None
+    notes: list = field(default_factory=list)
+
+    def predict(self, rec: Record, axis: str) -> np.ndarray:
+        """The output over ``rec`` [um] (operators at rest at its first voltage,
+        coupling from rest at the other axis's), the constant fitted there."""
+        pred = self.law.predict(rec.v[axis])
+        if self.coupling is not None:
+            vo = rec.v.get(OTHER[axis])
+            if vo is None:
+                raise DataError(f"{rec.source}: the model has coupling but the record "
+                                f"has no v{OTHER[axis]}")
+            pred = pred + self.coupling.simulate(vo, DuhemState(float(vo[0]), 0.0))[0]
+        return pred + float(np.mean(rec.w[axis] - pred))
+
+
+def fit_class_axis(rec: Record, axis: str, kind: str, opts: IdentifyOptions | None = None,
+                   limits_V: tuple | None = None) -> ClassFit:
+    """The class ``kind`` ('pi' or 'preisach') of one axis of ``rec``, thresholds up to
+    half the amplifier's ``limits_V`` (else 0-150 V widened to the record's), with a
+    coupling term where ``opts.coupling`` asks for one as for the Duhem law
+    (``coupling_wanted``): a whole-curve Duhem law of the other axis's voltage at the
+    alpha the Duhem law's fit of the same record finds for it, its coefficients fitted
+    together with the class's weights."""
+    opts = opts or IdentifyOptions()
+    v, w = _axis_data(rec, axis)
+    check_identifiable(v, rec.source)
+    notes: list = []
+    v_other = rec.v.get(OTHER[axis])
+    around, model_of = None, None
+    if v_other is not None and coupling_wanted(v, v_other, axis, opts, notes):
+        from dataclasses import replace
+        duhem = identify_axis(rec, axis, replace(opts, coupling="on"))
+        assert duhem.coupling is not None  # (asked for: "on")
+        cols, model_of = coupling_term(v_other, duhem.coupling.ascending.alpha)
+        around = Around(coupled=cols)
+        notes.append(f"coupling from v{OTHER[axis]}: its alpha from the Duhem law's fit "
+                     "of the same record, its coefficients fitted with the class")
+    lo, hi = voltage_limits_for(list(rec.v.values()), limits_V)
+    fit = fit_preisach_class if kind == "preisach" else fit_pi_class
+    law = fit(v, w, reach_V=(hi - lo) / 2, around=around)
+    coupling = model_of(law.around[:around.coupled.shape[1]]) \
+        if model_of is not None and around is not None and around.coupled is not None \
+        else None
+    return ClassFit(law, coupling, notes)
 
 
 @dataclass

@@ -33,7 +33,9 @@ field), where the peer's loop stops widening at the record's stroke.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -69,6 +71,9 @@ class PrandtlIshlinskii:
         The fit's wall time [s].
     smoothness : float
         The weight-density penalty it was fitted with (0: free weights).
+    around : numpy.ndarray
+        The coefficients of the ``Around`` columns it was fitted with (its ``coupled``
+        columns, then its ``free`` ones); empty when fitted alone.
     """
 
     linear_um_per_V: float
@@ -76,6 +81,7 @@ class PrandtlIshlinskii:
     offset_um: float
     fit_s: float = 0.0
     smoothness: float = 0.0
+    around: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def to_model(self, v0: float) -> tuple[DuhemModel, PlayOperators]:
         """This model in our model file's terms, at rest at ``v0`` [V]: a whole-curve
@@ -123,10 +129,118 @@ def gram_factors(A: np.ndarray, w: np.ndarray,
     return out
 
 
-def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
-                           monotone: bool = False, reach_V: float | None = None,
-                           smoothness: float = 0.0) -> PrandtlIshlinskii:
-    """The classical Prandtl-Ishlinskii model of one axis's record.
+@dataclass(frozen=True)
+class Around:
+    """What acts around a class's hysteresis while it is fitted (the gap's effects kept
+    before it), in the order of the plant (core/model/plant.py): ``op`` the transform
+    effects, a linear operator on columns (creep, dynamics, delay) that acts on the
+    hysteresis's output and on ``coupled``, columns beside the hysteresis whose weights
+    take either sign (a coupling term driven by the other axis's voltage, one column
+    per coefficient); ``free`` columns after the transform, either sign (a drift's
+    shapes). The class's own weights stay non-negative. The transform acts from rest
+    at the record's first sample (op(X - X[0]) + X[0]: the effects of a linear,
+    unit-gain operator on a stage resting in its initial state; a band's constant
+    part at rest is no step into a creep)."""
+
+    op: Callable[[np.ndarray], np.ndarray] | None = None
+    coupled: np.ndarray | None = None
+    free: np.ndarray | None = None
+
+    def columns(self, v: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, int]:
+        """The fit's columns [op([v, cells]), 1, op(coupled), free] and how many come
+        first with a non-negative weight (the linear term and the cells)."""
+        blocks = [np.column_stack([v, cells]), np.ones((v.size, 1))]
+        if self.coupled is not None:
+            blocks.append(self.coupled)
+        if self.op is not None:  # from rest at the record's first sample
+            blocks = [b if i == 1 else b[0] + self.op(b - b[0]) for i, b in enumerate(blocks)]
+        if self.free is not None:
+            blocks.append(self.free)
+        return np.column_stack(blocks), 1 + cells.shape[1]
+
+
+def nonneg_weights(R: np.ndarray, q: np.ndarray, P: np.ndarray, n_pos: int) -> np.ndarray:
+    """The weights minimising ||R x - q||^2 + ||P x[1:1 + P.shape[1]]||^2 with the
+    first ``n_pos`` of them non-negative and the rest of either sign (each such column
+    twice, + and -, both non-negative: one non-negative least squares)."""
+    from scipy.optimize import nnls
+    k = R.shape[1]
+    A = np.column_stack([R, -R[:, n_pos:]])
+    pen = np.zeros((P.shape[0], A.shape[1]))
+    pen[:, 1:1 + P.shape[1]] = P
+    coef, _ = nnls(np.vstack([A, pen]), np.concatenate([q, np.zeros(P.shape[0])]),
+                   maxiter=50 * A.shape[1])
+    th = coef[:k].copy()
+    th[n_pos:] -= coef[k:]
+    return th
+
+
+def nonneg_family_rms(X: np.ndarray, F: np.ndarray, w: np.ndarray,
+                      n_pos: int) -> Callable[[float], float]:
+    """The RMS [um] of the best fit of ``w`` on the columns X - g F, the first
+    ``n_pos`` weights non-negative, as a function of g: one pass over the rows for
+    the three Gram matrices (X'X, X'F + F'X, F'F), then every g is a small problem
+    (an effect linear in its parameter, as creep's fraction gamma is: Creep.apply is
+    X - gamma fast_part(X)). For searching g; the fit itself is ``fit_nonneg_class``'s."""
+    A, B, C = X.T @ X, X.T @ F, F.T @ F
+    B = B + B.T
+    xw, fw, ww, n = X.T @ w, F.T @ w, float(w @ w), len(w)
+    none = np.zeros((0, n_pos - 1))
+
+    def rms_at(g: float) -> float:
+        G = A - g * B + g * g * C
+        b = xw - g * fw
+        jitter = 1e-12 * float(np.trace(G)) / G.shape[0] + 1e-300
+        L = np.linalg.cholesky(G + jitter * np.eye(G.shape[0]))
+        q = np.linalg.solve(L, b)
+        R = L.T
+        th = nonneg_weights(R, q, none, n_pos)
+        rr = ww - float(q @ q) + float(np.sum((R @ th - q) ** 2))
+        return float(np.sqrt(max(rr, 0.0) / n))
+    return rms_at
+
+
+K = TypeVar("K")
+
+
+def fit_nonneg_class(v: np.ndarray, w: np.ndarray, cells: np.ndarray,
+                     pens: Mapping[K, np.ndarray], around: Around | None = None,
+                     fallback: K | None = None) -> tuple[np.ndarray, K]:
+    """A class's weights [linear, cells..., constant, around...] by non-negative least
+    squares on the columns ``around.columns`` gives, the linear term at least
+    ``min_slope``, with the penalty rows of one of ``pens`` ({key: rows over the
+    cells}): the one that, fitted on the record's first half, two thirds and three
+    quarters (``LATER_FROM``), predicts the rest best (summed RMS, offsets removed;
+    the only one when ``pens`` has one; ``fallback``, else the first, when the record's
+    first parts do not move). One pass over the rows (``gram_factors``): every later
+    step is small. -> (weights, the penalty's key)."""
+    around = around or Around()
+    X, n_pos = around.columns(v, cells)
+    floor = min_slope(v, w)  # the linear term's floor: no branch is flat anywhere
+    wf = w - floor * X[:, 0]
+    cuts = [int(f * v.size) for f in LATER_FROM]
+    tried = len(pens) > 1 and v.size >= 30 and all(np.ptp(v[:k]) > 0 for k in cuts)
+    factors = gram_factors(X, wf, (cuts if tried else []) + [v.size])
+    keys = list(pens)
+    choice = keys[0] if fallback is None else fallback
+    if tried:
+        later = dict.fromkeys(keys, 0.0)
+        for k, (R, q) in zip(cuts, factors):
+            for key in keys:
+                th = nonneg_weights(R, q, pens[key], n_pos)
+                later[key] += float(np.std(X[k:] @ th - wf[k:]))
+        choice = min(keys, key=later.__getitem__)
+    R, q = factors[-1]
+    th = nonneg_weights(R, q, pens[choice], n_pos)
+    th[0] += floor
+    return th, choice
+
+
+def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS
+                           ) -> PrandtlIshlinskii:
+    """The classical Prandtl-Ishlinskii model of one axis's record, the textbook peer:
+    a linear term, ``n`` play operators over half the record's span and a constant,
+    by plain least squares (weights of any sign).
 
     Parameters
     ----------
@@ -134,18 +248,6 @@ def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
         Voltage [V] and displacement [um], one sample each.
     n : int
         Play operators besides the linear term, over half the record's span.
-    monotone : bool
-        The linear term at least ``min_slope`` and every weight non-negative
-        (non-negative least squares): the model then rises with the voltage on every
-        branch, keeps the wiping-out
-        and congruency properties of its class, and has an exact inverse (``identify
-        --class pi``); else plain least squares (the peer of the benchmarks).
-    reach_V : float or None
-        More operators at the same spacing, up to this threshold [V] (half the
-        amplifier's range); None: the ``n`` alone.
-    smoothness : float
-        The weights' first differences penalised, this times the operators' mean
-        column norm (monotone fits only; 0: none).
 
     Returns
     -------
@@ -158,30 +260,12 @@ def fit_prandtl_ishlinskii(v: ArrayLike, w: ArrayLike, n: int = OPERATORS,
     span = float(np.ptp(v)) if v.size else 0.0
     if v.size < 10 or v.size != w.size or not span > 0:
         raise DataError("Prandtl-Ishlinskii: a record of >= 10 samples whose voltage moves")
-    step = span / (2 * (n + 1))
-    m = n if reach_V is None else int(min(max(n, reach_V // step), MAX_OPERATORS))
-    r = np.arange(1, m + 1) * step
-    plays = play_columns(v, r)
-    X = np.column_stack([v, plays, np.ones_like(v)])
-    floor = min_slope(v, w) if monotone else 0.0
-    if monotone:  # the constant free: +1 and -1 columns, both non-negative
-        from scipy.optimize import nnls
-        [(R, q)] = gram_factors(X, w - floor * v, [v.size])  # the same minimiser, small
-        A, b = np.column_stack([R, -R[:, -1]]), q
-        if smoothness > 0 and m > 1:
-            D = np.zeros((m - 1, A.shape[1]))
-            i = np.arange(m - 1)
-            D[i, 1 + i], D[i, 2 + i] = -1.0, 1.0
-            scale = np.sqrt(smoothness) * float(np.mean(np.linalg.norm(plays, axis=0)))
-            A, b = np.vstack([A, scale * D]), np.append(b, np.zeros(m - 1))
-        coef, _ = nnls(A, b, maxiter=50 * A.shape[1])
-        theta = np.append(coef[:-2], coef[-2] - coef[-1])
-        theta[0] += floor
-    else:
-        theta, *_ = np.linalg.lstsq(X, w, rcond=None)
+    r = np.arange(1, n + 1) * span / (2 * (n + 1))
+    X = np.column_stack([v, play_columns(v, r), np.ones_like(v)])
+    theta, *_ = np.linalg.lstsq(X, w, rcond=None)
     ops = PlayOperators.at_rest(r, theta[1:-1], float(v[0]))
     return PrandtlIshlinskii(float(theta[0]), ops, float(theta[-1]),
-                             time.perf_counter() - t0, float(smoothness) if monotone else 0.0)
+                             time.perf_counter() - t0)
 
 
 def min_slope(v: ArrayLike, w: ArrayLike) -> float:
@@ -195,14 +279,16 @@ def min_slope(v: ArrayLike, w: ArrayLike) -> float:
 
 
 def fit_pi_class(v: ArrayLike, w: ArrayLike, reach_V: float | None = None,
-                 n: int = OPERATORS) -> PrandtlIshlinskii:
+                 n: int = OPERATORS, around: Around | None = None) -> PrandtlIshlinskii:
     """The Prandtl-Ishlinskii class we identify (``identify --class pi``, the gap's
-    memory in its class form): non-negative weights, operators up to ``reach_V`` [V]
-    (half the amplifier's range; None: half the record's span, as the peer). Where they
-    reach past the record, the weights past it are free or follow a smooth density
-    (``SMOOTHNESS``), whichever, fitted on the record's first half, two thirds and three
-    quarters (``LATER_FROM``), predicts the rest better (summed RMS, offsets removed);
-    the whole record is then fitted so.
+    memory in its class form): non-negative weights (the linear term at least
+    ``min_slope``), operators at the spacing of ``n`` over half the record's span, on
+    to ``reach_V`` [V] (half the amplifier's range; None: half the record's span, as the
+    peer). Where they reach past the record, the weights past it are free or follow a
+    smooth density (``SMOOTHNESS``: first differences penalised as much as the
+    operators' columns weigh), whichever, fitted on the record's first half, two thirds
+    and three quarters (``LATER_FROM``), predicts the rest better (summed RMS, offsets
+    removed); the whole record is then fitted so (``fit_nonneg_class``).
 
     Parameters
     ----------
@@ -212,28 +298,37 @@ def fit_pi_class(v: ArrayLike, w: ArrayLike, reach_V: float | None = None,
         The largest threshold [V].
     n : int
         Operators over half the record's span.
+    around : Around or None
+        Effects fitted with it (the gap's kept effects); None: the class alone.
 
     Returns
     -------
     PrandtlIshlinskii
-        The fitted model (its ``smoothness`` the one chosen).
+        The fitted model (its ``smoothness`` the one chosen, its ``around`` the
+        coefficients of ``around``'s columns).
     """
     t0 = time.perf_counter()
     v = np.ascontiguousarray(v, dtype=float)
     w = np.asarray(w, dtype=float)
     span = float(np.ptp(v)) if v.size else 0.0
-    smooth = 0.0
-    cuts = [int(f * v.size) for f in LATER_FROM]
-    if reach_V is not None and span > 0 and reach_V > span / 2 and v.size >= 30 and \
-            all(np.ptp(v[:k]) > 0 for k in cuts):
-        def later(s: float) -> float:
-            """The RMS of each first part's prediction of the rest, offset removed."""
-            return sum(float(np.std(fit_prandtl_ishlinskii(
-                v[:k], w[:k], n, True, reach_V, s).predict(v)[k:] - w[k:])) for k in cuts)
-        smooth = min(SMOOTHNESS, key=later)
-    pi = fit_prandtl_ishlinskii(v, w, n, True, reach_V, smooth)
-    return PrandtlIshlinskii(pi.linear_um_per_V, pi.operators, pi.offset_um,
-                             time.perf_counter() - t0, smooth)
+    if v.size < 10 or v.size != w.size or not span > 0 or not np.all(np.isfinite(w)):
+        raise DataError("Prandtl-Ishlinskii: a record of >= 10 finite samples whose "
+                        "voltage moves")
+    step = span / (2 * (n + 1))
+    m = n if reach_V is None else int(min(max(n, reach_V // step), MAX_OPERATORS))
+    r = np.arange(1, m + 1) * step
+    plays = play_columns(v, r)
+    pens = {SMOOTHNESS[0]: np.zeros((0, m))}
+    if reach_V is not None and reach_V > span / 2 and m > 1:
+        scale = float(np.mean(np.linalg.norm(plays, axis=0)))
+        D = np.zeros((m - 1, m))
+        i = np.arange(m - 1)
+        D[i, i], D[i, i + 1] = -1.0, 1.0
+        pens.update({s: np.sqrt(s) * scale * D for s in SMOOTHNESS if s > 0})
+    th, smooth = fit_nonneg_class(v, w, plays, pens, around)
+    ops = PlayOperators.at_rest(r, th[1:m + 1], float(v[0]))
+    return PrandtlIshlinskii(float(th[0]), ops, float(th[m + 1]), time.perf_counter() - t0,
+                             float(smooth), th[m + 2:])
 
 
 def held_out_rms(pred: ArrayLike, w: ArrayLike, fs_hz: float, skip_s: float = 1.0) -> float:

@@ -39,11 +39,10 @@ from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.estimation.identify.prandtl import (
-    LATER_FROM,
     SMOOTHNESS,
+    Around,
     PrandtlIshlinskii,
-    gram_factors,
-    min_slope,
+    fit_nonneg_class,
 )
 from piezo_stage.core.model.play import MAX_OPERATORS, PlayOperators, play_columns
 
@@ -104,21 +103,9 @@ def _penalty(m: int, b: int, along_r: float, along_c: float, scale: float) -> np
     return np.vstack(rows)
 
 
-def _nnls_fit(R: np.ndarray, qw: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """Non-negative weights [linear, cells..., offset] from the R factor of the
-    columns [v, cells..., 1] (``gram_factors``), with penalty rows ``P`` on the cells
-    (the constant free: its +1 and -1 columns both non-negative)."""
-    from scipy.optimize import nnls
-    R = np.column_stack([R, -R[:, -1]])  # the constant's -1 column
-    pen = np.zeros((P.shape[0], R.shape[1]))
-    pen[:, 1:1 + P.shape[1]] = P
-    coef, _ = nnls(np.vstack([R, pen]), np.concatenate([qw, np.zeros(P.shape[0])]),
-                   maxiter=50 * R.shape[1])
-    return np.append(coef[:-2], coef[-2] - coef[-1])
-
-
 def fit_preisach_class(v: ArrayLike, w: ArrayLike, reach_V: float | None = None,
-                       n: int = BAND_OPERATORS, bands: int = BANDS) -> PrandtlIshlinskii:
+                       n: int = BAND_OPERATORS, bands: int = BANDS,
+                       around: Around | None = None) -> PrandtlIshlinskii:
     """The discretized Preisach class of one axis's record (see the module docstring).
 
     The penalties along the thresholds (``SMOOTHNESS``, as the Prandtl-Ishlinskii
@@ -137,12 +124,15 @@ def fit_preisach_class(v: ArrayLike, w: ArrayLike, reach_V: float | None = None,
         Thresholds over half the record's span.
     bands : int
         Centre bands over the record's voltage span.
+    around : Around or None
+        Effects fitted with it (the gap's kept effects); None: the law alone.
 
     Returns
     -------
     PrandtlIshlinskii
         A linear term, banded play operators (``operators.bands_V``) and a constant;
-        its ``smoothness`` the threshold penalty chosen.
+        its ``smoothness`` the threshold penalty chosen, its ``around`` the
+        coefficients of ``around``'s columns.
     """
     t0 = time.perf_counter()
     v = np.ascontiguousarray(v, dtype=float)
@@ -156,24 +146,11 @@ def fit_preisach_class(v: ArrayLike, w: ArrayLike, reach_V: float | None = None,
     scale = float(np.mean(np.linalg.norm(C - C.mean(axis=0), axis=0))) or 1.0
     pens = {(sr, sc): _penalty(m, b, sr, sc, scale)
             for sr, sc in product(SMOOTHNESS, BAND_SMOOTHNESS)}
-    cuts = [int(f * v.size) for f in LATER_FROM]
-    one = np.ones(v.size)
-    floor = min_slope(v, w)  # the linear term's floor: no branch is flat anywhere
-    factors = gram_factors(np.column_stack([v, C, one]), w - floor * v, cuts + [v.size])
-    choice = (SMOOTHNESS[0], BAND_SMOOTHNESS[-1])
-    if all(np.ptp(v[:k]) > 0 for k in cuts):
-        later = dict.fromkeys(pens, 0.0)
-        for k, (R, qw) in zip(cuts, factors):
-            for key, P in pens.items():
-                th = _nnls_fit(R, qw, P)
-                e = v[k:] * (th[0] + floor) + C[k:] @ th[1:-1] - w[k:]
-                later[key] += float(np.std(e))
-        choice = min(later, key=lambda key: later[key])
-    R, qw = factors[-1]
-    th = _nnls_fit(R, qw, pens[choice])
-    th[0] += floor
+    th, choice = fit_nonneg_class(v, w, C, pens, around,
+                                  fallback=(SMOOTHNESS[0], BAND_SMOOTHNESS[-1]))
+    k = m * b
     cells = np.column_stack([np.repeat(edges[:-1][None], m, 0).ravel(),
                              np.repeat(edges[1:][None], m, 0).ravel()])
-    ops = PlayOperators.at_rest(np.repeat(r, b), th[1:-1], float(v[0]), bands_V=cells)
-    return PrandtlIshlinskii(float(th[0]), ops, float(th[-1]), time.perf_counter() - t0,
-                             float(choice[0]))
+    ops = PlayOperators.at_rest(np.repeat(r, b), th[1:k + 1], float(v[0]), bands_V=cells)
+    return PrandtlIshlinskii(float(th[0]), ops, float(th[k + 1]), time.perf_counter() - t0,
+                             float(choice[0]), th[k + 2:])

@@ -246,3 +246,19 @@ class DuhemRegression:
         if self.lo < self.hi:  # past the record's voltages a branch continues from its end
             main = main.with_fit_range(self.lo, self.hi)
         return main, coupling
+
+
+def coupling_term(v_other: ArrayLike, alpha: float,
+                  deg: int = 1) -> tuple[np.ndarray, Callable[[np.ndarray], DuhemModel]]:
+    """A coupling term for a model fitted by other means than ``DuhemRegression`` (the
+    classes with memory): the whole-curve Duhem law of the other axis's voltage
+    ``v_other`` [V] at a fixed ``alpha`` [1/V], f and g of degree ``deg``, its output 0
+    at the record's first voltage. -> (columns (N, 2 (deg + 1)), linear in its
+    coefficients; coefficients -> the coupling DuhemModel, as a model file holds it)."""
+    reg = DuhemRegression(v_other, np.zeros(len(np.asarray(v_other))), "whole", n=deg,
+                          m=deg)
+    cols = reg.design([alpha])[:, :-1].copy()  # f and g; the initial output pinned at 0
+
+    def model(coef: np.ndarray) -> DuhemModel:
+        return reg.models([alpha], np.append(np.asarray(coef, float), 0.0))[0]
+    return cols, model
