@@ -121,6 +121,11 @@ def _quiet(what: str) -> None:
     """No progress to show."""
 
 
+# the classes with memory are fitted again with the effects kept later only where, the
+# first time (with the effects the sim already has), the closer of them was within this
+# factor of the Duhem law's best structure form on HOLDOUT
+CLASS_WITH_EFFECTS = 1.5
+
 # a structure form whose exact inverse misses the records' voltages (its branch turns
 # back: candidates.INVERSE_MISS_FRACTION) replaces an exactly invertible one only when
 # its held-out RMS is below this fraction of that one's
@@ -189,9 +194,10 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         if e == "structure":
             both = np.concatenate([fit.v[axis], holdout.v[axis]])
             best = rms(law.predict(holdout, axis) - holdout.w[axis])
+            tried = not class_tried or class_tried[0] <= CLASS_WITH_EFFECTS
             classes = [(k, rms(k.predict(holdout, axis) - holdout.w[axis]))
                        for k in (fit_class_candidate(fit, axis, limits_V, kind, on, kept)
-                                 for kind in MEMORY_CLASSES)]
+                                 for kind in (MEMORY_CLASSES if tried else ()))]
             for form in (("memory", "rate") if rates else ("memory",)):
                 m = fit_candidate(fit, axis, e, on, kept, memory=True,
                                   rate=form == "rate")
@@ -204,6 +210,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                             INVERSE_MISS_FRACTION:
                         continue  # a branch turns back, for little: the exact inverse wins
                     law, best = m, r
+            if not class_tried and classes:  # the first try: how close the classes came
+                class_tried.append(min(r for _, r in classes) / best if best > 0 else 0.0)
             c = law
             for k, r in classes:
                 if r < best:
@@ -211,6 +219,10 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
             if c is not law:
                 c.twin = law
         return c
+    # the classes' held-out RMS over the Duhem law's best structure form, the first time
+    # both were fitted: far behind (a stage of the Duhem law's own class), they are not
+    # fitted again with the effects kept later (they cost more than any other candidate)
+    class_tried: list[float] = []
     base = fit_candidate(fit, axis, "none", kept=given)
     progress(f"{axis} none")
     cands = {"none": base}
