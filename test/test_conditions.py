@@ -159,7 +159,10 @@ def test_fit_here_use_there_every_written_model_runs_and_memory_beats_the_peer()
     for r in rows.values():
         assert np.isfinite(r["gap_model_um"]) and np.isfinite(r["ours_um"]), r
         assert r["inverse_back_V"] < 1e-6, r  # our invert takes it, past its range too
-        assert r["own_fit_um"] < 0.2, r  # the class fits each record itself
+        # the class fits each record itself; a Duhem law whose branches keep rising
+        # (DuhemRegression.monotone) reaches 0.31 and 0.21 um on the Rayleigh stage's
+        # (2026-11-27; 0.19 and 0.15 when its branches could turn back)
+        assert r["own_fit_um"] < (0.35 if r["stage"] == "rayleigh" else 0.2), r
     for r in rows.values():  # never worse than the base model (identify's)
         assert r["gap_model_um"] <= 1.02 * r["ours_um"] + 1e-3, r
     # a larger stroke than fitted: memory as a class with memory in place of the Duhem
@@ -495,3 +498,36 @@ def test_identify_class_pi_carries_memory_to_nested_loops_and_inverts_exactly(tm
     assert r.returncode == 0, r.stderr[-1500:]
     assert "class x: " in r.stdout and "class y: " in r.stdout
     assert "pi " in r.stdout and "preisach " in r.stdout
+
+
+def test_a_law_whose_branch_would_turn_back_is_kept_rising_and_inverts_exactly():
+    """On the rate stage, rising-amplitude triangles (FIT) fitted by the free least
+    squares give a Duhem law whose descending branch turns back right after the top
+    reversal (its shape h goes negative where alpha w does not make up for it): our
+    exact inverse then took another root, 3.7 V off on FIT's voltages and 9.3 V on a
+    10 Hz sine over 0-150 V. identify keeps every branch rising (the coefficients
+    refitted under that constraint over the record and a probe path of every reversal
+    size: 0.1742 -> 0.1783 um on FIT, 2026-11-27), and so does the model `gap
+    --out-model` writes: both invert back to rounding."""
+    from piezo_stage.apps.studies import conditions
+    from piezo_stage.core.estimation.gap import diagnose
+    from piezo_stage.core.estimation.identify import IdentifyOptions
+    from piezo_stage.core.estimation.identify.fast import fit_fast
+    from piezo_stage.core.estimation.identify.regress import DuhemRegression
+    from piezo_stage.core.model.inverse import invert
+    fit, hold, _ = conditions.case_records("rate", "rising->fast")
+    v, w = fit.v["x"], fit.w["x"]
+    free_reg = DuhemRegression(v, w, "segmented", 3, 2)
+    alphas, free, _ = fit_fast(free_reg)
+    loose, _ = free_reg.models(alphas, free.theta)
+    res = identify_axis(fit, "x", IdentifyOptions())
+    assert res.fit["rms_um"] <= 1.1 * free.rms, (res.fit, free.rms)
+    written, _ = diagnose(fit, hold, axes=["x"]).model(fit)
+    for vv in (v, hold.v["x"]):
+        out, _ = loose.simulate(vv)
+        assert np.max(np.abs(invert(loose, out, (0.0, 150.0)).v - vv)) > 1.0  # turned back
+        for m in (res.model, written.axes["x"]):
+            out, _ = m.simulate(vv)
+            assert np.max(np.abs(invert(m, out, (0.0, 150.0)).v - vv)) < 1e-6
+            step = np.diff(out) * np.sign(np.diff(vv))
+            assert step.min() >= -1e-12  # every branch rises with the voltage

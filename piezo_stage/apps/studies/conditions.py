@@ -88,6 +88,10 @@ def excitations(case: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray, int]:
     if case == "slow->fast":  # 2 Hz, then 10 Hz, both from the bottom of a cycle
         v[:k] = _sine(2.0 * t[:k])
         v[k:] = _sine(10.0 * (t[k:] - t[k]))
+    if case == "rising->fast":  # 2 Hz triangles rising 30 -> 150 V, then a 10 Hz sine
+        amp = 30.0 + 120.0 * t[:k] / t[k]
+        v[:k] = amp * (1 - np.abs(((2.0 * t[:k]) % 1.0) * 2 - 1))
+        v[k:] = _sine(10.0 * (t[k:] - t[k]))
     if case == "two-rate->fast":  # 2 Hz for 3 s, 5 Hz for 3 s, then 10 Hz
         h = k // 2
         v[:h] = _sine(2.0 * t[:h])

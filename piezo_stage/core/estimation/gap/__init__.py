@@ -95,7 +95,7 @@ class Diagnosis:
             if isinstance(c, ClassCandidate):  # memory as the other class: its parts
                 axes[a], plays[a], coup = c.stage_parts()
             else:
-                axes[a], coup = c.reg.models(c.alphas, c.theta)
+                axes[a], coup = _rising_law(c)
             if coup is not None:
                 coupling[a] = coup
             if isinstance(c, Candidate) and c.plays_V is not None:  # memory: its plays
@@ -115,6 +115,28 @@ class Diagnosis:
                     e.update(params)
         lim = voltage_limits_for([fit.v[a] for a in axes], limits_V)
         return StageModel(axes, coupling, lim, plays), effects
+
+
+def _rising_law(c: Candidate) -> tuple:
+    """The Duhem law (and coupling) of a kept candidate as written: where a branch of
+    its law turns back (a descending branch whose shape goes negative where its
+    memory's pull does not make up for it, found on a rate-dependent stage's rising
+    triangles: the exact inverse then missed by 9 V), refitted with every branch kept
+    rising (identify's rule, ``fast.keep_rising``: within 10 % of the fit's RMS, else
+    as fitted). A law with play operators beside it keeps its own guard
+    (``Candidate.inverse_miss``)."""
+    from piezo_stage.core.estimation.identify.fast import keep_rising
+    from piezo_stage.core.estimation.identify.prandtl import min_slope
+    from piezo_stage.core.estimation.identify.regress import Fit
+    reg, alphas, theta = c.reg, c.alphas, c.theta
+    if c.plays_V is None:
+        reg.monotone_floor = min_slope(reg.v, reg.w)
+        try:
+            alphas, kept = keep_rising(reg, alphas, Fit(theta, c.fit_rms_um))
+            theta = kept.theta
+        finally:
+            reg.monotone_floor = None
+    return reg.models(alphas, theta)
 
 
 def _axis_child(conn, fit, holdout, axis, args):

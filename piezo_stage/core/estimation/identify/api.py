@@ -16,6 +16,7 @@ from piezo_stage.core.estimation.identify.prandtl import (
     PrandtlIshlinskii,
     fit_pi_class,
     held_out_rms,
+    min_slope,
 )
 from piezo_stage.core.estimation.identify.preisach import fit_preisach_class
 from piezo_stage.core.estimation.identify.regress import DuhemRegression, coupling_term
@@ -183,6 +184,7 @@ def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
         from piezo_stage.core.estimation.identify.fast import fit_fast
         reg = DuhemRegression(v, w, opts.structure, opts.n, opts.m,
                               v_other if use_c else None, coupling_state=False)
+        reg.monotone_floor = min_slope(v, w)  # every branch rises: one exact inverse
         alphas, fit, hist = fit_fast(reg, opts.budget, progress)
         model, coupling = reg.models(alphas, fit.theta)
         evaluations = reg.evaluations

@@ -33,7 +33,9 @@ def fit_fast(reg: DuhemRegression, budget: int | None = None,
              progress: Callable[[int, float], None] | None = None,
              x0: ArrayLike | None = None, grid: int = GRID,
              step: float = 0.7) -> tuple[np.ndarray, Fit, list[float]]:
-    """Returns (alphas, Fit, history) where history is the best RMS after each evaluation.
+    """Returns (alphas, Fit, history) where history is the best RMS after each evaluation
+    (the Fit's coefficients kept rising on every branch where ``reg.monotone_floor`` is
+    set: ``DuhemRegression.monotone``).
 
     ``x0`` (alphas) skips the grid and polishes from there with a simplex of ``step``
     in log(alpha) (refits after a small change of the problem)."""
@@ -71,4 +73,65 @@ def fit_fast(reg: DuhemRegression, budget: int | None = None,
         minimize(objective, start, method="Nelder-Mead",
                  options={"maxfev": remaining, "xatol": 1e-4, "fatol": 1e-9,
                           "initial_simplex": np.array(simplex)})
-    return best["alphas"], best["fit"], history
+    alphas, fit = best["alphas"], best["fit"]
+    if reg.monotone_floor is not None:
+        alphas, fit = keep_rising(reg, alphas, fit, lows, hi, history)
+    return alphas, fit, history
+
+
+MONOTONE_BUDGET = 60  # the alphas' search again where the best fit's branch turned back
+MONOTONE_COST = 1.1   # a fit kept rising replaces the free one within this factor of RMS
+
+
+def keep_rising(reg: DuhemRegression, alphas: np.ndarray, fit: Fit,
+                lows: np.ndarray | None = None, hi: float = LOG_ALPHA_BOUNDS[1],
+                history: list[float] | None = None) -> tuple[np.ndarray, Fit]:
+    """The best fit (``alphas``, ``fit``) with every branch of the main law kept rising
+    (``reg.monotone``, at least ``reg.monotone_floor``): at these alphas, else with the
+    alphas searched again under that constraint; taken where its RMS is within
+    MONOTONE_COST of the free fit's, else the free fit stays (a record whose law cannot
+    keep its branches rising at a fair cost: its exact inverse may then take another
+    root where a branch turns back)."""
+    if reg.monotone_floor is None:
+        return alphas, fit
+    kept = reg.monotone(alphas, fit)
+    if kept is fit:
+        return alphas, fit
+    if kept is not None and kept.rms <= fit.rms * MONOTONE_COST:
+        return alphas, kept
+    low = np.full(len(alphas), LOG_ALPHA_BOUNDS[0]) if lows is None else lows
+    found = _search_monotone(reg, alphas, kept, low, hi,
+                             history if history is not None else [])
+    if found is not None and found[1].rms <= fit.rms * MONOTONE_COST:
+        return found
+    return alphas, fit
+
+
+def _search_monotone(reg: DuhemRegression, alphas: np.ndarray, fit: Fit | None,
+                     lows: np.ndarray, hi: float,
+                     history: list[float]) -> tuple[np.ndarray, Fit] | None:
+    """The alphas whose fit, kept rising on every branch, is closest (None: none
+    found): a coarse grid of shared alphas and a simplex from the best of it and from
+    ``alphas`` (whose kept fit is ``fit``, or None)."""
+    best: dict[str, Any] = {"rms": np.inf if fit is None else fit.rms,
+                            "alphas": np.asarray(alphas, float), "fit": fit}
+    k = len(best["alphas"])
+
+    def objective(log_alphas):
+        la = np.clip(log_alphas, lows, hi)
+        a = np.exp(la)
+        f = reg.monotone(a, reg.solve(a))
+        if f is None or not np.isfinite(f.rms):
+            return 1e300
+        if f.rms < best["rms"]:
+            best.update(rms=f.rms, alphas=a, fit=f)
+        history.append(best["rms"])
+        return f.rms
+    g = np.linspace(LOG_ALPHA_BOUNDS[0], hi, 9)
+    vals = [objective(np.full(k, x)) for x in g]
+    for start in (np.full(k, g[int(np.argmin(vals))]), np.log(best["alphas"])):
+        simplex = [start] + [start + 0.5 * e for e in np.eye(k)]
+        minimize(objective, start, method="Nelder-Mead",
+                 options={"maxfev": MONOTONE_BUDGET // 2, "xatol": 1e-3, "fatol": 1e-9,
+                          "initial_simplex": np.array(simplex)})
+    return None if best["fit"] is None else (best["alphas"], best["fit"])

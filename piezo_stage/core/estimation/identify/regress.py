@@ -132,6 +132,9 @@ class DuhemRegression:
         # an operator on the columns (the gap's effects) and more columns after them
         self.transform: Callable[[np.ndarray], np.ndarray] | None = None
         self.extra: np.ndarray | None = None
+        # the least slope [um/V] the main law keeps on every branch (``monotone``), or
+        # None: its coefficients free
+        self.monotone_floor: float | None = None
         self._X = np.empty((self.v.size, 2 * (self.D + 1) + 1))
         if self.v_other is not None:
             self._Xo = np.empty((self.v.size, 2 * (self.cdeg + 1) + 1))
@@ -157,9 +160,14 @@ class DuhemRegression:
         """How many alphas the regression's model has."""
         return (1 if self.structure == "whole" else 2) + (self.v_other is not None)
 
-    def _main_columns(self, a_asc, a_desc):
-        X = duhem_regressors(self.v, self.v[0], np.array([a_asc, a_desc]), self.B, self.B,
-                             self._X)
+    def _main_columns(self, a_asc, a_desc, v=None):
+        if v is None:
+            X = duhem_regressors(self.v, self.v[0], np.array([a_asc, a_desc]), self.B,
+                                 self.B, self._X)
+        else:  # another path, in this record's basis (from the same initial state)
+            B = legendre_basis(v, self.lo, self.hi, self.D)
+            X = duhem_regressors(v, v[0], np.array([a_asc, a_desc]), B, B,
+                                 np.empty((v.size, 2 * (self.D + 1) + 1)))
         if self.structure != "whole":
             return X  # already (ascending, descending, free): no copy
         d1 = self.D + 1
@@ -190,7 +198,7 @@ class DuhemRegression:
         b = self.blocks(alphas)
         return b[0] if len(b) == 1 else np.hstack(b)
 
-    def column_blocks(self, alphas: Sequence[float]) -> list[np.ndarray]:
+    def column_blocks(self, alphas: ArrayLike) -> list[np.ndarray]:
         """Every column of the fit for these alphas, in blocks: design blocks
         transformed, then the extra columns."""
         out = self.blocks(alphas)
@@ -200,7 +208,7 @@ class DuhemRegression:
             out.append(self.extra)
         return out
 
-    def columns(self, alphas: Sequence[float]) -> np.ndarray:
+    def columns(self, alphas: ArrayLike) -> np.ndarray:
         """Every column of the fit for these alphas: design, transformed, extra."""
         b = self.column_blocks(alphas)
         return b[0] if len(b) == 1 else np.hstack(b)
@@ -213,6 +221,28 @@ class DuhemRegression:
     def predict(self, alphas: Sequence[float], theta: np.ndarray) -> np.ndarray:
         """The fitted output for these alphas and coefficients [um]."""
         return self.columns(alphas) @ theta
+
+    def monotone(self, alphas: ArrayLike, fit: Fit) -> Fit | None:
+        """``fit`` (for these alphas) with the main law kept rising on every branch by
+        at least ``monotone_floor`` over the record and over ``probe_voltages`` (the
+        major loop, minor loops from its ends and nested loops, over the branch
+        polynomials' range within 0-150 V widened to the record's): a law whose branch
+        turns back (a descending branch whose shape h goes negative where its memory's
+        pull alpha w does not make up for it) has no one voltage for a displacement, and
+        our exact inverse then takes another root (by 9 V on a rate-dependent stage's
+        rising triangles). ``fit`` itself where it already rises everywhere there (or
+        no floor is set); None where no coefficients can."""
+        if self.monotone_floor is None or not self.hi > self.lo:
+            return fit
+        from piezo_stage.core.model.duhem import polynomial_range, voltage_limits_for
+        plo, phi = polynomial_range((self.lo, self.hi))
+        alo, ahi = voltage_limits_for([self.v])
+        probe = probe_voltages(float(self.v[0]), max(plo, alo), min(phi, ahi))
+        th = monotone_theta(self, alphas, fit.theta, self.monotone_floor, probe)
+        if th is None or th is fit.theta:
+            return None if th is None else fit
+        r = self.w - self.columns(alphas) @ th
+        return Fit(th, float(np.sqrt(np.mean(r ** 2))))
 
     def models(self, alphas: ArrayLike,
                theta: np.ndarray) -> tuple[DuhemModel, DuhemModel | None]:
@@ -262,3 +292,117 @@ def coupling_term(v_other: ArrayLike, alpha: float,
     def model(coef: np.ndarray) -> DuhemModel:
         return reg.models([alpha], np.append(np.asarray(coef, float), 0.0))[0]
     return cols, model
+
+
+def _slope_rows(reg: DuhemRegression, alphas: ArrayLike,
+                v: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, dv): for each sample k that moves, the row c_k of the main law's
+    coefficients with c_k theta = h_b(v_k) - alpha_b sign(dv_k) w_(k-1) (its branch b's
+    shape less its memory's pull): the law's step dw_k has the sign of dv_k times this
+    (w_k - w_(k-1) = dv_k c_k theta / (1 + alpha_b |dv_k|)), so the output rises with
+    the voltage on every branch exactly where every c_k theta >= 0. Over the record, or
+    over another path ``v`` from the record's initial state (its first voltage the
+    record's; within the branch polynomials' range, where the basis is the law)."""
+    alphas = np.atleast_1d(np.asarray(alphas, float))
+    if v is None:
+        v, B = reg.v, reg.B
+        X = reg.blocks(alphas)[0].copy()  # the main law's output columns (w_0 last)
+    else:
+        B = legendre_basis(v, reg.lo, reg.hi, reg.D)
+        a_d = alphas[0] if reg.structure == "whole" else alphas[1]
+        X = reg._main_columns(alphas[0], a_d, v)
+        if reg.structure == "whole":
+            X = X.copy()
+    p = X.shape[1]
+    prev = np.vstack([np.eye(1, p, p - 1), X[:-1]])  # w_(k-1) (w_0 before the first)
+    dv = np.diff(v, prepend=v[0])
+    up = dv >= 0
+    H = np.zeros((v.size, p))
+    if reg.structure == "whole":
+        nf, ng = reg.n + 1, reg.m + 1
+        H[:, :nf] = np.where(up[:, None], 1.0, -1.0) * B[:, :nf]
+        H[:, nf:nf + ng] = B[:, :ng]
+        a = np.full(v.size, alphas[0])
+    else:
+        d1 = reg.D + 1
+        H[:, :d1] = np.where(up[:, None], B, 0.0)
+        H[:, d1:2 * d1] = np.where(up[:, None], 0.0, B)
+        a = np.where(up, alphas[0], alphas[1])
+    rows = H - (a * np.sign(dv))[:, None] * prev
+    moves = dv != 0
+    return rows[moves], dv[moves]
+
+
+def monotone_theta(reg: DuhemRegression, alphas: ArrayLike, theta: np.ndarray,
+                   floor: float, probe: np.ndarray | None = None,
+                   rounds: int = 6) -> np.ndarray | None:
+    """The least-squares coefficients for these alphas (every column of the fit, as
+    ``solve``) under the constraint that the main law's output rises with the voltage
+    on every branch by at least ``floor`` [um/V] at every step of the record
+    (``_slope_rows``); ``theta`` when it already does, None when no coefficients do.
+    A least-squares problem with linear inequality constraints, solved as Lawson and
+    Hanson's least distance programme (one non-negative least squares on the
+    constraints' rows), with the constraints the unconstrained fit breaks or nearly
+    breaks, more added while any is broken."""
+    from scipy.optimize import nnls
+    rows, _ = _slope_rows(reg, alphas)
+    if probe is not None:
+        rows = np.vstack([rows, _slope_rows(reg, alphas, probe)[0]])
+    p_main = rows.shape[1]
+    k = len(theta)
+    G = np.zeros((rows.shape[0], k))
+    G[:, :p_main] = rows
+    c = G @ theta
+    if np.all(c >= floor * (1 - 1e-9)):
+        return theta
+    A = reg.columns(alphas)
+    scale = np.sqrt(np.clip(np.einsum("ij,ij->j", A, A), 1e-300, None))
+    As = A / scale  # unit columns: a well-conditioned factor
+    Rf = np.asarray(np.linalg.qr(As, mode="r"))
+    q = np.linalg.solve(Rf.T, As.T @ reg.w)
+    Rinv = np.linalg.inv(Rf)
+    Gs = G / scale  # in the scaled coefficients
+    E = Gs @ Rinv
+    f = floor - E @ q
+    active = np.flatnonzero(c < floor + 0.1 * max(float(np.median(np.abs(c))), floor))
+    for _ in range(rounds):
+        M = np.vstack([E[active].T, f[active][None, :]])
+        e = np.zeros(M.shape[0])
+        e[-1] = 1.0
+        u, _ = nnls(M, e, maxiter=50 * M.shape[1])
+        r = M @ u - e
+        if abs(r[-1]) < 1e-12:
+            return None  # the constraints cannot all hold
+        z = -r[:-1] / r[-1]
+        ts = Rinv @ (z + q)
+        th = ts / scale
+        broken = np.flatnonzero(G @ th < floor * (1 - 1e-6) - 1e-12)
+        new = np.setdiff1d(broken, active)
+        if new.size == 0:
+            return th
+        active = np.union1d(active, new)
+    return None  # (still broken after every round)
+
+
+def probe_voltages(v0: float, lo: float, hi: float, steps: int = 100) -> np.ndarray:
+    """A voltage path from ``v0`` over [lo, hi] with reversals of every size: the
+    major loop, minor loops hanging from its top and its bottom, and loops nested about
+    the middle; ``steps`` samples per full span, and eight more right after each
+    reversal, from 1e-4 of the segment on."""
+    s = hi - lo
+    turns = [hi, lo, hi]
+    for f in (0.1, 0.3, 0.6):
+        turns += [hi - f * s, hi]
+    turns += [lo]
+    for f in (0.1, 0.3, 0.6):
+        turns += [lo + f * s, lo]
+    mid = 0.5 * (lo + hi)
+    for f in (0.45, 0.3, 0.15, 0.05, 0.15, 0.3, 0.45):
+        turns += [mid + f * s, mid - f * s]
+    path = [np.array([v0])]
+    for a, b in zip([v0] + turns[:-1], turns):
+        # dense right after each reversal, where a branch's slope is least
+        n = max(2, int(abs(b - a) / s * steps))
+        u = np.concatenate([np.geomspace(1e-4, 0.5 / n, 8), np.linspace(1.0 / n, 1.0, n)])
+        path.append(a + (b - a) * u)
+    return np.concatenate(path)
