@@ -296,6 +296,7 @@ def fit_class_candidate(rec: Record, axis: str, limits_V: tuple | None = None,
                                                     float(base.alphas[-1]))
         else:  # the record has no other axis (a given model's coupling): no term, as
             kept = [x for x in kept if x[0] != "coupling"]  # the Duhem law's fit has
+            names = [n for n, _ in kept]
     tau = None
     if "drift" in names:
         tau = base.drift_tau_s if base is not None and base.drift_tau_s else \
