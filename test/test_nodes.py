@@ -372,6 +372,47 @@ n.destroy_node(); rclpy.try_shutdown()
     assert got == list(range(1, 301))
 
 
+def test_recorder_stopped_while_it_is_built_finishes_its_bag_with_what_arrived(tmp_path,
+                                                                            env):
+    """A SIGINT that lands while the recorder is still being built, after its readers
+    have acknowledged a burst (CI run 67, 995b52e, on a loaded host: "stopped by SIGINT
+    during start-up", a bag without its summary, the burst lost): the stop is noted,
+    the recorder is built whole, and its spin's first pass takes what arrived and
+    finishes the bag. Here the stop is sent from the constructor's last step, right
+    after a burst of 50 is acknowledged by the recorder's reader."""
+    bag = tmp_path / "early"
+    code = f"""
+import piezo_stage.nodes._signals
+import os, signal, sys, time
+import rclpy
+from rclpy.duration import Duration
+from geometry_msgs.msg import PointStamped
+from piezo_stage.nodes import recorder_node as R
+from piezo_stage.nodes._common import QOS_DATA
+built = R.Diagnostics
+def last_step(*a, **kw):
+    burst = rclpy.create_node("burst")
+    pub = burst.create_publisher(PointStamped, "/stage/setpoint", QOS_DATA)
+    while pub.get_subscription_count() < 1:
+        time.sleep(0.01)
+    for i in range(50):
+        m = PointStamped(); m.header.stamp.sec = i + 1
+        pub.publish(m)
+    assert pub.wait_for_all_acked(Duration(seconds=20))
+    os.kill(os.getpid(), signal.SIGINT)
+    return built(*a, **kw)
+R.Diagnostics = last_step
+sys.exit(R.main(["--ros-args", "-r", "__ns:=/stage", "-p", "output:={bag}"]))
+"""
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 130, r.stderr
+    assert "stopped by SIGINT while running: bag" in r.stderr, r.stderr
+    got = [deserialize(d, "geometry_msgs/msg/PointStamped").header.stamp.sec
+           for _, d in topic_data(str(bag), "/setpoint")]
+    assert got == list(range(1, 51))
+
+
 def test_replay_honours_rate_on_the_bags_time_and_publishes_clock(tmp_path, env):
     """A lockstep bag (one time base: simulated time from 0) replayed at rate 2 takes at
     least half its duration, never less (the rate is honoured), and /clock carries the

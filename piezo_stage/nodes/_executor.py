@@ -218,6 +218,8 @@ class LeanExecutor(Executor):
                         raise
                     break  # SIGINT shut the context down mid-pass: rcl calls now fail
             try:
+                if self._n_subs < 0:  # stopped before its first pass (a stop noted
+                    self._rebuild(list(self.node.subscriptions))  # while it was built)
                 self.take_all(limit=None)
             except Exception:  # noqa: BLE001 - the middleware may be gone already
                 pass
@@ -251,8 +253,12 @@ def run_node(factory, args=None) -> int:
     try:
         signals.set_phase("building")
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        node = factory()
-        check_overrides(node)  # a misspelled parameter is refused, not ignored
+        # a node whose construction must not be cut short (DEFERS_STOPS: the recorder,
+        # its bag open and its readers acknowledging before it returns) is built whole,
+        # and a stop that came meanwhile ends its spin's first pass
+        with signals.deferred(getattr(factory, "DEFERS_STOPS", False)):
+            node = factory()
+            check_overrides(node)  # a misspelled parameter is refused, not ignored
         signals.set_phase("running", node.get_fully_qualified_name())
         LeanExecutor(node).spin()
     except (signals.Stopped, KeyboardInterrupt, ExternalShutdownException):

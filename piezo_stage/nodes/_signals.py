@@ -8,7 +8,9 @@ where the node is (``phase``):
   participant, no hardware), so the process says so on one line and exits at once with
   128 + the signal's number. No KeyboardInterrupt traceback.
 - ``building`` (``rclpy.init`` and the node's constructor): :class:`Stopped` is raised
-  where the node is; ``run_node`` destroys what exists and exits.
+  where the node is; ``run_node`` destroys what exists and exits. Inside
+  :func:`deferred` (a constructor that does not block and must not be cut short: the
+  recorder's) the signal is only noted, and the spin's first pass ends the node.
 - ``running`` (spinning): the signal is only noted; the executor polls
   :func:`requested` every pass (at least every 50 ms) and ends the spin, or asks the
   node's ``request_shutdown()`` (the driver ramps the stage to its safe voltage first; a
@@ -72,6 +74,7 @@ class _State:
     count = 0                  # how many have come
     name = ""                  # the node's name, for the one line a stop prints
     raise_depth = 0            # > 0 inside interruptible()
+    deferring = False          # inside deferred(): building, a stop is only noted
     again = False              # a stop sent again, out of a ctypes callback
     watch_s = 4.0              # a stop that takes longer prints the stacks and exits 1
     watching = False
@@ -101,7 +104,7 @@ def _on_signal(signum, frame):
         sys.stderr.flush()
         os._exit(128 + signum)
     watch()
-    if STATE.phase == "building" or STATE.raise_depth > 0:
+    if (STATE.phase == "building" and not STATE.deferring) or STATE.raise_depth > 0:
         if not in_ctypes_callback(frame):
             raise Stopped(signum)
         # raised there it would be printed and dropped: the same stop again in a moment,
@@ -245,6 +248,21 @@ def bounded_teardown(code: int, seconds: float = MIDDLEWARE_TEARDOWN_S):
             faulthandler.cancel_dump_traceback_later()
             STATE.watching = False
             watch()
+
+
+@contextmanager
+def deferred(on: bool = True):
+    """A node's construction that does not block and must not be cut short (the
+    recorder's: its bag is open and its readers take messages before the constructor
+    returns): a stop signal inside it is only noted, as while running, so the node is
+    built whole and its spin's first pass ends it (what had arrived handed over, the
+    node's ``close`` finishing the bag). ``on`` False: nothing changes."""
+    was = STATE.deferring
+    STATE.deferring = was or bool(on)
+    try:
+        yield
+    finally:
+        STATE.deferring = was
 
 
 @contextmanager
