@@ -173,14 +173,21 @@ def test_compiled_step_matches_batch_at_limits(cfg):
     ("dynamics", {"kind": "lag", "tau_s": 2e-3}), ("delay", {"delay_s": 2.3e-3})])
 def test_effect_operator_on_columns_equals_the_stateful_effect(effect, params):
     """The compiled column operators (gap diagnosis) and the plant's chunked effect are
-    the same linear map, from rest."""
+    the same linear map, from rest at the first sample (a record starts in a state:
+    an offset is no step into the effect)."""
     from piezo_stage.core.model.effects import make_effect
     rng = np.random.default_rng(5)
-    X = np.cumsum(rng.normal(size=(3000, 3)), axis=0)
+    X = 50.0 + np.cumsum(rng.normal(size=(3000, 3)), axis=0)
     op = make_effect(effect, 1000.0, params)
-    want = np.column_stack([make_effect(effect, 1000.0, params).process(X[:, j])
-                            for j in range(3)])
+
+    def stateful(x):
+        e = make_effect(effect, 1000.0, params)
+        e.reset(float(x[0]))
+        return e.process(x)
+    want = np.column_stack([stateful(X[:, j]) for j in range(3)])
     np.testing.assert_allclose(op.apply(X), want, rtol=1e-9, atol=1e-9)
+    # a constant is no input to it: it stays (a delay, a creep, a unit-gain filter)
+    np.testing.assert_allclose(op.apply(np.full((50, 2), -120.0)), -120.0, rtol=1e-12)
 
 
 def _structure_cfg():

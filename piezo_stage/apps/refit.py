@@ -1,7 +1,10 @@
 """`piezo-stage refit`: a lab's archive of runs re-identified, and how the stage changed.
 
-Each bag is split in two halves: the Duhem model is identified on the first and scored
-on the second (its own later part, held out). Bags run in parallel worker processes.
+Each axis of a bag is fitted where its voltage moves (a protocol such as ``excite``'s
+drives the axes in turn), that span split in two halves: the Duhem model is identified
+on the first and scored on the second (its own later part, held out); an axis at rest
+is left out with a note. A bag not on one sample clock (a real-time run's skipped
+ticks) is put on one first (``core.estimation.record.on_grid``). Bags run in parallel worker processes.
 Then, over the bags in date order: the model's gain and errors, how far each earlier
 model's response lies from the newest one's on the newest bag's own input ("change"),
 and with a reference model (``--against``) the gap diagnosis of each bag against it:
@@ -93,54 +96,88 @@ def run_date(path) -> tuple[datetime, str]:
 
 def halves(rec, share: float = SPLIT):
     """(first part, the rest) of a record, each from t = 0."""
-    from piezo_stage.core.estimation.record import Record
     k = int(len(rec) * share)
     if k < 100 or len(rec) - k < 100:
         raise DataError(f"{rec.source}: {len(rec)} samples, too few to fit on one part "
                         "and score on the other")
 
-    def part(sl):
-        t = rec.t[sl]
-        return Record(t - t[0], {a: v[sl] for a, v in rec.v.items()},
-                      {a: w[sl] for a, w in rec.w.items()}, source=rec.source,
-                      voltage_exact=rec.voltage_exact)
-    return part(slice(0, k)), part(slice(k, None))
+    def part(a, b):
+        piece = rec.slice(a, b)
+        piece.t = piece.t - piece.t[0]
+        return piece
+    return part(0, k), part(k, len(rec))
 
 
-def _moving(rec) -> list[str]:
-    return [a for a in ("x", "y") if a in rec.v and a in rec.w and np.ptp(rec.v[a]) > 1e-6]
+def moving_span(v: np.ndarray) -> tuple[int, int] | None:
+    """The samples [start, stop) from an axis's voltage's first move to its last (a
+    protocol drives the axes in turn: x first, then y), None when it never moves."""
+    v = np.asarray(v, float)
+    moves = np.flatnonzero(np.abs(np.diff(v)) > 1e-6)
+    if np.ptp(v) <= 1e-6 or moves.size == 0:
+        return None
+    return int(moves[0]), int(moves[-1]) + 2
+
+
+def axis_parts(rec) -> tuple[dict, list[str]]:
+    """Each axis's (FIT, HOLD): the halves of the span where its voltage moves, and a
+    note for each axis left out (at rest, or moving too briefly to fit and score).
+    -> ({axis: (fit, hold)}, notes)."""
+    parts, notes = {}, []
+    for a in ("x", "y"):
+        if a not in rec.v or a not in rec.w:
+            continue
+        span = moving_span(rec.v[a])
+        if span is None:
+            notes.append(f"axis {a} is at rest (its voltage is constant): not refitted")
+            continue
+        try:
+            parts[a] = halves(rec.slice(*span))
+        except DataError as e:
+            notes.append(f"axis {a}: {str(e).split(': ', 1)[-1]} where it moves: not "
+                         "refitted")
+    return parts, notes
 
 
 def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
-    """One bag: identified on its first half, scored on the second, its model written
-    to ``out_dir``; with ``against`` (a model file) the gap diagnosis of the second
-    half against that model, fitted on the first. Returns the bag's row."""
+    """One bag: each axis identified on the first half of the span where its voltage
+    moves and scored on the second (``axis_parts``), the model written to ``out_dir``;
+    with ``against`` (a model file) the gap diagnosis of each axis's second half
+    against that model, fitted on the first. Returns the bag's row (``notes``: the
+    axes left out and how the record was read)."""
     import time
 
-    from piezo_stage.core.estimation.identify.api import identify_stage, validate_axis
-    from piezo_stage.core.model.duhem import stroke_um
+    from piezo_stage.core.estimation.identify.api import identify_axis, validate_axis
+    from piezo_stage.core.model.duhem import StageModel, stroke_um, voltage_limits_for
     from piezo_stage.io.model_file import load_model, save_model
     from piezo_stage.io.records import load_record
     t0 = time.perf_counter()
     rec = load_record(path)
     rec.voltage_exact = True  # a bag holds the voltage the driver applied
-    axes = _moving(rec)
-    if not axes:
-        raise DataError(f"{path}: no axis moves")
-    fit, hold = halves(rec)
-    stage = identify_stage(fit, axes, limits_V=limits_V)
+    lim = voltage_limits_for(list(rec.v.values()), limits_V)
+    parts, notes = axis_parts(rec)
+    results = {}
+    for a, (fit, _) in parts.items():
+        try:
+            results[a] = identify_axis(fit, a)
+        except DataError as e:
+            notes.append(f"axis {a}: {str(e).split(': ', 1)[-1]}: not refitted")
+    if not results:
+        raise DataError(f"{path}: no axis could be refitted ({'; '.join(notes)})")
+    model = StageModel({a: r.model for a, r in results.items()},
+                       {a: r.coupling for a, r in results.items() if r.coupling}, lim)
     started, dated_by = run_date(path)
     name = _bag_name(path)
     model_path = os.path.join(out_dir, "models", f"{name}.yaml")
-    save_model(model_path, stage.model, extra={"identification": {
+    save_model(model_path, model, extra={"identification": {
         "bag": os.path.abspath(path), "started_utc": started.isoformat(),
-        "fitted_on": f"the first {SPLIT:.0%} of the bag"}})
+        "fitted_on": f"the first {SPLIT:.0%} of the span where each axis moves"}})
     per_axis: dict[str, dict] = {}
     row: dict = {"bag": os.path.abspath(path), "name": name,
                  "started_utc": started.isoformat(), "dated_by": dated_by,
-                 "model": model_path, "axes": per_axis}
-    for a in axes:
-        r = stage.results[a]
+                 "model": model_path, "axes": per_axis,
+                 "notes": list(rec.notes) + [f"{path}: {n}" for n in notes]}
+    for a, r in results.items():
+        fit, hold = parts[a]
         span = (float(fit.v[a].min()), float(fit.v[a].max()))
         per_axis[a] = {
             "gain_um_per_V": stroke_um(r.model, span) / max(span[1] - span[0], 1e-12),
@@ -149,23 +186,31 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
     if against:
         from piezo_stage.core.estimation.gap import diagnose
         ref, ref_effects = load_model(against)
-        d = diagnose(fit, hold, axes=[a for a in axes if a in ref.axes],
-                     base_model=ref, base_effects=ref_effects, limits_V=limits_V)
-        axes_json: dict = d.json["axes"]
-        for a, j in axes_json.items():
-            explained = j.get("budget", {}).get("explained_um", {})
-            effects: dict[str, dict] = {}
-            for st in j["effects"]:
-                key = SIZE_OF.get(st["effect"])
-                val = st["params"].get(key) if key else None
-                if not isinstance(val, (int, float)):
-                    key, val = "explained_um", explained.get(st["effect"], 0.0)
-                effects[st["effect"]] = {"size": float(val), "size_of": key,
-                                         "explained_um": float(explained.get(st["effect"],
-                                                                             0.0))}
-            per_axis[a]["against"] = {"verdict": j["verdict"], "effects": effects}
+        for a in results:
+            if a not in ref.axes:
+                continue
+            fit, hold = parts[a]
+            d = diagnose(fit, hold, axes=[a], base_model=ref, base_effects=ref_effects,
+                         limits_V=limits_V)
+            per_axis[a]["against"] = _against_row(d.json["axes"][a])
     row["seconds"] = time.perf_counter() - t0
     return row
+
+
+def _against_row(j: dict) -> dict:
+    """One axis's diagnosis against the reference as a row's: the verdict and each
+    named effect's size (its parameter that scales with it, else the held-out gap it
+    explains)."""
+    explained = j.get("budget", {}).get("explained_um", {})
+    effects: dict[str, dict] = {}
+    for st in j["effects"]:
+        key = SIZE_OF.get(st["effect"])
+        val = st["params"].get(key) if key else None
+        if not isinstance(val, (int, float)):
+            key, val = "explained_um", explained.get(st["effect"], 0.0)
+        effects[st["effect"]] = {"size": float(val), "size_of": key,
+                                 "explained_um": float(explained.get(st["effect"], 0.0))}
+    return {"verdict": j["verdict"], "effects": effects}
 
 
 def _bag_name(path) -> str:
@@ -234,7 +279,7 @@ def refit(paths, out_dir: str, jobs: int | None = None, limits_V=None, against=N
                 raise
     if not rows:
         raise DataError("no bag could be refitted: " + "; ".join(
-            f"{os.path.basename(p)}: {why}" for p, why in skipped[:3]))
+            f"{_bag_name(p)}: {why.replace(p + ': ', '')}" for p, why in skipped))
     rows.sort(key=lambda r: (r["started_utc"], r["name"]))
     _changes(rows)
     return rows

@@ -70,9 +70,31 @@ def warn_past_fit_range(model, v: dict, source: str) -> None:
     from piezo_stage.core.model.duhem import past_fit_range
     past = past_fit_range(model, v)
     if past:
+        how = {m.continuation for m in model.axes.values()}
+        how_s = "straight" if how == {"straight"} else "level" if how == {"level"} else \
+            "straight or level (as the file says)"
         sys.stderr.write(f"piezo-stage: warning: {source}: the model is used past its "
                          f"fitted range ({'; '.join(past)}): its branches continue "
-                         "straight from their ends there\n")
+                         f"{how_s} from their ends there\n")
+
+
+def warn_small_span(rec, limits_V, source: str) -> None:
+    """One line on stderr when the record's voltages span under a tenth of the voltage
+    limits its model gets (``--limits``, else 0-150 V widened to take them): a 0-3.6 V
+    control input read against an amplifier's 150 V; the model is written bounded
+    past the record's span, and the limits are the user's to give."""
+    from piezo_stage.core.model.duhem import voltage_limits_for
+    lo, hi = voltage_limits_for(list(rec.v.values()), limits_V)
+    vmin = min(float(np.min(v)) for v in rec.v.values())
+    vmax = max(float(np.max(v)) for v in rec.v.values())
+    if vmax - vmin < 0.1 * (hi - lo):
+        given = "given" if limits_V is not None else "default"
+        sys.stderr.write(f"piezo-stage: warning: {source}: the voltages span "
+                         f"{vmin:.4g}..{vmax:.4g} V, {100 * (vmax - vmin) / (hi - lo):.3g} "
+                         f"% of the voltage limits {lo:g}..{hi:g} V ({given}): the model "
+                         f"is written bounded past that span; give your amplifier's "
+                         f"range with --limits LO,HI (e.g. --limits={vmin:.3g},"
+                         f"{vmax:.3g} for an input that spans it)\n")
 
 
 def number(lo: float, hi: float, integer: bool = False, lo_open: bool = False):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from piezo_stage.cli._common import limits
+from piezo_stage.cli._common import limits, warn_small_span
 from piezo_stage.core.errors import DataError
 
 HELP = "diagnose the sim-to-real gap"
@@ -71,9 +71,13 @@ def main(args):
     from piezo_stage.io.records import load_record
     fit = load_record(args.fit)
     hold = load_record(args.holdout) if args.holdout else None
+    for note in fit.notes + (hold.notes if hold is not None else []):
+        print(f"note: {note}")
     # the limits, before the diagnosis: DataError (exit 2)
     from piezo_stage.core.model.duhem import voltage_limits_for
     voltage_limits_for(fit.v.values(), args.limits)
+    if args.out_model:
+        warn_small_span(fit, args.limits, args.fit)
     base, base_effects = None, None
     if args.model:
         from piezo_stage.io.model_file import load_model
@@ -134,8 +138,8 @@ def main(args):
     if args.out_model:
         from piezo_stage.io.model_file import save_model
         model, effects = res.model(fit, args.limits)
-        save_model(args.out_model, model, effects=effects or None)
+        bounded = save_model(args.out_model, model, effects=effects or None)
         print(f"model with the found effects: {args.out_model}")
-        for note in res.notes:
+        for note in res.notes + bounded:
             print(f"note: {note}")
     return 0

@@ -13,7 +13,8 @@ HELP = "voltages that make a model follow a target"
 
 def add_arguments(s):
     s.add_argument("--model", required=True, help="model file (YAML)")
-    s.add_argument("--in", dest="inp", required=True, help="CSV with t,wx,wy (s, um)")
+    s.add_argument("--in", dest="inp", required=True, help="CSV with t,wx,wy (s, um); "
+                   "for a model of one axis t and that axis's column")
     s.add_argument("--out", required=True, help="output CSV t,vx,vy (V)")
     s.add_argument("--method", choices=("exact", "seed-eq12"), default="exact")
     s.add_argument("--effects", action="store_true",
@@ -28,12 +29,17 @@ def main(args):
     from piezo_stage.io.csv_table import read_table, write_table
     from piezo_stage.io.model_file import load_model
     model, effects = load_model(args.model)
-    missing = sorted({"x", "y"} - set(model.axes))
-    if missing:
-        raise DataError(f"{args.model} has no model for axis {', '.join(missing)}: its "
-                        "voltages cannot be computed (give a model with both axes)")
-    cols = read_table(args.inp, ["t", "wx", "wy"])
-    rec = Record(cols["t"], w={"x": cols["wx"], "y": cols["wy"]}, source=args.inp)
+    # a stage of one axis (a single stack) is inverted on that axis, from a target of
+    # that axis alone; the axis the model lacks gets the lower voltage limit
+    cols = read_table(args.inp, ["t"] + [f"w{a}" for a in sorted(model.axes)],
+                      ["wx", "wy"])
+    asked = sorted(a for a in ("x", "y") if f"w{a}" in cols and a not in model.axes)
+    if asked:
+        raise DataError(f"{args.model} has no model for axis {', '.join(asked)}: its "
+                        f"voltages cannot be computed (give a model with both axes, or a "
+                        f"target of t and the model's axes alone)")
+    rec = Record(cols["t"], w={a: cols.get(f"w{a}", np.zeros(len(cols["t"])))
+                               for a in ("x", "y")}, source=args.inp)
     if args.effects:
         if args.method != "exact":
             raise DataError("--effects needs --method exact")

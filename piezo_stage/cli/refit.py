@@ -45,6 +45,9 @@ def main(args):
         rows = R.refit(bags, args.out, jobs, args.limits, args.against, steps(b), skipped)
     for path, why in skipped:
         print(f"skipped: {why}" if path in why else f"skipped {path}: {why}")
+    for r in rows:
+        for note in r.get("notes", []):
+            print(f"note: {note}")
     wall = time.perf_counter() - t0
     cols = R.table_columns(rows)
     with atomic_write(os.path.join(args.out, "refit.csv"), newline="") as fh:

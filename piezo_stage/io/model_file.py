@@ -11,6 +11,7 @@ from piezo_stage.core.model.model_doc import (  # noqa: F401 - the file's names,
     MAX_YAML_BYTES,
     SCHEMA_KEY,
     as_number,
+    checked_doc,
     model_from_dict,
     model_to_dict,
     parse_yaml,
@@ -40,7 +41,12 @@ def load_model(path) -> tuple[StageModel, dict]:
     return model_from_dict(load_yaml(path, "model file"), str(path))
 
 
-def save_model(path, model: StageModel, effects=None, extra=None):
-    doc = model_to_dict(model, effects, extra)
+def save_model(path, model: StageModel, effects=None, extra=None) -> list[str]:
+    """Write the model file atomically, checked as the loader checks it first
+    (``model_doc.checked_doc``: a law bounded past its fitted range where it must be,
+    ModelError and nothing written where it is no stage). -> the notes of what was
+    bounded."""
+    doc, notes = checked_doc(model, effects, extra)
     with atomic_write(path) as fh:
         yaml.safe_dump(doc, fh, sort_keys=False, default_flow_style=None)
+    return notes

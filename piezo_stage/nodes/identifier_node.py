@@ -21,12 +21,12 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.estimation.identify import IdentifyOptions, identify_axis
+from piezo_stage.core.estimation.identify import IdentifyOptions
+from piezo_stage.core.estimation.identify.api import identify_stage
 from piezo_stage.core.estimation.identify.segmentation import segment
-from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.estimation.record import Record, on_grid
 from piezo_stage.core.loop.stamps import StampGuard
-from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
-from piezo_stage.io.model_file import model_to_dict
+from piezo_stage.core.model.model_doc import checked_doc
 from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics
@@ -87,22 +87,18 @@ class Identifier(Node):
                       source="live buffer", voltage_exact=True)
 
     def identify(self, n=None) -> str:
-        rec = self.record(n)
+        rec = on_grid(self.record(n))  # a real-time run's skipped ticks: one grid
+        for note in rec.notes:
+            self.get_logger().info(f"note: {note}")
         self.stats["samples"] = len(rec)
         opts = IdentifyOptions(method=self.method, structure=self.structure)
-        res, skipped = {}, []
-        for a in ("x", "y"):
-            try:
-                with interruptible():  # a long swarm search still stops in time
-                    res[a] = identify_axis(rec, a, opts)
-            except PiezoStageError as e:  # an axis that was not excited
-                skipped.append(f"{a}: {e}")
-        if not res:
-            raise PiezoStageError("; ".join(skipped))
-        model = StageModel({a: r.model for a, r in res.items()},
-                           {a: r.coupling for a, r in res.items() if r.coupling},
-                           voltage_limits_for(rec.v.values()))
-        self.pub.publish(model_msg(yaml.safe_dump(model_to_dict(model), sort_keys=False)))
+        with interruptible():  # a long swarm search still stops in time
+            fitted = identify_stage(rec, ("x", "y"), opts, skip_unusable=True)
+        doc, notes = checked_doc(fitted.model)  # as a file of it would be checked
+        for note in notes:
+            self.get_logger().info(f"note: {note}")
+        self.pub.publish(model_msg(yaml.safe_dump(doc, sort_keys=False)))
+        res = fitted.results
         self.stats["identifications"] += 1
         self.stats["last_fit_rms_um"] = max(r.fit["rms_um"] for r in res.values())
         return (f"identified on {len(rec)} samples: fit rms " +

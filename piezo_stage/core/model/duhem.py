@@ -114,14 +114,23 @@ class DuhemModel:
         POLY_MARGIN of its span) every branch polynomial continues straight from the
         nearer end with that end's slope (``branch_values``), not along its own tail.
         None: the polynomial everywhere.
+    continuation : {'straight', 'level'}
+        How a branch goes on past ``polynomial_range(fit_range_V)``: straight, with
+        the end's slope, or level, at the end's value (bounded: a law fitted on a few
+        volts of an amplifier's hundred, whose straight continuation would leave every
+        physical bound within the amplifier's range; ``bounded_past_fit``).
     """
 
     ascending: DuhemBranch
     descending: DuhemBranch
     initial: DuhemState = field(default_factory=DuhemState)
     fit_range_V: tuple | None = None
+    continuation: str = "straight"
 
     def __post_init__(self):
+        if self.continuation not in CONTINUATIONS:
+            raise ModelError(f"continuation {self.continuation!r}: one of "
+                             f"{', '.join(CONTINUATIONS)}")
         r = self.fit_range_V
         if r is not None:
             lo, hi = (float(x) for x in r)
@@ -152,8 +161,9 @@ class DuhemModel:
         hd = self.descending.h(False)
         d = max(ha.size, hd.size)
         H = np.zeros((2, PREFIX + d))
-        H[0, :PREFIX + ha.size] = branch_row(ha, self.fit_range_V)
-        H[1, :PREFIX + hd.size] = branch_row(hd, self.fit_range_V)
+        level = self.continuation == "level"
+        H[0, :PREFIX + ha.size] = branch_row(ha, self.fit_range_V, level)
+        H[1, :PREFIX + hd.size] = branch_row(hd, self.fit_range_V, level)
         alpha = np.array([self.ascending.alpha, self.descending.alpha])
         object.__setattr__(self, "_kp", (alpha, H))  # frozen: cache through the back door
         return alpha, H
@@ -178,11 +188,31 @@ class DuhemModel:
 
     def with_initial(self, state: DuhemState) -> "DuhemModel":
         """The same model starting from another state."""
-        return DuhemModel(self.ascending, self.descending, state, self.fit_range_V)
+        return DuhemModel(self.ascending, self.descending, state, self.fit_range_V,
+                          self.continuation)
 
     def with_fit_range(self, lo: float, hi: float) -> "DuhemModel":
         """The same model, fitted on inputs within [lo, hi] V (see ``fit_range_V``)."""
-        return DuhemModel(self.ascending, self.descending, self.initial, (lo, hi))
+        return DuhemModel(self.ascending, self.descending, self.initial, (lo, hi),
+                          self.continuation)
+
+    def with_continuation(self, kind: str) -> "DuhemModel":
+        """The same model, its branches going on past their fitted range ``kind``
+        ('straight' or 'level')."""
+        return DuhemModel(self.ascending, self.descending, self.initial, self.fit_range_V,
+                          kind)
+
+    def branch_values(self, ascending_branch: bool, ascending: bool,
+                      v: ArrayLike) -> np.ndarray:
+        """One branch's polynomial h at ``v`` [V] as the compiled loops evaluate it
+        (``branch_values``, with this model's fitted range and continuation)."""
+        br = self.ascending if ascending_branch else self.descending
+        return branch_values(br.h(ascending), v, self.fit_range_V,
+                             self.continuation == "level")
+
+
+# how a branch goes on past its fitted range (DuhemModel.continuation)
+CONTINUATIONS = ("straight", "level")
 
 
 # Near the data a fitted branch polynomial is still held by it: within this share of the
@@ -202,10 +232,11 @@ def polynomial_range(fit_range_V: tuple | None) -> tuple[float, float]:
     return lo - m, hi + m
 
 
-def branch_row(h: ArrayLike, fit_range_V: tuple | None = None) -> np.ndarray:
+def branch_row(h: ArrayLike, fit_range_V: tuple | None = None,
+               level: bool = False) -> np.ndarray:
     """A branch polynomial ``h`` as the compiled ``horner`` takes it: [lo, hi, h(lo),
     slope below lo, h(hi), slope above hi] (``polynomial_range``; each end's slope the
-    polynomial's there, never negative), then the coefficients.
+    polynomial's there, never negative; 0 with ``level``), then the coefficients.
 
     Parameters
     ----------
@@ -225,17 +256,18 @@ def branch_row(h: ArrayLike, fit_range_V: tuple | None = None) -> np.ndarray:
     pre = [lo, hi, 0.0, 0.0, 0.0, 0.0]
     if fit_range_V is not None:
         d = P.polyder(h) if h.size > 1 else np.zeros(1)
-        pre[2:] = [P.polyval(lo, h), max(float(P.polyval(lo, d)), 0.0),
-                   P.polyval(hi, h), max(float(P.polyval(hi, d)), 0.0)]
+        keep = 0.0 if level else 1.0
+        pre[2:] = [P.polyval(lo, h), keep * max(float(P.polyval(lo, d)), 0.0),
+                   P.polyval(hi, h), keep * max(float(P.polyval(hi, d)), 0.0)]
     return np.concatenate([pre, h])
 
 
 def branch_values(h: ArrayLike, v: ArrayLike,
-                  fit_range_V: tuple | None = None) -> np.ndarray:
+                  fit_range_V: tuple | None = None, level: bool = False) -> np.ndarray:
     """A branch polynomial ``h`` (lowest power first) at the voltages ``v`` [V] as the
     compiled loops evaluate it: over ``polynomial_range(fit_range_V)`` the polynomial,
     outside it the straight continuation from the nearer end with that end's slope
-    (never negative).
+    (never negative), or with ``level`` the end's value.
 
     Parameters
     ----------
@@ -260,9 +292,10 @@ def branch_values(h: ArrayLike, v: ArrayLike,
         lo, hi = polynomial_range(fit_range_V)
         d = P.polyder(h) if h.size > 1 else np.zeros(1)
         out = P.polyval(np.clip(v, lo, hi), h)
+        keep = 0.0 if level else 1.0
         for end, side in ((hi, v > hi), (lo, v < lo)):
-            out = np.where(side, P.polyval(end, h) + max(float(P.polyval(end, d)), 0.0)
-                           * (v - end), out)
+            out = np.where(side, P.polyval(end, h) + keep * max(float(P.polyval(end, d)),
+                                                                 0.0) * (v - end), out)
     return out
 
 

@@ -105,8 +105,8 @@ def invert_seed_eq12(model: DuhemModel, w_target: ArrayLike,
     st = state or model.initial
     alpha, _ = model.kernel_params()
     ha, hd = model.ascending.h(True), model.descending.h(False)
-    fr = model.fit_range_V
-    h = lambda c, x: float(branch_values(c, x, fr))  # noqa: E731 - as the kernels do
+    fr, level = model.fit_range_V, model.continuation == "level"
+    h = lambda c, x: float(branch_values(c, x, fr, level))  # noqa: E731 - as the kernels do
     lo, hi = v_limits
     vp, wp = float(st.v), float(st.w)
     n = wt.size

@@ -14,6 +14,9 @@ Schema (version 1)::
         fitted_range_V: [lo, hi]  # optional: the input range the branches were fitted
                                   #   on; well past it each branch polynomial continues
                                   #   straight from its end (duhem.branch_values)
+        continued_past_fit: level # optional: past it the branches go on at their
+                                  #   end's value instead (a law fitted on a small part
+                                  #   of the voltage limits: bounded_past_fit)
         # whole:      alpha, f, g at this level
         # segmented:  ascending: {alpha, f, g} and descending: {alpha, f, g}
         #             or, when only the identifiable combination is known,
@@ -47,11 +50,11 @@ import yaml
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.core.model.duhem import (
     AXES,
+    CONTINUATIONS,
     DuhemBranch,
     DuhemModel,
     DuhemState,
     StageModel,
-    branch_values,
     polynomial_range,
 )
 from piezo_stage.core.model.effects import validate_effects
@@ -173,19 +176,24 @@ def _duhem(d, where) -> DuhemModel:
         fr = tuple(_numbers(list(fr), f"{where}.fitted_range_V"))
         if not fr[0] < fr[1]:
             raise ModelError(f"{where}.fitted_range_V {list(fr)} must have lo < hi")
+    cont = d.get("continued_past_fit", "straight")
+    if cont not in CONTINUATIONS:
+        raise ModelError(f"{where}.continued_past_fit: one of {', '.join(CONTINUATIONS)}, "
+                         f"got {cont!r}")
     if structure == "whole":
-        _check_keys(d, ("structure", "initial_state", "fitted_range_V", "alpha", "f", "g",
-                        "h", "coupling", "play_operators", "note"), where)
+        _check_keys(d, ("structure", "initial_state", "fitted_range_V", "continued_past_fit",
+                        "alpha", "f", "g", "h", "coupling", "play_operators", "note"), where)
         b = _branch({k: d[k] for k in ("alpha", "f", "g", "h") if k in d}, where)
-        return DuhemModel(b, b, state, fr)
+        return DuhemModel(b, b, state, fr, cont)
     if structure == "segmented":
-        _check_keys(d, ("structure", "initial_state", "fitted_range_V", "ascending",
-                        "descending", "coupling", "play_operators", "note"), where)
+        _check_keys(d, ("structure", "initial_state", "fitted_range_V", "continued_past_fit",
+                        "ascending", "descending", "coupling", "play_operators", "note"),
+                    where)
         for k in ("ascending", "descending"):
             if k not in d:
                 raise ModelError(f"{where}: segmented model needs '{k}'")
         return DuhemModel(_branch(d["ascending"], f"{where}.ascending"),
-                          _branch(d["descending"], f"{where}.descending"), state, fr)
+                          _branch(d["descending"], f"{where}.descending"), state, fr, cont)
     raise ModelError(f"{where}: structure must be 'whole' or 'segmented', got {structure!r}")
 
 
@@ -250,7 +258,9 @@ def model_from_dict(doc: object, source: str = "model") -> tuple[StageModel, dic
     if not lim[0] < lim[1] or max(abs(lim[0]), abs(lim[1])) > MAX_VOLTS:
         raise ModelError(f"{source}: voltage_limits_V {list(lim)} must have min < max "
                          f"within +-{MAX_VOLTS:g} V")
-    _check_magnitudes(axes, coupling, lim, source, plays)
+    problem = magnitude_problem(StageModel(axes, coupling, lim, plays))
+    if problem:
+        raise ModelError(f"{source}: {problem}")
     try:  # every effect key known, every value in a physical range (core/model/effects.py)
         effects = validate_effects(doc.get("effects"), f"{source}: effects")
     except ConfigError as e:
@@ -264,28 +274,65 @@ MAX_VOLTS = 1000.0      # no piezo amplifier here drives more
 MAX_SLOPE = 1.0e4       # um/V: h(v) beyond this anywhere in the limits is not a stage
 
 
-def _check_magnitudes(axes, coupling, lim, source, plays=None):
-    """Every branch polynomial finite and physically sized over the voltage limits
-    (1e300 coefficients, or 2,000 terms that overflow, are refused here); the play
-    operators' summed slope likewise."""
-    for a, p in (plays or {}).items():
+def magnitude_problem(model: StageModel) -> str | None:
+    """What makes ``model`` no stage (None: nothing): a branch polynomial not finite or
+    beyond ``MAX_SLOPE`` anywhere over the voltage limits as the model runs there (past
+    its fitted range a branch continues from its end), the play operators' summed slope
+    likewise. The loader's check (1e300 coefficients, or 2,000 terms that overflow, are
+    refused), and every writer's before it writes (``bounded_past_fit``)."""
+    for a, p in model.plays.items():
         slope = float(np.abs(p.weights_um_per_V).sum())
         if slope > MAX_SLOPE:
-            raise ModelError(f"{source}: axes.{a}.play_operators: weights sum to "
-                             f"{slope:.3g} um/V in magnitude (<= {MAX_SLOPE:g})")
+            return (f"axes.{a}.play_operators: weights sum to {slope:.3g} um/V in "
+                    f"magnitude (<= {MAX_SLOPE:g})")
+    lim = model.voltage_limits
     v = np.linspace(lim[0], lim[1], 201)
-    for kind, models in (("axes", axes), ("coupling", coupling)):
+    for kind, models in (("axes", model.axes), ("coupling", model.coupling)):
         for a, m in models.items():
-            # as the model runs: past its fitted range a branch continues from its end
-            vv = np.unique(np.concatenate([v, polynomial_range(m.fit_range_V)]))
-            vv = vv[np.isfinite(vv)]
-            for name, br in (("ascending", m.ascending), ("descending", m.descending)):
-                for asc in (True, False):
-                    y = branch_values(br.h(asc), vv, m.fit_range_V)
-                    if not np.all(np.isfinite(y)) or np.abs(y).max() > MAX_SLOPE:
-                        raise ModelError(f"{source}: {kind}.{a} {name} branch reaches "
-                                         f"{np.nanmax(np.abs(y)):.3g} um/V within the "
-                                         f"voltage limits (finite and <= {MAX_SLOPE:g})")
+            bad = _branch_problem(m, v)
+            if bad:
+                return f"{kind}.{a} {bad}"
+    return None
+
+
+def _branch_problem(m: DuhemModel, v: np.ndarray) -> str | None:
+    vv = np.unique(np.concatenate([v, polynomial_range(m.fit_range_V)]))
+    vv = vv[np.isfinite(vv)]
+    for name, asc_branch in (("ascending", True), ("descending", False)):
+        for asc in (True, False):
+            y = m.branch_values(asc_branch, asc, vv)
+            if not np.all(np.isfinite(y)) or np.abs(y).max() > MAX_SLOPE:
+                return (f"{name} branch reaches {np.nanmax(np.abs(y)):.3g} um/V within "
+                        f"the voltage limits (finite and <= {MAX_SLOPE:g})")
+    return None
+
+
+def bounded_past_fit(model: StageModel) -> tuple[StageModel, list[str]]:
+    """``model`` as a writer may write it: where a Duhem law's straight continuation
+    past its fitted range would leave ``magnitude_problem``'s bounds inside the voltage
+    limits (a law fitted on 0-3.6 V of a 0-150 V amplifier's range: its branch's slope
+    at 4 V carried on to 150 V), its branches go on level past that range instead
+    (``continued_past_fit: level`` in the file), one note each. ModelError when even
+    that is no stage: nothing is written then."""
+    notes: list[str] = []
+    v = np.linspace(model.voltage_limits[0], model.voltage_limits[1], 201)
+    parts: dict = {"axes": dict(model.axes), "coupling": dict(model.coupling)}
+    for kind, models in parts.items():
+        for a, m in models.items():
+            bad = _branch_problem(m, v)
+            if not bad or m.fit_range_V is None or m.continuation == "level":
+                continue
+            lvl = m.with_continuation("level")
+            if _branch_problem(lvl, v) is None:
+                models[a] = lvl
+                lo, hi = polynomial_range(m.fit_range_V)
+                notes.append(f"{kind}.{a}: its branches go on level past {lo:.4g}..{hi:.4g} "
+                             f"V (continued_past_fit: level); straight, the {bad}")
+    out = model.replace(axes=parts["axes"], coupling=parts["coupling"])
+    problem = magnitude_problem(out)
+    if problem:
+        raise ModelError(f"the model is no stage: {problem}")
+    return out, notes
 
 
 def _floats(a):
@@ -304,6 +351,8 @@ def _duhem_doc(m: DuhemModel):
                                               "w_um": float(m.initial.w)}}
     if m.fit_range_V is not None:
         d["fitted_range_V"] = [float(x) for x in m.fit_range_V]
+        if m.continuation != "straight":
+            d["continued_past_fit"] = m.continuation
     if m.structure == "whole":
         d.update(_branch_doc(m.ascending, True))
     else:
@@ -347,3 +396,15 @@ def model_to_dict(model: StageModel, effects: dict | None = None,
     if extra:
         doc.update(extra)
     return doc
+
+
+def checked_doc(model: StageModel, effects: dict | None = None,
+                extra: dict | None = None) -> tuple[dict, list[str]]:
+    """The model document a writer writes (a file, the model message): ``model``
+    bounded past its fitted range where it must be (``bounded_past_fit``), then read
+    back by the loader's own parser and checks, so no writer of ours writes a model our
+    own tools refuse (ModelError before anything is written). -> (document, notes)."""
+    model, notes = bounded_past_fit(model)
+    doc = model_to_dict(model, effects, extra)
+    model_from_dict(doc, "the model to write")
+    return doc, notes

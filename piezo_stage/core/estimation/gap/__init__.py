@@ -37,6 +37,8 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from piezo_stage.core.errors import DataError
 
 # the package's public names, here as before it was split by concern
@@ -139,6 +141,22 @@ def _rising_law(c: Candidate) -> tuple:
     return reg.models(alphas, theta)
 
 
+def _holes_filled(fit: Record, axes: Sequence[str]) -> Record:
+    """FIT with the displacement in its long holes (``measured`` False) filled with the
+    base Duhem law's prediction, fitted without them (``identify_axis``): the
+    candidates, fitted on it, take nearly nothing from the holes (the record module's
+    ``fitted_together``, one step of it for all candidates)."""
+    from piezo_stage.core.estimation.identify.api import identify_axis, predict_axis
+    from piezo_stage.core.estimation.record import fill_unmeasured
+    pred = {}
+    for a in axes:
+        try:
+            pred[a] = predict_axis(identify_axis(fit, a), fit)[2]
+        except DataError:  # an axis with nothing to identify: its holes interpolated
+            pass
+    return fill_unmeasured(fit, pred)
+
+
 def _axis_child(conn, fit, holdout, axis, args):
     quiet_worker()  # the parent decides about stops (core/workers.py)
     effects, base_model, base_effects, limits_V = args
@@ -220,6 +238,8 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
             raise DataError(f"FIT and HOLDOUT have different channels (axis {a})")
     if len(fit.t) < 200 or len(holdout.t) < 200:
         raise DataError("records too short for a gap diagnosis (need >= 200 samples)")
+    if fit.measured is not None:  # FIT's long holes: left out of every candidate's fit
+        fit = _holes_filled(fit, axes)
     # the axes are independent problems, one per core; one BLAS thread each (two of
     # each on two cores fight, ~20 % slower). threadpoolctl is optional (rosdep has no
     # key for it): without it the diagnosis is the same, only slower on two axes.

@@ -34,6 +34,7 @@ from piezo_stage.core.estimation.gap.where import (
 )
 from piezo_stage.core.estimation.identify.api import check_identifiable
 from piezo_stage.core.estimation.identify.fast import fit_fast
+from piezo_stage.core.estimation.identify.segmentation import inner_reversals
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.metrics import noise_floor, rms
 from piezo_stage.core.model.duhem import OTHER, StageModel
@@ -154,6 +155,13 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         notes.append("no HOLDOUT: scored on FIT itself, where extra freedom is not "
                      "penalised (record the excitation twice)")
     given = _given_effects(base_model, base_effects, axis)
+    vo_fit = fit.v.get(OTHER[axis])
+    if any(n == "coupling" for n, _ in given) and (vo_fit is None or np.ptp(vo_fit) < 1.0):
+        # the model's coupling term has nothing to be fitted on where the other axis
+        # rests (a protocol that drives the axes in turn): it adds a constant there
+        given = [(n, p) for n, p in given if n != "coupling"]
+        notes.append("the model's coupling is left out: the other axis's voltage does "
+                     "not move in FIT")
     testable = []
     for e in effects:
         if e in [n for n, _ in given]:
@@ -359,6 +367,13 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     rate_note = one_rate_note(fit, holdout, axis) if fit is not holdout else None
     if rate_note:
         notes.append(rate_note)
+    if not any(inner_reversals(r.v[axis]) for r in (fit, holdout)):
+        notes.append("FIT and HOLDOUT hold no minor loops (their reversals lie at their "
+                     "ends): the forms with memory were judged on major loops alone, not "
+                     "on the minor loops where they differ, and a written model's minor "
+                     "loops are untested; record nested loops to tell (`excite --nested`; "
+                     "`identify --class auto` chooses the Prandtl-Ishlinskii class for "
+                     "such a record)")
     if notes:
         reason = (reason + "; " if reason else "") + "; ".join(notes)
     final = (model.predict(holdout, axis) - w_h) if model is not None else resid

@@ -23,10 +23,11 @@ from piezo_stage.core.estimation.identify.regress import DuhemRegression, coupli
 from piezo_stage.core.estimation.identify.segmentation import (
     Segmentation,
     branch_monotone,
+    inner_reversals,
     segment,
     voltage_noise,
 )
-from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.estimation.record import Record, fitted_together
 from piezo_stage.core.metrics import error_figures, noise_floor
 from piezo_stage.core.model.duhem import (
     OTHER,
@@ -60,6 +61,8 @@ class AxisResult:
     history: dict
     notes: list = field(default_factory=list)
     branch_rms_um: dict = field(default_factory=dict)
+    delay_samples: int = 0   # the displacement lags the voltage by this many samples
+    delay_s: float = 0.0     # ... [s]
 
     def to_json(self) -> dict:
         """The result as the --json report's dict."""
@@ -79,7 +82,8 @@ class AxisResult:
             "method": self.method, "structure": self.structure, "parameters": params,
             "fit_rms_um": self.fit["rms_um"], "fit_rms_pct": self.fit["rms_pct"],
             "max_err_um": self.fit["max_err_um"], "noise_floor_um": self.noise_floor_um,
-            "branch_rms_um": self.branch_rms_um,
+            "branch_rms_um": self.branch_rms_um, "delay_s": self.delay_s,
+            "delay_samples": self.delay_samples,
             "evaluations": self.evaluations, "seconds": self.seconds,
             "history": self.history, "notes": self.notes,
         }
@@ -160,9 +164,116 @@ def coupling_wanted(v: np.ndarray, v_other: np.ndarray | None, axis: str,
 
 def identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None = None,
                   progress: Callable[..., None] | None = None) -> AxisResult:
-    """Identify one axis of a record. Raises DataError on unusable data and
-    SolverError when the solver does not improve on its starting point."""
+    """Identify one axis of a record (the samples of its long holes left out:
+    ``record.fitted_together``). Raises DataError on unusable data and SolverError
+    when the solver does not improve on its starting point."""
+    return fitted_together(rec, lambda r: _identify_axis(r, axis, opts, progress),
+                           lambda res, r: {axis: predict_axis(res, r)[2]})
+
+
+LAG_MAX = 5        # samples: identify's delay search (opts.delay 'auto')
+DELAY_PAYS = 0.95  # a lag is taken where it fits at least this much better (FIT RMS)
+
+
+def lagged(rec: Record, k: int) -> Record:
+    """``rec`` with each displacement paired with the voltage ``k`` samples before it
+    (the last ``k`` voltages and the first ``k`` displacements dropped): a model of
+    the lagged record, delayed by ``k`` samples, is the model of the record."""
+    if k <= 0:
+        return rec
+    n = len(rec)
+    if n - k < 3:
+        raise DataError(f"{rec.source}: {n} samples, too few for a lag of {k}")
+    m = None if rec.measured is None else rec.measured[k:]
+    return Record(rec.t[:n - k], {a: x[:n - k] for a, x in rec.v.items()},
+                  {a: x[k:] for a, x in rec.w.items()}, rec.source, rec.voltage_exact, m)
+
+
+def delayed(x: np.ndarray, k: int) -> np.ndarray:
+    """``x`` delayed by ``k`` samples, its first value held before it."""
+    x = np.asarray(x, float)
+    return x if k <= 0 else np.concatenate([np.full(k, x[0]), x[:-k]])
+
+
+def choose_lag(rec: Record, axis: str, base: AxisResult,
+               lags: Sequence[int] = tuple(range(LAG_MAX + 1))) -> tuple[int, dict]:
+    """How many samples the displacement lags the voltage (a DAQ that reads its input
+    a sample after it writes its output; a sensor's latency): ``base``, the Duhem law
+    fitted at no lag, has its regression solved exactly at its alphas for each lag;
+    the best lag is taken only where it fits at least ``DELAY_PAYS`` better than none.
+    -> (lag [samples], {lag: FIT RMS [um]})."""
+    alphas = [base.model.ascending.alpha] if base.structure == "whole" else \
+        [base.model.ascending.alpha, base.model.descending.alpha]
+    if base.coupling is not None:
+        alphas.append(base.coupling.ascending.alpha)
+    n, m = base_degree(base)
+    rms = {}
+    for k in lags:
+        if len(rec) - k < 100:
+            break
+        r = lagged(rec, k)
+        v, w = _axis_data(r, axis)
+        if not rec.voltage_exact and voltage_noise(v) > 1e-4 * np.ptp(v):
+            v = branch_monotone(v)
+        vo = r.v.get(OTHER[axis]) if base.coupling is not None else None
+        reg = DuhemRegression(v, w, base.structure, n, m, vo, coupling_state=False)
+        rms[k] = reg.solve(alphas).rms
+    best = min(rms, key=rms.__getitem__)
+    return (best if rms[best] < DELAY_PAYS * rms[0] else 0), rms
+
+
+def base_degree(res: AxisResult) -> tuple[int, int]:
+    """(n, m) of an identified axis's branch polynomials."""
+    if res.structure == "whole":
+        return res.model.ascending.f.size - 1, res.model.ascending.g.size - 1
+    d = max(res.model.ascending.h(True).size, res.model.descending.h(False).size) - 1
+    return d, max(d - 1, 0)
+
+
+def delay_samples(opts: IdentifyOptions, fs_hz: float) -> int | None:
+    """The lag [samples] ``opts.delay`` fixes (None: 'auto', found from the record)."""
+    if opts.delay == "auto":
+        return None
+    try:
+        d = float(opts.delay)
+    except (TypeError, ValueError):
+        raise DataError(f"delay {opts.delay!r}: give auto or seconds >= 0") from None
+    if not np.isfinite(d) or d < 0:
+        raise DataError(f"delay {d!r}: give auto or seconds >= 0")
+    return int(round(d * fs_hz))
+
+
+def _identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None,
+                   progress: Callable[..., None] | None) -> AxisResult:
+    """``identify_axis`` on the record as it is: the lag ``opts.delay`` asks for
+    (found where 'auto'), then the fit (``_fit_axis``)."""
+    from dataclasses import replace
     opts = opts or IdentifyOptions()
+    lag = delay_samples(opts, rec.fs_hz)
+    if lag is None and opts.method != "fast":
+        lag = 0  # (the paper's swarms: as the paper fits them)
+    if lag is None:
+        base = _fit_axis(rec, axis, opts, progress)
+        lag, rms = choose_lag(rec, axis, base)
+        if lag == 0:
+            return base
+        note = (f"the displacement lags the voltage by {lag} sample(s) "
+                f"({lag * rec.dt * 1e3:.4g} ms): fitted with that delay (FIT RMS "
+                f"{rms[lag]:.4g} um against {rms[0]:.4g} um without, at the same "
+                "alphas); the model file holds it as its delay effect")
+    else:
+        note = f"fitted with a delay of {lag} sample(s) ({lag * rec.dt * 1e3:.4g} ms)"
+    if lag == 0:
+        return _fit_axis(rec, axis, opts, progress)
+    res = _fit_axis(lagged(rec, lag), axis, replace(opts, delay=0.0), progress)
+    res.delay_samples, res.delay_s = lag, lag * rec.dt
+    res.notes.append(note)
+    return res
+
+
+def _fit_axis(rec: Record, axis: str, opts: IdentifyOptions,
+              progress: Callable[..., None] | None) -> AxisResult:
+    """One axis's Duhem law fitted to ``rec`` as it stands (no lag)."""
     if opts.method not in METHODS:
         raise DataError(f"unknown method {opts.method!r}; use one of {', '.join(METHODS)}")
     if opts.structure not in ("whole", "segmented"):
@@ -225,6 +336,12 @@ def predict_axis(res: AxisResult,
     if res.coupling is not None and v_other is None:
         raise DataError(f"{rec.source}: the model has coupling but the record has no "
                         f"v{OTHER[res.axis]}")
+    k = res.delay_samples
+    if k:  # the model of the lagged record, delayed
+        n = len(v)
+        vo = None if v_other is None else v_other[:n - k]
+        pred = simulate_axis(res.model, res.coupling, v[:n - k], vo, w_meas=w[k:])
+        return v, w, np.concatenate([np.full(k, pred[0]), pred])
     return v, w, simulate_axis(res.model, res.coupling, v, v_other, w_meas=w)
 
 
@@ -269,52 +386,73 @@ def _later_cycles(rec: Record, axis: str) -> tuple[Record, Record]:
     cut = lo + int((hi - lo) * (1 - HELD_OUT_FRACTION))
 
     def part(sl, name):
-        return Record(rec.t[sl], {a: x[sl] for a, x in rec.v.items()},
-                      {a: x[sl] for a, x in rec.w.items()}, source=f"{rec.source} ({name})",
-                      voltage_exact=rec.voltage_exact)
+        piece = rec.slice(sl.start, sl.stop)
+        piece.source = f"{rec.source} ({name})"
+        return piece
     first, last = part(slice(lo, cut), "first 60 %"), part(slice(cut, hi), "last 40 %")
     for piece in (first, last):
         check_identifiable(piece.v[axis], piece.source)
     return first, last
 
 
+# --class auto on a record without minor loops: the class chosen, and why
+MAJOR_LOOPS_ONLY = (
+    "the record's reversals all lie at its two ends (major loops only): the classes "
+    "fit a major loop alike and differ in the minor loops it does not hold; the "
+    "Prandtl-Ishlinskii class is chosen, whose minor loops follow from its major loop "
+    "(Masing's rule; from such a record it predicted a measured PI P-885 stack's "
+    "nested loops several times closer than the Duhem law and the Preisach class). "
+    "To choose on data, calibrate with nested minor loops: piezo-stage excite --nested")
+
+
 def choose_class(rec: Record, axis: str, opts: IdentifyOptions | None = None,
-                 limits_V: tuple | None = None) -> tuple[str, dict]:
+                 limits_V: tuple | None = None) -> tuple[str, dict, list]:
     """``identify --class auto``: the model class that predicts the record's own later
     cycles best, each fitted on the first 60 % of the span where the axis moves and
     judged on the last 40 % (offset removed; the first 10 % of it, where each model's
-    unknown start state shows, left out). Each class must pay against the simpler
-    ones before it (the Duhem law, the Prandtl-Ishlinskii class, the discretized
-    Preisach class, in that order): it wins only 2 % closer; the memory classes'
-    thresholds reach half the amplifier's ``limits_V`` (else 0-150 V widened to the
-    record's). -> (class, {class: held-out RMS um})."""
+    unknown start state shows, left out), all with the lag the Duhem law's fit finds
+    (``opts.delay``). Each class must pay against the simpler ones before it (the
+    Duhem law, the Prandtl-Ishlinskii class, the discretized Preisach class, in that
+    order): it wins only 2 % closer; the memory classes' thresholds reach half the
+    amplifier's ``limits_V`` (else 0-150 V widened to the record's). A record with no
+    minor loops (``inner_reversals``) cannot tell the classes apart where they differ:
+    the Prandtl-Ishlinskii class then (``MAJOR_LOOPS_ONLY``, the note that says so).
+    -> (class, {class: held-out RMS um}, notes)."""
+    from dataclasses import replace
     first, last = _later_cycles(rec, axis)
     skip = 0.1 * (last.t[-1] - last.t[0])
     w = last.w[axis]
-    duhem = predict_axis(identify_axis(first, axis, opts), last)[2]
-    held = {"duhem": held_out_rms(duhem, w, last.fs_hz, skip)}
+    res = identify_axis(first, axis, opts)
+    held = {"duhem": held_out_rms(predict_axis(res, last)[2], w, last.fs_hz, skip)}
+    same_lag = replace(opts or IdentifyOptions(), delay=res.delay_s)
     for name in ("pi", "preisach"):
-        model = fit_class_axis(first, axis, name, opts, limits_V)
+        model = fit_class_axis(first, axis, name, same_lag, limits_V)
         held[name] = held_out_rms(model.predict(last, axis), w, last.fs_hz, skip)
+    if inner_reversals(rec.v[axis]) == 0:
+        return "pi", held, [MAJOR_LOOPS_ONLY]
     best = "duhem"
     for name in ("pi", "preisach"):
         if held[name] < 0.98 * held[best]:
             best = name
-    return best, held
+    return best, held, []
 
 
 @dataclass
 class ClassFit:
     """One axis's class with memory (``identify --class pi|preisach``): ``law`` (a
     PrandtlIshlinskii, banded operators for Preisach), its ``coupling`` term (a
-    DuhemModel driven by the other axis's voltage, or None) and ``notes``."""
+    DuhemModel driven by the other axis's voltage, or None), ``notes`` and the lag of
+    the displacement behind the voltage it was fitted with (``delay_samples``)."""
     law: PrandtlIshlinskii
     coupling: DuhemModel | None
     notes: list = field(default_factory=list)
+    delay_samples: int = 0
+    delay_s: float = 0.0
 
     def predict(self, rec: Record, axis: str) -> np.ndarray:
         """The output over ``rec`` [um] (operators at rest at its first voltage,
-        coupling from rest at the other axis's), the constant fitted there."""
+        coupling from rest at the other axis's, delayed by the lag), the constant
+        fitted there."""
         pred = self.law.predict(rec.v[axis])
         if self.coupling is not None:
             vo = rec.v.get(OTHER[axis])
@@ -322,6 +460,7 @@ class ClassFit:
                 raise DataError(f"{rec.source}: the model has coupling but the record "
                                 f"has no v{OTHER[axis]}")
             pred = pred + self.coupling.simulate(vo, DuhemState(float(vo[0]), 0.0))[0]
+        pred = delayed(pred, self.delay_samples)
         return pred + float(np.mean(rec.w[axis] - pred))
 
 
@@ -332,16 +471,35 @@ def fit_class_axis(rec: Record, axis: str, kind: str, opts: IdentifyOptions | No
     coupling term where ``opts.coupling`` asks for one as for the Duhem law
     (``coupling_wanted``): a whole-curve Duhem law of the other axis's voltage at the
     alpha the Duhem law's fit of the same record finds for it, its coefficients fitted
-    together with the class's weights."""
+    together with the class's weights; fitted with the lag ``opts.delay`` gives (where
+    'auto', the one the Duhem law's fit of the record finds). The samples of the
+    record's long holes are left out (``record.fitted_together``)."""
+    return fitted_together(rec, lambda r: _fit_class_axis(r, axis, kind, opts, limits_V),
+                           lambda fitted, r: {axis: fitted.predict(r, axis)})
+
+
+def _fit_class_axis(rec: Record, axis: str, kind: str, opts: IdentifyOptions | None,
+                    limits_V: tuple | None) -> ClassFit:
+    from dataclasses import replace
     opts = opts or IdentifyOptions()
     v, w = _axis_data(rec, axis)
     check_identifiable(v, rec.source)
     notes: list = []
     v_other = rec.v.get(OTHER[axis])
+    use_c = v_other is not None and coupling_wanted(v, v_other, axis, opts, notes)
+    lag = delay_samples(opts, rec.fs_hz)
+    duhem = None
+    if use_c or lag is None:  # the Duhem law's fit: its coupling's alpha, its lag
+        duhem = identify_axis(rec, axis, replace(opts, coupling="on" if use_c else "off"))
+        if lag is None:
+            lag = duhem.delay_samples
+            notes += [n for n in duhem.notes if "lags the voltage" in n]
+    if lag:
+        rec = lagged(rec, lag)
+        v, w = _axis_data(rec, axis)
+        v_other = rec.v.get(OTHER[axis])
     around, model_of = None, None
-    if v_other is not None and coupling_wanted(v, v_other, axis, opts, notes):
-        from dataclasses import replace
-        duhem = identify_axis(rec, axis, replace(opts, coupling="on"))
+    if use_c and duhem is not None and v_other is not None:
         assert duhem.coupling is not None  # (asked for: "on")
         cols, model_of = coupling_term(v_other, duhem.coupling.ascending.alpha)
         around = Around(coupled=cols)
@@ -353,34 +511,60 @@ def fit_class_axis(rec: Record, axis: str, kind: str, opts: IdentifyOptions | No
     coupling = model_of(law.around[:around.coupled.shape[1]]) \
         if model_of is not None and around is not None and around.coupled is not None \
         else None
-    return ClassFit(law, coupling, notes)
+    return ClassFit(law, coupling, notes, lag, lag * rec.dt)
+
+
+def delay_effect(fits: dict) -> dict:
+    """The model file's ``effects`` for the lags of identified axes ({axis: AxisResult
+    or ClassFit}): one delay for the axes that lag (the file holds one per effect; the
+    longest where they differ), {} where none does."""
+    lags = {a: f.delay_s for a, f in fits.items() if f.delay_s > 0}
+    if not lags:
+        return {}
+    return {"delay": {"delay_s": float(max(lags.values())), "axes": sorted(lags)}}
 
 
 @dataclass
 class StageFit:
     """Every identified axis of a record put together: ``model`` (the StageModel with
-    its coupling terms and the amplifier's voltage limits) and ``results`` {axis:
-    AxisResult}."""
+    its coupling terms and the amplifier's voltage limits), ``results`` {axis:
+    AxisResult} and ``skipped`` {axis: why} (``identify_stage(..., skip_unusable=True)``)."""
     model: StageModel
     results: dict
+    skipped: dict = field(default_factory=dict)
+
+    @property
+    def effects(self) -> dict:
+        """The model file's ``effects``: the delay of the axes that lag."""
+        return delay_effect(self.results)
 
 
 def identify_stage(rec: Record, axes: Sequence[str],
                    opts: IdentifyOptions | dict | None = None,
                    limits_V: tuple | None = None,
-                   progress_for: Callable[[str], Callable[..., None] | None] | None = None
-                   ) -> StageFit:
+                   progress_for: Callable[[str], Callable[..., None] | None] | None = None,
+                   skip_unusable: bool = False) -> StageFit:
     """Identify ``axes`` of ``rec`` (``opts`` one IdentifyOptions, or one per axis) and
     build the stage model. Its voltage limits follow one rule wherever a model is
     written (``identify``, ``refit``, the identifier node): the amplifier's
     ``limits_V``, else 0-150 V widened to take the record's voltages
     (duhem.voltage_limits_for; DataError when the record leaves the amplifier's).
-    ``progress_for(axis)`` gives each axis's solver callback."""
+    ``progress_for(axis)`` gives each axis's solver callback. ``skip_unusable``: an
+    axis whose record cannot be identified (not excited, no solver converged) is left out and said in
+    ``skipped``, DataError only when none is left."""
     lim = voltage_limits_for(list(rec.v.values()), limits_V)  # before any fit
-    results = {}
+    results, skipped = {}, {}
     for a in axes:
         o = opts.get(a) if isinstance(opts, dict) else opts
-        results[a] = identify_axis(rec, a, o, progress_for(a) if progress_for else None)
+        try:
+            results[a] = identify_axis(rec, a, o, progress_for(a) if progress_for else None)
+        except (DataError, SolverError) as e:
+            if not skip_unusable:
+                raise
+            skipped[a] = str(e)
+    if not results:
+        raise DataError("; ".join(f"{a}: {why}" for a, why in skipped.items())
+                        or f"{rec.source}: no axis to identify")
     model = StageModel({a: r.model for a, r in results.items()},
                        {a: r.coupling for a, r in results.items() if r.coupling}, lim)
-    return StageFit(model, results)
+    return StageFit(model, results, skipped)

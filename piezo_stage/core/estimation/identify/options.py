@@ -13,7 +13,10 @@ class IdentifyOptions:
     method: fast | afsa | afsa-bat; structure: whole | segmented; n, m: degrees of f and
     g; coupling: 'auto' (fit a coupling term when the other axis's voltage moves and the
     method is fast), 'on' or 'off'; budget: objective evaluations (None for the method's
-    default); seed for the swarms; afsa: swarm settings."""
+    default); seed for the swarms; afsa: swarm settings; delay: the displacement's
+    lag behind the voltage, 'auto' (the fast method: a whole number of samples, 0 to
+    ``api.LAG_MAX``, taken where it fits clearly better: a DAQ reads its input a
+    sample after it writes its output) or seconds (0: none)."""
 
     method: str = "fast"
     structure: str = "segmented"
@@ -23,3 +26,4 @@ class IdentifyOptions:
     budget: int | None = None
     seed: int = 0
     afsa: dict = field(default_factory=dict)
+    delay: str | float = "auto"

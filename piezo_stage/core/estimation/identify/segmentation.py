@@ -98,3 +98,24 @@ def branch_monotone(v: ArrayLike, seg: Segmentation | None = None) -> np.ndarray
     for a, b, sign in seg.segments:
         out[a:b] = np.maximum.accumulate(v[a:b]) if sign > 0 else np.minimum.accumulate(v[a:b])
     return out
+
+
+MINOR_LOOP_DEPTH = 0.1  # of the span: a reversal this far inside the record's range
+
+
+def inner_reversals(v: ArrayLike) -> int:
+    """How many of the voltage's reversals lie inside its range by more than
+    ``MINOR_LOOP_DEPTH`` of its span (a maximum below the top, a minimum above the
+    bottom): the minor loops a record holds. A calibration of constant amplitude has
+    none, and there every class with memory fits its major loop alike: they differ
+    only in the minor loops the record never showed."""
+    v = np.asarray(v, float)
+    seg = segment(v)
+    tp = seg.turning_points
+    if tp.size == 0:
+        return 0
+    lo, hi = float(v.min()), float(v.max())
+    depth = MINOR_LOOP_DEPTH * (hi - lo)
+    top = np.array([seg.labels[i] > 0 for i in tp])  # a maximum ends a rising branch
+    inner = np.where(top, v[tp] < hi - depth, v[tp] > lo + depth)
+    return int(np.count_nonzero(inner))
