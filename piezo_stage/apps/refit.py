@@ -118,10 +118,11 @@ def moving_span(v: np.ndarray) -> tuple[int, int] | None:
     return int(moves[0]), int(moves[-1]) + 2
 
 
-def axis_parts(rec) -> tuple[dict, list[str]]:
+def axis_parts(rec, spans: dict | None = None) -> tuple[dict, list[str]]:
     """Each axis's (FIT, HOLD): the halves of the span where its voltage moves, and a
-    note for each axis left out (at rest, or moving too briefly to fit and score).
-    -> ({axis: (fit, hold)}, notes)."""
+    note for each axis left out (at rest, or moving too briefly to fit and score);
+    ``spans`` gets each axis's whole span (from t = 0). -> ({axis: (fit, hold)},
+    notes)."""
     parts, notes = {}, []
     for a in ("x", "y"):
         if a not in rec.v or a not in rec.w:
@@ -130,8 +131,12 @@ def axis_parts(rec) -> tuple[dict, list[str]]:
         if span is None:
             notes.append(f"axis {a} is at rest (its voltage is constant): not refitted")
             continue
+        whole = rec.slice(*span)
+        whole.t = whole.t - whole.t[0]
         try:
-            parts[a] = halves(rec.slice(*span))
+            parts[a] = halves(whole)
+            if spans is not None:
+                spans[a] = whole
         except DataError as e:
             notes.append(f"axis {a}: {str(e).split(': ', 1)[-1]} where it moves: not "
                          "refitted")
@@ -154,7 +159,8 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
     rec = load_record(path)
     rec.voltage_exact = True  # a bag holds the voltage the driver applied
     lim = voltage_limits_for(list(rec.v.values()), limits_V)
-    parts, notes = axis_parts(rec)
+    spans: dict = {}
+    parts, notes = axis_parts(rec, spans)
     results = {}
     for a, (fit, _) in parts.items():
         try:
@@ -190,8 +196,12 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
             if a not in ref.axes:
                 continue
             fit, hold = parts[a]
-            d = diagnose(fit, hold, axes=[a], base_model=ref, base_effects=ref_effects,
-                         limits_V=limits_V)
+            # the second half held out with its history (the first half run, not
+            # scored): the stage's state where it starts, a creep still relaxing from
+            # the first half's steps, follows from what came before and is no drift
+            both = spans[a]
+            d = diagnose(fit, both, axes=[a], base_model=ref, base_effects=ref_effects,
+                         limits_V=limits_V, history=len(fit))
             per_axis[a]["against"] = _against_row(d.json["axes"][a])
     row["seconds"] = time.perf_counter() - t0
     return row

@@ -159,10 +159,11 @@ def _holes_filled(fit: Record, axes: Sequence[str]) -> Record:
 
 def _axis_child(conn, fit, holdout, axis, args):
     quiet_worker()  # the parent decides about stops (core/workers.py)
-    effects, base_model, base_effects, limits_V = args
+    effects, base_model, base_effects, limits_V, history = args
     try:
         d = diagnose_axis(fit, holdout, axis, effects, base_model,
-                          lambda what: conn.send(("progress", what)), base_effects, limits_V)
+                          lambda what: conn.send(("progress", what)), base_effects, limits_V,
+                          history)
         conn.send(("done", d))
     except BaseException as e:  # noqa: BLE001 -- re-raised in the parent
         conn.send(("error", e))
@@ -182,7 +183,7 @@ def _axes_apart(fit, holdout, axes, args, progress):
         from concurrent.futures import ThreadPoolExecutor
         with ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
             futures = {a: pool.submit(diagnose_axis, fit, holdout, a, args[0], args[1],
-                                      progress, args[2], args[3]) for a in axes}
+                                      progress, args[2], args[3], args[4]) for a in axes}
             return {a: f.result() for a, f in futures.items()}
     from multiprocessing.connection import wait
     ctx = mp.get_context("fork")
@@ -223,11 +224,14 @@ def _axes_apart(fit, holdout, axes, args, progress):
 def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] = EFFECTS,
              axes: Sequence[str] | None = None, base_model: StageModel | None = None,
              progress: Callable[[str], None] | None = None,
-             base_effects: dict | None = None, limits_V: tuple | None = None) -> Diagnosis:
+             base_effects: dict | None = None, limits_V: tuple | None = None,
+             history: int = 0) -> Diagnosis:
     """Diagnose the gap on every axis (see the module docstring). ``progress(what)`` is
     called after each candidate fit (in this thread: relayed from the axes' processes);
     ``limits_V`` are the amplifier's (the memory class's thresholds reach half its
-    range; None: 0-150 V widened to FIT's)."""
+    range; None: 0-150 V widened to FIT's); HOLDOUT's first ``history`` samples are run
+    but not scored (``diagnose_axis``: a record's later part held out with its
+    history, as ``refit`` holds out each bag's second half)."""
     t0 = time.perf_counter()
     holdout = holdout or fit
     axes = axes or [a for a in ("x", "y") if a in fit.w and a in holdout.w]
@@ -236,7 +240,7 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
     for a in axes:
         if (a in fit.w) != (a in holdout.w):
             raise DataError(f"FIT and HOLDOUT have different channels (axis {a})")
-    if len(fit.t) < 200 or len(holdout.t) < 200:
+    if len(fit.t) < 200 or len(holdout.t) - history < 200:
         raise DataError("records too short for a gap diagnosis (need >= 200 samples)")
     if fit.measured is not None:  # FIT's long holes: left out of every candidate's fit
         fit = _holes_filled(fit, axes)
@@ -248,7 +252,7 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
     except ImportError:
         def threadpool_limits(_n):
             return contextlib.nullcontext()
-    args = (effects, base_model, base_effects, limits_V)
+    args = (effects, base_model, base_effects, limits_V, history)
     with threadpool_limits(1 if len(axes) > 1 else None):
         per = _axes_apart(fit, holdout, axes, args, progress or (lambda what: None))
     worst = max(per.values(), key=lambda d: d.ranking[0]["gap_before_um"])

@@ -136,20 +136,28 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                   base_model: StageModel | None = None,
                   progress: Callable[[str], None] | None = None,
                   base_effects: dict | None = None,
-                  limits_V: tuple | None = None) -> AxisDiagnosis:
+                  limits_V: tuple | None = None, history: int = 0) -> AxisDiagnosis:
     """Fit every candidate on FIT, score on HOLDOUT, then add effects one at a time
     (forward selection, each refitted jointly with the Duhem model and the effects
     kept before it) while the held-out gap keeps shrinking clearly. ``base_model`` (a
     StageModel, with ``base_effects`` from its file) replaces the FIT-identified Duhem
     model as the sim to compare with; what it already has is not a candidate.
     ``progress(what)`` is called after each candidate is fitted; ``limits_V``, the
-    amplifier's, bound the memory class's thresholds (fit_class_candidate)."""
+    amplifier's, bound the memory class's thresholds (fit_class_candidate). HOLDOUT's
+    first ``history`` samples are its history: every model runs over them (the stage's
+    state at the scored part's start follows from them: a creep in progress is no
+    drift), and only the rest is scored."""
     if progress is None:
         progress = _quiet
     for rec in (fit, holdout):
         if axis not in rec.v or axis not in rec.w:
             raise DataError(f"{rec.source}: no v{axis}/w{axis} for axis {axis}")
+    scored = holdout.slice(history, len(holdout)) if history else holdout
+    for rec in (fit, scored):
         check_identifiable(rec.v[axis], rec.source)
+
+    def resid_of(c) -> np.ndarray:  # a model's held-out residual, over the scored part
+        return (c.predict(holdout, axis) - holdout.w[axis])[history:]
     notes = []
     if holdout is fit:
         notes.append("no HOLDOUT: scored on FIT itself, where extra freedom is not "
@@ -195,15 +203,15 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
             if k is None:
                 return law
             k.twin = law
-            r_law = rms(law.predict(holdout, axis) - holdout.w[axis])
-            return k if rms(k.predict(holdout, axis) - holdout.w[axis]) <= r_law else law
+            r_law = rms(resid_of(law))
+            return k if rms(resid_of(k)) <= r_law else law
         law = fit_candidate(fit, axis, e, on, kept)  # the best form of the Duhem law
         c: Candidate | ClassCandidate = law
         if e == "structure":
             both = np.concatenate([fit.v[axis], holdout.v[axis]])
-            best = rms(law.predict(holdout, axis) - holdout.w[axis])
+            best = rms(resid_of(law))
             tried = not class_tried or class_tried[0] <= CLASS_WITH_EFFECTS
-            classes = [(k, rms(k.predict(holdout, axis) - holdout.w[axis]))
+            classes = [(k, rms(resid_of(k)))
                        for k in (fit_class_candidate(fit, axis, limits_V, kind, on, kept)
                                  for kind in (MEMORY_CLASSES if tried else ()))]
             for form in (("memory", "rate") if rates else ("memory",)):
@@ -211,7 +219,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                                   rate=form == "rate")
                 if m.effect == "rate" and not m.params.get("rate_widening_s"):
                     continue  # no widening fits FIT better: memory already
-                r = rms(m.predict(holdout, axis) - holdout.w[axis])
+                r = rms(resid_of(m))
                 if r < best:
                     if r > NOT_INVERTIBLE_PAYS * min([best] + [x[1] for x in classes]) \
                             and m.inverse_miss(both, fit.fs_hz, limits_V) > \
@@ -237,19 +245,19 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     for e in testable:
         cands[e] = candidate(e, base, base.effects)
         progress(f"{axis} {e}")
-    nf = noise_floor(holdout.w[axis])
-    w_h = holdout.w[axis]
+    nf = noise_floor(scored.w[axis])
+    w_h = scored.w[axis]
     n = len(w_h)
     sim = GivenModel(base_model) if base_model is not None and axis in base_model.axes \
         else base
-    resid = sim.predict(holdout, axis) - w_h
+    resid = resid_of(sim)
     r_before = rms(resid)
     # a line the input does not cause (a floor vibration) is no model's to close: for
     # choosing effects it counts with the noise (the gap is what a model could close)
-    dist0 = disturbance(holdout, axis, resid, nf)
+    dist0 = disturbance(scored, axis, resid, nf)
     floor = float(np.hypot(nf, dist0["rms_um"])) if dist0 else nf
     g_before = gap_above_floor(r_before, floor)
-    resids = {e: c.predict(holdout, axis) - w_h for e, c in cands.items()}
+    resids = {e: resid_of(c) for e, c in cands.items()}
     scores: dict[str, float] = {e: rms(r) for e, r in resids.items()}
     ranking: list[dict[str, Any]] = []
     for e, c in cands.items():
@@ -258,7 +266,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                         "gap_before_um": g_before, "gap_after_um": g_after,
                         "shrink_pct": 100.0 * (1 - g_after / g_before) if g_before > 0 else 0.0,
                         "shrink_pm_pct": shrink_uncertainty(resid, resids[e], floor,
-                                                            holdout.fs_hz),
+                                                            scored.fs_hz),
                         "fit_rms_um": c.fit_rms_um, "params": c.params})
     ranking.sort(key=lambda r: r["gap_after_um"])
     # forward selection: the best candidate joins when it shrinks the held-out gap
@@ -293,7 +301,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 first = pool[a]
                 pair = candidate(b, first, first.effects)
                 progress(f"{axis} {a}+{b}")
-                r_pair = rms(pair.predict(holdout, axis) - w_h)
+                r_pair = rms(resid_of(pair))
                 tried[(a, b)] = (pair, r_pair)
                 g_pair, g_a = gap_above_floor(r_pair, floor), gap_above_floor(scores[a], floor)
                 if 100.0 * (1 - g_pair / g_cur) >= need \
@@ -328,7 +336,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 was = (c.alphas, c.theta, c.fit_rms_um, c.effects)
                 c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
                 c.effects = with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
-                polished = rms(c.predict(holdout, axis) - w_h)
+                polished = rms(resid_of(c))
                 if polished <= scores[e]:
                     scores[e] = polished
                     g_new = gap_above_floor(scores[e], floor)
@@ -338,7 +346,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 else:  # closer on FIT, further on HOLDOUT: the extra freedom overfits
                     c.alphas, c.theta, c.fit_rms_um, c.effects = was
         steps[-1]["shrink_pm_pct"] = shrink_uncertainty(
-            resid, c.predict(holdout, axis) - w_h, floor, holdout.fs_hz)
+            resid, resid_of(c), floor, scored.fs_hz)
         model, r_cur = c, scores[e]
         del pool[e]
         if g_new <= NOISE_STOP * floor:
@@ -349,14 +357,14 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 pool[e2], scores[e2] = tried[(e, e2)]
             else:
                 pool[e2] = candidate(e2, model, model.effects)
-                scores[e2] = rms(pool[e2].predict(holdout, axis) - w_h)
+                scores[e2] = rms(resid_of(pool[e2]))
             progress(f"{axis} {'+'.join(x['effect'] for x in steps)}+{e2}")
     if model is not None:  # each effect's parameters as finally refitted (drift's)
         final = dict(model.effects)
         for st in steps:
             st["params"] = final.get(st["effect"], st["params"])
-    loc = where(holdout, axis, resid, nf)
-    verdict, reason = _decide(ranking, steps, g_before, floor, fit, holdout, axis)
+    loc = where(scored, axis, resid, nf)
+    verdict, reason = _decide(ranking, steps, g_before, floor, fit, scored, axis)
     if verdict in ("none", "inconclusive"):
         steps, model = [], None
     if no_band and ({"delay", "dynamics"} & {st["effect"] for st in steps}
@@ -364,10 +372,10 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         notes.append("no broadband excitation (no chirp): a resonance above the "
                      "excitation's tones cannot be told from a delay (record the "
                      "protocol with its chirp: `excite` without `--chirp 0`)")
-    rate_note = one_rate_note(fit, holdout, axis) if fit is not holdout else None
+    rate_note = one_rate_note(fit, scored, axis) if fit is not holdout else None
     if rate_note:
         notes.append(rate_note)
-    if not any(inner_reversals(r.v[axis]) for r in (fit, holdout)):
+    if not any(inner_reversals(r.v[axis]) for r in (fit, scored)):
         notes.append("FIT and HOLDOUT hold no minor loops (their reversals lie at their "
                      "ends): the forms with memory were judged on major loops alone, not "
                      "on the minor loops where they differ, and a written model's minor "
@@ -376,9 +384,9 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                      "such a record)")
     if notes:
         reason = (reason + "; " if reason else "") + "; ".join(notes)
-    final = (model.predict(holdout, axis) - w_h) if model is not None else resid
-    dist = disturbance(holdout, axis, final, nf)
-    budget = gap_budget(holdout, axis, resid, nf, g_before, steps)
+    final = resid_of(model) if model is not None else resid
+    dist = disturbance(scored, axis, final, nf)
+    budget = gap_budget(scored, axis, resid, nf, g_before, steps)
     budget["disturbance"] = dist
     g_left = budget["unexplained_um"]
     if dist is not None and (not steps or dist["rms_um"] >= g_left):
