@@ -11,7 +11,9 @@ def add_arguments(s):
     s.add_argument("config", nargs="?", help="node parameters YAML (default config/stage.yaml)")
     s.add_argument("--record", metavar="DIR", help="record a bag to DIR ('auto': bags/<time>)")
     s.add_argument("--duration", type=number(0, 10**7, lo_open=True), metavar="S",
-                   help="stop after S seconds")
+                   help="run S seconds after the stage arms, on its own clock (lockstep: "
+                   "sample time), then stop; the start-up is not counted (with "
+                   "--managed, or without a driver: S seconds from the launch)")
     s.add_argument("--namespace", default="/stage")
     s.add_argument("--no-arm", action="store_true", help="start disarmed and stay so "
                    "until armed on the arm service")
@@ -47,19 +49,41 @@ def main(args):
     launch = Launch(args.config or default_config("stage.yaml"), record=record,
                     namespace=args.namespace, arm=not args.no_arm,
                     foxglove_port=args.foxglove, overrides=overrides,
-                    trajectory=not args.no_trajectory, managed=args.managed)
+                    trajectory=not args.no_trajectory, managed=args.managed,
+                    armed_s=args.duration)
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)
     print(f"launch: {', '.join(launch.nodes)} in {launch.ns} "
           f"({'lockstep' if launch.lockstep else 'real time'}"
-          + (f", for {args.duration:g} s" if args.duration else ", until Ctrl-C")
+          + ((f", for {args.duration:g} s after arming" if launch.armed_s is not None
+              else f", for {args.duration:g} s") if args.duration else ", until Ctrl-C")
           + ("; the driver unconfigured until a manager configures and activates it"
              if args.managed else "")
           + "; Ctrl-C stops them in order, the driver first)", flush=True)
-    rc = launch.run(args.duration)
+    rc = launch.run(launch.wall_bound() if launch.armed_s is not None else args.duration)
     if record:
         import os
-        print(f"bag: {record}" if os.path.isdir(record) else
-              f"no bag: the recorder was stopped before it opened {record}")
+        import sys
+        if not os.path.isdir(record):
+            print(f"no bag: the recorder was stopped before it opened {record}")
+            return rc or 1
+        print(f"bag: {record}")
+        samples = _samples(record, launch.ns)
+        if samples == 0:
+            sys.stderr.write(f"piezo-stage launch: {record} holds no sample of "
+                             f"{launch.ns}/joint_states: the set was stopped before its "
+                             "driver published one (during its start-up)\n")
+            return rc or 1
     return rc
+
+
+def _samples(bag, ns) -> int:
+    """How many of the driver's samples (joint_states) a bag holds (-1: unreadable)."""
+    from piezo_stage.core.errors import DataError
+    from piezo_stage.io.bag import iter_messages
+    try:
+        return sum(1 for _ in iter_messages(bag, topics=[f"{ns.rstrip('/')}/joint_states"],
+                                            on_damage=lambda line: None))
+    except (DataError, OSError):
+        return -1

@@ -126,10 +126,17 @@ def _fmt(v):
     return str(v)
 
 
+# a run of ``armed_s`` seconds: the wall time it may take, at most, before the launcher
+# gives up on it (start-up, then the armed run; lockstep runs on the host's pace, up to
+# this many times slower than its own clock at a high control rate on a slow host)
+START_ALLOWANCE_S = 120.0
+LOCKSTEP_SLOWDOWN = 20.0
+
+
 class Launch:
     def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
                  nodes=None, env=None, arm=True, foxglove_port=None, trajectory=True,
-                 exclusive=True, managed=False):
+                 exclusive=True, managed=False, armed_s=None):
         self.config_path = os.path.abspath(config_path)
         params = read_parameters(self.config_path)
         # outside trajectories only (--no-trajectory, or the trajectory node's kind: none):
@@ -171,6 +178,16 @@ class Launch:
         self.exclusive = bool(exclusive)  # refuse a namespace where a set runs already
         self.backend = drv.get("backend", "sim")
         self.overrides = {n: dict(o) for n, o in (overrides or {}).items()}
+        # a run of armed_s seconds on the stage's own clock from the sample it first
+        # enabled (the driver counts them and ends the run): the start-up, however
+        # long it takes on this host, is no part of it
+        self.armed_s = None
+        if armed_s is not None and "stage_driver" in self.nodes and not self.managed:
+            self.armed_s = float(armed_s)
+            rate = float(drv.get("control_rate_hz", 1000.0))
+            self.overrides.setdefault("stage_driver", {}).update(
+                max_steps=max(1, int(round(self.armed_s * rate))),
+                max_steps_from_arming=True, exit_after_max_steps=True)
         self.env = dict(os.environ if env is None else env)
         if self.backend == "sim":  # keep a simulated run's discovery on this host
             self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -308,19 +325,32 @@ class Launch:
             shutil.rmtree(os.path.dirname(self._ended_file), ignore_errors=True)
             self._ended_file = None
 
+    def wall_bound(self) -> float | None:
+        """The wall time [s] a run of ``armed_s`` may take before the launcher gives up
+        on it (None: no such run)."""
+        if self.armed_s is None:
+            return None
+        return START_ALLOWANCE_S + self.armed_s * (LOCKSTEP_SLOWDOWN if self.lockstep
+                                                   else 2.0)
+
     def wait(self, duration=None):
         """Run until duration [s] passes, a node exits 0 (done) or one dies, or a
-        signal comes (SIGINT, SIGTERM, SIGHUP: see run)."""
+        signal comes (SIGINT, SIGTERM, SIGHUP: see run). With ``armed_s`` the driver
+        ends the run, ``duration`` bounds it (a run that never arms)."""
         t0 = time.monotonic()
         t_end = None if duration is None else t0 + duration
         from piezo_stage.progress import bar
-        with bar("launch", total=duration, unit="s") as b:  # on a terminal only
+        total = self.armed_s if self.armed_s is not None else duration
+        with bar("launch", total=total, unit="s") as b:  # on a terminal only
             self._wait(t0, t_end, b)
 
     def _wait(self, t0, t_end, b):
         try:
             while True:
-                b.update(round(time.monotonic() - t0, 1) - b.n)
+                now = round(time.monotonic() - t0, 1)
+                if b.total:  # (an armed run's end is the driver's: the bar waits full)
+                    now = min(now, b.total)
+                b.update(now - b.n)
                 for n, p in self.procs.items():
                     rc = p.poll()
                     if rc is not None:
@@ -330,7 +360,13 @@ class Launch:
                             self.ended = True  # done: the run ended by itself
                         return
                 if t_end is not None and time.monotonic() >= t_end:
-                    self.ended = True
+                    if self.armed_s is not None:  # the driver never ended its run
+                        self.failed.append(
+                            f"the run of {self.armed_s:g} s after arming did not end "
+                            f"within {t_end - t0:.0f} s (did the set arm? the driver's "
+                            "state is on /stage/state)")
+                    else:
+                        self.ended = True
                     return
                 if self.stopped_by is not None:
                     return
