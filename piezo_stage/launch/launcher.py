@@ -34,6 +34,14 @@ from piezo_stage.nodes.declared import (
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 LOOP_NODES = ("stage_driver", "feedforward", "controller")  # without them nothing arms
+LOOP = "loop"  # the process of the composed loop nodes (nodes/loop_container.py)
+# which of the loop's nodes share a process: "loop" all three (a lockstep sample then
+# crosses no process: the fastest lockstep), "command" the feedforward and the
+# controller (the command's work on one core, the driver's sample clock on the other),
+# "none" each its own
+COMPOSE = {"loop": ("controller", "feedforward", "stage_driver"),
+           "command": ("controller", "feedforward"), "none": ()}
+COMPOSE_DEFAULT = {"lockstep": "loop", "realtime": "command"}
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
 RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"        # and this
 # how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
@@ -136,7 +144,7 @@ LOCKSTEP_SLOWDOWN = 20.0
 class Launch:
     def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
                  nodes=None, env=None, arm=True, foxglove_port=None, trajectory=True,
-                 exclusive=True, managed=False, armed_s=None):
+                 exclusive=True, managed=False, armed_s=None, compose=None):
         self.config_path = os.path.abspath(config_path)
         params = read_parameters(self.config_path)
         # outside trajectories only (--no-trajectory, or the trajectory node's kind: none):
@@ -204,6 +212,13 @@ class Launch:
         if not self.lockstep:
             self.env.setdefault("RMW_FASTRTPS_PUBLICATION_MODE", "ASYNCHRONOUS")
         self.env.update(transport)  # set only where the user configured none
+        # the loop's nodes in one process (nodes/loop_container.py; COMPOSE: which)
+        compose = (COMPOSE_DEFAULT["lockstep" if self.lockstep else "realtime"]
+                   if compose is None else compose)
+        if compose not in COMPOSE:
+            raise ConfigError(f"compose {compose!r}: one of {', '.join(COMPOSE)}")
+        self.composed = [n for n in COMPOSE[compose] if n in self.nodes] \
+            if all(n in self.nodes for n in COMPOSE[compose]) else []
         self.procs = {}
         self.failed = []
         self.signalled = set()   # the nodes this launcher sent SIGINT
@@ -240,11 +255,39 @@ class Launch:
         return g
 
     def command(self, node):
+        if node == LOOP:  # the composed loop: each node's parameters named with it
+            cmd = [sys.executable, "-m", "piezo_stage.nodes.loop_container", *self.composed]
+            for n in self.composed:
+                for k, v in self.node_params(n).items():
+                    cmd += ["--param", f"{n}:{k}:={_fmt(v)}"]
+            return cmd + ["--ros-args", "-r", f"__ns:={self.ns}", "--params-file",
+                          self.config_path]
         cmd = [sys.executable, "-m", f"piezo_stage.nodes.{node}_node", "--ros-args",
                "-r", f"__ns:={self.ns}", "--params-file", self.config_path]
         for k, v in self.node_params(node).items():
             cmd += ["-p", f"{k}:={_fmt(v)}"]
         return cmd
+
+    def processes(self) -> list[str]:
+        """The processes in start order: each node's, the composed ones' (``LOOP``)
+        where the last of them would start (the driver's last: its first sample finds
+        the others listening)."""
+        last = max((self.nodes.index(n) for n in self.composed), default=-1)
+        out = []
+        for i, n in enumerate(self.nodes):
+            if n not in self.composed:
+                out.append(n)
+            elif i == last:
+                out.append(LOOP)
+        return out
+
+    def process_of(self, node) -> str:
+        """The process a node runs in."""
+        return LOOP if node in self.composed else node
+
+    def label(self, process) -> str:
+        """A process in words: a node's name, or the composed loop's with its nodes."""
+        return f"{LOOP} ({', '.join(self.composed)})" if process == LOOP else process
 
     def node_params(self, node) -> dict:
         """What the launcher sets on ``node`` beyond the parameter file: start-up
@@ -279,7 +322,7 @@ class Launch:
                                         "ended")
         env = dict(self.env, **{LAUNCHER_PID_ENV: str(os.getpid()),
                                 RUN_ENDED_ENV: self._ended_file})
-        for n in self.nodes:
+        for n in self.processes():
             if self.stopped_by is not None:  # told to stop while starting
                 return
             old = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
@@ -295,12 +338,13 @@ class Launch:
         waits for it), then the producers, then the recorder and the live view, so the
         bag holds everything, the ramp included. A node that has not stopped by its
         grace is killed, and that is a failure."""
-        producers = [n for n in reversed(self.nodes)
-                     if n not in ("recorder", "stage_driver", "live_view")]
+        driver = self.process_of("stage_driver")
+        producers = [n for n in reversed(self.processes())
+                     if n not in ("recorder", driver, "live_view")]
         if self.ended and self.stopped_by is None and self._ended_file:
             with open(self._ended_file, "w"):  # the nodes' SIGINT is the run's end
                 pass
-        for group, grace in ((["stage_driver"], grace_s["stage_driver"]),
+        for group, grace in (([driver], grace_s["stage_driver"]),
                              (producers, grace_s["producers"]),
                              (["recorder", "live_view"], grace_s["recorder"])):
             for n in group:
@@ -318,8 +362,8 @@ class Launch:
                 except subprocess.TimeoutExpired:
                     p.kill()
                     p.wait()
-                    self.failed.append(f"{n} did not stop within {grace:g} s of SIGINT "
-                                       "(killed)")
+                    self.failed.append(f"{self.label(n)} did not stop within {grace:g} s "
+                                       "of SIGINT (killed)")
         if self._ended_file:
             import shutil
             shutil.rmtree(os.path.dirname(self._ended_file), ignore_errors=True)
@@ -355,7 +399,7 @@ class Launch:
                     rc = p.poll()
                     if rc is not None:
                         if rc != 0:
-                            self.failed.append(f"{n} {_ended(rc)}")
+                            self.failed.append(f"{self.label(n)} {_ended(rc)}")
                         else:
                             self.ended = True  # done: the run ended by itself
                         return
@@ -401,9 +445,9 @@ class Launch:
             for s, h in old.items():
                 signal.signal(s, h)
         for n, p in self.procs.items():
-            if not self.stopped_cleanly(n) and not any(f.startswith(n + " ")
+            if not self.stopped_cleanly(n) and not any(f.startswith(self.label(n) + " ")
                                                        for f in self.failed):
-                self.failed.append(f"{n} {_ended(p.returncode)}")
+                self.failed.append(f"{self.label(n)} {_ended(p.returncode)}")
         for f in self.failed:
             sys.stderr.write(f"piezo-stage launch: {f}\n")
         if self.failed:

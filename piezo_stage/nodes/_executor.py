@@ -81,7 +81,8 @@ class StopsInOrder(Protocol):
 
 
 class LeanExecutor(Executor):
-    """Spins one node (see the module docstring).
+    """Spins one node, or the loop's nodes composed in one process (see the module
+    docstring and ``loop_container``).
 
     What a node may define for it:
 
@@ -102,13 +103,25 @@ class LeanExecutor(Executor):
     base executor's next turn (listing them every pass cost 3-6 % of a loop node's
     time). While the node is spun, everything that exists is frozen out of the
     cyclic garbage collector's scans, so a full collection is not a multi-ms loop
-    stall."""
+    stall.
+
+    Several nodes (a list; the first that ticks is the clock): their per-sample
+    subscriptions share one wait set, so a sample the driver publishes is taken by the
+    feedforward in the same thread, its reference by the controller, its command by
+    the driver, with no process woken between them. Each node's subscriptions are taken
+    in the order it made them (its driver's ``state`` before its data, as alone). A
+    composed set wakes for every message (``lean_take_at_tick`` is a lone driver's)
+    and batches nothing (``lean_batch_s`` nodes run alone)."""
 
     def __init__(self, node, *, context=None):
-        super().__init__(context=context or node.context)
-        self.add_node(node)
-        self.node = node
-        self.ticking = hasattr(node, "on_lean_tick")
+        nodes = list(node) if isinstance(node, (list, tuple)) else [node]
+        super().__init__(context=context or nodes[0].context)
+        for n in nodes:
+            self.add_node(n)
+        self.nodes = nodes
+        self.node = next((n for n in nodes if hasattr(n, "on_lean_tick")), nodes[0])
+        self.ticking = hasattr(self.node, "on_lean_tick")
+        self.alone = len(nodes) == 1
         self._n_subs = -1
         self._hot: list = []
         self._stack = ExitStack()
@@ -127,6 +140,10 @@ class LeanExecutor(Executor):
             raise handler.exception()
 
     # -- the per-sample subscriptions -------------------------------------------------
+    def _subscriptions(self) -> list:
+        """Every subscription of the spun nodes, node by node, each in its order."""
+        return [s for n in self.nodes for s in n.subscriptions]
+
     def _rebuild(self, subs: list) -> None:
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
         self._n_subs = len(subs)
@@ -162,7 +179,7 @@ class LeanExecutor(Executor):
         base executor its turn when it is due."""
         node = self.node
         if self._n_subs < 0:  # first pass; later changes are seen at the slow turn
-            self._rebuild(list(node.subscriptions))
+            self._rebuild(self._subscriptions())
         if not self._hot and not self.ticking:
             self._slow_once(SLOW_PERIOD_S if timeout_sec is None else timeout_sec)
             self._n_subs = -1  # not on the loop: look again next pass
@@ -171,7 +188,8 @@ class LeanExecutor(Executor):
         deadline = getattr(node, "lean_deadline", None) if self.ticking else None
         if deadline is not None:
             timeout = min(timeout, max(0.0, deadline - time.monotonic()))
-        if deadline is not None and getattr(node, "lean_take_at_tick", False):
+        if deadline is not None and self.alone and getattr(node, "lean_take_at_tick",
+                                                           False):
             if timeout > 0:
                 time.sleep(timeout)
         elif self._ws is not None:
@@ -189,10 +207,10 @@ class LeanExecutor(Executor):
         if now - self._last_slow > SLOW_PERIOD_S and (ticked or deadline is None):
             self._last_slow = now
             self._slow_once(0.0)
-            subs = list(node.subscriptions)  # created or destroyed since (discovery)
+            subs = self._subscriptions()  # created or destroyed since (discovery)
             if len(subs) != self._n_subs:
                 self._rebuild(subs)
-        batch = getattr(node, "lean_batch_s", 0.0)
+        batch = getattr(node, "lean_batch_s", 0.0) if self.alone else 0.0
         if batch:
             t_end = now + batch
             while self.context.ok() and not signals.count() and time.monotonic() < t_end:
@@ -219,7 +237,7 @@ class LeanExecutor(Executor):
                     break  # SIGINT shut the context down mid-pass: rcl calls now fail
             try:
                 if self._n_subs < 0:  # stopped before its first pass (a stop noted
-                    self._rebuild(list(self.node.subscriptions))  # while it was built)
+                    self._rebuild(self._subscriptions())  # while it was built)
                 self.take_all(limit=None)
             except Exception:  # noqa: BLE001 - the middleware may be gone already
                 pass
@@ -233,10 +251,12 @@ class LeanExecutor(Executor):
         order (``StopsInOrder``: the driver ramps the stage to its safe voltage, still
         publishing, then shuts the context down itself) is asked once; a second signal
         ends the spin at once, as it does for every other node on the first."""
-        if not isinstance(self.node, StopsInOrder) or n > 1:
+        orderly = [x for x in self.nodes if isinstance(x, StopsInOrder)]
+        if not orderly or n > 1:
             return False
-        if not self.node.shutdown_requested:
-            self.node.request_shutdown()
+        for x in orderly:
+            if not x.shutdown_requested:
+                x.request_shutdown()
         return True
 
 
@@ -249,18 +269,29 @@ def run_node(factory, args=None) -> int:
     Returns the exit code: 0 when the node ended by itself, 128 + the signal's number
     when a signal stopped it (an ended run, not a success: the launcher accepts it only
     from the nodes it signalled itself), 1 when it could not run (one line on stderr)."""
+    return run_nodes([factory], args)
+
+
+def run_nodes(factories, args=None) -> int:
+    """``run_node`` for several nodes in one process on one executor (the loop
+    composed: ``loop_container``): built in order, spun together, closed and
+    destroyed in reverse order; one exit code, as ``run_node``'s."""
+    nodes: list = []
     node, code = None, 0
     try:
         signals.set_phase("building")
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        # a node whose construction must not be cut short (DEFERS_STOPS: the recorder,
-        # its bag open and its readers acknowledging before it returns) is built whole,
-        # and a stop that came meanwhile ends its spin's first pass
-        with signals.deferred(getattr(factory, "DEFERS_STOPS", False)):
-            node = factory()
-            check_overrides(node)  # a misspelled parameter is refused, not ignored
-        signals.set_phase("running", node.get_fully_qualified_name())
-        LeanExecutor(node).spin()
+        for factory in factories:
+            # a node whose construction must not be cut short (DEFERS_STOPS: the
+            # recorder, its bag open and its readers acknowledging before it returns)
+            # is built whole, and a stop that came meanwhile ends its spin's first pass
+            with signals.deferred(getattr(factory, "DEFERS_STOPS", False)):
+                node = factory()
+                check_overrides(node)  # a misspelled parameter is refused, not ignored
+            nodes.append(node)
+        signals.set_phase("running", ", ".join(n.get_fully_qualified_name()
+                                               for n in nodes))
+        LeanExecutor(nodes).spin()
     except (signals.Stopped, KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as e:  # a node that cannot run says why and exits non-zero
@@ -270,13 +301,14 @@ def run_node(factory, args=None) -> int:
         signals.set_phase("stopping")
         signals.watch()  # a teardown that hangs says where, and ends
         try:
-            if node is not None and hasattr(node, "close"):
-                node.close()  # the node's own first: the bag, the hardware
+            for n in reversed(nodes):
+                if hasattr(n, "close"):
+                    n.close()  # the node's own first: the bag, the hardware
         finally:
             signum = signals.requested()
             with signals.bounded_teardown(code if signum is None else 128 + signum):
-                if node is not None:
-                    node.destroy_node()
+                for n in reversed(nodes):
+                    n.destroy_node()
                 rclpy.try_shutdown()
     # the node is done: a stop arriving from here would meet the interpreter's exit,
     # which gives the default handlers back, and kill a node that had ended by itself
@@ -286,7 +318,8 @@ def run_node(factory, args=None) -> int:
     if signum is None:
         return code
     where = "while running" if phase == "running" else "during start-up"
-    did = getattr(node, "stop_summary", None)
+    did = next((getattr(n, "stop_summary") for n in nodes if hasattr(n, "stop_summary")),
+               None)
     if signum == signal.SIGINT and phase == "running" and signals.run_ended():
         if callable(did):  # the run ended: what the node leaves, nothing of a stop
             sys.stderr.write(f"{signals.STATE.name}: at the run's end: {did()}\n")

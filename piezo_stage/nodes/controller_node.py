@@ -36,8 +36,9 @@ GAINS = ("kp", "ki", "kd")
 
 
 class Controller(Node):
-    def __init__(self):
-        super().__init__("controller")
+    def __init__(self, **node_options):
+        # node_options: a node of a composed loop gets its own arguments (loop_container)
+        super().__init__("controller", **node_options)
         p = declare_schema(self, PARAMETERS)  # the gains live through on_set
         self.core = CompositeController(p)  # the control law (core/loop/control.py)
         self.stats = self.core.stats

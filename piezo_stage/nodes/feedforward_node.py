@@ -53,8 +53,9 @@ from piezo_stage_msgs_adapters import (
 
 
 class Feedforward(Node):
-    def __init__(self):
-        super().__init__("feedforward")
+    def __init__(self, **node_options):
+        # node_options: a node of a composed loop gets its own arguments (loop_container)
+        super().__init__("feedforward", **node_options)
         live = tuple(q for q in core_ff.PARAMETERS if q.live)
         p = self.p = declare_schema(self, tuple(q for q in core_ff.PARAMETERS if not q.live))
         self.dt_ns = int(round(1e9 / p["control_rate_hz"]))

@@ -74,8 +74,9 @@ SETTLES_TO = {"configuring": "inactive", "activating": "active", "deactivating":
 
 
 class StageDriver(LifecycleNode):
-    def __init__(self):
-        super().__init__("stage_driver")
+    def __init__(self, **node_options):
+        # node_options: a node of a composed loop gets its own arguments (loop_container)
+        super().__init__("stage_driver", **node_options)
         STOP_STATE.watch_s = 12.0  # its stop ramps and closes the backend (see below)
         p = self.p = declare_schema(self, PARAMETERS)
         check_mode(p["backend"], p["mode"], self.get_parameter("use_sim_time").value)

@@ -34,7 +34,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import as_f64, duhem_inverse_run, stage_inverse_step, stage_sync
+from piezo_stage.core._jit import (
+    as_f64,
+    duhem_inverse_run,
+    stage_inverse_ahead,
+    stage_inverse_step,
+    stage_sync,
+)
 from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.core.model.duhem import (
     AXES,
@@ -217,6 +223,7 @@ class StageInverse:
         self._out = np.zeros((4, 2))
         self._target = np.zeros(2)
         self._present = tuple(bool(p) for p in self.present)
+        self._present_f = np.array([1.0 if p else 0.0 for p in self._present])
         self.saturated = 0
         self.reset()
 
@@ -276,12 +283,20 @@ class StageInverse:
         flight (a list of {axis: um}, oldest first: commands computed but not yet
         applied), from the present (synced) state, which is left as it was. Raises
         ModelError when the inverse is not finite."""
-        snap = self.snapshot() if in_flight else None
-        for d in in_flight:
-            self.step(d["x"], d["y"], commit=True)
-        vx, vy, _ = self.step(wx, wy, commit=False)
-        if snap is not None:
-            self.restore(snap)
+        if not in_flight:
+            vx, vy, _ = self.step(wx, wy, commit=False)
+        else:  # every step in one compiled call, on a copy of the state
+            ahead = np.array([(d["x"], d["y"]) for d in in_flight], float)
+            t = self._target
+            t[0], t[1] = wx, wy
+            o = stage_inverse_ahead(ahead, t, self.vp, self.wp, self._alpha, self._H,
+                                    self.cvp, self.cwp, self._calpha, self._cH, self._pr,
+                                    self._pp, self.pz, self.pq, self._present_f,
+                                    self.use_coupling, self.limits[0], self.limits[1],
+                                    self.sweeps, N_SCAN, self._out)
+            vx = float(o[0, 0]) if self._present[0] else self.limits[0]
+            vy = float(o[0, 1]) if self._present[1] else self.limits[0]
+            self.saturated += int(o[3, 0] + o[3, 1])
         if not (np.isfinite(vx) and np.isfinite(vy)):
             raise ModelError("the inverse gave a non-finite voltage")
         return {"x": vx, "y": vy}
