@@ -58,6 +58,12 @@ def joint_state(ns: int, w_um: dict, v_applied=None) -> JointState:
                       if v_applied else array.array("d"))
 
 
+def _register_layouts() -> None:
+    """The loop's own joint states and references are decoded in one unpack (cdr)."""
+    cdr.known_joint_state_layout(FRAME, JOINTS, (len(JOINTS), 0, len(JOINTS)))
+    cdr.known_joint_state_layout(FRAME, JOINTS + MEASURED, (4, 0, 4))
+
+
 def joint_state_cdr(ns: int, w_um: dict, v_applied=None) -> bytes:
     """The same message as ``joint_state``, as the CDR bytes a raw publisher sends."""
     return cdr.encode_joint_state(ns, FRAME, JOINTS, [float(w_um[a]) * UM for a in JOINTS],
@@ -360,3 +366,6 @@ def diagnostic_array(ns: int, name: str, level: int, message: str, values: dict,
                           hardware_id=hardware_id,
                           values=[KeyValue(key=str(k), value=str(v)) for k, v in values.items()])
     return DiagnosticArray(header=header(ns), status=[st])
+
+
+_register_layouts()

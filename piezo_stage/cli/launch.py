@@ -15,6 +15,11 @@ def add_arguments(s):
                    "sample time), then stop; the start-up is not counted (with "
                    "--managed, or without a driver: S seconds from the launch)")
     s.add_argument("--namespace", default="/stage")
+    s.add_argument("--rate", type=_rate, metavar="HZ|auto",
+                   help="the loop's control rate [Hz] (its three nodes' control_rate_hz), "
+                   "or auto: real time at the configured rate where this host holds it "
+                   "with margin, else once more at the highest rate it does "
+                   "(docs/realtime.md)")
     s.add_argument("--no-arm", action="store_true", help="start disarmed and stay so "
                    "until armed on the arm service")
     s.add_argument("--managed", action="store_true",
@@ -50,7 +55,7 @@ def main(args):
                     namespace=args.namespace, arm=not args.no_arm,
                     foxglove_port=args.foxglove, overrides=overrides,
                     trajectory=not args.no_trajectory, managed=args.managed,
-                    armed_s=args.duration)
+                    armed_s=args.duration, rate=args.rate)
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)
@@ -76,6 +81,18 @@ def main(args):
                              "driver published one (during its start-up)\n")
             return rc or 1
     return rc
+
+
+def _rate(text):
+    """argparse type: auto, or a rate in Hz."""
+    import argparse
+    if text == "auto":
+        return text
+    try:
+        return number(1.0, 1e5)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give auto or a rate in Hz "
+                                         "(1-100000)") from None
 
 
 def _samples(bag, ns) -> int:

@@ -44,6 +44,7 @@ COMPOSE = {"loop": ("controller", "feedforward", "stage_driver"),
 COMPOSE_DEFAULT = {"lockstep": "loop", "realtime": "command"}
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
 RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"        # and this
+CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # where a driver's refusal puts its figures
 # how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
 # down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
 STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
@@ -144,7 +145,8 @@ LOCKSTEP_SLOWDOWN = 20.0
 class Launch:
     def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
                  nodes=None, env=None, arm=True, foxglove_port=None, trajectory=True,
-                 exclusive=True, managed=False, armed_s=None, compose=None):
+                 exclusive=True, managed=False, armed_s=None, compose=None,
+                 rate=None):
         self.config_path = os.path.abspath(config_path)
         params = read_parameters(self.config_path)
         # outside trajectories only (--no-trajectory, or the trajectory node's kind: none):
@@ -186,31 +188,34 @@ class Launch:
         self.exclusive = bool(exclusive)  # refuse a namespace where a set runs already
         self.backend = drv.get("backend", "sim")
         self.overrides = {n: dict(o) for n, o in (overrides or {}).items()}
+        # the control rate: a number for the loop's three nodes, or "auto" (real time:
+        # the configured rate, and where the driver finds this host cannot hold it with
+        # margin, once more at the highest rate it can: core/loop/capacity.py)
+        self.auto_rate = rate == "auto"
+        if rate not in (None, "auto"):
+            self.set_rate(float(rate))
         # a run of armed_s seconds on the stage's own clock from the sample it first
         # enabled (the driver counts them and ends the run): the start-up, however
         # long it takes on this host, is no part of it
         self.armed_s = None
+        self._drv_params = drv
         if armed_s is not None and "stage_driver" in self.nodes and not self.managed:
             self.armed_s = float(armed_s)
-            rate = float(drv.get("control_rate_hz", 1000.0))
-            self.overrides.setdefault("stage_driver", {}).update(
-                max_steps=max(1, int(round(self.armed_s * rate))),
-                max_steps_from_arming=True, exit_after_max_steps=True)
+            self._armed_steps()
         self.env = dict(os.environ if env is None else env)
         if self.backend == "sim":  # keep a simulated run's discovery on this host
             self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-        # real time: Fast DDS publishes from its own thread, so a node's publish hands
-        # off instead of sending, and the set's participants leave out the shared-memory
-        # transport, whose health check on a joining participant's port held every
-        # publish of a node up to ~0.33 s (realtime_transport_env). Lockstep keeps the
-        # synchronous mode and the transports its byte-identical reruns were measured
-        # with.
+        # real time: the set's participants leave out the shared-memory transport, whose
+        # health check on a joining participant's port held every publish of a node up
+        # to ~0.33 s (realtime_transport_env), and publish synchronously: on UDP a
+        # send is the caller's sendto, where the asynchronous mode's hand-off to a
+        # writer thread per participant cost more CPU than it saved (capacity 1,400
+        # against 1,060 samples/s for the composed set on a 2-core host, 2026-11-28;
+        # docs/realtime.md). Lockstep keeps the transports its byte-identical reruns
+        # were measured with.
         transport = lockstep_transport_env(self.env) if self.lockstep else \
             realtime_transport_env(self.env)
-        self.node_env = dict(transport) if self.lockstep else {
-            "RMW_FASTRTPS_PUBLICATION_MODE": "ASYNCHRONOUS", **transport}
-        if not self.lockstep:
-            self.env.setdefault("RMW_FASTRTPS_PUBLICATION_MODE", "ASYNCHRONOUS")
+        self.node_env = dict(transport)
         self.env.update(transport)  # set only where the user configured none
         # the loop's nodes in one process (nodes/loop_container.py; COMPOSE: which)
         compose = (COMPOSE_DEFAULT["lockstep" if self.lockstep else "realtime"]
@@ -253,6 +258,26 @@ class Launch:
         if self.managed:
             g["stage_driver"]["managed"] = True
         return g
+
+    def rate_hz(self) -> float:
+        """The driver's control rate [Hz] as this set passes it."""
+        return float(self.overrides.get("stage_driver", {}).get(
+            "control_rate_hz", self._drv_params.get("control_rate_hz", 1000.0)))
+
+    def set_rate(self, rate_hz: float) -> None:
+        """Run the loop's three nodes at ``rate_hz`` (their control_rate_hz)."""
+        for n in LOOP_NODES:
+            self.overrides.setdefault(n, {})["control_rate_hz"] = float(rate_hz)
+        if getattr(self, "armed_s", None) is not None:
+            self._armed_steps()
+
+    def _armed_steps(self) -> None:
+        """The driver counts ``armed_s`` seconds of samples from its first enable, and
+        then ends the run."""
+        assert self.armed_s is not None
+        self.overrides.setdefault("stage_driver", {}).update(
+            max_steps=max(1, int(round(self.armed_s * self.rate_hz()))),
+            max_steps_from_arming=True, exit_after_max_steps=True)
 
     def command(self, node):
         if node == LOOP:  # the composed loop: each node's parameters named with it
@@ -418,6 +443,16 @@ class Launch:
         except KeyboardInterrupt:  # wait() used without run(): Ctrl-C as usual
             return
 
+    def _refusal(self, cap_file) -> dict | None:
+        """What the driver found when it refused to run for want of capacity (its
+        capacity file, core/loop/capacity.py's figures), else None."""
+        import json
+        try:
+            with open(cap_file) as fh:
+                return json.load(fh)
+        except (OSError, ValueError):
+            return None
+
     def stopped_cleanly(self, node) -> bool:
         """The node ended by itself (exit 0), or on this launcher's SIGINT (130)."""
         rc = self.procs[node].returncode
@@ -433,15 +468,40 @@ class Launch:
         """Start, wait, stop in order; the exit code: 0 for a run that ended by
         ``duration`` or by its driver finishing, 128 + the signal's number for one the
         launcher was told to stop (every node stopped in order), 1 when a node failed
-        (died, was stopped by someone else, or had to be killed)."""
+        (died, was stopped by someone else, or had to be killed). With ``rate="auto"``
+        a set whose driver found this host cannot hold its rate with margin runs once
+        more, at the highest rate it can (said in one line)."""
+        import tempfile
         old = {s: signal.signal(s, self._on_signal) for s in STOP_SIGNALS + (signal.SIGHUP,)}
+        cap_dir = tempfile.mkdtemp(prefix="piezo-stage-capacity-")
+        cap_file = os.path.join(cap_dir, "capacity.json")
+        self.env[CAPACITY_FILE_ENV] = cap_file
         try:
-            try:
-                self.start()
-                self.wait(duration)
-            finally:
-                self.stop()
+            for attempt in (1, 2):
+                try:
+                    self.start()
+                    self.wait(duration)
+                finally:
+                    self.stop()
+                refused = self._refusal(cap_file)
+                if not (self.auto_rate and attempt == 1 and refused and
+                        refused.get("holdable_rate_hz") and self.stopped_by is None):
+                    break
+                rate = float(refused["holdable_rate_hz"])
+                sys.stderr.write(f"piezo-stage launch: this host holds the loop at "
+                                 f"{refused['capacity_hz']:,.0f} samples/s, "
+                                 f"{refused['margin']:.2f} x {self.rate_hz():g} Hz: "
+                                 f"running again at {rate:g} Hz (rate auto)\n")
+                self.set_rate(rate)
+                self.procs, self.failed, self.signalled = {}, [], set()
+                self.ended = False
+                os.remove(cap_file)
+                if self.record:  # the refused attempt's bag is no record of the run
+                    import shutil
+                    shutil.rmtree(self.record, ignore_errors=True)
         finally:
+            import shutil
+            shutil.rmtree(cap_dir, ignore_errors=True)
             for s, h in old.items():
                 signal.signal(s, h)
         for n, p in self.procs.items():

@@ -37,7 +37,7 @@ from piezo_stage.core.errors import ConfigError, DataError
 from piezo_stage.nodes._params import check_overrides
 
 SLOW_PERIOD_S = 0.05  # the base executor's turn (timers, services, other topics)
-IDLE_WAKE_S = 0.002   # with nothing arriving, the loop still wakes this often
+IDLE_WAKE_S = 0.02    # with nothing arriving, a node still wakes this often (its stops)
 TAKE_LIMIT = 256      # messages per subscription per pass
 
 

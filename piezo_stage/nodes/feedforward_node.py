@@ -253,7 +253,8 @@ class Feedforward(Node):
             self.lag.add((info["received_timestamp"] - ns) * 1e-9)
         # the per-sample work, one call: reference, learning, inverse (core/loop)
         r = self.core.on_sample(ns, w, v_applied, self.driver.lookahead_ns,
-                                self.driver.enabled, self.driver.realtime)
+                                self.driver.enabled, self.driver.realtime,
+                                time.time_ns() if self.driver.realtime else 0)
         if r.wait:
             self.pending = msg  # lockstep: the loop waits here
             return
@@ -276,7 +277,7 @@ class Feedforward(Node):
             # a streamed setpoint cannot be previewed: it starts at this target tick
             self.sp_latency.add((a.target - self.setpoint_arrival) * 1e-9)
             self.setpoint_arrival = None
-        if self.driver.realtime and a.target < time.time_ns():
+        if a.late or (self.driver.realtime and a.target < time.time_ns()):
             self.stats["late_dropped"] += 1  # it could only reach the driver too late
             return
         self.gate.publish(self.pub, reference_cdr(a.target, a.desired, a.ff, w, applied))

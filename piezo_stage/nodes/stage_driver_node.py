@@ -62,6 +62,7 @@ from piezo_stage_msgs_adapters import (
 )
 
 STATE_ACK_S = 1.0  # lockstep: the longest wait for the state's readers (see _announce)
+CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # the launcher's (launch/launcher.py)
 
 SUCCESS, FAILURE, ERROR = (TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE,
                            TransitionCallbackReturn.ERROR)
@@ -150,7 +151,8 @@ class StageDriver(LifecycleNode):
             self.loop = SampleLoop(self.backend, arm, p["control_rate_hz"], self.lock,
                                    p["lookahead_s"], p["max_steps"], self.on_state_change,
                                    p["clock_period_s"], p["max_steps_from_arming"],
-                                   first_j=self.next_j)
+                                   first_j=self.next_j, min_margin=p["min_margin"],
+                                   capacity_window_s=p["capacity_window_s"])
             self.sup = self.loop.sup
             self.sup.arm_requested = False  # arming is activate's (or the arm service's)
             # lockstep: nothing is published before every consumer listens; real time:
@@ -251,6 +253,9 @@ class StageDriver(LifecycleNode):
             self.lean_deadline = None
             return
         if not self.gate.open:
+            if self.loop.shutdown_requested:  # stopped before any sample went out:
+                rclpy.try_shutdown()          # nothing to ramp down from
+                return
             self.lean_deadline = time.monotonic() + 0.01  # consumers still matching
             return
         j, cmd, on_time, missed = self.loop.next_tick(
@@ -285,6 +290,9 @@ class StageDriver(LifecycleNode):
             s = self.loop.step(j, cmd, on_time, now, self.link, missed)
         except BackendFault as e:
             return self.hardware_failed(e)
+        if self.loop.refusal:  # the host cannot hold the rate: said once, the node ends
+            self._report_refusal()
+            raise ConfigError(self.loop.refusal)
         self.gate.publish(self.jpub, joint_state_cdr(s.ns, s.w, s.applied))
         if s.true is not None:
             self.gate.publish(self.tpub, point_cdr(s.ns, s.true))
@@ -295,6 +303,23 @@ class StageDriver(LifecycleNode):
             rclpy.try_shutdown()  # at the safe voltage (or out of time): exit
         else:
             self._check_fault()
+
+    def _report_refusal(self) -> None:
+        """The capacity figures of a refusal, as data, where the launcher asked for them
+        (its ``rate auto`` runs the set again at a rate the host holds)."""
+        import json
+        import os
+        path = os.environ.get(CAPACITY_FILE_ENV)
+        cap = self.loop.last_capacity
+        if not path or cap is None:
+            return
+        doc = {"capacity_hz": cap.capacity_hz, "margin": cap.margin,
+               "rate_hz": cap.rate_hz, "holdable_rate_hz": cap.holdable_rate_hz(
+                   self.loop.min_margin)}
+        tmp = path + ".tmp"
+        with open(tmp, "w") as fh:
+            json.dump(doc, fh)
+        os.replace(tmp, path)
 
     def hardware_failed(self, error):
         """A lost link or a controller error: faulted, said on state and diagnostics,

@@ -102,6 +102,7 @@ class ArmingSupervisor:
         self.late_since_fresh = 0       # valid commands after their tick since then
         self.late_lag_ns = 0            # how far behind their tick the latest of them came
         self.tracking = False           # the feedforward reports its trajectory clock runs
+        self.held_by = ""               # why arming waits besides the loop (the capacity)
         self.on_change = on_change or (lambda *a: None)
         self.counts = {"faults": 0, "arms": 0}
 
@@ -201,11 +202,12 @@ class ArmingSupervisor:
         # re-arms through the approach (an e-stop waits for disarm and arm)
         rearm = self.state == FAULTED and self.arm_requested and not self.estop
         if self.state == ARMING or rearm:
-            if self.evidence >= self.p.confirm_ticks and at_safe:
+            if self.evidence >= self.p.confirm_ticks and at_safe and not self.held_by:
                 self._enable(stamp_ns)
             elif self.state == ARMING:
                 self.reason = ("waiting for the output to reach the safe voltage"
-                               if not at_safe else f"waiting for the loop: {self.link}")
+                               if not at_safe else f"waiting for the loop: {self.link}"
+                               if self.evidence < self.p.confirm_ticks else self.held_by)
         return target
 
     def applied(self, v: dict) -> None:

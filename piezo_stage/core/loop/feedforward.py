@@ -102,6 +102,7 @@ class Answer:
     error: PiezoStageError | None
     phase_changed: bool
     enabled: bool
+    late: bool = False  # real time: its tick had passed; no voltage computed, not sent
 
 
 @dataclass(frozen=True)
@@ -258,11 +259,15 @@ class InverseFeedforward:
             raise DataError(f"feedforward: {name} is no live parameter")
 
     def on_sample(self, ns: int, w: dict, v_applied: dict | None, lookahead_ns: int,
-                  enabled: Callable[[int], bool], realtime: bool) -> SampleResult:
+                  enabled: Callable[[int], bool], realtime: bool,
+                  now_ns: int = 0) -> SampleResult:
         """The sample stamped ``ns``: the stage at ``w`` [um] with ``v_applied`` [V]
         (None: not reported, the last feedforward stands for it). Its answers are for
         ``ns + lookahead_ns`` (and the ticks a skipped sample leaves unanswered);
-        ``enabled(target)`` says whether the driver applies commands there."""
+        ``enabled(target)`` says whether the driver applies commands there. Real time,
+        ``now_ns``: an answer for a tick already past (a backlog after a host stall) is
+        not computed, only kept track of (``Answer.late``): the loop catches up at the
+        cost of the bookkeeping, not of inverses nobody can use."""
         self.learning.measured(ns, w)
         target = ns + lookahead_ns
         clock = self.planner.clock_s(target)
@@ -277,10 +282,10 @@ class InverseFeedforward:
         self.measured(ns, w, applied)
         answers = []
         for t in self.targets(target):
-            phase, on = self.planner.phase, enabled(t)
-            desired, error = self.answer(ns, t, w, applied, on)
+            phase, on, late = self.planner.phase, enabled(t), realtime and t < now_ns
+            desired, error = self.answer(ns, t, w, applied, on, late)
             answers.append(Answer(t, desired, dict(self.ff), error,
-                                  self.planner.phase != phase, on))
+                                  self.planner.phase != phase, on, late))
         return SampleResult(tuple(answers), applied=applied)
 
     def measured(self, ns: int, w: dict, applied: dict) -> None:
@@ -304,10 +309,11 @@ class InverseFeedforward:
                      self.dt_ns)
 
     def answer(self, ns: int, target: int, w: dict, applied: dict,
-               enabled: bool) -> tuple[dict | None, PiezoStageError | None]:
+               enabled: bool, late: bool = False) -> tuple[dict | None, PiezoStageError | None]:
         """(desired position [um], the error that held the last feedforward or None) for
         ``target``; the feedforward [V] is ``self.ff``. Not ``enabled`` (the driver does
-        not apply commands): hold where the stage is, at the applied voltage."""
+        not apply commands): hold where the stage is, at the applied voltage. ``late``:
+        the reference is planned (its state kept) but no voltage computed."""
         if not enabled:
             self.ref.hold(self.inv.w if self.inv else w, w)
             self.ff, self.planned = dict(applied), {}
@@ -315,7 +321,7 @@ class InverseFeedforward:
         desired, h = self.ref.sample(target)
         self.learning.note(target, desired)
         self.planned[target] = h
-        if not self.use_ff:
+        if not self.use_ff or late:
             return desired, None
         try:
             self.ff = self._voltages(ns, target, h)

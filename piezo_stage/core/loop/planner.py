@@ -154,11 +154,33 @@ class ReferencePlanner:
         if self.traj is not None:
             t, w = self.traj
             tau = (target_ns - (self._track_ns or 0)) * 1e-9
-            desired = {a: float(np.interp(tau, t, w[a])) if a in w else desired[a]
-                       for a in desired}
+            desired = interp_axes(tau, t, w, desired)
             if tau > t[-1]:
                 self.phase = DONE  # the last point, held
         elif self.setpoint is not None:
             desired = {a: self.setpoint.get(a, desired[a]) for a in desired}
         self.desired = desired
         return dict(desired)
+
+
+def interp_axes(tau: float, t: np.ndarray, w: dict, held: dict) -> dict:
+    """Each axis of ``w`` ({axis: array over ``t``}) at ``tau`` [s], linearly
+    interpolated and held past the ends (``np.interp``'s rule), the others as in
+    ``held``: one search a sample for every axis (np.interp per axis and sample cost
+    the real-time loop a tenth of its time)."""
+    n = t.size
+    k = int(np.searchsorted(t, tau, side="right"))
+    if k <= 0 or k >= n:
+        i = 0 if k <= 0 else n - 1
+        return {a: float(w[a][i]) if a in w else held[a] for a in held}
+    t0, t1 = float(t[k - 1]), float(t[k])
+    f = (tau - t0) / (t1 - t0) if t1 > t0 else 0.0
+    out = {}
+    for a in held:
+        if a in w:
+            x = w[a]
+            x0 = float(x[k - 1])
+            out[a] = x0 + f * (float(x[k]) - x0)
+        else:
+            out[a] = held[a]
+    return out

@@ -26,6 +26,8 @@ from typing import Any
 
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.loop.arming import ENABLED, FAULTED, ArmingParams, ArmingSupervisor
+from piezo_stage.core.loop.capacity import PARAMETERS as CAPACITY
+from piezo_stage.core.loop.capacity import Capacity, CapacityMeter
 from piezo_stage.core.loop.clock import CommandSchedule, SampleClock
 from piezo_stage.core.loop.control import clamp_slew
 from piezo_stage.core.loop.planner import DONE, TRACK
@@ -59,6 +61,7 @@ PARAMETERS: Schema = (
     Param("thread_priority", 50,
           "real time: SCHED_FIFO priority of the sample loop (0: leave the scheduler alone)",
           lo=0, hi=99),
+    *CAPACITY,
     Param("managed", False,
           "lifecycle: start unconfigured and leave every transition (configure, activate, "
           "deactivate, cleanup, shutdown) to an outside manager; false: configure and "
@@ -135,7 +138,7 @@ class SampleLoop:
                  lookahead_s: float, max_steps: int,
                  on_state_change: Callable[[str, str, int], None],
                  clock_period_s: float = 0.0, from_arming: bool = False,
-                 first_j: int = 0):
+                 first_j: int = 0, min_margin: float = 0.0, capacity_window_s: float = 0.5):
         self.backend, self.lock, self.max_steps = backend, bool(lockstep), int(max_steps)
         self.from_arming, self.enabled_j = bool(from_arming), None
         self.rate_hz = float(rate_hz)
@@ -162,6 +165,14 @@ class SampleLoop:
         self.clock_every = max(1, int(round(clock_period_s * rate_hz))) \
             if clock_period_s else 0
         self.ff_phase = ("", "")  # the feedforward's last (phase, follows): relayed
+        # real time: what the host sustains for this loop (core/loop/capacity.py),
+        # measured from the first sample on; the first arm waits for the first
+        # measurement and is refused below ``min_margin``
+        self.capacity = None if self.lock else CapacityMeter(rate_hz, capacity_window_s)
+        self.min_margin = float(min_margin)
+        self.refusal: str | None = None  # why the loop refuses to run (the capacity)
+        if self.capacity is not None and self.min_margin > 0:
+            self.sup.held_by = "measuring what this host sustains for the loop"
 
     def stamp(self, j: int) -> int:
         """Sample ``j``'s stamp [ns]."""
@@ -235,7 +246,32 @@ class SampleLoop:
         self.stats["samples"] += 1
         if self.lock:
             self.step_times.append(time.perf_counter())
+        elif self.capacity is not None and (self.capacity.t0 is not None or
+                                            self.sup.evidence >= self.sup.p.confirm_ticks):
+            # from the first sample the loop answers on time (the set's nodes have
+            # started: their start-up is no load of the loop's)
+            cap = self.capacity.sample()
+            if cap is not None and self.sup.held_by:
+                self._judge(cap)
         return Sample(self.stamp(j), w, true, applied)
+
+    def _judge(self, cap: Capacity) -> None:
+        """The first measurement of the capacity: the arm waits no more, or the loop
+        refuses to run (``refusal``: one line naming the rate it could hold)."""
+        self.sup.held_by = ""
+        if cap.margin >= self.min_margin:
+            return
+        could = cap.holdable_rate_hz(self.min_margin)
+        self.refusal = (f"this host sustains {cap.describe()}: under the {self.min_margin:g}"
+                        f" x margin a real-time set needs; "
+                        + (f"control_rate_hz {could:g} would have it"
+                           if could else "no standard rate would have it")
+                        + " (min_margin 0 runs it anyway, and it will fault)")
+
+    @property
+    def last_capacity(self) -> Capacity | None:
+        """The latest measurement of what the host sustains (real time)."""
+        return self.capacity.last if self.capacity is not None else None
 
     @property
     def clock_due(self) -> bool:
@@ -325,6 +361,11 @@ class SampleLoop:
                   "held_ticks": self.sched.held_ticks,
                   "longest_hold_ticks": self.sched.longest_hold(),
                   "lookahead_ms": self.lookahead_ns * 1e-6, **self.sup.counts}
+        cap = self.last_capacity
+        if cap is not None:
+            values.update(capacity_hz=cap.capacity_hz, capacity_margin=cap.margin,
+                          loop_thread_ms_per_sample=cap.thread_s_per_sample * 1e3,
+                          host_busy_cpus=cap.host_busy_cores)
         return 2 if st == "faulted" else 0, f"{st}: {self.sup.reason}", values
 
     def summary(self) -> str:

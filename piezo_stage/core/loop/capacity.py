@@ -1,0 +1,148 @@
+"""What the host sustains: the real-time loop's capacity, measured on the loop itself.
+
+A real-time set at ``rate_hz`` holds its rate with margin only where each sample costs
+well under a period. Hosts of one kind differ by 2x (docs/realtime.md), so the margin
+is measured where the set runs, on the set itself, while it runs disarmed before its
+first arm (the loop closed, every node answering each sample):
+
+* the loop's thread: the CPU time it spends per sample (``time.thread_time``). Where
+  the driver, the feedforward and the controller share one process and one thread
+  (launch's composition, nodes/loop_container.py) that is the whole loop's work; the
+  thread's capacity is ``1 / (CPU per sample)`` samples a second.
+* the host: every CPU's busy share (``/proc/stat``: the recorder, the middleware's
+  threads, a lab's own nodes, anything else running), so the host's capacity at this
+  load is ``rate * cores / busy cores``.
+
+Both from the first sample the loop answers on time (the set's nodes have started:
+their imports and discovery are no load of the loop's). The margin is the smaller
+capacity over the rate. A set below ``min_margin`` (2 by
+default) would fault at every host hiccup (a host pause, a node joining): it refuses
+to arm, saying so in one line, and names the rate it could hold.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+
+from piezo_stage.core.params import Param, Schema
+
+PARAMETERS: Schema = (
+    Param("min_margin", 2.0,
+          "real time: the capacity (samples a second the host sustains for this loop, "
+          "measured disarmed before the first arm) over the rate that the set needs to "
+          "arm; below it the driver refuses with the rate it could hold (0: no check)",
+          lo=0.0, hi=100.0),
+    Param("capacity_window_s", 0.5,
+          "real time: how long the capacity is measured before the first arm [s]",
+          lo=0.05, hi=30.0),
+)
+
+# the rates a set may be run at, the highest first: what a refusal proposes
+STANDARD_RATES_HZ = (20000.0, 10000.0, 5000.0, 2000.0, 1000.0, 500.0, 250.0, 200.0, 100.0)
+
+
+def host_cpu() -> tuple[float, float, int] | None:
+    """(busy [s], total [s] summed over CPUs, CPUs) since boot from /proc/stat; None
+    where there is none."""
+    try:
+        with open("/proc/stat") as fh:
+            f = [float(x) for x in fh.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    idle = f[3] + (f[4] if len(f) > 4 else 0.0)
+    total = sum(f[:8])
+    return (total - idle) / hz, total / hz, os.cpu_count() or 1
+
+
+@dataclass
+class Capacity:
+    """One measurement: samples over ``seconds``, the loop thread's CPU per sample
+    [s], the host's busy CPUs (of ``cores``), and the capacities [samples/s] they
+    give at ``rate_hz``."""
+    rate_hz: float
+    samples: int
+    seconds: float
+    thread_s_per_sample: float
+    host_busy_cores: float
+    cores: int
+
+    @property
+    def thread_capacity_hz(self) -> float:
+        """Samples a second the loop's thread could take: 1 / its CPU per sample."""
+        return 1.0 / self.thread_s_per_sample if self.thread_s_per_sample > 0 else \
+            float("inf")
+
+    @property
+    def host_capacity_hz(self) -> float:
+        """Samples a second with every CPU as busy as this rate's share makes it."""
+        busy = self.host_busy_cores
+        return self.rate_hz * self.cores / busy if busy > 0 else float("inf")
+
+    @property
+    def capacity_hz(self) -> float:
+        """What the host sustains for this loop: the smaller of the two."""
+        return min(self.thread_capacity_hz, self.host_capacity_hz)
+
+    @property
+    def margin(self) -> float:
+        """The capacity over the rate."""
+        return self.capacity_hz / self.rate_hz
+
+    def holdable_rate_hz(self, min_margin: float) -> float | None:
+        """The highest standard rate this capacity holds with ``min_margin`` (each
+        sample's cost taken as the same at any rate), None: not even the lowest."""
+        for r in STANDARD_RATES_HZ:
+            if r * max(min_margin, 1e-9) <= self.capacity_hz:
+                return r
+        return None
+
+    def describe(self) -> str:
+        """The measurement in words."""
+        ms = self.thread_s_per_sample * 1e3
+        return (f"{self.capacity_hz:,.0f} samples/s = {self.margin:.2f} x the "
+                f"{self.rate_hz:g} Hz rate (the loop's thread {ms:.3f} ms of CPU a "
+                f"sample; the host {self.host_busy_cores:.2f} of {self.cores} CPUs busy)")
+
+
+class CapacityMeter:
+    """Measures the loop's capacity over a window of samples (``start``, then
+    ``sample`` each sample, ``result`` once ``done``); call from the loop's thread."""
+
+    def __init__(self, rate_hz: float, window_s: float):
+        self.rate_hz, self.window_s = float(rate_hz), float(window_s)
+        self.t0: float | None = None
+        self.n = 0
+        self._cpu0 = 0.0
+        self._host0: tuple[float, float, int] | None = None
+        self.last: Capacity | None = None
+
+    def start(self) -> None:
+        """A new window from now."""
+        self.t0, self.n = time.monotonic(), 0
+        self._cpu0 = time.thread_time()
+        self._host0 = host_cpu()
+
+    def sample(self) -> Capacity | None:
+        """One sample taken; the measurement when the window is full (then it starts
+        over), else None."""
+        if self.t0 is None:
+            self.start()
+            return None
+        self.n += 1
+        dt = time.monotonic() - self.t0
+        if dt < self.window_s or self.n < 10:
+            return None
+        cpu = time.thread_time() - self._cpu0
+        h1 = host_cpu()
+        busy = cores = 0.0
+        if h1 is not None and self._host0 is not None:
+            dbusy, dtot = h1[0] - self._host0[0], h1[1] - self._host0[1]
+            cores = h1[2]
+            busy = cores * dbusy / dtot if dtot > 0 else 0.0
+        self.last = Capacity(self.rate_hz, self.n, dt, cpu / self.n, busy,
+                             int(cores) or (os.cpu_count() or 1))
+        self.start()
+        return self.last
