@@ -7,4 +7,3 @@ from piezo_stage.core.errors import (  # noqa: F401
     PiezoStageError,
     SolverError,
 )
-from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel, DuhemState  # noqa: F401

@@ -45,6 +45,7 @@ COMPOSE_DEFAULT = {"lockstep": "loop", "realtime": "command"}
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
 RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"        # and this
 CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # where a driver's refusal puts its figures
+START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # a file: nodes wait for it before they join
 # how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
 # down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
 STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
@@ -336,17 +337,13 @@ class Launch:
         with the launcher's pid, so that it stops when the launcher dies (even by
         SIGKILL: see nodes/_signals.py). A signal to the launcher while it starts them
         ends the starting; the nodes started so far are stopped in order."""
-        if self.exclusive:  # one set per namespace (launch/running.py)
-            from piezo_stage.launch.running import running_set
-            who = running_set(self.ns, int(self.env.get("ROS_DOMAIN_ID") or 0))
-            if who:
-                raise ConfigError(f"{self.ns} is already running ({who}): use "
-                                  "--namespace or stop it")
         import tempfile
-        self._ended_file = os.path.join(tempfile.mkdtemp(prefix="piezo-stage-run-"),
-                                        "ended")
+        run_dir = tempfile.mkdtemp(prefix="piezo-stage-run-")
+        self._ended_file = os.path.join(run_dir, "ended")
+        gate = os.path.join(run_dir, "go")
         env = dict(self.env, **{LAUNCHER_PID_ENV: str(os.getpid()),
-                                RUN_ENDED_ENV: self._ended_file})
+                                RUN_ENDED_ENV: self._ended_file,
+                                START_GATE_ENV: gate if self.exclusive else ""})
         for n in self.processes():
             if self.stopped_by is not None:  # told to stop while starting
                 return
@@ -356,6 +353,30 @@ class Launch:
                                                  start_new_session=True)
             finally:
                 signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        if self.exclusive:  # one set per namespace (launch/running.py)
+            # looked for while the nodes import (they wait at the start gate before
+            # they join the graph: _executor.run_nodes), so the look costs no start-up
+            from piezo_stage.launch.running import running_set
+            try:
+                who = running_set(self.ns, int(self.env.get("ROS_DOMAIN_ID") or 0))
+            except BaseException:
+                self._discard()
+                raise
+            if who:
+                self._discard()
+                raise ConfigError(f"{self.ns} is already running ({who}): use "
+                                  "--namespace or stop it")
+            with open(gate, "w"):
+                pass
+
+    def _discard(self) -> None:
+        """The nodes started for a set that will not run: still at the start gate, they
+        have joined nothing; they are killed and forgotten."""
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+        self.procs = {}
 
     def stop(self, grace_s=STOP_GRACE_S):
         """Stop the set in its safe order: the driver first (it disarms, which is no

@@ -280,6 +280,7 @@ def run_nodes(factories, args=None) -> int:
     node, code = None, 0
     try:
         signals.set_phase("building")
+        await_start_gate()
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         for factory in factories:
             # a node whose construction must not be cut short (DEFERS_STOPS: the
@@ -328,6 +329,27 @@ def run_nodes(factories, args=None) -> int:
                      f"{signal.Signals(signum).name} {where}"
                      f"{': ' + did() if callable(did) else ''}\n")
     return 128 + signum
+
+
+START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # launch/launcher.py's
+START_GATE_MAX_S = 120.0
+
+
+def await_start_gate() -> None:
+    """Wait, imported but not yet on the graph, for the launcher's go (the file its
+    ``START_GATE_ENV`` names): the launcher looks for a set already running in the
+    namespace meanwhile, and kills the nodes instead where one does. Stops work while
+    waiting (the building phase: _signals); no gate asked for, no wait."""
+    import os
+    path = os.environ.get(START_GATE_ENV)
+    if not path:
+        return
+    end = time.monotonic() + START_GATE_MAX_S
+    while not os.path.exists(path):
+        if time.monotonic() > end:
+            raise ConfigError(f"the launcher did not let the node start within "
+                              f"{START_GATE_MAX_S:g} s")
+        time.sleep(0.01)
 
 
 def fatal(node, error: BaseException, args=None) -> int:

@@ -8,10 +8,8 @@ are taken by every node. No rclpy here: the launcher reads it before any node ex
 
 from __future__ import annotations
 
-from piezo_stage.core.loop import arming, control, feedforward, sample_loop
 from piezo_stage.core.loop.trajectory import KINDS
 from piezo_stage.core.params import Param, Schema, names
-from piezo_stage.drivers import BACKEND_PARAMS
 
 RCLPY_OWN = frozenset({"use_sim_time", "start_type_description_service"})
 
@@ -85,25 +83,35 @@ LIVE_VIEW: Schema = (
           hi=1.0, live=True),
 )
 
-SCHEMAS: dict[str, Schema] = {
-    "stage_driver": sample_loop.PARAMETERS + arming.PARAMETERS + BACKEND_PARAMS,
-    "feedforward": feedforward.PARAMETERS,
-    "controller": control.PARAMETERS,
-    "trajectory": TRAJECTORY,
-    "identifier": IDENTIFIER,
-    "gap": GAP,
-    "recorder": RECORDER,
-    "live_view": LIVE_VIEW,
-}
-
-DECLARED = {node: names(schema) for node, schema in SCHEMAS.items()}
+def __getattr__(name: str) -> dict:
+    """``SCHEMAS`` (every node's schema) and ``DECLARED`` (their names), built at first
+    use: the loop nodes' schemas live in their cores, whose numerics (numba, scipy) the
+    other nodes, which import this module for their own schema, need not start with."""
+    if name not in ("SCHEMAS", "DECLARED"):
+        raise AttributeError(name)
+    from piezo_stage.core.loop import arming, control, feedforward, sample_loop
+    from piezo_stage.drivers import BACKEND_PARAMS
+    schemas: dict[str, Schema] = {
+        "stage_driver": sample_loop.PARAMETERS + arming.PARAMETERS + BACKEND_PARAMS,
+        "feedforward": feedforward.PARAMETERS,
+        "controller": control.PARAMETERS,
+        "trajectory": TRAJECTORY,
+        "identifier": IDENTIFIER,
+        "gap": GAP,
+        "recorder": RECORDER,
+        "live_view": LIVE_VIEW,
+    }
+    globals()["SCHEMAS"] = schemas
+    globals()["DECLARED"] = {node: names(schema) for node, schema in schemas.items()}
+    return globals()[name]
 
 
 def refusal(node: str, name: str, value: object) -> str | None:
     """Why ``value`` is refused for ``node``'s parameter ``name`` (None: it is not, or
     no such parameter): outside its declared range, not one of its choices, or not a
     number where one is declared."""
-    found = next((p for p in SCHEMAS.get(node, ()) if p.name == name), None)
+    found = next((p for p in __getattr__("SCHEMAS").get(node, ()) if p.name == name),
+                 None)
     return found.refuses(value) if found is not None else None
 
 

@@ -21,12 +21,9 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.estimation.identify import IdentifyOptions
-from piezo_stage.core.estimation.identify.api import identify_stage
 from piezo_stage.core.estimation.identify.segmentation import segment
 from piezo_stage.core.estimation.record import Record, on_grid
 from piezo_stage.core.loop.stamps import StampGuard
-from piezo_stage.core.model.model_doc import checked_doc
 from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics
@@ -93,6 +90,10 @@ class Identifier(Node):
                       source="live buffer", voltage_exact=True)
 
     def identify(self, n=None) -> str:
+        # the identification's numerics at the first fit (the node starts sooner)
+        from piezo_stage.core.estimation.identify import IdentifyOptions
+        from piezo_stage.core.estimation.identify.api import identify_stage
+        from piezo_stage.core.model.model_doc import checked_doc
         rec = on_grid(self.record(n))  # a real-time run's skipped ticks: one grid
         for note in rec.notes:
             self.get_logger().info(f"note: {note}")

@@ -30,7 +30,6 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-from scipy.linalg import expm
 
 from piezo_stage.core.errors import ConfigError
 
@@ -42,6 +41,7 @@ CREEP_TAUS_S = (0.05, 0.5, 5.0, 50.0)
 
 def _phi_gamma(A, B, tau):
     """Phi(tau) = e^(A tau) and Gamma(tau) = int_0^tau e^(A s) ds B (one matrix exponential)."""
+    from scipy.linalg import expm  # (at first use: a node without effects starts sooner)
     n = A.shape[0]
     M = np.zeros((n + 1, n + 1))
     M[:n, :n], M[:n, n:] = A * tau, B * tau
