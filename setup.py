@@ -65,6 +65,8 @@ setup(
                 # the live view node, and the client bench liveview watches it with
                 "foxglove-sdk>=0.30", "websockets>=12"],
         "daq": ["nidaqmx>=1.0"],
+        # refit --scheduler: an archive's bags on a Dask distributed cluster
+        "dask": ["dask>=2024.1", "distributed>=2024.1"],
         "pi": ["pipython>=2.10"],
         # (nv200, for backend nv200, declares Python >= 3.12 and runs on 3.11: no extra
         # pip would honour here; dev.sh installs it with --ignore-requires-python)
@@ -79,10 +81,12 @@ setup(
         # (pysindy: the sparse hysteresis peer that bench identify compares with)
         # (pipython: the pi backend on PI's real package, against a controller double)
         # (mypy: the type checker, on the layers setup.cfg's [mypy] lists)
+        # (dask, distributed: refit --scheduler against a LocalCluster of processes)
         "test": ["pytest>=7", "pytest-xdist>=3.5", "pytest-timeout>=2.2", "nidaqmx>=1.0",
                  "pipython>=2.10",
                  "ruff>=0.5", "numpydoc>=1.6", "hypothesis>=6.90",
-                 "wheel>=0.40", "setuptools>=61", "pysindy>=2.0", "mypy>=1.10"],
+                 "wheel>=0.40", "setuptools>=61", "pysindy>=2.0", "mypy>=1.10",
+                 "dask>=2024.1", "distributed>=2024.1"],
     },
     zip_safe=True,
     maintainer="piezo_stage developers",

@@ -123,3 +123,50 @@ def on_a_terminal(argv, env=None, cwd=None, timeout=300) -> str:
     finally:
         os.close(master)
     return seen.decode(errors="replace")
+
+
+# -- real time on this host: the rate the suite's real-time sets run at ------------------
+REALTIME_RATES_HZ = (1000.0, 500.0, 250.0)
+_REALTIME: dict = {}
+
+
+def realtime_rate_hz(env) -> float:
+    """The highest of ``REALTIME_RATES_HZ`` this host holds a real-time set at with the
+    margin a set needs (core/loop/capacity.py: measured on the set itself, as a
+    launch's own check measures it), found once per test process: the real-time tests
+    run there and are judged there, never by a rate the host cannot hold. pytest.skip
+    (with the figures) where it holds none."""
+    if "rate" in _REALTIME:
+        if _REALTIME["rate"] is None:
+            pytest.skip(_REALTIME["why"])
+        return _REALTIME["rate"]
+    import tempfile
+
+    from piezo_stage.core.loop.capacity import Capacity
+    from piezo_stage.io.run_bag import read_run
+    from piezo_stage.launch.launcher import Launch
+    why = "no real-time run"
+    for rate in REALTIME_RATES_HZ:
+        bag = os.path.join(tempfile.mkdtemp(), "capacity")
+        o = {"stage_driver": {"mode": "realtime", "min_margin": 0.0},
+             "feedforward": {"model_file": os.path.join(CONFIG, "stage_model.yaml")},
+             "trajectory": {"kind": "seed", "duration_s": 3.0}}
+        launch = Launch(os.path.join(CONFIG, "stage.yaml"), record=bag, overrides=o,
+                        env=env, nodes=["stage_driver", "feedforward", "controller",
+                                        "trajectory"], exclusive=False, armed_s=3.0,
+                        rate=rate)
+        launch.quiet_stop = True
+        launch.run(launch.wall_bound())
+        try:
+            d = read_run(bag).driver
+            cap = Capacity(rate, 1, 1.0, float(d["loop_thread_ms_per_sample"]) * 1e-3,
+                           float(d["host_busy_cpus"]), os.cpu_count() or 1)
+        except (KeyError, ValueError, OSError) as e:
+            why = f"the capacity run at {rate:g} Hz gave no figures ({e})"
+            continue
+        if cap.margin >= 2.0:
+            _REALTIME["rate"] = rate
+            return rate
+        why = f"at {rate:g} Hz this host sustains {cap.describe()}"
+    _REALTIME.update(rate=None, why=f"this host holds no real-time rate with margin: {why}")
+    pytest.skip(_REALTIME["why"])

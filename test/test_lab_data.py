@@ -10,8 +10,8 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT
 
+from conftest import ROOT
 from piezo_stage.core.estimation.identify.prandtl import fit_prandtl_ishlinskii, held_out_rms
 from piezo_stage.core.estimation.record import Record, on_grid
 from piezo_stage.io.csv_table import read_table, write_table

@@ -112,3 +112,36 @@ def test_refit_bad_input_is_one_line_and_exit_2(tmp_path):
         assert r.returncode == 2, (args, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not (tmp_path / "o" / "refit.csv").exists()  # no table of a refused archive
+
+
+@pytest.mark.slow
+def test_refit_on_a_dask_cluster_gives_the_local_table(tmp_path):
+    """`refit --scheduler ADDRESS` runs the bags on a Dask distributed cluster (here a
+    LocalCluster of two worker processes) and writes the table the local run writes."""
+    distributed = pytest.importorskip("distributed")
+    arch = tmp_path / "archive"
+    make_archive(str(arch), runs=3, fs_hz=500.0)
+    local = _refit(arch, "--out", tmp_path / "local", "--against", arch / "reference.yaml",
+                   "--jobs", 1)
+    assert local.returncode == 0, local.stderr[-3000:]
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        r = _refit(arch, "--out", tmp_path / "cluster", "--against",
+                   arch / "reference.yaml", "--scheduler", cluster.scheduler_address)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert f"on the Dask cluster at {cluster.scheduler_address}" in r.stdout
+    tables = []
+    for run in ("local", "cluster"):
+        with open(tmp_path / run / "refit.csv", newline="") as fh:
+            tables.append(list(csv.DictReader(fh)))
+    a, b = tables  # the same table, figure for figure (to the rounding of BLAS threads)
+    assert len(a) == len(b) == 3 and [r.keys() for r in a] == [r.keys() for r in b]
+    for ra, rb in zip(a, b):
+        for k in ra:
+            try:
+                assert float(ra[k]) == pytest.approx(float(rb[k]), rel=1e-6, abs=1e-9), k
+            except ValueError:
+                assert ra[k] == rb[k], k
+    bad = _refit(arch, "--out", tmp_path / "x", "--scheduler", "tcp://127.0.0.1:9",
+                 timeout=120)
+    assert bad.returncode == 2 and "no Dask scheduler answers" in bad.stderr, bad.stderr

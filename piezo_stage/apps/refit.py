@@ -4,9 +4,10 @@ Each axis of a bag is fitted where its voltage moves (a protocol such as ``excit
 drives the axes in turn), that span split in two halves: the Duhem model is identified
 on the first and scored on the second (its own later part, held out); an axis at rest
 is left out with a note. A bag not on one sample clock (a real-time run's skipped
-ticks) is put on one first (``core.estimation.record.on_grid``). Bags run in parallel worker processes.
-Then, over the bags in date order: the model's gain and errors, how far each earlier
-model's response lies from the newest one's on the newest bag's own input ("change"),
+ticks) is put on one first (``core.estimation.record.on_grid``). Bags run in parallel
+worker processes. Then, over the bags in date order: the model's gain and errors, how
+far each earlier model's response lies from the newest one's on the newest bag's own
+input ("change"),
 and with a reference model (``--against``) the gap diagnosis of each bag against it:
 which unmodelled effect each shows and how large (creep's gamma, a delay, a
 resonance's frequency, else the held-out gap it explains), its change since the first
@@ -233,6 +234,12 @@ def _bag_name(path) -> str:
 def _worker_init():
     from piezo_stage.core.workers import quiet_worker
     quiet_worker()  # the parent decides about stops
+    _one_thread_each()
+
+
+def _one_thread_each():
+    """A worker of many: its gap axes in threads, one BLAS thread (a cluster's worker
+    keeps its own signals: its nanny stops it)."""
     import piezo_stage.core.estimation.gap as gap
     gap.AXES_IN_PROCESSES = False  # a worker per bag already: its axes in threads
     try:  # and one BLAS thread each: workers x BLAS threads beyond the cores fight
@@ -252,17 +259,21 @@ def _refit_or_skip(path, out_dir, limits_V, against):
 
 
 def refit(paths, out_dir: str, jobs: int | None = None, limits_V=None, against=None,
-          progress=None, skipped: list | None = None) -> list[dict]:
-    """Every bag in ``paths`` refitted (``refit_bag``) on ``jobs`` worker processes (the
-    CPU count by default), rows in date order; ``progress(name)`` after each bag. A bag
-    that cannot be refitted is left out and listed in ``skipped`` [(path, why)];
-    DataError when none can."""
+          progress=None, skipped: list | None = None,
+          scheduler: str | None = None) -> list[dict]:
+    """Every bag in ``paths`` refitted (``refit_bag``) on ``jobs`` local worker
+    processes (the CPU count by default), or on the Dask distributed cluster whose
+    scheduler is at ``scheduler`` (its workers need this package; ``jobs`` unused);
+    rows in date order; ``progress(name)`` after each bag. A bag that cannot be
+    refitted is left out and listed in ``skipped`` [(path, why)]; DataError naming
+    every bag and why when none can."""
     from concurrent.futures import ProcessPoolExecutor, as_completed
     bags = find_bags(paths)
     os.makedirs(os.path.join(out_dir, "models"), exist_ok=True)
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(bags)))
     rows = []
     skipped = [] if skipped is None else skipped
+    out_dir = os.path.abspath(out_dir)  # (a cluster's workers run elsewhere)
 
     def take(row):
         if "skipped" in row:
@@ -271,7 +282,10 @@ def refit(paths, out_dir: str, jobs: int | None = None, limits_V=None, against=N
             rows.append(row)
         if progress:
             progress(os.path.basename(row.get("skipped", row.get("name", ""))))
-    if jobs == 1:
+    if scheduler:
+        for row in _on_cluster(scheduler, bags, out_dir, limits_V, against):
+            take(row)
+    elif jobs == 1:
         for b in bags:
             take(_refit_or_skip(b, out_dir, limits_V, against))
     else:
@@ -293,6 +307,30 @@ def refit(paths, out_dir: str, jobs: int | None = None, limits_V=None, against=N
     rows.sort(key=lambda r: (r["started_utc"], r["name"]))
     _changes(rows)
     return rows
+
+
+def _on_cluster(address: str, bags: list, out_dir: str, limits_V, against):
+    """``_refit_or_skip`` of each bag on a Dask distributed cluster (``dask`` extra),
+    rows as they finish. DataError when the package is missing or the scheduler does
+    not answer."""
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise DataError("--scheduler needs Dask's distributed package: pip install "
+                        "'piezo_stage[dask]'") from None
+    try:
+        client = Client(address, timeout=10)
+    except (OSError, TimeoutError) as e:
+        raise DataError(f"--scheduler {address}: no Dask scheduler answers there "
+                        f"({type(e).__name__}: {e})") from None
+    try:
+        client.run(_one_thread_each)
+        futures = [client.submit(_refit_or_skip, b, out_dir, limits_V, against,
+                                 pure=False, key=f"refit-{_bag_name(b)}") for b in bags]
+        for f in as_completed(futures):
+            yield f.result()
+    finally:
+        client.close()
 
 
 def _changes(rows) -> None:

@@ -20,6 +20,10 @@ def add_arguments(s):
                    "diagnosis against it, and which effect grew since the first bag")
     s.add_argument("--limits", type=limits, metavar="LO,HI",
                    help="the amplifier's voltage limits [V] for the written models")
+    s.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the bags on a Dask distributed cluster, its scheduler at "
+                   "ADDRESS (tcp://host:8786; the optional extra .[dask]; its workers "
+                   "need this package and read the bags and --out at the same paths)")
 
 
 def main(args):
@@ -37,12 +41,15 @@ def main(args):
         load_model(args.against)  # a bad reference: one line before any work
     bags = R.find_bags(args.bags)
     jobs = max(1, min(args.jobs or os.cpu_count() or 1, len(bags)))
-    print(f"refit: {len(bags)} bag(s) on {jobs} worker(s)"
+    where = f"the Dask cluster at {args.scheduler}" if args.scheduler else \
+        f"{jobs} worker(s)"
+    print(f"refit: {len(bags)} bag(s) on {where}"
           + (f", against {args.against}" if args.against else ""))
     t0 = time.perf_counter()
     skipped = []
     with bar("refit", total=len(bags), unit="bag") as b:
-        rows = R.refit(bags, args.out, jobs, args.limits, args.against, steps(b), skipped)
+        rows = R.refit(bags, args.out, jobs, args.limits, args.against, steps(b), skipped,
+                       args.scheduler)
     for path, why in skipped:
         print(f"skipped: {why}" if path in why else f"skipped {path}: {why}")
     for r in rows:
@@ -81,9 +88,13 @@ def main(args):
     if args.against and not g:
         print(f"no effect beyond {args.against} in any bag")
     one = statistics.median(r["seconds"] for r in rows)
-    ideal = one * len(rows) / jobs
-    print(f"{len(rows)} bag(s) in {wall:.1f} s on {jobs} worker(s); one bag's refit "
-          f"{one:.1f} s (median), so {ideal:.1f} s ideal: {wall / ideal:.2f} x")
+    if args.scheduler:
+        print(f"{len(rows)} bag(s) in {wall:.1f} s on {where}; one bag's refit "
+              f"{one:.1f} s (median)")
+    else:
+        ideal = one * len(rows) / jobs
+        print(f"{len(rows)} bag(s) in {wall:.1f} s on {jobs} worker(s); one bag's refit "
+              f"{one:.1f} s (median), so {ideal:.1f} s ideal: {wall / ideal:.2f} x")
     print(f"table: {os.path.join(args.out, 'refit.csv')} (and refit.json); "
           f"models: {os.path.join(args.out, 'models')}; plot: {png}")
     return 0

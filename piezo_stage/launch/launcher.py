@@ -143,6 +143,21 @@ START_ALLOWANCE_S = 120.0
 LOCKSTEP_SLOWDOWN = 20.0
 
 
+class Processes(dict):
+    """The set's processes by name ({process: Popen}); a composed node's name finds its
+    container's (``procs["controller"]`` is the loop's process where it is composed)."""
+
+    def __init__(self, launch: "Launch"):
+        super().__init__()
+        self._launch = launch
+
+    def __missing__(self, name: str):
+        own = self._launch.process_of(name)
+        if own != name and own in self:
+            return dict.__getitem__(self, own)
+        raise KeyError(name)
+
+
 class Launch:
     def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
                  nodes=None, env=None, arm=True, foxglove_port=None, trajectory=True,
@@ -225,7 +240,7 @@ class Launch:
             raise ConfigError(f"compose {compose!r}: one of {', '.join(COMPOSE)}")
         self.composed = [n for n in COMPOSE[compose] if n in self.nodes] \
             if all(n in self.nodes for n in COMPOSE[compose]) else []
-        self.procs = {}
+        self.procs = Processes(self)
         self.failed = []
         self.signalled = set()   # the nodes this launcher sent SIGINT
         self.stopped_by = None   # the signal that told the launcher to stop
@@ -376,7 +391,7 @@ class Launch:
             if p.poll() is None:
                 p.kill()
             p.wait()
-        self.procs = {}
+        self.procs = Processes(self)
 
     def stop(self, grace_s=STOP_GRACE_S):
         """Stop the set in its safe order: the driver first (it disarms, which is no
@@ -514,7 +529,7 @@ class Launch:
                                  f"{refused['margin']:.2f} x {self.rate_hz():g} Hz: "
                                  f"running again at {rate:g} Hz (rate auto)\n")
                 self.set_rate(rate)
-                self.procs, self.failed, self.signalled = {}, [], set()
+                self.procs, self.failed, self.signalled = Processes(self), [], set()
                 self.ended = False
                 os.remove(cap_file)
                 if self.record:  # the refused attempt's bag is no record of the run

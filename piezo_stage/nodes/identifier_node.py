@@ -32,7 +32,6 @@ from piezo_stage.nodes._signals import interruptible
 from piezo_stage.nodes.declared import IDENTIFIER
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
 
-
 BATCH_S = 0.05
 
 

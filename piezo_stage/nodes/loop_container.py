@@ -39,7 +39,8 @@ def parse(argv: list[str]) -> tuple[list[str], dict[str, list[str]], list[str]]:
     """(node names in build order, {node: its -p arguments}, the --ros-args part)."""
     ros = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
     own = argv[:len(argv) - len(ros)]
-    names, params = [], {}
+    names: list[str] = []
+    params: dict[str, list[str]] = {}
     it = iter(own)
     for a in it:
         if a == "--param":
@@ -61,12 +62,16 @@ def parse(argv: list[str]) -> tuple[list[str], dict[str, list[str]], list[str]]:
 
 def factory(name: str, params: list[str]):
     """A builder of node ``name`` with its own ``-p`` arguments over the shared ones."""
+    cls: type
     if name == "stage_driver":
-        from piezo_stage.nodes.stage_driver_node import StageDriver as cls
+        from piezo_stage.nodes.stage_driver_node import StageDriver
+        cls = StageDriver
     elif name == "feedforward":
-        from piezo_stage.nodes.feedforward_node import Feedforward as cls
+        from piezo_stage.nodes.feedforward_node import Feedforward
+        cls = Feedforward
     else:
-        from piezo_stage.nodes.controller_node import Controller as cls
+        from piezo_stage.nodes.controller_node import Controller
+        cls = Controller
     cli = ["--ros-args"] + [x for p in params for x in ("-p", p)] if params else []
 
     def build():

@@ -37,8 +37,6 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from piezo_stage.core.errors import DataError
 
 # the package's public names, here as before it was split by concern

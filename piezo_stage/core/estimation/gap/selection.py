@@ -384,8 +384,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                      "such a record)")
     if notes:
         reason = (reason + "; " if reason else "") + "; ".join(notes)
-    final = resid_of(model) if model is not None else resid
-    dist = disturbance(scored, axis, final, nf)
+    left = resid_of(model) if model is not None else resid
+    dist = disturbance(scored, axis, left, nf)
     budget = gap_budget(scored, axis, resid, nf, g_before, steps)
     budget["disturbance"] = dist
     g_left = budget["unexplained_um"]

@@ -550,8 +550,8 @@ def identify_stage(rec: Record, axes: Sequence[str],
     ``limits_V``, else 0-150 V widened to take the record's voltages
     (duhem.voltage_limits_for; DataError when the record leaves the amplifier's).
     ``progress_for(axis)`` gives each axis's solver callback. ``skip_unusable``: an
-    axis whose record cannot be identified (not excited, no solver converged) is left out and said in
-    ``skipped``, DataError only when none is left."""
+    axis whose record cannot be identified (not excited, no solver converged) is left
+    out and said in ``skipped``, DataError only when none is left."""
     lim = voltage_limits_for(list(rec.v.values()), limits_V)  # before any fit
     results, skipped = {}, {}
     for a in axes:
