@@ -307,3 +307,49 @@ def test_when_no_bag_can_be_refitted_every_bag_is_named_with_its_reason(tmp_path
     for k in range(4):
         assert f"a_run{k}" in r.stderr, r.stderr
     assert "at rest" in r.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+def test_a_real_time_run_identifies_like_its_lockstep_twin(tmp_path, ros_env):
+    """The same run recorded in real time (at the rate this host holds with margin:
+    its stamps skip the ticks the host stalled) and in lockstep: identify, gap and
+    refit take the real-time bag, and its model predicts a held-out record within 10 %
+    RMS of the lockstep bag's model."""
+    from conftest import CONFIG, realtime_rate_hz
+    from piezo_stage.core.estimation.identify.api import identify_stage, predict_axis
+    from piezo_stage.io.records import load_record
+    from piezo_stage.launch.launcher import Launch
+    rate = realtime_rate_hz(ros_env)
+    traj = {"kind": "seed", "duration_s": 6.0, "excite_s": 8.0}
+    bags = {}
+    for mode in ("realtime", "lockstep"):
+        bags[mode] = str(tmp_path / mode)
+        o = {"stage_driver": {"mode": mode, "min_margin": 0.0},
+             "feedforward": {"model_file": os.path.join(CONFIG, "stage_model.yaml")},
+             "trajectory": traj}
+        launch = Launch(os.path.join(CONFIG, "stage.yaml"), record=bags[mode], overrides=o,
+                        env=ros_env, exclusive=False, armed_s=15.0,
+                        rate=rate if mode == "realtime" else None,
+                        nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+        assert launch.run(launch.wall_bound()) == 0, launch.failed
+    from piezo_stage.core.model.plant import Plant
+    from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
+    cfg = load_plant_config(default_plant_config_path())
+    t = np.arange(10_000) / 1000.0
+    vx = 75 + 45 * np.sin(2 * np.pi * 0.9 * t) + 20 * np.sin(2 * np.pi * 2.3 * t)
+    vy = 70 + 50 * np.sin(2 * np.pi * 1.3 * t)
+    w = Plant(cfg, 1000.0).run(vx, vy)
+    held = Record(t, {"x": vx, "y": vy}, {"x": w["x"], "y": w["y"]}, source="held out")
+    rms = {}
+    for mode, bag in bags.items():
+        rec = load_record(bag)
+        fit = identify_stage(rec, ["x", "y"])
+        pred = predict_axis(fit.results["x"], held)[2]
+        rms[mode] = held_out_rms(pred, held.w["x"], held.fs_hz)
+    assert rms["realtime"] <= 1.1 * rms["lockstep"], rms
+    for cmd in (["identify", bags["realtime"], "--out", tmp_path / "rt.yaml"],
+                ["gap", bags["realtime"]],
+                ["refit", bags["realtime"], "--out", tmp_path / "refit", "--jobs", 1]):
+        r = cli(*cmd)
+        assert r.returncode == 0, (cmd, r.stderr[-2000:])

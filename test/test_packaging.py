@@ -82,7 +82,8 @@ def test_without_mcap_a_bag_command_says_what_to_install(tmp_path):
 
 # imported, but with no rosdep key: the "ROS install" pip line (docs/nodes.md) installs them
 PIP_ONLY = {"mcap": "mcap", "foxglove": "foxglove-sdk", "threadpoolctl": "threadpoolctl",
-            "nidaqmx": "nidaqmx", "pipython": "pipython", "nv200": "nv200"}
+            "nidaqmx": "nidaqmx", "pipython": "pipython", "nv200": "nv200",
+            "distributed": "distributed"}
 
 
 # imported only by a benchmark's peer (piezo_stage/apps/studies/sparse_peer.py, which says

@@ -70,6 +70,16 @@ def _read_text(path) -> tuple[str, str]:
     return header, body
 
 
+def _near(name: str, candidates: list[str]) -> str | None:
+    """The candidate ``name`` most likely misspells (any case, one slip), else None."""
+    import difflib
+    low = {c.lower(): c for c in candidates}
+    if name.lower() in low:
+        return low[name.lower()]
+    hit = difflib.get_close_matches(name.lower(), list(low), n=1, cutoff=0.75)
+    return low[hit[0]] if hit else None
+
+
 def write_table(path, columns: dict, fmt="%.10g"):
     """Write named columns (equal length) with a header row, atomically."""
     names = list(columns)
@@ -85,7 +95,21 @@ def read_record(path, axes=("x", "y"), need_w=True) -> Record:
     Axes whose columns are absent are skipped; at least one complete axis is needed.
     """
     header, _ = _read_text(path)
-    names = [h.strip() for h in header.strip().split(",")]
+    names = [h.strip() for h in header.strip().split(";" if ";" in header and
+                                                      "," not in header else ",")]
+    expected = ["t"] + [f"{c}{a}" for a in axes for c in ("v", "w")]
+    for n in names:  # a misnamed column is named, not passed over for the other axis
+        near = _near(n, [e for e in expected if e not in names])
+        if near and n not in expected:
+            raise DataError(f"{printable(path)}: column {printable(n, 40)!r} is not one "
+                            f"of t, vx, vy, wx, wy (did you mean {near!r}?)")
+    if need_w:
+        for a in axes:  # half an axis: its voltage without its displacement, or back
+            got = [c for c in (f"v{a}", f"w{a}") if c in names]
+            if len(got) == 1:
+                lack = f"w{a}" if got[0].startswith("v") else f"v{a}"
+                raise DataError(f"{printable(path)}: column {lack} is missing ({got[0]} is "
+                                f"there); header has {printable(', '.join(names))}")
     present = [a for a in axes if f"v{a}" in names and (not need_w or f"w{a}" in names)]
     if "t" not in names or not present:
         want = "t,vx,vy,wx,wy" if need_w else "t,vx,vy"

@@ -30,8 +30,11 @@ def set_realtime_priority(prio, logger, main_thread=True) -> int:
             below = _polls_a_mutex(tid)
             if below and (prio <= 1 or not main_thread):
                 continue  # nothing lower to give it than normal priority: leave it there
-            os.sched_setscheduler(int(tid), os.SCHED_FIFO,
-                                  os.sched_param(prio - 1 if below else prio))
+            want = prio - 1 if below else prio
+            if os.sched_getscheduler(int(tid)) == os.SCHED_FIFO and \
+                    os.sched_getparam(int(tid)).sched_priority >= want:
+                continue  # composed nodes: the highest asked for stands (the driver's)
+            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(want))
         return prio
     except (PermissionError, OSError, AttributeError, ValueError) as e:
         logger.warning(f"thread_priority {prio}: not permitted here ({e}); running at "

@@ -19,7 +19,7 @@ Coupling (displacement caused by the other axis) is part of the hysteresis model
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -45,7 +45,7 @@ def _signal():
     return signal
 
 
-def from_rest(op, X: np.ndarray) -> np.ndarray:
+def from_rest(op: Callable[[np.ndarray], np.ndarray], X: np.ndarray) -> np.ndarray:
     """A linear, unit-gain operator ``op`` (zero state) on the columns of X as if each
     had rested at its first row before the record: X[0] + op(X - X[0]). A stage's
     record starts in a state, not from zero: a measured displacement near -120 um

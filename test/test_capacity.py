@@ -1,0 +1,93 @@
+"""What a real-time set needs of its host (core/loop/capacity.py): the capacity from the
+loop's own CPU a sample and the host's busy CPUs, the rate a refusal proposes, and the
+sample loop that waits for the measurement before its first arm and refuses below the
+margin; the loop container's arguments."""
+
+import time
+
+import pytest
+
+from piezo_stage.core.loop.capacity import Capacity, CapacityMeter, host_cpu
+
+
+def test_capacity_is_the_smaller_of_the_loop_thread_and_the_host():
+    thread_bound = Capacity(1000.0, 500, 0.5, 0.8e-3, 0.5, 2)  # 1,250/s by the thread
+    assert thread_bound.thread_capacity_hz == pytest.approx(1250.0)
+    assert thread_bound.host_capacity_hz == pytest.approx(4000.0)
+    assert thread_bound.capacity_hz == pytest.approx(1250.0)
+    assert thread_bound.margin == pytest.approx(1.25)
+    assert thread_bound.holdable_rate_hz(2.0) == 500.0
+    host_bound = Capacity(1000.0, 500, 0.5, 0.2e-3, 1.6, 2)  # 5,000/s by the thread
+    assert host_bound.capacity_hz == pytest.approx(1250.0)  # 1.6 of 2 CPUs at 1 kHz
+    assert "1.60 of 2 CPUs busy" in host_bound.describe()
+    assert Capacity(1000.0, 1, 1.0, 0.02, 2.0, 2).holdable_rate_hz(2.0) is None
+
+
+def test_the_meter_measures_its_own_thread_over_a_window():
+    m = CapacityMeter(1000.0, 0.05)
+    assert m.sample() is None  # the first call starts the window
+    got = None
+    t_end = time.monotonic() + 2.0
+    while got is None and time.monotonic() < t_end:
+        x = 0
+        for k in range(20000):  # about a millisecond of work a "sample"
+            x += k * k
+        got = m.sample()
+    assert got is not None and got.samples >= 10
+    assert 1e-5 < got.thread_s_per_sample < 0.1
+    if host_cpu() is not None:
+        assert 0.0 < got.host_busy_cores <= got.cores + 0.5
+
+
+def _loop(min_margin, thread_s, busy):
+    """A real-time sample loop on the simulated stage whose capacity reads are ours."""
+    from piezo_stage.core.loop import sample_loop as S
+    from piezo_stage.core.loop.arming import PARAMETERS as ARMING
+    from piezo_stage.core.loop.arming import ArmingParams
+    from piezo_stage.drivers import make_backend
+    arm = ArmingParams(**{q.field: q.default for q in ARMING})
+    loop = S.SampleLoop(make_backend("sim", 1000.0, {}), arm, 1000.0, False, 0.005, 0,
+                        lambda *a: None, min_margin=min_margin, capacity_window_s=0.0)
+    fixed = Capacity(1000.0, 50, 0.05, thread_s, busy, 2)
+    loop.capacity.sample = lambda: fixed  # the host's reading, given
+    loop.capacity.last = fixed
+    return loop
+
+
+@pytest.mark.parametrize("thread_s, busy, refused", [(0.2e-3, 0.6, False),
+                                                    (0.9e-3, 0.6, True),
+                                                    (0.2e-3, 1.8, True)])
+def test_the_first_arm_waits_for_the_measurement_and_is_refused_below_the_margin(
+        thread_s, busy, refused):
+    loop = _loop(2.0, thread_s, busy)
+    assert loop.sup.held_by  # no arm before the host is known
+    v = {"x": 0.0, "y": 0.0}
+    loop.sup.evidence = loop.sup.p.confirm_ticks  # the loop answers on time
+    loop.step(0, v, True, 0)
+    assert not loop.sup.held_by
+    assert (loop.refusal is not None) == refused
+    if refused:
+        assert "control_rate_hz 500 would have it" in loop.refusal or \
+            "control_rate_hz 250" in loop.refusal, loop.refusal
+    assert "capacity_hz" in loop.status()[2]
+
+
+def test_no_check_with_min_margin_0():
+    loop = _loop(0.0, 0.9e-3, 1.9)
+    assert not loop.sup.held_by
+    loop.sup.evidence = loop.sup.p.confirm_ticks
+    loop.step(0, {"x": 0.0, "y": 0.0}, True, 0)
+    assert loop.refusal is None
+
+
+def test_the_container_takes_each_nodes_own_parameters():
+    from piezo_stage.nodes.loop_container import UsageError, parse
+    names, params, ros = parse(["stage_driver", "controller", "--param",
+                                "controller:kp:=0.3", "--param", "stage_driver:seed:=4",
+                                "--ros-args", "-r", "__ns:=/s"])
+    assert names == ["controller", "stage_driver"]  # built in start order
+    assert params == {"controller": ["kp:=0.3"], "stage_driver": ["seed:=4"]}
+    assert ros == ["--ros-args", "-r", "__ns:=/s"]
+    for bad in (["recorder"], ["--param", "controller-kp"], []):
+        with pytest.raises(UsageError):
+            parse(bad)
