@@ -176,7 +176,7 @@ def lockstep_margin_s(case, config, extra=None) -> float:
 
 
 def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=None,
-             namespace="/stage", env=None, exclusive=True) -> None:
+             namespace="/stage", env=None, exclusive=True, seed=None) -> None:
     """Run the node set for one case into ``bag``. RunError (exit 1) when the set fails;
     KeyboardInterrupt when the command is stopped. ``exclusive``: look for a set already
     running in the namespace first (about 2 s on a quiet domain); an experiment looks
@@ -197,6 +197,8 @@ def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=N
         drv["plant_config"] = os.path.abspath(plant)
     drv.update(max_steps=int(total_s * control_rate(config, extra)), exit_after_max_steps=True,
                max_steps_from_arming=True)
+    if seed is not None:  # the simulated stage's noise: a repeat draws anew
+        drv["seed"] = int(seed)
     o = merge_params(extra or {}, {"stage_driver": drv, "trajectory": {"kind": "csv",
                                                                  "csv_path": csv}},
                {"feedforward": {"model_file": os.path.abspath(model)}} if model else {},
@@ -310,11 +312,22 @@ def control_rate(config, extra):
                   **(extra or {}).get("stage_driver", {})}.get("control_rate_hz", RATE_HZ))
 
 
+class Interrupted(KeyboardInterrupt):
+    """A stop in the middle of an experiment, with what the finished cases gave:
+    ``doc`` and ``evals`` as ``run_experiment`` returns them."""
+
+    def __init__(self, doc: dict, evals: list, total: int):
+        super().__init__()
+        self.doc, self.evals, self.total = doc, evals, total
+
+
 def run_experiment(name, out_dir, config, plant=None, model=None, mode="lockstep",
                    freqs=FREQS_HZ, controllers=CONTROLLERS, extra=None, namespace="/stage",
-                   env=None, log=print, warn=None):
+                   env=None, log=print, warn=None, seed=None):
     """Run every case of ``name``; bags under ``out_dir``. Returns the JSON document and
-    the per-case evaluations (for the plots)."""
+    the per-case evaluations (for the plots). ``seed``: the simulated stage's noise
+    seed of the first case (the next cases the following ones; None: the plant's own).
+    A stop (KeyboardInterrupt) after some cases raises ``Interrupted`` with theirs."""
     import sys
 
     from piezo_stage.io.model_file import load_model
@@ -325,15 +338,22 @@ def run_experiment(name, out_dir, config, plant=None, model=None, mode="lockstep
                      warn or (lambda m: sys.stderr.write(f"warning: {m}\n")))
     doc = {"experiment": name, "plant": os.path.abspath(plant) if plant else "default",
            "model": os.path.abspath(model) if model else None, "mode": mode, "cases": []}
-    evals = []
+    if seed is not None:
+        doc["seed"] = int(seed)
+    evals: list = []
     with bar(total=len(cases), desc=f"experiment {name}", unit="run") as pb:
         for k, case in enumerate(cases):
             bag = os.path.join(out_dir, f"{k:02d}_" + "".join(
                 c if c.isalnum() else "_" for c in case.name).strip("_"))
             if os.path.exists(bag):
                 shutil.rmtree(bag)
-            run_case(case, bag, config, plant, model, mode, extra, namespace, env,
-                     exclusive=k == 0)
+            try:
+                run_case(case, bag, config, plant, model, mode, extra, namespace, env,
+                         exclusive=k == 0, seed=None if seed is None else int(seed) + k)
+            except KeyboardInterrupt:
+                if name == "decoupling":
+                    _reductions(doc)
+                raise Interrupted(doc, evals, len(cases)) from None
             ev = evaluate(case, bag)
             evals.append((case, ev))
             for (a, ref), fig in ev["axes"].items():

@@ -382,18 +382,24 @@ def growth(rows) -> list[dict]:
     return out
 
 
+def _when(iso: str) -> str:
+    """A run's start to the second, UTC ("2026-11-28 09:20:45"): runs of one day are
+    told apart."""
+    return iso[:19].replace("T", " ")
+
+
 def growth_lines(g: list[dict]) -> list[str]:
-    """What changed, one line each ("x: creep +45 % since 2026-11-02 (gamma 0.0300 ->
-    0.0435); changed by 30 % on 2026-11-10")."""
+    """What changed, one line each ("x: creep +45 % since 2026-11-02 09:00:00 (gamma
+    0.0300 -> 0.0435); changed by 30 % on 2026-11-10 09:00:00")."""
     lines = []
     for e in g:
-        since = e["first_utc"][:10]
+        since = _when(e["first_utc"])
         if math.isinf(e["change_pct"]):
             lines.append(f"{e['axis']}: {e['effect']} appeared on "
-                         f"{(e['crossed_utc'] or since)[:10]} (absent on {since}; "
-                         f"{e['size_of']} {e['last']:.4g} on {e['last_utc'][:10]})")
+                         f"{_when(e['crossed_utc'] or e['first_utc'])} (absent on {since}; "
+                         f"{e['size_of']} {e['last']:.4g} on {_when(e['last_utc'])})")
             continue
-        when = (f"; changed by {GROWTH_PCT:.0f} % on {e['crossed_utc'][:10]}"
+        when = (f"; changed by {GROWTH_PCT:.0f} % on {_when(e['crossed_utc'])}"
                 if e["crossed_utc"] else f"; never by {GROWTH_PCT:.0f} %")
         lines.append(f"{e['axis']}: {e['effect']} {e['change_pct']:+.0f} % since {since} "
                      f"({e['size_of']} {e['first']:.4g} -> {e['last']:.4g}){when}")

@@ -20,6 +20,42 @@ import time
 from piezo_stage.io.bag import iter_messages
 
 SKIP = ("/diagnostics", "/model", "/rosout", "/parameter_events", "/clock")
+DEEP_ENOUGH_S = 0.1  # a subscriber's queue should hold this much of a topic's stream
+
+
+def _warn_shallow_subscribers(node, pubs, msgs, rate) -> None:
+    """What a subscriber needs to keep a fast stream whole, said before it plays: a
+    best-effort subscriber is named (a warning line: it drops samples); for the others
+    one note per fast topic (over 100 messages a second at this rate) gives the queue
+    depth that holds ``DEEP_ENOUGH_S`` of it (a default-QoS subscriber, depth 10,
+    dropped 1 % of a 1 kHz joint_states replay while its callback ran; DDS discovery
+    does not carry a subscriber's depth, so it cannot be told apart here)."""
+    import sys
+
+    from rclpy.qos import ReliabilityPolicy
+    span: dict = {}
+    for topic, _, log_ns, _ in msgs:
+        first, last, n = span.get(topic, (log_ns, log_ns, 0))
+        span[topic] = (first, log_ns, n + 1)
+    for topic, pub in pubs.items():
+        first, last, n = span[topic]
+        per_s = n / max((last - first) * 1e-9, 1e-3) * (rate if rate > 0 else 10.0)
+        if n < 100 or per_s <= 100:
+            continue
+        subs = node.get_subscriptions_info_by_topic(pub.topic_name)
+        for info in subs:
+            if info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT:
+                sys.stderr.write(
+                    f"piezo-stage replay: warning: {info.node_namespace.rstrip('/')}/"
+                    f"{info.node_name} subscribes to {pub.topic_name} best effort: at "
+                    f"{per_s:,.0f} messages/s it loses some; subscribe reliable\n")
+        if subs:
+            sys.stderr.write(
+                f"piezo-stage replay: note: {pub.topic_name} streams {per_s:,.0f} "
+                f"messages/s: a subscriber keeps every one with a queue of "
+                f"{max(100, int(per_s * DEEP_ENOUGH_S)):,} or more, reliable (the "
+                f"default depth of 10 drops what arrives while its callback runs; or "
+                f"replay with a lower --rate)\n")
 
 
 def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) -> int:
@@ -62,6 +98,7 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) 
         while time.monotonic() < deadline and not all(p.get_subscription_count() for p in
                                                        pubs.values()):
             rclpy.spin_once(node, timeout_sec=0.05)
+        _warn_shallow_subscribers(node, pubs, msgs, rate)
         t0_wall = time.monotonic()
         # on a terminal: how far the replay is, in the record's seconds
         with bar("replay", total=round(span_s, 1), unit="s of record") as b:

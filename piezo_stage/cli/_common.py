@@ -4,9 +4,8 @@ command simulates, voltage and port checks, parameter files."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
-
-import numpy as np
 
 from piezo_stage.core.errors import DataError, printable
 
@@ -57,6 +56,7 @@ def check_voltages(rec, limits, source):
     """DataError naming the first line of ``rec`` outside the voltage limits."""
     lo, hi = limits
     for a, v in rec.v.items():
+        import numpy as np
         bad = np.flatnonzero((v < lo) | (v > hi))
         if bad.size:
             i = int(bad[0])
@@ -85,8 +85,8 @@ def warn_small_span(rec, limits_V, source: str) -> None:
     past the record's span, and the limits are the user's to give."""
     from piezo_stage.core.model.duhem import voltage_limits_for
     lo, hi = voltage_limits_for(list(rec.v.values()), limits_V)
-    vmin = min(float(np.min(v)) for v in rec.v.values())
-    vmax = max(float(np.max(v)) for v in rec.v.values())
+    vmin = min(float(v.min()) for v in rec.v.values())
+    vmax = max(float(v.max()) for v in rec.v.values())
     if vmax - vmin < 0.1 * (hi - lo):
         given = "given" if limits_V is not None else "default"
         sys.stderr.write(f"piezo-stage: warning: {source}: the voltages span "
@@ -107,7 +107,7 @@ def number(lo: float, hi: float, integer: bool = False, lo_open: bool = False):
             raise argparse.ArgumentTypeError(
                 f"{printable(text, 40)!s} is not {'a whole number' if integer else 'a number'}"
             ) from None
-        if not np.isfinite(x) or x < lo or x > hi or (lo_open and x == lo):
+        if not math.isfinite(x) or x < lo or x > hi or (lo_open and x == lo):
             raise argparse.ArgumentTypeError(
                 f"{printable(text, 40)!s} is outside {'(' if lo_open else '['}{lo:g}, {hi:g}]")
         return x
@@ -120,7 +120,7 @@ def limits(text):
         lo, hi = (float(x) for x in text.split(","))
     except ValueError:
         lo = hi = float("nan")
-    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
         raise argparse.ArgumentTypeError(f"{printable(text, 40)!s}: give LO,HI in volts "
                                          "with LO < HI, e.g. 0,150 or -90,90")
     return lo, hi

@@ -35,6 +35,10 @@ def add_arguments(s):
                    "bags/<time>)")
     s.add_argument("--report", metavar="DIR", help="table, JSON and PNG figure")
     s.add_argument("--namespace", default="/stage")
+    s.add_argument("--seed", type=number(0, 2**31 - 1, integer=True), metavar="N",
+                   help="the simulated stage's noise seed of the first case (the next "
+                   "cases N+1, N+2...): a repeat with another seed draws new noise "
+                   "(default: the plant config's)")
 
 
 def _floats(text):
@@ -131,10 +135,25 @@ def main(args):
                                    args.namespace)
             print(f"identified model: {model}")
         doc, evals = run_experiment(args.name, out_dir, config, args.plant, model, args.mode,
-                                    args.freqs, args.controllers, extra, args.namespace)
+                                    args.freqs, args.controllers, extra, args.namespace,
+                                    seed=args.seed)
     except RuntimeError as e:
         sys.stderr.write(f"piezo-stage experiment: {e}\n")
         return 1
+    except KeyboardInterrupt as stop:  # the finished cases' report, then the stop
+        from piezo_stage.apps.experiments import Interrupted
+        if isinstance(stop, Interrupted) and stop.doc["cases"]:
+            from piezo_stage import stopping
+            stopping.hold()  # (a second Ctrl-C does not cut the report short)
+            from piezo_stage.io.plots import experiment_png
+            done, total = stop.evals, stop.total
+            doc = dict(stop.doc, stopped_after_cases=len(done), of_cases=total)
+            print(f"stopped after {len(done)} of {total} cases: their report")
+            _outputs(args, args.name, doc, table(doc),
+                     f"plant: {doc['plant']}; model: {model}; mode: {args.mode}; "
+                     f"stopped after {len(done)} of {total} cases",
+                     lambda path: experiment_png(path, done), out_dir)
+        raise
     from piezo_stage.io.plots import experiment_png
     return _outputs(args, args.name, doc, table(doc),
                     f"plant: {doc['plant']}; model: {model}; mode: {args.mode}",

@@ -108,6 +108,13 @@ def main(args):
                   f"{r.get('shrink_pm_pct', float('nan')):5.1f}"
                   + (" (at its no-effect limit: its search did worse on FIT)"
                      if r["params"].get("no_effect_limit") else ""))
+        if len(d.effects) > 1:  # the kept effects joined: the verdict's "in all" figure
+            st, before = d.effects[-1], d.ranking[0]
+            name = "+".join(x["effect"] for x in d.effects)
+            print(f"{a:>4} {name:>9} {before['rms_before_um']:10.4f} "
+                  f"{st['rms_after_um']:9.4f} {before['gap_before_um']:10.4f} "
+                  f"{st['gap_after_um']:9.4f} {st['shrink_pct']:10.1f} "
+                  f"{st.get('shrink_pm_pct', float('nan')):5.1f} (joined)")
     print(f"where: axis {res['where']['axis']}, band {res['where']['band_hz'][0]:g}-"
           f"{res['where']['band_hz'][1]:g} Hz, segment {res['where']['segment']}; noise floor "
           f"{res['noise_floor_um']:.4f} um; {res['seconds']:.1f} s")

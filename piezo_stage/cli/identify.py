@@ -156,7 +156,13 @@ def main(args):
         from piezo_stage.io.plots import identification_png
         curves = {a: predict_axis(r, rec) for a, r in results.items()}
         curves.update({a: (rec.v[a], rec.w[a], p.predict(rec, a)) for a, p in pis.items()})
-        print(f"plot: {identification_png(plot, rec.t, curves)}")
+        checked = None
+        if val is not None:  # the record it was scored on, beside it
+            vcurves = {a: predict_axis(r, val) for a, r in results.items() if a in val.w}
+            vcurves.update({a: (val.v[a], val.w[a], p.predict(val, a))
+                            for a, p in pis.items() if a in val.w})
+            checked = (val.t, vcurves)
+        print(f"plot: {identification_png(plot, rec.t, curves, checked)}")
     return 0
 
 

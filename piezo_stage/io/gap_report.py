@@ -78,7 +78,9 @@ def write_report(out_dir, result, holdout):
         t = holdout.t
         fig, ax = plt.subplots(2, 2, figsize=(12, 7))
         ax[0, 0].plot(t, w - pb, lw=0.4, label="before (base model)")
-        after = "+".join(n for n, _ in best.effects) or best.effect
+        # named by what the diagnosis kept (a given model's own effects are the base's)
+        after = "+".join(st["effect"] for st in d.effects) or \
+            (d.ranking[0]["effect"] if d.ranking else "none")
         ax[0, 0].plot(t, w - pa, lw=0.4, label=f"after ({after})")
         ax[0, 0].set(xlabel="time [s]", ylabel="measured - model [um]", title="residual")
         ax[0, 0].legend()
@@ -95,13 +97,15 @@ def write_report(out_dir, result, holdout):
         ax[1, 0].legend()
         # each candidate alone, then the effects as joined (each with the ones before)
         effs = [r["effect"] for r in d.ranking]
-        ax[1, 1].bar(effs, [r["gap_after_um"] for r in d.ranking], color="tab:blue",
-                     label="gap after, alone")
+        alone = ax[1, 1].bar(effs, [r["gap_after_um"] for r in d.ranking],
+                             color="tab:blue", label="gap after, alone")
+        ax[1, 1].bar_label(alone, fmt="%.3g", fontsize=6)  # a bar at 0 is seen as one
         joined = ["+".join(st["effect"] for st in d.effects[:i + 1])
                   for i in range(len(d.effects))]
         if joined:
-            ax[1, 1].bar(joined, [st["gap_after_um"] for st in d.effects],
-                         color="tab:orange", label="gap after, joined")
+            bars = ax[1, 1].bar(joined, [st["gap_after_um"] for st in d.effects],
+                                color="tab:orange", label="gap after, joined")
+            ax[1, 1].bar_label(bars, fmt="%.3g", fontsize=6)
         ax[1, 1].axhline(d.ranking[0]["gap_before_um"], color="k", ls="--",
                          label="gap before")
         ax[1, 1].set(ylabel="held-out gap [um]",

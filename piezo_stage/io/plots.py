@@ -23,23 +23,36 @@ def _save(fig, path):
     return path
 
 
-def identification_png(path, t, per_axis: dict):
+def identification_png(path, t, per_axis: dict, validation: tuple | None = None):
     """``per_axis``: {axis: (v [V], measured [um], model [um])} -> the loop (measured
-    and model against voltage) and the fit error over time, one row per axis."""
+    and model against voltage) and the fit error over time, one row per axis; with
+    ``validation`` (t_val [s], {axis: (v, measured, model)}), the record the model was
+    scored on beside it: its loop and its error, in a second colour."""
     plt = _pyplot()
     fig, ax = plt.subplots(len(per_axis), 2, figsize=(12, 3.8 * len(per_axis)),
                            squeeze=False)
+    t_val, val = validation if validation is not None else (None, {})
     for row, (axis, (v, w, pred)) in enumerate(per_axis.items()):
         e = w - pred
-        ax[row, 0].plot(v, w, ".", ms=0.6, color="0.6", label="measured")
+        ax[row, 0].plot(v, w, ".", ms=0.6, color="0.6", label="measured (fit)")
         ax[row, 0].plot(v, pred, lw=0.8, color="tab:red", label="identified model")
+        title = (f"axis {axis}: fit error, rms {np.sqrt(np.mean(e ** 2)):.4f} um, "
+                 f"max {np.max(np.abs(e)):.4f} um")
+        ax[row, 1].plot(t, e, lw=0.5, label="fit record")
+        if axis in val:
+            vv, wv, pv = val[axis]
+            ev = wv - pv
+            ax[row, 0].plot(vv, wv, ".", ms=0.6, color="tab:cyan",
+                            label="measured (validation)")
+            ax[row, 0].plot(vv, pv, lw=0.8, color="tab:purple", label="model (validation)")
+            ax[row, 1].plot(np.asarray(t_val) - t_val[0] + t[-1], ev, lw=0.5,
+                            color="tab:purple", label="validation record (after it)")
+            ax[row, 1].legend(fontsize=8)
+            title += f"; validation rms {np.sqrt(np.mean(ev ** 2)):.4f} um"
         ax[row, 0].set(xlabel="voltage [V]", ylabel="displacement [um]",
                        title=f"axis {axis}: hysteresis loop")
-        ax[row, 0].legend()
-        ax[row, 1].plot(t, e, lw=0.5)
-        ax[row, 1].set(xlabel="time [s]", ylabel="measured - model [um]",
-                       title=f"axis {axis}: fit error, rms {np.sqrt(np.mean(e ** 2)):.4f} um, "
-                             f"max {np.max(np.abs(e)):.4f} um")
+        ax[row, 0].legend(fontsize=8)
+        ax[row, 1].set(xlabel="time [s]", ylabel="measured - model [um]", title=title)
     fig.tight_layout()
     return _save(fig, path)
 
@@ -172,6 +185,11 @@ def scan_png(path, evals):
     return _save(fig, path)
 
 
+def _date_format(fmt: str):
+    import matplotlib.dates as mdates
+    return mdates.DateFormatter(fmt)
+
+
 def refit_png(path, rows: list):
     """An archive's refits over time (``apps/refit`` rows, date order): per axis the
     gain and the held-out error, the change of each model against the newest and,
@@ -208,7 +226,15 @@ def refit_png(path, rows: list):
                          "reference")
             if named:
                 ax[i, 2].legend(fontsize=8)
-        for j in range(ncol):
+            else:  # an empty panel says so
+                ax[i, 2].text(0.5, 0.5, "none found", transform=ax[i, 2].transAxes,
+                              ha="center", va="center", color="0.4")
+        one_day = bool(when) and (max(when) - min(when)).total_seconds() < 86400
+        day = f", {when[0]:%Y-%m-%d}" if one_day else ""
+        for j in range(ncol):  # dated to the second where the runs share a day
             ax[i, j].tick_params(axis="x", labelrotation=30, labelsize=8)
+            ax[i, j].xaxis.set_major_formatter(_date_format("%H:%M:%S" if one_day
+                                                           else "%Y-%m-%d"))
+            ax[i, j].set_xlabel(f"run started (UTC{day})")
     fig.tight_layout()
     return _save(fig, path)
