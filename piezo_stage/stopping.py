@@ -61,16 +61,6 @@ def in_import_machinery(frame) -> bool:
     """Whether ``frame`` is importlib's own code (its module locks, their weakref
     callbacks), not a module's top level being imported: a KeyboardInterrupt raised
     there was printed and dropped ("Exception ignored in _get_module_lock.cb") and the
-    launcher ran on, or it left a module lock half released and the command, having
-    said it stopped, then died by SIGINT at its exit (bench signals, 6 of 50 launcher
-    stops 0.3-0.6 s after start, 2026-11-28)."""
-    return frame is not None and frame.f_code.co_filename.startswith("<frozen importlib")
-
-
-def in_import_machinery(frame) -> bool:
-    """Whether ``frame`` is importlib's own code (its module locks, their weakref
-    callbacks), not a module's top level being imported: a KeyboardInterrupt raised
-    there was printed and dropped ("Exception ignored in _get_module_lock.cb") and the
     launcher ran on (bench signals: 2 of 30 launcher stops 0.1-0.6 s after start,
     2026-11-28)."""
     return frame is not None and frame.f_code.co_filename.startswith("<frozen importlib")
