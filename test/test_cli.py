@@ -288,3 +288,58 @@ def test_ctrl_c_at_a_random_moment_ends_a_command_with_130_and_its_line(tmp_path
     assert said, (at, out[-1000:], err[-2000:])
     assert "Traceback" not in err, (at, err[-3000:])
     assert not list(tmp_path.glob("**/.*.tmp")), "a temporary output left behind"
+
+
+def test_a_misnamed_or_half_given_column_is_named_not_passed_over(tmp_path):
+    """A CSV with `wX` for `wx` (or an axis's voltage without its displacement) was
+    fitted on the other axis with a note; now it is refused with the column named."""
+    t, v = sine_v(1.0, 2000, 2)
+    bad = tmp_path / "bad.csv"
+    write_table(bad, {"t": t, "vx": v, "vy": v, "wX": v, "wy": v})
+    r = run("identify", bad, "--out", tmp_path / "m.yaml", check=False)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "column 'wX' is not one of t, vx, vy, wx, wy (did you mean 'wx'?)" in r.stderr
+    half = tmp_path / "half.csv"
+    write_table(half, {"t": t, "vx": v, "vy": v, "wy": v})
+    r = run("identify", half, "--out", tmp_path / "m.yaml", check=False)
+    assert r.returncode == 2 and "column wx is missing (vx is there)" in r.stderr, r.stderr
+    assert not (tmp_path / "m.yaml").exists()
+
+
+def test_identify_plots_the_record_it_validated_on(tmp_path, monkeypatch):
+    """--plot with --validate: the validation record's loop and error are drawn beside
+    the fit's, and its RMS is in the title (before: only the fit record)."""
+    from piezo_stage.cli import main
+    from piezo_stage.io import plots
+    fit, hold = _records(tmp_path)
+    figs = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: figs.append(fig) or path)
+    assert main(["identify", str(fit), "--out", str(tmp_path / "m.yaml"), "--validate",
+                 str(hold), "--plot", str(tmp_path / "id.png")]) == 0
+    (fig,) = figs
+    for row in range(2):
+        loop, err = fig.axes[2 * row], fig.axes[2 * row + 1]
+        labels = [t.get_text() for t in loop.get_legend().get_texts()]
+        assert labels == ["measured (fit)", "identified model", "measured (validation)",
+                          "model (validation)"]
+        assert "validation rms" in err.get_title()
+        assert len(err.get_lines()) == 2
+
+
+def test_refit_dates_runs_to_the_second_and_an_empty_panel_says_so(monkeypatch):
+    from piezo_stage.apps.refit import _when
+    from piezo_stage.io import plots
+    assert _when("2026-11-28T09:20:45.123456+00:00") == "2026-11-28 09:20:45"
+    figs = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: figs.append(fig) or path)
+    rows = [{"started_utc": f"2026-11-28T09:{m:02d}:00+00:00",
+             "axes": {"x": {"gain_um_per_V": 0.5, "held_out_rms_um": 0.1, "change_um": 0.0,
+                            "against": {"effects": {}}}}} for m in (0, 20, 40)]
+    plots.refit_png("r.png", rows)
+    ax = figs[0].axes
+    assert [t.get_text() for t in ax[2].texts] == ["none found"]
+    for a in ax:  # runs of one day: times to the second, the day in the label
+        assert a.get_xlabel() == "run started (UTC, 2026-11-28)"
+    figs[0].canvas.draw()
+    ticks = [t.get_text() for t in ax[0].get_xticklabels() if t.get_text()]
+    assert ticks and all(len(t) == 8 and t.count(":") == 2 for t in ticks), ticks

@@ -4,6 +4,7 @@ set that cannot start ends the command with the reason."""
 
 import json
 import os
+import signal
 import subprocess
 import sys
 
@@ -197,3 +198,53 @@ def test_scan_at_a_faster_control_rate_reaches_the_targets(tmp_path, env):
             assert c["pct_after_20_periods"] <= (0.05 if c["freq_hz"] == 40.0 else 0.15), c
         elif c["axis"] == "x":
             assert c["linearity_rms_per_period_pct"][19] <= 0.05, c
+
+
+def _measured_rms(path):
+    return {c["axis"]: c["rms_err_um"] for c in json.loads(open(path).read())["cases"]
+            if c["reference"] == "measured"}
+
+
+def test_a_seed_draws_new_noise_and_the_same_seed_repeats(tmp_path, env):
+    """--seed sets the simulated stage's noise of the first case: a repeat with it gives
+    the same figures, another seed other ones (lockstep runs sample by sample)."""
+    runs = {}
+    for name, seed in (("a", 5), ("again", 5), ("b", 6)):
+        out = tmp_path / f"{name}.json"
+        r = _experiment(env, "tracking", "--model", MODEL, "--freqs", "10",
+                        "--controllers", "feedforward", "--seed", seed, "--record",
+                        tmp_path / name, "--json", out)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert json.loads(out.read_text())["seed"] == seed
+        runs[name] = _measured_rms(out)
+    assert runs["a"] == pytest.approx(runs["again"], rel=1e-9)
+    assert all(runs["a"][a] != runs["b"][a] for a in runs["a"])
+
+
+def test_a_stop_after_the_first_case_writes_the_finished_cases_report(tmp_path, env):
+    """Ctrl-C while the second case runs: the first case's rows are written (JSON,
+    table, figure), the command says how far it got and exits 130."""
+    out, rep = tmp_path / "trk.json", tmp_path / "rep"
+    p = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", "experiment",
+                          "tracking", "--model", MODEL, "--freqs", "10,40",
+                          "--controllers", "feedforward", "--record", tmp_path / "bags",
+                          "--json", out, "--report", rep], env=env, text=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        said = []
+        for line in p.stdout:
+            said.append(line)
+            if line.startswith("  ") and " rms " in line:  # the first case is done
+                break
+        p.send_signal(signal.SIGINT)
+        rest, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, err[-2000:]
+    assert "stopped after 1 of 2 cases: their report" in rest, rest
+    doc = json.loads(out.read_text())
+    assert (doc["stopped_after_cases"], doc["of_cases"]) == (1, 2)
+    assert {c["freq_hz"] for c in doc["cases"]} == {10.0}
+    assert (rep / "tracking.png").stat().st_size > 10_000
+    assert "piezo-stage: stopped by SIGINT" in err

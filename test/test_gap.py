@@ -15,6 +15,7 @@ from piezo_stage.apps.studies.gap_blind import make_pair
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.estimation.gap import diagnose
 from piezo_stage.io.csv_table import read_table, write_table
+from piezo_stage.io.gap_report import axis_figure
 
 
 @pytest.mark.parametrize("family,kind", [
@@ -182,6 +183,24 @@ def test_two_effects_at_once_are_both_named_and_the_budget_adds_up(effects, coup
         # noise, input-locked and the rest add up to the residual, closely
         assert abs(b["closure_pct"]) < 15.0, b
         assert b["input_locked_um"] > b["not_input_locked_um"]  # these effects repeat
+        # one figure per claim: the verdict quotes the table's row for the effect alone,
+        # and the joined effects by name with the joined row's figure
+        row = next(r for r in d["ranking"] if r["effect"] == d["verdict"])
+        assert f"{d['verdict']} shrinks the held-out gap by {row['shrink_pct']:.0f} %" \
+            in d["reason"], d["reason"]
+        joined = "+".join(s["effect"] for s in d["effects"])
+        assert f"({joined}: {d['effects'][-1]['shrink_pct']:.0f} % in all)" in d["reason"]
+        # the figure's legend names exactly what was kept; every bar carries its value
+        fig = axis_figure(res.per_axis[axis], hold, axis)
+        legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+        assert legend == ["before (base model)", f"after ({joined})"]
+        bars = fig.axes[3]
+        assert len(bars.patches) == len(d["ranking"]) + len(d["effects"])
+        values = sorted(float(t.get_text()) for t in bars.texts)
+        drawn = sorted(float(f"{p.get_height():.3g}") for p in bars.patches)
+        assert values == pytest.approx(drawn)
+        import matplotlib.pyplot as plt
+        plt.close(fig)
 
 
 def test_the_given_model_s_own_parts_are_not_candidates(tmp_path, stage_model):
@@ -194,6 +213,9 @@ def test_the_given_model_s_own_parts_are_not_candidates(tmp_path, stage_model):
                    base_effects={"creep": {"gamma": 0.05, "axes": ["x", "y"]}})
     tried = {r["effect"] for r in res["ranking"]}
     assert "coupling" not in tried and "creep" not in tried
+    # "none" is the given model as it is: a candidate that changes nothing, 0 %
+    none = next(r for r in res["ranking"] if r["effect"] == "none")
+    assert none["shrink_pct"] == 0.0 and none["rms_after_um"] == none["rms_before_um"]
     assert res["verdict"] == "dynamics", res["reason"]
 
 

@@ -475,6 +475,37 @@ def test_replay_honours_rate_on_the_bags_time_and_publishes_clock(tmp_path, env)
         assert f"{path}: {says}" in other.stderr and "not a bag" in other.stderr
 
 
+def test_replay_tells_a_fast_topics_subscribers_what_keeps_it_whole(tmp_path, env):
+    """A best-effort subscriber to a 1 kHz joint_states is warned by name; every fast
+    topic with subscribers gets one note with the queue depth that keeps it whole."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+
+    from piezo_stage.core.estimation.record import Record
+    from piezo_stage.io.bag import write_record_bag
+    from ros_probe import Probe
+    t = np.arange(1500) / 1000.0
+    v = 75 - 75 * np.cos(2 * np.pi * t)
+    bag = tmp_path / "r"
+    write_record_bag(bag, Record(t, {"x": v, "y": v}, {"x": 0.5 * v, "y": 0.5 * v}))
+    probe = Probe(int(env["ROS_DOMAIN_ID"]))
+    try:
+        probe.node.create_subscription(
+            JointState, "/stage/joint_states", lambda m: None,
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+        r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "replay", str(bag),
+                            "--rate", "0"], env=env, capture_output=True, text=True,
+                           timeout=60)
+    finally:
+        probe.close()
+    assert r.returncode == 0, r.stderr
+    assert ("piezo-stage replay: warning: /probe subscribes to /stage/joint_states best "
+            "effort") in r.stderr, r.stderr
+    notes = [ln for ln in r.stderr.splitlines() if ln.startswith("piezo-stage replay: note:")]
+    assert len(notes) == 1 and "/stage/joint_states streams" in notes[0], r.stderr
+    assert "a subscriber keeps every one with a queue of" in notes[0]
+
+
 def test_colcon_style_prefix_install_starts_the_driver(tmp_path, env):
     """Installed the way colcon builds an ament_python package (setup.py install into a
     prefix, scripts under lib/piezo_stage, share/piezo_stage/{config,launch}, the ament

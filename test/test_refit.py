@@ -69,8 +69,8 @@ def test_growth_dates_the_first_crossing_and_an_effect_that_appears():
     assert g["creep"]["change_pct"] == pytest.approx(10.0)
     assert g["delay"]["crossed_utc"].startswith("2026-11-03")  # absent, then there
     lines = R.growth_lines(R.growth(rows))
-    assert "x: creep +10 % since 2026-11-01 (gamma 0.1 -> 0.11); changed by 30 % on " \
-           "2026-11-03" in lines
+    assert "x: creep +10 % since 2026-11-01 00:00:00 (gamma 0.1 -> 0.11); changed by 30 " \
+           "% on 2026-11-03 00:00:00" in lines  # to the second: runs of a day told apart
     assert any(line.startswith("x: delay appeared on 2026-11-03") for line in lines)
 
 
