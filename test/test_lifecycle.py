@@ -143,7 +143,7 @@ class Manager:
 def _config(tmp_path, mode):
     # (the transitions are what is judged here, not the loop's pace: a 0.5 s stale
     # timeout, so that a host pause in real time is not an error transition the test did
-    # not ask for; CI run on 4dac020 met a 56 ms one while a second suite ran)
+    # not ask for; a loaded host can pause 56 ms while a second suite runs)
     cfg = tmp_path / "lifecycle.yaml"
     cfg.write_text(
         f"/**/stage_driver:\n  ros__parameters:\n    mode: {mode}\n"

@@ -65,7 +65,7 @@ rclpy.try_shutdown()
 
 def test_lockstep_sends_no_sample_before_every_reader_holds_the_state(env, capfd):
     """A loop node that took a sample before the state announced ahead of it ran the
-    approach a tick late, and reruns differed (CI runs 27 and 48): in lockstep the
+    approach a tick late, and reruns differed: in lockstep the
     driver publishes no sample after a change announced ahead (the enable) until every
     reader of ``state`` acknowledged it. Here an outside reader of ``state`` is stopped
     (SIGSTOP) before the set is armed: the enable then waits out the bound (1 s) and
@@ -375,7 +375,7 @@ n.destroy_node(); rclpy.try_shutdown()
 def test_recorder_stopped_while_it_is_built_finishes_its_bag_with_what_arrived(tmp_path,
                                                                             env):
     """A SIGINT that lands while the recorder is still being built, after its readers
-    have acknowledged a burst (CI run 67, 995b52e, on a loaded host: "stopped by SIGINT
+    have acknowledged a burst (on a loaded host: "stopped by SIGINT
     during start-up", a bag without its summary, the burst lost): the stop is noted,
     the recorder is built whole, and its spin's first pass takes what arrived and
     finishes the bag. Here the stop is sent from the constructor's last step, right

@@ -210,11 +210,10 @@ def test_a_slow_answer_in_a_play_is_not_a_lost_link(slow):
     """The upload and the read-back are not the loop; each answer may take longer than
     its pi_timeout_s (0.2 s), and the wave plays and is recorded.
 
-    - upload, CI run 52: one of the 3,620 checked WAV commands of a 181,000-point
+    - upload: one of the 3,620 checked WAV commands of a 181,000-point
       upload was answered after 0.2 s on a loaded host, and `play` said the link was
       lost. Here each WAV command's points take 0.3 s to store.
-    - read-back, the full suite run locally (2026-11-27, on abca2a4's parent with its
-      changes): after a 181,000-point record was read back, the outputs' query (SVA?)
+    - read-back: after a 181,000-point record was read back, the outputs' query (SVA?)
       was answered after 0.2 s, and `play` failed with pipython's timeout. Here the
       first SVA? after the record waits 0.3 s."""
     d = PIControllerDouble(clock="virtual", **slow)

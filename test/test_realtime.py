@@ -490,8 +490,7 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
     # hand-over. A stall of the driver is not the hand-over: the feedforward's inverse
     # is synced to the voltages really applied, so after a sample where the driver
     # held its voltage (its commands late) the next answers jump by what the stage
-    # really did (7.1 V once at a reversal, after a 4 ms host stall: CI run 40 on
-    # f7c4be5). Those ticks and the five after each are not judged; held samples over
+    # really did (7.1 V once at a reversal, after a 4 ms host stall). Those ticks and the five after each are not judged; held samples over
     # 5 % of the ticks leave the test unjudged (a skip that says so, never a pass).
     from piezo_stage.io.bag import iter_messages
     from piezo_stage_msgs_adapters import reference_from_msg
@@ -829,7 +828,7 @@ def _late_run(tmp_path, domain):
     d, env = domain
     bag, flag = str(tmp_path / "late"), str(tmp_path / "late.flag")
     # the relay (stock rclpy) adds milliseconds of its own (up to 27 ms seen at a 20 ms
-    # look-ahead, and past 25 ms in a slow hour of CI's host, run on a97d437): a 40 ms
+    # look-ahead, and past 25 ms in a slow hour of a busy host): a 40 ms
     # look-ahead takes them in, and a 70 ms delay is 30 ms past it; the first delayed
     # command then comes 70 ms and the relay's own after the last on time, within a
     # 150 ms stale timeout (at 50 ms it was a race with "stale commands")

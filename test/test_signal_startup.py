@@ -44,7 +44,7 @@ def test_frames_before_the_handlers_are_python_s_own_and_any_later_one_is_not():
 
 
 def test_an_editable_installs_finder_run_by_site_is_start_up_too():
-    """CI run 44 (4466eeb): a SIGINT 0.11 s after the launcher's start landed in the
+    """A SIGINT 0.11 s after the launcher's start landed in the
     editable install's finder, which site imports from a .pth line (its file name holds
     the package's name, but it is site-packages', not ours): "Fatal Python error:
     init_import_site", exit 1, nothing of ours had run. Its frames, as printed there."""

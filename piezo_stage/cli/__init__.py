@@ -25,14 +25,20 @@ COMMANDS = ("simulate", "invert", "excite", "gap", "launch", "demo", "experiment
             "lifecycle")
 
 
-def build_parser():
-    """The parser of every subcommand (``args.fn`` is its ``main``)."""
+def build_parser(argv=None):
+    """The parser of every subcommand (``args.fn`` is its ``main``); of the one
+    subcommand ARGV names, when it names one (a command starts without importing the
+    others' modules and what they import: `lifecycle` needs no numpy)."""
     p = Parser(prog="piezo-stage", description="piezo stage tools: simulate, identify, "
                "diagnose the sim-to-real gap, control through the ROS 2 node set")
     from piezo_stage import __version__
     p.add_argument("--version", action="version", version=f"piezo-stage {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=Parser)
-    for name in COMMANDS:
+    words = sys.argv[1:] if argv is None else list(argv)
+    first = next((w for w in words if not w.startswith("-")), None)
+    named = first in COMMANDS and not any(w in ("-h", "--help", "--version")
+                                          for w in words[:words.index(first)])
+    for name in ((first,) if named else COMMANDS):
         mod = importlib.import_module(f"piezo_stage.cli.{name}")
         s = sub.add_parser(name, help=mod.HELP)
         mod.add_arguments(s)
@@ -75,7 +81,7 @@ def check_paths(args):
 def main(argv=None):
     stopping.running()  # SIGTERM and SIGHUP stop a command as Ctrl-C does
     try:
-        args = build_parser().parse_args(argv)
+        args = build_parser(argv).parse_args(argv)
         check_paths(args)
         return args.fn(args) or 0
     except SolverError as e:  # the data were fine; the solver did not deliver

@@ -18,7 +18,7 @@ def add_arguments(s):
     s.add_argument("--runs", type=number(1, 1000, integer=True), default=10, metavar="N",
                    help="experiments: runs of each kind, with and without --model; "
                    "outside: trajectories from each publisher; setup: fresh clones of "
-                   "each kind")
+                   "each kind; lifecycle: calls of each")
     s.add_argument("--kinds", type=_kinds, default=None, metavar="K1,K2",
                    help="experiments: which (default tracking,noise,amplitude,"
                    "decoupling,scan)")

@@ -212,7 +212,7 @@ class PiBackend:
             # the upload and the wave are not the loop: each answer may take its time
             # (pi_timeout_s bounds the streamed loop's; a 181,000-point upload is 3,620
             # WAV commands, each checked, and one answer past 0.2 s on a loaded host
-            # failed the upload once, CI run 52)
+            # would fail the upload)
             self.dev.timeout = max(self.timeout_ms, PLAY_TIMEOUT_MS)
             for g, wave in zip(gens, (vx, vy)):
                 for k in range(0, wave.size, WAV_BUNCH):
@@ -235,9 +235,8 @@ class PiBackend:
                 time.sleep(0.01)
             cols = self.dev.bufdata
             # the outputs the wave left, still within the play's timeout: the host may
-            # still be busy with the record just read (the full suite, run locally on
-            # abca2a4's parent: this answer came after 0.2 s following a 181,000-point
-            # record)
+            # still be busy with the record just read (after a 181,000-point record this
+            # answer can take more than 0.2 s)
             ov = self.dev.qSVA(self.axes)
         except GCSError as e:
             raise BackendFault(self._fault_text(e)) from None
@@ -275,7 +274,7 @@ class PiBackend:
         device sits in reference cycles of pipython's own objects, so it is collected
         here (``gc.collect``), not at a later moment the collector picks: in the middle
         of an import, its ``__del__`` broke Python 3.11's import lock (a KeyError from
-        importlib, CI run on a80849e)."""
+        importlib)."""
         dev, self.dev, self.gateway = self.dev, None, None
         hook = sys.unraisablehook
         sys.unraisablehook = lambda u: None if isinstance(u.exc_value, OSError) else hook(u)

@@ -84,21 +84,44 @@ class LifecycleClient:
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.ctx)
 
-    def _call(self, client, request, what: str, timeout_s: float | None = None):
-        timeout = self.timeout_s if timeout_s is None else timeout_s
-        t_end = time.monotonic() + timeout
+    def _ready(self, client, what: str, t_end: float, timeout: float) -> None:
+        """Wait for ``client``'s service (the graph is kept by DDS's own threads: a
+        short spin each time, so a service found early is called early)."""
         while not client.service_is_ready():
             if time.monotonic() > t_end:
                 raise ConfigError(f"{self.name}: no lifecycle node answers there ({what} "
                                   f"not available within {timeout:g} s; is the set running "
                                   "on this ROS_DOMAIN_ID?)")
-            self.ex.spin_once(timeout_sec=0.05)
-        fut = client.call_async(request)
-        while not fut.done():
-            if time.monotonic() > t_end + timeout:
-                raise RunError(f"{self.name}: {what} did not answer within {timeout:g} s")
-            self.ex.spin_once(timeout_sec=0.05)
-        return fut.result()
+            self.ex.spin_once(timeout_sec=0.01)
+
+    def _calls(self, *calls, timeout_s: float | None = None) -> list:
+        """Each (client, request, what) called at once, their answers in order."""
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        t_end = time.monotonic() + timeout
+        for client, _, what in calls:
+            self._ready(client, what, t_end, timeout)
+        futs = [(client.call_async(req), what) for client, req, what in calls]
+        for fut, what in futs:
+            while not fut.done():
+                if time.monotonic() > t_end + timeout:
+                    raise RunError(f"{self.name}: {what} did not answer within {timeout:g} s")
+                self.ex.spin_once(timeout_sec=0.05)
+        return [fut.result() for fut, _ in futs]
+
+    def _call(self, client, request, what: str, timeout_s: float | None = None):
+        return self._calls((client, request, what), timeout_s=timeout_s)[0]
+
+    def state_and_transitions(self) -> tuple[str, list[tuple[int, str, str]]]:
+        """The node's state label and the transitions available now, asked together."""
+        got, listed = self._calls(
+            (self.get_cli, self.types[0].Request(), "get_state"),
+            (self.list_cli, self.types[1].Request(), "get_available_transitions"))
+        return got.current_state.label, self._listed(listed)
+
+    @staticmethod
+    def _listed(r) -> list[tuple[int, str, str]]:
+        return [(t.transition.id, t.transition.label, t.goal_state.label)
+                for t in r.available_transitions]
 
     def state(self) -> str:
         """The node's state label."""
@@ -106,17 +129,14 @@ class LifecycleClient:
 
     def transitions(self) -> list[tuple[int, str, str]]:
         """(id, label, goal state) of each transition available now."""
-        r = self._call(self.list_cli, self.types[1].Request(), "get_available_transitions")
-        return [(t.transition.id, t.transition.label, t.goal_state.label)
-                for t in r.available_transitions]
+        return self._listed(self._call(self.list_cli, self.types[1].Request(),
+                                       "get_available_transitions"))
 
     def change(self, label: str) -> bool:
-        """One transition by its label (the id the node lists for it now)."""
+        """One transition by its label (a lifecycle node, rclpy's or rclcpp's, looks a
+        labelled transition up itself: no listing first, one call less)."""
         from lifecycle_msgs.msg import Transition
-        ids = [i for i, lab, _ in self.transitions() if lab == label]
-        if not ids:
-            raise RunError(f"{self.name}: {label} is not available now")
-        req = self.types[2].Request(transition=Transition(id=ids[0], label=label))
+        req = self.types[2].Request(transition=Transition(label=label))
         return bool(self._call(self.change_cli, req, "change_state").success)
 
 
@@ -127,11 +147,12 @@ def drive(node: str, target: str | None, domain_id: int, timeout_s: float = 10.0
     a transition the node refused (it stays where the refusal left it)."""
     cli = LifecycleClient(node, domain_id, timeout_s)
     try:
-        now = cli.state()
         if target is None:
-            listed = ", ".join(dict.fromkeys(lab for _, lab, _ in cli.transitions()))
+            now, available = cli.state_and_transitions()
+            listed = ", ".join(dict.fromkeys(lab for _, lab, _ in available))
             say(f"{node}: {now}" + (f" (transitions: {listed})" if listed else ""))
             return now
+        now = cli.state()
         for label in plan(now, target):
             if not cli.change(label):
                 try:

@@ -404,8 +404,8 @@ class StageDriver(LifecycleNode):
         # no sample goes out before every reader holds it. Sent first is not received
         # first: a state lost on the way (a full shared-memory queue on a busy host) is
         # repaired only after the next heartbeat, and a loop node that took its samples
-        # meanwhile started the approach late (CI runs 27 and 48: a tick late, reruns no
-        # longer identical). A change that applies at once (a disarm, a fault) cannot
+        # meanwhile started the approach a tick late, and reruns were no longer
+        # identical. A change that applies at once (a disarm, a fault) cannot
         # be known ahead by anyone, and a lockstep run has none it did not ask for.
         ahead = self.loop is not None and self.state_since > self.loop.stamp(self.loop.j)
         if self.lock and ahead and not self.spub.wait_for_all_acked(

@@ -84,6 +84,12 @@ FIRST_SHRINK_PCT = 30.0  # the dominant effect must close this much of the held-
 STEP_SHRINK_PCT = 15.0   # each further effect this much of what is left
 
 
+STEP_NOISE_SIGMAS = 2.0  # and that share must stand this many of its own standard
+                         # deviations (shrink_uncertainty between the model before the
+                         # step and after it) above nothing: no effect named for what
+                         # another stretch of the same stage would not repeat
+
+
 PAIR_POOL = 3           # no single effect closes the first 30 %: pairs among these best
 
 
@@ -321,6 +327,11 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
                 need = 0.0  # the first of a pair that closes the gap together
         if not (_significant(r_cur, scores[e], floor, n) and step >= need):
             break
+        # a further effect's step, bootstrapped over HOLDOUT against the model before it
+        step_pm = shrink_uncertainty(resid_of(model), resid_of(c), floor, scored.fs_hz) \
+            if steps else float("nan")
+        if steps and np.isfinite(step_pm) and step < STEP_NOISE_SIGMAS * step_pm:
+            break  # within the noise of the step itself
         # what fits as well at this step (the excitation cannot tell them apart)
         alike = [e2 for e2 in pool if e2 != e and gap_above_floor(scores[e2], floor) <=
                  1.02 * g_new + 0.02 * (g_cur - g_new)]
@@ -329,7 +340,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         steps.append({"effect": c.effect, "params": c.params, "rms_after_um": scores[e],
                       "gap_after_um": g_new, "step_shrink_pct": step,
                       "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
-                      "equally_well": alike, "rule": rule})
+                      "equally_well": alike, "rule": rule, "step_pm_pct": step_pm})
         # polish the kept model's alphas fully, so that what the next candidates earn
         # is theirs and not a better alpha search riding along (the other class has none)
         if isinstance(c, Candidate):
