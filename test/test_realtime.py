@@ -491,7 +491,8 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
     # is synced to the voltages really applied, so after a sample where the driver
     # held its voltage (its commands late) the next answers jump by what the stage
     # really did (7.1 V once at a reversal, after a 4 ms host stall). Those ticks and
-    # the five after each are not judged; held samples over 5 % of the ticks leave the test unjudged (a skip that says so, never a pass).
+    # the five after each are not judged; held samples over 5 % of the ticks leave the
+    # test unjudged (a skip that says so, never a pass).
     from piezo_stage.io.bag import iter_messages
     from piezo_stage_msgs_adapters import reference_from_msg
     ff_at, applied = {}, {}
