@@ -23,6 +23,21 @@ SKIP = ("/diagnostics", "/model", "/rosout", "/parameter_events", "/clock")
 DEEP_ENOUGH_S = 0.1  # a subscriber's queue should hold this much of a topic's stream
 
 
+UNKNOWN = "_NODE_NAME_UNKNOWN_"  # the graph's name of an endpoint whose node it has
+                                 # not yet heard of (its participant's node list)
+
+
+def _subscribers(node, topic: str, wait_s: float = 1.0) -> list:
+    """The topic's subscribers, given up to ``wait_s`` for the graph to learn their
+    nodes' names (a subscription is discovered before its node's name arrives)."""
+    t_end = time.monotonic() + wait_s
+    while True:
+        subs = node.get_subscriptions_info_by_topic(topic)
+        if all(i.node_name != UNKNOWN for i in subs) or time.monotonic() > t_end:
+            return subs
+        time.sleep(0.02)
+
+
 def _warn_shallow_subscribers(node, pubs, msgs, rate) -> None:
     """What a subscriber needs to keep a fast stream whole, said before it plays: a
     best-effort subscriber is named (a warning line: it drops samples); for the others
@@ -42,13 +57,14 @@ def _warn_shallow_subscribers(node, pubs, msgs, rate) -> None:
         per_s = n / max((last - first) * 1e-9, 1e-3) * (rate if rate > 0 else 10.0)
         if n < 100 or per_s <= 100:
             continue
-        subs = node.get_subscriptions_info_by_topic(pub.topic_name)
+        subs = _subscribers(node, pub.topic_name)
         for info in subs:
             if info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT:
+                who = "a subscriber" if info.node_name == UNKNOWN else \
+                    f"{info.node_namespace.rstrip('/')}/{info.node_name}"
                 sys.stderr.write(
-                    f"piezo-stage replay: warning: {info.node_namespace.rstrip('/')}/"
-                    f"{info.node_name} subscribes to {pub.topic_name} best effort: at "
-                    f"{per_s:,.0f} messages/s it loses some; subscribe reliable\n")
+                    f"piezo-stage replay: warning: {who} subscribes to {pub.topic_name} "
+                    f"best effort: at {per_s:,.0f} messages/s it loses some; subscribe reliable\n")
         if subs:
             sys.stderr.write(
                 f"piezo-stage replay: note: {pub.topic_name} streams {per_s:,.0f} "
