@@ -17,8 +17,15 @@ def test_capacity_is_the_smaller_of_the_loop_thread_and_the_host():
     assert thread_bound.capacity_hz == pytest.approx(1250.0)
     assert thread_bound.margin == pytest.approx(1.25)
     assert thread_bound.holdable_rate_hz(2.0) == 500.0
-    host_bound = Capacity(1000.0, 500, 0.5, 0.2e-3, 1.6, 2)  # 5,000/s by the thread
-    assert host_bound.capacity_hz == pytest.approx(1250.0)  # 1.6 of 2 CPUs at 1 kHz
+    host_bound = Capacity(1000.0, 500, 0.5, 0.8e-3, 1.6, 2)  # 1,250/s by the thread
+    # 1.6 of 2 CPUs busy at 1 kHz, all of it the set's (1.6 ms a sample, under 6 x the
+    # thread's): the idle 0.4 CPU takes 250 samples more
+    assert host_bound.host_capacity_hz == pytest.approx(1250.0)
+    # the same host busy with a load that does not grow with the rate (another program
+    # on one CPU): the set's cost a sample is bounded by 6 x its thread's, 1.2 ms
+    other = Capacity(100.0, 50, 0.5, 0.2e-3, 1.02, 2)
+    assert other.host_capacity_hz == pytest.approx(100.0 + 0.98 / 1.2e-3)
+    assert other.margin > 2.0  # the old rate x cores / busy said 196/s: refused
     assert "1.60 of 2 CPUs busy" in host_bound.describe()
     assert Capacity(1000.0, 1, 1.0, 0.02, 2.0, 2).holdable_rate_hz(2.0) is None
 

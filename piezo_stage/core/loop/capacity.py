@@ -10,8 +10,10 @@ first arm (the loop closed, every node answering each sample):
   (launch's composition, nodes/loop_container.py) that is the whole loop's work; the
   thread's capacity is ``1 / (CPU per sample)`` samples a second.
 * the host: every CPU's busy share (``/proc/stat``: the recorder, the middleware's
-  threads, a lab's own nodes, anything else running), so the host's capacity at this
-  load is ``rate * cores / busy cores``.
+  threads, a lab's own nodes, anything else running); the host's capacity is the rate
+  and what its idle CPUs would take at the set's cost per sample (the busy CPU time
+  per sample, at most HOST_PER_THREAD times the loop thread's: a load that does not
+  grow with the rate is no cost of a sample).
 
 Both from the first sample the loop answers on time (the set's nodes have started:
 their imports and discovery are no load of the loop's). The margin is the smaller
@@ -38,6 +40,11 @@ PARAMETERS: Schema = (
           "real time: how long the capacity is measured before the first arm [s]",
           lo=0.05, hi=30.0),
 )
+
+# the host's CPU per sample is at most this many times the loop thread's: the loop's
+# nodes in their processes (three, or one composed), the recorder, the middleware's
+# threads carrying each sample
+HOST_PER_THREAD = 6.0
 
 # the rates a set may be run at, the highest first: what a refusal proposes
 STANDARD_RATES_HZ = (20000.0, 10000.0, 5000.0, 2000.0, 1000.0, 500.0, 250.0, 200.0, 100.0)
@@ -77,9 +84,19 @@ class Capacity:
 
     @property
     def host_capacity_hz(self) -> float:
-        """Samples a second with every CPU as busy as this rate's share makes it."""
+        """Samples a second until every CPU is busy: the rate and what the idle CPUs
+        would take at the set's cost per sample. That cost is the host's busy CPU time
+        per sample, but never more than HOST_PER_THREAD times the loop thread's (a
+        load that does not grow with the rate, another program or the set's own fixed
+        work, is no cost of a sample: at 100 Hz it would otherwise count a hundred
+        times more per sample than at 10 kHz)."""
         busy = self.host_busy_cores
-        return self.rate_hz * self.cores / busy if busy > 0 else float("inf")
+        if busy <= 0:
+            return float("inf")
+        per_sample = busy / self.rate_hz
+        if self.thread_s_per_sample > 0:
+            per_sample = min(per_sample, HOST_PER_THREAD * self.thread_s_per_sample)
+        return self.rate_hz + max(self.cores - busy, 0.0) / per_sample
 
     @property
     def capacity_hz(self) -> float:
