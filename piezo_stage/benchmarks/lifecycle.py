@@ -3,8 +3,9 @@ set, whole process, beside the floor of any Python lifecycle client.
 
 Two managed sets in turn (each its own ROS_DOMAIN_ID), configured and activated: one
 in real time (``config/realtime.yaml`` at RT_RATE_HZ, a rate any 2-core host of ours
-holds with margin: what a lab runs, the loop leaving the host's cores mostly idle), one in lockstep (the loop as fast as the host
-goes: every core busy, the worst case for a new process). Against each, in
+holds with margin: the loop leaves the host's cores mostly idle, as a lab's set does),
+one in lockstep (the loop as fast as the host goes: every core busy, the worst case
+for a new process). Against each, in
 alternating pairs, ``runs`` times each:
 
 * ``get``: `piezo-stage lifecycle stage_driver` (the state and its transitions);
