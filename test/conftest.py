@@ -127,12 +127,16 @@ def on_a_terminal(argv, env=None, cwd=None, timeout=300) -> str:
 
 # -- real time on this host: the rate the suite's real-time sets run at ------------------
 REALTIME_RATES_HZ = (1000.0, 500.0, 250.0)
+# a rate is chosen where the capacity run measured this much: the set's own check asks
+# 2 x, and one host's measurements of one rate spread by 1.5 x run to run (1.1-2.1 x at
+# 1 kHz on a 2-core VM), so a rate chosen at 2.0 x is refused by the next set as often
+CHOOSE_MARGIN = 2.5
 _REALTIME: dict = {}
 
 
 def realtime_rate_hz(env) -> float:
     """The highest of ``REALTIME_RATES_HZ`` this host holds a real-time set at with the
-    margin a set needs (core/loop/capacity.py: measured on the set itself, as a
+    margin a set needs and room for its spread (CHOOSE_MARGIN) (core/loop/capacity.py: measured on the set itself, as a
     launch's own check measures it), found once per test process: the real-time tests
     run there and are judged there, never by a rate the host cannot hold. pytest.skip
     (with the figures) where it holds none."""
@@ -164,7 +168,7 @@ def realtime_rate_hz(env) -> float:
         except (KeyError, ValueError, OSError) as e:
             why = f"the capacity run at {rate:g} Hz gave no figures ({e})"
             continue
-        if cap.margin >= 2.0:
+        if cap.margin >= CHOOSE_MARGIN:
             _REALTIME["rate"] = rate
             return rate
         why = f"at {rate:g} Hz this host sustains {cap.describe()}"

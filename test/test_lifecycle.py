@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("rclpy")
 from test_realtime import assert_never_beyond_slew  # noqa: E402
 
-from conftest import CONFIG  # noqa: E402
+from conftest import CONFIG, realtime_rate_hz  # noqa: E402
 from piezo_stage.io.run_bag import read_run  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 from piezo_stage.launch.lifecycle import GRAPH, plan  # noqa: E402
@@ -168,7 +168,9 @@ def test_every_transition_from_an_outside_manager(tmp_path, ros_env, mode):
     from std_srvs.srv import Trigger
     d = int(ros_env["ROS_DOMAIN_ID"])
     bag = str(tmp_path / "bag")
-    launch = Launch(_config(tmp_path, mode), record=bag, env=ros_env, managed=True,
+    # real time at the host's rate (skips where it holds none); lockstep at its own
+    rate = realtime_rate_hz(ros_env) if mode == "realtime" else None
+    launch = Launch(_config(tmp_path, mode), record=bag, env=ros_env, managed=True, rate=rate,
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"],
                     exclusive=False)
     m = Manager(d)

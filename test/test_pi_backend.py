@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, realtime_rate_hz
 
 pipython = pytest.importorskip("pipython")
 DOUBLE = os.path.join(ROOT, "test", "hardware_double")
@@ -24,7 +24,13 @@ from piezo_stage.drivers import BACKEND_PARAMS  # noqa: E402
 from piezo_stage.drivers.pi import PiBackend  # noqa: E402
 
 PARAMS = defaults(BACKEND_PARAMS)
-RT_RATE = 500.0  # the rate the tests run the set at (1 kHz works too: docs/hardware.md)
+def _rt_rate(env) -> float:
+    """The rate the tests run the set on the double at: half the host's real-time rate
+    on the simulated stage (conftest.realtime_rate_hz), at most 500 Hz. Each sample is
+    two TCP round trips to the double's own process, which costs the host about what
+    the rest of the loop does (on a 2-core VM whose sim set holds 500 Hz, the set on
+    the double measured 1.0-1.3 x at 500 Hz: refused)."""
+    return min(500.0, realtime_rate_hz(env) / 2)
 PI_SOURCE = os.path.join(ROOT, "piezo_stage", "drivers", "pi.py")
 
 
@@ -355,15 +361,16 @@ class ControllerProcess:
 
 @pytest.mark.realtime
 def test_driver_node_on_the_pi_double_arms_tracks_and_ramps_down(tmp_path, ros_env):
-    """The whole set in real time on the wall-clock double at 500 Hz (two round trips a
-    sample over TCP): it arms and tracks, the controller is named, the outputs stay in
-    their limits and end at the safe voltage."""
+    """The whole set in real time on the wall-clock double (two round trips a sample
+    over TCP; at _rt_rate): it arms and tracks, the controller is named, the outputs
+    stay in their limits and end at the safe voltage."""
     pytest.importorskip("rclpy")
     from piezo_stage.launch.launcher import Launch
+    rate = _rt_rate(ros_env)
     c = ControllerProcess(tmp_path)
     try:
         bag = str(tmp_path / "pi_run")
-        assert Launch(_pi_config(tmp_path, c.address, RT_RATE), record=bag,
+        assert Launch(_pi_config(tmp_path, c.address, rate), record=bag, rate=rate,
                       env=ros_env, exclusive=False).run(duration=8.0) == 0
     finally:
         end = c.end()
@@ -378,7 +385,7 @@ def test_driver_node_on_the_pi_double_arms_tracks_and_ramps_down(tmp_path, ros_e
     # the loop kept its pace from arming to the end (how long the set took to start
     # varies with the host; the samples per second of the driver's own run do not)
     ran_s = (bag_states[-1][0] - bag_states[1][0]) * 1e-9
-    assert int(diag["samples"]) >= max(1000, 0.8 * RT_RATE * ran_s), (diag, ran_s)
+    assert int(diag["samples"]) >= max(1000, 0.8 * rate * ran_s), (diag, ran_s)
     assert end["max_abs_V"] <= 150.0 and end["sva"] == {"1": 0.0, "2": 0.0}
     assert end["servo"] == {"1": False, "2": False}
     assert volts[-1] == [0.0, 0.0]
@@ -397,9 +404,10 @@ def test_driver_node_on_the_pi_double_faults_on_a_lost_link_or_a_controller_erro
     pytest.importorskip("rclpy")
     from piezo_stage.launch.launcher import Launch
     from ros_probe import Probe
+    rate = _rt_rate(ros_env)
     c = ControllerProcess(tmp_path)
-    launch = Launch(_pi_config(tmp_path, c.address, 500.0), record=str(tmp_path / "bag"),
-                    env=ros_env, exclusive=False)
+    launch = Launch(_pi_config(tmp_path, c.address, rate), record=str(tmp_path / "bag"),
+                    env=ros_env, exclusive=False, rate=rate)
     probe = Probe(int(ros_env["ROS_DOMAIN_ID"]))
 
     def hurt():
