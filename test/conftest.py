@@ -136,8 +136,9 @@ _REALTIME: dict = {}
 
 def realtime_rate_hz(env) -> float:
     """The highest of ``REALTIME_RATES_HZ`` this host holds a real-time set at with the
-    margin a set needs and room for its spread (CHOOSE_MARGIN) (core/loop/capacity.py: measured on the set itself, as a
-    launch's own check measures it), found once per test process: the real-time tests
+    margin a set needs and room for its spread (CHOOSE_MARGIN; core/loop/capacity.py:
+    measured on the set itself, as a launch's own check measures it), found once per
+    test process: the real-time tests
     run there and are judged there, never by a rate the host cannot hold. pytest.skip
     (with the figures) where it holds none."""
     if "rate" in _REALTIME:
