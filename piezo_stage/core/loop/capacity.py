@@ -44,7 +44,7 @@ PARAMETERS: Schema = (
 # the host's CPU per sample is at most this many times the loop thread's: the loop's
 # nodes in their processes (three, or one composed), the recorder, the middleware's
 # threads carrying each sample
-HOST_PER_THREAD = 6.0
+HOST_PER_THREAD = 3.0
 
 # the rates a set may be run at, the highest first: what a refusal proposes
 STANDARD_RATES_HZ = (20000.0, 10000.0, 5000.0, 2000.0, 1000.0, 500.0, 250.0, 200.0, 100.0)
