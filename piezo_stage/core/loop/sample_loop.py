@@ -28,8 +28,6 @@ from piezo_stage.core.errors import DataError
 from piezo_stage.core.loop.arming import ENABLED, FAULTED, ArmingParams, ArmingSupervisor
 from piezo_stage.core.loop.capacity import PARAMETERS as CAPACITY
 from piezo_stage.core.loop.capacity import Capacity, CapacityMeter
-
-CAPACITY_WINDOWS = 3  # windows measured before a refusal; the best judged
 from piezo_stage.core.loop.clock import CommandSchedule, SampleClock
 from piezo_stage.core.loop.control import clamp_slew
 from piezo_stage.core.loop.planner import DONE, TRACK
@@ -81,6 +79,8 @@ RATES = (("missed_ticks", "missed ticks", 0), ("late_commands", "late commands",
 # real time: a command stamped further than this from its arrival is no command of this
 # loop (the look-ahead is milliseconds); taking it would poison the schedule
 COMMAND_WINDOW_NS = 1_000_000_000
+
+CAPACITY_WINDOWS = 3  # windows measured before a refusal; the best judged
 
 
 def check_mode(backend: str, mode: str, use_sim_time: bool) -> None:
@@ -145,8 +145,10 @@ class SampleLoop:
         self.from_arming, self.enabled_j = bool(from_arming), None
         self.rate_hz = float(rate_hz)
         self.dt_ns = int(round(1e9 / rate_hz))
-        self.lookahead_ns = self.dt_ns if self.lock else max(
-            self.dt_ns, int(round(lookahead_s * 1e9)))
+        # a whole number of sample periods (at least the one asked): the references
+        # the look-ahead stamps land on the samples' own stamps at any rate
+        self.lookahead_ns = self.dt_ns if self.lock else self.dt_ns * max(
+            1, math.ceil(lookahead_s * 1e9 / self.dt_ns - 1e-6))
         self.max_step = {a: s / rate_hz for a, s in backend.slew_V_per_s.items()}
         self.v = {"x": arm.safe_V, "y": arm.safe_V}
         self.j, self.t0_ns = (int(first_j) - 1 if self.lock else -1), 0
