@@ -135,7 +135,10 @@ def main(argv=None):
                   file=sys.stderr)
             return 1
         settle = time.monotonic() + 0.2  # the newest samples at the last point
-        while time.monotonic() < settle:
+        seen["position"] = None  # (and one from now: this node's joint_states
+        # subscription may match later than the latched state, on a busy host)
+        while time.monotonic() < settle or (seen["position"] is None
+                                            and time.monotonic() < end):
             rclpy.spin_once(node, timeout_sec=0.02)
         x, y = seen["position"] or (float("nan"), float("nan"))
         ex, ey = x - pts[-1][1], y - pts[-1][2]

@@ -113,8 +113,11 @@ def test_a_real_time_experiment_ends_by_itself(tmp_path, env):
     exits, the command ends, and the window is judged while the set was armed."""
     from conftest import realtime_rate_hz
     rate = realtime_rate_hz(env)  # the host's (skips where it holds none)
+    params = tmp_path / "rate.yaml"
+    params.write_text("".join(f"/**/{n}:\n  ros__parameters:\n    control_rate_hz: {rate}\n"
+                              for n in ("stage_driver", "feedforward", "controller")))
     out = tmp_path / "noise.json"
-    r = _experiment(env, "noise", "--model", MODEL, "--mode", "realtime", "--rate", rate,
+    r = _experiment(env, "noise", "--model", MODEL, "--mode", "realtime", "--params", params,
                     "--record", tmp_path / "bags", "--json", out, timeout=180)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "stopped by" not in r.stderr, r.stderr[-2000:]  # it ended; nothing stopped it

@@ -385,7 +385,8 @@ def test_driver_node_on_the_pi_double_arms_tracks_and_ramps_down(tmp_path, ros_e
     # the loop kept its pace from arming to the end (how long the set took to start
     # varies with the host; the samples per second of the driver's own run do not)
     ran_s = (bag_states[-1][0] - bag_states[1][0]) * 1e-9
-    assert int(diag["samples"]) >= max(1000, 0.8 * rate * ran_s), (diag, ran_s)
+    # (the last diagnostics may be up to their 1 s period older than the end)
+    assert int(diag["samples"]) >= max(2 * rate, 0.8 * rate * (ran_s - 1.0)), (diag, ran_s)
     assert end["max_abs_V"] <= 150.0 and end["sva"] == {"1": 0.0, "2": 0.0}
     assert end["servo"] == {"1": False, "2": False}
     assert volts[-1] == [0.0, 0.0]

@@ -793,6 +793,12 @@ except KeyboardInterrupt:
 
 
 class _ControllerBehindARelay(Launch):
+    """The controller in a process of its own (not composed with the feedforward), its
+    commands remapped to the relay's input."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, compose="none", **kwargs)
+
     def command(self, node):
         cmd = super().command(node)
         return cmd + ["-r", "command:=command_raw"] if node == "controller" else cmd
