@@ -131,6 +131,8 @@ REALTIME_RATES_HZ = (1000.0, 500.0, 250.0)
 # 2 x, and one host's measurements of one rate spread by 1.5 x run to run (1.1-2.1 x at
 # 1 kHz on a 2-core VM), so a rate chosen at 2.0 x is refused by the next set as often
 CHOOSE_MARGIN = 2.5
+# (the tests' sets then run at that rate with min_margin 0: judged by what they test, not
+# by a second measurement of a host that the capacity run has measured already)
 _REALTIME: dict = {}
 
 

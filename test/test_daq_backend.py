@@ -187,6 +187,7 @@ def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp
     cfg = tmp_path / "daq.yaml"
     cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    backend: daq\n"
                    "    mode: realtime\n    watchdog_timeout_s: 0.5\n"
+                   "    min_margin: 0.0\n"  # the rate is the capacity run's (conftest)
                    "/**/feedforward:\n  ros__parameters:\n    model_file: " +
                    os.path.join(ROOT, "config", "stage_model.yaml") +
                    "\n/**/controller:\n  ros__parameters:\n    kp: 0.2\n"

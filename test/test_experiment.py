@@ -114,8 +114,10 @@ def test_a_real_time_experiment_ends_by_itself(tmp_path, env):
     from conftest import realtime_rate_hz
     rate = realtime_rate_hz(env)  # the host's (skips where it holds none)
     params = tmp_path / "rate.yaml"
-    params.write_text("".join(f"/**/{n}:\n  ros__parameters:\n    control_rate_hz: {rate}\n"
-                              for n in ("stage_driver", "feedforward", "controller")))
+    params.write_text("/**/stage_driver:\n  ros__parameters:\n    min_margin: 0.0\n"
+                      f"    control_rate_hz: {rate}\n" +
+                      "".join(f"/**/{n}:\n  ros__parameters:\n    control_rate_hz: {rate}\n"
+                              for n in ("feedforward", "controller")))
     out = tmp_path / "noise.json"
     r = _experiment(env, "noise", "--model", MODEL, "--mode", "realtime", "--params", params,
                     "--record", tmp_path / "bags", "--json", out, timeout=180)

@@ -148,6 +148,7 @@ def _config(tmp_path, mode):
     cfg.write_text(
         f"/**/stage_driver:\n  ros__parameters:\n    mode: {mode}\n"
         "    stale_timeout_s: 0.5\n    safe_ramp_V_per_s: 500.0\n"
+        "    min_margin: 0.0\n"  # the rate is the capacity run's (conftest)
         "/**/feedforward:\n  ros__parameters:\n    model_file: " + MODEL + "\n"
         "/**/controller:\n  ros__parameters:\n    kp: 0.2\n"
         "/**/trajectory:\n  ros__parameters:\n    kind: seed\n    duration_s: 120.0\n")

@@ -311,6 +311,7 @@ def _pi_config(tmp_path, address, rate=1000.0):
     cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    backend: pi\n"
                    f"    mode: realtime\n    pi_address: {address}\n"
                    f"    control_rate_hz: {rate}\n    pi_timeout_s: 0.5\n"
+                   "    min_margin: 0.0\n"  # the rate: _rt_rate's
                    "/**/feedforward:\n  ros__parameters:\n    model_file: " +
                    os.path.join(ROOT, "config", "stage_model.yaml") +
                    "\n/**/controller:\n  ros__parameters:\n    kp: 0.2\n"
