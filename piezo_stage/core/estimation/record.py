@@ -12,7 +12,9 @@ in one note:
 * a grid point between two samples is interpolated: the displacement linearly, the
   voltage linearly too, except where it is exactly what the actuator got
   (``voltage_exact``, our bags): a driver that skips ticks holds its output over them,
-  so the voltage is held (zero-order hold) until the next sample;
+  so the voltage is held (zero-order hold) until the next sample. A skipped tick's
+  interpolated displacement is no measurement: marked as a hole's samples are
+  (below), it is left out of the fits (a jittered stamp measures its own tick);
 * a hole of more than ``HOLE_SAMPLES`` missing samples is not bridged in silence: the
   record is split there into segments, which are fitted together on the one grid.
   Over the hole the voltage is held (or interpolated, as above) so the models' states
@@ -124,7 +126,8 @@ class Record:
                       self.voltage_exact, m)
 
     def unmeasured(self) -> int:
-        """How many samples hold no measured displacement (inside long holes)."""
+        """How many samples hold no measured displacement (interpolated on a grid, or
+        inside long holes)."""
         return 0 if self.measured is None else int((~self.measured).sum())
 
 
@@ -198,7 +201,12 @@ def on_grid(rec: Record, hole_samples: int = HOLE_SAMPLES) -> Record:
         v = {a: np.interp(grid, t, x) for a, x in rec.v.items()}
     missing = np.diff(j) - 1
     holes = np.flatnonzero(missing > hole_samples)
-    measured = np.ones(grid.size, bool)
+    # only the ticks with a sample are measured: a skipped tick's interpolated
+    # displacement is no measurement (the stage moved on its own path meanwhile: on a
+    # real-time bag such ticks carried 5 x the fit error of the samples), so it is left
+    # out of the fits as a hole's samples are
+    measured = np.zeros(grid.size, bool)
+    measured[j] = True  # a tick with its sample (a jittered stamp is near its tick)
     for i in holes:
         measured[j[i] + 1:j[i + 1]] = False
     if rec.measured is not None:  # a hole marked before stays one
@@ -208,7 +216,8 @@ def on_grid(rec: Record, hole_samples: int = HOLE_SAMPLES) -> Record:
     note = (f"{rec.source}: time is not uniformly sampled (steps {d.min() * 1e3:.4g}-"
             f"{d.max() * 1e3:.4g} ms): put on a uniform {dt * 1e3:.4g} ms grid "
             f"({1 / dt:.6g} Hz), {how}; {interpolated} of {grid.size} samples "
-            f"interpolated")
+            f"interpolated" + (f", {int(np.sum(missing))} of them skipped ticks (their "
+                                "displacement left out of the fits)" if missing.any() else ""))
     if holes.size:
         longest = float(d[holes].max())
         note += (f"; {holes.size} hole(s) of more than {hole_samples} samples (the "
