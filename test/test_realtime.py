@@ -167,8 +167,12 @@ def test_arming_is_refused_with_the_missing_link_and_e_stop_stays_latched(tmp_pa
         # lookahead_s (5 ms) plus under a period after the sample the feedforward answers
         # when the setpoint is taken; a sample taken just before the setpoint arrived
         # but answered after makes it shorter, by up to the loop's lag
+        # (the look-ahead is a whole number of periods: 5 ms at 1 kHz, 8 ms at 250 Hz)
+        dt_ms = 1e3 / RATE
+        la_ms = dt_ms * math.ceil(5.0 / dt_ms - 1e-6)
         assert probe.wait(lambda: 3.0 <= float(diag.get("setpoint_latency_median_ms", 0))
-                          <= 10.0, 5), diag.get("setpoint_latency_median_ms")
+                          <= la_ms + max(5.0, 1.5 * dt_ms), 5), \
+            diag.get("setpoint_latency_median_ms")
         n = len(probe.states)
         assert probe.estop().success and probe.wait_state("faulted", 5, after=n)
         probe.spin(0.5)
@@ -615,7 +619,12 @@ def _joining_run(tmp_path, domain):
     bag = str(tmp_path / "joined")
     # at half the host's rate: ten processes joining and a second set starting beside
     # the first take the margin a set alone leaves (at the host's rate on a 2-core VM
-    # whose capacity run chose 500 Hz, tracking while they joined was 2.5-5 x quiet)
+    # whose capacity run chose 500 Hz, tracking while they joined was 2.5-5 x quiet);
+    # judged from 250 Hz up (below it the seed trajectory is not tracked to these
+    # figures, and a spell of 25 ms is three samples)
+    if RATE / 2 < 250.0:
+        pytest.skip(f"the host's real-time rate is {RATE:g} Hz: joining is judged at "
+                    "half of it, from 250 Hz up (a host that holds 500 Hz with margin)")
     cfg = realtime_config(tmp_path, rate=RATE / 2)
     launch = Launch(cfg, record=bag, env=env,
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"])
