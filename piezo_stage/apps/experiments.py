@@ -342,29 +342,33 @@ def run_experiment(name, out_dir, config, plant=None, model=None, mode="lockstep
         doc["seed"] = int(seed)
     evals: list = []
     with bar(total=len(cases), desc=f"experiment {name}", unit="run") as pb:
-        for k, case in enumerate(cases):
-            bag = os.path.join(out_dir, f"{k:02d}_" + "".join(
-                c if c.isalnum() else "_" for c in case.name).strip("_"))
-            if os.path.exists(bag):
-                shutil.rmtree(bag)
-            try:
+        try:  # a stop anywhere between cases too (after a case's line, before the next)
+            for k, case in enumerate(cases):
+                bag = os.path.join(out_dir, f"{k:02d}_" + "".join(
+                    c if c.isalnum() else "_" for c in case.name).strip("_"))
+                if os.path.exists(bag):
+                    shutil.rmtree(bag)
                 run_case(case, bag, config, plant, model, mode, extra, namespace, env,
                          exclusive=k == 0, seed=None if seed is None else int(seed) + k)
-            except KeyboardInterrupt:
-                if name == "decoupling":
-                    _reductions(doc)
-                raise Interrupted(doc, evals, len(cases)) from None
-            ev = evaluate(case, bag)
-            evals.append((case, ev))
-            for (a, ref), fig in ev["axes"].items():
-                doc["cases"].append({"name": case.name, "axis": a, "freq_hz": case.freq_hz,
-                                     "controller": case.controller, "reference": ref,
-                                     **fig, "saturated_targets": case.saturated,
-                                     "saturated_voltages": ev["saturated_voltages"],
-                                     "effects": ev["effects"], "bag": os.path.abspath(bag)})
-            pb.update(1)
-            log(f"  {case.name}: " + ", ".join(
-                f"{a} {ref} rms {f['rms_err_um']:.4f} um" for (a, ref), f in ev["axes"].items()))
+                ev = evaluate(case, bag)
+                rows = [{"name": case.name, "axis": a, "freq_hz": case.freq_hz,
+                         "controller": case.controller, "reference": ref,
+                         **fig, "saturated_targets": case.saturated,
+                         "saturated_voltages": ev["saturated_voltages"],
+                         "effects": ev["effects"], "bag": os.path.abspath(bag)}
+                        for (a, ref), fig in ev["axes"].items()]
+                evals.append((case, ev))
+                doc["cases"].extend(rows)
+                pb.update(1)
+                log(f"  {case.name}: " + ", ".join(
+                    f"{a} {ref} rms {f['rms_err_um']:.4f} um"
+                    for (a, ref), f in ev["axes"].items()))
+        except KeyboardInterrupt:
+            if len(doc["cases"]) < sum(len(ev["axes"]) for _, ev in evals):
+                evals.pop()  # stopped between a case's two records: the case is not done
+            if name == "decoupling":
+                _reductions(doc)
+            raise Interrupted(doc, evals, len(cases)) from None
     if name == "decoupling":
         _reductions(doc)
     return doc, evals
