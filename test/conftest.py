@@ -129,8 +129,9 @@ def on_a_terminal(argv, env=None, cwd=None, timeout=300) -> str:
 REALTIME_RATES_HZ = (1000.0, 500.0, 250.0)
 # a rate is chosen where the capacity run measured this much: the set's own check asks
 # 2 x, and one host's measurements of one rate spread by 1.5 x run to run (1.1-2.1 x at
-# 1 kHz on a 2-core VM), so a rate chosen at 2.0 x is refused by the next set as often
-CHOOSE_MARGIN = 2.5
+# 1 kHz on a 2-core VM), so a rate chosen at 2.0 x is refused by the next set as often;
+# at 2.5 x a 500 Hz set still faulted on stale commands in one CI run of that host
+CHOOSE_MARGIN = 3.0
 # (the tests' sets then run at that rate with min_margin 0: judged by what they test, not
 # by a second measurement of a host that the capacity run has measured already)
 _REALTIME: dict = {}
