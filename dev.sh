@@ -60,10 +60,12 @@ if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" 
   # uv writes no bytecode unless asked (pip does): where Python will not write it either
   # (PYTHONDONTWRITEBYTECODE, as on this project's CI hosts) every process compiles
   # numpy, scipy, numba and rclpy again at each start: 4.7 s of CPU a node where 1.8 s
-  # do with the bytecode (a set starts six such processes on two cores). Compiled
-  # once here, for every command (the whole environment below, as uv installs only
-  # what changed)
-  uv_flags+=(--compile-bytecode)
+  # do with the bytecode (a set starts six such processes on two cores). The tests'
+  # environment is compiled whole (its tools too); the others get what the package's
+  # processes import, and the compiled kernels, from piezo_stage.warm below: about
+  # half the time of compiling every module, and a first demo that does not compile
+  # its kernels while it runs
+  if [ "$extras" = ros,test ]; then uv_flags+=(--compile-bytecode); fi
   if ! { [ -n "$uv" ] && "$uv" pip install --quiet --python .venv/bin/python \
            --index-strategy unsafe-best-match "${uv_flags[@]}" -e ".[$extras]"; }; then
     [ -n "$uv" ] && echo "dev.sh: uv could not install; pip takes over" >&2
@@ -78,7 +80,13 @@ if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" 
     .venv/bin/python -m pip install --quiet --disable-pip-version-check \
       --ignore-requires-python "nv200==1.6.0"
   fi
-  .venv/bin/python -m compileall -q -j 0 .venv/lib >/dev/null 2>&1 || true
+  if [ "$extras" = ros ]; then
+    echo "dev.sh: compiling what the package's processes use (once per install)" >&2
+    ( export PYTHONDONTWRITEBYTECODE=
+      .venv/bin/python -m piezo_stage.warm modules >/dev/null 2>&1 &
+      .venv/bin/python -m piezo_stage.warm kernels >/dev/null 2>&1 &
+      wait ) || true
+  fi
   echo "$want $extras" > "$stamp"
 fi
 # the package's own modules too, where they changed (quick when none did)

@@ -17,12 +17,10 @@ import numpy as np
 from piezo_stage.io.bag import new_bag_dir
 
 
-def tracking_from_bag(bag, t_from_s):
+def tracking_from_run(run, t_from_s):
     """Desired (reference) and measured (joint_states) [um] per stamp after t_from_s:
-    (t [s], desired (n, 2), measured (n, 2), models handed over). Read with
-    io.run_bag.read_run, the one reader of a recorded run."""
-    from piezo_stage.io.run_bag import read_run
-    run = read_run(bag)
+    (t [s], desired (n, 2), measured (n, 2), models handed over), of ``run`` (a
+    recorded run, io.run_bag.read_run)."""
     meas = dict(zip(run.t_ns.tolist(), run.w_um))
     stamps = sorted(k for k in run.desired_um if k in meas and k >= t_from_s * 1e9)
     d = np.array([run.desired_um[k] for k in stamps]).reshape(-1, 2)
@@ -54,7 +52,9 @@ def run_demo(args):
     if not os.path.isdir(bag):
         sys.stderr.write("piezo-stage demo: the node set wrote no bag\n")
         return 1
-    t, d, w, models = tracking_from_bag(bag, args.excite + 0.2 + 0.1)
+    from piezo_stage.io.run_bag import read_run
+    run = read_run(bag)  # the one reader of a recorded run
+    t, d, w, models = tracking_from_run(run, args.excite + 0.2 + 0.1)
     if d.size == 0:
         sys.stderr.write("piezo-stage demo: no tracking samples in the bag\n")
         return 1
@@ -66,8 +66,7 @@ def run_demo(args):
         rms = float(np.sqrt(np.mean(e[:, i] ** 2)))
         print(f"{a:>4} {rms:8.4f} {np.max(np.abs(e[:, i])):8.4f} {100 * rms / span[i]:8.3f}")
     from piezo_stage.io.plots import tracking_png
-    from piezo_stage.io.run_bag import read_run
-    png = tracking_png(os.path.join(bag, "tracking.png"), read_run(bag),
+    png = tracking_png(os.path.join(bag, "tracking.png"), run,
                        args.excite + 0.2 + 0.1, excite_s=args.excite)
     print(f"plot: {png} (the whole run)")
     print(f"bag: {bag}")
