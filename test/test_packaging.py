@@ -152,8 +152,24 @@ def test_dev_sh_sets_up_a_fresh_checkout_for_the_demo_alone(tmp_path):
                                     capture_output=True).returncode == 0
     assert have("rclpy") and have("piezo_stage.core.model.duhem")
     assert not have("pytest")  # the demo's set-up leaves the test tools out
+    # what the package's processes use is compiled once here (piezo_stage.warm): the
+    # bytecode of what they import, the kernels of the demo's set and of identify
+    site = next((venv / "lib").glob("python3*/site-packages"))
+    assert list((site / "rclpy" / "__pycache__").glob("node.*.pyc"))
+    kernels = {p.name.split(".")[1].rsplit("-", 1)[0]
+               for p in (src / "piezo_stage" / "core" / "__pycache__").glob("_jit.*.nbi")}
+    assert {"plant_run", "stage_inverse_step", "duhem_regressors"} <= kernels, kernels
     stamp = (venv / ".piezo_stage_install_stamp").stat().st_mtime
     again = subprocess.run(["./dev.sh", "--version"], cwd=src, env=env, capture_output=True,
                            text=True, timeout=120)
     assert again.returncode == 0 and again.stderr == ""
     assert (venv / ".piezo_stage_install_stamp").stat().st_mtime == stamp
+
+
+def test_warm_up_takes_one_known_part():
+    """``python -m piezo_stage.warm`` (run by dev.sh) refuses anything but its parts."""
+    import subprocess
+    import sys
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.warm", "everything"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "modules, kernels" in r.stderr, r
