@@ -33,7 +33,7 @@ class CdrReader:
 
     __slots__ = ("buf", "pos", "end", "a8")
 
-    def __init__(self, data: bytes):
+    def __init__(self, data: bytes | bytearray | memoryview):
         if len(data) < 4 or data[0] != 0 or data[1] not in _ENCAPSULATIONS:
             raise DataError(f"CDR: unsupported or missing encapsulation header "
                             f"{bytes(data[:2]).hex() or '(empty)'}")
@@ -183,7 +183,7 @@ def _decode_known(data):
     return None
 
 
-def decode_joint_state(data: bytes):
+def decode_joint_state(data: bytes | bytearray | memoryview):
     """-> (stamp ns, frame_id, names, position, velocity, effort) from CDR bytes."""
     known = _decode_known(data) if len(data) in _KNOWN else None
     if known is not None:

@@ -158,3 +158,28 @@ def test_real_time_a_stream_of_late_commands_faults_like_none():
     assert s.faulted_at_safe is None  # faulted, on the way to safe
     fresh = loop()
     assert fresh.at_safe and fresh.faulted_at_safe is None  # at safe, not faulted
+
+
+def test_the_lifecycle_transitions_are_the_loops_own():
+    """A managed driver's configure (arming left to activate), activate (the explicit
+    re-arm of a latched e-stop), deactivate and a hardware fault, on the core alone."""
+    changes = []
+    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(auto_arm=True), RATE, True, 0.005,
+                   0, lambda *a: changes.append(a), arm_on_start=False)
+    close_the_loop(s)
+    assert s.sup.state == "disarmed" and not s.sup.arm_requested  # configure: held
+    state, reason = s.activate(arm=False)
+    assert (state, reason) == ("disarmed", "activated: arm on the arm service")
+    s.estop()
+    assert s.sup.estop
+    state, reason = s.activate(arm=True)
+    assert not s.sup.estop and s.sup.arm_requested  # activate released the latch
+    assert reason == "activated: waiting for the loop to close"
+    state, reason = s.deactivate()
+    assert not s.sup.arm_requested and reason == "deactivated: ramping to the safe voltage"
+    s.reject_command()
+    assert s.stats["rejected"] == 1
+    s.hardware_fault("link lost")
+    assert s.sup.state == "faulted" and s.sup.reason == "hardware: link lost"
+    s.end_now()
+    assert s.shutdown_requested

@@ -84,7 +84,7 @@ def _seed_wave(f):
 
 
 def _controller_params(c):
-    ctl = {"feedback": c in ("feedback", "composite")}
+    ctl: dict[str, object] = {"feedback": c in ("feedback", "composite")}
     if c == "feedback":  # the integral carries the whole voltage
         ctl["integral_limit_V"] = 150.0
     return {"feedforward": {"inverse_feedforward": c in ("feedforward", "composite")},
@@ -376,7 +376,7 @@ def run_experiment(name, out_dir, config, plant=None, model=None, mode="lockstep
 
 def _reductions(doc):
     """Decoupling: each 'on' case gets the coupling RMS before (off) and after (on)."""
-    by = {}
+    by: dict[tuple, dict] = {}
     for c in doc["cases"]:
         driven = c["name"].split()[1]
         by.setdefault((driven, c["axis"], c["reference"]), {})[

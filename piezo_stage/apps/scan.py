@@ -242,7 +242,7 @@ def run_scan(out_dir, config, plants, model=None, mode="lockstep", extra=None,
     doc = {"experiment": "scan", "mode": mode, "model": os.path.abspath(model) if model
            else "each plant's own", "plants": plants, "control_rate_hz": rate,
            "cases": []}
-    evals = []
+    evals: list[tuple] = []
     with bar(total=len(cases) * len(plants), desc="experiment scan", unit="run") as pb:
         for plant in plants:
             pname = os.path.splitext(os.path.basename(plant))[0]

@@ -61,7 +61,7 @@ def loop_run(env, steps, foxglove_port=None, compose=None):
                   r"ms, p99 ([\d.]+) ms", text)
     if not m or rc != 0:
         return None, f"exit {rc}; {'; '.join(launch.failed)}\n{text[-2000:]}"
-    counts = {}
+    counts: dict[str, int] = {}
     for topic, *_ in iter_messages(bag):
         counts[topic] = counts.get(topic, 0) + 1
     lost = {t: steps + 1 - counts.get(t, 0) for t in

@@ -38,7 +38,7 @@ def build_parser(argv=None):
     first = next((w for w in words if not w.startswith("-")), None)
     named = first in COMMANDS and not any(w in ("-h", "--help", "--version")
                                           for w in words[:words.index(first)])
-    for name in ((first,) if named else COMMANDS):
+    for name in ((first,) if named and first is not None else COMMANDS):
         mod = importlib.import_module(f"piezo_stage.cli.{name}")
         s = sub.add_parser(name, help=mod.HELP)
         mod.add_arguments(s)

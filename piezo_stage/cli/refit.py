@@ -46,7 +46,7 @@ def main(args):
     print(f"refit: {len(bags)} bag(s) on {where}"
           + (f", against {args.against}" if args.against else ""))
     t0 = time.perf_counter()
-    skipped = []
+    skipped: list[tuple[str, str]] = []  # (bag, why)
     with bar("refit", total=len(bags), unit="bag") as b:
         rows = R.refit(bags, args.out, jobs, args.limits, args.against, steps(b), skipped,
                        args.scheduler)

@@ -31,6 +31,7 @@ limit [V/s].
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.params import Param, Schema
@@ -107,7 +108,7 @@ class DaqBackend:
                               "NI-DAQmx driver is not (install NI-DAQmx on this "
                               "machine, e.g. `python -m nidaqmx installdriver`)") from None
         self.ai = nidaqmx.Task()
-        self.wd = None
+        self.wd: Any = None  # nidaqmx's WatchdogTask where the device has one
         try:
             for ch, (lo, hi), g in zip(ao, self.limits.values(), self.gain):
                 self.ao.ao_channels.add_ao_voltage_chan(ch, min_val=lo / g, max_val=hi / g)

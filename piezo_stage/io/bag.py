@@ -375,7 +375,8 @@ def iter_messages(path, topics=None, on_damage=_warn):
             try:
                 for schema, channel, message in reader.iter_messages(
                         topics=topics, log_time_order=False):
-                    yield channel.topic, schema.name, message.log_time, message.data
+                    yield (channel.topic, schema.name if schema is not None else "",
+                           message.log_time, message.data)
                     n += 1
                 return
             except Exception as e:  # noqa: BLE001 - CRC, decompression, truncation...

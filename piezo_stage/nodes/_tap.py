@@ -72,7 +72,7 @@ class TopicTap:
     def __init__(self, node, on_topic, on_message, best_effort=False, discover_s=1.0):
         self.node, self.on_topic, self.on_message = node, on_topic, on_message
         self.best_effort = best_effort
-        self.subs = {}
+        self.subs: dict[str, object] = {}
         for rel, (msgtype, kind) in CONTRACT.items():
             self.subscribe(self.resolve(rel), msgtype, kind)
         self.subs[self.resolve("trajectory")] = None  # the feedforward's alone (above)

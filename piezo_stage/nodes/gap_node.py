@@ -41,7 +41,8 @@ class Gap(Node):
         cfg.effects = enabled_effects(effects)
         self.twin = Plant(cfg, rate)
         self.model_name = path
-        self.res = {a: deque(maxlen=self.window) for a in ("x", "y")}
+        self.res: dict[str, deque[float]] = {a: deque(maxlen=self.window)
+                                             for a in ("x", "y")}
         self.offset, self.n0 = {"x": 0.0, "y": 0.0}, 0
         self.pub = self.create_publisher(PointStamped, "gap/residual", QOS_DATA)
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])

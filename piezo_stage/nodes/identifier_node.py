@@ -12,6 +12,7 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 # isort: split
 
 from collections import deque
+from typing import Any
 
 import numpy as np
 import yaml
@@ -44,10 +45,12 @@ class Identifier(Node):
         self.method, self.structure = p["method"], p["structure"]
         self.auto_cycles, self.max_samples = p["auto_cycles"], p["max_samples"]
         # samples in stamp order, bounded: the oldest fall off the front (no re-sort)
-        self.buf, self.done_auto = deque(maxlen=self.max_samples), False
+        self.buf: deque[tuple] = deque(maxlen=self.max_samples)
+        self.done_auto = False
         self.stamps = StampGuard()  # one stray stamp must not make every later sample old
-        self.stats = {"samples": 0, "identifications": 0, "last_fit_rms_um": float("nan"),
-                      "last_error": "", "bad_messages": 0, "out_of_order": 0}
+        self.stats: dict[str, Any] = {
+            "samples": 0, "identifications": 0, "last_fit_rms_um": float("nan"),
+            "last_error": "", "bad_messages": 0, "out_of_order": 0}
         self.pub = self.create_publisher(String, "model", QOS_LATCHED)
         # off the loop's path: what arrived is taken every BATCH_S in one pass (a wake
         # a sample cost a real-time set's host a tenth of a CPU at 500 Hz)

@@ -31,6 +31,7 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 # isort: split
 
 import time
+from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
@@ -85,7 +86,10 @@ class StageDriver(LifecycleNode):
         self.arm_params = ArmingParams(**{q.field: arm[q.name] for q in ARMING})
         self.bp = declare_schema(self, BACKEND_PARAMS)
         self.managed = bool(p["managed"])
-        self.backend = self.loop = self.sup = None  # open from configure to cleanup
+        # open from configure to cleanup: the backend, and the sample loop over it
+        self.backend: Any = None
+        self.loop: SampleLoop | None = None
+        self.rt_priority = 0
         self.lock = p["mode"] == "lockstep"
         self.link, self.failed = "", None  # the missing links; the hardware's fault
         self.next_j = 0  # lockstep: the first sample of the next configure
@@ -142,7 +146,7 @@ class StageDriver(LifecycleNode):
             try:
                 start(p, arm)
             except Exception:
-                self.loop = self.sup = None
+                self.loop = None
                 self.close()  # nothing left open by a configure that failed
                 raise
             return SUCCESS
@@ -152,15 +156,14 @@ class StageDriver(LifecycleNode):
                                    p["lookahead_s"], p["max_steps"], self.on_state_change,
                                    p["clock_period_s"], p["max_steps_from_arming"],
                                    first_j=self.next_j, min_margin=p["min_margin"],
-                                   capacity_window_s=p["capacity_window_s"])
-            self.sup = self.loop.sup
-            self.sup.arm_requested = False  # arming is activate's (or the arm service's)
+                                   capacity_window_s=p["capacity_window_s"],
+                                   arm_on_start=False)  # activate's (or the arm service's)
             # lockstep: nothing is published before every consumer listens; real time:
             # the sample clock starts then (the first publishes to new readers are slow)
             self.gate = Gate(self, [(self.jpub, p["min_subscribers"]),
                                     (self.tpub,
                                      p["min_record_subscribers"] * (p["backend"] == "sim"))])
-            self.on_state_change(self.sup.state,
+            self.on_state_change(self.loop.sup.state,
                                  "configured: started disarmed at the safe voltage",
                                  self.loop.stamp(self.loop.j + 1))
             if self.lock:
@@ -172,13 +175,9 @@ class StageDriver(LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Arm once the loop is closed (managed, or ``auto_arm``), then the approach."""
         def body():
-            if self.sup.estop:  # a latched e-stop: activate is the explicit re-arm
-                self.sup.request_disarm(self.loop.stamp(self.loop.j))
-            self.sup.arm_requested = self.managed or self.arm_params.auto_arm
-            self.sup.reason = "activated: waiting for the loop to close" \
-                if self.sup.arm_requested else "activated: arm on the arm service"
-            self.on_state_change(self.sup.state, self.sup.reason,
-                                 self.loop.stamp(self.loop.j), log=False)
+            loop = self.running
+            state, reason = loop.activate(self.managed or self.arm_params.auto_arm)
+            self.on_state_change(state, reason, loop.stamp(loop.j), log=False)
             return SUCCESS
         return self._transition("activate", body)
 
@@ -188,10 +187,9 @@ class StageDriver(LifecycleNode):
         if self.why_error:
             return ERROR
         def body():
-            self.loop.arm(False)
-            self.sup.reason = "deactivated: ramping to the safe voltage"
-            self.on_state_change(self.sup.state, self.sup.reason,
-                                 self.loop.stamp(self.loop.j), log=False)
+            loop = self.running
+            state, reason = loop.deactivate()
+            self.on_state_change(state, reason, loop.stamp(loop.j), log=False)
             return SUCCESS
         return self._transition("deactivate", body)
 
@@ -235,13 +233,13 @@ class StageDriver(LifecycleNode):
         except Exception as e:  # noqa: BLE001 - a link already lost cannot close
             self.get_logger().error(f"{why}: the backend's close failed: {e}")
         if self.loop is not None:
-            self.loop = self.sup = None
+            self.loop = None
             self._announce("disarmed", f"{why}: the backend is closed", log=True)
 
     def _check_fault(self) -> None:
         """Managed and active: a fault, once at the safe voltage, takes the error
         transition (a deactivate that reports the fault)."""
-        why = self.loop.faulted_at_safe if self.managed else None
+        why = self.loop.faulted_at_safe if self.managed and self.loop is not None else None
         if why and self.lifecycle_label() == "active":
             self.why_error = why
             self.trigger_deactivate()
@@ -270,7 +268,7 @@ class StageDriver(LifecycleNode):
         try:
             ns, v = voltage_from_msg(msg)
         except DataError:  # NaN/inf or malformed: never counts as a fresh command
-            self.loop.stats["rejected"] += 1
+            self.loop.reject_command()
             return
         recv = 0 if self.lock else (info.get("received_timestamp")
                                     or self.get_clock().now().nanoseconds)
@@ -310,12 +308,13 @@ class StageDriver(LifecycleNode):
         import json
         import os
         path = os.environ.get(CAPACITY_FILE_ENV)
-        cap = self.loop.last_capacity
+        loop = self.running
+        cap = loop.last_capacity
         if not path or cap is None:
             return
         doc = {"capacity_hz": cap.capacity_hz, "margin": cap.margin,
                "rate_hz": cap.rate_hz, "holdable_rate_hz": cap.holdable_rate_hz(
-                   self.loop.min_margin)}
+                   loop.min_margin)}
         tmp = path + ".tmp"
         with open(tmp, "w") as fh:
             json.dump(doc, fh)
@@ -329,7 +328,7 @@ class StageDriver(LifecycleNode):
         unconfigured for a manager to configure it again."""
         if self.failed is None:
             self.failed = error
-            self.sup.fault(f"hardware: {error}", self.loop.stamp(self.loop.j))
+            self.running.hardware_fault(error)
             self.get_logger().error(f"faulted: hardware: {error}")
             self.final_report()
             self.spub.wait_for_all_acked(Duration(seconds=1))
@@ -347,7 +346,7 @@ class StageDriver(LifecycleNode):
         if self.lock:
             if self.p["exit_after_max_steps"] and not hasattr(self, "_exit_timer"):
                 self._exit_timer = steady_timer(self, 0.2, self.finish)
-        elif not self.loop.shutdown_requested:
+        elif not self.running.shutdown_requested:
             self.request_shutdown()
 
     def finish(self):
@@ -355,7 +354,7 @@ class StageDriver(LifecycleNode):
         t0 = time.monotonic()
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
                                   for pub in (self.jpub, self.tpub)):
-            self.get_logger().info(done_line(self.loop, time.monotonic() - t0))
+            self.get_logger().info(done_line(self.running, time.monotonic() - t0))
             self.final_report()
             rclpy.try_shutdown()
 
@@ -363,6 +362,13 @@ class StageDriver(LifecycleNode):
         """Last diagnostics with the final counts, delivered before exiting."""
         self.diag.publish()
         self.diag.pub.wait_for_all_acked(Duration(seconds=1))
+
+    @property
+    def running(self) -> SampleLoop:
+        """The sample loop, where one runs (from configure to cleanup: every caller)."""
+        if self.loop is None:
+            raise RuntimeError("stage driver: no sample loop outside configure..cleanup")
+        return self.loop
 
     @property
     def shutdown_requested(self) -> bool:
@@ -377,7 +383,7 @@ class StageDriver(LifecycleNode):
             rclpy.try_shutdown()
             return
         if self.lock:
-            self.loop.shutdown_requested = True
+            self.loop.end_now()
             rclpy.try_shutdown()
             return
         # the ramp, then the backend's close (which may ramp again) and the teardown
@@ -386,7 +392,7 @@ class StageDriver(LifecycleNode):
     # -- arming ---------------------------------------------------------------------------
     def on_state_change(self, state, reason, since_ns, log=True):
         self.state_since = since_ns
-        self.last_values = {**self.loop.announced(), "mode": self.p["mode"]}
+        self.last_values = {**self.running.announced(), "mode": self.p["mode"]}
         self._announce(state, reason, log)
 
     def _announce(self, state, reason, log=True):
@@ -421,14 +427,14 @@ class StageDriver(LifecycleNode):
     def check_links(self):
         """Graph queries cost the loop thread ~1 ms: only while not armed, where a
         refusal or the arming reason needs them."""
-        if self.sup is not None and self.sup.state not in ENABLED:
+        if self.loop is not None and self.loop.sup.state not in ENABLED:
             self.link = missing_links(self)
 
     def on_phase(self, msg):
         """The feedforward's phase and what it follows: the arming state follows it,
         and /stage/state relays it."""
         if self.loop is not None and self.loop.feedforward_phase(*phase_from_msg(msg)):
-            self.on_state_change(self.sup.state, self.sup.reason, self.state_since,
+            self.on_state_change(self.loop.sup.state, self.loop.sup.reason, self.state_since,
                                  log=False)  # the same state, from the same sample
 
     def on_arm(self, request, response):
@@ -441,7 +447,7 @@ class StageDriver(LifecycleNode):
                                 "active (lifecycle: configure, then activate)")
             return response
         self.check_links()
-        response.success, response.message = self.loop.arm(request.data, self.link)
+        response.success, response.message = self.running.arm(request.data, self.link)
         return response
 
     def on_estop(self, request, response):
@@ -459,12 +465,12 @@ class StageDriver(LifecycleNode):
     def status(self):
         if self.loop is None:
             level, message = 0, f"{self.lifecycle_label()}: the backend is closed"
-            values = {"state": "disarmed", "reason": message}
+            values: dict[str, Any] = {"state": "disarmed", "reason": message}
         else:
             level, message, values = self.loop.status()
         values.update(backend=self.p["backend"], mode=self.p["mode"],
                       lifecycle=self.lifecycle_label(),
-                      thread_priority=getattr(self, "rt_priority", 0))
+                      thread_priority=self.rt_priority)
         return level, message, values
 
     def stop_summary(self) -> str:

@@ -49,7 +49,7 @@ class Trajectory(Node):
         self.pub = self.create_publisher(JointTrajectory, "trajectory", QOS_LATCHED)
         self.gate = Gate(self, [(self.pub, wait_for)])
         self.published, self.resent, self.last = 0, 0, None
-        self.sent_at, self.ff_phase, self.budget = None, None, RESENDS
+        self.sent_at, self.ff_phase, self.budget = 0.0, None, RESENDS  # (last: None)
         self.add_on_set_parameters_callback(self.on_set)
         self.publish(self.build(self.p))
         self.create_subscription(KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)

@@ -45,7 +45,8 @@ def run(out_dir, seeds=5, budget=60_000, progress=print, step=lambda: None):
     t0 = time.perf_counter()
     swarm = {"iterations": 100_000}  # the evaluation budget decides, equal for both
 
-    rows, results = [], {}
+    rows: list = []
+    results: dict[str, list] = {}
 
     def add(label, method, structure, seed=0, bud=None):
         opts = IdentifyOptions(method=method, structure=structure, seed=seed, budget=bud,

@@ -140,7 +140,8 @@ class SampleLoop:
                  lookahead_s: float, max_steps: int,
                  on_state_change: Callable[[str, str, int], None],
                  clock_period_s: float = 0.0, from_arming: bool = False,
-                 first_j: int = 0, min_margin: float = 0.0, capacity_window_s: float = 0.5):
+                 first_j: int = 0, min_margin: float = 0.0, capacity_window_s: float = 0.5,
+                 arm_on_start: bool | None = None):
         self.backend, self.lock, self.max_steps = backend, bool(lockstep), int(max_steps)
         self.from_arming, self.enabled_j = bool(from_arming), None
         self.rate_hz = float(rate_hz)
@@ -162,6 +163,8 @@ class SampleLoop:
         self.sup = ArmingSupervisor(arm, self.v, 1.0 / rate_hz,
                                     3 * self.dt_ns if self.lock else max(
                                         3 * self.dt_ns, 20_000_000), on_change)
+        if arm_on_start is not None:  # (None: the arming parameters' auto_arm)
+            self.sup.arm_requested = bool(arm_on_start)
         self.sched = CommandSchedule(0, self.dt_ns, self.lookahead_ns)
         self.clock = SampleClock(self.dt_ns * 1e-9, backend.paced)
         self.shutdown_requested = False
@@ -306,6 +309,38 @@ class SampleLoop:
             return self.sup.request_disarm(now)
         ok, message = self.sup.request_arm(now)
         return ok, message + (f" ({link})" if link and not ok else "")
+
+    # -- the lifecycle's transitions (a managed driver's; the node only relays them) ----
+    def activate(self, arm: bool) -> tuple[str, str]:
+        """Activate: a latched e-stop is released (this is the explicit re-arm), and
+        arming is requested when ``arm`` (a managed set, or ``auto_arm``), else left to
+        the arm service. -> (state, reason), what the node announces."""
+        if self.sup.estop:
+            self.sup.request_disarm(self.stamp(self.j))
+        self.sup.arm_requested = bool(arm)
+        self.sup.reason = ("activated: waiting for the loop to close" if arm
+                           else "activated: arm on the arm service")
+        return self.sup.state, self.sup.reason
+
+    def deactivate(self) -> tuple[str, str]:
+        """Deactivate: disarm and ramp to the safe voltage, still sampling.
+        -> (state, reason)."""
+        self.arm(False)
+        self.sup.reason = "deactivated: ramping to the safe voltage"
+        return self.sup.state, self.sup.reason
+
+    def hardware_fault(self, error: object) -> None:
+        """The backend lost its link or its controller failed: faulted at once, at
+        the last sample's stamp (no sample is taken after it)."""
+        self.sup.fault(f"hardware: {error}", self.stamp(self.j))
+
+    def reject_command(self) -> None:
+        """A command that cannot be read (NaN, inf, malformed): counted, never fresh."""
+        self.stats["rejected"] += 1
+
+    def end_now(self) -> None:
+        """A lockstep stop: no ramp (nothing real is driven), the run ends here."""
+        self.shutdown_requested = True
 
     def estop(self) -> str:
         """Drive to the safe voltage, latched until disarm and re-arm."""

@@ -134,7 +134,7 @@ def _margins(Lw, w):
     up = np.nonzero((mag[:-1] < 1) & (mag[1:] >= 1))[0]
     pm = min(math.degrees(math.remainder(ph[i] + math.pi, 2 * math.pi))
              for i in np.concatenate([cross, up]))
-    k = list(np.nonzero(np.diff(np.floor((ph + math.pi) / (2 * math.pi))) != 0)[0])
+    k: list[int] = list(np.nonzero(np.diff(np.floor((ph + math.pi) / (2 * math.pi))) != 0)[0])
     if abs(math.remainder(ph[-1] + math.pi, 2 * math.pi)) < 1e-6:
         k.append(len(w) - 1)  # real and negative at Nyquist: a -180 deg point too
     gm = min((-20 * math.log10(max(mag[j], 1e-12)) for j in k), default=math.inf)

@@ -36,6 +36,7 @@ import contextlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from piezo_stage.core.errors import DataError
 
@@ -71,7 +72,7 @@ class Diagnosis:
     per_axis: dict
     notes: list = field(default_factory=list)  # what ``model`` had to leave out
 
-    def __getitem__(self, key: str) -> object:
+    def __getitem__(self, key: str) -> Any:  # the JSON contract's values
         return self.json[key]
 
     def __contains__(self, key: str) -> bool:
@@ -185,7 +186,10 @@ def _axes_apart(fit, holdout, axes, args, progress):
             return {a: f.result() for a, f in futures.items()}
     from multiprocessing.connection import wait
     ctx = mp.get_context("fork")
-    procs, conns, per = {}, {}, {}
+    procs: dict[str, Any] = {}
+    conns: dict[Any, str] = {}  # a pipe's reading end -> its axis
+    r: Any
+    per: dict[str, Any] = {}
     try:
         for a in axes:
             r, w = ctx.Pipe(duplex=False)

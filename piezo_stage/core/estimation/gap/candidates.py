@@ -819,7 +819,7 @@ def _search_dynamics(fs, cost, seeds=()):
                          "zeta": float(np.exp(x[1]))})
         except ValueError:  # above Nyquist
             return 1e300
-    best = (np.inf, None)
+    best: tuple[float, tuple[float, float] | None] = (np.inf, None)
     seeds = [s for s in seeds if s[0] < nyq / 1.01]
     # a peak in the data says where the resonance is: the coarse grid only without one
     grid = [] if seeds else [(fn, z) for fn in np.geomspace(5.0, nyq / 1.25, 8)
@@ -828,9 +828,10 @@ def _search_dynamics(fs, cost, seeds=()):
         val = res_f((np.log(fn), np.log(z)))
         if val < best[0]:
             best = (val, (np.log(fn), np.log(z)))
-    r = minimize(res_f, best[1], method="Nelder-Mead",
-                 options={"maxfev": 60, "xatol": 1e-3})
-    x = r.x if r.fun < best[0] else best[1]
+    start = best[1]
+    assert start is not None  # the grid, or the seeds where there are any
+    r = minimize(res_f, start, method="Nelder-Mead", options={"maxfev": 60, "xatol": 1e-3})
+    x = r.x if r.fun < best[0] else start
     fn, z = float(np.exp(x[0])), float(np.exp(x[1]))
     if not fn < nyq / 1.01:
         fn = nyq / 1.05

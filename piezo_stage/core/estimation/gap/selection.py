@@ -112,7 +112,7 @@ def _significant(rms_a, rms_b, nf, n):
 def _given_effects(base_model, base_effects, axis):
     """What the user's model already has on this axis: never a candidate, and part of
     every candidate's fit. -> [(name, params)]."""
-    out = []
+    out: list[tuple[str, dict]] = []
     if base_model is None or axis not in base_model.axes:
         return out
     if axis in base_model.coupling:
@@ -203,6 +203,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
         law's best form with the same effects; the closer of the two on HOLDOUT is the
         candidate (the class's twin the law's)."""
         if isinstance(on, ClassCandidate):
+            assert on.twin is not None  # a class is kept with its twin (below)
             law = candidate(e, on.twin, on.twin.effects)
             k = fit_class_effect(fit, axis, on, e, law, limits_V) \
                 if isinstance(law, Candidate) else None
@@ -238,7 +239,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
             for k, r in classes:
                 if r < best:
                     c, best = k, r
-            if c is not law:
+            if isinstance(c, ClassCandidate):  # a class came closer than the law
                 c.twin = law
         return c
     # the classes' held-out RMS over the Duhem law's best structure form, the first time

@@ -177,6 +177,7 @@ class DuhemRegression:
                           Xa[:, :self.m + 1] + Xd[:, :self.m + 1], free])
 
     def _coupling_columns(self, a_c):
+        assert self.v_other is not None  # (only a regression with coupling has them)
         X = duhem_regressors(self.v_other, self.v_other[0], np.array([a_c, a_c]), self.Bo,
                              self.Bo, self._Xo)
         return fold_branches(X, self.cdeg + 1, self.cstate, self._Xc)
