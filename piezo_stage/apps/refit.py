@@ -170,8 +170,7 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
             notes.append(f"axis {a}: {str(e).split(': ', 1)[-1]}: not refitted")
     if not results:
         raise DataError(f"{path}: no axis could be refitted ({'; '.join(notes)})")
-    model = StageModel({a: r.model for a, r in results.items()},
-                       {a: r.coupling for a, r in results.items() if r.coupling}, lim)
+    model = StageModel.from_fits({a: r.parts() for a, r in results.items()}, lim)
     started, dated_by = run_date(path)
     name = _bag_name(path)
     model_path = os.path.join(out_dir, "models", f"{name}.yaml")

@@ -33,15 +33,10 @@ def load_plant(args, rate_hz):
     plant config (--config or the default); --no-noise, --seed applied."""
     from piezo_stage.core.model.plant import PlantConfig
     from piezo_stage.io.model_file import load_model
-    from piezo_stage.io.plant_file import (
-        default_plant_config_path,
-        enabled_effects,
-        load_plant_config,
-    )
+    from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     if args.model:
         model, effects = load_model(args.model)
-        cfg = PlantConfig.exact(model, rate_hz)
-        cfg.effects = enabled_effects(effects)
+        cfg = PlantConfig.exact(model, rate_hz, effects)  # the model's twin
     else:
         cfg = load_plant_config(args.config or default_plant_config_path())
     if getattr(args, "no_noise", False):

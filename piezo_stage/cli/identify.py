@@ -208,14 +208,10 @@ def _stage_model(fitted, pis, rec, limits):
     (a Duhem law that is exactly their linear term, their play operators beside it,
     their coupling term)."""
     from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
-    axes = dict(fitted.model.axes) if fitted else {}
-    coupling = dict(fitted.model.coupling) if fitted else {}
-    plays = {}
+    parts = {a: r.parts() for a, r in fitted.results.items()} if fitted else {}
     for a, p in pis.items():  # at rest at the record's first voltage, as fitted
-        axes[a], plays[a] = p.law.to_model(float(rec.v[a][0]))
-        if p.coupling is not None:
-            coupling[a] = p.coupling
-    return StageModel(axes, coupling, voltage_limits_for(list(rec.v.values()), limits), plays)
+        parts[a] = p.parts(float(rec.v[a][0]))
+    return StageModel.from_fits(parts, voltage_limits_for(list(rec.v.values()), limits))
 
 
 def _delay(text):

@@ -21,7 +21,7 @@ import math
 import os
 
 from piezo_stage.core.errors import ConfigError, ModelError
-from piezo_stage.core.model.effects import validate_effects
+from piezo_stage.core.model.effects import enabled_effects
 from piezo_stage.core.model.plant import PlantConfig
 from piezo_stage.io.model_file import as_number, load_model, load_yaml
 
@@ -36,17 +36,6 @@ def _num(d, key, default, where, lo=-math.inf, hi=math.inf):
     if not lo <= x <= hi:
         raise ConfigError(f"{where}.{key} = {x:g} is outside [{lo:g}, {hi:g}]")
     return float(x)
-
-
-def enabled_effects(effects: dict, where="effects") -> dict:
-    """Keep the effects with enabled: true (default true when the key is absent);
-    the block checked by the one validation every model and plant file shares
-    (core/model/effects.py validate_effects)."""
-    out = {}
-    for name, p in validate_effects(effects, where).items():
-        if p.pop("enabled", True):
-            out[name] = p
-    return out
 
 
 def plant_config_from_dict(doc, base_dir=".", source="plant config") -> PlantConfig:

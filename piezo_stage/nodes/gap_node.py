@@ -19,9 +19,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.model.plant import Plant, PlantConfig
+from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.model_file import load_model
-from piezo_stage.io.plant_file import default_config_dir, enabled_effects
+from piezo_stage.io.plant_file import default_config_dir
 from piezo_stage.nodes._common import QOS_DATA
 from piezo_stage.nodes._executor import hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
@@ -37,9 +37,7 @@ class Gap(Node):
         rate, self.window = p["control_rate_hz"], p["window"]
         path = p["model_file"] or f"{default_config_dir()}/stage_model.yaml"
         model, effects = load_model(path)
-        cfg = PlantConfig.exact(model, rate)
-        cfg.effects = enabled_effects(effects)
-        self.twin = Plant(cfg, rate)
+        self.twin = Plant.of_model(model, effects, rate)
         self.model_name = path
         self.res: dict[str, deque[float]] = {a: deque(maxlen=self.window)
                                              for a in ("x", "y")}

@@ -142,9 +142,8 @@ def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, st
     voltages)."""
     from piezo_stage.core.estimation.gap import diagnose
     from piezo_stage.core.model.inverse import invert, invert_stage
-    from piezo_stage.core.model.plant import Plant, PlantConfig
+    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.model_file import load_model, save_model
-    from piezo_stage.io.plant_file import enabled_effects
     res = diagnose(fit, hold, axes=["x"])
     model, effects = res.model(fit)
     with tempfile.TemporaryDirectory() as d:
@@ -153,14 +152,12 @@ def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, st
         model, effects = load_model(path)  # loads: our loader accepts it
     v = hold.v["x"]
     vy = hold.v.get("y", np.zeros_like(v))
-    cfg = PlantConfig.exact(model, FS_HZ)
-    cfg.effects = enabled_effects(effects)
-    pred = Plant(cfg, FS_HZ).run(v, vy)["x"]
+    pred = Plant.of_model(model, effects, FS_HZ).run(v, vy)["x"]
     # the exact inverse takes the hysteresis (the feedforward compensates the effects
     # apart): the output of the hysteresis alone must invert back to the voltages (a
     # coupling from y, whose voltages the model of x alone does not solve for, taken
     # out at y's known voltages)
-    hyst = Plant(PlantConfig.exact(model, FS_HZ), FS_HZ).run(v, vy)
+    hyst = Plant.of_model(model, None, FS_HZ).run(v, vy)
     if "x" in model.coupling and "y" not in model.axes:
         wc = model.coupling["x"].simulate(vy)[0]
         inv = invert(model.axes["x"], hyst["x"] - wc, model.voltage_limits,

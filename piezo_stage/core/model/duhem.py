@@ -340,6 +340,18 @@ OTHER = {"x": "y", "y": "x"}
 
 
 @dataclass(frozen=True)
+class AxisParts:
+    """One axis of a stage model as fitted or read: its Duhem ``law``, the coupling
+    term from the other axis's voltage into it (None: none) and play operators beside
+    the law (None: none). Each kind of fit says its parts (``AxisResult.parts``,
+    ``ClassFit.parts``, the gap's candidates); ``StageModel.from_fits`` builds the model."""
+
+    law: "DuhemModel"
+    coupling: "DuhemModel | None" = None
+    plays: PlayOperators | None = None
+
+
+@dataclass(frozen=True)
 class StageModel:
     """Hysteresis of a 2-axis stage: one Duhem model per axis, optional coupling and
     play operators.
@@ -413,6 +425,16 @@ class StageModel:
         """Whether any axis's play operators widen with the input's rate (simulating
         and inverting it then need the samples' spacing)."""
         return any(p.rate_dependent for p in self.plays.values())
+
+    @classmethod
+    def from_fits(cls, parts: "dict[str, AxisParts]", voltage_limits: tuple) -> "StageModel":
+        """The stage model of each axis's fitted (or read) ``parts`` within
+        ``voltage_limits`` [V]: the one place a model is put together (identify, refit,
+        the identifier node, the gap's model, a model file)."""
+        return cls({a: p.law for a, p in parts.items()},
+                   {a: p.coupling for a, p in parts.items() if p.coupling is not None},
+                   tuple(voltage_limits),
+                   {a: p.plays for a, p in parts.items() if p.plays is not None})
 
     def replace(self, **changes: object) -> "StageModel":
         """The same model with some fields changed (axes, coupling, voltage_limits,

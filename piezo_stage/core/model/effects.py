@@ -396,3 +396,14 @@ def make_effect(name: str, fs_hz: float, params: dict) -> Creep | Dynamics | Del
         if isinstance(e, ConfigError):
             raise
         raise ConfigError(f"effect {name}: {e}") from None
+
+
+def enabled_effects(effects: dict, where: str = "effects") -> dict:
+    """Keep the effects with enabled: true (default true when the key is absent);
+    the block checked by the one validation every model and plant file shares
+    (core/model/effects.py validate_effects)."""
+    out = {}
+    for name, p in validate_effects(effects, where).items():
+        if p.pop("enabled", True):
+            out[name] = p
+    return out

@@ -51,6 +51,7 @@ from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.core.model.duhem import (
     AXES,
     CONTINUATIONS,
+    AxisParts,
     DuhemBranch,
     DuhemModel,
     DuhemState,
@@ -241,16 +242,18 @@ def model_from_dict(doc: object, source: str = "model") -> tuple[StageModel, dic
     axes_doc = doc.get("axes")
     if not isinstance(axes_doc, dict) or not axes_doc:
         raise ModelError(f"{source}: 'axes' must map x and/or y to a model")
-    axes, coupling, plays = {}, {}, {}
+    parts: dict[str, AxisParts] = {}
     for a, d in axes_doc.items():
         if a not in AXES:
             raise ModelError(f"{source}: unknown axis {a!r}")
-        axes[a] = _duhem(d, f"{source}: axes.{a}")
-        if isinstance(d, dict) and d.get("coupling") is not None:
-            coupling[a] = _duhem(d["coupling"], f"{source}: axes.{a}.coupling")
-        if isinstance(d, dict) and d.get("play_operators") is not None:
-            plays[a] = _plays(d["play_operators"], axes[a].initial.v,
-                              f"{source}: axes.{a}.play_operators")
+        law = _duhem(d, f"{source}: axes.{a}")
+        doc_a = d if isinstance(d, dict) else {}
+        parts[a] = AxisParts(
+            law,
+            _duhem(doc_a["coupling"], f"{source}: axes.{a}.coupling")
+            if doc_a.get("coupling") is not None else None,
+            _plays(doc_a["play_operators"], law.initial.v, f"{source}: axes.{a}.play_operators")
+            if doc_a.get("play_operators") is not None else None)
     lim = doc.get("voltage_limits_V", [0.0, 150.0])
     if not isinstance(lim, (list, tuple)) or len(lim) != 2:
         raise ModelError(f"{source}: voltage_limits_V must be [min, max]")
@@ -258,14 +261,15 @@ def model_from_dict(doc: object, source: str = "model") -> tuple[StageModel, dic
     if not lim[0] < lim[1] or max(abs(lim[0]), abs(lim[1])) > MAX_VOLTS:
         raise ModelError(f"{source}: voltage_limits_V {list(lim)} must have min < max "
                          f"within +-{MAX_VOLTS:g} V")
-    problem = magnitude_problem(StageModel(axes, coupling, lim, plays))
+    model = StageModel.from_fits(parts, lim)
+    problem = magnitude_problem(model)
     if problem:
         raise ModelError(f"{source}: {problem}")
     try:  # every effect key known, every value in a physical range (core/model/effects.py)
         effects = validate_effects(doc.get("effects"), f"{source}: effects")
     except ConfigError as e:
         raise ModelError(str(e)) from None
-    return StageModel(axes, coupling, lim, plays), effects
+    return model, effects
 
 
 MAX_VOLTS = 1000.0      # no piezo amplifier here drives more

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike
 from piezo_stage.core._jit import as_f64, plant_run, sensor_run
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.model.duhem import AXES, StageModel
-from piezo_stage.core.model.effects import EFFECTS, make_effect
+from piezo_stage.core.model.effects import EFFECTS, enabled_effects, make_effect
 from piezo_stage.core.model.play import PlayHysteresis
 
 # Order in which effects act on the displacement (see module docstring).
@@ -78,10 +78,13 @@ class PlantConfig:
                 raise ConfigError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
 
     @classmethod
-    def exact(cls, model: StageModel, rate_hz: float) -> "PlantConfig":
-        """The model and nothing else: no noise, slew, quantisation or effects."""
+    def exact(cls, model: StageModel, rate_hz: float,
+              effects: dict | None = None) -> "PlantConfig":
+        """The model and nothing else: no noise, slew or quantisation; with
+        ``effects`` (a model file's block) the enabled ones."""
         return cls(model, internal_rate_hz=rate_hz, slew_V_per_s=np.inf,
-                   noise_rms_um=0.0, quantization_um=0.0)
+                   noise_rms_um=0.0, quantization_um=0.0,
+                   effects=enabled_effects(effects) if effects else {})
 
 
 class Plant:
@@ -92,6 +95,14 @@ class Plant:
     noise-free displacement of the last call, and with ``keep_fine`` set
     ``last_true_fine`` the same at the internal rate (between the command samples).
     """
+
+    @classmethod
+    def of_model(cls, model: StageModel, effects: dict | None,
+                 rate_hz: float) -> "Plant":
+        """The exact plant of a model (its twin: the model and its enabled ``effects``,
+        no noise, slew or quantisation) driven at ``rate_hz``: the one way a model is
+        simulated as a stage (simulate --model, the gap node, the studies)."""
+        return cls(PlantConfig.exact(model, rate_hz, effects), rate_hz)
 
     def __init__(self, config: PlantConfig, command_rate_hz: float):
         if not command_rate_hz > 0:

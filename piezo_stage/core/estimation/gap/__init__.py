@@ -54,7 +54,7 @@ from piezo_stage.core.estimation.gap.candidates import (  # noqa: F401
 from piezo_stage.core.estimation.gap.selection import AxisDiagnosis, diagnose_axis  # noqa: F401
 from piezo_stage.core.estimation.gap.where import held, holds  # noqa: F401
 from piezo_stage.core.estimation.record import Record
-from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
+from piezo_stage.core.model.duhem import AxisParts, StageModel, voltage_limits_for
 from piezo_stage.core.workers import forking, quiet_worker
 
 # The other speed-up (see candidates.ONE_COLUMN_SEARCH): the axes in processes
@@ -85,22 +85,19 @@ class Diagnosis:
         the axis where it explains the most; ``memory`` as the axis's play
         operators. Voltage limits: the amplifier's ``limits_V``, else 0-150 V
         widened to FIT's (core.duhem.voltage_limits_for)."""
-        axes: dict = {}
-        coupling: dict = {}
-        plays: dict = {}
+        parts: dict[str, AxisParts] = {}
         effects: dict[str, dict] = {}
         weight: dict[str, float] = {}
         self.notes = []
         for a, d in self.per_axis.items():
             c = d.model or d.candidates["none"]
             if isinstance(c, ClassCandidate):  # memory as the other class: its parts
-                axes[a], plays[a], coup = c.stage_parts()
-            else:
-                axes[a], coup = _rising_law(c)
-            if coup is not None:
-                coupling[a] = coup
-            if isinstance(c, Candidate) and c.plays_V is not None:  # memory: its plays
-                plays[a] = c.play_operators()
+                law, plays, coup = c.stage_parts()
+                parts[a] = AxisParts(law, coup, plays)
+            else:  # the Duhem law kept rising, and memory's play operators beside it
+                law, coup = _rising_law(c)
+                parts[a] = AxisParts(law, coup, c.play_operators())
+            if isinstance(c, Candidate) and c.plays_V is not None:
                 if any(n in TRANSFORMS for n, _ in c.effects):
                     # the fit put the operators' sum after the kept transform effects,
                     # the model file before them (as the hysteresis it is)
@@ -114,8 +111,8 @@ class Diagnosis:
                 if w >= weight.get(name, -1.0):
                     weight[name] = w
                     e.update(params)
-        lim = voltage_limits_for([fit.v[a] for a in axes], limits_V)
-        return StageModel(axes, coupling, lim, plays), effects
+        lim = voltage_limits_for([fit.v[a] for a in parts], limits_V)
+        return StageModel.from_fits(parts, lim), effects
 
 
 def _rising_law(c: Candidate) -> tuple:

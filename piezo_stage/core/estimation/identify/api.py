@@ -31,6 +31,7 @@ from piezo_stage.core.estimation.record import Record, fitted_together
 from piezo_stage.core.metrics import error_figures, noise_floor
 from piezo_stage.core.model.duhem import (
     OTHER,
+    AxisParts,
     DuhemModel,
     DuhemState,
     StageModel,
@@ -60,6 +61,10 @@ class AxisResult:
     seconds: float
     history: dict
     notes: list = field(default_factory=list)
+
+    def parts(self) -> AxisParts:
+        """The axis as a stage model holds it (StageModel.from_fits)."""
+        return AxisParts(self.model, self.coupling)
     branch_rms_um: dict = field(default_factory=dict)
     delay_samples: int = 0   # the displacement lags the voltage by this many samples
     delay_s: float = 0.0     # ... [s]
@@ -449,6 +454,13 @@ class ClassFit:
     delay_samples: int = 0
     delay_s: float = 0.0
 
+    def parts(self, v0: float) -> AxisParts:
+        """The axis as a stage model holds it, at rest at voltage ``v0`` as fitted: a
+        Duhem law that is exactly the class's linear term, its play operators beside
+        it, its coupling term."""
+        law, plays = self.law.to_model(v0)
+        return AxisParts(law, self.coupling, plays)
+
     def predict(self, rec: Record, axis: str) -> np.ndarray:
         """The output over ``rec`` [um] (operators at rest at its first voltage,
         coupling from rest at the other axis's, delayed by the lag), the constant
@@ -565,6 +577,5 @@ def identify_stage(rec: Record, axes: Sequence[str],
     if not results:
         raise DataError("; ".join(f"{a}: {why}" for a, why in skipped.items())
                         or f"{rec.source}: no axis to identify")
-    model = StageModel({a: r.model for a, r in results.items()},
-                       {a: r.coupling for a, r in results.items() if r.coupling}, lim)
+    model = StageModel.from_fits({a: r.parts() for a, r in results.items()}, lim)
     return StageFit(model, results, skipped)
