@@ -19,7 +19,7 @@ import signal
 import sys
 import time
 from contextlib import ExitStack
-from typing import Protocol, runtime_checkable
+from typing import ClassVar, Protocol, runtime_checkable
 
 import rclpy
 from rclpy.callback_groups import CallbackGroup
@@ -69,6 +69,53 @@ def hot_subscription(node, msg_type, topic, callback, qos, raw=False, with_info=
                                     callback_group=LeanLoop(with_info), raw=raw)
 
 
+class LeanNode:
+    """What ``LeanExecutor`` and ``run_nodes`` ask of a node, with the answers of a node
+    that asks for nothing. Every node of the package derives from it, first of its bases
+    (``class Recorder(LeanNode, Node)``); a plain rclpy node runs with these defaults.
+
+    - ``TICKS``: the node has a real-time tick: ``on_lean_tick()`` is called once
+      ``lean_deadline`` (the monotonic time [s] of the next tick; 0.0 for a tick paced
+      by the hardware, which blocks in it; None: no tick now, as in lockstep) has
+      passed, right after what arrived was taken; the base executor has its turn right
+      after a tick, where the period's slack is.
+    - ``lean_take_at_tick``: True while a tick is scheduled: the executor does not wake
+      for each per-sample message but sleeps to the deadline and takes what arrived
+      just before the tick (the driver in real time: commands are stamped for a later
+      tick, so one wake per sample instead of two; their middleware reception time is
+      still in the message info).
+    - ``lean_batch_s``: a node off the loop's critical path (the recorder, the live view)
+      waits that long between passes and takes what arrived in one go.
+    - ``DEFERS_STOPS``: the node is built whole though a stop comes meanwhile (the
+      recorder: its bag open and its readers acknowledging); the stop ends its first pass.
+    - ``close()``: the node's own teardown (the bag, the hardware), before it is
+      destroyed; ``stop_summary()``: what a stop leaves behind, for its exit line."""
+
+    TICKS: ClassVar[bool] = False
+    DEFERS_STOPS: ClassVar[bool] = False
+    lean_deadline: float | None = None
+    lean_take_at_tick: bool = False
+    lean_batch_s: float = 0.0
+
+    def on_lean_tick(self) -> None:
+        """One real-time tick (a node with ``TICKS``)."""
+
+    def close(self) -> None:
+        """Close what the node holds open (nothing, unless it says otherwise)."""
+
+    def stop_summary(self) -> str | None:
+        """What a stop leaves behind, in words (None: nothing worth a line)."""
+        return None
+
+
+NO_HOOKS = LeanNode()  # the hooks of a plain rclpy node: none asked for
+
+
+def hooks(node: object) -> LeanNode:
+    """The node's hooks: itself where it is a LeanNode, else the defaults."""
+    return node if isinstance(node, LeanNode) else NO_HOOKS
+
+
 @runtime_checkable
 class StopsInOrder(Protocol):
     """A node that a stop signal asks to stop in its own order (the stage driver): it
@@ -84,20 +131,8 @@ class LeanExecutor(Executor):
     """Spins one node, or the loop's nodes composed in one process (see the module
     docstring and ``loop_container``).
 
-    What a node may define for it:
-
-    - ``on_lean_tick()`` and ``lean_deadline``, a real-time tick: the deadline is the
-      monotonic time [s] of the next tick (0.0 for a tick paced by the hardware, which
-      blocks in it; None or absent: no tick, as in lockstep). The executor calls the
-      tick once the deadline has passed, right after taking what has arrived, and gives
-      the base executor its turn right after a tick, where the period's slack is.
-    - ``lean_take_at_tick``: True while a tick is scheduled: the executor does not
-      wake for each per-sample message but sleeps to the deadline and takes what
-      arrived just before the tick (the driver in real time: commands are stamped for
-      a later tick, so one wake per sample instead of two; their middleware reception
-      time is still in the message info).
-    - ``lean_batch_s``: a node off the loop's critical path (the recorder, the live
-      view) waits that long between passes and takes what arrived in one go.
+    What a node asks of it is its ``LeanNode`` hooks (a tick, waking at the tick only,
+    batching).
 
     Subscriptions a node creates while it spins (the recorder's discovery) join at the
     base executor's next turn (listing them every pass cost 3-6 % of a loop node's
@@ -119,8 +154,9 @@ class LeanExecutor(Executor):
         for n in nodes:
             self.add_node(n)
         self.nodes = nodes
-        self.node = next((n for n in nodes if hasattr(n, "on_lean_tick")), nodes[0])
-        self.ticking = hasattr(self.node, "on_lean_tick")
+        # the first that ticks is the clock (its hooks: the node itself)
+        self.node = next((h for h in map(hooks, nodes) if h.TICKS), hooks(nodes[0]))
+        self.ticking = self.node.TICKS
         self.alone = len(nodes) == 1
         self._n_subs = -1
         self._hot: list = []
@@ -185,11 +221,10 @@ class LeanExecutor(Executor):
             self._n_subs = -1  # not on the loop: look again next pass
             return
         timeout = IDLE_WAKE_S if timeout_sec is None else timeout_sec
-        deadline = getattr(node, "lean_deadline", None) if self.ticking else None
+        deadline = node.lean_deadline if self.ticking else None
         if deadline is not None:
             timeout = min(timeout, max(0.0, deadline - time.monotonic()))
-        if deadline is not None and self.alone and getattr(node, "lean_take_at_tick",
-                                                           False):
+        if deadline is not None and self.alone and node.lean_take_at_tick:
             if timeout > 0:
                 time.sleep(timeout)
         elif self._ws is not None:
@@ -210,7 +245,7 @@ class LeanExecutor(Executor):
             subs = self._subscriptions()  # created or destroyed since (discovery)
             if len(subs) != self._n_subs:
                 self._rebuild(subs)
-        batch = getattr(node, "lean_batch_s", 0.0) if self.alone else 0.0
+        batch = node.lean_batch_s if self.alone else 0.0
         if batch:
             t_end = now + batch
             while self.context.ok() and not signals.count() and time.monotonic() < t_end:
@@ -286,7 +321,8 @@ def run_nodes(factories, args=None) -> int:
             # a node whose construction must not be cut short (DEFERS_STOPS: the
             # recorder, its bag open and its readers acknowledging before it returns)
             # is built whole, and a stop that came meanwhile ends its spin's first pass
-            with signals.deferred(getattr(factory, "DEFERS_STOPS", False)):
+            with signals.deferred(isinstance(factory, type) and issubclass(
+                    factory, LeanNode) and factory.DEFERS_STOPS):
                 node = factory()
                 check_overrides(node)  # a misspelled parameter is refused, not ignored
             nodes.append(node)
@@ -303,8 +339,7 @@ def run_nodes(factories, args=None) -> int:
         signals.watch()  # a teardown that hangs says where, and ends
         try:
             for n in reversed(nodes):
-                if hasattr(n, "close"):
-                    n.close()  # the node's own first: the bag, the hardware
+                hooks(n).close()  # the node's own first: the bag, the hardware
         finally:
             signum = signals.requested()
             with signals.bounded_teardown(code if signum is None else 128 + signum):
@@ -319,15 +354,14 @@ def run_nodes(factories, args=None) -> int:
     if signum is None:
         return code
     where = "while running" if phase == "running" else "during start-up"
-    did = next((getattr(n, "stop_summary") for n in nodes if hasattr(n, "stop_summary")),
-               None)
+    did = next((s for s in (hooks(n).stop_summary() for n in nodes) if s), None)
     if signum == signal.SIGINT and phase == "running" and signals.run_ended():
-        if callable(did):  # the run ended: what the node leaves, nothing of a stop
-            sys.stderr.write(f"{signals.STATE.name}: at the run's end: {did()}\n")
+        if did:  # the run ended: what the node leaves, nothing of a stop
+            sys.stderr.write(f"{signals.STATE.name}: at the run's end: {did}\n")
         return 0
     sys.stderr.write(f"{signals.STATE.name or _node_name(args)}: stopped by "
                      f"{signal.Signals(signum).name} {where}"
-                     f"{': ' + did() if callable(did) else ''}\n")
+                     f"{': ' + did if did else ''}\n")
     return 128 + signum
 
 

@@ -27,7 +27,7 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.control import PARAMETERS, CompositeController
 from piezo_stage.core.loop.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA
-from piezo_stage.nodes._executor import hot_subscription, run_node
+from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
@@ -35,7 +35,7 @@ from piezo_stage_msgs_adapters import reference_from_msg, voltage_cdr
 GAINS = ("kp", "ki", "kd")
 
 
-class Controller(Node):
+class Controller(LeanNode, Node):
     def __init__(self, **node_options):
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("controller", **node_options)

@@ -34,7 +34,7 @@ from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
 from piezo_stage.core.loop.stamps import StampGuard
 from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
-from piezo_stage.nodes._executor import hot_subscription, run_node
+from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._intake import Intake, trajectory_key, warm_up
 from piezo_stage.nodes._latched import LatchedFetch
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
@@ -52,7 +52,7 @@ from piezo_stage_msgs_adapters import (
 )
 
 
-class Feedforward(Node):
+class Feedforward(LeanNode, Node):
     def __init__(self, **node_options):
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("feedforward", **node_options)

@@ -23,14 +23,14 @@ from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir
 from piezo_stage.nodes._common import QOS_DATA
-from piezo_stage.nodes._executor import hot_subscription, run_node
+from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes.declared import GAP
 from piezo_stage_msgs_adapters import joint_state_to_um, point_cdr
 
 
-class Gap(Node):
+class Gap(LeanNode, Node):
     def __init__(self):
         super().__init__("gap")
         p = declare_schema(self, GAP)

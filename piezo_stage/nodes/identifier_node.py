@@ -26,7 +26,7 @@ from piezo_stage.core.estimation.identify.segmentation import segment
 from piezo_stage.core.estimation.record import Record, on_grid
 from piezo_stage.core.loop.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
-from piezo_stage.nodes._executor import hot_subscription, run_node
+from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes._signals import interruptible
@@ -36,7 +36,7 @@ from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
 BATCH_S = 0.05
 
 
-class Identifier(Node):
+class Identifier(LeanNode, Node):
     def __init__(self):
         super().__init__("identifier")
         # the live ones as attributes the next fit reads

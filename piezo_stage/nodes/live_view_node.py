@@ -24,7 +24,7 @@ from foxglove.websocket import ServerListener
 from rclpy.node import Node
 
 from piezo_stage.io.bag import msgdef
-from piezo_stage.nodes._executor import run_node
+from piezo_stage.nodes._executor import LeanNode, run_node
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes._tap import TopicTap
@@ -44,7 +44,7 @@ class _Subscriptions(ServerListener):
         self.active.pop((client.id, channel.id), None)
 
 
-class LiveView(Node):
+class LiveView(LeanNode, Node):
     def __init__(self):
         super().__init__("live_view")
         self.min_gap_ns = 0

@@ -22,14 +22,14 @@ from rclpy.qos import DurabilityPolicy
 from piezo_stage.core.loop.stamps import MAX_STAMP_NS
 from piezo_stage.io.bag import BagWriter, new_bag_dir
 from piezo_stage.nodes._common import steady_timer
-from piezo_stage.nodes._executor import run_node
+from piezo_stage.nodes._executor import LeanNode, run_node
 from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes._tap import TopicTap
 from piezo_stage.nodes.declared import RECORDER
 
 
-class Recorder(Node):
+class Recorder(LeanNode, Node):
     # a stop while it is built is noted, not raised (run_node): its readers acknowledge
     # messages before the constructor returns, and a stop raised there left a bag
     # without its summary and those messages untaken (seen once, on a loaded host)

@@ -48,7 +48,7 @@ from piezo_stage.core.loop.arming import PARAMETERS as ARMING
 from piezo_stage.core.loop.sample_loop import PARAMETERS, RATES, SampleLoop, check_mode
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
-from piezo_stage.nodes._executor import hot_subscription, run_node
+from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes._signals import STATE as STOP_STATE
@@ -75,7 +75,9 @@ SETTLES_TO = {"configuring": "inactive", "activating": "active", "deactivating":
               "errorprocessing": "unconfigured"}
 
 
-class StageDriver(LifecycleNode):
+class StageDriver(LeanNode, LifecycleNode):
+    TICKS = True  # real time: the sample clock is its tick (LeanNode)
+
     def __init__(self, **node_options):
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("stage_driver", **node_options)

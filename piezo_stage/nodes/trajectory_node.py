@@ -32,7 +32,7 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.planner import HOLD
 from piezo_stage.core.loop.trajectory import generate
 from piezo_stage.nodes._common import QOS_EVENTS, QOS_LATCHED, steady_timer
-from piezo_stage.nodes._executor import run_node
+from piezo_stage.nodes._executor import LeanNode, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes.declared import TRAJECTORY
@@ -40,7 +40,7 @@ from piezo_stage_msgs_adapters import phase_from_msg, trajectory_msg
 
 RESENDS, RESEND_AFTER_S = 3, 1.0
 
-class Trajectory(Node):
+class Trajectory(LeanNode, Node):
     def __init__(self):
         super().__init__("trajectory")
         # live: a set builds and publishes the new trajectory (or is refused with why)
