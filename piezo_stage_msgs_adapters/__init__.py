@@ -6,17 +6,68 @@ The only code in the project that touches message types. SI units on the wire
 ``wire`` (units and joint-state reading) and ``cdr`` (the codecs of the per-sample
 topics) need no ROS: the bag readers use them. The message functions of ``convert``
 load the message types when first asked for (``piezo_stage_msgs_adapters.joint_state``
-and the like).
+and the like): each is named below, so a type checker sees the node <-> message seam
+with its types, and a name that is no adapter is an AttributeError.
 """
 
-from piezo_stage_msgs_adapters.wire import JOINTS, UM  # noqa: F401
+from typing import TYPE_CHECKING
+
+from piezo_stage_msgs_adapters.wire import JOINTS, UM
+
+if TYPE_CHECKING:  # at run time loaded on first use (__getattr__): no ROS to import us
+    from piezo_stage_msgs_adapters.convert import (
+        ARM_LEVEL,
+        FRAME,
+        MEASURED,
+        arming_state_from_msg,
+        arming_state_msg,
+        check_trajectory_size,
+        clock_msg,
+        diagnostic_array,
+        driver_announcement,
+        header,
+        joint_state,
+        joint_state_cdr,
+        joint_state_to_um,
+        model_from_msg,
+        model_msg,
+        ns_to_time,
+        phase_from_msg,
+        phase_msg,
+        point_cdr,
+        point_msg,
+        reference_cdr,
+        reference_from_msg,
+        reference_msg,
+        setpoint_from_msg,
+        time_to_ns,
+        trajectory_from_cdr,
+        trajectory_from_msg,
+        trajectory_max_bytes,
+        trajectory_msg,
+        trajectory_stamp_ns,
+        trajectory_take_bytes,
+        voltage_cdr,
+        voltage_from_msg,
+        voltage_msg,
+    )
+
+__all__ = [
+    "JOINTS", "UM", "FRAME", "ns_to_time", "time_to_ns", "header", "joint_state",
+    "joint_state_cdr", "joint_state_to_um", "voltage_msg", "voltage_cdr",
+    "voltage_from_msg", "MEASURED", "reference_msg", "reference_cdr",
+    "reference_from_msg", "point_msg", "point_cdr", "setpoint_from_msg", "trajectory_msg",
+    "trajectory_from_msg", "trajectory_max_bytes", "trajectory_take_bytes",
+    "check_trajectory_size", "trajectory_stamp_ns", "trajectory_from_cdr", "model_msg",
+    "model_from_msg", "phase_msg", "phase_from_msg", "ARM_LEVEL", "arming_state_msg",
+    "arming_state_from_msg", "driver_announcement", "clock_msg", "diagnostic_array",
+]
+# what __getattr__ loads from convert (the TYPE_CHECKING list above)
+CONVERT = frozenset(__all__) - {"JOINTS", "UM"}
 
 
-def __getattr__(name):
+def __getattr__(name: str) -> object:
+    if name not in CONVERT:
+        raise AttributeError(f"module 'piezo_stage_msgs_adapters' has no attribute {name!r}")
     import importlib
-    convert = importlib.import_module("piezo_stage_msgs_adapters.convert")
-    try:
-        return getattr(convert, name)
-    except AttributeError:
-        raise AttributeError(f"module 'piezo_stage_msgs_adapters' has no attribute "
-                             f"{name!r}") from None
+    return getattr(importlib.import_module("piezo_stage_msgs_adapters.convert"), name)

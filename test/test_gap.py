@@ -630,3 +630,27 @@ def test_a_record_sampled_too_slowly_for_fast_dynamics_is_diagnosed_not_refused(
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.startswith("verdict: ") and "Traceback" not in r.stderr, r.stderr[-2000:]
+
+
+def test_the_live_residual_takes_the_sensors_zero_out_and_measures_the_gap():
+    """The gap node's core (ResidualMonitor): against its own twin a stage read with a
+    constant sensor offset leaves no residual; one with creep the model lacks does."""
+    from piezo_stage.core.estimation.gap.monitor import ResidualMonitor
+    from piezo_stage.core.model.plant import Plant
+    from piezo_stage.io.model_file import load_model
+    from piezo_stage.paths import default_config
+    model, effects = load_model(default_config("stage_model.yaml"))
+    fs = 1000.0
+    t = np.arange(3000) / fs
+    v = 75 - 60 * np.cos(2 * np.pi * t)
+    same = Plant.of_model(model, effects, fs)
+    crept = Plant.of_model(model, {"creep": {"gamma": 0.03, "tau_s": 0.5}}, fs)
+    mon, mon_c = (ResidualMonitor(model, effects, fs, 500) for _ in range(2))
+    for x in v:
+        w = same.step(x, x)
+        r = mon.sample({"x": w[0] + 2.0, "y": w[1] - 1.0}, {"x": x, "y": x})
+        wc = crept.step(x, x)
+        mon_c.sample({"x": wc[0], "y": wc[1]}, {"x": x, "y": x})
+    assert max(abs(r["x"]), abs(r["y"])) < 1e-9  # the offset is the sensor's zero
+    assert max(mon.rms_um().values()) < 1e-9 and mon.n == len(v)
+    assert min(mon_c.rms_um().values()) > 0.05

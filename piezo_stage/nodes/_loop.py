@@ -116,7 +116,8 @@ class DriverState:
         from piezo_stage.core.loop.arming import StateTimeline
         self.node, self.prio, self.heap_bytes = node, prio, int(heap_bytes)
         self.timeline, self.lookahead_ns, self.dt_ns = StateTimeline(), dt_ns, dt_ns
-        self.realtime, self.limits, self.bad = False, None, 0
+        self.realtime, self.bad = False, 0
+        self.limits: tuple | None = None  # the driver's voltage limits, once announced
         hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
 
     def on_state(self, msg):

@@ -11,15 +11,12 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
 
-from collections import deque
-
-import numpy as np
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.model.plant import Plant
+from piezo_stage.core.estimation.gap.monitor import ResidualMonitor
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir
 from piezo_stage.nodes._common import QOS_DATA
@@ -34,14 +31,11 @@ class Gap(LeanNode, Node):
     def __init__(self):
         super().__init__("gap")
         p = declare_schema(self, GAP)
-        rate, self.window = p["control_rate_hz"], p["window"]
         path = p["model_file"] or f"{default_config_dir()}/stage_model.yaml"
         model, effects = load_model(path)
-        self.twin = Plant.of_model(model, effects, rate)
+        # the residual against the model's twin (core/estimation/gap/monitor.py)
+        self.monitor = ResidualMonitor(model, effects, p["control_rate_hz"], p["window"])
         self.model_name = path
-        self.res: dict[str, deque[float]] = {a: deque(maxlen=self.window)
-                                             for a in ("x", "y")}
-        self.offset, self.n0 = {"x": 0.0, "y": 0.0}, 0
         self.pub = self.create_publisher(PointStamped, "gap/residual", QOS_DATA)
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
@@ -55,24 +49,15 @@ class Gap(LeanNode, Node):
             return
         if v is None:
             return
-        twin = self.twin.step(v["x"], v["y"])
-        r = {a: w[a] - twin[i] for i, a in enumerate(("x", "y"))}
-        # the real sensor's zero: the mean residual of the first samples (noise averages out)
-        self.n0 += 1
-        if self.n0 <= 100:
-            for a in r:
-                self.offset[a] += (r[a] - self.offset[a]) / self.n0
-        r = {a: r[a] - self.offset[a] for a in r}
-        for a in r:
-            self.res[a].append(r[a])
+        r = self.monitor.sample(w, v)
         self.gate.publish(self.pub, point_cdr(ns, r))  # raw CDR: no message object
 
     def status(self):
-        vals = {f"rms_{a}_um": float(np.sqrt(np.mean(np.square(x)))) if x else float("nan")
-                for a, x in self.res.items()}
+        vals = {f"rms_{a}_um": x for a, x in self.monitor.rms_um().items()}
+        n = self.monitor.n
         msg = (f"residual rms x/y {vals['rms_x_um']:.4g}/{vals['rms_y_um']:.4g} um against "
-               f"{self.model_name}") if self.twin.samples else "waiting for samples"
-        return 0, msg, {**vals, "model": self.model_name, "samples": self.twin.samples}
+               f"{self.model_name}") if n else "waiting for samples"
+        return 0, msg, {**vals, "model": self.model_name, "samples": n}
 
 
 def main(args=None):
