@@ -183,3 +183,69 @@ def test_the_lifecycle_transitions_are_the_loops_own():
     assert s.sup.state == "faulted" and s.sup.reason == "hardware: link lost"
     s.end_now()
     assert s.shutdown_requested
+
+
+def test_a_whole_lockstep_run_from_the_loops_outcomes_alone():
+    """Arm, track, fault, end: one call per message (on_start, on_command), each
+    answered by an Outcome the driver only has to follow."""
+    from piezo_stage.core.loop.planner import TRACK
+    from piezo_stage.core.loop.sample_loop import Next
+    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(auto_arm=True), RATE, True, 0.005,
+                   600, lambda *a: None)
+    out = s.on_start()
+    assert out.sample is not None and out.next is Next.NONE and out.sample.ns == s.stamp(0)
+    assert not s.on_command(s.stamp(7), {"x": 0.0, "y": 0.0}, 0).sample  # not the next one
+    states, nexts, armed_at = [], [], None
+    while True:
+        j = s.j + 1
+        if s.sup.state == "approaching" and j == 100:  # the feedforward's phase message
+            assert s.feedforward_phase(TRACK, "trajectory of 2 points stamped 0")
+        if armed_at is None and s.sup.state == "armed":
+            armed_at = j
+        # hold where the stage is until armed, then ramp x up 10 V over 100 samples
+        cmd = dict(s.v) if armed_at is None else \
+            {"x": 10.0 * min(1.0, (j - armed_at) / 100), "y": 0.0}
+        if j == 400:
+            s.estop()  # the fault: latched, ramping to the safe voltage
+        out = s.on_command(s.stamp(j), cmd, 0)
+        nexts.append(out.next)
+        if out.next is Next.DONE:
+            assert out.sample is None
+            break
+        assert out.sample is not None and out.sample.ns == s.stamp(j)
+        states.append(s.sup.state)
+        if armed_at is not None and j == armed_at + 200:  # tracking: the command applied
+            assert abs(out.sample.applied["x"] - 10.0) < 1e-9
+    assert armed_at is not None and "approaching" in states and states[-1] == "faulted"
+    assert Next.FAULTED_AT_SAFE in nexts  # once the fault's ramp reached safe
+    assert nexts.index(Next.FAULTED_AT_SAFE) > 400 - 2 and s.j == 600
+
+
+def test_a_real_time_stop_and_a_hardware_fault_are_outcomes():
+    """Real time: max_steps begins the stop (its bound said once), the ramp ends in
+    SHUT_DOWN; a backend fault is a FAULT outcome carrying the error, no sample."""
+    from piezo_stage.core.errors import BackendFault
+    from piezo_stage.core.loop.sample_loop import Next
+    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(), RATE, False, 0.005, 50,
+                   lambda *a: None)
+    t, outs = 100.0, []
+    while not outs or outs[-1].next is Next.NONE:
+        t += 1 / RATE
+        outs.append(s.on_tick(t, lambda: int(t * 1e9)))
+        assert len(outs) < 5000
+    began = [o.stop_began_s for o in outs if o.stop_began_s is not None]
+    assert len(began) == 1 and began[0] > 0 and outs[-1].next is Next.SHUT_DOWN
+    assert all(o.deadline is not None and o.sample is not None for o in outs)
+
+    class Failing(SimBackend):  # the simulated stage losing its link at sample 20
+        def step(self, vx, vy):
+            if self.plant.samples >= 20:
+                raise BackendFault("link lost")
+            return super().step(vx, vy)
+    f = SampleLoop(Failing("", RATE, 0), ArmingParams(), RATE, True, 0.005, 0,
+                   lambda *a: None)
+    out = f.on_start()
+    while out.next is Next.NONE:
+        out = f.on_command(f.stamp(f.j + 1), dict(f.v), 0)
+    assert out.next is Next.FAULT and out.sample is None and "link lost" in str(out.error)
+    assert f.sup.state == "faulted"

@@ -45,7 +45,14 @@ from std_srvs.srv import SetBool, Trigger
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
 from piezo_stage.core.loop.arming import ENABLED, ArmingParams
 from piezo_stage.core.loop.arming import PARAMETERS as ARMING
-from piezo_stage.core.loop.sample_loop import PARAMETERS, RATES, SampleLoop, check_mode
+from piezo_stage.core.loop.sample_loop import (
+    PARAMETERS,
+    RATES,
+    Next,
+    Outcome,
+    SampleLoop,
+    check_mode,
+)
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
@@ -92,6 +99,7 @@ class StageDriver(LeanNode, LifecycleNode):
         self.backend: Any = None
         self.loop: SampleLoop | None = None
         self.rt_priority = 0
+        self._exit_timer: Any = None  # lockstep, all steps done: the timer that ends it
         self.lock = p["mode"] == "lockstep"
         self.link, self.failed = "", None  # the missing links; the hardware's fault
         self.next_j = 0  # lockstep: the first sample of the next configure
@@ -169,7 +177,7 @@ class StageDriver(LeanNode, LifecycleNode):
                                  "configured: started disarmed at the safe voltage",
                                  self.loop.stamp(self.loop.j + 1))
             if self.lock:
-                self.tick(self.loop.j + 1, None, False)  # the first sample: at rest
+                self.follow(self.loop.on_start())  # the first sample: at rest
             else:
                 self.lean_deadline = 0.0  # the first real-time tick: now
         return self._transition("configure", body)
@@ -238,14 +246,6 @@ class StageDriver(LeanNode, LifecycleNode):
             self.loop = None
             self._announce("disarmed", f"{why}: the backend is closed", log=True)
 
-    def _check_fault(self) -> None:
-        """Managed and active: a fault, once at the safe voltage, takes the error
-        transition (a deactivate that reports the fault)."""
-        why = self.loop.faulted_at_safe if self.managed and self.loop is not None else None
-        if why and self.lifecycle_label() == "active":
-            self.why_error = why
-            self.trigger_deactivate()
-
     # -- the sample loop ----------------------------------------------------------------
     def on_lean_tick(self):
         """Real time: the sample clock's tick."""
@@ -258,11 +258,11 @@ class StageDriver(LeanNode, LifecycleNode):
                 return
             self.lean_deadline = time.monotonic() + 0.01  # consumers still matching
             return
-        j, cmd, on_time, missed = self.loop.next_tick(
-            time.monotonic(), lambda: self.get_clock().now().nanoseconds)
-        self.tick(j, cmd, on_time, missed)
-        if self.loop is not None:
-            self.lean_deadline = self.loop.clock.deadline(self.loop.j + 1)
+        out = self.loop.on_tick(time.monotonic(),
+                                lambda: self.get_clock().now().nanoseconds, self.link)
+        self.follow(out)
+        if self.loop is not None:  # (a hardware fault may have closed it)
+            self.lean_deadline = out.deadline
 
     def on_command(self, msg, info):
         if self.loop is None:  # unconfigured: no sample to answer
@@ -274,35 +274,35 @@ class StageDriver(LeanNode, LifecycleNode):
             return
         recv = 0 if self.lock else (info.get("received_timestamp")
                                     or self.get_clock().now().nanoseconds)
-        if self.loop.command(ns, v, recv):  # lockstep: the next sample's command
-            self.tick(self.loop.j + 1, v, True)
+        self.follow(self.loop.on_command(ns, v, recv, self.link))
 
-    def tick(self, j, cmd, on_time, missed=0):
-        """Take sample ``j`` and publish it; exit once a stop has ramped down."""
-        if self.loop is None:
-            return None
-        if self.loop.ended(j):
+    def follow(self, out: Outcome) -> None:
+        """What the sample loop decided (core/loop/sample_loop.py Outcome): publish the
+        sample taken, then its next action."""
+        if out.stop_began_s is not None:  # max_steps (real time): ramping to safe
+            watch_stop(max(STOP_STATE.watch_s, out.stop_began_s))
+        if out.next is Next.DONE:
             return self.done()
-        if self.loop.past_max_steps(j):
-            self.request_shutdown()  # real time: ramp to the safe voltage, then exit
-        now = self.loop.stamp(j) if self.lock else self.get_clock().now().nanoseconds
-        try:
-            s = self.loop.step(j, cmd, on_time, now, self.link, missed)
-        except BackendFault as e:
-            return self.hardware_failed(e)
-        if self.loop.refusal:  # the host cannot hold the rate: said once, the node ends
+        if out.next is Next.FAULT:
+            return self.hardware_failed(out.error)
+        if out.next is Next.REFUSE:  # the host cannot hold the rate: said once, it ends
             self._report_refusal()
-            raise ConfigError(self.loop.refusal)
-        self.gate.publish(self.jpub, joint_state_cdr(s.ns, s.w, s.applied))
-        if s.true is not None:
-            self.gate.publish(self.tpub, point_cdr(s.ns, s.true))
-        if self.clock_pub is not None and self.loop.clock_due:
-            self.gate.publish(self.clock_pub, clock_msg(s.ns))
-        if self.loop.shut_down:
+            raise ConfigError(out.reason)
+        s = out.sample
+        if s is not None:
+            self.gate.publish(self.jpub, joint_state_cdr(s.ns, s.w, s.applied))
+            if s.true is not None:
+                self.gate.publish(self.tpub, point_cdr(s.ns, s.true))
+            if self.clock_pub is not None and out.clock_due:
+                self.gate.publish(self.clock_pub, clock_msg(s.ns))
+        if out.next is Next.SHUT_DOWN:
             self.final_report()
             rclpy.try_shutdown()  # at the safe voltage (or out of time): exit
-        else:
-            self._check_fault()
+        elif out.next is Next.FAULTED_AT_SAFE and self.managed and \
+                self.lifecycle_label() == "active":
+            self.why_error = out.reason  # the error transition: a deactivate reporting it
+            self.trigger_deactivate()
+        return None
 
     def _report_refusal(self) -> None:
         """The capacity figures of a refusal, as data, where the launcher asked for them
@@ -322,7 +322,7 @@ class StageDriver(LeanNode, LifecycleNode):
             json.dump(doc, fh)
         os.replace(tmp, path)
 
-    def hardware_failed(self, error):
+    def hardware_failed(self, error: BaseException | None) -> None:
         """A lost link or a controller error: faulted, said on state and diagnostics,
         then the node exits 1 with the reason (the backend's close ramps to safe where
         the link still allows it). No sample is taken after it. Managed: the error
@@ -330,7 +330,6 @@ class StageDriver(LeanNode, LifecycleNode):
         unconfigured for a manager to configure it again."""
         if self.failed is None:
             self.failed = error
-            self.running.hardware_fault(error)
             self.get_logger().error(f"faulted: hardware: {error}")
             self.final_report()
             self.spub.wait_for_all_acked(Duration(seconds=1))
@@ -342,11 +341,11 @@ class StageDriver(LeanNode, LifecycleNode):
             self.why_error = f"faulted: hardware: {error}"  # inactive has no error edge:
             self.trigger_cleanup()  # cleanup, closing what the link still allows
             return None
-        raise error
+        raise error if error is not None else BackendFault("hardware: unknown")
 
     def done(self):
         if self.lock:
-            if self.p["exit_after_max_steps"] and not hasattr(self, "_exit_timer"):
+            if self.p["exit_after_max_steps"] and self._exit_timer is None:
                 self._exit_timer = steady_timer(self, 0.2, self.finish)
         elif not self.running.shutdown_requested:
             self.request_shutdown()

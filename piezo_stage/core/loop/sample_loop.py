@@ -22,9 +22,10 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import Enum
 from typing import Any
 
-from piezo_stage.core.errors import DataError
+from piezo_stage.core.errors import BackendFault, DataError
 from piezo_stage.core.loop.arming import ENABLED, FAULTED, ArmingParams, ArmingSupervisor
 from piezo_stage.core.loop.capacity import PARAMETERS as CAPACITY
 from piezo_stage.core.loop.capacity import Capacity, CapacityMeter
@@ -101,6 +102,33 @@ class Sample:
     w: dict
     true: dict | None
     applied: dict
+
+
+class Next(Enum):
+    """What the driver does after a message, as the sample loop decides it."""
+    NONE = "none"                    # publish the sample (if any), go on
+    DONE = "done"                    # no sample: the run is over (lockstep max_steps, a
+                                     # replay ran out): make sure readers have it, exit
+    SHUT_DOWN = "shut down"          # a stop's ramp has ended: report, then exit
+    FAULT = "fault"                  # the hardware failed (``error``): no sample
+    FAULTED_AT_SAFE = "faulted at safe"  # a fault's ramp reached safe (``reason``): a
+                                         # managed driver's error transition
+    REFUSE = "refuse"                # the host cannot hold the rate (``reason``): end
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """The sample loop's answer to one message (``on_command``, ``on_tick``): the
+    sample to publish (None: none), whether /clock is due with it, the next action,
+    and where a stop began with this sample (real time, max_steps) how long its ramp
+    and teardown may take [s]; real time, the next tick's deadline (monotonic [s])."""
+    sample: Sample | None = None
+    clock_due: bool = False
+    next: Next = Next.NONE
+    reason: str = ""
+    error: BackendFault | None = None
+    stop_began_s: float | None = None
+    deadline: float | None = None
 
 
 class SampleLoop:
@@ -198,6 +226,50 @@ class SampleLoop:
         j = self.clock.tick(now, self.j)
         cmd, on_time = self.sched.due(j, count_held=self.sup.state in ENABLED)
         return j, cmd, on_time, j - self.j - 1
+
+    # -- one call per message: the driver's whole sample -------------------------------
+    def on_command(self, ns: int, v: dict, recv_ns: int, link: str = "") -> Outcome:
+        """A command (already decoded) for the sample stamped ``ns``, received at
+        ``recv_ns``: lockstep, when it is the next sample's, that sample is taken;
+        real time it is scheduled for its tick. ``link``: the missing links, named
+        where arming is refused."""
+        if not self.command(ns, v, recv_ns):
+            return Outcome()
+        j = self.j + 1
+        return self._take(j, v, True, self.stamp(j), link, 0)
+
+    def on_start(self) -> Outcome:
+        """Lockstep, at configure: the first sample, at rest (no command)."""
+        j = self.j + 1
+        return self._take(j, None, False, self.stamp(j), "", 0)
+
+    def on_tick(self, now: float, ros_now_ns: Callable[[], int], link: str = "") -> Outcome:
+        """Real time, the tick due at monotonic ``now``: the sample due, with its
+        scheduled command (``ros_now_ns()``: the ROS time it is taken at)."""
+        j, cmd, on_time, missed = self.next_tick(now, ros_now_ns)
+        return self._take(j, cmd, on_time, int(ros_now_ns()), link, missed)
+
+    def _take(self, j: int, cmd: dict | None, on_time: bool, now_ns: int, link: str,
+              missed: int) -> Outcome:
+        """Sample ``j`` and what follows it (``Outcome``)."""
+        if self.ended(j):
+            return Outcome(next=Next.DONE)
+        stop = self.begin_shutdown() if self.past_max_steps(j) and not self.lock else None
+        try:
+            s = self.step(j, cmd, on_time, now_ns, link, missed)
+        except BackendFault as e:
+            self.hardware_fault(e)
+            return Outcome(next=Next.FAULT, error=e, stop_began_s=stop)
+        if self.refusal:
+            return Outcome(next=Next.REFUSE, reason=self.refusal, stop_began_s=stop)
+        deadline = None if self.lock else self.clock.deadline(self.j + 1)
+        if self.shut_down:
+            after, why = Next.SHUT_DOWN, ""
+        elif self.faulted_at_safe:
+            after, why = Next.FAULTED_AT_SAFE, self.faulted_at_safe
+        else:
+            after, why = Next.NONE, ""
+        return Outcome(s, self.clock_due, after, why, None, stop, deadline)
 
     def command(self, ns: int, v: dict, recv_ns: int) -> bool:
         """A command for the sample stamped ``ns`` (a valid one: the adapter checked
