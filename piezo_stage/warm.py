@@ -57,7 +57,7 @@ def kernels(rate_hz: float = 1000.0) -> int:
     sim = SimBackend("", rate_hz)  # the driver's: compiles the plant's kernels
     t = np.arange(int(2.2 * rate_hz)) / rate_hz
     v = 75.0 - 75.0 * np.cos(2 * np.pi * t)  # two cycles of a full-stroke 1 Hz sine
-    w = np.array([sim.step(x, x)[0] for x in v])
+    w = [sim.step(x, x).measured for x in v]
     w_um = {"x": np.array([s["x"] for s in w]), "y": np.array([s["y"] for s in w])}
     rec = Record(t, {"x": v, "y": v.copy()}, w_um, source="warm-up", voltage_exact=True)
     fitted = identify_stage(rec, ("x", "y"), IdentifyOptions(), skip_unusable=True)

@@ -97,9 +97,10 @@ def test_hardware_timed_single_point_scaling_and_safe_close(device):
     out = [b.step(100.0, 30.0) for _ in range(50)]
     assert calls.index(("write", (0.0, 0.0))) < calls.index(("start", "ao"))
     assert ("write", (100.0 / 15.0, 2.0)) in calls                # volts / amplifier gain
-    w, true, applied, index = out[-1]
-    assert true is None and applied == {"x": 100.0, "y": 30.0}
-    assert [o[3] for o in out] == list(range(50))                 # one clock per step
+    last = out[-1]
+    assert last.true is None and last.applied == {"x": 100.0, "y": 30.0}
+    assert [o.sample_index for o in out] == list(range(50))                 # one clock per step
+    w = last.measured
     assert 40 < w["x"] < 80 and w["x"] != w["y"]                  # um through 10 um/V
     assert b.late == 0
     b.close(0.0, 500.0)
@@ -115,7 +116,7 @@ def test_hardware_timed_single_point_scaling_and_safe_close(device):
 def test_late_samples_are_counted_and_show_in_the_sample_index(device, late):
     dd.install(clock="virtual", lag_every=10, late=late)
     b = DaqBackend(1000.0, PARAMS, safe_V=0.0)
-    idx = [b.step(50.0, 50.0)[3] for _ in range(40)]
+    idx = [b.step(50.0, 50.0).sample_index for _ in range(40)]
     assert b.late >= 4
     gaps = np.diff(idx)
     assert (gaps > 1).sum() >= 3 and gaps.min() >= 1              # misses visible, in order
@@ -130,7 +131,7 @@ def test_the_sample_clock_and_the_watchdog_start_at_the_first_step(device):
     dd.install(clock="wall")
     b = DaqBackend(1000.0, {**PARAMS, "watchdog_timeout_s": 0.05}, safe_V=0.0)
     time.sleep(0.3)
-    idx = [b.step(30.0, 30.0)[3] for _ in range(5)]
+    idx = [b.step(30.0, 30.0).sample_index for _ in range(5)]
     # the 0.3 s wait counts for nothing: the first sample is index 0 or 1, and late
     # samples are at most the few a busy host makes of the five steps themselves (it
     # held this process a few ms between two steps in a fresh clone's parallel suite,

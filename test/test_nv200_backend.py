@@ -102,10 +102,11 @@ def test_streamed_steps_drive_both_axes_and_are_clamped(stage):
     try:
         b.start()
         for _ in range(10):
-            w, true, applied, index = b.step(50.0, 80.0)
-        assert true is None and index is None and applied == {"x": 50.0, "y": 80.0}
+            r = b.step(50.0, 80.0)
+        w, applied = r.measured, r.applied
+        assert r.true is None and r.sample_index is None and applied == {"x": 50.0, "y": 80.0}
         assert 10.0 < w["x"] < 25.0 and 25.0 < w["y"] < 40.0, w
-        _, _, applied, _ = b.step(500.0, -50.0)
+        applied = b.step(500.0, -50.0).applied
         assert applied == {"x": 130.0, "y": 0.0} and stage.max_abs_V <= 130.0
     finally:
         b.close(0.0, 1e5)

@@ -129,12 +129,13 @@ def test_streamed_steps_drive_the_stage_and_never_leave_the_limits(controller):
     try:
         b.start()
         for _ in range(50):
-            w, true, applied, index = b.step(50.0, 80.0)
-        assert true is None and index is None and applied == {"x": 50.0, "y": 80.0}
+            r = b.step(50.0, 80.0)
+        w, applied = r.measured, r.applied
+        assert r.true is None and r.sample_index is None and applied == {"x": 50.0, "y": 80.0}
         ref = Plant(controller.plant.config, 1e4)
         r = ref.run(np.full(10_000, 50.0), np.full(10_000, 80.0))
         assert abs(w["x"] - r["x"][-1]) < 1.0 and abs(w["y"] - r["y"][-1]) < 1.0, (w, r)
-        _, _, applied, _ = b.step(500.0, -50.0)
+        applied = b.step(500.0, -50.0).applied
         assert applied == {"x": 100.0, "y": 0.0}
         assert controller.max_abs_V <= 100.0
     finally:

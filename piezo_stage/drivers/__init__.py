@@ -1,19 +1,14 @@
 """Stage backends behind the driver node: simulated, NI-DAQ, PI controller, NV200
 amplifiers, replay of a bag.
 
-Each backend has ``rate_hz``, ``limits`` ({axis: (lo, hi)} V), ``slew_V_per_s``
-({axis: V/s}), ``hardware_id`` (what /diagnostics names), ``paced`` (True when
-``step`` itself waits for the hardware's sample clock), ``step(vx, vy) -> (measured
-{axis: um}, true {axis: um} or None, applied {axis: V}, sample index or None)``,
-advancing one sample period with the voltages held, ``start()``, which starts the
-hardware's sample clock (the driver calls it just before its first tick and maps its
-stamps after it; ``step`` starts a backend not yet started), and ``close(safe_V,
-ramp_V_per_s)``, which leaves the outputs at the safe voltage.
+Each is a core.loop.backend.Backend (what the sample loop asks of a stage) whose
+``step(vx, vy)`` returns a StepResult.
 """
 
 from __future__ import annotations
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.loop.backend import Backend, StepResult
 from piezo_stage.core.params import Param, Schema
 from piezo_stage.drivers.daq import DAQ_PARAMS
 from piezo_stage.drivers.nv200 import NV200_PARAMS
@@ -47,6 +42,7 @@ def done_line(loop, acked_s: float) -> str:
 
 class SimBackend:
     paced = False  # the driver paces it (lockstep: by commands; real time: wall clock)
+    exhausted = False  # never runs out
 
     def __init__(self, config_path: str, rate_hz: float, seed=None):
         from piezo_stage.core.model.plant import Plant
@@ -62,10 +58,10 @@ class SimBackend:
         self.slew_V_per_s = {a: cfg.slew_V_per_s for a in ("x", "y")}
         self.hardware_id = f"sim seed {cfg.seed} ({config_path or 'sim_stage.yaml'})"
 
-    def step(self, vx, vy):
+    def step(self, vx: float, vy: float) -> StepResult:
         mx, my = self.plant.step(vx, vy)
         true = {a: float(x[0]) for a, x in self.plant.last_true.items()}
-        return {"x": mx, "y": my}, true, {"x": vx, "y": vy}, None
+        return StepResult({"x": mx, "y": my}, {"x": vx, "y": vy}, true)
 
     def start(self):
         pass  # the driver paces the simulation
@@ -88,15 +84,15 @@ class ReplayBackend:
         self.hardware_id = f"replay of {bag_path}"
 
     @property
-    def exhausted(self):
+    def exhausted(self) -> bool:
         return self.k >= len(self.rec)
 
-    def step(self, vx, vy):
+    def step(self, vx: float, vy: float) -> StepResult:
         k = min(self.k, len(self.rec) - 1)
         self.k += 1
         w = {a: float(x[k]) for a, x in self.rec.w.items()}
         v = {a: float(self.rec.v.get(a, [0.0] * len(self.rec))[k]) for a in ("x", "y")}
-        return {"x": w.get("x", 0.0), "y": w.get("y", 0.0)}, None, v, None
+        return StepResult({"x": w.get("x", 0.0), "y": w.get("y", 0.0)}, v)
 
     def start(self):
         pass
@@ -105,7 +101,7 @@ class ReplayBackend:
         pass
 
 
-def make_backend(kind: str, rate_hz: float, params: dict, safe_V: float = 0.0):
+def make_backend(kind: str, rate_hz: float, params: dict, safe_V: float = 0.0) -> Backend:
     if kind == "sim":
         return SimBackend(params.get("plant_config", ""), rate_hz, params.get("seed"))
     if kind == "replay":

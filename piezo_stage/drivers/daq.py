@@ -34,6 +34,7 @@ import warnings
 from typing import Any
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.loop.backend import StepResult
 from piezo_stage.core.params import Param, Schema
 
 LATE_CODES = {209800, 209801, 209802, 209803}  # |code|: read/write not complete before
@@ -65,6 +66,7 @@ def _pair(params, name, n=2):
 
 class DaqBackend:
     paced = True  # step() blocks until the hardware's next sample clock
+    exhausted = False
 
     def __init__(self, rate_hz: float, params: dict, safe_V: float):
         try:
@@ -185,9 +187,9 @@ class DaqBackend:
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         return ok
 
-    def step(self, vx, vy):
-        """Write the voltages for the next sample clock, read that clock's sample.
-        -> (measured {axis: um}, None, applied {axis: V}, sample index)."""
+    def step(self, vx: float, vy: float) -> StepResult:
+        """Write the voltages for the next sample clock, read that clock's sample (its
+        index: the device's count of clocks)."""
         if not self.started:
             self.start()
         self.v = {"x": vx, "y": vy}
@@ -201,9 +203,9 @@ class DaqBackend:
         index = int(self.ai.in_stream.total_samp_per_chan_acquired) - 1
         w = {a: float(self.raw_in[i]) * self.um_per_V[i] + self.offset_um[i]
              for i, a in enumerate(("x", "y"))}
-        return w, None, dict(self.v), index
+        return StepResult(w, dict(self.v), None, index)
 
-    def close(self, safe_V: float, ramp_V_per_s: float):
+    def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0):
         """Ramp to the safe voltage on the hardware clock, leave it there, release.
         Safe to call twice."""
         if self.ai is None:

@@ -31,6 +31,7 @@ import asyncio
 import numpy as np
 
 from piezo_stage.core.errors import BackendFault, ConfigError
+from piezo_stage.core.loop.backend import StepResult
 from piezo_stage.core.params import Param, Schema
 
 NV200_PARAMS: Schema = (  # the driver node declares them read-only (core/params.py)
@@ -61,6 +62,7 @@ def parse_address(address: str) -> tuple[str, str, int | None]:
 class Nv200Backend:
     """See the module docstring."""
     paced = False
+    exhausted = False
 
     def __init__(self, rate_hz: float, params: dict, safe_V: float):
         try:
@@ -153,9 +155,9 @@ class Nv200Backend:
     def start(self):
         self.started = True
 
-    def step(self, vx, vy):
-        """Set both setpoints, read both positions: -> (measured {axis: um}, None,
-        applied {axis: V}, None). BackendFault when a link or an amplifier fails."""
+    def step(self, vx: float, vy: float) -> StepResult:
+        """Set both setpoints, read both positions. BackendFault when a link or an
+        amplifier fails."""
         out = {a: min(max(v, self.limits[a][0]), self.limits[a][1])
                for a, v in (("x", vx), ("y", vy))}
 
@@ -164,7 +166,7 @@ class Nv200Backend:
             return await dev.get_current_position()
         w = self._run(self._both(one), "a sample")
         self.v = out
-        return {a: float(x) for a, x in w.items()}, None, dict(out), None
+        return StepResult({a: float(x) for a, x in w.items()}, dict(out))
 
     def ramp_to(self, target: dict, rate_V_per_s: float) -> None:
         """Ramp both outputs to ``target`` at ``rate_V_per_s``, in steps at the pace the

@@ -34,6 +34,7 @@ import time
 from typing import Any
 
 from piezo_stage.core.errors import BackendFault, ConfigError
+from piezo_stage.core.loop.backend import StepResult
 from piezo_stage.core.params import Param, Schema
 
 PI_PARAMS: Schema = (  # the driver node declares them read-only (core/params.py)
@@ -78,6 +79,7 @@ class PiBackend:
     """See the module docstring: ``step`` is the streamed loop, ``play`` the wave
     generator. ``params``: PI_PARAMS plus the driver's output_limits_V and slew_V_per_s."""
     paced = False  # the driver paces the loop on the wall clock
+    exhausted = False
 
     def __init__(self, rate_hz: float, params: dict, safe_V: float):
         try:
@@ -157,9 +159,9 @@ class PiBackend:
     def start(self):
         self.started = True
 
-    def step(self, vx, vy):
-        """Write the voltages, read the positions: -> (measured {axis: um}, None,
-        applied {axis: V}, None). BackendFault when the link or the controller fails."""
+    def step(self, vx: float, vy: float) -> StepResult:
+        """Write the voltages, read the positions. BackendFault when the link or the
+        controller fails."""
         out = self._clamp({"x": vx, "y": vy})
         try:
             self.dev.SVA(self.axes, out)
@@ -167,8 +169,8 @@ class PiBackend:
         except _link_errors() as e:
             raise BackendFault(self._fault_text(e)) from None
         self.v = {"x": out[0], "y": out[1]}
-        return ({"x": float(pos[self.axes[0]]), "y": float(pos[self.axes[1]])}, None,
-                dict(self.v), None)
+        return StepResult({"x": float(pos[self.axes[0]]), "y": float(pos[self.axes[1]])},
+                          dict(self.v))
 
     def _fault_text(self, e) -> str:
         from pipython import GCSError

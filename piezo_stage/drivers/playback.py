@@ -103,7 +103,7 @@ def play_record(kind: str, rec: Record, params: dict | None = None, plant_config
             n = len(rec)
             w = {a: np.empty(n) for a in "xy"}
             for k in range(n):
-                m, _, _, _ = daq.step(float(rec.v["x"][k]), float(rec.v["y"][k]))
+                m = daq.step(float(rec.v["x"][k]), float(rec.v["y"][k])).measured
                 w["x"][k], w["y"][k] = m["x"], m["y"]
             if daq.late > late0:
                 raise BackendFault(f"the host missed {daq.late - late0} sample clocks "

@@ -23,10 +23,10 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
-from typing import Any
 
 from piezo_stage.core.errors import BackendFault, DataError
 from piezo_stage.core.loop.arming import ENABLED, FAULTED, ArmingParams, ArmingSupervisor
+from piezo_stage.core.loop.backend import Backend
 from piezo_stage.core.loop.capacity import PARAMETERS as CAPACITY
 from piezo_stage.core.loop.capacity import Capacity, CapacityMeter
 from piezo_stage.core.loop.clock import CommandSchedule, SampleClock
@@ -164,7 +164,7 @@ class SampleLoop:
         tick to the ROS time of that tick, so its stamps go on by themselves.
     """
 
-    def __init__(self, backend: Any, arm: ArmingParams, rate_hz: float, lockstep: bool,
+    def __init__(self, backend: Backend, arm: ArmingParams, rate_hz: float, lockstep: bool,
                  lookahead_s: float, max_steps: int,
                  on_state_change: Callable[[str, str, int], None],
                  clock_period_s: float = 0.0, from_arming: bool = False,
@@ -299,8 +299,7 @@ class SampleLoop:
 
     def ended(self, j: int) -> bool:
         """No sample ``j``: a replay ran out, or lockstep took ``max_steps``."""
-        return bool(getattr(self.backend, "exhausted", False) or (
-            self.lock and self._past(j)))
+        return bool(self.backend.exhausted or (self.lock and self._past(j)))
 
     def past_max_steps(self, j: int) -> bool:
         """Real time: ``max_steps`` taken and no shutdown asked for yet."""
@@ -317,7 +316,8 @@ class SampleLoop:
         self.stats["limit_hits"] += hit and self.sup.state in ENABLED
         for _ in range(missed):  # the plant held the last voltage over the missed ticks
             self.backend.step(self.v["x"], self.v["y"])
-        w, true, applied, hw_j = self.backend.step(v["x"], v["y"])
+        r = self.backend.step(v["x"], v["y"])
+        w, true, applied, hw_j = r.measured, r.true, r.applied, r.sample_index
         if hw_j is not None:  # the DAQ's own sample count: its misses show in the stamps
             missed, j = missed + hw_j - j, hw_j
         self.stats["missed_ticks"] += missed
