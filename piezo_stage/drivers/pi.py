@@ -80,6 +80,7 @@ class PiBackend:
     generator. ``params``: PI_PARAMS plus the driver's output_limits_V and slew_V_per_s."""
     paced = False  # the driver paces the loop on the wall clock
     exhausted = False
+    dev: Any = None  # pipython's GCSDevice once connected (close: nothing before)
 
     def __init__(self, rate_hz: float, params: dict, safe_V: float):
         try:
@@ -105,7 +106,6 @@ class PiBackend:
         self.timeout_ms = max(1, int(float(params["pi_timeout_s"]) * 1000))
         kind, args = parse_address(params["pi_address"])
         self.address = params["pi_address"]
-        self.dev: Any = None  # pipython's GCSDevice once connected
         try:
             self.gateway = self._gateway(kind, args)
             self.dev = GCSDevice(gateway=self.gateway)
@@ -124,7 +124,7 @@ class PiBackend:
             self.servo_s = float(self.dev.qSPA(self.axes[0], SERVO_UPDATE_TIME)
                                  [self.axes[0]][SERVO_UPDATE_TIME])
         except (GCSError, OSError, ConfigError) as e:
-            if getattr(self, "dev", None) is not None:
+            if self.dev is not None:
                 self._release()
             if isinstance(e, ConfigError):
                 raise
@@ -257,7 +257,7 @@ class PiBackend:
     def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0):
         """Ramp to the safe voltage at the safe rate, leave it there, close the link.
         Safe to call twice; a lost link cannot be ramped (said by the fault before)."""
-        if getattr(self, "dev", None) is None:
+        if self.dev is None:
             return
         try:
             if self.started and ramp_V_per_s > 0:

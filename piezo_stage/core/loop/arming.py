@@ -98,6 +98,7 @@ class ArmingSupervisor:
         self.link = "no command received yet"
         self.arm_requested = params.auto_arm
         self.estop = False
+        self._periods = 1               # sample periods the last tick spanned
         self.last_fresh_ns: int | None = None  # receipt of the last valid command on time
         self.late_since_fresh = 0       # valid commands after their tick since then
         self.late_lag_ns = 0            # how far behind their tick the latest of them came
@@ -219,7 +220,7 @@ class ArmingSupervisor:
         safe = {a: self.p.safe_V for a in self.v}
         if self.estop:  # as fast as the amplifier's slew limit allows (the driver's)
             return safe
-        step = self.ramp_step_V * getattr(self, "_periods", 1)
+        step = self.ramp_step_V * self._periods
         return clamp_slew(safe, self.v, (-math.inf, math.inf), step)[0]
 
     def _enable(self, stamp_ns: int):

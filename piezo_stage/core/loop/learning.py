@@ -114,7 +114,7 @@ def loop_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: np.
         return g
     # the time advance: the lead without the samples a stable inverse only previews
     lead = (compensator.lead_ticks.get(axis, 0) -
-            getattr(compensator, "preview_ticks", {}).get(axis, 0)) / rate_hz
+            compensator.preview_ticks.get(axis, 0)) / rate_hz
     g = g * np.exp(2j * np.pi * f * lead)
     if axis in compensator.creep:
         g = g / creep_response(model["creep"], rate_hz, f)
