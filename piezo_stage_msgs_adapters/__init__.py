@@ -12,19 +12,17 @@ with its types, and a name that is no adapter is an AttributeError.
 
 from typing import TYPE_CHECKING
 
-from piezo_stage_msgs_adapters.wire import JOINTS, UM
+from piezo_stage_msgs_adapters.wire import JOINTS, MEASURED, UM, Announcement, Reference
 
 if TYPE_CHECKING:  # at run time loaded on first use (__getattr__): no ROS to import us
     from piezo_stage_msgs_adapters.convert import (
         ARM_LEVEL,
         FRAME,
-        MEASURED,
-        arming_state_from_msg,
+        announcement_from_msg,
         arming_state_msg,
         check_trajectory_size,
         clock_msg,
         diagnostic_array,
-        driver_announcement,
         header,
         joint_state,
         joint_state_cdr,
@@ -53,17 +51,17 @@ if TYPE_CHECKING:  # at run time loaded on first use (__getattr__): no ROS to im
     )
 
 __all__ = [
-    "JOINTS", "UM", "FRAME", "ns_to_time", "time_to_ns", "header", "joint_state",
-    "joint_state_cdr", "joint_state_to_um", "voltage_msg", "voltage_cdr",
-    "voltage_from_msg", "MEASURED", "reference_msg", "reference_cdr",
-    "reference_from_msg", "point_msg", "point_cdr", "setpoint_from_msg", "trajectory_msg",
-    "trajectory_from_msg", "trajectory_max_bytes", "trajectory_take_bytes",
-    "check_trajectory_size", "trajectory_stamp_ns", "trajectory_from_cdr", "model_msg",
-    "model_from_msg", "phase_msg", "phase_from_msg", "ARM_LEVEL", "arming_state_msg",
-    "arming_state_from_msg", "driver_announcement", "clock_msg", "diagnostic_array",
+    "JOINTS", "MEASURED", "UM", "Announcement", "Reference", "ARM_LEVEL", "FRAME",
+    "announcement_from_msg", "arming_state_msg", "check_trajectory_size", "clock_msg",
+    "diagnostic_array", "header", "joint_state", "joint_state_cdr", "joint_state_to_um",
+    "model_from_msg", "model_msg", "ns_to_time", "phase_from_msg", "phase_msg",
+    "point_cdr", "point_msg", "reference_cdr", "reference_from_msg", "reference_msg",
+    "setpoint_from_msg", "time_to_ns", "trajectory_from_cdr", "trajectory_from_msg",
+    "trajectory_max_bytes", "trajectory_msg", "trajectory_stamp_ns",
+    "trajectory_take_bytes", "voltage_cdr", "voltage_from_msg", "voltage_msg",
 ]
 # what __getattr__ loads from convert (the TYPE_CHECKING list above)
-CONVERT = frozenset(__all__) - {"JOINTS", "UM"}
+CONVERT = frozenset(__all__) - {"JOINTS", "MEASURED", "UM", "Announcement", "Reference"}
 
 
 def __getattr__(name: str) -> object:

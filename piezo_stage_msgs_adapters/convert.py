@@ -15,16 +15,25 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from piezo_stage.core.errors import DataError
 from piezo_stage_msgs_adapters import cdr
-from piezo_stage_msgs_adapters.wire import JOINTS, UM, joint_state_axes
+from piezo_stage_msgs_adapters.wire import (
+    JOINTS,
+    MEASURED,
+    UM,
+    Announcement,
+    Reference,
+    announcement_of,
+    joint_state_axes,
+    reference_of,
+)
 
 __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "joint_state_to_um", "voltage_msg", "voltage_from_msg", "reference_msg",
            "reference_from_msg", "point_msg", "joint_state_cdr", "voltage_cdr",
            "reference_cdr", "point_cdr", "setpoint_from_msg", "trajectory_msg",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
-           "arming_state_msg", "arming_state_from_msg", "trajectory_from_cdr", "clock_msg",
+           "arming_state_msg", "announcement_from_msg", "trajectory_from_cdr", "clock_msg",
            "check_trajectory_size", "trajectory_max_bytes", "trajectory_take_bytes",
-           "trajectory_stamp_ns", "phase_msg", "phase_from_msg", "driver_announcement"]
+           "trajectory_stamp_ns", "phase_msg", "phase_from_msg"]
 
 FRAME = "stage"  # header.frame_id of everything the nodes publish
 
@@ -113,7 +122,6 @@ def voltage_from_msg(msg) -> tuple[int, dict]:
     return ns, v
 
 
-MEASURED = ("x_measured", "y_measured")
 
 
 def reference_msg(ns: int, desired_um: dict, ff_V: dict, measured_um: dict,
@@ -140,19 +148,10 @@ def reference_cdr(ns: int, desired_um: dict, ff_V: dict, measured_um: dict,
         (), [float(ff_V[a]) for a in JOINTS] + [float(applied_V[a]) for a in JOINTS])
 
 
-def reference_from_msg(msg) -> tuple[int, dict, dict, dict, dict]:
-    """Reference (message or CDR bytes) -> (stamp ns, desired {axis: um}, feedforward
-    {axis: V}, measured {axis: um}, applied {axis: V})."""
-    ns, names, position, effort = _joint_state_fields(msg)
-    if list(names) != list(JOINTS + MEASURED) or len(position) != 4 or len(effort) != 4:
-        raise DataError("reference: expected joints [x, y, x_measured, y_measured] with "
-                        "position and effort")
-    d = {a: float(position[i]) / UM for i, a in enumerate(JOINTS)}
-    f = {a: float(effort[i]) for i, a in enumerate(JOINTS)}
-    w = {a: float(position[2 + i]) / UM for i, a in enumerate(JOINTS)}
-    v = {a: float(effort[2 + i]) for i, a in enumerate(JOINTS)}
-    _finite([*d.values(), *f.values(), *w.values(), *v.values()], "reference")
-    return ns, d, f, w, v
+def reference_from_msg(msg) -> Reference:
+    """Reference (message or CDR bytes) -> Reference (wire.reference_of: the one
+    decoder, the bag reader's too); DataError when it is not one."""
+    return reference_of(*_joint_state_fields(msg))
 
 
 def point_msg(ns: int, w_um: dict) -> PointStamped:
@@ -326,31 +325,10 @@ def arming_state_msg(since_ns: int, name: str, state: str, reason: str, values: 
                             {"state": state, "reason": reason, **values}, hardware_id)
 
 
-def arming_state_from_msg(msg: DiagnosticArray) -> tuple[int, str, str, dict]:
-    """-> (since ns, state, reason, {key: value string}); DataError if malformed."""
-    if not msg.status:
-        raise DataError("state: no status")
-    kv = {k.key: k.value for k in msg.status[0].values}
-    if "state" not in kv:
-        raise DataError("state: no 'state' value")
-    return time_to_ns(msg.header.stamp), kv["state"], kv.get("reason", ""), kv
-
-
-def driver_announcement(values: dict) -> tuple[float, tuple | None, str]:
-    """The driver's announcement in its state's key-values, read in this one place:
-    (look-ahead [s], its voltage limits (lo, hi) [V] or None when it gave none, mode).
-    DataError when a value is not a number or the limits are not lo < hi."""
-    try:
-        lookahead = float(values.get("lookahead_s", 0.0))
-        lo, hi = values.get("voltage_limit_lo_V"), values.get("voltage_limit_hi_V")
-        limits = None if lo is None or hi is None else (float(lo), float(hi))
-    except (TypeError, ValueError) as e:
-        raise DataError(f"state: a driver announcement that is not a number ({e})") from None
-    if limits is not None and not (math.isfinite(limits[0]) and limits[0] < limits[1]):
-        raise DataError(f"state: voltage limits {limits} are not lo < hi")
-    if not (math.isfinite(lookahead) and lookahead >= 0.0):
-        raise DataError(f"state: look-ahead {lookahead} s")
-    return lookahead, limits, str(values.get("mode", ""))
+def announcement_from_msg(msg: DiagnosticArray) -> Announcement:
+    """The driver's ``state`` -> Announcement (wire.announcement_of: the one reader,
+    the bag reader's too); DataError if malformed."""
+    return announcement_of(msg)
 
 
 def clock_msg(ns: int):

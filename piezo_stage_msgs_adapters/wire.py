@@ -6,6 +6,7 @@ volts; REP 103), micrometres in the core."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 from piezo_stage.core.errors import DataError
 
@@ -44,3 +45,83 @@ def point_um(data: bytes) -> tuple[int, dict]:
     from piezo_stage_msgs_adapters.cdr import decode_point_stamped
     ns, _, (x, y, _) = decode_point_stamped(data)
     return ns, {"x": x / UM, "y": y / UM}
+
+
+MEASURED = ("x_measured", "y_measured")  # the reference's joints after x, y
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The feedforward's /reference for one target sample: the desired position [um]
+    and the feedforward [V] per axis, and the measurement [um] and applied voltage [V]
+    it was computed from (the controller sees its own commands come back)."""
+
+    ns: int
+    desired_um: dict[str, float]
+    ff_V: dict[str, float]
+    measured_um: dict[str, float]
+    applied_V: dict[str, float]
+
+
+def reference_of(ns: int, names, position, effort) -> Reference:
+    """A reference's joint-state fields (joints x, y, x_measured, y_measured; position
+    [m], effort [V]) -> Reference; DataError when it is not one. The one decoder: the
+    controller's (``convert.reference_from_msg``) and the bag reader's
+    (``reference_um``)."""
+    if list(names) != list(JOINTS + MEASURED) or len(position) != 4 or len(effort) != 4:
+        raise DataError("reference: expected joints [x, y, x_measured, y_measured] with "
+                        "position and effort")
+    values = [float(x) for x in (*position, *effort)]
+    if not all(math.isfinite(x) for x in values):
+        raise DataError("reference: non-finite value")
+    p, e = values[:4], values[4:]
+    return Reference(int(ns), {a: p[i] / UM for i, a in enumerate(JOINTS)},
+                     {a: e[i] for i, a in enumerate(JOINTS)},
+                     {a: p[2 + i] / UM for i, a in enumerate(JOINTS)},
+                     {a: e[2 + i] for i, a in enumerate(JOINTS)})
+
+
+def reference_um(data: bytes) -> Reference:
+    """A /reference as CDR bytes -> Reference."""
+    from piezo_stage_msgs_adapters.cdr import decode_joint_state
+    ns, _, names, position, _, effort = decode_joint_state(data)
+    return reference_of(ns, names, position, effort)
+
+
+@dataclass(frozen=True)
+class Announcement:
+    """The driver's latched ``state``: from the sample stamped ``since_ns`` on, its
+    arming ``state`` and ``reason``, the look-ahead [s] it announces, its voltage
+    limits (lo, hi) [V] (None: not given), its ``mode``, and every key-value as sent."""
+
+    since_ns: int
+    state: str
+    reason: str
+    lookahead_s: float
+    limits: tuple[float, float] | None
+    mode: str
+    values: dict[str, str]
+
+
+def announcement_of(msg) -> Announcement:
+    """A diagnostic_msgs/DiagnosticArray of the driver's ``state`` (rclpy's message or
+    a bag reader's: the same fields) -> Announcement, read in this one place. DataError
+    when it has no status or state, a value is not a number or the limits not lo < hi."""
+    if not msg.status:
+        raise DataError("state: no status")
+    kv = {str(k.key): str(k.value) for k in msg.status[0].values}
+    if "state" not in kv:
+        raise DataError("state: no 'state' value")
+    try:
+        lookahead = float(kv.get("lookahead_s", 0.0))
+        lo, hi = kv.get("voltage_limit_lo_V"), kv.get("voltage_limit_hi_V")
+        limits = None if lo is None or hi is None else (float(lo), float(hi))
+    except (TypeError, ValueError) as e:
+        raise DataError(f"state: a driver announcement that is not a number ({e})") from None
+    if limits is not None and not (math.isfinite(limits[0]) and limits[0] < limits[1]):
+        raise DataError(f"state: voltage limits {limits} are not lo < hi")
+    if not (math.isfinite(lookahead) and lookahead >= 0.0):
+        raise DataError(f"state: look-ahead {lookahead} s")
+    stamp = msg.header.stamp
+    return Announcement(int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec), kv["state"],
+                        kv.get("reason", ""), lookahead, limits, kv.get("mode", ""), kv)

@@ -45,11 +45,16 @@ def test_trajectory_round_trip_and_rejections():
 
 
 def test_reference_and_setpoint_and_model():
-    ns, d, f, w, v = A.reference_from_msg(A.reference_msg(
+    r = A.reference_from_msg(A.reference_msg(
         7, {"x": 1.0, "y": 2.0}, {"x": 3.0, "y": 4.0}, {"x": 5.0, "y": 6.0},
         {"x": 7.0, "y": 8.0}))
-    assert (ns, f, v) == (7, {"x": 3.0, "y": 4.0}, {"x": 7.0, "y": 8.0})
-    assert d == pytest.approx({"x": 1.0, "y": 2.0}) and w == pytest.approx({"x": 5.0, "y": 6.0})
+    assert (r.ns, r.ff_V, r.applied_V) == (7, {"x": 3.0, "y": 4.0}, {"x": 7.0, "y": 8.0})
+    assert r.desired_um == pytest.approx({"x": 1.0, "y": 2.0})
+    assert r.measured_um == pytest.approx({"x": 5.0, "y": 6.0})
+    # the bag reader's decoder is the same one
+    from piezo_stage_msgs_adapters.wire import reference_um
+    assert reference_um(A.reference_cdr(7, r.desired_um, r.ff_V, r.measured_um,
+                                        r.applied_V)) == r
     with pytest.raises(DataError):
         A.setpoint_from_msg(A.point_msg(1, {"x": 500.0, "y": 0.0}), (-10, 90))
     import os
@@ -61,24 +66,26 @@ def test_reference_and_setpoint_and_model():
     diag = A.diagnostic_array(1, "n", 1, "warn", {"k": 2})
     assert diag.status[0].values[0].value == "2"
     st = A.arming_state_msg(9, "/stage/stage_driver: arming", "faulted", "stale", {"k": 1})
-    assert A.arming_state_from_msg(st)[:3] == (9, "faulted", "stale")
+    a = A.announcement_from_msg(st)
+    assert (a.since_ns, a.state, a.reason) == (9, "faulted", "stale")
     assert st.status[0].level == bytes([2]) and st.status[0].message == "faulted"
     with pytest.raises(DataError):
-        A.arming_state_from_msg(A.diagnostic_array(1, "n", 0, "ok", {}))
+        A.announcement_from_msg(A.diagnostic_array(1, "n", 0, "ok", {}))
 
 
 def test_the_drivers_announcement_is_typed_key_values_read_in_one_place():
     st = A.arming_state_msg(5, "/stage/stage_driver: arming", "armed", "tracking", {
         "lookahead_s": 0.005, "voltage_limit_lo_V": 0.0, "voltage_limit_hi_V": 150.0,
         "mode": "realtime"})
-    values = A.arming_state_from_msg(st)[3]
-    assert A.driver_announcement(values) == (0.005, (0.0, 150.0), "realtime")
-    assert A.driver_announcement({}) == (0.0, None, "")  # an older driver: no limits
+    a = A.announcement_from_msg(st)
+    assert (a.lookahead_s, a.limits, a.mode) == (0.005, (0.0, 150.0), "realtime")
+    older = A.announcement_from_msg(A.arming_state_msg(5, "d", "armed", "", {}))
+    assert (older.lookahead_s, older.limits, older.mode) == (0.0, None, "")  # no limits
     for bad in ({"voltage_limit_lo_V": "150", "voltage_limit_hi_V": "0"},
                 {"voltage_limit_lo_V": "a", "voltage_limit_hi_V": "1"},
                 {"lookahead_s": "nan"}, {"lookahead_s": "-1"}):
         with pytest.raises(DataError):
-            A.driver_announcement(bad)
+            A.announcement_from_msg(A.arming_state_msg(5, "d", "armed", "", bad))
 
 
 # --- CDR codecs of the per-sample topics: checked against rclpy's own serializer ---

@@ -503,8 +503,9 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
     ff_at, applied = {}, {}
     for topic, _, _, data in iter_messages(bag):
         if topic.endswith("/reference"):
-            ns, _, ffv, _, v_applied = reference_from_msg(data)
-            ff_at[ns], applied[ns] = (ffv["x"], ffv["y"]), (v_applied["x"], v_applied["y"])
+            r = reference_from_msg(data)
+            ff_at[r.ns] = (r.ff_V["x"], r.ff_V["y"])
+            applied[r.ns] = (r.applied_V["x"], r.applied_V["y"])
     ks = np.array(sorted(ff_at))
     ffs = np.array([ff_at[k] for k in ks])
     held = np.r_[False, np.all(np.diff([applied[k] for k in ks], axis=0) == 0, axis=1)]

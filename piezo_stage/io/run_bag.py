@@ -15,8 +15,12 @@ import numpy as np
 
 from piezo_stage.core.errors import DataError
 from piezo_stage.io.bag import deserialize, iter_messages
-from piezo_stage_msgs_adapters.cdr import decode_joint_state
-from piezo_stage_msgs_adapters.wire import UM, joint_state_um, point_um
+from piezo_stage_msgs_adapters.wire import (
+    announcement_of,
+    joint_state_um,
+    point_um,
+    reference_um,
+)
 
 
 def _ns(m) -> int:
@@ -84,13 +88,19 @@ def read_run(bag) -> Run:
             ns, p_um = point_um(data)
             true[ns] = np.array([p_um["x"], p_um["y"]])
         elif topic.endswith("/reference"):  # desired x, y: the first two joints
-            ns, _, _, position, _, _ = decode_joint_state(data)
-            ref[ns] = np.array(position[:2]) / UM
+            try:
+                r = reference_um(data)  # the controller's decoder (wire.reference_of)
+            except DataError:  # an outside node's malformed reference: no target
+                continue
+            ref[r.ns] = np.array([r.desired_um["x"], r.desired_um["y"]])
         elif topic.endswith("/state") and msgtype.endswith("DiagnosticArray"):
-            m = deserialize(data, msgtype)
-            if not states or states[-1][1] != m.status[0].message:
-                states.append((_ns(m), m.status[0].message))  # changes (not the relays
-                # of the feedforward's phase, which repeat the state)
+            try:
+                a = announcement_of(deserialize(data, msgtype))  # the loop nodes' reader
+            except DataError:  # a foreign or malformed state: no change of the driver's
+                continue
+            if not states or states[-1][1] != a.state:
+                states.append((a.since_ns, a.state))  # changes (not the relays of the
+                # feedforward's phase, which repeat the state)
         elif topic.endswith("/model"):
             models += 1
         elif topic == "/diagnostics":

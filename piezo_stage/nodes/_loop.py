@@ -121,15 +121,14 @@ class DriverState:
         hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
 
     def on_state(self, msg):
-        from piezo_stage_msgs_adapters import arming_state_from_msg, driver_announcement
+        from piezo_stage_msgs_adapters import announcement_from_msg
         try:
-            since, state, _, values = arming_state_from_msg(msg)
-            lookahead_s, lim, mode = driver_announcement(values)
+            a = announcement_from_msg(msg)
         except PiezoStageError:
             self.bad += 1
             return
-        self.lookahead_ns = int(round(lookahead_s * 1e9)) or self.dt_ns
-        if mode == "realtime" and not self.realtime:
+        self.lookahead_ns = int(round(a.lookahead_s * 1e9)) or self.dt_ns
+        if a.mode == "realtime" and not self.realtime:
             # the heap first, at normal priority: touching 54 MB takes ~54 ms of a core
             # here, which at SCHED_FIFO another set's loop on this host could not preempt
             reserved = reserve_heap(self.heap_bytes, self.node.get_logger())
@@ -139,9 +138,9 @@ class DriverState:
                     "largest message this node takes then costs no page faults)")
             self.heap_bytes = 0  # once
             set_realtime_priority(self.prio, self.node.get_logger())
-        self.realtime = mode == "realtime"
-        self.limits = lim or self.limits
-        self.timeline.add(since, state)
+        self.realtime = a.mode == "realtime"
+        self.limits = a.limits or self.limits
+        self.timeline.add(a.since_ns, a.state)
 
     def enabled(self, ns) -> bool:
         return self.timeline.enabled(ns)

@@ -67,10 +67,11 @@ class Controller(LeanNode, Node):
     def on_reference(self, msg):
         """One reference: decoded, its stamp checked, then the core's one call."""
         try:
-            ns, desired, ff, w, applied = reference_from_msg(msg)
+            r = reference_from_msg(msg)
         except PiezoStageError:
             self.stats["bad_messages"] += 1
             return
+        ns = r.ns
         if not self.stamps.accept(ns):
             self.stats["stray_stamps"] = self.stamps.dropped
             return  # a duplicate changes nothing; a stray stamp is counted
@@ -78,7 +79,7 @@ class Controller(LeanNode, Node):
             self.stats["late_dropped"] += 1  # its command would arrive after its tick
             return
         t_k = ns - self.driver.lookahead_ns
-        v = self.core.on_sample(ns, t_k, desired, ff, w, applied,
+        v = self.core.on_sample(ns, t_k, r.desired_um, r.ff_V, r.measured_um, r.applied_V,
                                 self.driver.enabled(t_k) and self.driver.enabled(ns))
         if v is not None:
             self.gate.publish(self.pub, voltage_cdr(ns, v))
