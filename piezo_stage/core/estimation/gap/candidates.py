@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -64,6 +65,25 @@ TRANSFORMS = ("creep", "dynamics", "delay")  # linear time-invariant: they commu
 # amplifier's range is not kept (0.15 V of 0-150 V: on a 0.3 um/V stage 0.05 um, below
 # a capacitive sensor's noise; a branch that turns back misses by volts)
 INVERSE_MISS_FRACTION = 1e-3
+
+
+class Fitted(Protocol):
+    """What the diagnosis asks of a candidate, an effect's (``Candidate``, the Duhem
+    law with its effects) or a class's (``ClassCandidate``, memory as the
+    Prandtl-Ishlinskii or Preisach class): its name, parameters, the effects it holds,
+    its fit on FIT and its prediction of a record (the held-out judge), and the
+    effects as a model file writes them."""
+
+    effect: str
+    params: dict
+    effects: list
+    fit_rms_um: float
+
+    def predict(self, rec: Record, axis: str) -> np.ndarray:
+        """The candidate's output over ``rec`` [um]."""
+
+    def model_effects(self) -> dict:
+        """Every kept plant effect as model-file parameters {name: params}."""
 
 
 @dataclass

@@ -18,6 +18,7 @@ from piezo_stage.core.estimation.gap.candidates import (
     TRANSFORMS,
     Candidate,
     ClassCandidate,
+    Fitted,
     broadband,
     fit_candidate,
     fit_class_candidate,
@@ -75,7 +76,7 @@ class AxisDiagnosis:
     candidates: dict = field(default_factory=dict)
     effects: list = field(default_factory=list)    # forward selection: kept, in order
     budget: dict = field(default_factory=dict)
-    model: Candidate | ClassCandidate | None = None  # the model with every kept effect
+    model: Fitted | None = None  # the model with every kept effect
 
 
 FIRST_SHRINK_PCT = 30.0  # the dominant effect must close this much of the held-out gap
@@ -152,268 +153,354 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     amplifier's, bound the memory class's thresholds (fit_class_candidate). HOLDOUT's
     first ``history`` samples are its history: every model runs over them (the stage's
     state at the scored part's start follows from them: a creep in progress is no
-    drift), and only the rest is scored."""
-    if progress is None:
-        progress = _quiet
-    for rec in (fit, holdout):
-        if axis not in rec.v or axis not in rec.w:
-            raise DataError(f"{rec.source}: no v{axis}/w{axis} for axis {axis}")
-    scored = holdout.slice(history, len(holdout)) if history else holdout
-    for rec in (fit, scored):
-        check_identifiable(rec.v[axis], rec.source)
+    drift), and only the rest is scored. The stages are AxisSearch's."""
+    search = AxisSearch(fit, holdout, axis, effects, base_model, progress, base_effects,
+                        limits_V, history)
+    cands = search.fit_candidates()
+    ranking = search.rank(cands)
+    steps, model = search.select(cands)
+    return search.decide(ranking, steps, model, cands)
 
-    def resid_of(c) -> np.ndarray:  # a model's held-out residual, over the scored part
-        return (c.predict(holdout, axis) - holdout.w[axis])[history:]
-    notes = []
-    if holdout is fit:
-        notes.append("no HOLDOUT: scored on FIT itself, where extra freedom is not "
-                     "penalised (record the excitation twice)")
-    given = _given_effects(base_model, base_effects, axis)
-    vo_fit = fit.v.get(OTHER[axis])
-    if any(n == "coupling" for n, _ in given) and (vo_fit is None or np.ptp(vo_fit) < 1.0):
-        # the model's coupling term has nothing to be fitted on where the other axis
-        # rests (a protocol that drives the axes in turn): it adds a constant there
-        given = [(n, p) for n, p in given if n != "coupling"]
-        notes.append("the model's coupling is left out: the other axis's voltage does "
-                     "not move in FIT")
-    testable = []
-    for e in effects:
-        if e in [n for n, _ in given]:
-            continue  # the sim has it already
-        if e == "coupling":
-            vo_f, vo_h = fit.v.get(OTHER[axis]), holdout.v.get(OTHER[axis])
-            if vo_f is None or vo_h is None or np.ptp(vo_f) < 1.0:
-                notes.append("coupling not tested: the other axis's voltage does not move")
-                continue
-        testable.append(e)
-    no_band = "dynamics" in testable and "delay" in testable and not broadband(
-        fit.v[axis], fit.fs_hz)
-    rates = several_rates(fit.v[axis], fit.fs_hz)
 
-    def candidate(e, on, kept):
-        """fit_candidate; structure in its forms (richer branches; with play
-        operators: memory; where FIT holds several rates, with their thresholds
-        widened by the rate: rate; memory as the Prandtl-Ishlinskii or the discretized
-        Preisach class in place of the Duhem law, with the effects kept before it), the
-        one closest on HOLDOUT kept (as every candidate is judged), so memory and rate
-        are named only where they pay. A form whose exact inverse does not give the
-        records' voltages back (a branch turning back) must be closer by 10 % than the
-        best before it (NOT_INVERTIBLE_PAYS). On a class (``on`` a ClassCandidate) the
-        effect is added to the class (fit_class_effect) and to its twin, the Duhem
-        law's best form with the same effects; the closer of the two on HOLDOUT is the
-        candidate (the class's twin the law's)."""
+class AxisSearch:
+    """One axis's diagnosis in its named stages (``diagnose_axis`` runs them in order):
+    what can be tested (built), every candidate alone (``fit_candidates``; the forms of
+    structure and the memory classes in ``structure_candidate``), each against the sim
+    (``rank``), forward selection (``select``: the pair rule, ``pair_first``; a kept
+    effect polished, ``polish``) and the verdict with its notes and budget
+    (``decide``). A candidate is a Fitted: an effect's (Candidate) or a class's
+    (ClassCandidate), judged alike by its held-out residual."""
+
+    def __init__(self, fit: Record, holdout: Record, axis: str, effects: Sequence[str],
+                 base_model: StageModel | None, progress: Callable[[str], None] | None,
+                 base_effects: dict | None, limits_V: tuple | None, history: int):
+        self.progress = progress or _quiet
+        for rec in (fit, holdout):
+            if axis not in rec.v or axis not in rec.w:
+                raise DataError(f"{rec.source}: no v{axis}/w{axis} for axis {axis}")
+        self.scored = holdout.slice(history, len(holdout)) if history else holdout
+        for rec in (fit, self.scored):
+            check_identifiable(rec.v[axis], rec.source)
+        self.fit, self.holdout, self.axis, self.history = fit, holdout, axis, history
+        self.base_model, self.limits_V = base_model, limits_V
+        self.notes: list[str] = []
+        if holdout is fit:
+            self.notes.append("no HOLDOUT: scored on FIT itself, where extra freedom is "
+                              "not penalised (record the excitation twice)")
+        self.given = self._given(base_effects)
+        self.testable = self._testable(effects)
+        self.no_band = "dynamics" in self.testable and "delay" in self.testable and \
+            not broadband(fit.v[axis], fit.fs_hz)
+        self.rates = several_rates(fit.v[axis], fit.fs_hz)
+        # the classes' held-out RMS over the Duhem law's best structure form, the first
+        # time both were fitted: far behind (a stage of the Duhem law's own class), they
+        # are not fitted again with the effects kept later (they cost more than any
+        # other candidate)
+        self.class_tried: list[float] = []
+
+    def _given(self, base_effects: dict | None) -> list[tuple[str, dict]]:
+        given = _given_effects(self.base_model, base_effects, self.axis)
+        vo_fit = self.fit.v.get(OTHER[self.axis])
+        if any(n == "coupling" for n, _ in given) and (vo_fit is None or np.ptp(vo_fit) < 1.0):
+            # the model's coupling term has nothing to be fitted on where the other axis
+            # rests (a protocol that drives the axes in turn): it adds a constant there
+            given = [(n, p) for n, p in given if n != "coupling"]
+            self.notes.append("the model's coupling is left out: the other axis's voltage "
+                              "does not move in FIT")
+        return given
+
+    def _testable(self, effects: Sequence[str]) -> list[str]:
+        testable = []
+        for e in effects:
+            if e in [n for n, _ in self.given]:
+                continue  # the sim has it already
+            if e == "coupling":
+                other = OTHER[self.axis]
+                vo_f, vo_h = self.fit.v.get(other), self.holdout.v.get(other)
+                if vo_f is None or vo_h is None or np.ptp(vo_f) < 1.0:
+                    self.notes.append("coupling not tested: the other axis's voltage does "
+                                      "not move")
+                    continue
+            testable.append(e)
+        return testable
+
+    def resid_of(self, c: Fitted | GivenModel | None) -> np.ndarray:
+        """A model's held-out residual, over the scored part."""
+        assert c is not None
+        return (c.predict(self.holdout, self.axis) - self.holdout.w[self.axis])[self.history:]
+
+    # -- the candidates -------------------------------------------------------------------
+    def candidate(self, e: str, on: Fitted, kept: list) -> Fitted:
+        """fit_candidate; structure in its forms (``structure_candidate``). On a class
+        (``on`` a ClassCandidate) the effect is added to the class (fit_class_effect)
+        and to its twin, the Duhem law's best form with the same effects; the closer of
+        the two on HOLDOUT is the candidate (the class's twin the law's)."""
+        fit, axis = self.fit, self.axis
         if isinstance(on, ClassCandidate):
             assert on.twin is not None  # a class is kept with its twin (below)
-            law = candidate(e, on.twin, on.twin.effects)
-            k = fit_class_effect(fit, axis, on, e, law, limits_V) \
+            law = self.candidate(e, on.twin, on.twin.effects)
+            k = fit_class_effect(fit, axis, on, e, law, self.limits_V) \
                 if isinstance(law, Candidate) else None
-            if k is None:
+            if k is None or not isinstance(law, Candidate):
                 return law
             k.twin = law
-            r_law = rms(resid_of(law))
-            return k if rms(resid_of(k)) <= r_law else law
+            r_law = rms(self.resid_of(law))
+            return k if rms(self.resid_of(k)) <= r_law else law
+        assert isinstance(on, Candidate)
         law = fit_candidate(fit, axis, e, on, kept)  # the best form of the Duhem law
-        c: Candidate | ClassCandidate = law
-        if e == "structure":
-            both = np.concatenate([fit.v[axis], holdout.v[axis]])
-            best = rms(resid_of(law))
-            tried = not class_tried or class_tried[0] <= CLASS_WITH_EFFECTS
-            classes = [(k, rms(resid_of(k)))
-                       for k in (fit_class_candidate(fit, axis, limits_V, kind, on, kept)
-                                 for kind in (MEMORY_CLASSES if tried else ()))]
-            for form in (("memory", "rate") if rates else ("memory",)):
-                m = fit_candidate(fit, axis, e, on, kept, memory=True,
-                                  rate=form == "rate")
-                if m.effect == "rate" and not m.params.get("rate_widening_s"):
-                    continue  # no widening fits FIT better: memory already
-                r = rms(resid_of(m))
-                if r < best:
-                    if r > NOT_INVERTIBLE_PAYS * min([best] + [x[1] for x in classes]) \
-                            and m.inverse_miss(both, fit.fs_hz, limits_V) > \
-                            INVERSE_MISS_FRACTION:
-                        continue  # a branch turns back, for little: the exact inverse wins
-                    law, best = m, r
-            if not class_tried and classes:  # the first try: how close the classes came
-                class_tried.append(min(r for _, r in classes) / best if best > 0 else 0.0)
-            c = law
-            for k, r in classes:
-                if r < best:
-                    c, best = k, r
-            if isinstance(c, ClassCandidate):  # a class came closer than the law
-                c.twin = law
+        return self.structure_candidate(law, on, kept) if e == "structure" else law
+
+    def structure_candidate(self, law: Candidate, on: Candidate, kept: list) -> Fitted:
+        """Structure: the richer branches (``law``), with play operators (memory), where
+        FIT holds several rates with their thresholds widened by the rate (rate), and
+        memory as the Prandtl-Ishlinskii or the discretized Preisach class in place of
+        the Duhem law, with the effects kept before it: the one closest on HOLDOUT, so
+        memory and rate are named only where they pay. A form whose exact inverse does
+        not give the records' voltages back (a branch turning back) must be closer by
+        10 % than the best before it (NOT_INVERTIBLE_PAYS)."""
+        fit, axis, limits_V, e = self.fit, self.axis, self.limits_V, "structure"
+        both = np.concatenate([fit.v[axis], self.holdout.v[axis]])
+        best = rms(self.resid_of(law))
+        tried = not self.class_tried or self.class_tried[0] <= CLASS_WITH_EFFECTS
+        classes = [(k, rms(self.resid_of(k)))
+                   for k in (fit_class_candidate(fit, axis, limits_V, kind, on, kept)
+                             for kind in (MEMORY_CLASSES if tried else ()))]
+        for form in (("memory", "rate") if self.rates else ("memory",)):
+            m = fit_candidate(fit, axis, e, on, kept, memory=True, rate=form == "rate")
+            if m.effect == "rate" and not m.params.get("rate_widening_s"):
+                continue  # no widening fits FIT better: memory already
+            r = rms(self.resid_of(m))
+            if r < best:
+                if r > NOT_INVERTIBLE_PAYS * min([best] + [x[1] for x in classes]) \
+                        and m.inverse_miss(both, fit.fs_hz, limits_V) > \
+                        INVERSE_MISS_FRACTION:
+                    continue  # a branch turns back, for little: the exact inverse wins
+                law, best = m, r
+        if not self.class_tried and classes:  # the first try: how close the classes came
+            self.class_tried.append(min(r for _, r in classes) / best if best > 0 else 0.0)
+        c: Fitted = law
+        for k, r in classes:
+            if r < best:
+                c, best = k, r
+        if isinstance(c, ClassCandidate):  # a class came closer than the law
+            c.twin = law
         return c
-    # the classes' held-out RMS over the Duhem law's best structure form, the first time
-    # both were fitted: far behind (a stage of the Duhem law's own class), they are not
-    # fitted again with the effects kept later (they cost more than any other candidate)
-    class_tried: list[float] = []
-    base = fit_candidate(fit, axis, "none", kept=given)
-    progress(f"{axis} none")
-    cands = {"none": base}
-    for e in testable:
-        cands[e] = candidate(e, base, base.effects)
-        progress(f"{axis} {e}")
-    nf = noise_floor(scored.w[axis])
-    w_h = scored.w[axis]
-    n = len(w_h)
-    sim = GivenModel(base_model) if base_model is not None and axis in base_model.axes \
-        else base
-    resid = resid_of(sim)
-    r_before = rms(resid)
-    # a line the input does not cause (a floor vibration) is no model's to close: for
-    # choosing effects it counts with the noise (the gap is what a model could close)
-    dist0 = disturbance(scored, axis, resid, nf)
-    floor = float(np.hypot(nf, dist0["rms_um"])) if dist0 else nf
-    g_before = gap_above_floor(r_before, floor)
-    resids = {e: resid_of(c) for e, c in cands.items()}
-    if sim is not base:  # "none" is the sim as given: a candidate that changes nothing
-        resids["none"] = resid
-    scores: dict[str, float] = {e: rms(r) for e, r in resids.items()}
-    ranking: list[dict[str, Any]] = []
-    for e, c in cands.items():
-        g_after = gap_above_floor(scores[e], floor)
-        ranking.append({"effect": c.effect, "rms_before_um": r_before, "rms_after_um": scores[e],
-                        "gap_before_um": g_before, "gap_after_um": g_after,
-                        "shrink_pct": 100.0 * (1 - g_after / g_before) if g_before > 0 else 0.0,
-                        "shrink_pm_pct": shrink_uncertainty(resid, resids[e], floor,
-                                                            scored.fs_hz),
-                        "fit_rms_um": c.fit_rms_um, "params": c.params})
-    ranking.sort(key=lambda r: r["gap_after_um"])
-    # forward selection: the best candidate joins when it shrinks the held-out gap
-    # clearly; the rest are refitted with it in place and tried again
-    steps: list[dict[str, Any]] = []
-    model, r_cur = None, r_before
-    # (every candidate stays in: one that explains nothing on its own, as creep
-    # beside a larger coupling, can show once the larger one is modelled)
-    pool = {e: cands[e] for e in testable}
-    tried = {}  # (a, b): b fitted on top of a, and its held-out RMS (the pairs)
-    while pool:
-        e, c = min(pool.items(), key=lambda kv: scores[kv[0]])
-        g_cur, g_new = gap_above_floor(r_cur, floor), gap_above_floor(scores[e], floor)
-        need = (50.0 if g_before <= 0.5 * floor else FIRST_SHRINK_PCT) if not steps \
-            else STEP_SHRINK_PCT
+
+    def fit_candidates(self) -> dict[str, Fitted]:
+        """The sim's own fit ("none") and every testable effect alone on top of it."""
+        base = fit_candidate(self.fit, self.axis, "none", kept=self.given)
+        self.progress(f"{self.axis} none")
+        cands: dict[str, Fitted] = {"none": base}
+        for e in self.testable:
+            cands[e] = self.candidate(e, base, base.effects)
+            self.progress(f"{self.axis} {e}")
+        self.base = base
+        return cands
+
+    # -- the ranking -----------------------------------------------------------------------
+    def rank(self, cands: dict[str, Fitted]) -> list[dict[str, Any]]:
+        """Each candidate against the sim on HOLDOUT: the gap above the noise floor (and
+        a line the input does not cause) before and after it, best first."""
+        scored, axis = self.scored, self.axis
+        self.nf = nf = noise_floor(scored.w[axis])
+        self.n = len(scored.w[axis])
+        sim: Fitted | GivenModel = GivenModel(self.base_model) \
+            if self.base_model is not None and axis in self.base_model.axes else self.base
+        self.resid = resid = self.resid_of(sim)
+        self.r_before = r_before = rms(resid)
+        # a line the input does not cause (a floor vibration) is no model's to close: for
+        # choosing effects it counts with the noise (the gap is what a model could close)
+        dist0 = disturbance(scored, axis, resid, nf)
+        self.floor = floor = float(np.hypot(nf, dist0["rms_um"])) if dist0 else nf
+        self.g_before = g_before = gap_above_floor(r_before, floor)
+        resids = {e: self.resid_of(c) for e, c in cands.items()}
+        if sim is not self.base:  # "none" is the sim as given: a candidate that changes nothing
+            resids["none"] = resid
+        self.scores: dict[str, float] = {e: rms(r) for e, r in resids.items()}
+        ranking: list[dict[str, Any]] = []
+        for e, c in cands.items():
+            g_after = gap_above_floor(self.scores[e], floor)
+            ranking.append({"effect": c.effect, "rms_before_um": r_before,
+                            "rms_after_um": self.scores[e],
+                            "gap_before_um": g_before, "gap_after_um": g_after,
+                            "shrink_pct": 100.0 * (1 - g_after / g_before)
+                            if g_before > 0 else 0.0,
+                            "shrink_pm_pct": shrink_uncertainty(resid, resids[e], floor,
+                                                                scored.fs_hz),
+                            "fit_rms_um": c.fit_rms_um, "params": c.params})
+        ranking.sort(key=lambda r: r["gap_after_um"])
+        return ranking
+
+    # -- forward selection -------------------------------------------------------------------
+    def select(self, cands: dict[str, Fitted]) -> tuple[list[dict[str, Any]], Fitted | None]:
+        """Forward selection: the best candidate joins when it shrinks the held-out gap
+        clearly; the rest are refitted with it in place and tried again. -> (the steps
+        kept, the model with every kept effect or None)."""
+        floor, g_before, scores = self.floor, self.g_before, self.scores
+        steps: list[dict[str, Any]] = []
+        model: Fitted | None = None
+        r_cur = self.r_before
+        # (every candidate stays in: one that explains nothing on its own, as creep
+        # beside a larger coupling, can show once the larger one is modelled)
+        pool = {e: cands[e] for e in self.testable}
+        tried: dict = {}  # (a, b): b fitted on top of a, and its held-out RMS (the pairs)
+        while pool:
+            e, c = min(pool.items(), key=lambda kv: scores[kv[0]])
+            g_cur, g_new = gap_above_floor(r_cur, floor), gap_above_floor(scores[e], floor)
+            need = (50.0 if g_before <= 0.5 * floor else FIRST_SHRINK_PCT) if not steps \
+                else STEP_SHRINK_PCT
+            step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
+            rule = (f"the first-effect rule: it alone closes >= {need:.0f} % of the gap"
+                    if not steps else f"the further-effect rule: it closes >= {need:.0f} % "
+                    "of what was left")
+            if not steps and step < need and len(pool) > 1 and g_before > 0.5 * floor:
+                paired = self.pair_first(pool, r_cur, g_cur, need, tried)
+                if paired is not None:
+                    e, c, g_new, step, rule = paired
+                    need = 0.0  # the first of a pair that closes the gap together
+            if not (_significant(r_cur, scores[e], floor, self.n) and step >= need):
+                break
+            # a further effect's step, bootstrapped over HOLDOUT against the model before it
+            step_pm = shrink_uncertainty(self.resid_of(model), self.resid_of(c), floor,
+                                         self.scored.fs_hz) if steps else float("nan")
+            if steps and np.isfinite(step_pm) and step < STEP_NOISE_SIGMAS * step_pm:
+                break  # within the noise of the step itself
+            # what fits as well at this step (the excitation cannot tell them apart)
+            alike = [e2 for e2 in pool if e2 != e and gap_above_floor(scores[e2], floor) <=
+                     1.02 * g_new + 0.02 * (g_cur - g_new)]
+            if steps and len(alike) >= 2 and len(alike) == len(pool) - 1:
+                break  # every candidate helps alike: the refit helps, not any one effect
+            steps.append({"effect": c.effect, "params": c.params, "rms_after_um": scores[e],
+                          "gap_after_um": g_new, "step_shrink_pct": step,
+                          "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
+                          "equally_well": alike, "rule": rule, "step_pm_pct": step_pm})
+            self.polish(c, e, steps[-1])
+            g_new = steps[-1]["gap_after_um"]
+            steps[-1]["shrink_pm_pct"] = shrink_uncertainty(
+                self.resid, self.resid_of(c), floor, self.scored.fs_hz)
+            model, r_cur = c, scores[e]
+            del pool[e]
+            if g_new <= NOISE_STOP * floor:
+                break  # at the noise floor (itself estimated): nothing left to explain
+            for e2 in list(pool):
+                if len(steps) == 1 and (e, e2) in tried:
+                    # fitted already as a pair on top of the effect just kept
+                    pool[e2], scores[e2] = tried[(e, e2)]
+                else:
+                    pool[e2] = self.candidate(e2, model, model.effects)
+                    scores[e2] = rms(self.resid_of(pool[e2]))
+                self.progress(f"{self.axis} {'+'.join(x['effect'] for x in steps)}+{e2}")
+        if model is not None:  # each effect's parameters as finally refitted (drift's)
+            final = dict(model.effects)
+            for st in steps:
+                st["params"] = final.get(st["effect"], st["params"])
+        return steps, model
+
+    def pair_first(self, pool: dict[str, Fitted], r_cur: float, g_cur: float, need: float,
+                   tried: dict) -> tuple[str, Fitted, float, float, str] | None:
+        """The pair rule: effects of similar size, none alone closes 30 %; two of the
+        three best together may (the better one of the best such pair joins first; the
+        other must then still earn its place as a later step). -> (effect, candidate,
+        gap after it, its step %, the rule) or None."""
+        floor, scores = self.floor, self.scores
+        top = sorted(pool, key=scores.__getitem__)[:PAIR_POOL]
+        pairs = [(a, b) for i, a in enumerate(top) for b in top[i + 1:]]
+        if "delay" in pool and "dynamics" in pool and not {"delay", "dynamics"} <= set(top):
+            # a resonance seen through a delay: neither alone may fit at all
+            d0, d1 = sorted(("delay", "dynamics"), key=scores.__getitem__)
+            pairs.append((d0, d1))
+        best_pair = None
+        for a, b in pairs:
+            first = pool[a]
+            pair = self.candidate(b, first, first.effects)
+            self.progress(f"{self.axis} {a}+{b}")
+            r_pair = rms(self.resid_of(pair))
+            tried[(a, b)] = (pair, r_pair)
+            g_pair, g_a = gap_above_floor(r_pair, floor), gap_above_floor(scores[a], floor)
+            if 100.0 * (1 - g_pair / g_cur) >= need \
+                    and _significant(r_cur, r_pair, floor, self.n) \
+                    and 100.0 * (1 - g_pair / g_a) >= STEP_SHRINK_PCT \
+                    and (best_pair is None or g_pair < best_pair[0]):
+                best_pair = (g_pair, a, b)
+        if best_pair is None:
+            return None
+        e = best_pair[1]
+        g_new = gap_above_floor(scores[e], floor)
         step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
-        rule = (f"the first-effect rule: it alone closes >= {need:.0f} % of the gap"
-                if not steps else f"the further-effect rule: it closes >= {need:.0f} % "
-                "of what was left")
-        if not steps and step < need and len(pool) > 1 and g_before > 0.5 * floor:
-            # effects of similar size: none alone closes 30 %, two of the three best
-            # together may (the better one of the best such pair joins first; the other
-            # must then still earn its place as a later step)
-            top = sorted(pool, key=scores.__getitem__)[:PAIR_POOL]
-            pairs = [(a, b) for i, a in enumerate(top) for b in top[i + 1:]]
-            if "delay" in pool and "dynamics" in pool and not {"delay", "dynamics"} <= set(top):
-                # a resonance seen through a delay: neither alone may fit at all
-                d0, d1 = sorted(("delay", "dynamics"), key=scores.__getitem__)
-                pairs.append((d0, d1))
-            best_pair = None
-            for a, b in pairs:
-                first = pool[a]
-                pair = candidate(b, first, first.effects)
-                progress(f"{axis} {a}+{b}")
-                r_pair = rms(resid_of(pair))
-                tried[(a, b)] = (pair, r_pair)
-                g_pair, g_a = gap_above_floor(r_pair, floor), gap_above_floor(scores[a], floor)
-                if 100.0 * (1 - g_pair / g_cur) >= need \
-                        and _significant(r_cur, r_pair, floor, n) \
-                        and 100.0 * (1 - g_pair / g_a) >= STEP_SHRINK_PCT \
-                        and (best_pair is None or g_pair < best_pair[0]):
-                    best_pair = (g_pair, a, b)
-            if best_pair is not None:
-                e = best_pair[1]
-                c, g_new = pool[e], gap_above_floor(scores[e], floor)
-                step = 100.0 * (1 - g_new / g_cur) if g_cur > 0 else 0.0
-                rule = (f"the pair rule: {e} and {best_pair[2]} together close "
-                        f"{100.0 * (1 - best_pair[0] / g_cur):.0f} % of the gap (>= "
-                        f"{need:.0f} %), which no effect does alone")
-                need = 0.0  # the first of a pair that closes the gap together
-        if not (_significant(r_cur, scores[e], floor, n) and step >= need):
-            break
-        # a further effect's step, bootstrapped over HOLDOUT against the model before it
-        step_pm = shrink_uncertainty(resid_of(model), resid_of(c), floor, scored.fs_hz) \
-            if steps else float("nan")
-        if steps and np.isfinite(step_pm) and step < STEP_NOISE_SIGMAS * step_pm:
-            break  # within the noise of the step itself
-        # what fits as well at this step (the excitation cannot tell them apart)
-        alike = [e2 for e2 in pool if e2 != e and gap_above_floor(scores[e2], floor) <=
-                 1.02 * g_new + 0.02 * (g_cur - g_new)]
-        if steps and len(alike) >= 2 and len(alike) == len(pool) - 1:
-            break  # every candidate helps alike: the refit helps, not any one effect
-        steps.append({"effect": c.effect, "params": c.params, "rms_after_um": scores[e],
-                      "gap_after_um": g_new, "step_shrink_pct": step,
-                      "shrink_pct": 100.0 * (1 - g_new / g_before) if g_before else 0.0,
-                      "equally_well": alike, "rule": rule, "step_pm_pct": step_pm})
-        # polish the kept model's alphas fully, so that what the next candidates earn
-        # is theirs and not a better alpha search riding along (the other class has none)
-        if isinstance(c, Candidate):
-            alphas, fitted, _ = fit_fast(c.reg, budget=POLISH_BUDGET, x0=c.alphas, step=0.1)
-            if fitted.rms < c.fit_rms_um:
-                was = (c.alphas, c.theta, c.fit_rms_um, c.effects)
-                c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
-                c.effects = with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
-                polished = rms(resid_of(c))
-                if polished <= scores[e]:
-                    scores[e] = polished
-                    g_new = gap_above_floor(scores[e], floor)
-                    steps[-1].update(rms_after_um=scores[e], gap_after_um=g_new,
-                                     shrink_pct=100.0 * (1 - g_new / g_before)
-                                     if g_before else 0.0)
-                else:  # closer on FIT, further on HOLDOUT: the extra freedom overfits
-                    c.alphas, c.theta, c.fit_rms_um, c.effects = was
-        steps[-1]["shrink_pm_pct"] = shrink_uncertainty(
-            resid, resid_of(c), floor, scored.fs_hz)
-        model, r_cur = c, scores[e]
-        del pool[e]
-        if g_new <= NOISE_STOP * floor:
-            break  # at the noise floor (itself estimated): nothing left to explain
-        for e2 in list(pool):
-            if len(steps) == 1 and (e, e2) in tried:
-                # fitted already as a pair on top of the effect just kept
-                pool[e2], scores[e2] = tried[(e, e2)]
+        rule = (f"the pair rule: {e} and {best_pair[2]} together close "
+                f"{100.0 * (1 - best_pair[0] / g_cur):.0f} % of the gap (>= "
+                f"{need:.0f} %), which no effect does alone")
+        return e, pool[e], g_new, step, rule
+
+    def polish(self, c: Fitted, e: str, step: dict[str, Any]) -> None:
+        """A kept effect's alphas polished fully, so that what the next candidates earn
+        is theirs and not a better alpha search riding along (the other class has
+        none); kept where HOLDOUT agrees (``step`` and the score updated)."""
+        if not isinstance(c, Candidate):
+            return
+        alphas, fitted, _ = fit_fast(c.reg, budget=POLISH_BUDGET, x0=c.alphas, step=0.1)
+        if not fitted.rms < c.fit_rms_um:
+            return
+        was = (c.alphas, c.theta, c.fit_rms_um, c.effects)
+        c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
+        c.effects = with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
+        polished = rms(self.resid_of(c))
+        if polished <= self.scores[e]:
+            self.scores[e] = polished
+            g_new = gap_above_floor(polished, self.floor)
+            step.update(rms_after_um=polished, gap_after_um=g_new,
+                        shrink_pct=100.0 * (1 - g_new / self.g_before)
+                        if self.g_before else 0.0)
+        else:  # closer on FIT, further on HOLDOUT: the extra freedom overfits
+            c.alphas, c.theta, c.fit_rms_um, c.effects = was
+
+    # -- the verdict ---------------------------------------------------------------------------
+    def decide(self, ranking: list[dict[str, Any]], steps: list[dict[str, Any]],
+               model: Fitted | None, cands: dict[str, Fitted]) -> AxisDiagnosis:
+        """The verdict and its reason (``_decide``), the notes on what the records can
+        and cannot tell, where the gap lies, its budget and a line the input does not
+        cause."""
+        fit, scored, axis, nf = self.fit, self.scored, self.axis, self.nf
+        notes = self.notes
+        loc = where(scored, axis, self.resid, nf)
+        verdict, reason = _decide(ranking, steps, self.g_before, self.floor, fit, scored,
+                                  axis)
+        if verdict in ("none", "inconclusive"):
+            steps, model = [], None
+        if self.no_band and ({"delay", "dynamics"} & {st["effect"] for st in steps}
+                             or "delay and dynamics" in reason
+                             or "dynamics and delay" in reason):
+            notes.append("no broadband excitation (no chirp): a resonance above the "
+                         "excitation's tones cannot be told from a delay (record the "
+                         "protocol with its chirp: `excite` without `--chirp 0`)")
+        rate_note = one_rate_note(fit, scored, axis) if fit is not self.holdout else None
+        if rate_note:
+            notes.append(rate_note)
+        if not any(inner_reversals(r.v[axis]) for r in (fit, scored)):
+            notes.append("FIT and HOLDOUT hold no minor loops (their reversals lie at their "
+                          "ends): the forms with memory were judged on major loops alone, "
+                          "not on the minor loops where they differ, and a written model's "
+                          "minor loops are untested; record nested loops to tell (`excite "
+                          "--nested`; `identify --class auto` chooses the "
+                          "Prandtl-Ishlinskii class for such a record)")
+        if notes:
+            reason = (reason + "; " if reason else "") + "; ".join(notes)
+        left = self.resid_of(model) if model is not None else self.resid
+        dist = disturbance(scored, axis, left, nf)
+        budget = gap_budget(scored, axis, self.resid, nf, self.g_before, steps)
+        budget["disturbance"] = dist
+        g_left = budget["unexplained_um"]
+        if dist is not None and (not steps or dist["rms_um"] >= g_left):
+            # what is left is mostly a line no model of the input removes
+            said = (f"disturbance: {dist['rms_um']:.3g} um at {dist['freq_hz']:.1f} Hz, "
+                    f"not caused by the input (reject it with >= "
+                    f"{dist['feedback_bandwidth_hz']:.0f} Hz of feedback bandwidth)")
+            if verdict == "none":
+                verdict, reason = "disturbance", said
             else:
-                pool[e2] = candidate(e2, model, model.effects)
-                scores[e2] = rms(resid_of(pool[e2]))
-            progress(f"{axis} {'+'.join(x['effect'] for x in steps)}+{e2}")
-    if model is not None:  # each effect's parameters as finally refitted (drift's)
-        final = dict(model.effects)
-        for st in steps:
-            st["params"] = final.get(st["effect"], st["params"])
-    loc = where(scored, axis, resid, nf)
-    verdict, reason = _decide(ranking, steps, g_before, floor, fit, scored, axis)
-    if verdict in ("none", "inconclusive"):
-        steps, model = [], None
-    if no_band and ({"delay", "dynamics"} & {st["effect"] for st in steps}
-                    or "delay and dynamics" in reason or "dynamics and delay" in reason):
-        notes.append("no broadband excitation (no chirp): a resonance above the "
-                     "excitation's tones cannot be told from a delay (record the "
-                     "protocol with its chirp: `excite` without `--chirp 0`)")
-    rate_note = one_rate_note(fit, scored, axis) if fit is not holdout else None
-    if rate_note:
-        notes.append(rate_note)
-    if not any(inner_reversals(r.v[axis]) for r in (fit, scored)):
-        notes.append("FIT and HOLDOUT hold no minor loops (their reversals lie at their "
-                     "ends): the forms with memory were judged on major loops alone, not "
-                     "on the minor loops where they differ, and a written model's minor "
-                     "loops are untested; record nested loops to tell (`excite --nested`; "
-                     "`identify --class auto` chooses the Prandtl-Ishlinskii class for "
-                     "such a record)")
-    if notes:
-        reason = (reason + "; " if reason else "") + "; ".join(notes)
-    left = resid_of(model) if model is not None else resid
-    dist = disturbance(scored, axis, left, nf)
-    budget = gap_budget(scored, axis, resid, nf, g_before, steps)
-    budget["disturbance"] = dist
-    g_left = budget["unexplained_um"]
-    if dist is not None and (not steps or dist["rms_um"] >= g_left):
-        # what is left is mostly a line no model of the input removes
-        said = (f"disturbance: {dist['rms_um']:.3g} um at {dist['freq_hz']:.1f} Hz, not "
-                f"caused by the input (reject it with >= {dist['feedback_bandwidth_hz']:.0f}"
-                " Hz of feedback bandwidth)")
-        if verdict == "none":
-            verdict, reason = "disturbance", said
-        else:
-            reason += "; what is left is a " + said
-    return AxisDiagnosis(axis, verdict, reason, ranking, loc, nf, cands, steps, budget,
-                         model)
+                reason += "; what is left is a " + said
+        return AxisDiagnosis(axis, verdict, reason, ranking, loc, nf, cands, steps, budget,
+                             model)
 
 
 def _decide(ranking, steps, g_before, nf, fit, holdout, axis):
