@@ -481,11 +481,11 @@ def test_two_axes_run_apart_with_progress_results_and_errors_relayed():
 def test_one_column_search_finds_what_the_exact_search_finds(kind, monkeypatch):
     """The effect's parameters searched on the held fit's one-column prediction,
     alternating with the exact refit, end where the search on every column ends."""
-    from piezo_stage.core.estimation.gap import candidates
+    from piezo_stage.core.estimation.gap import candidates, searches
     fit, _ = make_pair(kind, "own", 5)
     base = candidates.fit_candidate(fit, "x", "none")
     fast = candidates.fit_candidate(fit, "x", kind, base, base.effects)
-    monkeypatch.setattr(candidates, "ONE_COLUMN_SEARCH", False)
+    monkeypatch.setattr(searches, "ONE_COLUMN_SEARCH", False)
     exact = candidates.fit_candidate(fit, "x", kind, base, base.effects)
     assert fast.fit_rms_um <= exact.fit_rms_um * 1.01
     for k, v in exact.params.items():

@@ -58,16 +58,16 @@ def bench_gap(seeds=3):
     # issue's figures: 36 s per single-effect case, 134 s for our stage with three
     # effects (its machine)
     from piezo_stage.core.estimation import gap as gap_mod
-    from piezo_stage.core.estimation.gap import candidates as gap_candidates
+    from piezo_stage.core.estimation.gap import searches as gap_searches
 
     def timed(fit, hold, fast=True):
-        gap_candidates.ONE_COLUMN_SEARCH = gap_mod.AXES_IN_PROCESSES = fast
+        gap_searches.ONE_COLUMN_SEARCH = gap_mod.AXES_IN_PROCESSES = fast
         try:
             t0 = time.perf_counter()
             res = diagnose(fit, hold)
             return res, time.perf_counter() - t0
         finally:
-            gap_candidates.ONE_COLUMN_SEARCH = gap_mod.AXES_IN_PROCESSES = True
+            gap_searches.ONE_COLUMN_SEARCH = gap_mod.AXES_IN_PROCESSES = True
     fit, hold = gap_blind.make_pair("creep", "own", 0, fs=5000.0)
     (_, dt), (_, slow) = timed(fit, hold), timed(fit, hold, fast=False)
     print(f"\n  speed: {fit.t[-1]:.1f} s record at 5 kHz, two axes, one effect: {dt:.1f} s "
