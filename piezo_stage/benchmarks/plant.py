@@ -13,7 +13,7 @@ from piezo_stage.io.plant_file import default_plant_config_path, load_plant_conf
 
 def _plain_python_plant(n: int, fs: float):
     """The same Plant.run with numba switched off (NUMBA_DISABLE_JIT=1): every kernel
-    runs as its plain-Python original, the baseline _jit.py promises. Returns (seconds,
+    runs as its plain-Python original, the baseline core/_jit.py promises. Returns (seconds,
     (wx, wy))."""
     import os
     import subprocess

@@ -203,7 +203,7 @@ def clamp_slew(v: dict, prev: dict, limits: tuple[float, float] | dict,
     hi)}), then move it from ``prev`` by at most ``max_step`` (V, or per axis).
     Returns (voltages, whether anything was limited). The driver's last line of
     defence, and the supervisor's ramp to the safe voltage."""
-    from piezo_stage.core._jit import amplifier_step  # the one clamp-and-slew formula
+    from piezo_stage.core.model._kernels import amplifier_step  # the one clamp-and-slew formula
     out, hit = {}, False
     for a, x in v.items():
         lo, hi = limits[a] if isinstance(limits, dict) else limits

@@ -31,8 +31,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import PREFIX, as_f64, duhem_run, duhem_step
+from piezo_stage.core._jit import PREFIX, as_f64
 from piezo_stage.core.errors import DataError, ModelError
+from piezo_stage.core.model._kernels import duhem_run, duhem_step
 from piezo_stage.core.model.play import PlayOperators
 
 

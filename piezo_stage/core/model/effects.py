@@ -24,8 +24,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import delay_columns
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.model._kernels import delay_columns
 
 EFFECTS = ("creep", "dynamics", "delay", "drift")
 
@@ -78,7 +78,7 @@ class _LinearFilter:
 def _lfilter_cols(b, a, X):
     """Columns of X filtered from rest (compiled: scipy's lfilter along axis 0 of a
     row-major array is several times slower)."""
-    from piezo_stage.core._jit import iir_columns
+    from piezo_stage.core.model._kernels import iir_columns
     X = np.ascontiguousarray(X, dtype=float)
     if X.ndim == 1:
         return iir_columns(np.asarray(b, float), np.asarray(a, float), X[:, None],
@@ -126,7 +126,7 @@ class Creep:
     def fast_part(self, X: np.ndarray) -> np.ndarray:
         """X - mean of the low-passes of X, from rest at the first row: the operator is
         X - gamma * fast_part(X), so a search over gamma filters once."""
-        from piezo_stage.core._jit import lowpass_mean_columns
+        from piezo_stage.core.model._kernels import lowpass_mean_columns
         X = np.ascontiguousarray(X, dtype=float)
         cols = X if X.ndim == 2 else X[:, None]
         cols = np.ascontiguousarray(cols - cols[:1])  # from rest (from_rest)

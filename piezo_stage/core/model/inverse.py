@@ -34,14 +34,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import (
-    as_f64,
+from piezo_stage.core._jit import as_f64
+from piezo_stage.core.errors import DataError, ModelError
+from piezo_stage.core.model._kernels import (
     duhem_inverse_run,
     stage_inverse_ahead,
     stage_inverse_step,
     stage_sync,
 )
-from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.core.model.duhem import (
     AXES,
     OTHER,

@@ -22,8 +22,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import as_f64, plant_run, sensor_run
+from piezo_stage.core._jit import as_f64
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.model._kernels import plant_run, sensor_run
 from piezo_stage.core.model.duhem import AXES, StageModel
 from piezo_stage.core.model.effects import EFFECTS, enabled_effects, make_effect
 from piezo_stage.core.model.play import PlayHysteresis

@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import play_run, play_run_rate
 from piezo_stage.core.errors import ConfigError, ModelError
+from piezo_stage.core.model._kernels import play_run, play_run_rate
 
 RATE_FILTER_S = 2e-3  # s: the rate a rate-dependent law sees is |dv/dt| low-passed
 # s: a model's rate widening stays below the filter's time constant, so that the
@@ -142,7 +142,7 @@ class PlayOperators:
 
     def widening(self, dt_s: float, rate_state: np.ndarray | None = None) -> np.ndarray:
         """The compiled inverse's view of the rate widening, [decay, gain, widening
-        before [V]] (core/_jit.py's ``rate_widen``), for samples ``dt_s`` [s] apart
+        before [V]] (core/model/_kernels.py's ``rate_widen``), for samples ``dt_s`` [s] apart
         from ``rate_state`` ([voltage before, low-passed rate]; None: at rest); zeros
         for a rate-independent law."""
         if not self.rate_dependent:

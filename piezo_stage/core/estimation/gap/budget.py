@@ -76,8 +76,9 @@ def input_locked(v: np.ndarray, v_other: np.ndarray | None, fs: float,
     (``v`` and ``v_other`` [V], sampled at ``fs``) predicts, two-fold cross-validated
     on the record itself (fitted on one fold, predicted on the other), so it holds
     what repeats with the input and not noise. -> that component (like resid)."""
-    from piezo_stage.core._jit import duhem_regressors, lowpass_mean_columns
+    from piezo_stage.core.estimation._kernels import duhem_regressors
     from piezo_stage.core.estimation.identify.regress import legendre_basis
+    from piezo_stage.core.model._kernels import lowpass_mean_columns
     cols = []
     for u in (v, v_other):
         if u is None or np.ptp(u) <= 0:

@@ -59,7 +59,8 @@ class _Chain:
         return X
 
 
-def compose(ops):
+def compose(ops: Sequence[Callable[[np.ndarray], np.ndarray] | None]
+            ) -> Callable[[np.ndarray], np.ndarray] | None:
     """The operators (None left out) applied in turn; None when there is none."""
     ops = [o for o in ops if o is not None]
     if not ops:
@@ -67,6 +68,6 @@ def compose(ops):
     return ops[0] if len(ops) == 1 else _Chain(ops)
 
 
-def identity(X):
+def identity(X: np.ndarray) -> np.ndarray:
     """No operator: the columns as they are."""
     return X

@@ -26,7 +26,8 @@ from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, play_columns
 
 
-def search_1d(f, lo, hi, n_grid=12, log=False):
+def search_1d(f: Callable[[float], float], lo: float, hi: float, n_grid: int = 12,
+              log: bool = False) -> tuple[float, float]:
     """The minimum of ``f`` over [lo, hi]: a grid (geometric with ``log``), then a
     bounded search between the best point's neighbours. -> (x, f(x))."""
     g = np.geomspace(lo, hi, n_grid) if log else np.linspace(lo, hi, n_grid)
@@ -148,7 +149,9 @@ def play_start_columns(v: np.ndarray, w: np.ndarray, thresholds_V: np.ndarray,
     return best[1], best[2]
 
 
-def columns_without(reg, alphas, kept, names, fs):
+def columns_without(reg: DuhemRegression, alphas: ArrayLike,
+                    kept: Sequence[tuple[str, dict]], names: Sequence[str],
+                    fs: float) -> np.ndarray:
     """The design for these alphas with the kept transform effects applied, except
     ``names``."""
     op = transform_ops([(n, p) for n, p in kept if n not in names], fs)

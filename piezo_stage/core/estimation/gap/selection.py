@@ -231,7 +231,7 @@ class AxisSearch:
 
     # -- the candidates -------------------------------------------------------------------
     def candidate(self, e: str, on: Fitted, kept: list) -> Fitted:
-        """fit_candidate; structure in its forms (``structure_candidate``). On a class
+        """A candidate: fit_candidate; structure in its forms (``structure_candidate``). On a class
         (``on`` a ClassCandidate) the effect is added to the class (fit_class_effect)
         and to its twin, the Duhem law's best form with the same effects; the closer of
         the two on HOLDOUT is the candidate (the class's twin the law's)."""

@@ -80,7 +80,7 @@ def hold_runs(v: ArrayLike, fs: float, min_s: float = 0.2,
     over which the voltage stays within ``tol_frac`` of its span (the whole stretch,
     not sample to sample: a slow sine's turning points and a staircase DAC output move
     on, and are not holds)."""
-    from piezo_stage.core._jit import hold_runs_kernel
+    from piezo_stage.core.estimation._kernels import hold_runs_kernel
     v = np.ascontiguousarray(v, dtype=float)
     if v.size == 0:
         return []

@@ -33,7 +33,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from piezo_stage.core._jit import as_f64, branch_rms_batch, duhem_rms_batch, unbounded_rows
+from piezo_stage.core._jit import as_f64
+from piezo_stage.core.estimation._kernels import branch_rms_batch, duhem_rms_batch, unbounded_rows
 from piezo_stage.core.estimation.identify.regress import legendre_to_power
 from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel, DuhemState
 

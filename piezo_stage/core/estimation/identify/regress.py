@@ -26,7 +26,8 @@ from numpy.polynomial import Legendre, Polynomial
 from numpy.polynomial import legendre as L
 from numpy.typing import ArrayLike
 
-from piezo_stage.core._jit import as_f64, duhem_regressors, fold_branches
+from piezo_stage.core._jit import as_f64
+from piezo_stage.core.estimation._kernels import duhem_regressors, fold_branches
 from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel, DuhemState
 
 
