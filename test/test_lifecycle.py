@@ -200,9 +200,8 @@ def test_every_transition_from_an_outside_manager(tmp_path, ros_env, mode):
         marks["deactivate"] = m.samples
         assert m.change("deactivate") and m.state() == "inactive"
         assert m.wait(lambda: m.effort == [0.0, 0.0], 20)  # ramped to safe
-        n0 = m.samples
-        m.spin(0.5)
-        assert m.samples > n0  # still publishing
+        n0 = m.samples  # still publishing (within 5 s: a host that starves this
+        assert m.wait(lambda: m.samples > n0 + 10, 5)  # process may pause its reads)
         n = len(m.armed)
         assert m.change("activate")
         assert m.wait(lambda: "armed" in m.armed[n:], 60)

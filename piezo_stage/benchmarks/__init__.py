@@ -6,7 +6,7 @@ faults, signals, experiments, outside, refit, setup, lifecycle) and the equipmen
 ``procs`` (helper processes, CPU ticks, the progress of repeated runs), ``probe`` (an
 outside node),
 ``host_pauses`` (when the whole machine stopped), ``foxglove_probe`` (a live-view
-client).
+client), ``report`` (what a benchmark found, as text or as the page's markdown).
 """
 
 from __future__ import annotations
@@ -33,7 +33,13 @@ BENCHMARKS = {
 
 
 def main(args) -> int:
-    """Run the benchmark ``args.what`` with its command-line arguments."""
+    """Run the benchmark ``args.what`` with its command-line arguments; its report as
+    text, or as markdown (``args.markdown``: a page to write its section into, or -)."""
+    from piezo_stage.benchmarks.report import Report
     module, function, takes = BENCHMARKS[args.what]
     run = getattr(importlib.import_module(f"piezo_stage.benchmarks.{module}"), function)
-    return run(*(getattr(args, k) for k in takes))
+    page = getattr(args, "markdown", None)
+    rep = Report(args.what, markdown=page is not None)
+    rc = run(rep, *(getattr(args, k) for k in takes))
+    rep.finish(page)
+    return rc

@@ -36,11 +36,13 @@ def _one(kind: str, model: str | None, out: str) -> tuple[int, str, float]:
     return r.returncode, (lines[-1] if lines else ""), time.monotonic() - t0
 
 
-def bench_experiments(runs: int = 10, kinds: tuple = KINDS) -> int:
+def bench_experiments(rep, runs: int = 10, kinds: tuple = KINDS) -> int:
+    """Every experiment as a whole command, with and without --model (``rep``: the
+    report)."""
     from piezo_stage.paths import default_config
     model = default_config("stage_model.yaml")
-    print(f"bench experiments: {', '.join(kinds)}, {runs} run(s) each, with --model "
-          f"{os.path.relpath(model)} and without; lockstep", flush=True)
+    rep.title(f"{', '.join(kinds)}, {runs} run(s) each as whole commands, with --model "
+              f"{os.path.relpath(model)} and without (identified); lockstep")
     rows, failures = [], 0
     tmp = tempfile.mkdtemp(prefix="bench_experiments_")
     try:
@@ -54,21 +56,20 @@ def bench_experiments(runs: int = 10, kinds: tuple = KINDS) -> int:
                     times.append(s)
                     if rc != 0:
                         failed.append(f"exit {rc}: {last}")
-                    print(f"  {kind:<10} {'--model' if m else 'identified':<10} run {k + 1}: "
-                          f"exit {rc}, {s:.1f} s", flush=True)
+                    rep.progress(f"{kind:<10} {'--model' if m else 'identified':<10} run "
+                                 f"{k + 1}: exit {rc}, {s:.1f} s")
                 rows.append((kind, m, times, failed))
                 failures += len(failed)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     base = {bool(m): statistics.median(t) for kind, m, t, _ in rows if kind == "noise"}
-    print(f"\n{'experiment':<10} {'model':<10} {'runs':>4} {'failed':>6} {'median_s':>8} "
-          f"{'x noise':>8}")
+    table = []
     for kind, m, times, failed in rows:
         med = statistics.median(times)
-        ratio = f"{med / base[bool(m)]:.2f}" if bool(m) in base else "-"
-        print(f"{kind:<10} {'--model' if m else 'identified':<10} {len(times):>4} "
-              f"{len(failed):>6} {med:8.1f} {ratio:>8}")
-        for f in sorted(set(failed)):
-            print(f"    {failed.count(f)} x {f}")
-    print(f"failures: {failures} of {len(rows) * runs} runs")
+        table.append((kind, "--model" if m else "identified", len(times), len(failed),
+                      f"{med:.1f}", f"{med / base[bool(m)]:.2f}" if bool(m) in base else "-",
+                      "; ".join(f"{failed.count(f)} x {f}" for f in sorted(set(failed)))))
+    rep.table(("experiment", "model", "runs", "failed", "median s", "x noise", "failures"),
+              table)
+    rep.target(f"no run fails ({failures} of {len(rows) * runs})", not failures)
     return 1 if failures else 0

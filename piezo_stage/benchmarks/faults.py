@@ -218,7 +218,8 @@ FAULTS = ("controller killed", "controller stopped 1 s", "feedforward killed",
           "NaN command flood 0.2 s", "e-stop, then disarm and arm")
 
 
-def bench_faults() -> int:
+def bench_faults(rep) -> int:
+    """One fault at a time, then hostile inputs (``rep``: the report)."""
     from piezo_stage.benchmarks.probe import Probe
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     from piezo_stage.launch.launcher import Launch
@@ -239,7 +240,7 @@ def bench_faults() -> int:
     try:
         launch.start()
         if not probe.wait_state("armed", 60):
-            print("bench faults: the set did not arm")
+            rep.fail("the set did not arm")
             return 1
         from piezo_stage.benchmarks.procs import progress_runs
         for name in progress_runs(FAULTS, "bench faults: faults"):
@@ -266,7 +267,7 @@ def bench_faults() -> int:
         # (a new goal while armed), which is the set staying armed
         rearmed = all(s[0] in ("armed", "approaching") for s in probe.states[n:])
         if not rearmed:
-            print("bench faults: the driver's states during the hostile inputs: "
+            rep.progress("the driver's states during the hostile inputs: "
                   + "; ".join(f"{s[0]} ({s[1]})" for s in probe.states[n:]))
         marks.append(("hostile inputs (below)", t0, time.time_ns(), rearmed))
         # the largest valid trajectory taken while armed: the longest hold it causes,
@@ -293,12 +294,11 @@ def bench_faults() -> int:
     run = read_run(bag)
     t, v = run.t_ns, run.v_V
     gaps = np.maximum(np.round(np.diff(t) / 1e6), 1)[:, None]
-    print("bench faults: real-time node set on the simulated stage (the paper's 10 Hz trajectory),"
-          f" one fault at a time; stale_timeout_s {STALE}, safe_ramp_V_per_s {RAMP:g}, "
-          f"slew limit {slew:g} V/s")
-    print(f"  {'fault':<30} {'max step V':>10} {'x slew':>7} {'max err um':>10} "
-          f"{'to safe s':>9} {'bound s':>8} {'re-armed':>9}")
+    rep.title("the real-time node set on the simulated stage (the paper's 10 Hz "
+              f"trajectory), one fault at a time; stale_timeout_s {STALE}, "
+              f"safe_ramp_V_per_s {RAMP:g}, slew limit {slew:g} V/s")
     ok_all = True
+    rows = []
     for name, a, b, rearmed in marks:
         k = (t >= a) & (t <= b)
         kk = k[1:] & k[:-1]
@@ -312,46 +312,46 @@ def bench_faults() -> int:
         if at0.size:
             to_safe = (t[at0[0]] - a) * 1e-9
             bound = STALE + held / RAMP + 0.005
-            safe_txt, bound_txt = f"{to_safe:9.3f}", f"{bound:8.3f}"
+            safe_txt, bound_txt = f"{to_safe:.3f}", f"{bound:.3f}"
             ok_all &= to_safe <= bound
         else:
-            safe_txt, bound_txt = f"{'never':>9}", f"{'-':>8}"
+            safe_txt, bound_txt = "never", "-"
             # a NaN flood, hostile inputs or the largest trajectory disarm nothing
             ok_all &= name.startswith(("NaN", "hostile", "200,000"))
         ok_all &= ratio <= 1.0 and bool(rearmed)
-        print(f"  {name:<30} {step:10.2f} {ratio:7.2f} {err:10.3f} {safe_txt} {bound_txt} "
-              f"{'yes' if rearmed else 'NO':>9}")
+        rows.append((name, f"{step:.2f}", f"{ratio:.2f}", f"{err:.3f}", safe_txt, bound_txt,
+                     "yes" if rearmed else "NO"))
+    rep.table(("fault", "max step V", "x slew", "max err um", "to safe s", "bound s",
+               "re-armed"), rows)
     counts: dict[str, int] = {}
     for surface, _, _ in sent:
         counts[surface] = counts.get(surface, 0) + 1
     step, after = _largest_step(t, v, sent, marks[-1][2])
-    print("  hostile inputs sent by an outside node while armed: "
-          + ", ".join(f"{k} {n}" for k, n in counts.items())
-          + f" ({len(sent)} in all); node deaths {len(deaths)}"
-          + (f" ({', '.join(deaths)})" if deaths else "")
-          + f"; the largest step, {step:.2f} V, came after '{after}'")
+    figs = [("hostile inputs sent by an outside node while armed",
+             ", ".join(f"{k} {n}" for k, n in counts.items()) + f" ({len(sent)} in all)"),
+            ("node deaths", f"{len(deaths)}" + (f" ({', '.join(deaths)})" if deaths else "")),
+            ("the largest step", f"{step:.2f} V, after '{after}'")]
     n_models = counts.get("model", 0)
     n_bad_traj = sum(1 for surface, what, _ in sent
                      if surface == "trajectory" and "(valid)" not in what)
-    print(f"  refused by the feedforward (its diagnostics): models "
-          f"{refused['rejected_models']} of {n_models}, trajectories "
-          f"{refused['rejected_trajectories']} of the {n_bad_traj} invalid")
-    print("  the driver's longest run of ticks without a command of their own after each "
-          f"input (ticks; quiet running {quiet}):")
-    for surface in ("model", "trajectory", "joint_states"):
-        print(f"    {surface}: " + ", ".join(f"{w.split(': ', 1)[1]} {h}"
-                                           for w, h in holds.items()
-                                           if w.startswith(surface + ":")))
-    if big_taken <= 0:
-        print("  the 200,000-point trajectory was NOT taken")
+    figs.append(("refused by the feedforward (its diagnostics)",
+                 f"models {refused['rejected_models']} of {n_models}, trajectories "
+                 f"{refused['rejected_trajectories']} of the {n_bad_traj} invalid"))
+    figs.append(("the driver's longest run of ticks without a command of their own after "
+                 "an input: quiet running", str(quiet)))
+    figs += [(f"  after a {surface}", ", ".join(f"{w.split(': ', 1)[1]} {h}"
+                                               for w, h in holds.items()
+                                               if w.startswith(surface + ":")))
+             for surface in ("model", "trajectory", "joint_states")]
+    figs.append(("the 200,000-point trajectory", "taken" if big_taken > 0 else "NOT taken"))
+    rep.figures(figs, "hostile inputs")
     # what is left on the loop's thread is the middleware's take of the bytes (rclpy
     # copies them with the GIL held: 3-6 ms for 11.2 MB here), so a hold of a few
     # ticks stays; the target is that none comes near a stale-command fault
     ok_all &= big_taken > 0 and max(holds.values()) < STALE * 1000 / 2
     ok_all &= not deaths and refused["rejected_models"] == n_models and \
         refused["rejected_trajectories"] == n_bad_traj
-    print(f"  targets (no step beyond the slew limit; safe within stale + V/ramp; NaN "
-          f"and hostile inputs never disarm or kill a node, and each is refused; no input holds "
-          f"the loop half the stale timeout; every fault recovered): "
-          f"{'met' if ok_all else 'NOT met'}")
+    rep.target("no step beyond the slew limit; safe within stale + V/ramp; NaN and hostile "
+               "inputs never disarm or kill a node, and each is refused; no input holds the "
+               "loop half the stale timeout; every fault recovered", ok_all)
     return 0

@@ -44,7 +44,8 @@ def _baseline_least_squares(rec, x0_model):
 
 
 
-def bench_identify():
+def bench_identify(rep):
+    """The fast solver, its baseline, the swarms and the peers (``rep``: the report)."""
     import time
 
     from piezo_stage.core.estimation.identify import IdentifyOptions, identify_axis
@@ -63,25 +64,26 @@ def bench_identify():
     t0 = time.perf_counter()
     base_rms, base_nfev = _baseline_least_squares(rec, start)
     base_s = time.perf_counter() - t0
-    print("bench identify: one axis, 10,000 samples, 1 Hz 0-150 V sine, noise 0.1 um RMS, "
-          "no unmodelled effects")
-    print(f"  fast (variable projection): {fast_s:7.3f} s, fit rms {res.fit['rms_um']:.4f} um "
-          f"= {ratio:.3f} x sensor noise, {res.evaluations} evaluations")
-    print(f"  baseline (least_squares on all 11 parameters): {base_s:7.3f} s, fit rms "
-          f"{base_rms:.4f} um, {base_nfev} evaluations")
-    print(f"  fast is {base_s / fast_s:.1f} x faster than the baseline; targets: rms <= 1.05 x "
-          f"noise ({'met' if ratio <= 1.05 else 'NOT met'}), <= 0.5 s "
-          f"({'met' if fast_s <= 0.5 else 'NOT met'})")
+    rep.title("one axis, 10,000 samples, 1 Hz 0-150 V sine, noise 0.1 um RMS, no "
+              "unmodelled effects: the fast solver against a generic least-squares fit of "
+              "all parameters, and the paper's swarms")
+    rows = [("fast (variable projection)", f"{fast_s:.3f} s",
+             f"{res.fit['rms_um']:.4f} um ({ratio:.3f} x noise)", res.evaluations, "1"),
+            ("least_squares on all 11 parameters (baseline)", f"{base_s:.3f} s",
+             f"{base_rms:.4f} um", base_nfev, f"{base_s / fast_s:.1f} x slower")]
+    rep.target("fit rms <= 1.05 x noise", ratio <= 1.05)
+    rep.target("fast <= 0.5 s", fast_s <= 0.5)
     _, rec2 = sim_record(2000, 1000.0)
     for method in ("afsa", "afsa-bat"):
         t0 = time.perf_counter()
         r = identify_axis(rec2, "x", IdentifyOptions(method=method, seed=0))
         sw = time.perf_counter() - t0
-        print(f"  {method:<8} 30 fish x 200 iterations per branch, 2,000 samples: {sw:6.2f} s "
-              f"({sw / fast_s:5.1f} x fast), fit rms {r.fit['rms_um']:.4f} um, "
-              f"{r.evaluations} evaluations; target <= 30 s "
-              f"({'met' if sw <= 30 else 'NOT met'})")
-    _bench_sparse_peer()
+        rows.append((f"{method}, 30 fish x 200 iterations per branch, 2,000 samples",
+                     f"{sw:.2f} s", f"{r.fit['rms_um']:.4f} um", f"{r.evaluations:,}",
+                     f"{sw / fast_s:.1f} x"))
+        rep.target(f"{method} <= 30 s", sw <= 30)
+    rep.table(("solver", "time", "fit RMS", "evaluations", "against fast"), rows)
+    _bench_sparse_peer(rep)
     return 0
 
 
@@ -95,7 +97,7 @@ def _pi_on(pi, fit, hold):
     return pi.predict(v)[fit.v["x"].size:]
 
 
-def _bench_sparse_peer():
+def _bench_sparse_peer(rep):
     """Ours beside the sparse hysteresis peer (Chandra et al. 2023, pysindy) on the
     issue's kind of record: one axis, a 1 Hz full-stroke sine at 5 kHz, fit on 3 s and
     held out on the next 4 s, from the default stage and from the structure stage
@@ -118,9 +120,11 @@ def _bench_sparse_peer():
 
     def rms(e):
         return float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else float("nan")
-    print("\n  the sparse peer (Chandra et al. 2023: dw/dt sparse in the monomials of degree "
-          "<= 2 of w, v, dv/dt, |dv/dt|, |w|; pysindy STLSQ 0.01) beside ours; one axis, "
-          "1 Hz 0-150 V sine, 5 kHz, fit 3 s, held out on the next 4 s")
+    caption = ("ours beside the sparse peer (Chandra et al. 2023: dw/dt sparse in the "
+               "monomials of degree <= 2 of w, v, dv/dt, |dv/dt|, |w|; pysindy STLSQ 0.01) "
+               "and the classical Prandtl-Ishlinskii model; one axis, 1 Hz 0-150 V sine, "
+               "5 kHz, fit 3 s, held out on the next 4 s")
+    table = []
     for config in ("sim_stage.yaml", "structure_stage.yaml"):
         fit, hold, true = scan_cut(config=config)
         rows = []
@@ -147,13 +151,15 @@ def _bench_sparse_peer():
         try:
             peer = sparse_peer.fit(fit, "x")
         except ConfigError as e:
-            print(f"  {config}: the peer is left out ({e})")
+            rep.note(f"{config}: the peer is left out ({e})")
         else:
             t0 = time.perf_counter()
             out = peer.simulate(hold, "x")
             rows.append((f"peer, sparse ({len(peer.terms)} terms; simulated in "
                          f"{time.perf_counter() - t0:.2f} s)", peer.fit_s, out))
-        print(f"  {config} (sensor noise {rms(hold.w['x'] - true):.3f} um):")
-        for name, sec, w in rows:
-            print(f"    {name:<58} fit {sec:6.2f} s   held-out {rms(w - hold.w['x']):.4f} um "
-                  f"measured, {rms(w - true):.4f} um true")
+        stage = f"`{config}` (noise {rms(hold.w['x'] - true):.3f} um)"
+        for k, (name, sec, w) in enumerate(rows):
+            table.append((stage if k == 0 else "", name, f"{sec:.2f} s",
+                          f"{rms(w - hold.w['x']):.4f} um", f"{rms(w - true):.4f} um"))
+    rep.table(("stage", "model", "fit", "held-out, measured", "held-out, true"), table,
+              caption)

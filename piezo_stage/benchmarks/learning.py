@@ -47,43 +47,43 @@ def _one(mode: str, seed: int, out_dir: str, env: dict, plant: str, model: str) 
         "learning": run.diagnostics.get("feedforward", {}).get("learning", "")}
 
 
-def bench_learning(draws: int = 5) -> int:
+def bench_learning(rep, draws: int = 5) -> int:
+    """Learning feedforward, lockstep against real time per noise seed (``rep``: the
+    report)."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     tmp = tempfile.mkdtemp()
-    print(f"bench learning: seed trajectory {FREQ_HZ:g} Hz on the effects plant, learning "
-          f"on, {PERIODS} periods at 1 kHz, node set; each noise seed in lockstep and in "
-          "real time; the 20th period's mean absolute error vs the true position (% of "
-          "the range)")
+    rep.title(f"the seed trajectory at {FREQ_HZ:g} Hz on the effects plant, learning on, "
+              f"{PERIODS} periods at 1 kHz, the node set; each noise seed in lockstep and "
+              "in real time; the 20th period's mean absolute error against the true "
+              "position (% of the range)")
     from piezo_stage.apps.scan import own_model
     from piezo_stage.benchmarks.procs import progress_runs
     from piezo_stage.paths import default_config
     plant = default_config("sim_stage_effects.yaml")
     model = own_model(plant, tmp)
     res: dict[str, list] = {"lockstep": [], "realtime": []}
+    rows = []
     for seed in progress_runs(range(draws), "bench learning: seeds"):
         for mode in ("lockstep", "realtime"):
             res[mode].append(_one(mode, seed, tmp, env, plant, model))
         ls, rt = res["lockstep"][-1], res["realtime"][-1]
-        print(f"  seed {seed}: lockstep x/y {ls['x']:.3f} / {ls['y']:.3f} %; real time "
-              f"{rt['x']:.3f} / {rt['y']:.3f} % ({rt['missed']} missed ticks; "
-              f"{rt['learning'].split(';')[0]})")
+        rows.append((seed, f"{ls['x']:.3f} / {ls['y']:.3f} %",
+                     f"{rt['x']:.3f} / {rt['y']:.3f} %",
+                     f"{max(rt[a] / ls[a] for a in 'xy'):.2f}", rt["missed"],
+                     rt["learning"].split(";")[0]))
     med = {m: {a: float(np.median([r[a] for r in rs])) for a in "xy"}
            for m, rs in res.items()}
     ratio = {a: med["realtime"][a] / med["lockstep"][a] for a in "xy"}
-    paired = [max(rt[a] / ls[a] for a in "xy")
-              for ls, rt in zip(res["lockstep"], res["realtime"])]
     spread = {a: max(r[a] for r in res["lockstep"]) / min(r[a] for r in res["lockstep"])
               for a in "xy"}
-    print(f"  medians of {draws} seeds: lockstep {med['lockstep']['x']:.3f} / "
-          f"{med['lockstep']['y']:.3f} %, real time {med['realtime']['x']:.3f} / "
-          f"{med['realtime']['y']:.3f} %; real time / lockstep {ratio['x']:.2f} / "
-          f"{ratio['y']:.2f}")
-    print(f"  lockstep's own spread over the seeds (largest / smallest): {spread['x']:.2f} / "
-          f"{spread['y']:.2f}; seed by seed, real time / lockstep (worse axis): "
-          + ", ".join(f"{p:.2f}" for p in paired)
-          + f" ({sum(p <= TARGET for p in paired)} of {draws} within {TARGET:g} x)")
-    ok = max(ratio.values()) <= TARGET
-    print(f"  target real time's median <= {TARGET:g} x lockstep's (both axes): "
-          f"{'met' if ok else 'NOT met'}")
+    rows.append(("median", f"{med['lockstep']['x']:.3f} / {med['lockstep']['y']:.3f} %",
+                 f"{med['realtime']['x']:.3f} / {med['realtime']['y']:.3f} %",
+                 f"{ratio['x']:.2f} / {ratio['y']:.2f}", "", ""))
+    rep.table(("seed", "lockstep x / y", "real time x / y", "real time / lockstep",
+               "missed ticks", "learning"), rows,
+              f"lockstep's own spread over the seeds (largest / smallest): "
+              f"{spread['x']:.2f} / {spread['y']:.2f}")
+    rep.target(f"real time's median <= {TARGET:g} x lockstep's (both axes)",
+               max(ratio.values()) <= TARGET)
     return 0

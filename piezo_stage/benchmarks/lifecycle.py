@@ -52,11 +52,11 @@ def _timed(cmd: list[str], env: dict) -> tuple[float, str]:
     return dt, r.stdout.strip()
 
 
-def _line(name: str, xs: list[float], base: float) -> str:
+def _row(label: str, name: str, xs: list[float], base: float) -> tuple:
     xs = sorted(xs)
     med = xs[len(xs) // 2]
-    return (f"{name:22} {xs[0]:6.2f} {med:6.2f} {xs[-1]:6.2f}   {med / base:5.2f} x"
-            f"   ({len(xs)} calls)")
+    return (label, name, len(xs), f"{xs[0]:.2f}", f"{med:.2f}", f"{xs[-1]:.2f}",
+            f"{med / base:.2f} x")
 
 
 def _against(mode: str, runs: int) -> dict[str, list[float]]:
@@ -97,18 +97,22 @@ NAMES = {"baseline": "floor (rclpy get_state)", "get": "lifecycle (get)",
          "deactivate": "lifecycle deactivate", "activate": "lifecycle activate"}
 
 
-def bench_lifecycle(runs: int = 10) -> int:
-    print(f"bench lifecycle: {runs} calls of each against a managed set "
-          f"({os.cpu_count()} cores); whole processes, seconds")
-    worst = {}
+def bench_lifecycle(rep, runs: int = 10) -> int:
+    """`piezo-stage lifecycle` calls against managed sets, beside a bare rclpy client
+    (``rep``: the report)."""
+    rep.title(f"{runs} calls of each against a managed set ({os.cpu_count()} cores); whole "
+              "processes, seconds")
+    worst, rows = {}, []
     for mode in ("realtime", "lockstep"):
         got = _against(mode, runs)
         base = sorted(got["baseline"])[runs // 2]
         label = f"real-time set, {RT_RATE_HZ:g} Hz" if mode == "realtime" else "lockstep set"
-        print(f"{label:22} {'min':>6} {'median':>6} {'max':>6}   vs the floor")
-        for name in NAMES:
-            print(_line(NAMES[name], got[name], base))
+        rows += [_row(label if i == 0 else "", NAMES[name], got[name], base)
+                 for i, name in enumerate(NAMES)]
         worst[mode] = max(sorted(v)[runs // 2] for k, v in got.items() if k != "baseline")
-    print("slowest median call: " + ", ".join(f"{worst[m]:.2f} s ({m})" for m in worst)
-          + " (target: within 1.5 s once the set runs)")
+    rep.table(("set", "call", "calls", "min", "median", "max", "median against the floor"),
+              rows)
+    rep.target("the slowest median call within 1.5 s once the set runs ("
+               + ", ".join(f"{worst[m]:.2f} s {m}" for m in worst) + ")",
+               max(worst.values()) <= 1.5)
     return 0

@@ -72,7 +72,9 @@ def loop_run(env, steps, foxglove_port=None, compose=None):
 
 
 
-def bench_loop(steps=3000, runs=5):
+def bench_loop(rep, steps=3000, runs=5):
+    """The lockstep loop composed and apart, in pairs with the ring (``rep``: the
+    report)."""
     import os
     import random
     import subprocess
@@ -88,30 +90,27 @@ def bench_loop(steps=3000, runs=5):
         pong.terminate()
         pong.wait()
     rt_med, rt_p99 = map(float, r.stdout.split())
-    print("bench loop: lockstep closed loop, driver + feedforward + controller composed "
-          "in one process (the default) against each in its own, + trajectory + recorder "
-          "(Fast DDS, this host)")
-    print(f"  baseline ping-pong (2 processes): round trip median {rt_med * 1e3:.3f} ms, "
-          f"p99 {rt_p99 * 1e3:.3f} ms")
-    print("  baseline ring: 3 processes passing one message round, empty callbacks, the "
-          "nodes' lean wait set and raw CDR, no recorder; each pair runs it, the loop "
-          "composed and the loop apart one after the other (this host's speed drifts)")
-    results, apart, rings = [], [], []
+    rep.title("the lockstep closed loop, driver + feedforward + controller composed in "
+              "one process (the default) against each in its own, + trajectory + recorder "
+              "(Fast DDS, this host); the baselines: a two-process ping-pong, and a ring of 3 "
+              "processes passing one message round (empty callbacks, the nodes' lean wait "
+              "set and raw CDR, no recorder) run in each pair, the loop composed and apart "
+              "one after the other (this host's speed drifts)")
+    results, apart, rings, rows = [], [], [], []
     for k in progress_runs(range(runs), "bench loop: runs"):
         rings.append(ring_rate(env))
         res, err = loop_run(env, steps)
         sep, err2 = loop_run(env, steps, compose="none")
         if res is None or sep is None:
-            print("  the loop run failed:\n" + (err or err2))
+            rep.fail("the loop run failed:\n" + (err or err2))
             return 1
         rate, med, p99, lost, steal = res
         results.append(res)
         apart.append(sep)
-        print(f"  pair {k + 1}: ring {rings[-1]:.0f} steps/s; composed {rate} steps/s = "
-              f"{rate / sep[0]:.2f} x apart ({sep[0]} steps/s) = {rate / rings[-1]:.2f} x "
-              f"the ring; step period median {med:.3f} ms, p99 {p99:.3f} ms; lost "
-              f"{sum(lost.values())} (apart {sum(sep[3].values())}); CPU steal by the "
-              f"host {100 * steal:.1f} %")
+        rows.append((k + 1, f"{rings[-1]:.0f}", rate, sep[0], f"{rate / sep[0]:.2f}",
+                     f"{rate / rings[-1]:.2f}", f"{med:.3f} / {p99:.3f} ms",
+                     f"{sum(lost.values())} / {sum(sep[3].values())}",
+                     f"{100 * steal:.1f} %"))
     rates = sorted(r[0] for r in results)
     med_rate = rates[len(rates) // 2]
     med_period = sorted(r[1] for r in results)[len(results) // 2]
@@ -119,16 +118,24 @@ def bench_loop(steps=3000, runs=5):
     vs = sorted(r[0] / s[0] for r, s in zip(results, apart))
     lost = {t: max(max(r[3][t] for r in results), max(s[3][t] for s in apart))
             for t in results[0][3]}
-    print(f"  closed loop composed, median of {runs} runs of {steps} steps: {med_rate} "
-          f"steps/s (range {rates[0]}-{rates[-1]}), step period median {med_period:.3f} ms "
-          f"= {med_period / (rt_med * 1e3):.2f} x the ping-pong round trip; "
-          f"{ratios[len(ratios) // 2]:.2f} x the ring's rate (median of the pairs, range "
-          f"{ratios[0]:.2f}-{ratios[-1]:.2f})")
-    print(f"  composed / apart: median {vs[len(vs) // 2]:.2f} x (range {vs[0]:.2f}-"
-          f"{vs[-1]:.2f}; target >= 2)")
-    print(f"  recorder: messages lost per loop topic, worst run {lost} (0 = every "
-          f"published message is in the bag)")
-    print(f"  target >= 1000 steps/s (median run): "
-          f"{'met' if med_rate >= 1000 else 'NOT met'}; 0 lost: "
-          f"{'met' if not any(lost.values()) else 'NOT met'}")
+    rep.table(("pair", "ring steps/s", "composed steps/s", "apart steps/s",
+               "composed / apart", "composed / ring", "step period median / p99",
+               "lost composed / apart", "CPU steal"), rows,
+              f"{runs} pairs of {steps} steps")
+    rep.figures([
+        ("ping-pong round trip (2 processes), median / p99",
+         f"{rt_med * 1e3:.3f} / {rt_p99 * 1e3:.3f} ms"),
+        ("closed loop composed, median run", f"{med_rate} steps/s (range "
+         f"{rates[0]}-{rates[-1]})"),
+        ("step period median against the ping-pong round trip",
+         f"{med_period / (rt_med * 1e3):.2f} x"),
+        ("composed against the ring, median of the pairs",
+         f"{ratios[len(ratios) // 2]:.2f} x ({ratios[0]:.2f}-{ratios[-1]:.2f})"),
+        ("composed against apart, median of the pairs",
+         f"{vs[len(vs) // 2]:.2f} x ({vs[0]:.2f}-{vs[-1]:.2f})"),
+        ("messages lost per loop topic, worst run (0: every message is in the bag)",
+         str(lost))], "the medians")
+    rep.target(">= 1000 steps/s (median run)", med_rate >= 1000)
+    rep.target("0 lost", not any(lost.values()))
+    rep.target("composed >= 2 x apart (median pair)", vs[len(vs) // 2] >= 2)
     return 0

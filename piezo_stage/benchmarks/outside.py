@@ -93,23 +93,21 @@ def _judge(res: dict) -> dict:
     return out
 
 
-def bench_outside(runs: int = 10) -> int:
-    print(f"bench outside: {runs} trajectories from each outside publisher "
-          f"({', '.join(KINDS)}), each a new process, to a `launch --no-trajectory` set in "
-          "lockstep and in real time", flush=True)
+def bench_outside(rep, runs: int = 10) -> int:
+    """Trajectories from outside publishers, judged from the bag (``rep``: the
+    report)."""
+    rep.title(f"{runs} trajectories from each outside publisher ({', '.join(KINDS)}), "
+              "each a new process, to a `launch --no-trajectory` set in lockstep and in "
+              "real time")
     tmp = tempfile.mkdtemp(prefix="bench_outside_")
     rows, misses = [], 0
     try:
         for mode in ("lockstep", "realtime"):
             for kind, (n, ran, held, failed) in _judge(_mode(mode, runs, tmp)).items():
-                rows.append((mode, kind, n, ran, held, failed))
+                rows.append((mode, kind, n, ran, held, failed, f"{100 * ran / n:.1f}"))
                 misses += (n - ran) + (n - held) + failed
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    print(f"\n{'mode':<9} {'publisher':<9} {'sent':>4} {'run':>4} {'recorded':>8} "
-          f"{'failed':>6} {'run %':>6}")
-    for mode, kind, n, ran, held, failed in rows:
-        print(f"{mode:<9} {kind:<9} {n:>4} {ran:>4} {held:>8} {failed:>6} "
-              f"{100 * ran / n:6.1f}")
-    print(f"misses: {misses}")
+    rep.table(("mode", "publisher", "sent", "run", "recorded", "failed", "run %"), rows)
+    rep.target(f"every trajectory run and recorded (misses: {misses})", not misses)
     return 1 if misses else 0

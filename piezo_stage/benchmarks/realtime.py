@@ -102,14 +102,16 @@ def figures(run, track_s: float, slew_V_per_s: float, pauses=()) -> dict:
     return f
 
 
-def bench_realtime(track_s: float = 20.0) -> int:
+def bench_realtime(rep, track_s: float = 20.0) -> int:
+    """The paper's trajectory in real time and in lockstep (``rep``: the report)."""
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     slew = load_plant_config(default_plant_config_path()).slew_V_per_s
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     tmp = tempfile.mkdtemp()
-    print(f"bench realtime: the paper's 10 Hz trajectory for {track_s:g} s, driver (sim at "
-          "1 kHz) + feedforward + controller + trajectory + recorder as separate processes")
+    rep.title(f"the paper's 10 Hz trajectory for {track_s:g} s, the driver (sim at 1 kHz, "
+              "or the highest rate this host holds) + feedforward + controller + "
+              "trajectory + recorder as separate processes, in real time and in lockstep")
     out = {}
     from piezo_stage.benchmarks.procs import progress_runs
     rate = "auto"  # real time where the host holds it; lockstep then at that rate
@@ -122,58 +124,62 @@ def bench_realtime(track_s: float = 20.0) -> int:
     rt, ls = out["realtime"], out["lockstep"]
     d = rt["driver"]
     g = lambda k: float(d.get(k, "nan"))  # noqa: E731
-    print(f"  rate: {rate:g} Hz (asked 1000 Hz, rate auto: the highest this host holds "
-          f"with the {2:g} x margin); the set's own measurement of what the host "
-          f"sustains at it: {g('capacity_hz'):,.0f} samples/s = {g('capacity_margin'):.2f} "
-          f"x the rate (the loop's thread {g('loop_thread_ms_per_sample'):.3f} ms of CPU "
-          f"a sample, the host {g('host_busy_cpus'):.2f} CPUs busy)")
-    print(f"  real time ({rt['ticks']} ticks; host CPU steal {100 * rt['steal']:.1f} %, "
-          f"sample loop SCHED_FIFO priority {d.get('thread_priority', '?')}):")
-    print(f"    tick jitter (tick - its deadline): median {g('tick_late_median_ms'):.3f} ms, "
-          f"p99 {g('tick_late_p99_ms'):.3f} ms, max {g('tick_late_max_ms'):.3f} ms")
     miss_pct = 100 * rt["missed"] / rt["ticks"]
-    print(f"    missed ticks: {rt['missed']} = {miss_pct:.3f} % (stamps show each gap)")
     p_ms = rt["pauses_ms"]
     guest_missed = rt["missed"] - rt["missed_in_pauses"]
     guest_pct = 100 * guest_missed / rt["ticks"]
-    print(f"    host pauses (every CPU stopped at once, seen by FIFO-99 sentinels): "
-          f"{len(p_ms)}, longest {max(p_ms, default=0):.2f} ms, total {sum(p_ms):.2f} ms; "
-          f"missed ticks inside them {rt['missed_in_pauses']}, outside {guest_missed} "
-          f"= {guest_pct:.3f} %")
-    print("    stamp-to-arrival lag of joint_states: at the feedforward (the loop's "
-          f"subscriber, real-time priority) median {rt['ff_lag_ms'][0]:.3f} ms, p99 "
-          f"{rt['ff_lag_ms'][1]:.3f} ms, max {rt['ff_lag_ms'][2]:.3f} ms; at the recorder "
-          f"(normal priority) median {rt['lag_ms'][0]:.3f} ms, p99 {rt['lag_ms'][1]:.3f} ms, "
-          f"max {rt['lag_ms'][2]:.3f} ms")
     late_pct = 100 * g("late_commands") / max(1.0, g("commands"))
-    print(f"    sample -> command at the driver: median {g('command_lag_median_ms'):.3f} ms, "
-          f"p99 {g('command_lag_p99_ms'):.3f} ms, max {g('command_lag_max_ms'):.3f} ms; "
-          f"applied {g('lookahead_ms'):.1f} ms after its sample (look-ahead); late "
-          f"{int(g('late_commands'))} = {late_pct:.3f} %; tracking ticks without a "
-          f"command of their own (the last one held): {rt['held']} = "
-          f"{100 * rt['held'] / max(1, rt['samples']):.3f} %")
-    for name, f in (("real time", rt), ("lockstep", ls)):
-        print(f"  {name:>9}: tracking vs true position, x/y rms {f['rms_um'][0]:.4f}/"
-              f"{f['rms_um'][1]:.4f} um, max {f['max_um'][0]:.3f}/{f['max_um'][1]:.3f} um "
-              f"({f['samples']} samples); start-up max error {f['startup_max_um']:.3f} um "
-              f"({f['startup_unreachable']} unreachable samples apart); largest voltage step "
-              f"{f['max_step_ratio']:.2f} x the slew limit; lost {f['lost']}")
+    ms = lambda m, p, x: f"{m:.3f} / {p:.3f} / {x:.3f} ms"  # noqa: E731
+    rep.figures([
+        ("rate", f"{rate:g} Hz (asked 1000 Hz; rate auto: the highest this host holds with "
+         "the 2 x margin)"),
+        ("what the host sustains at it (the set's own measurement)",
+         f"{g('capacity_hz'):,.0f} samples/s = {g('capacity_margin'):.2f} x the rate (the "
+         f"loop's thread {g('loop_thread_ms_per_sample'):.3f} ms of CPU a sample, the host "
+         f"{g('host_busy_cpus'):.2f} CPUs busy)"),
+        ("ticks; host CPU steal; the loop's SCHED_FIFO priority",
+         f"{rt['ticks']}; {100 * rt['steal']:.1f} %; {d.get('thread_priority', '?')}"),
+        ("tick jitter (tick - its deadline), median / p99 / max",
+         ms(g("tick_late_median_ms"), g("tick_late_p99_ms"), g("tick_late_max_ms"))),
+        ("missed ticks (stamps show each gap)", f"{rt['missed']} = {miss_pct:.3f} %"),
+        ("host pauses (every CPU stopped at once, seen by FIFO-99 sentinels)",
+         f"{len(p_ms)}, longest {max(p_ms, default=0):.2f} ms, total {sum(p_ms):.2f} ms; "
+         f"missed ticks inside them {rt['missed_in_pauses']}, outside {guest_missed} = "
+         f"{guest_pct:.3f} %"),
+        ("stamp-to-arrival lag of joint_states at the feedforward (real-time priority), "
+         "median / p99 / max", ms(*rt["ff_lag_ms"])),
+        ("the same at the recorder (normal priority)", ms(*rt["lag_ms"])),
+        ("sample -> command at the driver, median / p99 / max",
+         ms(g("command_lag_median_ms"), g("command_lag_p99_ms"), g("command_lag_max_ms"))
+         + f"; applied {g('lookahead_ms'):.1f} ms after its sample (look-ahead)"),
+        ("late commands; tracking ticks without a command of their own",
+         f"{int(g('late_commands'))} = {late_pct:.3f} %; {rt['held']} = "
+         f"{100 * rt['held'] / max(1, rt['samples']):.3f} %")], "real time")
+    rep.table(("mode", "samples", "rms x / y", "max x / y", "start-up max error",
+               "largest step / slew limit", "lost"),
+              [(name, f["samples"], f"{f['rms_um'][0]:.4f} / {f['rms_um'][1]:.4f} um",
+                f"{f['max_um'][0]:.3f} / {f['max_um'][1]:.3f} um",
+                f"{f['startup_max_um']:.3f} um ({f['startup_unreachable']} unreachable "
+                "samples apart)", f"{f['max_step_ratio']:.2f}", f["lost"])
+               for name, f in (("real time", rt), ("lockstep", ls))],
+              "tracking against the true position")
     ratio = float(np.max(rt["rms_um"] / ls["rms_um"]))
     g_ratio = float(np.max(rt["rms_guest_um"] / ls["rms_um"]))
-    print(f"  real time / lockstep tracking rms (worse axis): {ratio:.2f}; without the "
-          f"{rt['set_aside']} samples in or {RECOVER_NS // 1_000_000} ms after host pauses: "
-          f"x/y rms {rt['rms_guest_um'][0]:.4f}/{rt['rms_guest_um'][1]:.4f} um, "
-          f"ratio {g_ratio:.2f}")
-    checks = [("start-up error <= 1 um beyond the approach path", rt["startup_max_um"] <= 1.0),
-              ("no voltage step beyond the slew limit", max(rt["max_step_ratio"],
-                                                            ls["max_step_ratio"]) <= 1.0),
-              ("real-time tracking <= 1.5 x lockstep", ratio <= 1.5),
-              ("  the same, host pauses set aside", g_ratio <= 1.5),
-              ("missed ticks <= 0.1 %", miss_pct <= 0.1),
-              ("  the same, host pauses set aside", guest_pct <= 0.1),
-              ("stamp-to-arrival lag p99 <= 2 ms (loop subscriber)", rt["ff_lag_ms"][1] <= 2.0),
-              ("stamp-to-arrival lag p99 <= 2 ms (recorder)", rt["lag_ms"][1] <= 2.0),
-              ("0 messages lost", rt["lost"] == 0 and ls["lost"] == 0)]
-    for what, ok in checks:
-        print(f"  target {what}: {'met' if ok else 'NOT met'}")
+    rep.figures([("real time / lockstep tracking rms (worse axis)", f"{ratio:.2f}"),
+                 (f"the same without the {rt['set_aside']} samples in or "
+                  f"{RECOVER_NS // 1_000_000} ms after host pauses",
+                  f"{g_ratio:.2f} (x / y rms {rt['rms_guest_um'][0]:.4f} / "
+                  f"{rt['rms_guest_um'][1]:.4f} um)")], "real time against lockstep")
+    for what, ok in [
+            ("start-up error <= 1 um beyond the approach path", rt["startup_max_um"] <= 1.0),
+            ("no voltage step beyond the slew limit", max(rt["max_step_ratio"],
+                                                          ls["max_step_ratio"]) <= 1.0),
+            ("real-time tracking <= 1.5 x lockstep", ratio <= 1.5),
+            ("the same, host pauses set aside", g_ratio <= 1.5),
+            ("missed ticks <= 0.1 %", miss_pct <= 0.1),
+            ("the same, host pauses set aside", guest_pct <= 0.1),
+            ("stamp-to-arrival lag p99 <= 2 ms (loop subscriber)", rt["ff_lag_ms"][1] <= 2.0),
+            ("stamp-to-arrival lag p99 <= 2 ms (recorder)", rt["lag_ms"][1] <= 2.0),
+            ("0 messages lost", rt["lost"] == 0 and ls["lost"] == 0)]:
+        rep.target(what, ok)
     return 0

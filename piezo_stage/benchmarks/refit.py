@@ -15,7 +15,9 @@ import tempfile
 import time
 
 
-def bench_refit(runs: int = 20) -> int:
+def bench_refit(rep, runs: int = 20) -> int:
+    """An archive of daily runs refitted against its calibration (``rep``: the
+    report)."""
     from datetime import datetime
 
     from piezo_stage.apps.studies.archive import (
@@ -48,16 +50,16 @@ def bench_refit(runs: int = 20) -> int:
         doc = json.load(fh)
     creep = next((g for g in doc["growth"] if g["effect"] == "creep"), None)
     true_pct = (creep_gamma(runs - 1) / creep_gamma(0) - 1) * 100
-    print(f"bench refit: {runs} daily runs of our stage (axis x, 72 s at 1 kHz each, "
-          f"made in {made:.1f} s), creep gamma {creep_gamma(0):.3f} + 0.004 a day, a "
-          f"{resonance_hz(0):.0f} Hz resonance 2 % lower a day, refitted against its "
-          f"calibration on {jobs} worker(s)")
-    print(f"  one bag alone (a whole `refit` process): {one:.1f} s; the archive: "
-          f"{wall:.1f} s; ideal {one:.1f} x {runs} / {jobs} = {ideal:.1f} s: "
-          f"{wall / ideal:.2f} x (target <= 1.3)")
+    rep.title(f"{runs} daily runs of our stage (axis x, 72 s at 1 kHz each, made in "
+              f"{made:.1f} s), creep gamma {creep_gamma(0):.3f} + 0.004 a day, a "
+              f"{resonance_hz(0):.0f} Hz resonance 2 % lower a day, refitted against its "
+              f"calibration on {jobs} worker(s)")
     named = [set(b["axes"]["x"]["against"]["effects"]) for b in doc["bags"]]
-    print(f"  named: creep in {sum('creep' in n for n in named)} of {runs} bags, dynamics "
-          f"in {sum('dynamics' in n for n in named)}")
+    figs = [("one bag alone (a whole `refit` process)", f"{one:.1f} s"),
+            ("the archive", f"{wall:.1f} s; ideal {one:.1f} x {runs} / {jobs} = "
+             f"{ideal:.1f} s: {wall / ideal:.2f} x"),
+            ("named", f"creep in {sum('creep' in n for n in named)} of {runs} bags, "
+             f"dynamics in {sum('dynamics' in n for n in named)}")]
     res = next((g for g in doc["growth"] if g["effect"] == "dynamics"), None)
     true_res = (resonance_hz(runs - 1) / resonance_hz(0) - 1) * 100
     res_day = next((d for d in range(runs)
@@ -65,17 +67,16 @@ def bench_refit(runs: int = 20) -> int:
     if res:
         day = (datetime.fromisoformat(res["crossed_utc"]) - START).days \
             if res["crossed_utc"] else None
-        print(f"  resonance {res['change_pct']:+.0f} % over the archive (truth "
-              f"{true_res:+.0f} %); 30 % first on day {day} (truth: day {res_day})")
+        figs.append(("resonance over the archive", f"{res['change_pct']:+.0f} % (truth "
+                     f"{true_res:+.0f} %); 30 % first on day {day} (truth: day {res_day})"))
     if creep:
         day = (datetime.fromisoformat(creep["crossed_utc"]) - START).days \
             if creep["crossed_utc"] else None
-        print(f"  creep {creep['change_pct']:+.0f} % over the archive (truth "
-              f"{true_pct:+.0f} %); 30 % first on day {day} (truth: day {crossing_day()})")
-    for line in out.splitlines():
-        if line.startswith("x: "):
-            print(f"  refit says: {line}")
-    ok = creep is not None and res is not None and wall / ideal <= 1.3
-    print(f"  targets (both changes named and dated; wall time <= 1.3 x ideal): "
-          f"{'met' if ok else 'NOT met'}")
+        figs.append(("creep over the archive", f"{creep['change_pct']:+.0f} % (truth "
+                     f"{true_pct:+.0f} %); 30 % first on day {day} (truth: day "
+                     f"{crossing_day()})"))
+    figs += [("refit says", line) for line in out.splitlines() if line.startswith("x: ")]
+    rep.figures(figs)
+    rep.target("both changes named and dated", creep is not None and res is not None)
+    rep.target("wall time <= 1.3 x ideal", wall / ideal <= 1.3)
     return 0

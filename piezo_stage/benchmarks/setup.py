@@ -31,7 +31,8 @@ def _timed(argv, cwd, env) -> float:
     return time.monotonic() - t0
 
 
-def bench_setup(runs: int = 2) -> int:
+def bench_setup(rep, runs: int = 2) -> int:
+    """A new user's first minute from fresh clones (``rep``: the report)."""
     src = _checkout()
     env = {k: v for k, v in os.environ.items() if not k.startswith(("VIRTUAL_ENV",
                                                                       "PIEZO_STAGE_"))}
@@ -50,14 +51,17 @@ def bench_setup(runs: int = 2) -> int:
             rows["demo"].append(_timed(["./dev.sh", "demo"], clone, env))
             rows["again"].append(_timed(["./dev.sh", "--version"], clone, env))
             shutil.rmtree(clone)
-            print(f"run {i + 1}/{runs}: " + ", ".join(f"{k} {v[-1]:.1f} s"
-                                                     for k, v in rows.items()), flush=True)
+            rep.progress(f"run {i + 1}/{runs}: " + ", ".join(f"{k} {v[-1]:.1f} s"
+                                                            for k, v in rows.items()))
     mid = {k: sorted(v)[len(v) // 2] for k, v in rows.items()}
-    print(f"\nbench setup: {runs} run(s), medians; fresh clones of {src}")
-    print(f"{'what':<44} {'s':>7} {'x pip':>7}")
-    print(f"{'set-up, pip alone (the baseline)':<44} {mid['pip']:7.1f} {1.0:7.2f}")
-    print(f"{'set-up, as dev.sh does it (uv)':<44} {mid['uv']:7.1f} "
-          f"{mid['uv'] / mid['pip']:7.2f}")
-    print(f"{'./dev.sh demo from a fresh clone (target 30)':<44} {mid['demo']:7.1f}")
-    print(f"{'./dev.sh --version once set up (target 8)':<44} {mid['again']:7.1f}")
+    rep.title(f"fresh clones of the checkout set up by ./dev.sh, {runs} run(s) of each, "
+              "medians")
+    rep.table(("what", "s", "x pip"), [
+        ("set-up, pip alone (the baseline)", f"{mid['pip']:.1f}", "1.00"),
+        ("set-up, as dev.sh does it (uv)", f"{mid['uv']:.1f}",
+         f"{mid['uv'] / mid['pip']:.2f}"),
+        ("./dev.sh demo from a fresh clone", f"{mid['demo']:.1f}", ""),
+        ("./dev.sh --version once set up", f"{mid['again']:.1f}", "")])
+    rep.target("./dev.sh demo from a fresh clone <= 30 s", mid["demo"] <= 30)
+    rep.target("./dev.sh --version once set up <= 8 s", mid["again"] <= 8)
     return 0

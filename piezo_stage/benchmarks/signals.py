@@ -203,14 +203,15 @@ def stress(n: int, parallel: int = 2, loaded_share: float = 0.3, seed: int = 0,
     return done
 
 
-def main(n: int = 108) -> int:
-    """``piezo-stage bench signals``: the stress run, counts per kind."""
+def main(rep, n: int = 108) -> int:
+    """``piezo-stage bench signals``: the stress run, counts per kind (``rep``: the
+    report)."""
     t0 = time.monotonic()
     trials = stress(n)
-    print(f"bench signals: {len(trials)} processes signalled 0-3 s after start "
-          f"({sum(t.loaded for t in trials)} under CPU load), {time.monotonic() - t0:.0f} s")
-    print(f"  {'kind':<13}{'trials':>7}{'early':>7}{'hangs':>7}{'tracebacks':>11}{'bad exit':>9}"
-          f"{'no line':>8}{'left':>6}{'stop s median/max':>20}")
+    rep.title(f"{len(trials)} processes signalled 0-3 s after start "
+              f"({sum(t.loaded for t in trials)} under CPU load), SIGINT and SIGTERM in "
+              f"turn, {time.monotonic() - t0:.0f} s")
+    rows = []
     for k in KINDS:
         ts = [t for t in trials if t.kind == k]
         if not ts:
@@ -218,23 +219,25 @@ def main(n: int = 108) -> int:
         stops = sorted(t.stop_s for t in ts if not t.hung)
         med = stops[len(stops) // 2] if stops else float("nan")
         early = [t.before_python or t.python_startup for t in ts]
-        print(f"  {k:<13}{len(ts):>7}{sum(early):>7}"
-              f"{sum(t.hung for t in ts):>7}"
-              f"{sum(t.traceback and not e for t, e in zip(ts, early)):>11}"
-              f"{sum(not (t.hung or e) and t.rc != 128 + t.signum for t, e in zip(ts, early)):>9}"
-              f"{sum(not t.said and not e for t, e in zip(ts, early)):>8}"
-              f"{sum(t.left_behind for t in ts):>6}"
-              f"{med:>11.2f} / {max(stops, default=float('nan')):.2f}")
+        rows.append((k, len(ts), sum(early), sum(t.hung for t in ts),
+                     sum(t.traceback and not e for t, e in zip(ts, early)),
+                     sum(not (t.hung or e) and t.rc != 128 + t.signum
+                         for t, e in zip(ts, early)),
+                     sum(not t.said and not e for t, e in zip(ts, early)),
+                     sum(t.left_behind for t in ts),
+                     f"{med:.2f} / {max(stops, default=float('nan')):.2f}"))
+    rep.table(("kind", "trials", "early", "hangs", "tracebacks", "bad exit", "no line",
+               "left", "stop s median / max"), rows,
+              "early: signalled before any code of ours ran: in the interpreter's first "
+              "milliseconds the kernel's default action ends it; a SIGINT a moment later, "
+              "in site, runpy or a package __init__, gets Python's own KeyboardInterrupt "
+              f"({sum(t.python_startup for t in trials)} here); either way it ends at once "
+              "with nothing open. The launcher's nodes are safe from both.")
     bad = [t for t in trials if not t.ok]
     for t in bad[:10]:
-        print(f"  not clean: {t.kind} {signal.Signals(t.signum).name} after "
-              f"{t.delay_s:.3f} s: exit {t.rc}; it printed ...{t.tail[-300:]!r}")
-    print("  (early: signalled before any code of ours ran: in the interpreter's first "
-          "milliseconds the kernel's default action ends it; a SIGINT a moment later, in "
-          "site, runpy or a package __init__, gets Python's own KeyboardInterrupt "
-          f"({sum(t.python_startup for t in trials)} here); either way it ends at once "
-          "with nothing open. The launcher's nodes are safe from both.)")
+        rep.note(f"not clean: {t.kind} {signal.Signals(t.signum).name} after "
+                 f"{t.delay_s:.3f} s: exit {t.rc}; it printed ...{t.tail[-300:]!r}")
     slow = [t for t in trials if t.kind != "launcher" and t.stop_s > 2.0]
-    print(f"  all clean: {len(trials) - len(bad)}/{len(trials)}; node stops over 2 s: "
-          f"{len(slow)}")
+    rep.target(f"every process clean ({len(trials) - len(bad)}/{len(trials)})", not bad)
+    rep.target(f"no node stops in over 2 s ({len(slow)})", not slow)
     return 0 if not bad else 1

@@ -10,6 +10,10 @@ HELP = "performance benchmarks (figures as ratios)"
 def add_arguments(s):
     from piezo_stage.benchmarks import BENCHMARKS
     s.add_argument("what", choices=tuple(BENCHMARKS))
+    s.add_argument("--markdown", type=_page, default=None, metavar="PAGE",
+                   help="the report as markdown, each table headed by the date, commit "
+                   "and host: written into PAGE's section for this benchmark (replaced "
+                   "whole; docs/benchmarks.md is made so), or - for stdout")
     s.add_argument("--track", type=number(0, 3600, lo_open=True), default=20.0, metavar="S",
                    help="realtime: seconds of the paper's trajectory")
     s.add_argument("--draws", type=number(1, 100, integer=True), default=5, metavar="N",
@@ -24,6 +28,24 @@ def add_arguments(s):
                    "decoupling,scan)")
     s.add_argument("--trials", type=number(1, 10000, integer=True), default=108, metavar="N",
                    help="signals: processes to start and signal (each kind in turn)")
+
+
+def _page(path):
+    """A page the report can be written into (checked before a benchmark of minutes)."""
+    import argparse
+    import os
+    if path == "-":
+        return path
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{path}: no folder to write it in")
+    if os.path.exists(path):
+        from piezo_stage.benchmarks.report import BEGIN, END
+        text = open(path).read()
+        if text.count("<!-- bench ") != text.count("<!-- /bench "):
+            raise argparse.ArgumentTypeError(
+                f"{path}: a {BEGIN.format('X')} without its {END.format('X')}")
+    return path
 
 
 def _kinds(text):

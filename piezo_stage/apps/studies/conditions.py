@@ -199,19 +199,22 @@ def above_noise(rms_um: float, noise_um: float) -> float:
     return float(np.sqrt(max(rms_um ** 2 - noise_um ** 2, 0.0)))
 
 
-def table(rows: list[dict]) -> str:
-    """The rows as a fixed-width table, ours against the peer as ratios: of the
-    held-out RMS, and of the part of it above the sensor's noise (where both models
-    are near the noise the first ratio is near 1 whatever they do)."""
-    out = [f"{'stage':<18} {'case':<20} {'identify':>9} {'gap model':>9} {'PI peer':>8} "
-           f"{'own fit':>8} {'noise':>6} {'identify/PI':>11} {'gap/PI':>7} "
-           f"{'above noise':>11}  verdict"]
+COLUMNS = ("stage", "case", "identify", "gap model", "PI peer", "own fit", "noise",
+           "identify/PI", "gap/PI", "above noise", "verdict")
+
+
+def table_rows(rows: list[dict]) -> list[tuple[str, ...]]:
+    """The rows' cells (``COLUMNS``), ours against the peer as ratios: of the held-out
+    RMS, and of the part of it above the sensor's noise (where both models are near the
+    noise the first ratio is near 1 whatever they do)."""
+    out: list[tuple[str, ...]] = []
     for r in rows:
         n = r["noise_um"]
         peer = above_noise(r["peer_um"], n)
         ratio = above_noise(r["gap_model_um"], n) / peer if peer > 0 else float("nan")
-        out.append(f"{r['stage']:<18} {r['case']:<20} {r['ours_um']:9.3f} "
-                   f"{r['gap_model_um']:9.3f} {r['peer_um']:8.3f} {r['own_fit_um']:8.3f} "
-                   f"{n:6.3f} {r['ours_um'] / r['peer_um']:11.2f} "
-                   f"{r['gap_model_um'] / r['peer_um']:7.2f} {ratio:11.2f}  {r['verdict']}")
-    return "\n".join(out)
+        out.append((r["stage"], r["case"], f"{r['ours_um']:.3f}", f"{r['gap_model_um']:.3f}",
+                    f"{r['peer_um']:.3f}", f"{r['own_fit_um']:.3f}", f"{n:.3f}",
+                    f"{r['ours_um'] / r['peer_um']:.2f}",
+                    f"{r['gap_model_um'] / r['peer_um']:.2f}", f"{ratio:.2f}", r["verdict"]))
+    return out
+
