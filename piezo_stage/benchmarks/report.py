@@ -21,15 +21,16 @@ BEGIN, END = "<!-- bench {} -->", "<!-- /bench {} -->"
 
 def provenance() -> str:
     """``date, commit C, host``: when, on which code and where a figure was measured
-    (the commit marked ``+changes`` where the checkout differs from it)."""
+    (the commit marked ``+changes`` where the package's files differ from it)."""
     here = os.path.dirname(os.path.abspath(__file__))
     commit = "no git checkout"
     try:
         sha = subprocess.run(["git", "-C", here, "rev-parse", "--short", "HEAD"],
                              capture_output=True, text=True, timeout=10)
         if sha.returncode == 0:
-            dirty = subprocess.run(["git", "-C", here, "status", "--porcelain", "--",
-                                    "."], capture_output=True, text=True, timeout=10)
+            dirty = subprocess.run(["git", "-C", here, "status", "--porcelain",
+                                    "--untracked-files=no", "--", ".."],
+                                   capture_output=True, text=True, timeout=10)
             commit = f"commit {sha.stdout.strip()}" + (
                 "+changes" if dirty.returncode == 0 and dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
