@@ -1,0 +1,117 @@
+"""The benchmark page is generated: `piezo-stage bench WHAT --markdown PAGE` writes its
+report into PAGE's section, every table headed by the date, the commit and the host; the
+rest of the docs read as recipes (no commit hash outside the generated tables, no CI run
+numbers or commit hashes in the package's code)."""
+
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+from piezo_stage.benchmarks import BENCHMARKS
+from piezo_stage.benchmarks.report import BEGIN, END, Report, splice
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAGE = os.path.join(ROOT, "docs", "benchmarks.md")
+STAMP = re.compile(r"^\*\d{4}-\d{2}-\d{2}, (commit [0-9a-f]{7,}(\+changes)?|no git checkout), "
+                   r"\d+ CPUs, [^*]+\*")
+HASH = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+
+
+def _blocks(text):
+    return re.findall(r"<!-- bench (\w+) -->\n(.*?)<!-- /bench \1 -->", text, flags=re.S)
+
+
+def _tables(text):
+    """Each table's header row and the line two above it (its stamp)."""
+    lines = text.splitlines()
+    return [(lines[i - 2] if i >= 2 else "", lines[i]) for i in range(len(lines) - 1)
+            if lines[i].startswith("|") and re.match(r"^\|(---\|)+$", lines[i + 1])]
+
+
+def test_a_report_writes_its_section_and_leaves_the_others(tmp_path, capsys):
+    page = tmp_path / "bench.md"
+    page.write_text("# B\n\n## plant\n\nwhy\n\n" + BEGIN.format("plant") + "\nold\n"
+                    + END.format("plant") + "\n\n## loop\n\n" + BEGIN.format("loop")
+                    + "\nkept\n" + END.format("loop") + "\n")
+    rep = Report("plant", markdown=True)
+    rep.title("what it runs")
+    rep.table(("a", "b|c"), [(1, "x|y")], "caption")
+    rep.figures([("rate", "3 M/s")])
+    rep.target(">= 1", True)
+    rep.target("<= 2", False)
+    rep.finish(str(page))
+    text = page.read_text()
+    assert "old" not in text and "kept" in text and "why" in text
+    (what, block), (other, _) = _blocks(text)
+    assert (what, other) == ("plant", "loop")
+    tables = _tables(block)
+    assert len(tables) == 3  # the table, the figures, the targets
+    assert all(STAMP.match(stamp) for stamp, _ in tables), tables
+    assert "| a | b\\|c |" in block and "| 1 | x\\|y |" in block  # cells escaped
+    assert "| >= 1 | met |" in block and "| <= 2 | NOT met |" in block
+    # a section the page lacks is added under its own heading
+    Report("refit", markdown=True).finish(str(page))
+    assert "## refit\n\n" + BEGIN.format("refit") in page.read_text()
+    # text: the same report as the terminal reads it, the targets last
+    rep = Report("plant")
+    rep.title("what it runs")
+    rep.table(("a", "b"), [(1, 22)])
+    rep.target(">= 1", False)
+    rep.finish(None)
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "bench plant: what it runs"
+    assert out[-3:] == ["  a  b", "  1  22", "  target >= 1: NOT met"]
+
+
+def test_a_section_begun_and_never_ended_is_refused():
+    with pytest.raises(ValueError, match="without"):
+        splice("x\n" + BEGIN.format("plant") + "\n", "plant", "new")
+
+
+def test_bench_markdown_from_the_command_line(tmp_path):
+    page = tmp_path / "page.md"
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    r = subprocess.run([sys.executable, "-m", "piezo_stage", "bench", "plant", "--samples",
+                        "2000", "--markdown", str(page)], capture_output=True, text=True,
+                       env=env, timeout=600)
+    assert r.returncode == 0, r.stderr
+    (what, block), = _blocks(page.read_text())
+    assert what == "plant" and "| compiled batch (numba) | 2,000 |" in block
+    assert all(STAMP.match(stamp) for stamp, _ in _tables(block))
+    r = subprocess.run([sys.executable, "-m", "piezo_stage", "bench", "plant", "--markdown",
+                        str(tmp_path / "no" / "page.md")], capture_output=True, text=True,
+                       env=env, timeout=120)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "no folder to write it in" in r.stderr
+
+
+def test_every_table_of_the_benchmark_page_is_generated_and_dated():
+    text = open(PAGE, encoding="utf-8").read()
+    blocks = dict(_blocks(text))
+    assert set(blocks) == set(BENCHMARKS)
+    outside = re.sub(r"<!-- bench (\w+) -->\n.*?<!-- /bench \1 -->", "", text, flags=re.S)
+    assert not _tables(outside), "a table the bench command did not write"
+    for what, block in blocks.items():
+        for stamp, header in _tables(block):
+            assert STAMP.match(stamp), (what, stamp, header)
+
+
+def test_docs_and_code_read_as_recipes():
+    """No commit hash in the docs outside the generated tables; none, nor a CI run's
+    number, in the package's code."""
+    pages = [os.path.join(ROOT, "README.md")] + [
+        os.path.join(ROOT, "docs", f) for f in os.listdir(os.path.join(ROOT, "docs"))
+        if f.endswith(".md")]
+    for page in pages:
+        text = open(page, encoding="utf-8").read()
+        text = re.sub(r"<!-- bench (\w+) -->\n.*?<!-- /bench \1 -->", "", text, flags=re.S)
+        assert not HASH.findall(text), (page, HASH.findall(text))
+    for folder, _, files in os.walk(os.path.join(ROOT, "piezo_stage")):
+        for f in files:
+            if f.endswith(".py"):
+                text = open(os.path.join(folder, f), encoding="utf-8").read()
+                assert not re.search(r"\bCI run \d", text), f
+                assert not HASH.findall(text), (f, HASH.findall(text))
