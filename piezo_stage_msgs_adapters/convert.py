@@ -33,7 +33,8 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "trajectory_from_msg", "model_msg", "model_from_msg", "diagnostic_array",
            "arming_state_msg", "announcement_from_msg", "trajectory_from_cdr", "clock_msg",
            "check_trajectory_size", "trajectory_max_bytes", "trajectory_take_bytes",
-           "trajectory_stamp_ns", "phase_msg", "phase_from_msg"]
+           "trajectory_stamp_ns", "phase_msg", "phase_from_msg", "move_msg",
+           "move_from_msg", "on_target_msg", "on_target_from_msg"]
 
 FRAME = "stage"  # header.frame_id of everything the nodes publish
 
@@ -176,6 +177,58 @@ def setpoint_from_msg(msg: PointStamped, range_um=None) -> dict:
                 raise DataError(f"setpoint {a} = {x:.3f} um outside the stage range "
                                 f"[{lo:g}, {hi:g}] um")
     return w
+
+
+MAX_MOVE_ID = 200  # characters of a move's id
+
+
+def move_msg(move_id: str, w_um: dict, ns: int = 0) -> PointStamped:
+    """A move request (geometry_msgs/PointStamped on ``move``): the target in metres,
+    ``header.frame_id`` the move's id (the stage's own frame is implied), the stamp
+    when it was asked."""
+    m = PointStamped(header=header(ns, str(move_id)))
+    m.point.x, m.point.y = float(w_um["x"]) * UM, float(w_um["y"]) * UM
+    return m
+
+
+def move_from_msg(msg: PointStamped, range_um=None) -> tuple[str, dict]:
+    """A move request -> (its id, {axis: um}); DataError when the target is not finite,
+    leaves the stage range, or the id is longer than MAX_MOVE_ID."""
+    if len(msg.header.frame_id) > MAX_MOVE_ID:
+        raise DataError(f"move: an id of over {MAX_MOVE_ID} characters")
+    return msg.header.frame_id, setpoint_from_msg(msg, range_um)
+
+
+def on_target_msg(s) -> DiagnosticArray:
+    """A move's on-target state (core/loop/ontarget.py TargetState) on the latched
+    ``on_target`` topic: header.stamp the sample judged; one status named
+    ``on_target`` whose message is the state (on_target: level 0, moving: 1),
+    ``hardware_id`` the move's id, and per axis its state, the filtered error and the
+    target [um], with the settle time [ms] once on target."""
+    values = {"move_id": s.move_id, "state": s.state, "started_ns": s.started_ns,
+              "settle_ms": "" if s.settle_s is None else f"{s.settle_s * 1e3:.3f}"}
+    for a, st in s.axes.items():
+        values[a] = st
+        values[f"error_{a}_um"] = f"{s.error_um.get(a, float('nan')):.4f}"
+        values[f"target_{a}_um"] = f"{s.target_um[a]:.4f}"
+    return diagnostic_array(s.stamp_ns, "on_target", 0 if s.state == "on_target" else 1,
+                            s.state, values, s.move_id)
+
+
+def on_target_from_msg(msg: DiagnosticArray):
+    """``on_target`` -> TargetState (DataError when it is not one)."""
+    from piezo_stage.core.loop.ontarget import TargetState
+    try:
+        st = msg.status[0]
+        kv = {v.key: v.value for v in st.values}
+        axes = [a for a in JOINTS if a in kv]
+        settle = float(kv["settle_ms"]) * 1e-3 if kv.get("settle_ms") else None
+        return TargetState(kv["move_id"], kv["state"], {a: kv[a] for a in axes}, settle,
+                           {a: float(kv[f"error_{a}_um"]) for a in axes},
+                           {a: float(kv[f"target_{a}_um"]) for a in axes},
+                           time_to_ns(msg.header.stamp), int(kv["started_ns"]))
+    except (IndexError, KeyError, ValueError) as e:
+        raise DataError(f"on_target: not an on-target state ({e})") from None
 
 
 def trajectory_msg(t_s, w_um: dict) -> JointTrajectory:

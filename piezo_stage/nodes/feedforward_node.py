@@ -20,7 +20,7 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 
 import time
 
-from diagnostic_msgs.msg import KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -43,6 +43,8 @@ from piezo_stage_msgs_adapters import (
     check_trajectory_size,
     joint_state_to_um,
     model_from_msg,
+    move_from_msg,
+    on_target_msg,
     phase_msg,
     reference_cdr,
     setpoint_from_msg,
@@ -68,6 +70,7 @@ class Feedforward(LeanNode, Node):
             p["inverse_feedforward"], p["max_resonance_inverse_hz"],
             p["wait_for_trajectory"], p["model_required_after_s"])
         self.ref, self.learning = self.core.ref, self.core.learning
+        self.core.move_profile = (p["move_speed_um_per_s"], p["move_accel_um_per_s2"])
         # the live ones once the core is there (a start-up override calls them at once):
         # effect compensation and learning feedforward (core/loop/learning.py)
         p.update(declare_schema(self, live, {q.name: lambda v, name=q.name: self.core.set_live(
@@ -98,6 +101,9 @@ class Feedforward(LeanNode, Node):
         # from here whenever its own match with the sender came late or not at all
         self.accepted_pub = self.create_publisher(JointTrajectory, "trajectory/accepted",
                                                   QOS_LATCHED)
+        # a move's state, judged on the sensor (core/loop/ontarget.py), latched
+        self.on_target_pub = self.create_publisher(DiagnosticArray, "on_target",
+                                                   QOS_LATCHED)
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
@@ -113,6 +119,7 @@ class Feedforward(LeanNode, Node):
                                  raw=True)
         self.latched = LatchedFetch(self, JointTrajectory, "trajectory", self.on_trajectory)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
+        self.create_subscription(PointStamped, "move", self.on_move, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
         Diagnostics(self, lambda: (0, f"{self.planner.phase}, model {self.model_name}, "
                                    f"{self.ref.describe()}" + (
@@ -232,6 +239,20 @@ class Feedforward(LeanNode, Node):
             self.stats["rejected_setpoints"] += 1
             self.get_logger().warning(f"setpoint rejected: {e}")
 
+    def on_move(self, msg):
+        """A move request: the move's profile to its target, judged on target."""
+        try:
+            move_id, target = move_from_msg(msg, self.p["range_um"])
+        except PiezoStageError as e:
+            self.stats["rejected_moves"] += 1
+            self.get_logger().warning(f"move rejected: {e}")
+            return
+        self.stats["moves"] += 1
+        self.on_target_pub.publish(on_target_msg(self.core.move(
+            move_id or f"move #{self.stats['moves']}", target)))
+        self.publish_phase()
+        self.resume()
+
     def on_state(self, msg, info=None, resumed=False):
         if self.driver.realtime and self.intake.thread is None:
             # twice: the running trajectory and its latched copy live on meanwhile
@@ -261,6 +282,8 @@ class Feedforward(LeanNode, Node):
         if r.silent:
             return
         self.last_ns = ns
+        if r.on_target is not None:
+            self.on_target_pub.publish(on_target_msg(r.on_target))
         for a in r.answers:
             self.publish_answer(a, w, r.applied)
         self.stats["saturated"] = self.core.saturated

@@ -23,6 +23,8 @@ from piezo_stage.core.errors import DataError, PiezoStageError
 from piezo_stage.core.loop.compensation import EffectCompensator, PreviewedReference
 from piezo_stage.core.loop.control import THREAD_PRIORITY
 from piezo_stage.core.loop.learning import LearnedFeedforward
+from piezo_stage.core.loop.ontarget import PARAMETERS as ON_TARGET
+from piezo_stage.core.loop.ontarget import OnTargetJudge, TargetState
 from piezo_stage.core.loop.planner import ReferencePlanner
 from piezo_stage.core.model.duhem import StageModel, check_model_change
 from piezo_stage.core.model.inverse import StageInverse
@@ -31,6 +33,7 @@ from piezo_stage.core.params import Param, Schema
 HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
 MAX_FILLED_TICKS = 20  # after a skipped sample, at most this many targets answered
 PAST_TRAJECTORY_NS = 1_000_000_000  # a trajectory stamped up to 1 s ago: start now
+ON_TARGET_NAMES = tuple(q.name for q in ON_TARGET)
 
 # the feedforward node's parameters (core/params.py); effect compensation and the
 # learning ones are live
@@ -54,6 +57,11 @@ PARAMETERS: Schema = (
     Param("approach_accel_um_per_s2", 20000.0,
           "approach acceleration [um/s^2]",
           lo=1.0, hi=1e9),
+    Param("move_speed_um_per_s", 5000.0, "a move's speed (a move request or a one-point "
+          "trajectory) [um/s]", lo=0.1, hi=1e7),
+    Param("move_accel_um_per_s2", 5.0e6, "a move's acceleration [um/s^2]", lo=1.0,
+          hi=1e12),
+    *ON_TARGET,
     Param("max_resonance_inverse_hz", 0.0,
           "a model's resonance above this is taken as its group delay, not inverted (0: no "
           "limit)",
@@ -72,10 +80,11 @@ PARAMETERS: Schema = (
 
 # the node's counts on /diagnostics, and those reported as rates (key, name, level)
 COUNTS = ("trajectories", "rejected_trajectories", "rejected_setpoints", "models",
-          "rejected_models", "saturated", "bad_messages", "late_dropped", "stray_stamps")
+          "rejected_models", "moves", "rejected_moves", "saturated", "bad_messages",
+          "late_dropped", "stray_stamps")
 RATES = tuple((k, k.replace("_", " "), 0) for k in (
-    "rejected_models", "rejected_trajectories", "rejected_setpoints", "bad_messages",
-    "late_dropped"))
+    "rejected_models", "rejected_trajectories", "rejected_setpoints", "rejected_moves",
+    "bad_messages", "late_dropped"))
 
 
 def trajectory_start(stamp_ns: int, now_ns: int) -> int | None:
@@ -116,6 +125,7 @@ class SampleResult:
     wait: bool = False
     silent: bool = False
     applied: dict | None = None
+    on_target: TargetState | None = None  # a move's state, when it changed here
 
 
 @dataclass(frozen=True)
@@ -173,6 +183,10 @@ class InverseFeedforward:
         self.planned: dict = {}
         self.last_target: int | None = None
         self.traj_text = ""  # which trajectory runs: "trajectory of N points stamped S"
+        self.judge = OnTargetJudge(self.dt_ns * 1e-9)  # a move's arrival (ontarget.py)
+        self.move_profile = (5000.0, 5.0e6)  # a move's speed [um/s], acceleration
+        self.move_text = ""  # what the phase follows in a move ("move M")
+        self.last_ns = 0
 
     def set_model(self, model: StageModel, effects: dict | None, name: str,
                   driver_limits: tuple | None = None, range_um: float = 100.0,
@@ -240,14 +254,30 @@ class InverseFeedforward:
         """Run a new trajectory (t [s], {axis: um}), stamped ``stamp_ns`` by its sender,
         from ``start_ns`` (None: once approached): the learner starts over, and the
         phase names it ("trajectory of N points stamped S")."""
+        points = len(t)  # type: ignore[arg-type]
+        self.traj_text = f"trajectory of {points} points stamped {stamp_ns}"
+        if points == 1:  # a point-to-point move: its profile, judged on target
+            self.move(self.traj_text, {a: float(x[0]) for a, x in w.items()}, start_ns)
+            return
         self.planner.set_trajectory(t, w, start_ns=start_ns)
         self.learning.reset()
-        points = len(self.planner.traj[0]) if self.planner.traj is not None else 0
-        self.traj_text = f"trajectory of {points} points stamped {stamp_ns}"
+
+    def move(self, move_id: str, target: dict, start_ns: int | None = None) -> TargetState:
+        """A point-to-point move to ``target`` ({axis: um}; the others held), called
+        ``move_id``: the move's profile (``move_profile``), then held; judged on target
+        from its first tick (``SampleResult.on_target``). -> its first state (moving)."""
+        desired = self.planner.desired or {}
+        goal = {a: float(target.get(a, desired.get(a, 0.0))) for a in ("x", "y")}
+        self.planner.set_move(goal, *self.move_profile, start_ns=start_ns)
+        self.learning.reset()
+        self.judge.begin(move_id, goal, max(self.last_ns + self.dt_ns, start_ns or 0))
+        self.move_text = move_id if move_id == self.traj_text else f"move {move_id}"
+        return self.judge.report(self.judge.started_ns, {})
 
     def set_live(self, name: str, value: object) -> None:
         """A parameter that takes effect at once: ``compensate_effects`` (bool),
-        ``learning`` (bool), ``learning_period_s`` [s], ``learning_gain``."""
+        ``learning`` (bool), ``learning_period_s`` [s], ``learning_gain``, and the
+        on-target tolerance, window and filter (core/loop/ontarget.py)."""
         if name == "compensate_effects":
             self.ref.on = bool(value)
         elif name == "learning":
@@ -255,6 +285,13 @@ class InverseFeedforward:
         elif name in ("learning_period_s", "learning_gain"):
             self.learn_p[name] = float(value)  # type: ignore[arg-type]
             self.relearn()
+        elif name in ON_TARGET_NAMES:
+            j = self.judge
+            now = {"on_target_tol_um": j.tol, "on_target_window_ms": j.window_s * 1e3,
+                   "on_target_filter_ms": j.filter_s * 1e3}
+            now[name] = float(value)  # type: ignore[arg-type]
+            j.configure(now["on_target_tol_um"], now["on_target_window_ms"] * 1e-3,
+                        now["on_target_filter_ms"] * 1e-3)
         else:
             raise DataError(f"feedforward: {name} is no live parameter")
 
@@ -269,6 +306,8 @@ class InverseFeedforward:
         not computed, only kept track of (``Answer.late``): the loop catches up at the
         cost of the bookkeeping, not of inverses nobody can use."""
         self.learning.measured(ns, w)
+        self.last_ns = ns
+        on_target = self.judge.sample(ns, w)
         target = ns + lookahead_ns
         clock = self.planner.clock_s(target)
         no_trajectory = self.wait_traj and self.planner.traj is None
@@ -286,7 +325,7 @@ class InverseFeedforward:
             desired, error = self.answer(ns, t, w, applied, on, late)
             answers.append(Answer(t, desired, dict(self.ff), error,
                                   self.planner.phase != phase, on, late))
-        return SampleResult(tuple(answers), applied=applied)
+        return SampleResult(tuple(answers), applied=applied, on_target=on_target)
 
     def measured(self, ns: int, w: dict, applied: dict) -> None:
         """The sample at ``ns``: the stage at ``w`` with ``applied`` [V]. The inverse
@@ -347,8 +386,9 @@ class InverseFeedforward:
     def phase(self) -> tuple[str, str]:
         """(the planner's phase, what it follows): ("tracking", "trajectory of 1000
         points stamped 1795..."), ("done", ...) once its last point is reached,
-        ("tracking", "setpoint"), or (phase, "")."""
+        ("tracking", "setpoint"), ("done", "move M") or (phase, "")."""
         what = self.traj_text if self.planner.traj is not None else (
+            self.move_text if self.planner.profile is not None else
             "setpoint" if self.planner.setpoint is not None else "")
         return self.planner.phase, what
 

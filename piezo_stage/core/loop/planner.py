@@ -95,6 +95,7 @@ class ReferencePlanner:
         self._approach: tuple[Approach, int] | None = None  # (Approach, start ns)
         self._track_ns: int | None = None  # trajectory clock origin [ns]
         self.start_ns: int | None = None  # the trajectory's own start time, if it asked
+        self.profile: tuple[float, float] | None = None  # a move's (speed, accel)
 
     def set_trajectory(self, t: ArrayLike, w: dict, start_ns: int | None = None) -> None:
         """A new trajectory (t [s], {axis: um}): approached from where the stage is
@@ -103,11 +104,23 @@ class ReferencePlanner:
         self.traj, self.setpoint = (np.asarray(t, float), {a: np.asarray(x, float)
                                                           for a, x in w.items()}), None
         self.start_ns = None if start_ns is None else int(start_ns)
+        self.profile = None
         self._restart()
 
     def set_setpoint(self, w: dict) -> None:
         """A new streamed setpoint {axis: um}: approached, then held."""
+        self.setpoint, self.traj, self.profile = dict(w), None, None
+        self._restart()
+
+    def set_move(self, w: dict, speed_um_s: float, accel_um_s2: float,
+                 start_ns: int | None = None) -> None:
+        """A point-to-point move to {axis: um}: the same straight path as an approach,
+        with the move's own speed and acceleration, then held (phase *done* once
+        there); from ``start_ns`` when given (a one-point trajectory's start)."""
+        Approach({"x": 0.0}, {"x": 0.0}, speed_um_s, accel_um_s2)  # validates
         self.setpoint, self.traj = dict(w), None
+        self.start_ns = None if start_ns is None else int(start_ns)
+        self.profile = (float(speed_um_s), float(accel_um_s2))
         self._restart()
 
     def _restart(self):
@@ -142,8 +155,11 @@ class ReferencePlanner:
             self.phase = APPROACH
         if self.phase == APPROACH:
             if self._approach is None:
-                self._approach = (Approach(dict(desired), self._goal(desired), self.speed,
-                                           self.accel), int(target_ns))
+                if self.profile is not None and (self.start_ns or 0) > target_ns:
+                    return dict(desired)  # a move held until its start
+                speed, accel = self.profile or (self.speed, self.accel)
+                self._approach = (Approach(dict(desired), self._goal(desired), speed,
+                                           accel), int(target_ns))
             ap, t0 = self._approach
             tau = (target_ns - t0) * 1e-9
             if tau < ap.duration_s:
@@ -159,6 +175,8 @@ class ReferencePlanner:
                 self.phase = DONE  # the last point, held
         elif self.setpoint is not None:
             desired = {a: self.setpoint.get(a, desired[a]) for a in desired}
+            if self.profile is not None:
+                self.phase = DONE  # a move: arrived on its path (on target is judged)
         self.desired = desired
         return dict(desired)
 

@@ -1,0 +1,184 @@
+"""On target: whether a move has arrived, judged on the sensor the way a controller's
+``ONT?`` is, but honest about the sensor's noise.
+
+Per axis the measured error to the move's target is filtered (a moving average over
+``filter_s``); the noise left in it is estimated from the measurements themselves (the
+median of the successive differences, which neither a slow motion nor a step's few
+large jumps inflate) and kept as a guard band. An axis is on target once its filtered
+error has stayed within ``tol_um`` less the guard for a whole settling window
+(``window_s``); the move is on target when every axis is, and that is latched: it stays
+on target until an axis's filtered error leaves the band (then it is moving again, with
+the same move id, and is judged again). The settle time is from the move's start to the
+start of the window that declared it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.params import Param, Schema
+
+MOVING, ON_TARGET = "moving", "on_target"
+GUARD_SIGMAS = 3.0  # the guard band: this many standard deviations of the filtered noise
+NOISE_SAMPLES = 200  # successive differences the noise estimate is taken over
+NOISE_EVERY = 25  # ... and taken again every this many samples
+
+# the feedforward's on-target parameters (core/params.py), live
+PARAMETERS: Schema = (
+    Param("on_target_tol_um", 0.3, "on target: tolerance on each axis [um]", lo=1e-4,
+          hi=100.0, live=True),
+    Param("on_target_window_ms", 5.0, "on target: the settling window the error stays "
+          "within the tolerance for [ms]", lo=0.0, hi=10_000.0, live=True),
+    Param("on_target_filter_ms", 5.0, "on target: the sensor's moving average [ms] (0: "
+          "one sample)", lo=0.0, hi=1000.0, live=True),
+)
+
+
+@dataclass(frozen=True)
+class TargetState:
+    """What the judge says of a move: its ``move_id``, ``state`` per axis and for the
+    move (``moving`` or ``on_target``), the ``settle_s`` (None until on target), the
+    filtered ``error_um`` per axis at the last sample, the ``target_um``, and the
+    ``stamp_ns`` of the sample it is judged at."""
+
+    move_id: str
+    state: str
+    axes: dict
+    settle_s: float | None
+    error_um: dict
+    target_um: dict
+    stamp_ns: int
+    started_ns: int
+
+
+@dataclass
+class _Axis:
+    """One axis's filter, noise estimate and run of samples inside the band."""
+    n_filter: int
+    window: deque = field(default_factory=deque)  # the last errors, for the average
+    total: float = 0.0
+    diffs: deque = field(default_factory=lambda: deque(maxlen=NOISE_SAMPLES))
+    sigma: float = 0.0  # the sensor's noise [um], from the successive differences
+    count: int = 0
+    last_raw: float | None = None
+    inside_since: int | None = None  # stamp of the first sample of the run inside
+    on: bool = False
+
+    def measured(self, w: float) -> None:
+        """A measurement [um]: the noise estimate (kept over moves: it is the sensor's)."""
+        if self.last_raw is not None:
+            self.diffs.append(abs(w - self.last_raw))
+            self.count += 1
+            if self.count < NOISE_EVERY or self.count % NOISE_EVERY == 0:
+                # the median of |differences|: a step's few large ones do not count
+                n = len(self.diffs)
+                self.sigma = sorted(self.diffs)[n // 2] / (0.6745 * math.sqrt(2.0))
+        self.last_raw = w
+
+    def restart(self) -> None:
+        """A new move: its filter and its run inside the band start over."""
+        self.window.clear()
+        self.total, self.inside_since, self.on = 0.0, None, False
+
+    def filtered(self, e: float) -> float:
+        """The moving average of the error, with ``e`` the newest sample."""
+        self.window.append(e)
+        self.total += e
+        if len(self.window) > self.n_filter:
+            self.total -= self.window.popleft()
+        return self.total / len(self.window)
+
+    def guard(self) -> float:
+        """The filtered noise's guard band [um]."""
+        return GUARD_SIGMAS * self.sigma / math.sqrt(len(self.window) or 1)
+
+
+class OnTargetJudge:
+    """Judges each move, sample by sample (see the module's docstring).
+
+    Parameters
+    ----------
+    dt_s : float
+        The sample period [s].
+    tol_um, window_s, filter_s : float
+        The tolerance on each axis [um], the settling window [s] and the sensor's
+        moving average [s].
+    """
+
+    def __init__(self, dt_s: float, tol_um: float = 0.3, window_s: float = 0.005,
+                 filter_s: float = 0.005):
+        if not dt_s > 0:
+            raise ConfigError("on target: the sample period must be > 0")
+        self.dt_s = float(dt_s)
+        self.move_id: str | None = None
+        self.target: dict = {}
+        self.started_ns = 0
+        self.axes: dict[str, _Axis] = {}
+        self.settle_s: float | None = None
+        self.state = MOVING
+        self.configure(tol_um, window_s, filter_s)
+
+    def configure(self, tol_um: float, window_s: float, filter_s: float) -> None:
+        """New tolerance [um], window [s] and filter [s] (checked; the running move is
+        judged with them from its next sample)."""
+        if not (tol_um > 0 and window_s >= 0 and filter_s >= 0):
+            raise ConfigError("on target: tolerance > 0, window and filter >= 0")
+        self.tol, self.window_s, self.filter_s = float(tol_um), float(window_s), \
+            float(filter_s)
+        self.n_filter = max(1, int(round(filter_s / self.dt_s)))
+        for ax in self.axes.values():
+            ax.n_filter = self.n_filter
+
+    def begin(self, move_id: str, target_um: dict, started_ns: int) -> None:
+        """A new move to ``target_um`` ({axis: um}) from the sample stamped
+        ``started_ns``: moving until judged on target."""
+        self.move_id, self.target = str(move_id), dict(target_um)
+        self.started_ns, self.settle_s, self.state = int(started_ns), None, MOVING
+        for a in self.target:
+            self.axes.setdefault(a, _Axis(self.n_filter)).restart()
+
+    def sample(self, ns: int, w: dict) -> TargetState | None:
+        """The measured sample ``w`` ({axis: um}) stamped ``ns``: the move's state when
+        it changed (on target, or moving again), else None. No move: None."""
+        for a in w:
+            self.axes.setdefault(a, _Axis(self.n_filter)).measured(w[a])
+        if self.move_id is None or ns < self.started_ns:
+            return None
+        errors = {}
+        need = self.window_s - 1e-9
+        for a in self.target:
+            ax = self.axes[a]
+            e = ax.filtered(w[a] - self.target[a])
+            errors[a] = e
+            band = self.tol - ax.guard()
+            if ax.on:  # latched: out only when it leaves the band
+                if abs(e) > max(band, 0.0) + 0.5 * ax.guard():
+                    ax.on, ax.inside_since = False, None
+                continue
+            if abs(e) <= band and len(ax.window) >= self.n_filter:
+                if ax.inside_since is None:
+                    ax.inside_since = ns
+                ax.on = (ns - ax.inside_since) * 1e-9 >= need
+            else:
+                ax.inside_since = None
+        self.last = (ns, errors)
+        on = all(self.axes[a].on for a in self.target)
+        state = ON_TARGET if on else MOVING
+        if state == self.state:
+            return None
+        self.state = state
+        if on:
+            since = max(self.axes[a].inside_since or ns for a in self.target)
+            self.settle_s = (since - self.started_ns) * 1e-9
+        return self.report(ns, errors)
+
+    def report(self, ns: int, errors: dict) -> TargetState:
+        """The move's state at ``ns`` (the filtered ``errors``)."""
+        return TargetState(self.move_id or "", self.state,
+                           {a: ON_TARGET if self.axes[a].on else MOVING
+                            for a in self.target},
+                           self.settle_s, dict(errors), dict(self.target), int(ns),
+                           self.started_ns)
