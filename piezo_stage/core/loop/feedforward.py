@@ -310,7 +310,8 @@ class InverseFeedforward:
         on_target = self.judge.sample(ns, w)
         target = ns + lookahead_ns
         clock = self.planner.clock_s(target)
-        no_trajectory = self.wait_traj and self.planner.traj is None
+        no_trajectory = self.wait_traj and self.planner.traj is None and \
+            self.planner.profile is None  # (a move is what it waits for, too)
         waiting = no_trajectory or (self.inv is None and 0 < self.model_after_s <= (
             clock if clock is not None else -1))
         if waiting and not realtime:

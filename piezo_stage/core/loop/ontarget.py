@@ -2,7 +2,8 @@
 ``ONT?`` is, but honest about the sensor's noise.
 
 Per axis the measured error to the move's target is filtered (a moving average over
-``filter_s``); the noise left in it is estimated from the measurements themselves (the
+``filter_s``, longer where the tolerance is near the sensor's noise: long enough that
+the guard below leaves half the tolerance); the noise left in it is estimated from the measurements themselves (the
 median of the successive differences, which neither a slow motion nor a step's few
 large jumps inflate) and kept as a guard band. An axis is on target once its filtered
 error has stayed within ``tol_um`` less the guard for a whole settling window
@@ -25,6 +26,7 @@ MOVING, ON_TARGET = "moving", "on_target"
 GUARD_SIGMAS = 3.0  # the guard band: this many standard deviations of the filtered noise
 NOISE_SAMPLES = 200  # successive differences the noise estimate is taken over
 NOISE_EVERY = 25  # ... and taken again every this many samples
+MAX_FILTER_S = 1.0  # the longest average a tolerance near the noise may ask for [s]
 
 # the feedforward's on-target parameters (core/params.py), live
 PARAMETERS: Schema = (
@@ -87,7 +89,7 @@ class _Axis:
         """The moving average of the error, with ``e`` the newest sample."""
         self.window.append(e)
         self.total += e
-        if len(self.window) > self.n_filter:
+        while len(self.window) > self.n_filter:
             self.total -= self.window.popleft()
         return self.total / len(self.window)
 
@@ -129,6 +131,7 @@ class OnTargetJudge:
         self.tol, self.window_s, self.filter_s = float(tol_um), float(window_s), \
             float(filter_s)
         self.n_filter = max(1, int(round(filter_s / self.dt_s)))
+        self.max_filter = max(self.n_filter, int(round(MAX_FILTER_S / self.dt_s)))
         for ax in self.axes.values():
             ax.n_filter = self.n_filter
 
@@ -151,6 +154,10 @@ class OnTargetJudge:
         need = self.window_s - 1e-9
         for a in self.target:
             ax = self.axes[a]
+            # the average long enough for the guard to leave half the tolerance (a
+            # tolerance near the sensor's noise needs more samples), within a second
+            ax.n_filter = min(max(self.n_filter, math.ceil(
+                (2 * GUARD_SIGMAS * ax.sigma / self.tol) ** 2)), self.max_filter)
             e = ax.filtered(w[a] - self.target[a])
             errors[a] = e
             band = self.tol - ax.guard()
@@ -158,7 +165,7 @@ class OnTargetJudge:
                 if abs(e) > max(band, 0.0) + 0.5 * ax.guard():
                     ax.on, ax.inside_since = False, None
                 continue
-            if abs(e) <= band and len(ax.window) >= self.n_filter:
+            if abs(e) <= band and len(ax.window) >= ax.n_filter:
                 if ax.inside_since is None:
                     ax.inside_since = ns
                 ax.on = (ns - ax.inside_since) * 1e-9 >= need

@@ -1,0 +1,344 @@
+"""A Python client for a running node set: for acquisition scripts and notebooks.
+
+No launch file and no node of ours to write: ``Stage`` is an rclpy node in its own
+context, so it lives in a Jupyter cell beside anything else::
+
+    from piezo_stage.client import Stage
+
+    with Stage() as stage:                       # the set at /stage, ROS_DOMAIN_ID's
+        print(stage.position())                  # (x, y) [um], the last sample
+        done = stage.move_to(40.0, 20.0, tol_um=0.3)
+        print(done.settle_s, done.error_um)      # judged on target by the stage
+        with stage.record("scan_bag"):           # an MCAP bag of what follows
+            stage.run(t, {"x": wx, "y": wy})     # a trajectory, waited for to its end
+
+A move is the stage's own: the feedforward runs it on its profile and judges it on
+target on the sensor (core/loop/ontarget.py); the client only asks and waits for the
+answer on ``on_target``. Errors are ``NoStage`` (nothing answers at the namespace),
+``StageFault`` (the driver faulted or is disarmed) and ``MoveTimeout``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.loop.motion import MotionTimeModel
+from piezo_stage.core.loop.ontarget import TargetState
+from piezo_stage_msgs_adapters.wire import Announcement
+
+SETTLE_IN_S = 0.3  # after the first answers: the rest of the latched history
+
+
+class StageError(PiezoStageError):
+    """What the client could not do (one line, as every error of ours)."""
+
+
+class NoStage(StageError):
+    """Nothing answers at the namespace: no set launched there, or another domain."""
+
+
+class StageFault(StageError):
+    """The driver faulted, or does not apply commands (disarmed): nothing moves."""
+
+
+class MoveTimeout(StageError, TimeoutError):
+    """The move was not on target in time."""
+
+
+@dataclass(frozen=True)
+class MoveDone:
+    """A move judged on target by the stage: its ``move_id``, the ``settle_s`` (from
+    the move's start until the stage stayed within the tolerance), the filtered
+    ``error_um`` per axis when declared, the ``elapsed_s`` the client waited, and the
+    ``target_um``."""
+
+    move_id: str
+    settle_s: float
+    error_um: dict
+    elapsed_s: float
+    target_um: dict
+
+
+class Stage:
+    """A running set at ``namespace`` (see the module's docstring).
+
+    Parameters
+    ----------
+    namespace : str
+        The set's namespace (``launch --namespace``).
+    domain_id : int or None
+        The ROS domain (None: ``ROS_DOMAIN_ID``, else 0).
+    timeout : float
+        Seconds to wait for the set to answer (``NoStage`` after).
+    motion_model : MotionTimeModel or None
+        What ``predict`` answers with (``bench settle`` fits one).
+    """
+
+    _ids = itertools.count(1)
+
+    def __init__(self, namespace: str = "/stage", domain_id: int | None = None,
+                 timeout: float = 10.0, motion_model: MotionTimeModel | None = None):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray, KeyValue
+        from geometry_msgs.msg import PointStamped
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import JointState
+        from trajectory_msgs.msg import JointTrajectory
+
+        from piezo_stage.nodes._common import QOS_EVENTS, QOS_LATCHED
+        self.ns = "/" + namespace.strip("/")
+        if domain_id is None:
+            domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=int(domain_id))
+        self.node = rclpy.create_node(f"client_{os.getpid()}", context=self.ctx)
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.motion_model = motion_model
+        self.driver: Announcement | None = None  # the driver's last state
+        self.w: dict | None = None
+        self.targets: dict[str, TargetState] = {}  # move id -> its last state
+        self.phases: list[tuple[str, str]] = []
+        self.accepted = 0
+        self.last_frame = ""  # the header.frame_id of the last trajectory accepted
+        newest = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        n = self.node
+        n.create_subscription(DiagnosticArray, f"{self.ns}/state", self._on_state,
+                              QOS_EVENTS)
+        n.create_subscription(JointState, f"{self.ns}/joint_states", self._on_sample, newest)
+        n.create_subscription(DiagnosticArray, f"{self.ns}/on_target", self._on_target,
+                              QOS_LATCHED)
+        n.create_subscription(KeyValue, f"{self.ns}/feedforward/phase", self._on_phase,
+                              QOS_EVENTS)
+        n.create_subscription(JointTrajectory, f"{self.ns}/trajectory/accepted",
+                              self._on_accepted, QOS_LATCHED)
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.move_pub = n.create_publisher(PointStamped, f"{self.ns}/move", reliable)
+        self.traj_pub = n.create_publisher(JointTrajectory, f"{self.ns}/trajectory", reliable)
+        self.params: dict[str, float] = {}
+        try:
+            if not self._wait(lambda: self.driver is not None and self.w is not None
+                              and self.move_pub.get_subscription_count() > 0, timeout):
+                raise NoStage(f"no stage at {self.ns} in domain {domain_id} within "
+                              f"{timeout:g} s (is the set launched there?)")
+            # the latched history (the driver's earlier states, the phases) comes in
+            # order on matching: the last of it is the present
+            self._wait(lambda: False, SETTLE_IN_S)
+        except BaseException:
+            self.close()
+            raise
+
+    # -- what comes in ----------------------------------------------------------------
+    def _on_state(self, msg) -> None:
+        from piezo_stage_msgs_adapters import announcement_from_msg
+        try:
+            self.driver = announcement_from_msg(msg)
+        except PiezoStageError:
+            pass
+
+    def _on_sample(self, msg) -> None:
+        from piezo_stage_msgs_adapters import joint_state_to_um
+        try:
+            _, self.w = joint_state_to_um(msg)
+        except PiezoStageError:
+            pass
+
+    def _on_target(self, msg) -> None:
+        from piezo_stage_msgs_adapters import on_target_from_msg
+        try:
+            s = on_target_from_msg(msg)
+        except PiezoStageError:
+            return
+        self.targets[s.move_id] = s
+
+    def _on_phase(self, msg) -> None:
+        from piezo_stage_msgs_adapters import phase_from_msg
+        self.phases.append(phase_from_msg(msg))
+
+    def _on_accepted(self, msg) -> None:
+        self.accepted += 1
+        self.last_frame = msg.header.frame_id
+
+    def _wait(self, cond, timeout: float) -> bool:
+        t_end = time.monotonic() + timeout
+        while not cond():
+            left = t_end - time.monotonic()
+            if left <= 0:
+                return False
+            self.ex.spin_once(timeout_sec=min(0.01, left))
+        return True
+
+    def _check_driver(self) -> None:
+        """StageFault when the driver faulted or applies no commands."""
+        for _ in range(10):  # what came in meanwhile
+            self.ex.spin_once(timeout_sec=0.0)
+        d = self.driver
+        if d is not None and d.state == "faulted":
+            raise StageFault(f"{self.ns}: faulted: {d.reason}")
+        if d is not None and d.state == "disarmed":
+            raise StageFault(f"{self.ns}: disarmed ({d.reason}): arm it first (its arm "
+                             "service, or activate a managed set)")
+
+    # -- what a script asks ---------------------------------------------------------
+    def position(self) -> tuple[float, float]:
+        """The stage's last measured position (x, y) [um]."""
+        self.ex.spin_once(timeout_sec=0.0)
+        assert self.w is not None
+        return self.w["x"], self.w["y"]
+
+    def state(self) -> str:
+        """The driver's arming state (armed, approaching, arming, disarmed, faulted)."""
+        self.ex.spin_once(timeout_sec=0.0)
+        return self.driver.state if self.driver is not None else ""
+
+    def predict(self, x: float, y: float) -> float:
+        """The settle time [s] a move from here to (x, y) takes, by the motion-time
+        model (StageError when the client has none)."""
+        if self.motion_model is None:
+            raise StageError("no motion-time model: `piezo-stage bench settle --out "
+                             "FILE` fits one; Stage(motion_model=...) takes it")
+        wx, wy = self.position()
+        return self.motion_model.predict(((x - wx) ** 2 + (y - wy) ** 2) ** 0.5)
+
+    def configure(self, tol_um: float | None = None, settle_ms: float | None = None) -> None:
+        """The stage's on-target tolerance [um] and settling window [ms] (the
+        feedforward's live parameters), set where they differ from the last set."""
+        want = {k: float(v) for k, v in (("on_target_tol_um", tol_um),
+                                         ("on_target_window_ms", settle_ms))
+                if v is not None and self.params.get(k) != float(v)}
+        if not want:
+            return
+        from rclpy.parameter import Parameter
+        from rclpy.parameter_client import AsyncParameterClient
+        cli = AsyncParameterClient(self.node, f"{self.ns}/feedforward")
+        if not cli.wait_for_services(10.0):
+            raise NoStage(f"{self.ns}/feedforward: no parameter service")
+        fut = cli.set_parameters([Parameter(k, value=v) for k, v in want.items()])
+        if not self._wait(fut.done, 10.0):
+            raise StageError(f"{self.ns}/feedforward: no answer setting {', '.join(want)}")
+        for (k, v), r in zip(want.items(), fut.result().results):
+            if not r.successful:
+                raise StageError(f"{k} {v:g} refused: {r.reason}")
+            self.params[k] = v
+
+    def move_to(self, x: float, y: float, tol_um: float | None = None,
+                settle_ms: float | None = None, timeout: float = 10.0) -> MoveDone:
+        """Move to (x, y) [um] and wait until the stage says it is on target (within
+        ``tol_um`` for ``settle_ms``: the stage's own when None). Raises StageFault,
+        MoveTimeout."""
+        from piezo_stage_msgs_adapters import move_msg
+        self._check_driver()
+        self.configure(tol_um, settle_ms)
+        move_id = f"{self.node.get_name()}-{next(self._ids)}"
+        t0 = time.monotonic()
+        self.move_pub.publish(move_msg(move_id, {"x": x, "y": y}))
+        # the stage's verdict, or a fault, or the timeout
+        def over():
+            s = self.targets.get(move_id)
+            d = self.driver
+            return (s is not None and s.state == "on_target") or (
+                d is not None and d.state == "faulted")
+        arrived = self._wait(over, timeout)
+        self._check_driver()
+        s = self.targets.get(move_id)
+        if not arrived or s is None:
+            w = self.w or {}
+            last = (f"; {s.state}, at " + ", ".join(
+                f"{a} {w[a] - s.target_um[a]:+.3f} um" for a in s.target_um if a in w)
+                + " from the target") if s else "; the stage never answered it"
+            raise MoveTimeout(f"move to ({x:g}, {y:g}) um not on target within "
+                              f"{timeout:g} s{last}")
+        return MoveDone(move_id, float(s.settle_s or 0.0), dict(s.error_um),
+                        time.monotonic() - t0, dict(s.target_um))
+
+    def run(self, t_s, w_um: dict, timeout: float | None = None) -> float:
+        """Run a trajectory (t [s], {axis: um}) and wait for its end (the
+        feedforward's phase done) -> the seconds waited. Raises StageFault and
+        MoveTimeout (``timeout``: the trajectory's length plus 30 s when None)."""
+        from piezo_stage_msgs_adapters import trajectory_msg
+        self._check_driver()
+        msg = trajectory_msg(t_s, w_um)
+        msg.header.frame_id = f"{self.node.get_name()}-{next(self._ids)}"  # a new one
+        n_acc = self.accepted
+        limit = timeout if timeout is not None else float(t_s[-1]) + 30.0
+        t0 = time.monotonic()
+        self.traj_pub.publish(msg)
+        if not self._wait(lambda: self.accepted > n_acc and
+                          self.last_frame == msg.header.frame_id, min(limit, 30.0)):
+            raise StageError(f"{self.ns}: the trajectory was not accepted (see the "
+                             "feedforward's log)")
+        n_phase = len(self.phases)  # (the phases it starts with come after acceptance)
+        def ended():
+            d = self.driver
+            return any(p == "done" for p, _ in self.phases[n_phase:]) or (
+                d is not None and d.state == "faulted")
+        if not self._wait(ended, limit):
+            raise MoveTimeout(f"the trajectory did not end within {limit:g} s")
+        self._check_driver()
+        return time.monotonic() - t0
+
+    @contextmanager
+    def record(self, path: str) -> Iterator[str]:
+        """Record every topic of the set to an MCAP bag at ``path`` while the block
+        runs (our recorder, as a process of its own; stopped and the bag finished at
+        the block's end)."""
+        if os.path.exists(path):
+            raise StageError(f"{path}: exists (a bag is never overwritten)")
+        sim = self.node.count_publishers("/clock") > 0
+        cmd = [sys.executable, "-m", "piezo_stage.nodes.recorder_node", "--ros-args",
+               "-r", f"__ns:={self.ns}", "-p", f"output:={os.path.abspath(path)}",
+               "-p", f"log_time:={'stamp' if sim else 'receive'}",
+               "-p", f"use_sim_time:={'true' if sim else 'false'}"]
+        env = dict(os.environ, ROS_DOMAIN_ID=str(self.ctx.get_domain_id()))
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            # its subscriptions matched: the driver's samples reach it
+            if not self._wait(lambda: proc.poll() is not None or
+                              self.node.count_subscribers(f"{self.ns}/joint_states") > 1,
+                              30.0) or proc.poll() is not None:
+                raise StageError(f"the recorder did not start: {_tail(proc)}")
+            self._wait(lambda: False, 0.5)  # its readers matched by the publishers too
+            yield path
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+
+    def close(self) -> None:
+        """Leave the set (the node and its context end)."""
+        import rclpy
+        try:
+            self.node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=self.ctx)
+
+    def __enter__(self) -> Stage:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _tail(proc: subprocess.Popen) -> str:
+    try:
+        _, err = proc.communicate(timeout=5)
+    except subprocess.TimeoutExpired:
+        return "still starting"
+    lines = (err or "").strip().splitlines()
+    return lines[-1] if lines else f"exit {proc.returncode}"
