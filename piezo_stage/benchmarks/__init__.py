@@ -2,7 +2,7 @@
 invocation (never timed unit tests); ``piezo-stage bench <what>`` runs one.
 
 One module per benchmark (plant, identify, loop, liveview, gap, realtime, learning,
-faults, signals, experiments, outside, refit, setup, lifecycle) and the equipment they share:
+faults, signals, experiments, outside, refit, setup, lifecycle, settle) and the equipment they share:
 ``procs`` (helper processes, CPU ticks, the progress of repeated runs), ``probe`` (an
 outside node),
 ``host_pauses`` (when the whole machine stopped), ``foxglove_probe`` (a live-view
@@ -29,6 +29,7 @@ BENCHMARKS = {
     "refit": ("refit", "bench_refit", ()),
     "setup": ("setup", "bench_setup", ("runs",)),
     "lifecycle": ("lifecycle", "bench_lifecycle", ("runs",)),
+    "settle": ("settle", "bench_settle", ("steps", "moves", "out")),
 }
 
 

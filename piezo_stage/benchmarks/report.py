@@ -39,8 +39,9 @@ def provenance() -> str:
     return f"{datetime.date.today().isoformat()}, {commit}, {host}"
 
 
-def _cell(x: object) -> str:
-    return str(x).replace("|", "\\|").replace("\n", " ")
+def _cell(x: object, markdown: bool = True) -> str:
+    text = str(x).replace("\n", " ")
+    return text.replace("|", "\\|") if markdown else text
 
 
 class Report:
@@ -86,7 +87,7 @@ class Report:
     def table(self, columns: Sequence[str], rows: Sequence[Sequence[object]],
               caption: str = "") -> None:
         """A table: ``columns`` named, ``rows`` of as many cells, ``caption`` above it."""
-        cells = [[_cell(c) for c in r] for r in rows]
+        cells = [[_cell(c, self.markdown) for c in r] for r in rows]
         if self.markdown:
             head = f"*{self.stamp}*" + (f": {caption}" if caption else "")
             lines = [head, "", "| " + " | ".join(_cell(c) for c in columns) + " |",

@@ -26,6 +26,14 @@ def add_arguments(s):
     s.add_argument("--kinds", type=_kinds, default=None, metavar="K1,K2",
                    help="experiments: which (default tracking,noise,amplitude,"
                    "decoupling,scan)")
+    s.add_argument("--steps", type=number(4, 10_000, integer=True), default=50, metavar="N",
+                   help="settle: random 10 um steps on each stage")
+    s.add_argument("--moves", type=number(4, 100_000, integer=True), default=200,
+                   metavar="N", help="settle: random moves judged for false and missed "
+                   "on-target")
+    s.add_argument("--out", default=None, metavar="FILE",
+                   help="settle: the default stage's motion-time model (JSON), for "
+                   "piezo_stage.client")
     s.add_argument("--trials", type=number(1, 10000, integer=True), default=108, metavar="N",
                    help="signals: processes to start and signal (each kind in turn)")
 

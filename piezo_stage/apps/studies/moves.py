@@ -31,7 +31,8 @@ class MoveResult:
     over the move and its dwell), ``false_samples`` (samples declared on target with
     the true position outside the tolerance), ``missed`` (the true position stayed
     inside for a whole window and the move was never declared), the largest true
-    error after the declaration and the final measured error."""
+    error from the declaring window on, the final measured error, and the
+    ``elapsed_s`` the move took (to its declaration and dwell, or its timeout)."""
 
     step_um: float
     declared_s: float | None
@@ -40,6 +41,7 @@ class MoveResult:
     missed: bool
     after_declared_um: float
     final_error_um: float
+    elapsed_s: float
 
 
 @dataclass(frozen=True)
@@ -136,9 +138,13 @@ def _one(loop: _Loop, move_id: str, target: dict, setup: MoveSetup) -> MoveResul
         if end is not None and k >= end:
             break
     e, on = np.asarray(true_err), np.asarray(declared)
+    if declared_at is not None:  # the window that declared it counts as declared
+        first = max(0, int(round(declared_at / (loop.dt_ns * 1e-9))) - 1)
+        on[first:] |= np.arange(on.size - first) < int(np.argmax(on[first:]) + 1)
     outside = np.flatnonzero(e > setup.tol_um)
-    # sample k of the move is the one taken k + 1 periods after its first tick
-    true_settle: float | None = (int(outside[-1]) + 1) * loop.dt_ns * 1e-9 \
+    # true_err[k] is the sample judged at the move's tick k + 1 (stamped k + 1
+    # periods after its first): the first inside for good is outside[-1] + 1
+    true_settle: float | None = (int(outside[-1]) + 2) * loop.dt_ns * 1e-9 \
         if outside.size else 0.0
     if outside.size and outside[-1] == e.size - 1:
         true_settle = None  # still outside at the end
@@ -149,7 +155,7 @@ def _one(loop: _Loop, move_id: str, target: dict, setup: MoveSetup) -> MoveResul
     final = max(abs(loop.w[a] - goal[a]) for a in goal)
     return MoveResult(float(np.hypot(goal["x"] - here["x"], goal["y"] - here["y"])),
                       declared_at, true_settle, int(np.count_nonzero(on & (e > setup.tol_um))),
-                      bool(missed), after, float(final))
+                      bool(missed), after, float(final), e.size * loop.dt_ns * 1e-9)
 
 
 def _longest_run(mask: np.ndarray) -> int:

@@ -62,6 +62,7 @@ class _Axis:
     n_filter: int
     window: deque = field(default_factory=deque)  # the last errors, for the average
     total: float = 0.0
+    total2: float = 0.0  # the sum of the squared errors in the window
     diffs: deque = field(default_factory=lambda: deque(maxlen=NOISE_SAMPLES))
     sigma: float = 0.0  # the sensor's noise [um], from the successive differences
     count: int = 0
@@ -83,19 +84,31 @@ class _Axis:
     def restart(self) -> None:
         """A new move: its filter and its run inside the band start over."""
         self.window.clear()
-        self.total, self.inside_since, self.on = 0.0, None, False
+        self.total, self.total2, self.inside_since, self.on = 0.0, 0.0, None, False
 
     def filtered(self, e: float) -> float:
         """The moving average of the error, with ``e`` the newest sample."""
         self.window.append(e)
         self.total += e
+        self.total2 += e * e
         while len(self.window) > self.n_filter:
-            self.total -= self.window.popleft()
+            old = self.window.popleft()
+            self.total -= old
+            self.total2 -= old * old
         return self.total / len(self.window)
 
     def guard(self) -> float:
-        """The filtered noise's guard band [um]."""
-        return GUARD_SIGMAS * self.sigma / math.sqrt(len(self.window) or 1)
+        """The guard band [um]: the filtered noise, and the motion the average hides
+        (a ring the window averages out shows as variance beyond the sensor's noise:
+        what exceeds the noise's own spread, as a sinusoid's amplitude)."""
+        n = len(self.window) or 1
+        noise = GUARD_SIGMAS * self.sigma / math.sqrt(n)
+        if n < 3:
+            return noise
+        mean = self.total / n
+        var = max(self.total2 / n - mean * mean, 0.0) * n / (n - 1)
+        excess = var - self.sigma ** 2 * (1.0 + 2.0 * math.sqrt(2.0 / (n - 1)))
+        return noise + (math.sqrt(2.0 * excess) if excess > 0 else 0.0)
 
 
 class OnTargetJudge:
