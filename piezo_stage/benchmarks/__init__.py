@@ -2,7 +2,8 @@
 invocation (never timed unit tests); ``piezo-stage bench <what>`` runs one.
 
 One module per benchmark (plant, identify, loop, liveview, gap, realtime, learning,
-faults, signals, experiments, outside, refit, setup, lifecycle, settle) and the equipment they share:
+faults, signals, experiments, outside, refit, setup, lifecycle, settle) and the
+equipment they share:
 ``procs`` (helper processes, CPU ticks, the progress of repeated runs), ``probe`` (an
 outside node),
 ``host_pauses`` (when the whole machine stopped), ``foxglove_probe`` (a live-view

@@ -13,15 +13,18 @@ from dataclasses import replace
 
 import numpy as np
 
+from piezo_stage.core.model.duhem import StageModel
+from piezo_stage.core.model.plant import Plant
+
 STAGES = (("default stage", "sim_stage.yaml", "stage_model.yaml"),
           ("600 Hz resonance, 0.8 ms delay", "sim_stage_600hz.yaml", None))
 LO_UM, HI_UM = 5.0, 70.0  # where the random moves go (inside the stroke)
 
 
-def _stage(plant_file: str, model_file: str | None, seed: int):
+def _stage(plant_file: str, model_file: str | None, seed: int) -> tuple[Plant, StageModel,
+                                                                       dict]:
     """(a fresh plant, the feedforward's model, its effects): the shipped model, or
     the plant's own (its effects too) where the stage has effects our model lacks."""
-    from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.model_file import load_model
     from piezo_stage.io.plant_file import load_plant_config
     from piezo_stage.paths import default_config

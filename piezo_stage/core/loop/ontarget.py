@@ -1,16 +1,18 @@
 """On target: whether a move has arrived, judged on the sensor the way a controller's
 ``ONT?`` is, but honest about the sensor's noise.
 
-Per axis the measured error to the move's target is filtered (a moving average over
-``filter_s``, longer where the tolerance is near the sensor's noise: long enough that
-the guard below leaves half the tolerance); the noise left in it is estimated from the measurements themselves (the
-median of the successive differences, which neither a slow motion nor a step's few
-large jumps inflate) and kept as a guard band. An axis is on target once its filtered
-error has stayed within ``tol_um`` less the guard for a whole settling window
-(``window_s``); the move is on target when every axis is, and that is latched: it stays
-on target until an axis's filtered error leaves the band (then it is moving again, with
-the same move id, and is judged again). The settle time is from the move's start to the
-start of the window that declared it.
+Per axis the measured error to the move's target is averaged over ``filter_s`` (longer
+where the tolerance is near the sensor's noise: long enough that the noise's guard
+leaves half the tolerance). The guard band has two parts: the noise left in the
+average, from the sensor's noise as the measurements show it (the median of the
+successive differences, which neither a slow motion nor a step's few large jumps
+inflate), and the motion the average hides (a ring it averages out shows as variance
+beyond the noise). An axis is on target once its averaged error has stayed within
+``tol_um`` less the guard for a whole settling window (``window_s``); the move is on
+target when every axis is, and that is latched: it stays on target until an axis's
+averaged error leaves the band (then it is moving again, with the same move id, and is
+judged again). The settle time is from the move's start to the start of the window
+that declared it.
 """
 
 from __future__ import annotations
