@@ -4,9 +4,9 @@
 Per axis the measured error to the move's target is averaged over ``filter_s`` (longer
 where the tolerance is near the sensor's noise: long enough that the noise's guard
 leaves half the tolerance). The guard band has two parts: the noise left in the
-average, from the sensor's noise as the measurements show it (the median of the
-successive differences, which neither a slow motion nor a step's few large jumps
-inflate), and the motion the average hides (a ring it averages out shows as variance
+average, from the sensor's noise as the measurements at rest show it (the median of
+the successive differences while no move runs or the last is on target), and the
+motion the average hides (a ring it averages out shows as variance
 beyond the noise). An axis is on target once its averaged error has stayed within
 ``tol_um`` less the guard for a whole settling window (``window_s``); the move is on
 target when every axis is, and that is latched: it stays on target until an axis's
@@ -68,20 +68,23 @@ class _Axis:
     diffs: deque = field(default_factory=lambda: deque(maxlen=NOISE_SAMPLES))
     sigma: float = 0.0  # the sensor's noise [um], from the successive differences
     count: int = 0
+    was_quiet: bool = False
     last_raw: float | None = None
     inside_since: int | None = None  # stamp of the first sample of the run inside
     on: bool = False
 
-    def measured(self, w: float) -> None:
-        """A measurement [um]: the noise estimate (kept over moves: it is the sensor's)."""
-        if self.last_raw is not None:
+    def measured(self, w: float, quiet: bool) -> None:
+        """A measurement [um]; ``quiet``: the stage rests (no move, or one on target):
+        the noise estimate takes it (kept over moves: it is the sensor's; a move's own
+        motion, a ring above all, would pass for noise)."""
+        if self.last_raw is not None and quiet and self.was_quiet:
             self.diffs.append(abs(w - self.last_raw))
             self.count += 1
             if self.count < NOISE_EVERY or self.count % NOISE_EVERY == 0:
                 # the median of |differences|: a step's few large ones do not count
                 n = len(self.diffs)
                 self.sigma = sorted(self.diffs)[n // 2] / (0.6745 * math.sqrt(2.0))
-        self.last_raw = w
+        self.last_raw, self.was_quiet = w, quiet
 
     def restart(self) -> None:
         """A new move: its filter and its run inside the band start over."""
@@ -99,18 +102,19 @@ class _Axis:
             self.total2 -= old * old
         return self.total / len(self.window)
 
-    def guard(self) -> float:
-        """The guard band [um]: the filtered noise, and the motion the average hides
-        (a ring the window averages out shows as variance beyond the sensor's noise:
-        what exceeds the noise's own spread, as a sinusoid's amplitude)."""
+    def guard(self) -> tuple[float, float]:
+        """The guard band's two parts [um]: the filtered noise, and the motion the
+        average hides (a ring or a drift shows as variance beyond the sensor's noise:
+        what exceeds the noise's own spread, as a sinusoid's amplitude; a drift's
+        is about the average's lag behind its newest sample)."""
         n = len(self.window) or 1
         noise = GUARD_SIGMAS * self.sigma / math.sqrt(n)
         if n < 3:
-            return noise
+            return noise, 0.0
         mean = self.total / n
         var = max(self.total2 / n - mean * mean, 0.0) * n / (n - 1)
         excess = var - self.sigma ** 2 * (1.0 + 2.0 * math.sqrt(2.0 / (n - 1)))
-        return noise + (math.sqrt(2.0 * excess) if excess > 0 else 0.0)
+        return noise, (math.sqrt(2.0 * excess) if excess > 0 else 0.0)
 
 
 class OnTargetJudge:
@@ -161,8 +165,9 @@ class OnTargetJudge:
     def sample(self, ns: int, w: dict) -> TargetState | None:
         """The measured sample ``w`` ({axis: um}) stamped ``ns``: the move's state when
         it changed (on target, or moving again), else None. No move: None."""
+        quiet = self.move_id is None or self.state == ON_TARGET
         for a in w:
-            self.axes.setdefault(a, _Axis(self.n_filter)).measured(w[a])
+            self.axes.setdefault(a, _Axis(self.n_filter)).measured(w[a], quiet)
         if self.move_id is None or ns < self.started_ns:
             return None
         errors = {}
@@ -175,9 +180,10 @@ class OnTargetJudge:
                 (2 * GUARD_SIGMAS * ax.sigma / self.tol) ** 2)), self.max_filter)
             e = ax.filtered(w[a] - self.target[a])
             errors[a] = e
-            band = self.tol - ax.guard()
-            if ax.on:  # latched: out only when it leaves the band
-                if abs(e) > max(band, 0.0) + 0.5 * ax.guard():
+            noise, motion = ax.guard()
+            band = self.tol - noise - motion
+            if ax.on:  # latched: out when it may have left the tolerance (half the
+                if abs(e) > self.tol - 0.5 * noise - motion:  # noise's guard: no chatter)
                     ax.on, ax.inside_since = False, None
                 continue
             if abs(e) <= band and len(ax.window) >= ax.n_filter:
