@@ -15,7 +15,8 @@ context, so it lives in a Jupyter cell beside anything else::
 A move is the stage's own: the feedforward runs it on its profile and judges it on
 target on the sensor (core/loop/ontarget.py); the client only asks and waits for the
 answer on ``on_target``. Errors are ``NoStage`` (nothing answers at the namespace),
-``StageFault`` (the driver faulted or is disarmed) and ``MoveTimeout``.
+``StageFault`` (the driver faulted or is disarmed), ``MoveRefused`` (a target outside
+the stage's range) and ``MoveTimeout``.
 """
 
 from __future__ import annotations
@@ -26,16 +27,18 @@ import signal
 import subprocess
 import sys
 import time
+from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.motion import MotionTimeModel
-from piezo_stage.core.loop.ontarget import TargetState
+from piezo_stage.core.loop.ontarget import ON_TARGET, REFUSED, TargetState
 from piezo_stage_msgs_adapters.wire import Announcement
 
 SETTLE_IN_S = 0.3  # after the first answers: the rest of the latched history
+SAMPLES_KEPT = 200_000  # the samples a client keeps for its dwells (minutes at 1 kHz)
 
 
 class StageError(PiezoStageError):
@@ -54,6 +57,22 @@ class MoveTimeout(StageError, TimeoutError):
     """The move was not on target in time."""
 
 
+class MoveRefused(StageError):
+    """The stage refused the move (a target outside its range)."""
+
+
+@dataclass(frozen=True)
+class Dwell:
+    """The stage at rest: the ``samples`` measured from ``t0_ns`` to ``t1_ns`` (the
+    set's own stamps), their ``mean_um`` and ``std_um`` per axis."""
+
+    samples: int
+    t0_ns: int
+    t1_ns: int
+    mean_um: dict
+    std_um: dict
+
+
 @dataclass(frozen=True)
 class MoveDone:
     """A move judged on target by the stage: its ``move_id``, the ``settle_s`` (from
@@ -66,6 +85,7 @@ class MoveDone:
     error_um: dict
     elapsed_s: float
     target_um: dict
+    stamp_ns: int = 0  # the sample it was declared at (the set's clock)
 
 
 class Stage:
@@ -91,19 +111,21 @@ class Stage:
         from diagnostic_msgs.msg import DiagnosticArray, KeyValue
         from geometry_msgs.msg import PointStamped
         from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.experimental.events_executor import EventsExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
 
-        from piezo_stage.nodes._common import QOS_EVENTS, QOS_LATCHED
+        from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
         self.ns = "/" + namespace.strip("/")
         if domain_id is None:
             domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
         self.ctx = Context()
         rclpy.init(context=self.ctx, domain_id=int(domain_id))
         self.node = rclpy.create_node(f"client_{os.getpid()}", context=self.ctx)
-        self.ex = SingleThreadedExecutor(context=self.ctx)
+        # the events executor: a set's every sample (1 kHz and more in lockstep) costs
+        # it a tenth of what the wait-set executors pay per callback (DESIGN.md)
+        self.ex = EventsExecutor(context=self.ctx)
         self.ex.add_node(self.node)
         self.motion_model = motion_model
         self.driver: Announcement | None = None  # the driver's last state
@@ -112,11 +134,13 @@ class Stage:
         self.phases: list[tuple[str, str]] = []
         self.accepted = 0
         self.last_frame = ""  # the header.frame_id of the last trajectory accepted
-        newest = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         n = self.node
         n.create_subscription(DiagnosticArray, f"{self.ns}/state", self._on_state,
                               QOS_EVENTS)
-        n.create_subscription(JointState, f"{self.ns}/joint_states", self._on_sample, newest)
+        # every sample (a dwell's statistics take them all), the last SAMPLES_KEPT kept
+        self.samples: deque[tuple[int, float, float]] = deque(maxlen=SAMPLES_KEPT)
+        n.create_subscription(JointState, f"{self.ns}/joint_states", self._on_sample,
+                              QOS_DATA)
         n.create_subscription(DiagnosticArray, f"{self.ns}/on_target", self._on_target,
                               QOS_LATCHED)
         n.create_subscription(KeyValue, f"{self.ns}/feedforward/phase", self._on_phase,
@@ -150,9 +174,10 @@ class Stage:
     def _on_sample(self, msg) -> None:
         from piezo_stage_msgs_adapters import joint_state_to_um
         try:
-            _, self.w = joint_state_to_um(msg)
+            ns, self.w = joint_state_to_um(msg)
         except PiezoStageError:
-            pass
+            return
+        self.samples.append((ns, self.w["x"], self.w["y"]))
 
     def _on_target(self, msg) -> None:
         from piezo_stage_msgs_adapters import on_target_from_msg
@@ -236,7 +261,7 @@ class Stage:
                 settle_ms: float | None = None, timeout: float = 10.0) -> MoveDone:
         """Move to (x, y) [um] and wait until the stage says it is on target (within
         ``tol_um`` for ``settle_ms``: the stage's own when None). Raises StageFault,
-        MoveTimeout."""
+        MoveRefused, MoveTimeout."""
         from piezo_stage_msgs_adapters import move_msg
         self._check_driver()
         self.configure(tol_um, settle_ms)
@@ -247,11 +272,13 @@ class Stage:
         def over():
             s = self.targets.get(move_id)
             d = self.driver
-            return (s is not None and s.state == "on_target") or (
+            return (s is not None and s.state in (ON_TARGET, REFUSED)) or (
                 d is not None and d.state == "faulted")
         arrived = self._wait(over, timeout)
         self._check_driver()
         s = self.targets.get(move_id)
+        if s is not None and s.state == REFUSED:
+            raise MoveRefused(f"move to ({x:g}, {y:g}) um refused by the stage: {s.reason}")
         if not arrived or s is None:
             w = self.w or {}
             last = (f"; {s.state}, at " + ", ".join(
@@ -260,7 +287,32 @@ class Stage:
             raise MoveTimeout(f"move to ({x:g}, {y:g}) um not on target within "
                               f"{timeout:g} s{last}")
         return MoveDone(move_id, float(s.settle_s or 0.0), dict(s.error_um),
-                        time.monotonic() - t0, dict(s.target_um))
+                        time.monotonic() - t0, dict(s.target_um), s.stamp_ns)
+
+    def dwell(self, seconds: float, since_ns: int | None = None,
+              timeout: float | None = None) -> Dwell:
+        """Wait ``seconds`` of the set's time from ``since_ns`` (a move's declaration,
+        ``MoveDone.stamp_ns``; None: the last sample) and return the position measured
+        meanwhile: its mean and spread per axis, as a detector integrating there sees
+        it. Raises StageFault, MoveTimeout (``timeout``: 10 s beyond ``seconds``)."""
+        import numpy as np
+        self.ex.spin_once(timeout_sec=0.0)
+        t0 = since_ns if since_ns is not None else (self.samples[-1][0] if self.samples
+                                                     else 0)
+        t1 = t0 + int(round(seconds * 1e9))
+        limit = seconds + 10.0 if timeout is None else timeout
+        if not self._wait(lambda: bool(self.samples) and self.samples[-1][0] >= t1 or (
+                self.driver is not None and self.driver.state == "faulted"), limit):
+            raise MoveTimeout(f"a {seconds:g} s dwell: the set's samples did not reach it "
+                              f"within {limit:g} s")
+        self._check_driver()
+        got = [s for s in self.samples if t0 <= s[0] <= t1]
+        if not got:
+            raise StageError(f"a {seconds:g} s dwell: no sample kept from it")
+        w = np.array([(x, y) for _, x, y in got])
+        return Dwell(len(got), got[0][0], got[-1][0],
+                     {"x": float(w[:, 0].mean()), "y": float(w[:, 1].mean())},
+                     {"x": float(w[:, 0].std()), "y": float(w[:, 1].std())})
 
     def run(self, t_s, w_um: dict, timeout: float | None = None) -> float:
         """Run a trajectory (t [s], {axis: um}) and wait for its end (the
@@ -296,20 +348,35 @@ class Stage:
         if os.path.exists(path):
             raise StageError(f"{path}: exists (a bag is never overwritten)")
         sim = self.node.count_publishers("/clock") > 0
+        out = os.path.abspath(path)
         cmd = [sys.executable, "-m", "piezo_stage.nodes.recorder_node", "--ros-args",
-               "-r", f"__ns:={self.ns}", "-p", f"output:={os.path.abspath(path)}",
+               "-r", f"__ns:={self.ns}", "-p", f"output:={out}",
                "-p", f"log_time:={'stamp' if sim else 'receive'}",
                "-p", f"use_sim_time:={'true' if sim else 'false'}"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.ctx.get_domain_id()))
-        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.PIPE, text=True)
+        # its diagnostics say when the set's samples reach it (discovery of a new
+        # process takes up to a second or so; what comes before would be lost)
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from piezo_stage.nodes._common import QOS_DIAG
+        seen = {"n": 0}
+
+        def on_diag(msg):
+            for st in msg.status:
+                kv = {v.key: v.value for v in st.values}
+                if kv.get("bag") == out:
+                    seen["n"] = int(kv.get(f"{self.ns}/joint_states", "0") or 0)
+        sub = self.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag,
+                                            QOS_DIAG)
+        import tempfile
+        log = tempfile.TemporaryFile(mode="w+")  # (a pipe left unread would block it)
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=log,
+                                text=True)
         try:
-            # its subscriptions matched: the driver's samples reach it
-            if not self._wait(lambda: proc.poll() is not None or
-                              self.node.count_subscribers(f"{self.ns}/joint_states") > 1,
-                              30.0) or proc.poll() is not None:
-                raise StageError(f"the recorder did not start: {_tail(proc)}")
-            self._wait(lambda: False, 0.5)  # its readers matched by the publishers too
+            if not self._wait(lambda: proc.poll() is not None or seen["n"] > 0, 30.0) \
+                    or proc.poll() is not None:
+                raise StageError(f"the recorder did not start: {_tail(proc, log)}")
+            self.node.destroy_subscription(sub)
             yield path
         finally:
             if proc.poll() is None:
@@ -319,6 +386,7 @@ class Stage:
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     proc.wait()
+            log.close()
 
     def close(self) -> None:
         """Leave the set (the node and its context end)."""
@@ -335,10 +403,10 @@ class Stage:
         self.close()
 
 
-def _tail(proc: subprocess.Popen) -> str:
-    try:
-        _, err = proc.communicate(timeout=5)
-    except subprocess.TimeoutExpired:
+def _tail(proc: subprocess.Popen, log) -> str:
+    """The recorder's last line of stderr (or its exit code)."""
+    if proc.poll() is None:
         return "still starting"
-    lines = (err or "").strip().splitlines()
+    log.seek(0)
+    lines = log.read().strip().splitlines()
     return lines[-1] if lines else f"exit {proc.returncode}"

@@ -202,17 +202,19 @@ def move_from_msg(msg: PointStamped, range_um=None) -> tuple[str, dict]:
 def on_target_msg(s) -> DiagnosticArray:
     """A move's on-target state (core/loop/ontarget.py TargetState) on the latched
     ``on_target`` topic: header.stamp the sample judged; one status named
-    ``on_target`` whose message is the state (on_target: level 0, moving: 1),
+    ``on_target`` whose message is the state (on_target: level 0, moving: 1,
+    refused: 2, with the reason),
     ``hardware_id`` the move's id, and per axis its state, the filtered error and the
     target [um], with the settle time [ms] once on target."""
     values = {"move_id": s.move_id, "state": s.state, "started_ns": s.started_ns,
-              "settle_ms": "" if s.settle_s is None else f"{s.settle_s * 1e3:.3f}"}
+              "settle_ms": "" if s.settle_s is None else f"{s.settle_s * 1e3:.3f}",
+              "reason": s.reason}
     for a, st in s.axes.items():
         values[a] = st
         values[f"error_{a}_um"] = f"{s.error_um.get(a, float('nan')):.4f}"
         values[f"target_{a}_um"] = f"{s.target_um[a]:.4f}"
-    return diagnostic_array(s.stamp_ns, "on_target", 0 if s.state == "on_target" else 1,
-                            s.state, values, s.move_id)
+    level = {"on_target": 0, "moving": 1}.get(s.state, 2)
+    return diagnostic_array(s.stamp_ns, "on_target", level, s.state, values, s.move_id)
 
 
 def on_target_from_msg(msg: DiagnosticArray):
@@ -226,7 +228,8 @@ def on_target_from_msg(msg: DiagnosticArray):
         return TargetState(kv["move_id"], kv["state"], {a: kv[a] for a in axes}, settle,
                            {a: float(kv[f"error_{a}_um"]) for a in axes},
                            {a: float(kv[f"target_{a}_um"]) for a in axes},
-                           time_to_ns(msg.header.stamp), int(kv["started_ns"]))
+                           time_to_ns(msg.header.stamp), int(kv["started_ns"]),
+                           kv.get("reason", ""))
     except (IndexError, KeyError, ValueError) as e:
         raise DataError(f"on_target: not an on-target state ({e})") from None
 

@@ -22,7 +22,7 @@ from piezo_stage.core.errors import (
 
 COMMANDS = ("simulate", "invert", "excite", "gap", "launch", "demo", "experiment", "tune",
             "replay", "bag", "loop", "identify", "refit", "study", "bench", "raster", "play",
-            "lifecycle", "move")
+            "lifecycle", "move", "scan")
 
 
 def build_parser(argv=None):

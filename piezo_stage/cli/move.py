@@ -29,7 +29,7 @@ def main(args):
     import sys
 
     from piezo_stage.cli._common import die
-    from piezo_stage.client import MoveTimeout, NoStage, Stage, StageFault
+    from piezo_stage.client import MoveRefused, MoveTimeout, NoStage, Stage, StageFault
     try:
         with Stage(args.namespace, timeout=min(args.timeout, 30.0)) as stage:
             done = stage.move_to(args.x, args.y, args.tol_um, args.settle_ms, args.timeout)
@@ -39,6 +39,8 @@ def main(args):
         die(str(e), EXIT_FAULT)
     except MoveTimeout as e:
         die(str(e), EXIT_TIMEOUT)
+    except MoveRefused as e:  # the target: a data error
+        die(str(e))
     err = ", ".join(f"{a} {e:+.3f} um" for a, e in done.error_um.items())
     sys.stdout.write(f"on target at ({args.x:g}, {args.y:g}) um: settled in "
                      f"{done.settle_s * 1e3:.1f} ms, error {err} ({done.move_id}, "

@@ -30,6 +30,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop import feedforward as core_ff
+from piezo_stage.core.loop.ontarget import REFUSED, TargetState
 from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
 from piezo_stage.core.loop.stamps import StampGuard
 from piezo_stage.core.metrics import LatencyHistogram
@@ -119,7 +120,8 @@ class Feedforward(LeanNode, Node):
                                  raw=True)
         self.latched = LatchedFetch(self, JointTrajectory, "trajectory", self.on_trajectory)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
-        self.create_subscription(PointStamped, "move", self.on_move, reliable)
+        # a move is taken at once (with the samples), not at the base executor's turn
+        hot_subscription(self, PointStamped, "move", self.on_move, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
         Diagnostics(self, lambda: (0, f"{self.planner.phase}, model {self.model_name}, "
                                    f"{self.ref.describe()}" + (
@@ -243,9 +245,12 @@ class Feedforward(LeanNode, Node):
         """A move request: the move's profile to its target, judged on target."""
         try:
             move_id, target = move_from_msg(msg, self.p["range_um"])
-        except PiezoStageError as e:
+        except PiezoStageError as e:  # said on on_target too: the asker waits no more
             self.stats["rejected_moves"] += 1
             self.get_logger().warning(f"move rejected: {e}")
+            self.on_target_pub.publish(on_target_msg(TargetState(
+                msg.header.frame_id[:200], REFUSED, {}, None, {}, {}, self.last_ns,
+                self.last_ns, str(e))))
             return
         self.stats["moves"] += 1
         self.on_target_pub.publish(on_target_msg(self.core.move(

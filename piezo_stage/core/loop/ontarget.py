@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.params import Param, Schema
 
-MOVING, ON_TARGET = "moving", "on_target"
+MOVING, ON_TARGET, REFUSED = "moving", "on_target", "refused"
 GUARD_SIGMAS = 3.0  # the guard band: this many standard deviations of the filtered noise
 NOISE_SAMPLES = 200  # successive differences the noise estimate is taken over
 NOISE_EVERY = 25  # ... and taken again every this many samples
@@ -44,9 +44,10 @@ PARAMETERS: Schema = (
 @dataclass(frozen=True)
 class TargetState:
     """What the judge says of a move: its ``move_id``, ``state`` per axis and for the
-    move (``moving`` or ``on_target``), the ``settle_s`` (None until on target), the
-    filtered ``error_um`` per axis at the last sample, the ``target_um``, and the
-    ``stamp_ns`` of the sample it is judged at."""
+    move (``moving`` or ``on_target``; ``refused``, with the ``reason``, for a request
+    the stage did not take), the ``settle_s`` (None until on target), the filtered
+    ``error_um`` per axis at the last sample, the ``target_um``, the ``stamp_ns`` of
+    the sample it is judged at and the ``started_ns`` of the move's first."""
 
     move_id: str
     state: str
@@ -56,6 +57,7 @@ class TargetState:
     target_um: dict
     stamp_ns: int
     started_ns: int
+    reason: str = ""
 
 
 @dataclass

@@ -1,0 +1,132 @@
+"""Moves through the node set, asked from other processes: `piezo-stage move`, `scan` and
+the Python client (piezo_stage.client) against a running set, in lockstep and in real
+time at this host's rate; their errors (no stage, a refused target, a timeout, a
+disarmed stage) each one line with its own exit code."""
+
+import csv
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+from conftest import CONFIG, realtime_rate_hz  # noqa: E402
+from piezo_stage.launch.launcher import Launch  # noqa: E402
+
+MODEL = os.path.join(CONFIG, "stage_model.yaml")
+STAGE = os.path.join(CONFIG, "stage.yaml")
+
+
+def _cli(env, *args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "piezo_stage", *args], env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def _set(tmp_path, env, mode, record=None):
+    o = {"stage_driver": {"mode": mode, "min_margin": 0.0},
+         "feedforward": {"model_file": MODEL}}
+    rate = realtime_rate_hz(env) if mode == "realtime" else None
+    return Launch(STAGE, record=record, overrides=o, env=env, trajectory=False,
+                  exclusive=False, rate=rate), rate or 1000.0
+
+
+def _one_line(r, code, said):
+    assert r.returncode == code, (r.returncode, r.stdout, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and said in lines[0], r.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["lockstep",
+                                  pytest.param("realtime", marks=pytest.mark.realtime)])
+def test_move_scan_and_the_client_against_a_running_set(tmp_path, ros_env, mode):
+    from piezo_stage.client import MoveRefused, MoveTimeout, Stage
+    from piezo_stage.io.run_bag import read_run
+    launch, rate = _set(tmp_path, ros_env, mode)
+    env = ros_env
+    try:
+        launch.start()
+        # `move` from another process: on target, its settle time and final error
+        r = _cli(env, "move", "30", "20", "--timeout", "30")
+        assert r.returncode == 0, (r.stdout, r.stderr)
+        assert r.stdout.startswith("on target at (30, 20) um: settled in "), r.stdout
+        r = _cli(env, "move", "35", "25", "--tol-um", "0.2", "--settle-ms", "10")
+        assert r.returncode == 0 and "on target at (35, 25) um" in r.stdout, r
+
+        # the client, in this process (as a notebook holds it)
+        os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
+        with Stage(domain_id=int(env["ROS_DOMAIN_ID"])) as stage:
+            x, y = stage.position()
+            assert abs(x - 35) < 0.6 and abs(y - 25) < 0.6, (x, y)
+            assert stage.state() == "armed"
+            done = stage.move_to(50.0, 40.0, tol_um=0.25, settle_ms=5.0, timeout=30)
+            assert 0 < done.settle_s < 1.0, done
+            assert all(abs(e) <= 0.25 for e in done.error_um.values()), done
+            dw = stage.dwell(0.05, done.stamp_ns)
+            assert dw.samples >= 0.05 * rate * 0.9, dw
+            assert abs(dw.mean_um["x"] - 50) < 0.25 and abs(dw.mean_um["y"] - 40) < 0.25
+            assert 0.03 < dw.std_um["x"] < 0.3  # the sensor's noise, at rest
+            with pytest.raises(MoveRefused, match="outside the stage range"):
+                stage.move_to(500.0, 40.0, timeout=10)
+            with pytest.raises(MoveTimeout, match="not on target within 1 s"):
+                stage.move_to(45.0, 40.0, tol_um=1e-4, timeout=1.0)
+            stage.configure(tol_um=0.3, settle_ms=5.0)  # back to the defaults
+            bag = str(tmp_path / "client_bag")
+            t = np.arange(0.0, 0.5, 1e-3)
+            with stage.record(bag):
+                waited = stage.run(t, {"x": 40 + 5 * np.sin(2 * np.pi * 2 * t),
+                                       "y": np.full(t.size, 40.0)}, timeout=60)
+            assert waited >= 0.0
+        run = read_run(bag)
+        assert len(run.t_ns) > 0.5 * rate * 0.5
+        desired = np.array(list(run.desired_um.values()))
+        assert np.abs(desired[:, 0] - 40).max() > 4.5  # the sine is in the bag
+
+        # a step scan: its points beside its bag, each at rest on its target
+        scan_bag = str(tmp_path / "scan")
+        r = _cli(env, "scan", "--grid", "3,2", "--size", "4,4", "--center", "40,40",
+                 "--dwell-ms", "20", "--record", scan_bag)
+        assert r.returncode == 0, (r.stdout, r.stderr)
+        with open(scan_bag + ".points.csv") as fh:
+            rows = list(csv.DictReader(fh))
+        assert [(float(p["x_um"]), float(p["y_um"])) for p in rows] == [
+            (38, 38), (40, 38), (42, 38), (42, 42), (40, 42), (38, 42)]
+        for p in rows:
+            assert abs(float(p["x_mean_um"]) - float(p["x_um"])) < 0.3, p
+            assert float(p["settle_ms"]) > 0 and int(p["samples"]) > 0, p
+        assert os.path.isdir(scan_bag)
+
+        # the errors: a refused target (2), a disarmed stage (1)
+        _one_line(_cli(env, "move", "500", "0"), 2, "outside the stage range")
+        from std_srvs.srv import SetBool
+        with Stage(domain_id=int(env["ROS_DOMAIN_ID"])) as stage:
+            cli = stage.node.create_client(SetBool, "/stage/arm")
+            assert cli.wait_for_service(timeout_sec=10)
+            fut = cli.call_async(SetBool.Request(data=False))
+            assert stage._wait(fut.done, 10) and fut.result().success
+            assert stage._wait(lambda: stage.state() == "disarmed", 10)
+        _one_line(_cli(env, "move", "40", "40"), 1, "disarmed")
+        _one_line(_cli(env, "scan", "--grid", "2,1", "--out", str(tmp_path / "s.csv")), 1,
+                  "point 1 of 2")
+    finally:
+        launch.stop()
+    # no stage: exit 4, one line
+    _one_line(_cli(env, "move", "1", "2", "--timeout", "2"), 4, "no stage at /stage")
+
+
+def test_move_and_scan_refuse_bad_input_before_any_stage(tmp_path, ros_env):
+    _one_line(_cli(ros_env, "move", "1"), 2, "")
+    _one_line(_cli(ros_env, "move", "1", "2", "--tol-um", "0"), 2, "--tol-um")
+    _one_line(_cli(ros_env, "scan", "--grid", "0,3"), 2, "--grid")
+    _one_line(_cli(ros_env, "scan", "--out", "/dev/null"), 2, "not a regular file")
+
+
+def test_scan_points_are_a_serpentine():
+    from piezo_stage.cli.scan import points
+    assert points((3, 2), (4, 2), (10, 20)) == [(8, 19), (10, 19), (12, 19), (12, 21),
+                                                (10, 21), (8, 21)]
+    assert points((1, 1), (4, 2), (10, 20)) == [(10, 20)]
+    z = points((50, 1), (24.5, 0.0), (42.25, 40.0))
+    assert z[0] == (30.0, 40.0) and z[-1] == (54.5, 40.0) and len(z) == 50
