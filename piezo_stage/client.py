@@ -227,6 +227,19 @@ class Stage:
         self.ex.spin_once(timeout_sec=0.0)
         return self.driver.state if self.driver is not None else ""
 
+    def wait_state(self, name: str = "armed", timeout: float = 30.0) -> None:
+        """Wait until the driver's state is ``name`` (MoveTimeout after ``timeout``;
+        StageFault if it faults meanwhile, unless that is the state asked for)."""
+        def there():
+            d = self.driver
+            return d is not None and (d.state == name or d.state == "faulted")
+        if not self._wait(there, timeout):
+            raise MoveTimeout(f"{self.ns}: not {name} within {timeout:g} s (it is "
+                              f"{self.state() or 'silent'})")
+        d = self.driver
+        if d is not None and d.state == "faulted" and name != "faulted":
+            raise StageFault(f"{self.ns}: faulted: {d.reason}")
+
     def predict(self, x: float, y: float) -> float:
         """The settle time [s] a move from here to (x, y) takes, by the motion-time
         model (StageError when the client has none)."""

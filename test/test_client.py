@@ -130,3 +130,34 @@ def test_scan_points_are_a_serpentine():
     assert points((1, 1), (4, 2), (10, 20)) == [(10, 20)]
     z = points((50, 1), (24.5, 0.0), (42.25, 40.0))
     assert z[0] == (30.0, 40.0) and z[-1] == (54.5, 40.0) and len(z) == 50
+
+
+@pytest.mark.slow
+def test_the_moves_page_runs_as_written(tmp_path, ros_env):
+    """docs/moves.md's Python, cell by cell as a notebook would run it, against the set
+    it starts with; the motion-time model from `bench settle --out` is read back and
+    predicts a settle time."""
+    import re
+    page = open(os.path.join(CONFIG, "..", "docs", "moves.md")).read()
+    blocks = re.findall(r"```python\n(.*?)```", page, flags=re.S)
+    assert len(blocks) == 2
+    launch, _ = _set(tmp_path, ros_env, "lockstep")
+    try:
+        launch.start()
+        r = subprocess.run([sys.executable, "-c", blocks[0]], cwd=tmp_path, env=ros_env,
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        lines = r.stdout.splitlines()
+        assert lines[0].startswith("armed ("), lines
+        assert lines[1].endswith("ms {'x': ") is False and " ms {" in lines[1], lines
+        assert os.path.isdir(tmp_path / "bags" / "sine")
+        r = _cli(ros_env, "bench", "settle", "--steps", "4", "--moves", "8", "--out",
+                 str(tmp_path / "motion.json"), timeout=600)
+        assert r.returncode == 0, r.stderr
+        assert "target default stage: composite settles in <= 0.3 x" in r.stdout
+        r = subprocess.run([sys.executable, "-c", blocks[1]], cwd=tmp_path, env=ros_env,
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert re.fullmatch(r"\d+\.\d ms\n", r.stdout), r.stdout
+    finally:
+        launch.stop()

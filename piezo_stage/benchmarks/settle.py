@@ -131,7 +131,7 @@ def bench_settle(rep, steps: int = 50, moves: int = 200, out: str | None = None)
         from piezo_stage.io.files import atomic_write
         with atomic_write(out) as fh:
             json.dump(models[STAGES[0][0]][0].to_dict(), fh, indent=1)
-        rep.note(f"the default stage's motion-time model: {os.path.abspath(out)}")
+        rep.progress(f"the default stage's motion-time model: {os.path.abspath(out)}")
     return 0
 
 

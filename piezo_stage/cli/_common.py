@@ -140,3 +140,16 @@ def param_overrides(paths) -> dict:
         for node, params in read_parameters(p).items():
             out.setdefault(node, {}).update(params)
     return out
+
+
+def pair(text):
+    """argparse type: two finite numbers A,B [um] (a scan's fast and slow axis, or x
+    and y), within +-10,000 um."""
+    try:
+        a, b = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give two numbers, A,B (um)") \
+            from None
+    if not all(-1e4 < v < 1e4 for v in (a, b)):  # NaN and inf fail this too
+        raise argparse.ArgumentTypeError(f"{text!r}: each within +-10,000 um")
+    return [a, b]

@@ -2,23 +2,9 @@
 
 from __future__ import annotations
 
-import argparse
-
-from piezo_stage.cli._common import number
+from piezo_stage.cli._common import number, pair
 
 HELP = "write a raster scan trajectory (t,wx,wy): fast-axis triangle, slow-axis steps"
-
-
-def _pair(text):
-    """argparse type: two finite numbers FAST,SLOW [um], within +-10,000 um."""
-    try:
-        a, b = (float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: give two numbers, FAST,SLOW (um)") \
-            from None
-    if not all(-1e4 < v < 1e4 for v in (a, b)):  # NaN and inf fail this too
-        raise argparse.ArgumentTypeError(f"{text!r}: each within +-10,000 um")
-    return [a, b]
 
 
 def add_arguments(s):
@@ -26,9 +12,9 @@ def add_arguments(s):
     s.add_argument("--line-rate", type=number(0, 10_000, lo_open=True), default=20.0,
                    metavar="HZ", help="line periods (trace and retrace) per second")
     s.add_argument("--lines", type=number(2, 100_000, integer=True), default=16)
-    s.add_argument("--size", type=_pair, default=[40.0, 40.0], metavar="FAST,SLOW",
+    s.add_argument("--size", type=pair, default=[40.0, 40.0], metavar="FAST,SLOW",
                    help="scan size [um]")
-    s.add_argument("--center", type=_pair, default=[40.0, 40.0], metavar="FAST,SLOW",
+    s.add_argument("--center", type=pair, default=[40.0, 40.0], metavar="FAST,SLOW",
                    help="scan centre [um]")
     s.add_argument("--corner", type=number(0, 0.5), default=0.1,
                    help="share of each line spent turning around")

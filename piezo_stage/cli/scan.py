@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-from piezo_stage.cli._common import number
+from piezo_stage.cli._common import number, pair
 
 HELP = "a step scan on a running set: move, settle, dwell, next point (per-point CSV)"
 COLUMNS = ("point", "x_um", "y_um", "settle_ms", "x_mean_um", "y_mean_um", "x_std_um",
@@ -25,12 +25,11 @@ def _grid(text):
 
 
 def add_arguments(s):
-    from piezo_stage.cli.raster import _pair
     s.add_argument("--grid", type=_grid, default=(5, 5), metavar="NX,NY",
                    help="points along x and y (a z-stack along x: N,1)")
-    s.add_argument("--size", type=_pair, default=[20.0, 20.0], metavar="X,Y",
+    s.add_argument("--size", type=pair, default=[20.0, 20.0], metavar="X,Y",
                    help="the scan's extent [um] (first to last point)")
-    s.add_argument("--center", type=_pair, default=[40.0, 40.0], metavar="X,Y",
+    s.add_argument("--center", type=pair, default=[40.0, 40.0], metavar="X,Y",
                    help="the scan's centre [um]")
     s.add_argument("--dwell-ms", type=number(0.0, 600_000.0), default=20.0, metavar="MS",
                    help="time at rest on each point, from its on-target [ms]")
