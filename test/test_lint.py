@@ -234,6 +234,10 @@ LAYERS = {
     "piezo_stage/benchmarks": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes",
                                "piezo_stage/launch", "piezo_stage/apps",
                                "piezo_stage_msgs_adapters"},
+    # the Python client of a running set (a module): rclpy and the adapters, the nodes'
+    # QoS; the commands above use it
+    "piezo_stage/client": {"piezo_stage/core", "piezo_stage/nodes",
+                           "piezo_stage_msgs_adapters"},
 }
 # small helpers every layer above the core may use (paths, progress bars, signals)
 HELPERS = {"piezo_stage/paths.py", "piezo_stage/progress.py", "piezo_stage/stopping.py"}
@@ -241,7 +245,7 @@ HELPERS = {"piezo_stage/paths.py", "piezo_stage/progress.py", "piezo_stage/stopp
 
 def _layer(path):
     rel = os.path.relpath(path, ROOT)
-    return next((k for k in LAYERS if rel.startswith(k + "/")), None)
+    return next((k for k in LAYERS if rel.startswith(k + "/") or rel == k + ".py"), None)
 
 
 # the core by job: what a stage is, what a record says, what runs each sample; the

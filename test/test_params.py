@@ -46,7 +46,8 @@ def test_the_live_parameters_are_the_ones_the_nodes_apply():
     live = {node: {p.name for p in schema if p.live} for node, schema in SCHEMAS.items()}
     assert live["controller"] == {"kp", "ki", "kd", "feedback"}
     assert live["feedforward"] == {"compensate_effects", "learning_period_s",
-                                   "learning_gain", "learning"}
+                                   "learning_gain", "learning", "on_target_tol_um",
+                                   "on_target_window_ms", "on_target_filter_ms"}
     assert live["identifier"] == {"method", "structure", "auto_cycles"}
     assert live["stage_driver"] == set()
     assert "min_subscribers" not in live["trajectory"] and len(live["trajectory"]) == 17
