@@ -186,3 +186,22 @@ def test_a_move_and_its_verdict_through_the_adapters():
     from diagnostic_msgs.msg import DiagnosticArray
     with pytest.raises(DataError, match="on_target"):
         A.on_target_from_msg(DiagnosticArray())
+
+
+def test_a_move_never_asks_faster_than_the_amplifier_slews():
+    """The move's speed is capped at half the driver's slew limit at the model's
+    steepest mean gain: a 1,000 V/s amplifier gets a slow move, a fast one the
+    profile's own speed."""
+    from piezo_stage.core.loop.feedforward import MOVE_SLEW_SHARE, InverseFeedforward
+    from piezo_stage.io.model_file import load_model
+    from piezo_stage.paths import default_config
+    model, effects = load_model(default_config("stage_model.yaml"))
+    ff = InverseFeedforward(ReferencePlanner(), DT_NS)
+    ff.set_model(model, effects, "model")
+    assert ff.profile() == (5000.0, 5.0e6)  # no driver announced yet
+    ff.driver_slew_V_per_s = 1.0e5
+    assert ff.profile() == (5000.0, 5.0e6)
+    ff.driver_slew_V_per_s = 1000.0
+    speed, _ = ff.profile()
+    assert speed == pytest.approx(MOVE_SLEW_SHARE * 1000.0 * ff.model_gain)
+    assert 0.3 < ff.model_gain < 1.0  # um/V: the default stage's ~75 um over 150 V

@@ -107,7 +107,7 @@ class DriverState:
     (taken by LeanExecutor before the node's data, so lockstep stays deterministic):
     the state by sample stamp (``timeline``), the look-ahead, whether the set runs in
     real time (the node then takes its real-time priority ``prio`` and reserves
-    ``heap_bytes`` of heap: ``reserve_heap``), the driver's voltage limits. ``bad``
+    ``heap_bytes`` of heap: ``reserve_heap``), the driver's voltage and slew limits. ``bad``
     counts malformed announcements."""
 
     def __init__(self, node, dt_ns, prio, heap_bytes: int = 0):
@@ -118,6 +118,7 @@ class DriverState:
         self.timeline, self.lookahead_ns, self.dt_ns = StateTimeline(), dt_ns, dt_ns
         self.realtime, self.bad = False, 0
         self.limits: tuple | None = None  # the driver's voltage limits, once announced
+        self.slew_V_per_s: float | None = None  # its slew limit (the slowest axis's)
         hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
 
     def on_state(self, msg):
@@ -140,6 +141,10 @@ class DriverState:
             set_realtime_priority(self.prio, self.node.get_logger())
         self.realtime = a.mode == "realtime"
         self.limits = a.limits or self.limits
+        try:
+            self.slew_V_per_s = float(a.values["slew_V_per_s"])
+        except (KeyError, ValueError):
+            pass
         self.timeline.add(a.since_ns, a.state)
 
     def enabled(self, ns) -> bool:

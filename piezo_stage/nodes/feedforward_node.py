@@ -216,6 +216,7 @@ class Feedforward(LeanNode, Node):
         if decoded is not None:
             t, w, stamp, start, now = decoded
             self.stats["trajectories"] += 1
+            self.core.driver_slew_V_per_s = self.driver.slew_V_per_s  # (a move's profile)
             self.core.set_trajectory(t, w, stamp, start)
             self.get_logger().info(f"trajectory of {len(t)} points accepted" + (
                 f", stamped {stamp}: starts in {(stamp - now) * 1e-9:.3f} s"
@@ -253,6 +254,7 @@ class Feedforward(LeanNode, Node):
                 self.last_ns, str(e))))
             return
         self.stats["moves"] += 1
+        self.core.driver_slew_V_per_s = self.driver.slew_V_per_s
         self.on_target_pub.publish(on_target_msg(self.core.move(
             move_id or f"move #{self.stats['moves']}", target)))
         self.publish_phase()

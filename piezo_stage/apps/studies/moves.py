@@ -73,6 +73,7 @@ class _Loop:
         self.plant, self.dt_ns = plant, int(round(1e9 / setup.rate_hz))
         self.ff = InverseFeedforward(ReferencePlanner(), self.dt_ns, inverse=setup.composite)
         self.ff.move_profile = (setup.speed_um_s, setup.accel_um_s2)
+        self.ff.driver_slew_V_per_s = plant.config.slew_V_per_s
         self.ff.judge.configure(setup.tol_um, setup.window_s, setup.filter_s)
         self.limits = model.voltage_limits
         lo, hi = self.limits

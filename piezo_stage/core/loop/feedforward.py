@@ -26,7 +26,7 @@ from piezo_stage.core.loop.learning import LearnedFeedforward
 from piezo_stage.core.loop.ontarget import PARAMETERS as ON_TARGET
 from piezo_stage.core.loop.ontarget import OnTargetJudge, TargetState
 from piezo_stage.core.loop.planner import ReferencePlanner
-from piezo_stage.core.model.duhem import StageModel, check_model_change
+from piezo_stage.core.model.duhem import StageModel, check_model_change, stroke_um
 from piezo_stage.core.model.inverse import StageInverse
 from piezo_stage.core.params import Param, Schema
 
@@ -34,6 +34,7 @@ HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a 
 MAX_FILLED_TICKS = 20  # after a skipped sample, at most this many targets answered
 PAST_TRAJECTORY_NS = 1_000_000_000  # a trajectory stamped up to 1 s ago: start now
 ON_TARGET_NAMES = tuple(q.name for q in ON_TARGET)
+MOVE_SLEW_SHARE = 0.5  # a move's speed: at most this share of the driver's slew limit
 
 # the feedforward node's parameters (core/params.py); effect compensation and the
 # learning ones are live
@@ -135,6 +136,7 @@ class PreparedModel:
     effects: dict | None
     compensator: EffectCompensator | None
     inverse: StageInverse
+    gain_um_per_V: float  # the steepest axis's stroke over the voltage range
 
 
 class InverseFeedforward:
@@ -185,6 +187,8 @@ class InverseFeedforward:
         self.traj_text = ""  # which trajectory runs: "trajectory of N points stamped S"
         self.judge = OnTargetJudge(self.dt_ns * 1e-9)  # a move's arrival (ontarget.py)
         self.move_profile = (5000.0, 5.0e6)  # a move's speed [um/s], acceleration
+        self.driver_slew_V_per_s: float | None = None  # the driver's, once announced
+        self.model_gain: float | None = None  # the model's steepest mean gain [um/V]
         self.move_text = ""  # what the phase follows in a move ("move M")
         self.last_ns = 0
 
@@ -224,7 +228,10 @@ class InverseFeedforward:
                             dt_s=self.dt_ns * 1e-9)
         warm.sync(*model.voltage_limits)                      # not at the first sample
         warm.step(0.0, 0.0)
-        return PreparedModel(model, effects, comp, inv)
+        lo, hi = model.voltage_limits
+        gain = max(abs(stroke_um(m, (lo, hi), plays=model.plays.get(a))) / (hi - lo)
+                   for a, m in model.axes.items())
+        return PreparedModel(model, effects, comp, inv, gain)
 
     def use_model(self, prepared: PreparedModel, armed: bool = False) -> None:
         """Switch to a prepared model at the next sample. ``armed``: ease the jump to
@@ -234,6 +241,7 @@ class InverseFeedforward:
             inv.reset(v=self.ff, w=self.planner.desired)
         self.handover = {} if self.inv is not None and armed else None
         self.inv, self.model = inv, prepared.model
+        self.model_gain = prepared.gain_um_per_V
         self.limits = prepared.model.voltage_limits
         self.ref.set_compensator(prepared.compensator)
         self.effects, self.comp = prepared.effects, prepared.compensator
@@ -268,11 +276,22 @@ class InverseFeedforward:
         from its first tick (``SampleResult.on_target``). -> its first state (moving)."""
         desired = self.planner.desired or {}
         goal = {a: float(target.get(a, desired.get(a, 0.0))) for a in ("x", "y")}
-        self.planner.set_move(goal, *self.move_profile, start_ns=start_ns)
+        self.planner.set_move(goal, *self.profile(), start_ns=start_ns)
         self.learning.reset()
         self.judge.begin(move_id, goal, max(self.last_ns + self.dt_ns, start_ns or 0))
         self.move_text = move_id if move_id == self.traj_text else f"move {move_id}"
         return self.judge.report(self.judge.started_ns, {})
+
+    def profile(self) -> tuple[float, float]:
+        """A move's (speed [um/s], acceleration [um/s^2]): ``move_profile``, its speed
+        kept within MOVE_SLEW_SHARE of the driver's slew limit at the model's steepest
+        mean gain (its stroke over its voltage range; the nominal gain before any
+        model), so the feedforward never asks faster than the amplifier goes."""
+        speed, accel = self.move_profile
+        if self.driver_slew_V_per_s:
+            gain = self.model_gain or self.gain
+            speed = min(speed, MOVE_SLEW_SHARE * self.driver_slew_V_per_s * gain)
+        return speed, accel
 
     def set_live(self, name: str, value: object) -> None:
         """A parameter that takes effect at once: ``compensate_effects`` (bool),

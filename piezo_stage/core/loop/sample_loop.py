@@ -459,6 +459,7 @@ class SampleLoop:
         return {"lookahead_s": self.lookahead_ns * 1e-9, "control_rate_hz": self.rate_hz,
                 "voltage_limit_lo_V": max(lo for lo, _ in lim.values()),
                 "voltage_limit_hi_V": min(hi for _, hi in lim.values()),
+                "slew_V_per_s": min(self.backend.slew_V_per_s.values()),
                 "host": socket.gethostname(), "pid": str(os.getppid()),
                 "feedforward_phase": self.ff_phase[0],
                 "feedforward_follows": self.ff_phase[1]}
