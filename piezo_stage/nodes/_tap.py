@@ -7,8 +7,9 @@ the bytes as received (no deserialize/serialize round trip). For each topic it c
 ``on_topic(topic, msgtype, kind)`` once, then ``on_message(topic, data, stamp_ns,
 info)`` per message, with the header stamp of stamped types (None otherwise).
 
-One topic is left out: ``trajectory``, the way in for trajectories. Its one subscriber
-is the feedforward, which republishes what it accepted, byte for byte and latched, on
+Two topics are left out: ``move`` (``on_target`` names each move, its target and what
+became of it), and ``trajectory``, the way in for trajectories. Its one subscriber is
+the feedforward, which republishes what it accepted, byte for byte and latched, on
 ``trajectory/accepted``; the tap takes that. So a lab node that sends once, with any
 QoS, as soon as a subscriber matched has reached the stage, and the bag holds exactly
 what the stage ran, even when the recorder's own match came late (a second subscriber
@@ -45,6 +46,8 @@ CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag): wh
     "model": ("std_msgs/msg/String", "latched"),
     "state": ("diagnostic_msgs/msg/DiagnosticArray", "events"),
     "feedforward/phase": ("diagnostic_msgs/msg/KeyValue", "events"),
+    # a move's state: its id, target and verdict (the move itself is the feedforward's)
+    "on_target": ("diagnostic_msgs/msg/DiagnosticArray", "latched"),
     "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", "diag"),
 }
 STAMPED = {t for t, _ in CONTRACT.values()} - {"std_msgs/msg/String",
@@ -75,7 +78,8 @@ class TopicTap:
         self.subs: dict[str, object] = {}
         for rel, (msgtype, kind) in CONTRACT.items():
             self.subscribe(self.resolve(rel), msgtype, kind)
-        self.subs[self.resolve("trajectory")] = None  # the feedforward's alone (above)
+        self.subs[self.resolve("trajectory")] = None  # the feedforward's alone (above),
+        self.subs[self.resolve("move")] = None  # and so is a move (on_target names it)
         steady_timer(node, discover_s, self.discover)
 
     def resolve(self, rel: str) -> str:
