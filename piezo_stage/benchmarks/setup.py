@@ -15,10 +15,11 @@ import time
 
 
 def _checkout() -> str:
-    """The source checkout this package runs from (a git work tree)."""
+    """The source checkout this package runs from (a git work tree, a linked one
+    too)."""
     here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    if not os.path.isfile(os.path.join(here, "dev.sh")) or not os.path.isdir(
-            os.path.join(here, ".git")):
+    if not os.path.isfile(os.path.join(here, "dev.sh")) or not os.path.exists(
+            os.path.join(here, ".git")):  # (a worktree's .git is a file)
         from piezo_stage.core.errors import DataError
         raise DataError(f"bench setup needs a source checkout with dev.sh; {here} is none")
     return here
