@@ -126,58 +126,21 @@ def on_a_terminal(argv, env=None, cwd=None, timeout=300) -> str:
 
 
 # -- real time on this host: the rate the suite's real-time sets run at ------------------
-REALTIME_RATES_HZ = (1000.0, 500.0, 250.0)
-# a rate is chosen where the capacity run measured this much: the set's own check asks
-# 2 x, and one host's measurements of one rate spread by 1.5 x run to run (1.1-2.1 x at
-# 1 kHz on a 2-core VM), so a rate chosen at 2.0 x is refused by the next set as often;
-# at 2.5 x a 500 Hz set still faulted on stale commands in one CI run of that host
-CHOOSE_MARGIN = 3.0
 # (the tests' sets then run at that rate with min_margin 0: judged by what they test, not
 # by a second measurement of a host that the capacity run has measured already)
 _REALTIME: dict = {}
 
 
 def realtime_rate_hz(env) -> float:
-    """The highest of ``REALTIME_RATES_HZ`` this host holds a real-time set at with the
-    margin a set needs and room for its spread (CHOOSE_MARGIN), found once per test
-    process: the real-time tests run there and are judged there, never by a rate the
-    host cannot hold. pytest.skip (with the figures) where it holds none.
-
-    One capacity run at the highest rate (core/loop/capacity.py: measured on the set
-    itself, as a launch's own check measures it): there the loop thread's CPU a sample
-    is the least diluted by its fixed work a second (timers, diagnostics: at 250 Hz it
-    read 0.88 ms a sample where 1 kHz read 0.44 ms on one host), so what it sustains at
-    the highest rate it sustains at the lower ones."""
-    if "rate" in _REALTIME:
-        if _REALTIME["rate"] is None:
-            pytest.skip(_REALTIME["why"])
-        return _REALTIME["rate"]
-    import tempfile
-
-    from piezo_stage.core.loop.capacity import Capacity
-    from piezo_stage.io.run_bag import read_run
-    from piezo_stage.launch.launcher import Launch
-    top = REALTIME_RATES_HZ[0]
-    bag = os.path.join(tempfile.mkdtemp(), "capacity")
-    o = {"stage_driver": {"mode": "realtime", "min_margin": 0.0},
-         "feedforward": {"model_file": os.path.join(CONFIG, "stage_model.yaml")},
-         "trajectory": {"kind": "seed", "duration_s": 3.0}}
-    launch = Launch(os.path.join(CONFIG, "stage.yaml"), record=bag, overrides=o,
-                    env=env, nodes=["stage_driver", "feedforward", "controller",
-                                    "trajectory"], exclusive=False, armed_s=3.0, rate=top)
-    launch.quiet_stop = True
-    launch.run(launch.wall_bound())
-    try:
-        d = read_run(bag).driver
-        cap = Capacity(top, 1, 1.0, float(d["loop_thread_ms_per_sample"]) * 1e-3,
-                       float(d["host_busy_cpus"]), os.cpu_count() or 1)
-    except (KeyError, ValueError, OSError) as e:
-        why = f"the capacity run at {top:g} Hz gave no figures ({e})"
-    else:
-        for rate in REALTIME_RATES_HZ:
-            if rate * CHOOSE_MARGIN <= cap.capacity_hz:
-                _REALTIME["rate"] = rate
-                return rate
-        why = f"at {top:g} Hz this host sustains {cap.describe()}"
-    _REALTIME.update(rate=None, why=f"this host holds no real-time rate with margin: {why}")
-    pytest.skip(_REALTIME["why"])
+    """The highest standard rate this host holds a real-time set at with the margin a
+    set needs and room for its spread (piezo_stage/launch/host_rate.py), found once per
+    test process: the real-time tests run there and are judged there, never by a rate
+    the host cannot hold. pytest.skip (with the figures) where it holds none."""
+    if "rate" not in _REALTIME:
+        from piezo_stage.launch.host_rate import host_rate
+        rate, why = host_rate(env)
+        _REALTIME.update(rate=rate, why=f"this host holds no real-time rate with margin: "
+                         f"{why}")
+    if _REALTIME["rate"] is None:
+        pytest.skip(_REALTIME["why"])
+    return _REALTIME["rate"]
