@@ -238,9 +238,10 @@ def bench_faults(rep) -> int:
                           "safe_ramp_V_per_s": RAMP, "min_margin": 0.0},
          "feedforward": {"model_file": default_config("stage_model.yaml")},
          "trajectory": {"kind": "seed", "frequency_hz": 10.0, "duration_s": 120.0}}
+    # each node its own process: a fault kills or stops one node, not the loop's three
     launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                    rate=rate)
+                    rate=rate, compose="none")
     probe = Probe(d)
     marks = []
     try:
