@@ -29,9 +29,9 @@ def _on_signal(signum, frame):
                          "start-up\n")
         sys.stderr.flush()
         os._exit(128 + signum)
-    if in_ctypes_callback(frame) or in_import_machinery(frame):  # raised there it would
-        again_soon(signum)  # be dropped or break an import lock: the same stop again in
-        return              # a moment, once back in the command's own code
+    if cannot_raise_here(frame):  # raised there it would be dropped or break an import
+        again_soon(signum)        # lock: the same stop again in a moment, once back in
+        return                    # the command's own code
     raise KeyboardInterrupt
 
 
@@ -55,6 +55,24 @@ def in_ctypes_callback(frame) -> bool:
             return True
         frame = frame.f_back
     return False
+
+
+def in_finalizer(frame) -> bool:
+    """Whether ``frame`` runs inside an object's finalizer (``__del__``), where an
+    exception is printed as "Exception ignored in ... __del__" with its traceback and
+    dropped: a Ctrl-C landing in llvmlite's ``ObjectRef.__del__`` while numba compiled
+    was printed so, and the stop lost (`test_cli` Ctrl-C at a random moment, 2026-11-28)."""
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
+def cannot_raise_here(frame) -> bool:
+    """Whether an exception raised at ``frame`` would be printed and dropped (a ctypes
+    callback, a finalizer) or break an import's lock: a stop is sent again instead."""
+    return in_ctypes_callback(frame) or in_import_machinery(frame) or in_finalizer(frame)
 
 
 def in_import_machinery(frame) -> bool:

@@ -177,6 +177,31 @@ def test_importlibs_own_frames_are_told_from_a_modules_top_level():
     assert not stopping.in_import_machinery(sys._getframe())
 
 
+def test_a_stop_landing_in_a_finalizer_is_not_lost():
+    """A Ctrl-C that lands while an object's ``__del__`` runs (llvmlite's, as numba
+    compiles) is sent again once the finalizer is done: the command stops with its
+    line and 130, nothing printed as "Exception ignored"."""
+    code = (
+        "import sys, os, signal, time, threading\n"
+        "from piezo_stage import stopping\n"
+        "stopping.install(); stopping.running()\n"
+        "class Slow:\n"
+        "    def __del__(self):\n"
+        "        t0 = time.monotonic()\n"
+        "        while time.monotonic() - t0 < 0.3: pass\n"
+        "threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT)).start()\n"
+        "try:\n"
+        "    x = Slow(); del x\n"
+        "    time.sleep(5)\n"
+        "    print('not stopped')\n"
+        "except KeyboardInterrupt:\n"
+        "    stopping.hold(); print('stopped after the finalizer')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=60)
+    assert r.stdout.strip() == "stopped after the finalizer", (r.stdout, r.stderr)
+    assert "Exception ignored" not in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 def test_a_killed_launcher_leaves_no_node_behind(tmp_path, ros_env):
     """SIGKILL cannot be caught: the nodes' parent-death signal stops them (each as on
     SIGTERM: the recorder finishes its bag)."""

@@ -51,7 +51,7 @@ import signal
 import sys
 from contextlib import contextmanager
 
-from piezo_stage.stopping import again_soon, in_ctypes_callback, in_import_machinery
+from piezo_stage.stopping import again_soon, cannot_raise_here
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"
@@ -105,7 +105,7 @@ def _on_signal(signum, frame):
         os._exit(128 + signum)
     watch()
     if (STATE.phase == "building" and not STATE.deferring) or STATE.raise_depth > 0:
-        if not (in_ctypes_callback(frame) or in_import_machinery(frame)):
+        if not cannot_raise_here(frame):
             raise Stopped(signum)
         # raised there it would be printed and dropped (or break an import's module
         # lock): the same stop again in a moment,
