@@ -373,7 +373,8 @@ def test_controller_gains_and_feedback_are_live_and_read_only_ones_refused(tmp_p
 
 LIVE = {"controller": {"kp", "ki", "kd", "feedback"},
         "feedforward": {"compensate_effects", "learning", "learning_period_s",
-                        "learning_gain"},
+                        "learning_gain", "on_target_tol_um", "on_target_window_ms",
+                        "on_target_filter_ms"},
         "identifier": {"method", "structure", "auto_cycles"},
         "recorder": {"batch_period_s"},
         "live_view": {"max_rate_hz", "batch_period_s"},
