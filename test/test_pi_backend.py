@@ -313,6 +313,9 @@ def _pi_config(tmp_path, address, rate=1000.0):
                    f"    mode: realtime\n    pi_address: {address}\n"
                    f"    control_rate_hz: {rate}\n    pi_timeout_s: 0.5\n"
                    "    min_margin: 0.0\n"  # the rate: _rt_rate's
+                   # stale 0.2 s: the double's integration is judged here, not the
+                   # host's pauses (a fresh clone's run faulted on a 57 ms one, 2026-11-28)
+                   "    stale_timeout_s: 0.2\n"
                    "/**/feedforward:\n  ros__parameters:\n    model_file: " +
                    os.path.join(ROOT, "config", "stage_model.yaml") +
                    "\n/**/controller:\n  ros__parameters:\n    kp: 0.2\n"
