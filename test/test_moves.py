@@ -199,9 +199,7 @@ def test_a_move_never_asks_faster_than_the_amplifier_slews():
     ff = InverseFeedforward(ReferencePlanner(), DT_NS)
     ff.set_model(model, effects, "model")
     assert ff.profile() == (5000.0, 5.0e6)  # no driver announced yet
-    ff.driver_slew_V_per_s = 1.0e5
-    assert ff.profile() == (5000.0, 5.0e6)
-    ff.driver_slew_V_per_s = 1000.0
-    speed, _ = ff.profile()
+    assert ff.profile(1.0e5) == (5000.0, 5.0e6)
+    speed, _ = ff.profile(1000.0)
     assert speed == pytest.approx(MOVE_SLEW_SHARE * 1000.0 * ff.model_gain)
     assert 0.3 < ff.model_gain < 1.0  # um/V: the default stage's ~75 um over 150 V

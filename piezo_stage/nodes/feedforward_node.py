@@ -69,9 +69,9 @@ class Feedforward(LeanNode, Node):
         self.core = core_ff.InverseFeedforward(
             self.planner, self.dt_ns, p["nominal_um_per_V"], p["use_coupling"],
             p["inverse_feedforward"], p["max_resonance_inverse_hz"],
-            p["wait_for_trajectory"], p["model_required_after_s"])
+            p["wait_for_trajectory"], p["model_required_after_s"],
+            (p["move_speed_um_per_s"], p["move_accel_um_per_s2"]))
         self.ref, self.learning = self.core.ref, self.core.learning
-        self.core.move_profile = (p["move_speed_um_per_s"], p["move_accel_um_per_s2"])
         # the live ones once the core is there (a start-up override calls them at once):
         # effect compensation and learning feedforward (core/loop/learning.py)
         p.update(declare_schema(self, live, {q.name: lambda v, name=q.name: self.core.set_live(
@@ -216,8 +216,7 @@ class Feedforward(LeanNode, Node):
         if decoded is not None:
             t, w, stamp, start, now = decoded
             self.stats["trajectories"] += 1
-            self.core.driver_slew_V_per_s = self.driver.slew_V_per_s  # (a move's profile)
-            self.core.set_trajectory(t, w, stamp, start)
+            self.core.set_trajectory(t, w, stamp, start, self.driver.slew_V_per_s)
             self.get_logger().info(f"trajectory of {len(t)} points accepted" + (
                 f", stamped {stamp}: starts in {(stamp - now) * 1e-9:.3f} s"
                 if stamp > now else ""))
@@ -254,9 +253,9 @@ class Feedforward(LeanNode, Node):
                 self.last_ns, str(e))))
             return
         self.stats["moves"] += 1
-        self.core.driver_slew_V_per_s = self.driver.slew_V_per_s
         self.on_target_pub.publish(on_target_msg(self.core.move(
-            move_id or f"move #{self.stats['moves']}", target)))
+            move_id or f"move #{self.stats['moves']}", target,
+            slew_V_per_s=self.driver.slew_V_per_s)))
         self.publish_phase()
         self.resume()
 

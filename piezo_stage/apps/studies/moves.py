@@ -71,9 +71,9 @@ class _Loop:
 
     def __init__(self, plant: Plant, model, effects, setup: MoveSetup):
         self.plant, self.dt_ns = plant, int(round(1e9 / setup.rate_hz))
-        self.ff = InverseFeedforward(ReferencePlanner(), self.dt_ns, inverse=setup.composite)
-        self.ff.move_profile = (setup.speed_um_s, setup.accel_um_s2)
-        self.ff.driver_slew_V_per_s = plant.config.slew_V_per_s
+        self.ff = InverseFeedforward(ReferencePlanner(), self.dt_ns, inverse=setup.composite,
+                                     move_profile=(setup.speed_um_s, setup.accel_um_s2))
+        self.slew_V_per_s = plant.config.slew_V_per_s  # (the driver announces its own)
         self.ff.judge.configure(setup.tol_um, setup.window_s, setup.filter_s)
         self.limits = model.voltage_limits
         lo, hi = self.limits
@@ -124,7 +124,7 @@ def _one(loop: _Loop, move_id: str, target: dict, setup: MoveSetup) -> MoveResul
     ff = loop.ff
     here = dict(ff.planner.desired or loop.w)
     goal = {a: float(target.get(a, here[a])) for a in ("x", "y")}
-    ff.move(move_id, goal)
+    ff.move(move_id, goal, slew_V_per_s=loop.slew_V_per_s)
     n_max = int(round(setup.timeout_s * setup.rate_hz))
     n_dwell = int(round(setup.dwell_s * setup.rate_hz))
     true_err, declared = [], []

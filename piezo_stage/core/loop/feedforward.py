@@ -161,12 +161,16 @@ class InverseFeedforward:
     model_required_after_s : float
         Lockstep: hold the trajectory clock at this many seconds until a model is here
         (0: never).
+    move_profile : tuple of float
+        A move's speed [um/s] and acceleration [um/s^2] (``move``; capped by the slew
+        limit it is given).
     """
 
     def __init__(self, planner: ReferencePlanner, dt_ns: int, nominal_um_per_V: float = 0.5,
                  use_coupling: bool = True, inverse: bool = True,
                  max_resonance_hz: float = 0.0, wait_for_trajectory: bool = False,
-                 model_required_after_s: float = 0.0):
+                 model_required_after_s: float = 0.0,
+                 move_profile: tuple[float, float] = (5000.0, 5.0e6)):
         self.wait_traj, self.model_after_s = bool(wait_for_trajectory), model_required_after_s
         self.planner, self.dt_ns = planner, int(dt_ns)
         self.ref = PreviewedReference(planner, self.dt_ns)  # effects compensated
@@ -186,8 +190,7 @@ class InverseFeedforward:
         self.last_target: int | None = None
         self.traj_text = ""  # which trajectory runs: "trajectory of N points stamped S"
         self.judge = OnTargetJudge(self.dt_ns * 1e-9)  # a move's arrival (ontarget.py)
-        self.move_profile = (5000.0, 5.0e6)  # a move's speed [um/s], acceleration
-        self.driver_slew_V_per_s: float | None = None  # the driver's, once announced
+        self.move_profile = tuple(move_profile)  # a move's speed [um/s], acceleration
         self.model_gain: float | None = None  # the model's steepest mean gain [um/V]
         self.move_text = ""  # what the phase follows in a move ("move M")
         self.last_ns = 0
@@ -258,39 +261,41 @@ class InverseFeedforward:
                                 self.learn_p["learning_gain"], self.effects, self.comp)
 
     def set_trajectory(self, t: ArrayLike, w: dict, stamp_ns: int,
-                       start_ns: int | None) -> None:
+                       start_ns: int | None, slew_V_per_s: float | None = None) -> None:
         """Run a new trajectory (t [s], {axis: um}), stamped ``stamp_ns`` by its sender,
         from ``start_ns`` (None: once approached): the learner starts over, and the
         phase names it ("trajectory of N points stamped S")."""
         points = len(t)  # type: ignore[arg-type]
         self.traj_text = f"trajectory of {points} points stamped {stamp_ns}"
         if points == 1:  # a point-to-point move: its profile, judged on target
-            self.move(self.traj_text, {a: float(x[0]) for a, x in w.items()}, start_ns)
+            self.move(self.traj_text, {a: float(x[0]) for a, x in w.items()}, start_ns,
+                      slew_V_per_s)
             return
         self.planner.set_trajectory(t, w, start_ns=start_ns)
         self.learning.reset()
 
-    def move(self, move_id: str, target: dict, start_ns: int | None = None) -> TargetState:
+    def move(self, move_id: str, target: dict, start_ns: int | None = None,
+             slew_V_per_s: float | None = None) -> TargetState:
         """A point-to-point move to ``target`` ({axis: um}; the others held), called
         ``move_id``: the move's profile (``move_profile``), then held; judged on target
         from its first tick (``SampleResult.on_target``). -> its first state (moving)."""
         desired = self.planner.desired or {}
         goal = {a: float(target.get(a, desired.get(a, 0.0))) for a in ("x", "y")}
-        self.planner.set_move(goal, *self.profile(), start_ns=start_ns)
+        self.planner.set_move(goal, *self.profile(slew_V_per_s), start_ns=start_ns)
         self.learning.reset()
         self.judge.begin(move_id, goal, max(self.last_ns + self.dt_ns, start_ns or 0))
         self.move_text = move_id if move_id == self.traj_text else f"move {move_id}"
         return self.judge.report(self.judge.started_ns, {})
 
-    def profile(self) -> tuple[float, float]:
+    def profile(self, slew_V_per_s: float | None = None) -> tuple[float, float]:
         """A move's (speed [um/s], acceleration [um/s^2]): ``move_profile``, its speed
         kept within MOVE_SLEW_SHARE of the driver's slew limit at the model's steepest
         mean gain (its stroke over its voltage range; the nominal gain before any
         model), so the feedforward never asks faster than the amplifier goes."""
         speed, accel = self.move_profile
-        if self.driver_slew_V_per_s:
+        if slew_V_per_s:
             gain = self.model_gain or self.gain
-            speed = min(speed, MOVE_SLEW_SHARE * self.driver_slew_V_per_s * gain)
+            speed = min(speed, MOVE_SLEW_SHARE * slew_V_per_s * gain)
         return speed, accel
 
     def set_live(self, name: str, value: object) -> None:
