@@ -113,7 +113,10 @@ class StageDriver(LeanNode, LifecycleNode):
             if self.lock and p["clock_period_s"] > 0 else None
         hot_subscription(self, Vector3Stamped, "command", self.on_command, QOS_DATA,
                          raw=True, with_info=True)
-        self.create_subscription(KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
+        # taken with the samples: at the base executor's turn (one callback each 50 ms)
+        # a phase waited up to 0.5 s, and the state said "approaching" after the move's
+        # on-target verdict
+        hot_subscription(self, KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
         self.create_service(SetBool, "arm", self.on_arm)
         self.create_service(Trigger, "estop", self.on_estop)
         steady_timer(self, 0.5, self.check_links)
