@@ -18,6 +18,7 @@ PAGE = os.path.join(ROOT, "docs", "benchmarks.md")
 STAMP = re.compile(r"^\*\d{4}-\d{2}-\d{2}, (commit [0-9a-f]{7,}(\+changes)?|no git checkout), "
                    r"\d+ CPUs, [^*]+\*")
 HASH = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+DATE = re.compile(r"\b20\d\d-[01]\d-[0-3]\d\b")
 
 
 def _blocks(text):
@@ -100,8 +101,9 @@ def test_every_table_of_the_benchmark_page_is_generated_and_dated():
 
 
 def test_docs_and_code_read_as_recipes():
-    """No commit hash in the docs outside the generated tables; none, nor a CI run's
-    number, in the package's code."""
+    """No commit hash and no dated figure in the docs outside the generated tables (an
+    example output in a code block may show the dates of its data); no hash, nor a CI
+    run's number, in the package's code."""
     pages = [os.path.join(ROOT, "README.md")] + [
         os.path.join(ROOT, "docs", f) for f in os.listdir(os.path.join(ROOT, "docs"))
         if f.endswith(".md")]
@@ -109,6 +111,9 @@ def test_docs_and_code_read_as_recipes():
         text = open(page, encoding="utf-8").read()
         text = re.sub(r"<!-- bench (\w+) -->\n.*?<!-- /bench \1 -->", "", text, flags=re.S)
         assert not HASH.findall(text), (page, HASH.findall(text))
+        # a dated figure lives in a generated table; an example's output may show dates
+        prose = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+        assert not DATE.findall(prose), (page, DATE.findall(prose))
     for folder, _, files in os.walk(os.path.join(ROOT, "piezo_stage")):
         for f in files:
             if f.endswith(".py"):

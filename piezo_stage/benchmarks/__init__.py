@@ -2,7 +2,8 @@
 invocation (never timed unit tests); ``piezo-stage bench <what>`` runs one.
 
 One module per benchmark (plant, identify, loop, liveview, gap, realtime, learning,
-faults, signals, experiments, outside, refit, setup, lifecycle, settle) and the
+faults, signals, experiments, outside, refit, setup, lifecycle, settle, accuracy,
+doubles, scan) and the
 equipment they share:
 ``procs`` (helper processes, CPU ticks, the progress of repeated runs), ``probe`` (an
 outside node),
@@ -31,6 +32,9 @@ BENCHMARKS = {
     "setup": ("setup", "bench_setup", ("runs",)),
     "lifecycle": ("lifecycle", "bench_lifecycle", ("runs",)),
     "settle": ("settle", "bench_settle", ("steps", "moves", "out")),
+    "accuracy": ("accuracy", "bench_accuracy", ()),
+    "doubles": ("doubles", "bench_doubles", ()),
+    "scan": ("scan", "bench_scan", ()),
 }
 
 
