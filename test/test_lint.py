@@ -231,8 +231,8 @@ LAYERS = {
     "piezo_stage/launch": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes"},
     "piezo_stage/apps": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes",
                          "piezo_stage/launch", "piezo_stage_msgs_adapters"},
-    "piezo_stage/benchmarks": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes",
-                               "piezo_stage/launch", "piezo_stage/apps",
+    "piezo_stage/benchmarks": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/drivers",
+                               "piezo_stage/nodes", "piezo_stage/launch", "piezo_stage/apps",
                                "piezo_stage_msgs_adapters"},
     # the Python client of a running set (a module): rclpy and the adapters, the nodes'
     # QoS; the commands above use it

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from piezo_stage.core.errors import DataError
@@ -65,6 +65,11 @@ def test_no_move_is_no_verdict_and_parameters_are_checked():
 
 
 @settings(max_examples=60, deadline=None)
+# a ring of about the noise's size, rising through the tolerance's edge as the average
+# of its noisy samples reads low: found by this test against a guard that took motion
+# for noise until its variance passed the noise's confidence band
+@example(tau_ms=1.0, ring_um=1.0, ring_hz=100.0, zeta=0.02, noise=0.015625, bias=0.28125,
+         seed=0)
 @given(tau_ms=st.floats(0.5, 20.0), ring_um=st.floats(0.0, 3.0),
        ring_hz=st.floats(100.0, 900.0), zeta=st.floats(0.02, 0.3),
        noise=st.floats(0.0, 0.12), bias=st.floats(-0.45, 0.45), seed=st.integers(0, 10**6))
@@ -83,7 +88,7 @@ def test_never_declared_while_the_true_position_is_outside(tau_ms, ring_um, ring
     judge = OnTargetJudge(1e-3, 0.3, 0.005, 0.005)
     states, changes = _judge_run(e, noise, seed, judge=judge)
     on = np.array([s == ON_TARGET for s in states])
-    outside = np.abs(e) > 0.3
+    outside = np.abs(e) > 0.3 + 1e-9  # (beyond the running sums' rounding)
     lag = judge.axes["x"].n_filter
     for c in changes:
         if c.state == ON_TARGET:

@@ -64,7 +64,7 @@ def _pct(doc: dict, name: str, ref: str = "true") -> str:
 
 
 def _g(x: float) -> str:
-    return f"{x:.3f}" if abs(x) < 1 else f"{x:.3g}"
+    return f"{x:.3f}" if abs(x) < 1 else f"{x:.2f}" if abs(x) < 10 else f"{x:.1f}"
 
 
 def _mean(doc: dict, name: str, ref: str = "true") -> float:
@@ -128,7 +128,7 @@ def bench_accuracy(rep) -> int:
         ("oscillation [Hz]", *(f"{relay['points'][a].freq_hz:.0f}" for a in "xy")),
         ("loop gain at the setpoint [um/V]",
          *(f"{relay['points'][a].gain_um_per_V:.3f}" for a in "xy"))],
-        f"both axes held at 30 um, relay +-2 V: kp {relay['tuning'].kp:.3f} V/um, ki "
+        f"both axes held at 30 um, relay +-2 V: kp {relay['tuning'].kp:.3g} V/um, ki "
         f"{relay['tuning'].ki:.0f} V/(um s), crossover {relay['tuning'].crossover_hz:.1f} "
         f"Hz, phase margin {relay['tuning'].phase_margin_deg:.1f} deg, gain margin "
         f"{relay['tuning'].gain_margin_db:.1f} dB")
