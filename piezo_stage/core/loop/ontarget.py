@@ -115,7 +115,7 @@ class _Axis:
             return noise, 0.0
         mean = self.total / n
         var = max(self.total2 / n - mean * mean, 0.0) * n / (n - 1)
-        excess = var - self.sigma ** 2
+        excess = var - self.sigma ** 2 * (1.0 + 2.0 * math.sqrt(2.0 / (n - 1)))
         return noise, (math.sqrt(2.0 * excess) if excess > 0 else 0.0)
 
 
