@@ -19,7 +19,6 @@ its figures.
 
 from __future__ import annotations
 
-import json
 import os
 import random
 import shutil
@@ -39,19 +38,11 @@ def _env() -> dict:
 
 def _experiment(rep, tmp: str, kind: str, model: str, *more: str) -> dict:
     """One ``experiment KIND`` as a whole command; its JSON document."""
-    out = os.path.join(tmp, f"{kind}_{len(os.listdir(tmp))}")
-    cmd = [sys.executable, "-m", "piezo_stage.cli", "experiment", kind, "--model", model,
-           *more, "--record", out, "--json", out + ".json", "--namespace", NAMESPACE]
-    rep.progress(" ".join(["piezo-stage", *(x.replace(tmp + os.sep, "")
-                                            for x in cmd[3:7 + len(more)])]))
-    r = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=3600)
-    if r.returncode != 0:
-        last = (r.stderr.strip().splitlines() or [""])[-1]
-        raise RuntimeError(f"experiment {kind} exited {r.returncode}: {last}")
-    with open(out + ".json") as fh:
-        doc = json.load(fh)
-    shutil.rmtree(out, ignore_errors=True)
-    return doc
+    from piezo_stage.benchmarks.procs import command_json
+    argv = ["experiment", kind, "--model", model, *more]
+    rep.progress(" ".join(["piezo-stage", *(x.replace(tmp + os.sep, "") for x in argv)]))
+    return command_json([*argv, "--namespace", NAMESPACE],
+                        os.path.join(tmp, f"{kind}_{len(os.listdir(tmp))}"))
 
 
 def _pct(doc: dict, name: str, ref: str = "true") -> str:

@@ -27,6 +27,7 @@ import numpy as np
 
 STEPS = 2000          # streamed PI steps timed
 NV_STEPS = 100        # streamed NV200 samples timed (each ~20 ms)
+FS = 5000.0           # the played waveform's rate [Hz]
 
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -100,6 +101,28 @@ def _steps_ms(b, n: int) -> list[float]:
     return out
 
 
+def _measure(rep, tmp: str, script: str, steps: int, n: int, backend) -> tuple:
+    """The double ``script`` started, ``backend(address)`` set up on it, ``steps``
+    streamed steps and ``n`` points played at FS: (set-up s, step times ms, n, play s)."""
+    proc, address = _double(script, tmp)
+    try:
+        t0 = time.perf_counter()
+        b = backend(address)
+        b.start()
+        setup = time.perf_counter() - t0
+        rep.progress(f"{script} at {address}: set up in {setup:.2f} s")
+        st = _steps_ms(b, steps)
+        t = np.arange(n) / FS
+        vx = 60 - 50 * np.cos(2 * np.pi * 20 * t)
+        t0 = time.perf_counter()
+        b.play(vx, vx.copy(), FS, 1e5)
+        played = time.perf_counter() - t0
+        b.close(0.0, 1e5)
+    finally:
+        _end(proc)
+    return setup, st, n, played
+
+
 def _p(xs: list[float], q: float) -> float:
     return float(np.percentile(xs, q))
 
@@ -121,56 +144,24 @@ def bench_doubles(rep) -> int:
     tmp = tempfile.mkdtemp(prefix="bench_doubles_")
     figures = []
     try:
-        from piezo_stage.drivers.pi import PiBackend
-        proc, address = _double("pi_controller_double.py", tmp)
-        try:
-            t0 = time.perf_counter()
-            b = PiBackend(1000.0, {**params, "pi_address": address}, safe_V=0.0)
-            b.start()
-            setup = time.perf_counter() - t0
-            rep.progress(f"PI double at {address}: set up in {setup:.2f} s")
-            st = _steps_ms(b, STEPS)
-            n, fs = 20_000, 5000.0
-            t = np.arange(n) / fs
-            vx = 60 - 50 * np.cos(2 * np.pi * 20 * t)
-            t0 = time.perf_counter()
-            b.play(vx, vx.copy(), fs, 1e5)
-            played = time.perf_counter() - t0
-            b.close(0.0, 1e5)
-        finally:
-            _end(proc)
-        med = pi_med = statistics.median(st)
-        rows.append(("PI E-727 double: streamed step (SVA + POS?)", f"{setup:.2f} s",
-                     f"{med:.3f}", f"{_p(st, 99):.3f}", f"{med / base:.1f}"))
-        figures += [("PI: streamed steps a second (1 / median)", f"{1e3 / med:,.0f}"),
-                    (f"PI: play {n:,} points at {fs:g} Hz ({n / fs:.1f} s)",
-                     f"{played:.2f} s wall, ramps included")]
-
         from piezo_stage.drivers.nv200 import Nv200Backend
-        proc, addresses = _double("nv200_double.py", tmp)
-        try:
-            t0 = time.perf_counter()
-            nv = Nv200Backend(50.0, {**params, "nv200_addresses": addresses.split(",")}, 0.0)
-            nv.start()
-            setup = time.perf_counter() - t0
-            rep.progress(f"NV200 double at {addresses}: set up in {setup:.2f} s")
-            st = _steps_ms(nv, NV_STEPS)
-            n = 1024
-            t = np.arange(n) / fs
-            vx = 60 - 50 * np.cos(2 * np.pi * 20 * t)
-            t0 = time.perf_counter()
-            nv.play(vx, vx.copy(), fs, 1e5)
-            played = time.perf_counter() - t0
-            nv.close(0.0, 1e5)
-        finally:
-            _end(proc)
-        med = nv_med = statistics.median(st)
-        rows.append(("NV200 double x 2: streamed sample (both set + meas, concurrently)",
-                     f"{setup:.2f} s", f"{med:.3f}", f"{_p(st, 99):.3f}",
-                     f"{med / base:.0f}"))
-        figures += [("NV200: streamed samples a second (1 / median)", f"{1e3 / med:.0f}"),
-                     (f"NV200: play {n:,} points at {fs:g} Hz ({n / fs:.1f} s)",
-                      f"{played:.2f} s wall, nearly all of it the table upload")]
+        from piezo_stage.drivers.pi import PiBackend
+        pi = _measure(rep, tmp, "pi_controller_double.py", STEPS, 20_000, lambda a: PiBackend(
+            1000.0, {**params, "pi_address": a}, safe_V=0.0))
+        nv = _measure(rep, tmp, "nv200_double.py", NV_STEPS, 1024, lambda a: Nv200Backend(
+            50.0, {**params, "nv200_addresses": a.split(",")}, 0.0))
+        for (setup, st, n, played), what, per, play in (
+                (pi, "PI E-727 double: streamed step (SVA + POS?)", "PI: streamed steps",
+                 "ramps included"),
+                (nv, "NV200 double x 2: streamed sample (both set + meas, concurrently)",
+                 "NV200: streamed samples", "nearly all of it the table upload")):
+            med = statistics.median(st)
+            rows.append((what, f"{setup:.2f} s", f"{med:.3f}", f"{_p(st, 99):.3f}",
+                         f"{med / base:.1f}"))
+            figures += [(f"{per} a second (1 / median)", f"{1e3 / med:,.0f}"),
+                        (f"{per.split(':')[0]}: play {n:,} points at {FS:g} Hz "
+                         f"({n / FS:.1f} s)", f"{played:.2f} s wall, {play}")]
+        pi_med, nv_med = statistics.median(pi[1]), statistics.median(nv[1])
     except Exception as e:  # the report says what failed, in one line
         rep.fail(f"{type(e).__name__}: {e}")
         return 1

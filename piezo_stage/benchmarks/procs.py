@@ -157,9 +157,6 @@ def main(argv):
     return 2
 
 
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]) or 0)
-
 
 def progress_runs(items, desc):
     """Iterate with a progress bar on a terminal (tqdm; silent otherwise)."""
@@ -178,3 +175,30 @@ def cpu_ticks():
         return sum(f), f[7]
     except (OSError, IndexError, ValueError):
         return 0, 0
+
+
+def command_json(argv: list, out: str, timeout: float = 3600.0, cwd: str | None = None) -> dict:
+    """``piezo-stage ARGV --record OUT --json OUT.json`` as a whole command, as a user
+    runs it, with a ROS_DOMAIN_ID of its own: its JSON document (its bags removed).
+    RuntimeError with the command's last line on stderr when it fails."""
+    import json
+    import os
+    import random
+    import shutil
+    import subprocess
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 100)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", *argv, "--record", out,
+                        "--json", out + ".json"], capture_output=True, text=True, env=env,
+                       timeout=timeout, cwd=cwd)
+    if r.returncode != 0:
+        last = (r.stderr.strip().splitlines() or [""])[-1]
+        raise RuntimeError(f"{' '.join(argv[:2])} exited {r.returncode}: {last}")
+    with open(out + ".json") as fh:
+        doc = json.load(fh)
+    shutil.rmtree(out, ignore_errors=True)
+    return doc
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]) or 0)

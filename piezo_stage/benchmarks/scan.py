@@ -12,12 +12,9 @@ docs/experiments.md links here for its figures.
 
 from __future__ import annotations
 
-import json
 import os
-import random
 import shutil
 import subprocess
-import sys
 import tempfile
 
 NAMESPACE = "/bench_scan"
@@ -46,20 +43,10 @@ def _lin(r: dict) -> str:
 
 def _scan(rep, tmp: str, *more: str) -> dict:
     """``experiment scan`` as a whole command; its JSON document."""
-    out = os.path.join(tmp, f"scan_{len(os.listdir(tmp))}")
+    from piezo_stage.benchmarks.procs import command_json
     rep.progress("piezo-stage experiment scan " + " ".join(more))
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 100)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "experiment", "scan", *more,
-                        "--record", out, "--json", out + ".json", "--namespace", NAMESPACE],
-                       capture_output=True, text=True, env=env, timeout=7200)
-    if r.returncode != 0:
-        last = (r.stderr.strip().splitlines() or [""])[-1]
-        raise RuntimeError(f"experiment scan exited {r.returncode}: {last}")
-    with open(out + ".json") as fh:
-        doc = json.load(fh)
-    shutil.rmtree(out, ignore_errors=True)
-    return doc
+    return command_json(["experiment", "scan", *more, "--namespace", NAMESPACE],
+                        os.path.join(tmp, f"scan_{len(os.listdir(tmp))}"), timeout=7200)
 
 
 def _scan_rows(doc: dict) -> list[tuple]:
