@@ -201,15 +201,16 @@ def _effects_plant(rep, tmp: str, cfg: str, freqs: str) -> tuple[str, dict]:
         _cli(rep, tmp, "simulate", "--in", f"e{seed}.csv", "--out", f"{stem}_{name}.csv",
              "--config", plant, show=False)
     _cli(rep, tmp, "gap", f"{stem}_fit.csv", "--holdout", f"{stem}_holdout.csv",
-         "--out-model", f"{stem}.yaml")
-    model_path = os.path.join(tmp, f"{stem}.yaml")
+         "--out-model", f"model_{stem}.yaml")
+    model_path = os.path.join(tmp, f"model_{stem}.yaml")
     m, effects = load_model(model_path)
     found = "; ".join(f"{name} " + ", ".join(
         f"{k} {v:.4g}" for k, v in p.items() if isinstance(v, float))
         for name, p in effects.items())
     if m.coupling:
         found = "coupling; " + found
-    doc = _experiment(rep, tmp, "tracking", model_path, "--plant", plant, "--controllers",
+    doc = _experiment(rep, tmp, "tracking", model_path, "--plant", os.path.relpath(plant),
+                      "--controllers",
                       "composite,feedforward", "--freqs", freqs)
     return found, doc
 
