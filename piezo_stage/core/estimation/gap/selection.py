@@ -344,8 +344,11 @@ class AxisSearch:
         # beside a larger coupling, can show once the larger one is modelled)
         pool = {e: cands[e] for e in self.testable}
         tried: dict = {}  # (a, b): b fitted on top of a, and its held-out RMS (the pairs)
+        partner = None  # the second of a pair the first joined for: it comes next
         while pool:
             e, c = min(pool.items(), key=lambda kv: scores[kv[0]])
+            if partner in pool:
+                e, c = partner, pool[partner]
             g_cur, g_new = gap_above_floor(r_cur, floor), gap_above_floor(scores[e], floor)
             need = (50.0 if g_before <= 0.5 * floor else FIRST_SHRINK_PCT) if not steps \
                 else STEP_SHRINK_PCT
@@ -356,19 +359,28 @@ class AxisSearch:
             if not steps and step < need and len(pool) > 1 and g_before > 0.5 * floor:
                 paired = self.pair_first(pool, r_cur, g_cur, need, tried)
                 if paired is not None:
-                    e, c, g_new, step, rule = paired
+                    e, c, g_new, step, rule, partner = paired
                     need = 0.0  # the first of a pair that closes the gap together
+            elif e == partner:
+                rule = (f"the pair rule: the second of the pair {steps[0]['effect']} joined "
+                        f"for; it closes >= {need:.0f} % of what was left")
             if not (_significant(r_cur, scores[e], floor, self.n) and step >= need):
                 break
             # a further effect's step, bootstrapped over HOLDOUT against the model before it
             step_pm = shrink_uncertainty(self.resid_of(model), self.resid_of(c), floor,
                                          self.scored.fs_hz) if steps else float("nan")
-            if steps and np.isfinite(step_pm) and step < STEP_NOISE_SIGMAS * step_pm:
+            # (a pair's second was judged with its first: admitting the first alone, for
+            # a shrink it does not make alone, would keep half of what the data showed)
+            pair_second = bool(steps) and e == partner
+            if steps:
+                partner = None  # tried once, right after its first
+            if steps and not pair_second and np.isfinite(step_pm) \
+                    and step < STEP_NOISE_SIGMAS * step_pm:
                 break  # within the noise of the step itself
             # what fits as well at this step (the excitation cannot tell them apart)
             alike = [e2 for e2 in pool if e2 != e and gap_above_floor(scores[e2], floor) <=
                      1.02 * g_new + 0.02 * (g_cur - g_new)]
-            if steps and len(alike) >= 2 and len(alike) == len(pool) - 1:
+            if steps and not pair_second and len(alike) >= 2 and len(alike) == len(pool) - 1:
                 break  # every candidate helps alike: the refit helps, not any one effect
             steps.append({"effect": c.effect, "params": c.params, "rms_after_um": scores[e],
                           "gap_after_um": g_new, "step_shrink_pct": step,
@@ -397,11 +409,12 @@ class AxisSearch:
         return steps, model
 
     def pair_first(self, pool: dict[str, Fitted], r_cur: float, g_cur: float, need: float,
-                   tried: dict) -> tuple[str, Fitted, float, float, str] | None:
+                   tried: dict) -> tuple[str, Fitted, float, float, str, str] | None:
         """The pair rule: effects of similar size, none alone closes 30 %; two of the
         three best together may (the better one of the best such pair joins first; the
-        other must then still earn its place as a later step). -> (effect, candidate,
-        gap after it, its step %, the rule) or None."""
+        other is tried next, on top of it, and joins when it still closes its share of
+        what was left: the pair was judged against the noise as a pair). -> (effect,
+        candidate, gap after it, its step %, the rule, the other) or None."""
         floor, scores = self.floor, self.scores
         top = sorted(pool, key=scores.__getitem__)[:PAIR_POOL]
         pairs = [(a, b) for i, a in enumerate(top) for b in top[i + 1:]]
@@ -430,7 +443,7 @@ class AxisSearch:
         rule = (f"the pair rule: {e} and {best_pair[2]} together close "
                 f"{100.0 * (1 - best_pair[0] / g_cur):.0f} % of the gap (>= "
                 f"{need:.0f} %), which no effect does alone")
-        return e, pool[e], g_new, step, rule
+        return e, pool[e], g_new, step, rule, best_pair[2]
 
     def polish(self, c: Fitted, e: str, step: dict[str, Any]) -> None:
         """A kept effect's alphas polished fully, so that what the next candidates earn
