@@ -344,10 +344,10 @@ class AxisSearch:
         # beside a larger coupling, can show once the larger one is modelled)
         pool = {e: cands[e] for e in self.testable}
         tried: dict = {}  # (a, b): b fitted on top of a, and its held-out RMS (the pairs)
-        partner = None  # the second of a pair the first joined for: it comes next
+        partner: str | None = None  # the second of a pair its first joined for: next
         while pool:
             e, c = min(pool.items(), key=lambda kv: scores[kv[0]])
-            if partner in pool:
+            if partner is not None and partner in pool:
                 e, c = partner, pool[partner]
             g_cur, g_new = gap_above_floor(r_cur, floor), gap_above_floor(scores[e], floor)
             need = (50.0 if g_before <= 0.5 * floor else FIRST_SHRINK_PCT) if not steps \
