@@ -706,12 +706,21 @@ def _joining_run(tmp_path, domain):
     assert second.stopped_cleanly("stage_driver")
 
 
-def test_no_trajectory_set_holds_and_follows_outside_publishers(tmp_path, domain, capfd):
+def test_no_trajectory_set_holds_and_follows_outside_publishers(tmp_path, domain, capfd,
+                                                                ros_domains):
     """`launch --no-trajectory`: the set arms and holds position with no trajectory node;
     a latched publisher and then a default-QoS one, both joining mid-run, are followed;
     one stamped in the past is refused with the reason; examples/publish_trajectory.py
     (a future stamp) runs to its end and exits 0; no QoS warning on any side, no fault,
-    and the bag holds the three the stage ran."""
+    and the bag holds the three the stage ran. (Twice at most: a fresh clone's run once
+    faulted on a 58 ms host pause.)"""
+    def _outside_run(folder, dom):
+        _outside(folder, dom, capfd)
+    run_twice_at_most(_outside_run, tmp_path, domain, ros_domains)
+
+
+def _outside(tmp_path, domain, capfd):
+    tmp_path.mkdir()
     from rclpy.qos import QoSProfile
     from trajectory_msgs.msg import JointTrajectory
 
