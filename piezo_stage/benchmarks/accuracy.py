@@ -20,7 +20,6 @@ its figures.
 from __future__ import annotations
 
 import os
-import random
 import shutil
 import subprocess
 import sys
@@ -32,8 +31,8 @@ PAPER_DECOUPLING_PCT = 71.0    # the paper's best coupling reduction
 
 
 def _env() -> dict:
-    return dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 100)),
-                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    from piezo_stage.benchmarks.procs import own_domain_env
+    return own_domain_env()
 
 
 def _experiment(rep, tmp: str, kind: str, model: str, *more: str) -> dict:

@@ -12,7 +12,6 @@ has its own ROS_DOMAIN_ID.
 from __future__ import annotations
 
 import os
-import random
 import shutil
 import statistics
 import subprocess
@@ -25,8 +24,8 @@ KINDS = ("tracking", "noise", "amplitude", "decoupling", "scan")
 
 def _one(kind: str, model: str | None, out: str) -> tuple[int, str, float]:
     """(exit code, last line on stderr, wall seconds) of one experiment run."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 100)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    from piezo_stage.benchmarks.procs import own_domain_env
+    env = own_domain_env()
     cmd = [sys.executable, "-m", "piezo_stage.cli", "experiment", kind, "--record", out]
     if model:
         cmd += ["--model", model]

@@ -177,17 +177,23 @@ def cpu_ticks():
         return 0, 0
 
 
+def own_domain_env() -> dict:
+    """This process's environment with a ROS_DOMAIN_ID of its own (a whole command run
+    as a user runs it, apart from any set running meanwhile) and discovery on this host."""
+    import os
+    import random
+    return dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 100)),
+                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+
+
 def command_json(argv: list, out: str, timeout: float = 3600.0, cwd: str | None = None) -> dict:
     """``piezo-stage ARGV --record OUT --json OUT.json`` as a whole command, as a user
     runs it, with a ROS_DOMAIN_ID of its own: its JSON document (its bags removed).
     RuntimeError with the command's last line on stderr when it fails."""
     import json
-    import os
-    import random
     import shutil
     import subprocess
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 100)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = own_domain_env()
     r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", *argv, "--record", out,
                         "--json", out + ".json"], capture_output=True, text=True, env=env,
                        timeout=timeout, cwd=cwd)
