@@ -37,6 +37,7 @@ from piezo_stage.core.loop.motion import MotionTimeModel
 from piezo_stage.core.loop.ontarget import ON_TARGET, REFUSED, TargetState
 from piezo_stage_msgs_adapters.wire import Announcement
 
+RESEND_S = 1.0  # a move unanswered this long is sent again
 SETTLE_IN_S = 0.3  # after the first answers: the rest of the latched history
 SAMPLES_KEPT = 200_000  # the samples a client keeps for its dwells (minutes at 1 kHz)
 
@@ -280,14 +281,24 @@ class Stage:
         self.configure(tol_um, settle_ms)
         move_id = f"{self.node.get_name()}-{next(self._ids)}"
         t0 = time.monotonic()
-        self.move_pub.publish(move_msg(move_id, {"x": x, "y": y}))
+        t_end = t0 + timeout
+        msg = move_msg(move_id, {"x": x, "y": y})
+        self.move_pub.publish(msg)
         # the stage's verdict, or a fault, or the timeout
         def over():
             s = self.targets.get(move_id)
             d = self.driver
             return (s is not None and s.state in (ON_TARGET, REFUSED)) or (
                 d is not None and d.state == "faulted")
-        arrived = self._wait(over, timeout)
+        # unanswered: sent again each RESEND_S (a reader that had not yet matched this
+        # writer drops what came before; the stage takes a repeat as the same move)
+        def answered():
+            return over() or move_id in self.targets
+        while not self._wait(answered, min(RESEND_S, max(0.0, t_end - time.monotonic()))):
+            if time.monotonic() >= t_end:
+                break
+            self.move_pub.publish(msg)
+        arrived = self._wait(over, max(0.0, t_end - time.monotonic()))
         self._check_driver()
         s = self.targets.get(move_id)
         if s is not None and s.state == REFUSED:
@@ -339,8 +350,16 @@ class Stage:
         limit = timeout if timeout is not None else float(t_s[-1]) + 30.0
         t0 = time.monotonic()
         self.traj_pub.publish(msg)
-        if not self._wait(lambda: self.accepted > n_acc and
-                          self.last_frame == msg.header.frame_id, min(limit, 30.0)):
+        def accepted():
+            return self.accepted > n_acc and self.last_frame == msg.header.frame_id
+        t_end = t0 + min(limit, 30.0)
+        # unaccepted: sent again each RESEND_S (as a move; the feedforward takes the
+        # trajectory it took last, delivered again, as that one)
+        while not self._wait(accepted, min(RESEND_S, max(0.0, t_end - time.monotonic()))):
+            if time.monotonic() >= t_end:
+                break
+            self.traj_pub.publish(msg)
+        if not accepted():
             raise StageError(f"{self.ns}: the trajectory was not accepted (see the "
                              "feedforward's log)")
         n_phase = len(self.phases)  # (the phases it starts with come after acceptance)

@@ -7,6 +7,7 @@ import csv
 import os
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -41,11 +42,29 @@ def _one_line(r, code, said):
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["lockstep",
                                   pytest.param("realtime", marks=pytest.mark.realtime)])
-def test_move_scan_and_the_client_against_a_running_set(tmp_path, ros_env, mode):
+def test_move_scan_and_the_client_against_a_running_set(tmp_path, ros_env, ros_domains,
+                                                        mode):
+    """Real time on a shared 2-core VM: a run the host stalls (a pause of tens of ms
+    faults the set on stale commands) is run once more on a fresh domain, as the
+    real-time set tests do (test_realtime.run_twice_at_most); two failures fail."""
+    if mode == "lockstep":
+        _client_run(tmp_path, ros_env, mode)
+        return
+    from piezo_stage.client import StageError
+    try:
+        _client_run(tmp_path / "first", ros_env, mode)
+    except (AssertionError, StageError) as e:
+        warnings.warn("the client's first real-time run failed, ran it again on a fresh "
+                      f"domain: {str(e)[:2000]}", stacklevel=1)
+        _client_run(tmp_path / "second", dict(ros_env, ROS_DOMAIN_ID=str(ros_domains())),
+                    mode)
+
+
+def _client_run(tmp_path, env, mode):
     from piezo_stage.client import MoveRefused, MoveTimeout, Stage
     from piezo_stage.io.run_bag import read_run
-    launch, rate = _set(tmp_path, ros_env, mode)
-    env = ros_env
+    tmp_path.mkdir(exist_ok=True)
+    launch, rate = _set(tmp_path, env, mode)
     try:
         launch.start()
         # `move` from another process: on target, its settle time and final error

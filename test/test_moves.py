@@ -133,6 +133,18 @@ def test_a_move_runs_on_its_profile_and_a_one_point_trajectory_is_a_move():
     assert first.state == MOVING and first.move_id == "lab-1"
     assert first.target_um == {"x": 7.0, "y": y_now}  # the axis not named is held
     assert ff.phase()[1] == "move lab-1"
+    # asked again (an asker that heard nothing sends it once more): the same move, not a
+    # restart; another target under that id, or another id, is a new move
+    started = ff.judge.started_ns
+    for k in range(2, 6):
+        ff.on_sample(k * DT_NS, {"x": 1.0, "y": y_now}, {"x": 0.0, "y": 0.0}, DT_NS,
+                     lambda t: True, realtime=False)
+    again = ff.move("lab-1", {"x": 7.0})
+    assert again.move_id == "lab-1" and again.state == MOVING
+    assert ff.judge.started_ns == started and again.stamp_ns == 5 * DT_NS
+    assert again.error_um and again.error_um["x"] < -5.0  # its errors so far
+    assert ff.move("lab-1", {"x": 8.0}).stamp_ns > 5 * DT_NS  # restarted: a new target
+    assert ff.judge.target["x"] == 8.0 and ff.judge.started_ns > started
 
 
 def test_the_motion_time_model_recovers_its_terms_and_refuses_too_few_steps():

@@ -278,9 +278,14 @@ class InverseFeedforward:
              slew_V_per_s: float | None = None) -> TargetState:
         """A point-to-point move to ``target`` ({axis: um}; the others held), called
         ``move_id``: the move's profile (``move_profile``), then held; judged on target
-        from its first tick (``SampleResult.on_target``). -> its first state (moving)."""
+        from its first tick (``SampleResult.on_target``). -> its first state (moving).
+        The running move asked again (its id and target: an asker that heard no
+        answer sends it once more) is the same move: its present state, not a restart."""
         desired = self.planner.desired or {}
         goal = {a: float(target.get(a, desired.get(a, 0.0))) for a in ("x", "y")}
+        if move_id and move_id == self.judge.move_id and goal == self.judge.target:
+            return self.judge.report(self.last_ns, dict(self.judge.last[1])
+                                     if self.judge.last else {})
         self.planner.set_move(goal, *self.profile(slew_V_per_s), start_ns=start_ns)
         self.learning.reset()
         self.judge.begin(move_id, goal, max(self.last_ns + self.dt_ns, start_ns or 0))

@@ -142,6 +142,7 @@ class OnTargetJudge:
         self.axes: dict[str, _Axis] = {}
         self.settle_s: float | None = None
         self.state = MOVING
+        self.last: tuple[int, dict] | None = None  # the running move's last errors
         self.configure(tol_um, window_s, filter_s)
 
     def configure(self, tol_um: float, window_s: float, filter_s: float) -> None:
@@ -161,6 +162,7 @@ class OnTargetJudge:
         ``started_ns``: moving until judged on target."""
         self.move_id, self.target = str(move_id), dict(target_um)
         self.started_ns, self.settle_s, self.state = int(started_ns), None, MOVING
+        self.last = None
         for a in self.target:
             self.axes.setdefault(a, _Axis(self.n_filter)).restart()
 
