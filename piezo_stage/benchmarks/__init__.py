@@ -3,7 +3,7 @@ invocation (never timed unit tests); ``piezo-stage bench <what>`` runs one.
 
 One module per benchmark (plant, identify, loop, liveview, gap, realtime, learning,
 faults, signals, experiments, outside, refit, setup, lifecycle, settle, accuracy,
-doubles, scan) and the
+doubles, scan, startup) and the
 equipment they share:
 ``procs`` (helper processes, CPU ticks, the progress of repeated runs), ``probe`` (an
 outside node),
@@ -35,6 +35,7 @@ BENCHMARKS = {
     "accuracy": ("accuracy", "bench_accuracy", ()),
     "doubles": ("doubles", "bench_doubles", ()),
     "scan": ("scan", "bench_scan", ()),
+    "startup": ("startup", "bench_startup", ("runs",)),
 }
 
 
