@@ -190,6 +190,32 @@ def test_the_demo_picture_shows_the_whole_run(tmp_path, monkeypatch):
     assert "the whole run" in ax[0].get_title()
 
 
+def test_a_figure_drawn_apart_is_the_figure_drawn_here_and_a_lost_worker_loses_none(
+        tmp_path):
+    """identify's figure comes from a worker process that imported matplotlib while the
+    fit ran (io/plots.FigureWorker): the same PNG as drawn in the command's own process;
+    a worker that died, or was asked for no figure, still leaves the figure drawn (here)
+    and no process behind."""
+    from piezo_stage.io import plots
+    t = np.arange(400) / 100.0
+    v = 75 - 75 * np.cos(2 * np.pi * 0.5 * t)
+    curves = {"x": (v, 0.5 * v + 0.01 * np.sin(7 * t), 0.5 * v)}
+    here = plots.identification_png(str(tmp_path / "here.png"), t, curves)
+    with plots.FigureWorker() as w:
+        proc = w.proc
+        apart = w.draw("identification_png", str(tmp_path / "apart.png"), t, curves)
+    assert apart == str(tmp_path / "apart.png") and proc.wait(10) == 0
+    assert open(apart, "rb").read() == open(here, "rb").read()
+    with plots.FigureWorker() as w:  # its process gone: drawn here
+        w.proc.kill()
+        w.proc.wait()
+        lost = w.draw("identification_png", str(tmp_path / "lost.png"), t, curves)
+    assert open(lost, "rb").read() == open(here, "rb").read()
+    with plots.FigureWorker() as w:  # never asked: it ends with its stdin
+        proc = w.proc
+    assert proc.wait(10) == 0 and proc.stdout.closed is not None
+
+
 def test_experiment_rate_is_checked_before_anything_runs(tmp_path):
     """`experiment scan --rate`: a rate that does not hold every scan trajectory's period
     in whole samples is a one-line data error (exit 2) before any bag folder is made;
@@ -314,6 +340,8 @@ def test_identify_plots_the_record_it_validated_on(tmp_path, monkeypatch):
     fit, hold = _records(tmp_path)
     figs = []
     monkeypatch.setattr(plots, "_save", lambda fig, path: figs.append(fig) or path)
+    # drawn in this process (the worker's figure is the same PNG: the test above)
+    monkeypatch.setattr(plots.FigureWorker, "__init__", lambda w: setattr(w, "proc", None))
     assert main(["identify", str(fit), "--out", str(tmp_path / "m.yaml"), "--validate",
                  str(hold), "--plot", str(tmp_path / "id.png")]) == 0
     (fig,) = figs

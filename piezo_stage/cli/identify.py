@@ -58,6 +58,17 @@ def add_arguments(s):
 
 
 def main(args):
+    import os
+    from contextlib import nullcontext
+
+    from piezo_stage.io.plots import FigureWorker
+    plot = args.plot or (os.path.splitext(args.out)[0] + ".png" if args.out else None)
+    # the figure's process imports matplotlib on the other core while the fit runs
+    with FigureWorker() if plot else nullcontext() as figures:
+        return _identify(args, plot, figures)
+
+
+def _identify(args, plot, figures):
     import json
     import os
 
@@ -150,10 +161,8 @@ def main(args):
     if args.json:
         with atomic_write(args.json) as fh:
             json.dump(report, fh, indent=1)
-    plot = args.plot or (os.path.splitext(args.out)[0] + ".png" if args.out else None)
     if plot:
         from piezo_stage.core.estimation.identify.api import predict_axis
-        from piezo_stage.io.plots import identification_png
         curves = {a: predict_axis(r, rec) for a, r in results.items()}
         curves.update({a: (rec.v[a], rec.w[a], p.predict(rec, a)) for a, p in pis.items()})
         checked = None
@@ -162,7 +171,7 @@ def main(args):
             vcurves.update({a: (val.v[a], val.w[a], p.predict(val, a))
                             for a, p in pis.items() if a in val.w})
             checked = (val.t, vcurves)
-        print(f"plot: {identification_png(plot, rec.t, curves, checked)}")
+        print(f"plot: {figures.draw('identification_png', plot, rec.t, curves, checked)}")
     return 0
 
 

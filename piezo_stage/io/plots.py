@@ -8,6 +8,90 @@ import numpy as np
 
 from piezo_stage.io.files import atomic_write
 
+# the figure functions a ``FigureWorker`` draws (by name: the request crosses a pipe)
+DRAWN_APART = ("identification_png", "tracking_png")
+
+
+class FigureWorker:
+    """A figure drawn in a process of its own that imports matplotlib (0.7 s of a
+    2-core host's CPU) while the command still computes what it will draw, on the other
+    core: `identify` on a short record spent half its time on its figure.
+
+    ``FigureWorker()`` starts the process (``python -m piezo_stage.io.plots``);
+    ``draw(name, *args)`` hands it the figure function's arguments (pickled, over its
+    stdin) and waits for the path it wrote; where the process cannot (it did not start,
+    died, or the figure raised there), the figure is drawn here instead, so the worker
+    changes when a figure is drawn, never whether. ``close()`` ends a worker never asked
+    to draw (a command that failed first): it exits at the end of its stdin."""
+
+    def __init__(self) -> None:
+        import subprocess
+        import sys
+        try:
+            self.proc: object | None = subprocess.Popen(
+                [sys.executable, "-m", "piezo_stage.io.plots"], stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        except OSError:
+            self.proc = None
+
+    def draw(self, name: str, *args):
+        """``name``'s figure (one of DRAWN_APART) from ``args`` -> its path."""
+        import pickle
+        import subprocess
+        proc = self.proc
+        self.proc = None
+        if isinstance(proc, subprocess.Popen):
+            try:
+                out, _ = proc.communicate(pickle.dumps((name, args)), timeout=300)
+                ok, got = pickle.loads(out)
+                if ok:
+                    return got
+            except Exception:  # noqa: BLE001 - drawn here instead, below
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+        return globals()[name](*args)
+
+    def close(self) -> None:
+        import subprocess
+        proc, self.proc = self.proc, None
+        if isinstance(proc, subprocess.Popen):
+            try:
+                proc.communicate(b"", timeout=10)
+            except Exception:  # noqa: BLE001 - it is ended either way
+                proc.kill()
+                proc.wait()
+
+    def __enter__(self) -> FigureWorker:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _serve() -> int:
+    """The worker's side: matplotlib imported first, then one request from stdin (none:
+    exit), its answer (True, path) or (False, why) on stdout. A stop signal is its
+    command's: the worker ignores it and ends with its stdin."""
+    import pickle
+    import signal
+    import sys
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _pyplot()
+    data = sys.stdin.buffer.read()
+    if not data:
+        return 0
+    try:
+        name, args = pickle.loads(data)
+        if name not in DRAWN_APART:
+            raise ValueError(f"{name!r}: not a figure the worker draws")
+        answer = (True, globals()[name](*args))
+    except Exception as e:  # noqa: BLE001 - said to the command, which draws it itself
+        answer = (False, f"{type(e).__name__}: {e}")
+    sys.stdout.buffer.write(pickle.dumps(answer))
+    return 0
+
 
 def _pyplot():
     import matplotlib
@@ -238,3 +322,7 @@ def refit_png(path, rows: list):
             ax[i, j].set_xlabel(f"run started (UTC{day})")
     fig.tight_layout()
     return _save(fig, path)
+
+
+if __name__ == "__main__":
+    raise SystemExit(_serve())
