@@ -86,6 +86,8 @@ class LeanNode:
       still in the message info).
     - ``lean_batch_s``: a node off the loop's critical path (the recorder, the live view)
       waits that long between passes and takes what arrived in one go.
+    - ``USES_KERNELS``: building the node loads compiled kernels (the simulated
+      stage, the model's inverse): numba's set-up is done before the start gate.
     - ``DEFERS_STOPS``: the node is built whole though a stop comes meanwhile (the
       recorder: its bag open and its readers acknowledging); the stop ends its first pass.
     - ``close()``: the node's own teardown (the bag, the hardware), before it is
@@ -93,6 +95,7 @@ class LeanNode:
 
     TICKS: ClassVar[bool] = False
     DEFERS_STOPS: ClassVar[bool] = False
+    USES_KERNELS: ClassVar[bool] = False
     lean_deadline: float | None = None
     lean_take_at_tick: bool = False
     lean_batch_s: float = 0.0
@@ -304,17 +307,22 @@ def run_node(factory, args=None) -> int:
     Returns the exit code: 0 when the node ended by itself, 128 + the signal's number
     when a signal stopped it (an ended run, not a success: the launcher accepts it only
     from the nodes it signalled itself), 1 when it could not run (one line on stderr)."""
-    return run_nodes([factory], args)
+    return run_nodes([factory], args, warm_kernels=isinstance(factory, type) and issubclass(
+        factory, LeanNode) and factory.USES_KERNELS)
 
 
-def run_nodes(factories, args=None) -> int:
+def run_nodes(factories, args=None, warm_kernels: bool = False) -> int:
     """``run_node`` for several nodes in one process on one executor (the loop
     composed: ``loop_container``): built in order, spun together, closed and
-    destroyed in reverse order; one exit code, as ``run_node``'s."""
+    destroyed in reverse order; one exit code, as ``run_node``'s. ``warm_kernels``:
+    a node builds compiled kernels (``USES_KERNELS``): numba's one-time set-up is paid
+    while the process waits at the launcher's start gate, not after it."""
     nodes: list = []
     node, code = None, 0
     try:
         signals.set_phase("building")
+        if warm_kernels:
+            prepare_kernels()
         await_start_gate()
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         for factory in factories:
@@ -363,6 +371,16 @@ def run_nodes(factories, args=None) -> int:
                      f"{signal.Signals(signum).name} {where}"
                      f"{': ' + did if did else ''}\n")
     return 128 + signum
+
+
+def prepare_kernels() -> None:
+    """numba's one-time set-up of its CPU target (its typing and lowering registries:
+    about 0.5 s of a 2-core host's CPU), which the first compiled kernel a process loads
+    from the cache would pay otherwise: done before the node joins the graph, while the
+    launcher looks for a set already running, it leaves the set's start-up."""
+    from numba.core.registry import cpu_target
+    cpu_target.typing_context.refresh()
+    cpu_target.target_context.refresh()
 
 
 START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # launch/launcher.py's

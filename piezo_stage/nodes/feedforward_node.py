@@ -56,6 +56,8 @@ from piezo_stage_msgs_adapters import (
 
 
 class Feedforward(LeanNode, Node):
+    USES_KERNELS = True  # the model's inverse (LeanNode)
+
     def __init__(self, **node_options):
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("feedforward", **node_options)

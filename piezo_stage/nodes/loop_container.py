@@ -23,8 +23,9 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 # isort: split
 
 import sys
+from typing import Any
 
-from piezo_stage.nodes._executor import run_nodes
+from piezo_stage.nodes._executor import LeanNode, run_nodes
 
 # the nodes that may be composed, in the order they are built (the driver last, as
 # the launcher starts it last: its first sample finds the others listening)
@@ -60,18 +61,21 @@ def parse(argv: list[str]) -> tuple[list[str], dict[str, list[str]], list[str]]:
     return names, params, ros
 
 
-def factory(name: str, params: list[str]):
-    """A builder of node ``name`` with its own ``-p`` arguments over the shared ones."""
-    cls: type
+def node_class(name: str) -> type[LeanNode]:
+    """The class of the composable node ``name``."""
     if name == "stage_driver":
         from piezo_stage.nodes.stage_driver_node import StageDriver
-        cls = StageDriver
-    elif name == "feedforward":
+        return StageDriver
+    if name == "feedforward":
         from piezo_stage.nodes.feedforward_node import Feedforward
-        cls = Feedforward
-    else:
-        from piezo_stage.nodes.controller_node import Controller
-        cls = Controller
+        return Feedforward
+    from piezo_stage.nodes.controller_node import Controller
+    return Controller
+
+
+def factory(name: str, params: list[str]):
+    """A builder of node ``name`` with its own ``-p`` arguments over the shared ones."""
+    cls: Any = node_class(name)  # a LeanNode that is an rclpy node: node options too
     cli = ["--ros-args"] + [x for p in params for x in ("-p", p)] if params else []
 
     def build():
@@ -89,7 +93,8 @@ def main(argv=None) -> int:
         sys.stderr.write(f"loop_container: {e}\n")
         return 2
     return run_nodes([factory(n, params.get(n, [])) for n in names],
-                     [sys.argv[0]] + ros)
+                     [sys.argv[0]] + ros,
+                     warm_kernels=any(node_class(n).USES_KERNELS for n in names))
 
 
 if __name__ == "__main__":

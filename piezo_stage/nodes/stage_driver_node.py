@@ -84,6 +84,7 @@ SETTLES_TO = {"configuring": "inactive", "activating": "active", "deactivating":
 
 class StageDriver(LeanNode, LifecycleNode):
     TICKS = True  # real time: the sample clock is its tick (LeanNode)
+    USES_KERNELS = True  # the simulated stage's (LeanNode)
 
     def __init__(self, **node_options):
         # node_options: a node of a composed loop gets its own arguments (loop_container)
