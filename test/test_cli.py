@@ -211,9 +211,12 @@ def test_a_figure_drawn_apart_is_the_figure_drawn_here_and_a_lost_worker_loses_n
         w.proc.wait()
         lost = w.draw("identification_png", str(tmp_path / "lost.png"), t, curves)
     assert open(lost, "rb").read() == open(here, "rb").read()
-    with plots.FigureWorker() as w:  # never asked: it ends with its stdin
+    with plots.FigureWorker() as w:  # never asked (the command failed first): ended
         proc = w.proc
-    assert proc.wait(10) == 0 and proc.stdout.closed is not None
+    assert proc.poll() is not None
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.io.plots"], input=b"",
+                       capture_output=True, timeout=60)
+    assert r.returncode == 0 and r.stdout == b""  # no request: nothing drawn, exit 0
 
 
 def test_experiment_rate_is_checked_before_anything_runs(tmp_path):

@@ -60,24 +60,25 @@ def _records(env: dict, tmp: str) -> dict[str, str]:
             "the README's excitation": "fit.csv"}
 
 
-def _to_armed(argv: list[str], env: dict, cwd: str) -> float | None:
-    """Seconds from the command's start to the driver's armed line (None: it never
-    armed; the command is then ended)."""
+def _to_armed(argv: list[str], env: dict, cwd: str) -> tuple[float | None, str]:
+    """(seconds from the command's start to the driver's armed line, or None where it
+    never armed; the command's last line on stderr)."""
     t0 = time.perf_counter()
     p = subprocess.Popen(argv, env=env, cwd=cwd, stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, text=True)
-    armed = None
+    armed, last = None, ""
     try:
         assert p.stderr is not None
         for line in p.stderr:
             if armed is None and ARMED in line:
                 armed = time.perf_counter() - t0
+            last = line.strip() or last
         p.wait(timeout=120)
     finally:
         if p.poll() is None:
             p.kill()
             p.wait()
-    return armed
+    return armed, last
 
 
 def _stats(xs: list[float]) -> tuple[str, str, str]:
@@ -133,10 +134,14 @@ def bench_startup(rep, runs: int = 3) -> int:
         else:
             rep.note(f"real time left out: this host holds no rate with margin ({why})")
         armed_rows = []
+        env = own_domain_env()  # apart from the capacity run's nodes, still leaving
         for label, argv in sets:
-            xs = [_to_armed(argv, env, tmp) for _ in progress_runs(
+            tries = [_to_armed(argv, env, tmp) for _ in progress_runs(
                 range(runs), f"bench startup: launch to armed, {label}")]
-            ok = [x for x in xs if x is not None]
+            ok = [x for x, _ in tries if x is not None]
+            for x, last in tries:
+                if x is None:
+                    rep.note(f"{label}: a launch never armed; it ended with: {last}")
             if not ok:
                 armed_rows.append((label, "-", "-", "-", f"never armed in {runs}"))
                 rep.target(f"launch to armed, {label}: <= 3 s (never armed)", False)

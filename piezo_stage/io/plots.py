@@ -22,7 +22,7 @@ class FigureWorker:
     stdin) and waits for the path it wrote; where the process cannot (it did not start,
     died, or the figure raised there), the figure is drawn here instead, so the worker
     changes when a figure is drawn, never whether. ``close()`` ends a worker never asked
-    to draw (a command that failed first): it exits at the end of its stdin."""
+    to draw (a command that failed first) at once: it has written nothing."""
 
     def __init__(self) -> None:
         import subprocess
@@ -55,12 +55,9 @@ class FigureWorker:
     def close(self) -> None:
         import subprocess
         proc, self.proc = self.proc, None
-        if isinstance(proc, subprocess.Popen):
-            try:
-                proc.communicate(b"", timeout=10)
-            except Exception:  # noqa: BLE001 - it is ended either way
-                proc.kill()
-                proc.wait()
+        if isinstance(proc, subprocess.Popen):  # never asked: it has written nothing
+            proc.kill()
+            proc.communicate()
 
     def __enter__(self) -> FigureWorker:
         return self
