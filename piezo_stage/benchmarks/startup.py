@@ -62,23 +62,25 @@ def _records(env: dict, tmp: str) -> dict[str, str]:
 
 def _to_armed(argv: list[str], env: dict, cwd: str) -> tuple[float | None, str]:
     """(seconds from the command's start to the driver's armed line, or None where it
-    never armed; the command's last line on stderr)."""
+    never armed; the command's exit code and the driver's states on stderr, in
+    words)."""
     t0 = time.perf_counter()
     p = subprocess.Popen(argv, env=env, cwd=cwd, stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, text=True)
-    armed, last = None, ""
+    armed, states = None, []
     try:
         assert p.stderr is not None
         for line in p.stderr:
             if armed is None and ARMED in line:
                 armed = time.perf_counter() - t0
-            last = line.strip() or last
+            if "stage_driver]: " in line:
+                states.append(line.split("stage_driver]: ", 1)[1].split(":", 1)[0])
         p.wait(timeout=120)
     finally:
         if p.poll() is None:
             p.kill()
             p.wait()
-    return armed, last
+    return armed, f"exit {p.returncode}, the driver {' -> '.join(states) or 'silent'}"
 
 
 def _stats(xs: list[float]) -> tuple[str, str, str]:
@@ -141,7 +143,7 @@ def bench_startup(rep, runs: int = 3) -> int:
             ok = [x for x, _ in tries if x is not None]
             for x, last in tries:
                 if x is None:
-                    rep.note(f"{label}: a launch never armed; it ended with: {last}")
+                    rep.note(f"{label}: a launch never armed ({last})")
             if not ok:
                 armed_rows.append((label, "-", "-", "-", f"never armed in {runs}"))
                 rep.target(f"launch to armed, {label}: <= 3 s (never armed)", False)
