@@ -28,6 +28,8 @@ from piezo_stage_msgs_adapters import joint_state_to_um, point_cdr
 
 
 class Gap(LeanNode, Node):
+    USES_KERNELS = True  # the model's twin (LeanNode)
+
     def __init__(self):
         super().__init__("gap")
         p = declare_schema(self, GAP)

@@ -37,6 +37,8 @@ BATCH_S = 0.05
 
 
 class Identifier(LeanNode, Node):
+    USES_KERNELS = True  # the identification's (LeanNode)
+
     def __init__(self):
         super().__init__("identifier")
         # the live ones as attributes the next fit reads
