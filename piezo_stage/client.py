@@ -205,6 +205,15 @@ class Stage:
             self.ex.spin_once(timeout_sec=min(0.01, left))
         return True
 
+    def _resend(self, pub, msg, answered, t_end: float) -> None:
+        """``msg`` (published once already) sent again each RESEND_S until ``answered()``
+        or ``t_end`` (monotonic [s]): a reader that had not yet matched this writer
+        dropped what came before it; the stage takes a repeat as the same request."""
+        while not self._wait(answered, min(RESEND_S, max(0.0, t_end - time.monotonic()))):
+            if time.monotonic() >= t_end:
+                return
+            pub.publish(msg)
+
     def _check_driver(self) -> None:
         """StageFault when the driver faulted or applies no commands."""
         for _ in range(10):  # what came in meanwhile
@@ -290,14 +299,7 @@ class Stage:
             d = self.driver
             return (s is not None and s.state in (ON_TARGET, REFUSED)) or (
                 d is not None and d.state == "faulted")
-        # unanswered: sent again each RESEND_S (a reader that had not yet matched this
-        # writer drops what came before; the stage takes a repeat as the same move)
-        def answered():
-            return over() or move_id in self.targets
-        while not self._wait(answered, min(RESEND_S, max(0.0, t_end - time.monotonic()))):
-            if time.monotonic() >= t_end:
-                break
-            self.move_pub.publish(msg)
+        self._resend(self.move_pub, msg, lambda: over() or move_id in self.targets, t_end)
         arrived = self._wait(over, max(0.0, t_end - time.monotonic()))
         self._check_driver()
         s = self.targets.get(move_id)
@@ -353,12 +355,7 @@ class Stage:
         def accepted():
             return self.accepted > n_acc and self.last_frame == msg.header.frame_id
         t_end = t0 + min(limit, 30.0)
-        # unaccepted: sent again each RESEND_S (as a move; the feedforward takes the
-        # trajectory it took last, delivered again, as that one)
-        while not self._wait(accepted, min(RESEND_S, max(0.0, t_end - time.monotonic()))):
-            if time.monotonic() >= t_end:
-                break
-            self.traj_pub.publish(msg)
+        self._resend(self.traj_pub, msg, accepted, t_end)  # (taken twice: as one)
         if not accepted():
             raise StageError(f"{self.ns}: the trajectory was not accepted (see the "
                              "feedforward's log)")

@@ -27,8 +27,9 @@ class FigureWorker:
     def __init__(self) -> None:
         import subprocess
         import sys
+        self.proc: subprocess.Popen | None
         try:
-            self.proc: object | None = subprocess.Popen(
+            self.proc = subprocess.Popen(
                 [sys.executable, "-m", "piezo_stage.io.plots"], stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         except OSError:
@@ -37,10 +38,9 @@ class FigureWorker:
     def draw(self, name: str, *args):
         """``name``'s figure (one of DRAWN_APART) from ``args`` -> its path."""
         import pickle
-        import subprocess
         proc = self.proc
         self.proc = None
-        if isinstance(proc, subprocess.Popen):
+        if proc is not None:
             try:
                 out, _ = proc.communicate(pickle.dumps((name, args)), timeout=300)
                 ok, got = pickle.loads(out)
@@ -53,9 +53,8 @@ class FigureWorker:
         return globals()[name](*args)
 
     def close(self) -> None:
-        import subprocess
         proc, self.proc = self.proc, None
-        if isinstance(proc, subprocess.Popen):  # never asked: it has written nothing
+        if proc is not None:  # never asked: it has written nothing
             proc.kill()
             proc.communicate()
 
