@@ -10,6 +10,10 @@ node's per-sample subscriptions only (the ``LeanLoop`` callback group, which the
 class never executes), takes and dispatches what arrived, calls the node's real-time
 tick when it is due, and gives the base class's machinery (timers, services,
 parameters, other topics) one callback every ``SLOW_PERIOD_S``.
+
+Composed nodes (several spun by one executor) pass their per-sample messages to each
+other in the process (``LocalLinks``: rclcpp's intra-process communication, which
+rclpy lacks); the middleware still carries them to every other process.
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ import gc
 import signal
 import sys
 import time
+import weakref
+from collections import deque
 from contextlib import ExitStack
 from typing import ClassVar, Protocol, runtime_checkable
 
@@ -67,6 +73,115 @@ def hot_subscription(node, msg_type, topic, callback, qos, raw=False, with_info=
     it also gets the middleware's message info (``received_timestamp`` [ns], ...)."""
     return node.create_subscription(msg_type, topic, callback, qos,
                                     callback_group=LeanLoop(with_info), raw=raw)
+
+
+class LocalLinks:
+    """The per-sample topics between composed nodes, delivered in the process (rclcpp's
+    intra-process communication, which rclpy does not have).
+
+    A per-sample subscription (``hot_subscription``) of one composed node whose topic
+    another composed node publishes (same name and type, compatible QoS, volatile: a
+    latched topic keeps the middleware, which replays it to a late reader) is taken off
+    the middleware and linked to that publisher: each message the publisher sends
+    still goes to the middleware's readers (the recorder, other processes) and is also
+    queued here, and the executor hands it to the subscriber's callback in publish
+    order, as the bytes or the message object that was published (converted where the
+    subscriber asked for the other form). On the middleware a message between two
+    nodes of one process is a publish into the reader's history, a wake of the wait set
+    and a take: in a real-time set of 1 kHz, about a tenth of the composed process's
+    CPU; in lockstep every hop of a sample.
+
+    What a linked subscriber no longer hears is another process publishing on its
+    topic: the loop's links (joint_states, reference, command) have one publisher each
+    in a set, and a set whose node is replaced from outside is not composed (the
+    launcher composes only where every node of the composition is its own).
+    ``subscriber_count`` and ``local_readers`` count a linked subscriber where the
+    middleware's counts no longer do (gates, the driver's missing-link check)."""
+
+    def __init__(self):
+        self.queue: deque = deque()  # (reader, message) in publish order
+
+    def link(self, nodes) -> int:
+        """Link every per-sample subscription of ``nodes`` that another of them
+        publishes; the number linked."""
+        from rclpy.qos import DurabilityPolicy, QoSCompatibility, qos_check_compatible
+        pubs = [(n, p) for n in nodes for p in n.publishers]
+        linked = 0
+        for node in nodes:
+            for sub in list(node.subscriptions):
+                if not isinstance(sub.callback_group, LeanLoop) or \
+                        sub.qos_profile.durability != DurabilityPolicy.VOLATILE:
+                    continue
+                peers = [p for n, p in pubs if n is not node
+                         and p.topic_name == sub.topic_name and p.msg_type is sub.msg_type
+                         and qos_check_compatible(p.qos_profile, sub.qos_profile)[0]
+                         != QoSCompatibility.ERROR]
+                if not peers:
+                    continue
+                reader = LocalReader(sub)
+                for p in peers:
+                    self._attach(p, reader)
+                node.destroy_subscription(sub)
+                linked += 1
+        return linked
+
+    def _attach(self, pub, reader: LocalReader) -> None:
+        readers = LOCAL_READERS.setdefault(pub, [])
+        if not readers:  # the publisher's own publish, then the queue
+            send, queue = pub.publish, self.queue
+
+            def publish(msg):
+                send(msg)
+                for r in readers:
+                    queue.append((r, msg))
+            pub.publish = publish
+        readers.append(reader)
+
+    def deliver(self) -> int:
+        """Hand over what was queued before this call (what those callbacks publish
+        waits for the next pass, after the middleware's messages have been taken: a
+        driver's state announcement still comes before the data that follows it);
+        the number handed over."""
+        n = len(self.queue)
+        for _ in range(n):
+            reader, msg = self.queue.popleft()
+            reader.take(msg)
+        return n
+
+
+class LocalReader:
+    """A linked subscription's callback and the form it takes its messages in."""
+
+    def __init__(self, sub):
+        self.topic_name = sub.topic_name
+        self.msg_type, self.raw, self.callback = sub.msg_type, sub.raw, sub.callback
+        self.with_info = sub.callback_group.with_info
+
+    def take(self, msg) -> None:
+        from rclpy.serialization import deserialize_message, serialize_message
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            msg = bytes(msg) if self.raw else deserialize_message(bytes(msg), self.msg_type)
+        elif self.raw:
+            msg = serialize_message(msg)
+        if self.with_info:
+            now = time.time_ns()  # the middleware's stamps are the system clock's
+            self.callback(msg, {"source_timestamp": now, "received_timestamp": now})
+        else:
+            self.callback(msg)
+
+
+# publisher -> the composed subscribers linked to it (LocalLinks)
+LOCAL_READERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def subscriber_count(pub) -> int:
+    """The publisher's matched subscriptions, its linked ones in the process too."""
+    return pub.get_subscription_count() + len(LOCAL_READERS.get(pub, ()))
+
+
+def local_readers(topic_name: str) -> int:
+    """Linked subscriptions of this process on a topic (its fully qualified name)."""
+    return sum(r.topic_name == topic_name for rs in LOCAL_READERS.values() for r in rs)
 
 
 class LeanNode:
@@ -144,12 +259,15 @@ class LeanExecutor(Executor):
     stall.
 
     Several nodes (a list; the first that ticks is the clock): their per-sample
-    subscriptions share one wait set, so a sample the driver publishes is taken by the
-    feedforward in the same thread, its reference by the controller, its command by
-    the driver, with no process woken between them. Each node's subscriptions are taken
-    in the order it made them (its driver's ``state`` before its data, as alone). A
-    composed set wakes for every message (``lean_take_at_tick`` is a lone driver's)
-    and batches nothing (``lean_batch_s`` nodes run alone)."""
+    subscriptions share one wait set, and the topics between them are linked in the
+    process (``LocalLinks``), so a sample the driver publishes is handed to the
+    feedforward in the same thread, its reference to the controller, its command to
+    the driver, with no process woken and no middleware between them. Each pass takes
+    what the middleware brought, each node's subscriptions in the order it made them
+    (its driver's ``state`` before its data, as alone), then what the composed nodes
+    sent each other before it. A composed set wakes for every message
+    (``lean_take_at_tick`` is a lone driver's) and batches nothing (``lean_batch_s``
+    nodes run alone)."""
 
     def __init__(self, node, *, context=None):
         nodes = list(node) if isinstance(node, (list, tuple)) else [node]
@@ -161,6 +279,9 @@ class LeanExecutor(Executor):
         self.node = next((h for h in map(hooks, nodes) if h.TICKS), hooks(nodes[0]))
         self.ticking = self.node.TICKS
         self.alone = len(nodes) == 1
+        self.local = LocalLinks()
+        if not self.alone:
+            self.local.link(nodes)
         self._n_subs = -1
         self._hot: list = []
         self._stack = ExitStack()
@@ -227,7 +348,9 @@ class LeanExecutor(Executor):
         deadline = node.lean_deadline if self.ticking else None
         if deadline is not None:
             timeout = min(timeout, max(0.0, deadline - time.monotonic()))
-        if deadline is not None and self.alone and node.lean_take_at_tick:
+        if self.local.queue:
+            pass  # what the composed nodes sent each other is due now: no wait
+        elif deadline is not None and self.alone and node.lean_take_at_tick:
             if timeout > 0:
                 time.sleep(timeout)
         elif self._ws is not None:
@@ -238,6 +361,7 @@ class LeanExecutor(Executor):
         elif timeout > 0:
             time.sleep(timeout)
         self.take_all()
+        self.local.deliver()
         now = time.monotonic()
         ticked = deadline is not None and now >= deadline
         if ticked:
@@ -277,6 +401,7 @@ class LeanExecutor(Executor):
                 if self._n_subs < 0:  # stopped before its first pass (a stop noted
                     self._rebuild(self._subscriptions())  # while it was built)
                 self.take_all(limit=None)
+                self.local.deliver()
             except Exception:  # noqa: BLE001 - the middleware may be gone already
                 pass
         finally:

@@ -8,7 +8,7 @@ import time
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.nodes._common import QOS_DIAG, QOS_EVENTS, steady_timer
-from piezo_stage.nodes._executor import hot_subscription
+from piezo_stage.nodes._executor import hot_subscription, local_readers, subscriber_count
 from piezo_stage_msgs_adapters import diagnostic_array
 
 
@@ -95,8 +95,8 @@ def missing_links(node) -> str:
     ns = node.get_namespace().rstrip("/")
     missing = [f"no {who}: nothing {verb} {ns}/{topic}" for who, verb, topic, n in (
         ("controller", "publishes", "command", node.count_publishers(f"{ns}/command")),
-        ("feedforward", "subscribes to", "joint_states",
-         node.count_subscribers(f"{ns}/joint_states")),
+        ("feedforward", "subscribes to", "joint_states",  # (composed with it: linked)
+         node.count_subscribers(f"{ns}/joint_states") + local_readers(f"{ns}/joint_states")),
         ("feedforward", "publishes", "reference", node.count_publishers(f"{ns}/reference")),
     ) if n == 0]
     return "; ".join(missing)
@@ -166,7 +166,7 @@ class Gate:
             self._timer = steady_timer(node, 0.01, self._poll)
 
     def _poll(self):
-        if not self.open and all(p.get_subscription_count() >= n for p, n in self.needs):
+        if not self.open and all(subscriber_count(p) >= n for p, n in self.needs):
             self.open = True
             self._timer.cancel()
             self._node.destroy_timer(self._timer)  # out of the executor's wait set

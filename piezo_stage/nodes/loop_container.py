@@ -5,8 +5,10 @@ the controller, still three nodes on the same topics (ROS's composition), spun o
 Apart, each sample crosses three processes: the driver's joint state wakes the
 feedforward's process, its reference the controller's, its command the driver's, and on
 two cores those wake-ups, not the work, set the pace. Composed, one thread takes each
-message as it is published, so a lockstep set runs several times the samples a
-second and a real-time set has that much margin on the same host (docs/realtime.md).
+message as it is published, handed over in the process (``_executor.LocalLinks``: no
+middleware between the composed nodes; the recorder still gets every message), so a
+lockstep set runs about twice the samples a second and a real-time set has that much
+more margin on the same host (docs/realtime.md).
 
 Run as the launcher runs it::
 

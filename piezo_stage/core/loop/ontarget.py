@@ -164,14 +164,21 @@ class OnTargetJudge:
         self.started_ns, self.settle_s, self.state = int(started_ns), None, MOVING
         self.last = None
         for a in self.target:
-            self.axes.setdefault(a, _Axis(self.n_filter)).restart()
+            self._axis(a).restart()
+
+    def _axis(self, a: str) -> _Axis:
+        """Axis ``a``'s state, made on first use (not one made and dropped a sample)."""
+        ax = self.axes.get(a)
+        if ax is None:
+            ax = self.axes[a] = _Axis(self.n_filter)
+        return ax
 
     def sample(self, ns: int, w: dict) -> TargetState | None:
         """The measured sample ``w`` ({axis: um}) stamped ``ns``: the move's state when
         it changed (on target, or moving again), else None. No move: None."""
         quiet = self.move_id is None or self.state == ON_TARGET
         for a in w:
-            self.axes.setdefault(a, _Axis(self.n_filter)).measured(w[a], quiet)
+            self._axis(a).measured(w[a], quiet)
         if self.move_id is None or ns < self.started_ns:
             return None
         errors = {}

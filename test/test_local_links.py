@@ -1,0 +1,110 @@
+"""Composed nodes hand each other their per-sample messages in the process
+(nodes/_executor.py LocalLinks, rclcpp's intra-process communication): in publish
+order, in the form each subscriber asked for, still on the middleware for every other
+process, and counted by the gates; a latched topic stays on the middleware."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+LINKS_PROBE = r"""
+import json, time, rclpy
+from rclpy.node import Node
+from geometry_msgs.msg import Vector3Stamped
+from std_msgs.msg import String
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS
+from piezo_stage.nodes._executor import (LeanExecutor, LeanNode, hot_subscription,
+                                         local_readers, subscriber_count)
+from piezo_stage_msgs_adapters import voltage_cdr
+
+rclpy.init()
+
+
+class Sender(LeanNode, Node):
+    def __init__(self):
+        super().__init__("sender", namespace="/links")
+        self.cmd = self.create_publisher(Vector3Stamped, "cmd", QOS_DATA)
+        self.obj = self.create_publisher(String, "obj", QOS_DATA)
+        self.ev = self.create_publisher(String, "ev", QOS_EVENTS)
+        self.back = []
+        hot_subscription(self, String, "back", lambda m: self.back.append(m.data), QOS_DATA)
+
+
+class Taker(LeanNode, Node):
+    def __init__(self):
+        super().__init__("taker", namespace="/links")
+        self.cmd, self.obj, self.ev, self.info = [], [], [], []
+        self.back = self.create_publisher(String, "back", QOS_DATA)
+        hot_subscription(self, Vector3Stamped, "cmd", self.on_cmd, QOS_DATA, raw=True,
+                         with_info=True)
+        hot_subscription(self, String, "obj", self.on_obj, QOS_DATA, raw=True)
+        hot_subscription(self, String, "ev", lambda m: self.ev.append(m.data), QOS_EVENTS)
+
+    def on_cmd(self, data, info):
+        self.cmd.append(data)
+        self.info.append(sorted(info))
+        self.back.publish(String(data=str(len(self.cmd))))  # a reply, for the next pass
+
+    def on_obj(self, data):
+        self.obj.append(data)
+
+
+a, b = Sender(), Taker()
+# another process's view: a participant of its own (another context)
+ctx = rclpy.Context()
+rclpy.init(context=ctx)
+outside = rclpy.create_node("outside", namespace="/links", context=ctx)
+heard = []
+outside.create_subscription(Vector3Stamped, "cmd", lambda m: heard.append(m), QOS_DATA,
+                            raw=True)
+ex = LeanExecutor([a, b])
+topics = sorted(s.topic_name for s in b.subscriptions)
+out = {"taker_on_middleware": topics, "local_cmd": local_readers("/links/cmd"),
+       "local_ev": local_readers("/links/ev")}
+end = time.monotonic() + 20
+while a.cmd.get_subscription_count() < 1 and time.monotonic() < end:
+    rclpy.spin_once(outside, timeout_sec=0.05)
+out["counted"] = subscriber_count(a.cmd)
+sent = [voltage_cdr(10**9 + k, {"x": 0.5 * k, "y": -k}) for k in range(50)]
+a.ev.publish(String(data="announced"))
+for m in sent:
+    a.cmd.publish(m)
+a.obj.publish(String(data="object"))
+passes = 0
+while (len(b.cmd) < 50 or len(a.back) < 50 or not b.ev) and passes < 200:
+    ex.spin_once(0.05)
+    passes += 1
+end = time.monotonic() + 10
+while len(heard) < 50 and time.monotonic() < end:
+    rclpy.spin_once(outside, timeout_sec=0.05)
+out.update(in_order=b.cmd == sent, n_cmd=len(b.cmd), obj=[bytes(x).hex() for x in b.obj],
+           info=b.info[0] if b.info else [], ev=b.ev, back=a.back[:3] + a.back[-1:],
+           outside=len(heard), outside_same=heard == sent)
+from rclpy.serialization import serialize_message
+out["obj_want"] = serialize_message(String(data="object")).hex()
+print(json.dumps(out))
+"""
+
+
+def test_composed_nodes_pass_messages_in_the_process_and_to_the_middleware(ros_env):
+    pytest.importorskip("rclpy")
+    r = subprocess.run([sys.executable, "-c", LINKS_PROBE], env=ros_env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    # the taker's per-sample volatile topics left the middleware; the latched one stayed
+    assert out["taker_on_middleware"] == ["/links/ev"], out
+    assert out["local_cmd"] == 1 and out["local_ev"] == 0, out
+    # the gate counts the linked subscriber beside the outside one
+    assert out["counted"] == 2, out
+    # every message, in publish order, byte for byte; an object as the CDR asked for
+    assert out["n_cmd"] == 50 and out["in_order"], out
+    assert out["obj"] == [out["obj_want"]], out
+    assert out["info"] == ["received_timestamp", "source_timestamp"], out
+    assert out["ev"] == ["announced"], out
+    # a reply published in a callback reaches its linked reader (a later pass)
+    assert out["back"] == ["1", "2", "3", "50"], out
+    # and another participant still gets every message over the middleware
+    assert out["outside"] == 50 and out["outside_same"], out
