@@ -202,8 +202,23 @@ def encode_point_stamped(ns: int, frame_id: str, x: float, y: float, z: float) -
     return w.bytes()
 
 
+_STAMPED_HEAD = struct.Struct("<iII")  # stamp (sec, nanosec), the frame_id's length
+_XYZ_LE = struct.Struct("<3d")
+
+
 def decode_point_stamped(data: bytes):
-    """-> (stamp ns, frame_id, (x, y, z)); Vector3Stamped has the same layout."""
+    """-> (stamp ns, frame_id, (x, y, z)); Vector3Stamped has the same layout. XCDR1
+    little-endian, what the RMW sends, is read in one pass (the driver takes a command
+    a sample); anything else, or bytes that do not hold a whole message, the general
+    way (``CdrReader``: other encodings read, malformed ones refused)."""
+    if len(data) >= 16 and data[0] == 0 and data[1] == 0x01:
+        sec, nsec, n = _STAMPED_HEAD.unpack_from(data, 4)
+        end = 16 + n
+        at = end + (-(end - 4) % 8)
+        if n > 0 and at + 24 <= len(data) and data[end - 1] == 0:
+            return (sec * 1_000_000_000 + nsec,
+                    bytes(data[16:end - 1]).decode("utf-8", "replace"),
+                    _XYZ_LE.unpack_from(data, at))
     r = CdrReader(data)
     return r.stamp(), r.string(), r.doubles(3)
 

@@ -155,6 +155,43 @@ def test_cdr_big_endian_and_xcdr2_are_read():
     assert cdr.decode_vector3_stamped(le2) == (1_000_000_002, "s", (1.5, -2.5, 0.0))
 
 
+def test_the_stamped_fast_path_reads_as_the_general_reader_does():
+    """decode_point_stamped's one-pass read of little-endian XCDR1 gives what
+    CdrReader gives, on rclpy's bytes (frames of every padding) and on bytes cut,
+    lengthened or with a length field that lies (refused the same way)."""
+    import random
+
+    from geometry_msgs.msg import Vector3Stamped
+    from rclpy.serialization import serialize_message
+
+    from piezo_stage_msgs_adapters import cdr
+
+    def general(b):
+        r = cdr.CdrReader(b)
+        return r.stamp(), r.string(), r.doubles(3)
+
+    def outcome(f, b):
+        try:
+            return f(b)
+        except DataError as e:
+            return type(e)
+    rng = random.Random(7)
+    for k in range(40):
+        m = Vector3Stamped()
+        m.header.frame_id = "f" * (k % 11)  # every padding before the doubles
+        m.header.stamp.sec, m.header.stamp.nanosec = k - 3, 999_999_999 - k
+        m.vector.x, m.vector.y, m.vector.z = rng.uniform(-1e3, 1e3), -0.5 * k, 1e-9 * k
+        good = serialize_message(m)
+        assert cdr.decode_vector3_stamped(good) == general(good) == (
+            (k - 3) * 1_000_000_000 + 999_999_999 - k, m.header.frame_id,
+            (m.vector.x, m.vector.y, m.vector.z))
+        lie = bytearray(good)
+        lie[12:16] = (rng.choice([0, 1, len(good), 2 ** 31])).to_bytes(4, "little")
+        for bad in (good[:rng.randrange(len(good))], good + b"\x00" * 8, bytes(lie),
+                    memoryview(good)):
+            assert outcome(cdr.decode_vector3_stamped, bad) == outcome(general, bad)
+
+
 def test_cdr_rejects_malformed_and_non_finite():
     raw = A.joint_state_cdr(1, W, V)
     for bad in (b"", b"\x00\x01", raw[:30], raw[:-8], b"\x01\x01\x00\x00" + raw[4:],
