@@ -87,9 +87,8 @@ class LocalLinks:
     queued here, and the executor hands it to the subscriber's callback in publish
     order, as the bytes or the message object that was published (converted where the
     subscriber asked for the other form). On the middleware a message between two
-    nodes of one process is a publish into the reader's history, a wake of the wait set
-    and a take: in a real-time set of 1 kHz, about a tenth of the composed process's
-    CPU; in lockstep every hop of a sample.
+    nodes of one process is a write into the reader's history, a wake of the wait set
+    and a take; here it is a call, in the pass that follows the one it was sent in.
 
     What a linked subscriber no longer hears is another process publishing on its
     topic: the loop's links (joint_states, reference, command) have one publisher each
@@ -153,16 +152,17 @@ class LocalReader:
     """A linked subscription's callback and the form it takes its messages in."""
 
     def __init__(self, sub):
+        from rclpy.serialization import deserialize_message, serialize_message
         self.topic_name = sub.topic_name
         self.msg_type, self.raw, self.callback = sub.msg_type, sub.raw, sub.callback
         self.with_info = sub.callback_group.with_info
+        self._from_cdr, self._to_cdr = deserialize_message, serialize_message
 
     def take(self, msg) -> None:
-        from rclpy.serialization import deserialize_message, serialize_message
         if isinstance(msg, (bytes, bytearray, memoryview)):
-            msg = bytes(msg) if self.raw else deserialize_message(bytes(msg), self.msg_type)
+            msg = bytes(msg) if self.raw else self._from_cdr(bytes(msg), self.msg_type)
         elif self.raw:
-            msg = serialize_message(msg)
+            msg = self._to_cdr(msg)
         if self.with_info:
             now = time.time_ns()  # the middleware's stamps are the system clock's
             self.callback(msg, {"source_timestamp": now, "received_timestamp": now})
