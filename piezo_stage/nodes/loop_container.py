@@ -7,8 +7,9 @@ feedforward's process, its reference the controller's, its command the driver's,
 two cores those wake-ups, not the work, set the pace. Composed, one thread takes each
 message as it is published, handed over in the process (``_executor.LocalLinks``: no
 middleware between the composed nodes; the recorder still gets every message), so a
-lockstep set runs about twice the samples a second and a real-time set has that much
-more margin on the same host (docs/realtime.md).
+lockstep set runs about twice the samples a second, and a real-time set's command is
+worked out on one core while the driver's sample clock keeps the other
+(docs/realtime.md).
 
 Run as the launcher runs it::
 
