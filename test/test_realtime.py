@@ -332,8 +332,12 @@ def test_a_node_dying_under_launch_ends_the_run_at_the_safe_voltage(tmp_path, do
     t, v, states = run.t_ns, run.v_V, run.states
     assert_never_beyond_slew(t, v)
     assert list(v[-1]) == [0.0, 0.0]
-    t_fault = [s for s, name in states if name == "faulted"][-1]
-    k = t >= t_fault
+    # the ramp starts where the driver left the armed state: on its own stale fault, or
+    # on the launcher's disarm when the launcher saw the death first (it looks every
+    # 50 ms, the stale timeout is 50 ms too: either may come first, both are safe ends)
+    t_armed = [s for s, name in states if name == "armed"][-1]
+    t_end = min(s for s, name in states if name in ("faulted", "disarmed") and s > t_armed)
+    k = t >= t_end
     ticks = np.maximum(np.round(np.diff(t[k]) / DT_NS), 1)[:, None]
     assert np.all(np.abs(np.diff(v[k], axis=0)) <= RAMP * DT_NS * 1e-9 * ticks + 1e-9)
     assert v[k].max() > 5.0  # from a real voltage, not from rest
