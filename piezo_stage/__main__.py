@@ -21,8 +21,8 @@ def main():
     # exit, which gives the default handlers back, and end a finished command by the
     # signal with no word; it is ignored instead, and the command exits with its own code
     stopping.hold()
-    return code
+    stopping.exit_now(code)  # (the console script's sys.exit(main()) is never reached)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -236,3 +236,54 @@ def test_fast_dds_writer_threads_run_below_the_threads_that_hold_their_mutex(ros
         assert all(row[3] == "0" for row in asyn), asyn
         assert [row[3] for row in rows if row[1] == "True"] == ["0"]
     assert all(row[3:] == ["1", "45"] for row in rest), rest
+
+
+A_SET_RUNNING = """
+import sys, time, rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from piezo_stage.nodes._common import QOS_EVENTS
+rclpy.init()
+node = rclpy.create_node("stage_driver", namespace="/lookns")
+pub = node.create_publisher(DiagnosticArray, "/lookns/state", QOS_EVENTS)
+pub.publish(DiagnosticArray(status=[DiagnosticStatus(name="state", values=[
+    KeyValue(key="host", value="labhost"), KeyValue(key="pid", value="4242")])]))
+print("up", flush=True)
+end = time.monotonic() + 60
+while time.monotonic() < end and not sys.stdin.closed:
+    rclpy.spin_once(node, timeout_sec=0.1)
+"""
+
+
+@pytest.mark.slow
+def test_the_look_for_a_running_set_begun_early_names_it_or_answers_none(ros_env):
+    """The one-set-per-namespace look a command begins before it reads its config
+    (launch/running.py's Look): it names a set whose driver announced itself, answers
+    None on an empty namespace, ends at once when cancelled, and is used by the
+    launch it was begun for (another namespace's is cancelled and looked for anew)."""
+    pytest.importorskip("rclpy")
+    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.running import Look, begin_look
+    d = int(ros_env["ROS_DOMAIN_ID"])
+    p = subprocess.Popen([sys.executable, "-c", A_SET_RUNNING], env=ros_env, text=True,
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert p.stdout.readline().strip() == "up"
+        # (30 s for the names to show: a loaded host's discovery; found, it answers then)
+        assert Look("/lookns", d, wait_s=30.0).result() == "labhost, pid 4242"
+        assert Look("/elsewhere", d).result() is None
+    finally:
+        p.kill()
+        p.wait()
+    look = Look("/elsewhere", d)
+    look.cancel()
+    assert look.done() and look.result() is None
+    with begin_look("/stage", ros_env) as early:
+        launch = Launch(os.path.join(CONFIG, "stage.yaml"), env=ros_env, look=early)
+        assert launch._look_for_this_set() is early
+        other = Launch(os.path.join(CONFIG, "stage.yaml"), env=ros_env, look=early,
+                       namespace="/stage2")
+        fresh = other._look_for_this_set()
+        assert fresh is not early and fresh.namespace == "/stage2" and early.done()
+        fresh.cancel()
+    with begin_look("/stage", dict(ros_env, ROS_DOMAIN_ID="x")) as none:
+        assert none is None

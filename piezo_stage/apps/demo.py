@@ -29,6 +29,12 @@ def tracking_from_run(run, t_from_s):
 
 
 def run_demo(args):
+    from piezo_stage.launch.running import begin_look
+    with begin_look(args.namespace) as look:  # beside the imports
+        return _run_demo(args, look)
+
+
+def _run_demo(args, look):
     from piezo_stage.launch.launcher import Launch, run_set
     from piezo_stage.paths import default_config
     bag = args.out or new_bag_dir("bags")
@@ -47,7 +53,7 @@ def run_demo(args):
     print(f"demo: lockstep simulated stage, {args.excite:g} s excitation + {args.track:g} s "
           f"of the paper's 10 Hz trajectory ({steps} steps at {rate:g} Hz)", flush=True)
     launch = Launch(default_config("stage.yaml"), record=bag, namespace=args.namespace,
-                    overrides=overrides)
+                    overrides=overrides, look=look)
     run_set(launch, "demo", duration=600.0)  # RunError: exit 1; a stop: 128 + signal
     if not os.path.isdir(bag):
         sys.stderr.write("piezo-stage demo: the node set wrote no bag\n")

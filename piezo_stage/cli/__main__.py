@@ -1,7 +1,6 @@
 """``python -m piezo_stage.cli``: the ``piezo-stage`` command (``python -m piezo_stage``
 also takes stop signals during the command's imports)."""
 
-import sys
 
 from piezo_stage import stopping
 from piezo_stage.blas import one_thread_unless_set
@@ -11,4 +10,4 @@ from piezo_stage.cli import main  # noqa: E402
 
 code = main()
 stopping.hold()  # as piezo_stage.__main__: a stop after the end is ignored
-sys.exit(code)
+stopping.exit_now(code)

@@ -42,6 +42,12 @@ def add_arguments(s):
 
 
 def main(args):
+    from piezo_stage.launch.running import begin_look
+    with begin_look(args.namespace) as look:  # beside the imports and the config's checks
+        return _launch(args, look)
+
+
+def _launch(args, look):
     from piezo_stage.io.bag import new_bag_dir
     from piezo_stage.launch.launcher import Launch
     from piezo_stage.paths import default_config
@@ -55,7 +61,7 @@ def main(args):
                     namespace=args.namespace, arm=not args.no_arm,
                     foxglove_port=args.foxglove, overrides=overrides,
                     trajectory=not args.no_trajectory, managed=args.managed,
-                    armed_s=args.duration, rate=args.rate)
+                    armed_s=args.duration, rate=args.rate, look=look)
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)

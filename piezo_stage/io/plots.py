@@ -96,6 +96,20 @@ def _pyplot():
     return plt
 
 
+def _grid_layout(fig, left_in=0.8, right_in=0.25, top_in=0.4, bottom_in=0.6,
+                 wspace_in=0.8, hspace_in=0.85):
+    """Margins and gaps of a grid of panels set in inches, what ``tight_layout`` would
+    find for panels with one line of tick labels, an axis label and a one-line title,
+    without measuring every text first: that measuring was a third of a figure's time
+    (0.15 s of ``identify``'s 0.5 s figure on a 2-core host)."""
+    w, h = fig.get_size_inches()
+    rows, cols = fig.axes[0].get_subplotspec().get_gridspec().get_geometry()
+    aw = (w - left_in - right_in - wspace_in * (cols - 1)) / cols
+    ah = (h - top_in - bottom_in - hspace_in * (rows - 1)) / rows
+    fig.subplots_adjust(left=left_in / w, right=1 - right_in / w, top=1 - top_in / h,
+                        bottom=bottom_in / h, wspace=wspace_in / aw, hspace=hspace_in / ah)
+
+
 def _save(fig, path):
     with atomic_write(path, "wb") as fh:
         fig.savefig(fh, format="png", dpi=100)
@@ -128,12 +142,12 @@ def identification_png(path, t, per_axis: dict, validation: tuple | None = None)
             ax[row, 1].plot(np.asarray(t_val) - t_val[0] + t[-1], ev, lw=0.5,
                             color="tab:purple", label="validation record (after it)")
             ax[row, 1].legend(fontsize=8)
-            title += f"; validation rms {np.sqrt(np.mean(ev ** 2)):.4f} um"
+            title += f"\nvalidation rms {np.sqrt(np.mean(ev ** 2)):.4f} um"
         ax[row, 0].set(xlabel="voltage [V]", ylabel="displacement [um]",
                        title=f"axis {axis}: hysteresis loop")
         ax[row, 0].legend(fontsize=8)
         ax[row, 1].set(xlabel="time [s]", ylabel="measured - model [um]", title=title)
-    fig.tight_layout()
+    _grid_layout(fig, top_in=0.6, hspace_in=1.05)
     return _save(fig, path)
 
 
@@ -176,7 +190,7 @@ def tracking_png(path, run, t_track_s, excite_s=0.0, axes=("x", "y")):
         ax[i, 2].set(xlabel="time [s]", ylabel="measured - desired [um]",
                      title=f"axis {axis}: error, rms {rms:.4f} um "
                            f"({100 * rms / span:.3f} % of the range)")
-    fig.tight_layout()
+    _grid_layout(fig)
     return _save(fig, path)
 
 

@@ -23,7 +23,7 @@ import sys
 import time
 
 from piezo_stage.core.errors import ConfigError, ModelError
-from piezo_stage.io.model_file import load_yaml
+from piezo_stage.io.yaml_file import load_yaml
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
 from piezo_stage.nodes.declared import (
     DECLARED,
@@ -103,7 +103,7 @@ def lockstep_transport_env(env) -> dict:
 def read_parameters(config_path) -> dict:
     """{node name: parameters} of a node-parameters YAML (the file ros2 run takes),
     checked: bounded, a mapping of '<node>: ros__parameters:' sections."""
-    try:  # bounded: size, nesting, no aliases (the one YAML reader, io/model_file.py)
+    try:  # bounded: size, nesting, no aliases (the one YAML reader, io/yaml_file.py)
         doc = load_yaml(config_path, "config file") or {}
     except ModelError as e:
         raise ConfigError(str(e)) from None
@@ -162,7 +162,8 @@ class Launch:
     def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
                  nodes=None, env=None, arm=True, foxglove_port=None, trajectory=True,
                  exclusive=True, managed=False, armed_s=None, compose=None,
-                 rate=None):
+                 rate=None, look=None):
+        self._look = look  # a running_set look begun before (launch/running.py's Look)
         self.config_path = os.path.abspath(config_path)
         params = read_parameters(self.config_path)
         # outside trajectories only (--no-trajectory, or the trajectory node's kind: none):
@@ -359,8 +360,16 @@ class Launch:
         env = dict(self.env, **{LAUNCHER_PID_ENV: str(os.getpid()),
                                 RUN_ENDED_ENV: self._ended_file,
                                 START_GATE_ENV: gate if self.exclusive else ""})
+        look = None
+        if self.exclusive:  # one set per namespace (launch/running.py), looked for while
+            # the nodes import (they wait at the start gate before they join the graph:
+            # _executor.run_nodes), so the look costs no start-up; begun by the command
+            # before it read its config where it could (Look)
+            look, self._look = self._look_for_this_set(), None
         for n in self.processes():
             if self.stopped_by is not None:  # told to stop while starting
+                if look is not None:
+                    look.cancel()
                 return
             old = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
             try:
@@ -368,12 +377,14 @@ class Launch:
                                                  start_new_session=True)
             finally:
                 signal.pthread_sigmask(signal.SIG_SETMASK, old)
-        if self.exclusive:  # one set per namespace (launch/running.py)
-            # looked for while the nodes import (they wait at the start gate before
-            # they join the graph: _executor.run_nodes), so the look costs no start-up
-            from piezo_stage.launch.running import running_set
+        if look is not None:
+            while not look.done():  # a stop meanwhile: the nodes never pass the gate
+                if self.stopped_by is not None:
+                    look.cancel()
+                    return
+                time.sleep(0.02)
             try:
-                who = running_set(self.ns, int(self.env.get("ROS_DOMAIN_ID") or 0))
+                who = look.result()
             except BaseException:
                 self._discard()
                 raise
@@ -383,6 +394,18 @@ class Launch:
                                   "--namespace or stop it")
             with open(gate, "w"):
                 pass
+
+    def _look_for_this_set(self):
+        """The look begun for this set's namespace and domain, else one begun now."""
+        from piezo_stage.launch.running import Look
+        domain = int(self.env.get("ROS_DOMAIN_ID") or 0)
+        look = self._look
+        if look is not None and (look.namespace.strip("/"), look.domain_id) == (
+                self.ns.strip("/"), domain):
+            return look
+        if look is not None:
+            look.cancel()
+        return Look(self.ns, domain)
 
     def _discard(self) -> None:
         """The nodes started for a set that will not run: still at the start gate, they

@@ -9,20 +9,24 @@ whose values name the host and the launcher's pid."""
 
 from __future__ import annotations
 
+import threading
 import time
+from contextlib import contextmanager
 
 STATE_WAIT_S = 10.0  # for a running set's driver to say whose it is
 BUSY_WAIT_S = 6.0    # for its node names, when the domain shows other nodes
 
 
-def running_set(namespace: str, domain_id: int, wait_s: float = 2.0) -> str | None:
+def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
+                cancel: threading.Event | None = None) -> str | None:
     """None when nothing runs in ``namespace`` on ``domain_id``; else who runs there
     ("host, pid N", or the node names when no driver announced itself). Up to
     ``wait_s`` for the graph to show the namespace's nodes (``BUSY_WAIT_S`` when it
     shows other nodes, whose discovery is going on): on a loaded host their names took
     longer than 0.5 s to arrive, and after ten outside nodes joined and left, over
     2 s; each time the second launch went ahead (fresh clones' suites, 2026-11-25). A
-    clean start pays the whole wait once (on a lab's busy domain up to 6 s)."""
+    clean start pays the whole wait once (on a lab's busy domain up to 6 s): ``Look``
+    spends it beside the start-up. ``cancel`` set: it ends within 50 ms, with None."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.context import Context
@@ -47,6 +51,8 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0) -> str | No
         t0 = time.monotonic()
         names: list = []
         while not names:
+            if cancel is not None and cancel.is_set():
+                return None
             ex.spin_once(timeout_sec=0.05)
             seen = [(n, s) for n, s in node.get_node_names_and_namespaces()
                     if (n, s) != ("launch_check", "/")]
@@ -62,6 +68,8 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0) -> str | No
         # suite, 2026-11-25), and the refusal named only the nodes seen by then
         end = time.monotonic() + STATE_WAIT_S
         while time.monotonic() < end and "host" not in who:
+            if cancel is not None and cancel.is_set():
+                return None
             ex.spin_once(timeout_sec=0.05)
         if "host" in who:
             return f"{who['host']}, pid {who.get('pid', '?')}"
@@ -70,3 +78,61 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0) -> str | No
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+class Look:
+    """``running_set`` in a thread of its own, begun as soon as the namespace and the
+    domain are known: its wait (2 s on a clean start) then runs while the command
+    imports and reads its config, and while the nodes import, instead of after them
+    (launch to armed, `bench startup`). ``result()`` waits for the answer (raising what
+    the look raised); ``cancel()`` ends a look whose answer is no longer wanted (a
+    config refused, a stop while starting): within 50 ms, with nothing left behind."""
+
+    def __init__(self, namespace: str, domain_id: int, wait_s: float = 2.0) -> None:
+        self.namespace, self.domain_id, self.wait_s = namespace, int(domain_id), wait_s
+        self._cancel = threading.Event()
+        self._answer: tuple[str | None, BaseException | None] = (None, None)
+        self._thread = threading.Thread(target=self._look, name="running-set look",
+                                        daemon=True)
+        self._thread.start()
+
+    def _look(self) -> None:
+        try:
+            self._answer = (running_set(self.namespace, self.domain_id, self.wait_s,
+                                        cancel=self._cancel), None)
+        except BaseException as e:  # noqa: BLE001 - raised in result(), in the caller
+            self._answer = (None, e)
+
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def result(self) -> str | None:
+        """None: nothing runs in the namespace; else who runs there."""
+        self._thread.join()
+        who, error = self._answer
+        if error is not None:
+            raise error
+        return who
+
+    def cancel(self) -> None:
+        self._cancel.set()
+        self._thread.join()
+
+
+@contextmanager
+def begin_look(namespace: str, env=None):
+    """A ``Look`` for ``namespace`` on the domain ``env`` (default os.environ) names, for
+    a command to hand to its ``Launch`` (None where the domain is no number); cancelled
+    on leaving (a no-op once answered)."""
+    import os
+    env = os.environ if env is None else env
+    try:
+        domain = int(env.get("ROS_DOMAIN_ID") or 0)
+    except ValueError:  # not a domain: the launch says so where it looks itself
+        yield None
+        return
+    look = Look(namespace, domain)
+    try:
+        yield look
+    finally:
+        look.cancel()

@@ -151,4 +151,5 @@ def main(args=None):
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from piezo_stage.stopping import exit_now
+    exit_now(main())  # flushed, at-exit work done, no finalization (stopping.py)

@@ -107,4 +107,5 @@ def main(args=None):
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from piezo_stage.stopping import exit_now
+    exit_now(main())  # flushed, at-exit work done, no finalization (stopping.py)

@@ -101,4 +101,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from piezo_stage.stopping import exit_now
+    exit_now(main())  # flushed, at-exit work done, no finalization (stopping.py)
