@@ -35,6 +35,10 @@ from piezo_stage.core.loop.planner import DONE, TRACK
 from piezo_stage.core.params import Param, Schema
 
 # the driver node's parameters (core/params.py); its arming supervisor's are arming.py's
+# real time, max_steps counted from arming: how long a run waits for its loop to close
+# at least, however short the run [s] (the launcher bounds a start that never arms)
+ARMING_WAIT_S = 10.0
+
 PARAMETERS: Schema = (
     Param("backend", "sim", "stage backend", choices=("sim", "daq", "pi", "nv200", "replay")),
     Param("mode", "lockstep",
@@ -48,7 +52,8 @@ PARAMETERS: Schema = (
     Param("exit_after_max_steps", False, "exit (code 0) after max_steps"),
     Param("max_steps_from_arming", False,
           "count max_steps from the sample the stage first enabled (the approach's start), "
-          "not from the first sample; before that at most max_steps samples wait for arming"),
+          "not from the first sample; before that at most max_steps samples wait for arming "
+          f"(real time: at least {ARMING_WAIT_S:g} s of them)"),
     Param("min_subscribers", 0,
           "lockstep: joint_states subscribers to wait for",
           lo=0, hi=100),
@@ -156,7 +161,9 @@ class SampleLoop:
     from_arming : bool
         ``max_steps`` counts from the sample the stage first enabled, so a run's length
         after arming does not depend on how long arming took; before the first enable
-        at most ``max_steps`` samples are taken.
+        at most ``max_steps`` samples are taken, in real time at least ``ARMING_WAIT_S``
+        of them (the nodes join the graph as each finishes its imports: a 1 s run once
+        ended before the last of them had, never armed).
     first_j : int
         Lockstep: the first sample's index, so a loop built again for the same run (the
         driver configured again after a cleanup or an error) goes on where the last one
@@ -290,11 +297,14 @@ class SampleLoop:
 
     def _past(self, j: int) -> bool:
         """``max_steps`` taken by sample ``j`` (from the first sample, or from the first
-        enable with ``from_arming``: until then at most ``max_steps`` wait for it)."""
+        enable with ``from_arming``: until then at most ``max_steps`` wait for it, and in
+        real time at least ``ARMING_WAIT_S`` of samples)."""
         if not self.max_steps:
             return False
         if self.from_arming and self.enabled_j is not None:
             return j - self.enabled_j > self.max_steps
+        if self.from_arming and not self.lock:  # a short run still waits for its loop
+            return j > max(self.max_steps, int(ARMING_WAIT_S * self.rate_hz))
         return j > self.max_steps
 
     def ended(self, j: int) -> bool:
