@@ -23,7 +23,7 @@ import sys
 import time
 
 from piezo_stage.core.errors import ConfigError, ModelError
-from piezo_stage.io.yaml_file import load_yaml
+from piezo_stage.io.model_file import load_yaml
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
 from piezo_stage.nodes.declared import (
     DECLARED,
@@ -103,7 +103,7 @@ def lockstep_transport_env(env) -> dict:
 def read_parameters(config_path) -> dict:
     """{node name: parameters} of a node-parameters YAML (the file ros2 run takes),
     checked: bounded, a mapping of '<node>: ros__parameters:' sections."""
-    try:  # bounded: size, nesting, no aliases (the one YAML reader, io/yaml_file.py)
+    try:  # bounded: size, nesting, no aliases (the one YAML reader, io/model_file.py)
         doc = load_yaml(config_path, "config file") or {}
     except ModelError as e:
         raise ConfigError(str(e)) from None
