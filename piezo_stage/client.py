@@ -421,6 +421,7 @@ class Stage:
         """Leave the set (the node and its context end)."""
         import rclpy
         try:
+            self.ex.shutdown()  # the executor lets go of the node's entities first
             self.node.destroy_node()
         finally:
             rclpy.try_shutdown(context=self.ctx)
