@@ -160,7 +160,10 @@ def test_a_real_time_set_leaves_out_shared_memory_unless_told_otherwise(given, w
 LOOPBACK_PROBE = """
 import os, time, rclpy
 from std_msgs.msg import String
-before = set(os.listdir("/dev/shm"))
+def shm_mapped():  # this process's own shared-memory mappings (another test's do not count)
+    with open("/proc/self/maps") as fh:
+        return {line.split()[-1] for line in fh if "/dev/shm/" in line}
+before = shm_mapped()
 rclpy.init()
 node = rclpy.create_node("transport_probe")
 pub = node.create_publisher(String, "chatter", 10)
@@ -170,7 +173,7 @@ t0 = time.monotonic()
 while not sub_seen and time.monotonic() - t0 < 10:
     pub.publish(String(data="x"))
     rclpy.spin_once(node, timeout_sec=0.05)
-print(len(sub_seen) > 0, sorted(set(os.listdir("/dev/shm")) - before))
+print(len(sub_seen) > 0, sorted(shm_mapped() - before))
 node.destroy_node()
 rclpy.try_shutdown()
 """
@@ -259,10 +262,11 @@ def test_the_look_for_a_running_set_begun_early_names_it_or_answers_none(ros_env
     """The one-set-per-namespace look a command begins before it reads its config
     (launch/running.py's Look): it names a set whose driver announced itself, answers
     None on an empty namespace, ends at once when cancelled, and is used by the
-    launch it was begun for (another namespace's is cancelled and looked for anew)."""
+    launch it was begun for (another namespace's is cancelled and looked for anew);
+    its answer is in before its node leaves the graph."""
     pytest.importorskip("rclpy")
     from piezo_stage.launch.launcher import Launch
-    from piezo_stage.launch.running import Look, begin_look
+    from piezo_stage.launch.running import Look, begin_look, running_set
     d = int(ros_env["ROS_DOMAIN_ID"])
     p = subprocess.Popen([sys.executable, "-c", A_SET_RUNNING], env=ros_env, text=True,
                          stdin=subprocess.PIPE, stdout=subprocess.PIPE)
@@ -271,6 +275,10 @@ def test_the_look_for_a_running_set_begun_early_names_it_or_answers_none(ros_env
         # (30 s for the names to show: a loaded host's discovery; found, it answers then)
         assert Look("/lookns", d, wait_s=30.0).result() == "labhost, pid 4242"
         assert Look("/elsewhere", d).result() is None
+        # the answer is reported before the look's node is torn down, as returned
+        said: list = []
+        assert running_set("/lookns", d, wait_s=30.0, report=said.append) == \
+            "labhost, pid 4242" and said == ["labhost, pid 4242"]
     finally:
         p.kill()
         p.wait()

@@ -108,3 +108,50 @@ def test_composed_nodes_pass_messages_in_the_process_and_to_the_middleware(ros_e
     assert out["back"] == ["1", "2", "3", "50"], out
     # and another participant still gets every message over the middleware
     assert out["outside"] == 50 and out["outside_same"], out
+
+
+IDLE_PROBE = r"""
+import json, time, rclpy
+from rclpy.node import Node
+from std_msgs.msg import String
+from piezo_stage.nodes._common import QOS_DATA, steady_timer
+from piezo_stage.nodes._executor import LeanExecutor, LeanNode, hot_subscription
+
+rclpy.init()
+
+
+class Polling(LeanNode, Node):
+    # a composed node as the loop's are before their first sample: a 10 ms start-gate
+    # timer, a per-sample subscription on which nothing arrives yet
+    def __init__(self, name):
+        super().__init__(name, namespace="/idle")
+        self.fired = 0
+        steady_timer(self, 0.01, self.poll)
+        hot_subscription(self, String, "samples", lambda m: None, QOS_DATA)
+
+    def poll(self):
+        self.fired += 1
+
+
+nodes = [Polling("first"), Polling("second"), Polling("third")]
+ex = LeanExecutor(nodes)
+end = time.monotonic() + 0.5
+while time.monotonic() < end:
+    ex.spin_once()
+print(json.dumps([n.fired for n in nodes]))
+"""
+
+
+def test_a_composed_process_with_no_sample_serves_every_ready_timer(ros_env):
+    """Before its first sample a composed process serves every ready callback of its
+    nodes each pass (their start gates are timers), not one per 50 ms turn: there the
+    first node's 10 ms gate timer was always ready, took every turn, and the gates
+    opened one after another (0.1, 0.22 and 0.35 s after configure)."""
+    pytest.importorskip("rclpy")
+    r = subprocess.run([sys.executable, "-c", IDLE_PROBE], env=ros_env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    fired = json.loads(r.stdout.strip().splitlines()[-1])
+    # 0.5 s of 10 ms timers: one callback a 50 ms turn would give 10 in all, the
+    # first node all of them
+    assert min(fired) >= 10, fired

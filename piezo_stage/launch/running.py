@@ -18,7 +18,7 @@ BUSY_WAIT_S = 6.0    # for its node names, when the domain shows other nodes
 
 
 def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
-                cancel: threading.Event | None = None) -> str | None:
+                cancel: threading.Event | None = None, report=None) -> str | None:
     """None when nothing runs in ``namespace`` on ``domain_id``; else who runs there
     ("host, pid N", or the node names when no driver announced itself). Up to
     ``wait_s`` for the graph to show the namespace's nodes (``BUSY_WAIT_S`` when it
@@ -26,7 +26,9 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
     longer than 0.5 s to arrive, and after ten outside nodes joined and left, over
     2 s; each time the second launch went ahead (fresh clones' suites, 2026-11-25). A
     clean start pays the whole wait once (on a lab's busy domain up to 6 s): ``Look``
-    spends it beside the start-up. ``cancel`` set: it ends within 50 ms, with None."""
+    spends it beside the start-up. ``cancel`` set: it ends within 50 ms, with None.
+    ``report``: called with the answer before the look's node is torn down (its
+    participant leaves the graph properly, a little after the answer is out)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.context import Context
@@ -47,7 +49,8 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
     def on_state(m: DiagnosticArray) -> None:
         who.update({kv.key: kv.value for kv in m.status[0].values} if m.status else {})
     node.create_subscription(DiagnosticArray, f"{ns}/state", on_state, QOS_EVENTS)
-    try:
+
+    def answer() -> str | None:
         t0 = time.monotonic()
         names: list = []
         while not names:
@@ -75,6 +78,11 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
             return f"{who['host']}, pid {who.get('pid', '?')}"
         names = sorted(n for n, s in node.get_node_names_and_namespaces() if s == ns)
         return "nodes " + ", ".join(names)
+    try:
+        found = answer()
+        if report is not None and not (cancel is not None and cancel.is_set()):
+            report(found)
+        return found
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
@@ -85,30 +93,39 @@ class Look:
     domain are known: its wait (2 s on a clean start) then runs while the command
     imports and reads its config, and while the nodes import, instead of after them
     (launch to armed, `bench startup`). ``result()`` waits for the answer (raising what
-    the look raised); ``cancel()`` ends a look whose answer is no longer wanted (a
-    config refused, a stop while starting): within 50 ms, with nothing left behind."""
+    the look raised), which is in before the look's node is torn down; ``cancel()``
+    ends a look whose answer is no longer wanted (a config refused, a stop while
+    starting): within 50 ms, with nothing left behind."""
 
     def __init__(self, namespace: str, domain_id: int, wait_s: float = 2.0) -> None:
         self.namespace, self.domain_id, self.wait_s = namespace, int(domain_id), wait_s
         self._cancel = threading.Event()
+        self._answered = threading.Event()
         self._answer: tuple[str | None, BaseException | None] = (None, None)
         self._thread = threading.Thread(target=self._look, name="running-set look",
                                         daemon=True)
         self._thread.start()
 
+    def _report(self, who: str | None) -> None:
+        self._answer = (who, None)
+        self._answered.set()
+
     def _look(self) -> None:
         try:
-            self._answer = (running_set(self.namespace, self.domain_id, self.wait_s,
-                                        cancel=self._cancel), None)
+            running_set(self.namespace, self.domain_id, self.wait_s, cancel=self._cancel,
+                        report=self._report)
         except BaseException as e:  # noqa: BLE001 - raised in result(), in the caller
-            self._answer = (None, e)
+            if not self._answered.is_set():
+                self._answer = (None, e)
+        finally:
+            self._answered.set()
 
     def done(self) -> bool:
-        return not self._thread.is_alive()
+        return self._answered.is_set()
 
     def result(self) -> str | None:
         """None: nothing runs in the namespace; else who runs there."""
-        self._thread.join()
+        self._answered.wait()
         who, error = self._answer
         if error is not None:
             raise error
@@ -136,3 +153,4 @@ def begin_look(namespace: str, env=None):
         yield look
     finally:
         look.cancel()
+

@@ -9,7 +9,8 @@ ros2/examples writes custom executors: its ``spin_once`` waits on a wait set of 
 node's per-sample subscriptions only (the ``LeanLoop`` callback group, which the base
 class never executes), takes and dispatches what arrived, calls the node's real-time
 tick when it is due, and gives the base class's machinery (timers, services,
-parameters, other topics) one callback every ``SLOW_PERIOD_S``.
+parameters, other topics) one callback every ``SLOW_PERIOD_S`` (every ready one, up to
+``IDLE_SLOW_MAX``, in a pass that carried no sample).
 
 Composed nodes (several spun by one executor) pass their per-sample messages to each
 other in the process (``LocalLinks``: rclcpp's intra-process communication, which
@@ -43,6 +44,7 @@ from piezo_stage.core.errors import ConfigError, DataError
 from piezo_stage.nodes._params import check_overrides
 
 SLOW_PERIOD_S = 0.05  # the base executor's turn (timers, services, other topics)
+IDLE_SLOW_MAX = 16    # callbacks the base executor may serve in a pass nothing came in
 IDLE_WAKE_S = 0.02    # with nothing arriving, a node still wakes this often (its stops)
 TAKE_LIMIT = 256      # messages per subscription per pass
 
@@ -289,15 +291,17 @@ class LeanExecutor(Executor):
         self._last_slow = 0.0
 
     # -- the base executor's turn -----------------------------------------------------
-    def _slow_once(self, timeout_sec: float = 0.0) -> None:
-        """One ready callback of the node's other entities, through the base class."""
+    def _slow_once(self, timeout_sec: float = 0.0) -> bool:
+        """One ready callback of the node's other entities, through the base class;
+        whether there was one."""
         try:
             handler, _, _ = self.wait_for_ready_callbacks(timeout_sec)
         except (ShutdownException, TimeoutException, ConditionReachedException):
-            return
+            return False
         handler()
         if handler.exception() is not None:
             raise handler.exception()
+        return True
 
     # -- the per-sample subscriptions -------------------------------------------------
     def _subscriptions(self) -> list:
@@ -315,10 +319,11 @@ class LeanExecutor(Executor):
         self._ws = (_rclpy.WaitSet(len(self._hot), 0, 0, 0, 0, 0, self.context.handle)
                     if self._hot else None)
 
-    def take_all(self, limit: int | None = TAKE_LIMIT) -> None:
+    def take_all(self, limit: int | None = TAKE_LIMIT) -> int:
         """Dispatch what has arrived, at most ``limit`` messages per subscription (None:
         all): a node that falls behind its input still gives the base executor
-        (services, parameters, timers) and its tick their turn."""
+        (services, parameters, timers) and its tick their turn. The number taken."""
+        total = 0
         for h, msg_type, raw, callback, info in self._hot:
             n = 0
             taken = h.take_message(msg_type, raw)
@@ -331,6 +336,8 @@ class LeanExecutor(Executor):
                 if limit is not None and n >= limit:
                     break
                 taken = h.take_message(msg_type, raw)
+            total += n
+        return total
 
     # -- Executor API ------------------------------------------------------------------
     def spin_once(self, timeout_sec: float | None = None) -> None:
@@ -360,15 +367,20 @@ class LeanExecutor(Executor):
             self._ws.wait(int(timeout * 1e9))
         elif timeout > 0:
             time.sleep(timeout)
-        self.take_all()
-        self.local.deliver()
+        busy = self.take_all() + self.local.deliver()
         now = time.monotonic()
         ticked = deadline is not None and now >= deadline
         if ticked:
             node.on_lean_tick()
-        if now - self._last_slow > SLOW_PERIOD_S and (ticked or deadline is None):
+        if now - self._last_slow > SLOW_PERIOD_S and (ticked or deadline is None) or \
+                not (busy or ticked or self.local.queue):
+            # a pass with no sample in it (start-up, a lockstep set waiting) serves
+            # every callback ready, up to IDLE_SLOW_MAX: the start gates of composed
+            # nodes (a timer each) opened one per 50 ms turn, 0.3 s to arm
             self._last_slow = now
-            self._slow_once(0.0)
+            for _ in range(1 if busy or ticked else IDLE_SLOW_MAX):
+                if not self._slow_once(0.0):
+                    break
             subs = self._subscriptions()  # created or destroyed since (discovery)
             if len(subs) != self._n_subs:
                 self._rebuild(subs)
