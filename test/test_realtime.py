@@ -627,11 +627,17 @@ def _joining_run(tmp_path, domain):
     # the first take the margin a set alone leaves (at the host's rate on a 2-core VM
     # whose capacity run chose 500 Hz, tracking while they joined was 2.5-5 x quiet);
     # judged from 250 Hz up (below it the seed trajectory is not tracked to these
-    # figures, and a spell of 25 ms is three samples)
-    if RATE / 2 < 250.0:
-        pytest.skip(f"the host's real-time rate is {RATE:g} Hz: joining is judged at "
-                    "half of it, from 250 Hz up (a host that holds 500 Hz with margin)")
-    cfg = realtime_config(tmp_path, rate=RATE / 2)
+    # figures, and a spell of 25 ms is three samples). The host's rate is measured again
+    # as this test starts: the suite's one measurement came minutes before, and a fresh
+    # clone's CI (of 5df54de) ran this test at 500 Hz on a host that had slowed
+    # meanwhile (29-45 ms spells of error with nobody joining)
+    from piezo_stage.launch.host_rate import host_rate
+    rate, why = host_rate(env)
+    if rate is None or rate / 2 < 250.0:
+        pytest.skip(f"the host's real-time rate is now {rate or 0:g} Hz ({why}): joining "
+                    "is judged at half of it, from 250 Hz up (a host that holds 500 Hz "
+                    "with margin)")
+    cfg = realtime_config(tmp_path, rate=rate / 2)
     launch = Launch(cfg, record=bag, env=env,
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"])
     # the second stage as this 2-core host can hold it beside the first: its driver, at
@@ -699,9 +705,9 @@ def _joining_run(tmp_path, domain):
     # 6-26 such samples in 20,000 took the plain RMS past this limit in 4 of 11 runs
     # (0.09-0.13 um against 0.027 um quiet), so the RMS compared leaves out the worst
     # 0.25 % of samples, far fewer than a stall's
-    figs = [_tracking_figures(run, span, apart_ms=3e3 / (RATE / 2))  # 3 sample periods
+    figs = [_tracking_figures(run, span, apart_ms=3e3 / (rate / 2))  # 3 sample periods
             for span in (quiet, joined)]
-    assert figs[0]["n"] > RATE and figs[1]["n"] > 2.5 * RATE, (figs, cpu)  # 3 s, 9 s at RATE/2
+    assert figs[0]["n"] > rate and figs[1]["n"] > 2.5 * rate, (figs, cpu)  # 3 s, 9 s at rate/2
     assert figs[1]["longest_spell_ms"] <= 25.0, (figs, cpu)
     assert figs[1]["rms_trimmed_um"] <= 2.0 * figs[0]["rms_trimmed_um"] + 0.03, (figs, cpu)
     from piezo_stage.io.bag import iter_messages

@@ -208,7 +208,9 @@ class LeanNode:
     - ``DEFERS_STOPS``: the node is built whole though a stop comes meanwhile (the
       recorder: its bag open and its readers acknowledging); the stop ends its first pass.
     - ``close()``: the node's own teardown (the bag, the hardware), before it is
-      destroyed; ``stop_summary()``: what a stop leaves behind, for its exit line."""
+      destroyed; ``final_report()``: its last /diagnostics, before the process's run
+      ends (``end_run``); ``stop_summary()``: what a stop leaves behind, for its exit
+      line."""
 
     TICKS: ClassVar[bool] = False
     DEFERS_STOPS: ClassVar[bool] = False
@@ -222,6 +224,10 @@ class LeanNode:
 
     def close(self) -> None:
         """Close what the node holds open (nothing, unless it says otherwise)."""
+
+    def final_report(self) -> None:
+        """The node's last report, while its context still holds (``end_run``; none
+        unless it says otherwise)."""
 
     def stop_summary(self) -> str | None:
         """What a stop leaves behind, in words (None: nothing worth a line)."""
@@ -433,6 +439,16 @@ class LeanExecutor(Executor):
             if not x.shutdown_requested:
                 x.request_shutdown()
         return True
+
+
+def end_run(node) -> None:
+    """End the process's run from ``node`` (the driver: its run is the set's): every
+    node spun with it gives its final report while the context still holds (composed,
+    the driver's end shuts the context of all of them down), then the context goes."""
+    ex = node.executor
+    for n in (ex.nodes if isinstance(ex, LeanExecutor) else [node]):
+        hooks(n).final_report()
+    rclpy.try_shutdown()
 
 
 # -- a node's main() ----------------------------------------------------------------------

@@ -231,6 +231,18 @@ class Diagnostics:
             message = f"{message}; " + "; ".join(why)
         return level, message, values
 
+    def final(self, timeout_s: float = 1.0) -> None:
+        """The last report, with the final counts, delivered before the node goes (its
+        close: the recorder stops after the nodes that publish). A run shorter than the
+        1 s cadence, or whose node's turn came after the run's end (composed nodes
+        share one executor's turns), still has every node's report in its bag."""
+        from rclpy.duration import Duration
+        try:
+            self.publish()
+            self.pub.wait_for_all_acked(Duration(seconds=timeout_s))
+        except Exception:  # noqa: BLE001 - the context already shut down: nothing to tell
+            pass
+
     def publish(self):
         level, message, values = self.evaluate()
         ns = self.node.get_clock().now().nanoseconds

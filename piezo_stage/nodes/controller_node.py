@@ -49,10 +49,16 @@ class Controller(LeanNode, Node):
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "reference", self.on_reference, QOS_DATA, raw=True)
         self.add_on_set_parameters_callback(self.on_set)
-        Diagnostics(self, lambda: (0, self.core.describe(), {
+        self.diag = Diagnostics(self, lambda: (0, self.core.describe(), {
             **self.stats, "feedback": self.core.feedback, **vars(self.core.gains)}),
             "feedback control", rates=[(k, k.replace("_", " "), 0) for k in (
                 "bad_messages", "late_dropped", "non_finite", "clamped")])
+
+    def final_report(self):
+        self.diag.final()  # (LeanNode) the final counts, before the recorder stops
+
+    def close(self):
+        self.final_report()  # alone (composed, the driver's end_run gave it already)
 
     def on_set(self, params):
         try:

@@ -125,8 +125,8 @@ class Feedforward(LeanNode, Node):
         # a move is taken at once (with the samples), not at the base executor's turn
         hot_subscription(self, PointStamped, "move", self.on_move, reliable)
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
-        Diagnostics(self, lambda: (0, f"{self.planner.phase}, model {self.model_name}, "
-                                   f"{self.ref.describe()}" + (
+        self.diag = Diagnostics(self, lambda: (
+            0, f"{self.planner.phase}, model {self.model_name}, {self.ref.describe()}" + (
             f" (last rejected: {self.last_rejection})" if self.last_rejection else ""), {
             **self.stats, "model": self.model_name, "phase": self.planner.phase,
             "effects": self.ref.describe(), "learning": self.learning.describe(),
@@ -137,6 +137,12 @@ class Feedforward(LeanNode, Node):
             "setpoint_latency_median_ms": self.sp_latency.percentile(50) * 1e3,
             "setpoint_latency_max_ms": self.sp_latency.max_s * 1e3}), "inverse feedforward",
             rates=core_ff.RATES)
+
+    def final_report(self):
+        self.diag.final()  # (LeanNode) the final counts, before the recorder stops
+
+    def close(self):
+        self.final_report()  # alone (composed, the driver's end_run gave it already)
 
     def set_model(self, model, effects, name):
         self.use_model(self.prepare_model((model, effects, name)))

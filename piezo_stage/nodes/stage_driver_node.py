@@ -55,7 +55,7 @@ from piezo_stage.core.loop.sample_loop import (
 )
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
-from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
+from piezo_stage.nodes._executor import LeanNode, end_run, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes._signals import STATE as STOP_STATE
@@ -300,8 +300,7 @@ class StageDriver(LeanNode, LifecycleNode):
             if self.clock_pub is not None and out.clock_due:
                 self.gate.publish(self.clock_pub, clock_msg(s.ns))
         if out.next is Next.SHUT_DOWN:
-            self.final_report()
-            rclpy.try_shutdown()  # at the safe voltage (or out of time): exit
+            end_run(self)  # at the safe voltage (or out of time): exit
         elif out.next is Next.FAULTED_AT_SAFE and self.managed and \
                 self.lifecycle_label() == "active":
             self.why_error = out.reason  # the error transition: a deactivate reporting it
@@ -360,13 +359,11 @@ class StageDriver(LeanNode, LifecycleNode):
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
                                   for pub in (self.jpub, self.tpub)):
             self.get_logger().info(done_line(self.running, time.monotonic() - t0))
-            self.final_report()
-            rclpy.try_shutdown()
+            end_run(self)
 
     def final_report(self):
         """Last diagnostics with the final counts, delivered before exiting."""
-        self.diag.publish()
-        self.diag.pub.wait_for_all_acked(Duration(seconds=1))
+        self.diag.final()
 
     @property
     def running(self) -> SampleLoop:
@@ -385,11 +382,11 @@ class StageDriver(LeanNode, LifecycleNode):
         exit. Lockstep (a simulation waiting for commands) and an unconfigured driver
         (nothing open) exit at once."""
         if self.loop is None:
-            rclpy.try_shutdown()
+            end_run(self)
             return
         if self.lock:
             self.loop.end_now()
-            rclpy.try_shutdown()
+            end_run(self)
             return
         # the ramp, then the backend's close (which may ramp again) and the teardown
         watch_stop(max(STOP_STATE.watch_s, self.loop.begin_shutdown()))

@@ -54,10 +54,15 @@ class Trajectory(LeanNode, Node):
         self.publish(self.build(self.p))
         self.create_subscription(KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
         steady_timer(self, 0.25, self.resend_if_held)
-        Diagnostics(self, lambda: (0, f"{self.published} trajectories published (last: "
-                                   f"{self.p.get('kind')})", {"published": self.published,
-                                                              "resent": self.resent,
-                                                              **self.p}), "trajectory")
+        self.diag = Diagnostics(self, lambda: (
+            0, f"{self.published} trajectories published (last: {self.p.get('kind')})",
+            {"published": self.published, "resent": self.resent, **self.p}), "trajectory")
+
+    def final_report(self):
+        self.diag.final()  # (LeanNode) the final counts, before the recorder stops
+
+    def close(self):
+        self.final_report()  # alone (composed, the driver's end_run gave it already)
 
     def build(self, p):
         table = None
