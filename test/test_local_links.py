@@ -144,15 +144,15 @@ print(json.dumps([n.fired for n in nodes]))
 
 def test_a_composed_process_with_no_sample_serves_every_ready_timer(ros_env):
     """Before its first sample a composed process serves every ready callback of its
-    nodes each pass (their start gates are timers), not one per 50 ms turn: there the
-    first node's 10 ms gate timer was always ready, took every turn, and the gates
+    nodes each pass (their start gates are timers), not one every 50 ms: there the
+    first node's 10 ms gate timer was always ready, took every slot, and the gates
     opened one after another (0.1, 0.22 and 0.35 s after configure)."""
     pytest.importorskip("rclpy")
     r = subprocess.run([sys.executable, "-c", IDLE_PROBE], env=ros_env,
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     fired = json.loads(r.stdout.strip().splitlines()[-1])
-    # 0.5 s of 10 ms timers: one callback a 50 ms turn would give 10 in all, the
+    # 0.5 s of 10 ms timers: one callback every 50 ms would give 10 in all, the
     # first node all of them
     assert min(fired) >= 10, fired
 

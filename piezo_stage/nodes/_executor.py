@@ -382,7 +382,7 @@ class LeanExecutor(Executor):
                 not (busy or ticked or self.local.queue):
             # a pass with no sample in it (start-up, a lockstep set waiting) serves
             # every callback ready, up to IDLE_SLOW_MAX: the start gates of composed
-            # nodes (a timer each) opened one per 50 ms turn, 0.3 s to arm
+            # nodes (a timer each) opened one every 50 ms, 0.3 s to arm
             self._last_slow = now
             for _ in range(1 if busy or ticked else IDLE_SLOW_MAX):
                 if not self._slow_once(0.0):
