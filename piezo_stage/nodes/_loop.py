@@ -234,9 +234,9 @@ class Diagnostics:
     def final(self, timeout_s: float = 1.0) -> None:
         """The last report, with the final counts, delivered before the node goes (the
         driver's end_run, a lone node's close: the recorder stops after the nodes that
-        publish). A run shorter than the
-        1 s cadence, or whose node's report was due after the run's end (composed
-        nodes share one executor), still has every node's report in its bag."""
+        publish). A run shorter than the 1 s cadence, or whose node's report was due
+        after the run's end (composed nodes share one executor), still has every node's
+        report in its bag."""
         from rclpy.duration import Duration
         try:
             self.publish()
