@@ -584,7 +584,8 @@ def test_nodes_joining_cost_no_fault_and_a_namespace_holds_one_set(tmp_path, dom
     default-QoS trajectory publishers, joint_states subscribers, plain nodes), a second
     launch on /stage is refused (exit 2, naming the running set) and a second stage's
     driver starts and stops in /stage2: no fault at all, the RMS tracking error meanwhile
-    stays near its quiet figure, and no spell of error lasts over 25 ms. None of
+    stays near its quiet figure, and no spell of error lasts over 25 ms (or twice the
+    longest of the quiet seconds, on a host whose pace alone makes longer ones). None of
     /stage2's topics reach this set's bag. The launcher's stop is a disarm, never a
     fault. (Before: "stale commands: none for 0.334 s" on
     about 3 % of joins, the shared-memory port health check of Fast-DDS issue 6535: the
@@ -708,7 +709,12 @@ def _joining_run(tmp_path, domain):
     figs = [_tracking_figures(run, span, apart_ms=3e3 / (rate / 2))  # 3 sample periods
             for span in (quiet, joined)]
     assert figs[0]["n"] > rate and figs[1]["n"] > 2.5 * rate, (figs, cpu)  # 3 s, 9 s at rate/2
-    assert figs[1]["longest_spell_ms"] <= 25.0, (figs, cpu)
+    # judged against the same run's quiet seconds: on this 2-core VM a 250 Hz set had
+    # spells of 17-45 ms with nobody joining (fresh clones' CI of 5df54de and 8e53da8:
+    # joined 33-77 ms), so a fixed 25 ms judged the host's pace; the stall this guards
+    # against (0.33 s) is beyond the limit however noisy the host
+    limit_ms = min(150.0, max(25.0, 2.0 * figs[0]["longest_spell_ms"]))
+    assert figs[1]["longest_spell_ms"] <= limit_ms, (figs, cpu)
     assert figs[1]["rms_trimmed_um"] <= 2.0 * figs[0]["rms_trimmed_um"] + 0.03, (figs, cpu)
     from piezo_stage.io.bag import iter_messages
     topics = {topic for topic, _, _, _ in iter_messages(bag)}
