@@ -223,7 +223,9 @@ class LeanNode:
         """One real-time tick (a node with ``TICKS``)."""
 
     def close(self) -> None:
-        """Close what the node holds open (nothing, unless it says otherwise)."""
+        """Close what the node holds open (nothing, unless it says otherwise); by
+        default its final report (a lone node; composed, ``end_run`` gave it)."""
+        self.final_report()
 
     def final_report(self) -> None:
         """The node's last report, while its context still holds (``end_run``; none

@@ -57,9 +57,6 @@ class Controller(LeanNode, Node):
     def final_report(self):
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
-    def close(self):
-        self.final_report()  # alone (composed, the driver's end_run gave it already)
-
     def on_set(self, params):
         try:
             self.core.set_gains(**{p.name: p.value for p in params if p.name in GAINS})

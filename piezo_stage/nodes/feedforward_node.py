@@ -141,9 +141,6 @@ class Feedforward(LeanNode, Node):
     def final_report(self):
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
-    def close(self):
-        self.final_report()  # alone (composed, the driver's end_run gave it already)
-
     def set_model(self, model, effects, name):
         self.use_model(self.prepare_model((model, effects, name)))
 

@@ -61,9 +61,6 @@ class Trajectory(LeanNode, Node):
     def final_report(self):
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
-    def close(self):
-        self.final_report()  # alone (composed, the driver's end_run gave it already)
-
     def build(self, p):
         table = None
         if p["kind"] == "csv":
