@@ -12,7 +12,9 @@ way a lab's own node would:
 2. wait on <namespace>/state (diagnostic_msgs/DiagnosticArray, latched) until the
    driver relays the feedforward's phase as done (key-values ``feedforward_phase``
    "done" and ``feedforward_follows`` "trajectory of N points stamped S") for this very
-   trajectory;
+   trajectory; a fault of the stage's that begins after the sample it saw last before
+   publishing ends the wait (the latched topic also replays older changes: an earlier
+   fault, since recovered from, is not this trajectory's);
 3. read where the stage is (sensor_msgs/JointState on <namespace>/joint_states) and
    print the error per axis against the last point; exit 0 if both are within the
    tolerance, 1 if not (or on a timeout).
@@ -86,10 +88,12 @@ def main(argv=None):
     def on_state(msg):
         if msg.status:
             seen["state"] = {kv.key: kv.value for kv in msg.status[0].values}
+            seen["since"] = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
     def on_joints(msg):
         if list(msg.name[:2]) == ["x", "y"] and len(msg.position) >= 2:
             seen["position"] = (msg.position[0] * 1e6, msg.position[1] * 1e6)
+            seen["sample"] = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
     node.create_subscription(DiagnosticArray, f"{ns}/state", on_state, STATE)
     node.create_subscription(JointState, f"{ns}/joint_states", on_joints, 10)
@@ -100,10 +104,17 @@ def main(argv=None):
         end = time.monotonic() + args.timeout
         while time.monotonic() < end and pub.get_subscription_count() < 1:
             rclpy.spin_once(node, timeout_sec=0.05)
+        # and a sample of the stage's: the state topic is latched, so it replays the
+        # driver's last changes, an old fault among them; a fault that counts is one
+        # that began after the sample this node last saw before publishing (the stage's
+        # own clock, in lockstep too)
+        while time.monotonic() < end and "sample" not in seen:
+            rclpy.spin_once(node, timeout_sec=0.05)
         if time.monotonic() >= end:
-            print(f"no feedforward on {ns}/trajectory: is the node set running?",
-                  file=sys.stderr)
+            print(f"no feedforward on {ns}/trajectory, or no samples on "
+                  f"{ns}/joint_states: is the node set running?", file=sys.stderr)
             return 1
+        published_after = seen["sample"]
         msg = JointTrajectory(joint_names=["x", "y"])
         # 0: no start time (the stage starts it once it has approached the first point;
         # a lockstep set, whose clock is its own samples, takes only this)
@@ -126,13 +137,13 @@ def main(argv=None):
         end = time.monotonic() + args.timeout
         while time.monotonic() < end and phase() != mine:
             rclpy.spin_once(node, timeout_sec=0.05)
-            if seen["state"].get("state") == "faulted":
+            if seen["state"].get("state") == "faulted" and seen["since"] > published_after:
                 print(f"the stage faulted: {seen['state'].get('reason')}", file=sys.stderr)
                 return 1
         if phase() != mine:
             print(f"the stage did not finish within {args.timeout:g} s (its feedforward: "
-                  f"{': '.join(x for x in phase() if x) or 'nothing heard'})",
-                  file=sys.stderr)
+                  f"{': '.join(x for x in phase() if x) or 'nothing heard'}; the stage: "
+                  f"{seen['state'].get('state', 'nothing heard')})", file=sys.stderr)
             return 1
         settle = time.monotonic() + 0.2  # the newest samples at the last point
         seen["position"] = None  # (and one from now: this node's joint_states

@@ -180,3 +180,33 @@ def test_the_moves_page_runs_as_written(tmp_path, ros_env):
         assert re.fullmatch(r"\d+\.\d ms\n", r.stdout), r.stdout
     finally:
         launch.stop()
+
+
+@pytest.mark.slow
+def test_the_example_node_runs_on_a_stage_that_recovered_from_a_fault(tmp_path, ros_env):
+    """examples/publish_trajectory.py on a lockstep set that was e-stopped, disarmed and
+    armed again: the latched state topic replays that fault to the example as it joins,
+    and the example takes it for the present only if it began after the sample it saw
+    last before publishing. (It exited 1 "the stage faulted" here while the stage was
+    armed and would have run its trajectory.)"""
+    from ros_probe import Probe
+    launch, _ = _set(tmp_path, ros_env, "lockstep")
+    probe = Probe(int(ros_env["ROS_DOMAIN_ID"]))
+    try:
+        launch.start()
+        assert probe.wait_state("armed", 60)
+        n = len(probe.states)
+        assert probe.estop().success and probe.wait_state("faulted", 10, after=n)
+        assert probe.arm(False).success and probe.wait_state("disarmed", 10, after=n)
+        n = len(probe.states)
+        assert probe.wait(lambda: probe.arm(True).success, 10)
+        assert probe.wait_state("armed", 30, after=n)
+        r = subprocess.run([sys.executable, os.path.join(CONFIG, "..", "examples",
+                                                         "publish_trajectory.py"),
+                            "--start-in", "0", "--timeout", "60"],
+                           env=ros_env, capture_output=True, text=True, timeout=90)
+        assert r.returncode == 0, (r.stdout, r.stderr)
+        assert "done: final error x" in r.stdout, r.stdout
+    finally:
+        probe.close()
+        launch.stop()

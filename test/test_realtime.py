@@ -115,6 +115,17 @@ def test_the_host_pace_is_read_from_the_samples_and_a_long_pause_judges_nothing(
         judged_within(0.090, 0.055, 0.030, "a fault")
     with pytest.raises(HostTooSlow, match="paused the driver 60 ms"):
         judged_within(0.001, 0.055, 0.060, "a fault")
+    # a fault 10 ms after that 30 ms pause: the host's (30 >= half of 50 ms); a fault
+    # with the samples on time before it, or no fault at all, is the failure it is
+    from types import SimpleNamespace
+    run = SimpleNamespace(t_ns=t, states=[(0, "armed"), (100_000_000, "faulted")])
+    with pytest.raises(HostTooSlow, match="paused the driver 30 ms"):
+        paused_by_the_host(run, AssertionError("stale"))
+    run.states[-1] = (50_000_000, "faulted")
+    with pytest.raises(AssertionError, match="stale"):
+        paused_by_the_host(run, AssertionError("stale"))
+    with pytest.raises(AssertionError, match="no fault"):
+        paused_by_the_host(SimpleNamespace(t_ns=t, states=[]), AssertionError("no fault"))
 
 
 def never_faulted(states):
@@ -744,6 +755,7 @@ def _outside(tmp_path, domain, capfd):
     from piezo_stage.io.bag import iter_messages
     from piezo_stage.nodes._common import QOS_LATCHED
     d, env = domain
+    capfd.readouterr()  # a first run's output is its own: its fault is not this run's
     bag = str(tmp_path / "outside")
     launch = Launch(realtime_config(tmp_path), record=bag, env=env, trajectory=False,
                     exclusive=False)
@@ -751,6 +763,7 @@ def _outside(tmp_path, domain, capfd):
     probe = Probe(d)
     t = np.arange(0, 1.0, 1e-3)
     ends = []
+    failed = None
     try:
         launch.start()
         assert probe.wait_state("armed", 60)
@@ -775,16 +788,24 @@ def _outside(tmp_path, domain, capfd):
                            env=env, capture_output=True, text=True, timeout=60)
         assert r.returncode == 0, (r.stdout, r.stderr)
         assert "final error x" in r.stdout, r.stdout
+    except AssertionError as e:
+        failed = e
     finally:
         probe.close()
         launch.stop()
     run = read_run(bag)
     err = capfd.readouterr().err
+    sys.stderr.write(err)  # still this test's output, shown where it fails
+    if failed is not None:
+        paused_by_the_host(run, failed)
     # no fault, the example node's joining included; the last state is the launcher's
     # stop, a disarm
     names = [s for _, s in run.states]
-    never_faulted([(n,) for n in names[names.index("armed"):-1]])
-    assert "faulted" not in err and names[-1] == "disarmed", err[-2000:]
+    try:
+        never_faulted([(n,) for n in names[names.index("armed"):-1]])
+        assert "faulted" not in err and names[-1] == "disarmed", err[-2000:]
+    except AssertionError as e:
+        paused_by_the_host(run, e)
     assert_never_beyond_slew(run.t_ns, run.v_V)
     from rclpy.serialization import deserialize_message
     held = [deserialize_message(data, JointTrajectory) for topic, _, _, data
@@ -856,19 +877,21 @@ def test_a_real_controllers_commands_late_fault_and_ramp_to_safe(tmp_path, domai
     run_twice_at_most(_late_run, tmp_path, domain, ros_domains)
 
 
-class _NotArmed(Exception):
-    pass
-
-
-def _faulted_by_the_host(run, states):
-    """A run that faulted before its test began: HostTooSlow when the driver's own
-    samples show the host paused it near the fault, else the failure it is."""
+def paused_by_the_host(run, failed, stale=STALE):
+    """A run that faulted where it should not: HostTooSlow when the driver's own samples
+    show the host paused it for half of ``stale`` (its stale_timeout_s) or more in the
+    200 ms before the first fault (the loop then finds its last command that old), else
+    ``failed`` itself."""
     faults = [s for s, n in run.states if n == "faulted"]
     pause = host_pause_s(run.t_ns, faults[0] - 200_000_000, faults[0]) if faults else 0.0
-    if pause >= 0.5 * LATE_STALE:
-        raise HostTooSlow(f"a fault before the test began, the host having paused the "
-                          f"driver {pause * 1e3:.0f} ms: {states}")
-    raise AssertionError(f"not armed before the test began: {states}")
+    if pause >= 0.5 * stale:
+        raise HostTooSlow(f"faulted, the host having paused the driver {pause * 1e3:.0f} ms "
+                          f"(stale_timeout_s {stale * 1e3:.0f} ms): {failed}") from failed
+    raise failed
+
+
+class _NotArmed(Exception):
+    pass
 
 
 def _late_run(tmp_path, domain):
@@ -911,7 +934,8 @@ def _late_run(tmp_path, domain):
         relay.send_signal(signal.SIGINT)
         relay.wait(10)
     if early:  # the host's pace, or a failure
-        _faulted_by_the_host(read_run(bag), early)
+        paused_by_the_host(read_run(bag), AssertionError(
+            f"not armed before the test began: {early}"), LATE_STALE)
     assert reason.startswith("late commands: ") and "ms behind for" in reason, reason
     assert "arrived after their tick, dropped" in reason, reason
     run = read_run(bag)
