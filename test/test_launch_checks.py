@@ -135,40 +135,6 @@ def test_real_time_sets_publish_synchronously_over_loopback_udp(tmp_path):
         assert "<heartbeatPeriod><sec>0</sec><nanosec>50000000</nanosec>" in fh.read()
 
 
-def test_a_real_time_sets_writers_keep_a_short_history(tmp_path, monkeypatch):
-    """`piezo-stage launch` gives a real-time set's nodes PIEZO_STAGE_WRITER_DEPTH 250
-    (a user's own value stays), a lockstep set none; the loop's publishers take it
-    (data_out_qos: QOS_DATA with that writer history), a bad value is refused in one
-    line, and the loopback profile's writers send their heartbeat every 50 ms, well
-    within 250 samples at 1 kHz."""
-    from piezo_stage.core.errors import ConfigError
-    from piezo_stage.launch.launcher import LOOPBACK_UDP_PROFILE, Launch
-    from piezo_stage.nodes import REALTIME_WRITER_DEPTH, WRITER_DEPTH_ENV
-    from piezo_stage.nodes._common import QOS_DATA, data_out_qos
-    rt = tmp_path / "rt.yaml"
-    rt.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n")
-    env = {k: v for k, v in os.environ.items() if k != WRITER_DEPTH_ENV}
-    real = Launch(str(rt), env=env, arm=False)
-    assert REALTIME_WRITER_DEPTH == 250
-    assert real.env[WRITER_DEPTH_ENV] == real.node_env[WRITER_DEPTH_ENV] == "250"
-    assert Launch(str(rt), env=dict(env, **{WRITER_DEPTH_ENV: "800"}),
-                  arm=False).node_env[WRITER_DEPTH_ENV] == "800"
-    lock = Launch(os.path.join(CONFIG, "stage.yaml"), env=env)
-    assert WRITER_DEPTH_ENV not in lock.env and WRITER_DEPTH_ENV not in lock.node_env
-    monkeypatch.delenv(WRITER_DEPTH_ENV, raising=False)
-    assert data_out_qos() is QOS_DATA and QOS_DATA.depth == 5000
-    monkeypatch.setenv(WRITER_DEPTH_ENV, "250")
-    q = data_out_qos()
-    assert q.depth == 250 and (q.history, q.reliability, q.durability) == (
-        QOS_DATA.history, QOS_DATA.reliability, QOS_DATA.durability)
-    for bad in ("0", "5001", "2.5", "lots"):
-        monkeypatch.setenv(WRITER_DEPTH_ENV, bad)
-        with pytest.raises(ConfigError, match="a whole number of samples in"):
-            data_out_qos()
-    with open(LOOPBACK_UDP_PROFILE) as fh:
-        assert "<heartbeatPeriod><sec>0</sec><nanosec>50000000</nanosec>" in fh.read()
-
-
 @pytest.mark.parametrize("given, wanted", [
     ({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, "profile"),
     ({"ROS_LOCALHOST_ONLY": "1"}, "profile"),

@@ -25,7 +25,6 @@ import time
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.io.model_file import load_yaml
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
-from piezo_stage.nodes import REALTIME_WRITER_DEPTH, WRITER_DEPTH_ENV
 from piezo_stage.nodes.declared import (
     DECLARED,
     RCLPY_OWN,
@@ -235,12 +234,6 @@ class Launch:
             realtime_transport_env(self.env)
         self.node_env = dict(transport)
         self.env.update(transport)  # set only where the user configured none
-        # real time: the loop's writers keep a short history (nodes/_common.data_out_qos:
-        # a node joining the graph then costs their publishes no 10-20 ms); a value of the
-        # user's own stays
-        if not self.lockstep:
-            self.env.setdefault(WRITER_DEPTH_ENV, str(REALTIME_WRITER_DEPTH))
-            self.node_env[WRITER_DEPTH_ENV] = self.env[WRITER_DEPTH_ENV]
         # the loop's nodes in one process (nodes/loop_container.py; COMPOSE: which)
         compose = (COMPOSE_DEFAULT["lockstep" if self.lockstep else "realtime"]
                    if compose is None else compose)

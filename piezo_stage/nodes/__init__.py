@@ -8,9 +8,3 @@ installs scripts/<node> to lib/piezo_stage) all read it.
 
 NODES = ("recorder", "live_view", "identifier", "gap", "controller", "feedforward",
          "trajectory", "stage_driver")
-
-# the writer history [samples] the loop's nodes publish their per-sample topics with,
-# where this is set (``_common.data_out_qos``): `piezo-stage launch` sets it for a
-# real-time set (REALTIME_WRITER_DEPTH); unset, the writers keep QOS_DATA's 5000
-WRITER_DEPTH_ENV = "PIEZO_STAGE_WRITER_DEPTH"
-REALTIME_WRITER_DEPTH = 250

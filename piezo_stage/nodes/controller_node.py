@@ -26,7 +26,7 @@ from sensor_msgs.msg import JointState
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.control import PARAMETERS, CompositeController
 from piezo_stage.core.loop.stamps import StampGuard
-from piezo_stage.nodes._common import QOS_DATA, data_out_qos
+from piezo_stage.nodes._common import QOS_DATA
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare_schema
@@ -45,7 +45,7 @@ class Controller(LeanNode, Node):
         # the driver's announcements: taken before the data in each lean-loop pass
         self.driver = DriverState(self, self.core.dt_ns, p["thread_priority"])
         self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
-        self.pub = self.create_publisher(Vector3Stamped, "command", data_out_qos())
+        self.pub = self.create_publisher(Vector3Stamped, "command", QOS_DATA)
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "reference", self.on_reference, QOS_DATA, raw=True)
         self.add_on_set_parameters_callback(self.on_set)

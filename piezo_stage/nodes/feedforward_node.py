@@ -34,7 +34,7 @@ from piezo_stage.core.loop.ontarget import REFUSED, TargetState
 from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
 from piezo_stage.core.loop.stamps import StampGuard
 from piezo_stage.core.metrics import LatencyHistogram
-from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED, data_out_qos
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._intake import Intake, trajectory_key, warm_up
 from piezo_stage.nodes._latched import LatchedFetch
@@ -97,7 +97,7 @@ class Feedforward(LeanNode, Node):
         if p["model_file"]:
             from piezo_stage.io.model_file import load_model
             self.set_model(*load_model(p["model_file"]), p["model_file"])
-        self.pub = self.create_publisher(JointState, "reference", data_out_qos())
+        self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
         self.phase_pub = self.create_publisher(KeyValue, "feedforward/phase", QOS_EVENTS)
         self.phase_pub.publish(phase_msg(HOLD))
         # what the stage runs, byte for byte as it came, latched: the recorder takes it

@@ -19,7 +19,7 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.estimation.gap.monitor import ResidualMonitor
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir
-from piezo_stage.nodes._common import QOS_DATA, data_out_qos
+from piezo_stage.nodes._common import QOS_DATA
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare_schema
@@ -38,7 +38,7 @@ class Gap(LeanNode, Node):
         # the residual against the model's twin (core/estimation/gap/monitor.py)
         self.monitor = ResidualMonitor(model, effects, p["control_rate_hz"], p["window"])
         self.model_name = path
-        self.pub = self.create_publisher(PointStamped, "gap/residual", data_out_qos())
+        self.pub = self.create_publisher(PointStamped, "gap/residual", QOS_DATA)
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
                          raw=True)

@@ -54,7 +54,7 @@ from piezo_stage.core.loop.sample_loop import (
     check_mode,
 )
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
-from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, data_out_qos, steady_timer
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
 from piezo_stage.nodes._executor import LeanNode, end_run, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage.nodes._params import declare_schema
@@ -106,8 +106,8 @@ class StageDriver(LeanNode, LifecycleNode):
         self.next_j = 0  # lockstep: the first sample of the next configure
         self.last_values: dict = {}  # the last announcement's values (for unconfigured)
         self.why_error = ""  # a fault that takes the error transition
-        self.jpub = self.create_publisher(JointState, "joint_states", data_out_qos())
-        self.tpub = self.create_publisher(PointStamped, "sim/true_position", data_out_qos())
+        self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
+        self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
         self.spub = self.create_publisher(DiagnosticArray, "state", QOS_EVENTS)
         # lockstep: the sample clock is the set's clock (a bag then has one time base)
         self.clock_pub = self.create_publisher(Clock, "/clock", 10) \

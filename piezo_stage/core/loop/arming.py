@@ -46,11 +46,7 @@ class ArmingParams:
     """The arming supervisor's parameters (safe voltage, ramps, timeouts, tolerances)."""
     safe_V: float = 0.0              # where disarmed and faulted outputs go
     ramp_V_per_s: float = 500.0      # how fast they go there
-    # armed: no command on time for this long is a fault. 0.1 s: twice what a stock
-    # kernel lets a starved normal task take from a SCHED_FIFO thread's CPU each second
-    # (53-54 ms measured on 6.18, its fair server; sched_rt_runtime_us 950000 of 1000000
-    # on older ones). At 0.05 s that one slot faulted a set now and then
-    stale_s: float = 0.1
+    stale_s: float = 0.05            # armed: no command on time for this long is a fault
     confirm_ticks: int = 20          # consecutive ticks of evidence that the loop closed
     tolerance_V: float = 0.01        # |command - applied| that counts as "holding"
     auto_arm: bool = False           # arm at start, and re-arm after a stale fault
