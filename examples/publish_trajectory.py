@@ -61,6 +61,11 @@ def points_from(args):
     return DEFAULT
 
 
+def stamp_ns(header) -> int:
+    """A message header's stamp [ns]."""
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--namespace", default="/stage")
@@ -88,12 +93,12 @@ def main(argv=None):
     def on_state(msg):
         if msg.status:
             seen["state"] = {kv.key: kv.value for kv in msg.status[0].values}
-            seen["since"] = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            seen["since"] = stamp_ns(msg.header)
 
     def on_joints(msg):
         if list(msg.name[:2]) == ["x", "y"] and len(msg.position) >= 2:
             seen["position"] = (msg.position[0] * 1e6, msg.position[1] * 1e6)
-            seen["sample"] = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            seen["sample"] = stamp_ns(msg.header)
 
     node.create_subscription(DiagnosticArray, f"{ns}/state", on_state, STATE)
     node.create_subscription(JointState, f"{ns}/joint_states", on_joints, 10)
