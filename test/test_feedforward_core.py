@@ -132,3 +132,40 @@ def test_the_phase_says_which_trajectory_runs(model):
     core.planner.set_trajectory(t, {"x": np.full(t.size, 2.0), "y": np.full(t.size, 2.0)})
     core.traj_text = "trajectory of 10 points stamped 0"
     assert core.phase() == (core.planner.phase, "trajectory of 10 points stamped 0")
+
+
+def test_every_kernel_a_tracked_sample_calls_is_ready_once_the_model_is():
+    """Real time: once a model is prepared (at the node's start, or off the loop's thread
+    for a refit), tracking with commands in flight (the look-ahead) loads no compiled
+    kernel on the loop's thread. A fresh process: the kernels compiled so far in it are
+    counted after ``set_model`` and after 200 tracked samples, 5 ticks ahead."""
+    import subprocess
+    import sys
+    code = f"""
+import os
+from piezo_stage.core.loop.feedforward import InverseFeedforward
+from piezo_stage.core.loop.planner import ReferencePlanner
+from piezo_stage.io.model_file import load_model
+import sys
+def compiled():  # every compiled function of the package's modules loaded so far
+    return {{f"{{m}}.{{n}}": len(d.signatures) for m, mod in list(sys.modules.items())
+            if m.startswith("piezo_stage") for n, d in vars(mod).items()
+            if hasattr(d, "signatures") and hasattr(d, "py_func")}}
+core = InverseFeedforward(ReferencePlanner(), {DT})
+core.set_model(load_model(os.path.join({CONFIG!r}, "stage_model.yaml"))[0], None, "m")
+before = compiled()
+applied, w = {{"x": 0.0, "y": 0.0}}, {{"x": 0.0, "y": 0.0}}
+core.measured(0, w, applied)
+core.answer(0, 5 * {DT}, w, applied, enabled=False)
+core.planner.set_setpoint({{"x": 5.0, "y": 3.0}})
+for k in range(1, 200):
+    core.answer(k * {DT}, (k + 5) * {DT}, w, applied, enabled=True)
+    applied = dict(core.ff)
+    core.measured(k * {DT}, w, applied)
+after = compiled()
+print(sorted(n for n in after if after[n] != before[n]) or "none")
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip().splitlines()[-1] == "none", r.stdout

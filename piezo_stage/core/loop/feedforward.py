@@ -231,6 +231,11 @@ class InverseFeedforward:
                             dt_s=self.dt_ns * 1e-9)
         warm.sync(*model.voltage_limits)                      # not at the first sample
         warm.step(0.0, 0.0)
+        # and the look-ahead's (a target answered with commands still in flight, from
+        # the first tracked sample on): loaded on that first call, it held the loop's
+        # thread 11 ms, part of a 44 ms silence at the approach that faulted a real-time
+        # set on stale commands (py-spy on this 2-core VM, 2026-12-02)
+        warm.step_ahead([{"x": 0.0, "y": 0.0}], 0.0, 0.0)
         lo, hi = model.voltage_limits
         gain = max(abs(stroke_um(m, (lo, hi), plays=model.plays.get(a))) / (hi - lo)
                    for a, m in model.axes.items())
