@@ -62,9 +62,7 @@ def kernels(rate_hz: float = 1000.0) -> int:
     rec = Record(t, {"x": v, "y": v.copy()}, w_um, source="warm-up", voltage_exact=True)
     fitted = identify_stage(rec, ("x", "y"), IdentifyOptions(), skip_unusable=True)
     inv = StageInverse(fitted.model, use_coupling=True, dt_s=1.0 / rate_hz)
-    inv.sync(*fitted.model.voltage_limits)
-    inv.step(0.0, 0.0)
-    inv.step_ahead([{"x": 0.0, "y": 0.0}], 0.0, 0.0)  # the real-time look-ahead's
+    inv.warm_kernels()
     return len(fitted.model.axes)
 
 

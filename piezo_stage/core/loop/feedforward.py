@@ -227,15 +227,9 @@ class InverseFeedforward:
         comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes),
                                   self.max_res_hz) if effects else None)
         inv = StageInverse(model, use_coupling=self.use_c, dt_s=self.dt_ns * 1e-9)
-        warm = StageInverse(model, use_coupling=self.use_c,  # compile the kernels now,
-                            dt_s=self.dt_ns * 1e-9)
-        warm.sync(*model.voltage_limits)                      # not at the first sample
-        warm.step(0.0, 0.0)
-        # and the look-ahead's (a target answered with commands still in flight, from
-        # the first tracked sample on): loaded on that first call, it held the loop's
-        # thread 11 ms, part of a 44 ms silence at the approach that faulted a real-time
-        # set on stale commands (py-spy on this 2-core VM, 2026-12-02)
-        warm.step_ahead([{"x": 0.0, "y": 0.0}], 0.0, 0.0)
+        # the kernels now, not at a sample (at the first tracked one the look-ahead's
+        # was part of a 44 ms silence at the approach that faulted a real-time set)
+        StageInverse(model, use_coupling=self.use_c, dt_s=self.dt_ns * 1e-9).warm_kernels()
         lo, hi = model.voltage_limits
         gain = max(abs(stroke_um(m, (lo, hi), plays=model.plays.get(a))) / (hi - lo)
                    for a, m in model.axes.items())
