@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading  # here, whole: a stop landing in its own first import found it half-made
 from typing import NoReturn
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -38,8 +39,9 @@ def _on_signal(signum, frame):
 
 def again_soon(signum: int) -> None:
     """Send ``signum`` to this process again in 5 ms (a stop that could not be raised
-    where it landed)."""
-    import threading
+    where it landed). ``threading`` is this module's, imported whole before any
+    handler was installed: imported here, a stop that landed in the command's own first
+    import of it got the half-initialized module (no ``Timer`` yet) and a traceback."""
     t = threading.Timer(0.005, os.kill, (os.getpid(), signum))
     t.daemon = True
     t.start()

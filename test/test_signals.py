@@ -177,6 +177,18 @@ def test_importlibs_own_frames_are_told_from_a_modules_top_level():
     assert not stopping.in_import_machinery(sys._getframe())
 
 
+def test_a_stop_landing_in_the_first_import_of_threading_is_sent_again(monkeypatch):
+    """A stop that lands while the command imports ``threading`` for the first time (the
+    launcher's look, 0.11 s after start) is sent again: ``again_soon`` uses the module it
+    imported whole, never the half-made one then in ``sys.modules`` (it raised
+    AttributeError: no ``Timer``, a traceback instead of the stop's line)."""
+    import types
+
+    from piezo_stage import stopping
+    monkeypatch.setitem(sys.modules, "threading", types.ModuleType("threading"))
+    stopping.again_soon(0)  # signal 0: only checks that this process may be signalled
+
+
 def test_a_stop_landing_in_a_finalizer_is_not_lost():
     """A Ctrl-C that lands while an object's ``__del__`` runs (llvmlite's, as numba
     compiles) is sent again once the finalizer is done: the command stops with its
@@ -298,6 +310,33 @@ def test_default_qos_publisher_works_without_warnings_and_a_restart_gets_the_lat
                 p.wait(30)
     for log in (ff_log, tr_log):
         assert "incompatible" not in log.read_text().lower(), log.read_text()
+
+
+def test_a_fetch_is_for_named_outside_latched_publishers_and_none_beside_volatile_ones():
+    """What a latched fetch is opened for, from the graph's endpoint records (rclpy's
+    own TopicEndpointInfo): an outside latched publisher; not our trajectory node in
+    the namespace (it resends), nor a latched publisher the graph cannot name yet (it
+    may be that node), and a volatile one on the topic is reported."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from rclpy.topic_endpoint_info import TopicEndpointInfo, TopicEndpointTypeEnum
+
+    from piezo_stage.nodes._common import UNKNOWN_NODE
+    from piezo_stage.nodes._latched import fetchable
+
+    def pub(name, ns, durability, gid):
+        return TopicEndpointInfo(
+            node_name=name, node_namespace=ns, topic_type="trajectory_msgs/msg/JointTrajectory",
+            endpoint_type=TopicEndpointTypeEnum.PUBLISHER, endpoint_gid=[gid] * 16,
+            qos_profile=QoSProfile(depth=1, durability=durability))
+    latched, volatile = DurabilityPolicy.TRANSIENT_LOCAL, DurabilityPolicy.VOLATILE
+    ours, lab = pub("trajectory", "/stage", latched, 1), pub("lab", "/", latched, 2)
+    unnamed = pub(UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_", latched, 3)
+    assert fetchable([ours, lab, unnamed], "/stage") == ({bytes([2] * 16)}, False)
+    assert fetchable([ours, unnamed], "/stage") == (set(), False)
+    assert fetchable([pub("trajectory", "/other", latched, 4)], "/stage")[0] == \
+        {bytes([4] * 16)}  # another namespace's trajectory node is outside this set
+    assert fetchable([lab, pub("lab2", "/", volatile, 5)], "/stage") == \
+        ({bytes([2] * 16)}, True)
 
 
 def test_a_default_qos_publisher_already_on_the_graph_sees_no_warning_and_the_set_starts(

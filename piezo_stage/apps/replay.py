@@ -18,13 +18,12 @@ from __future__ import annotations
 import time
 
 from piezo_stage.io.bag import iter_messages
+from piezo_stage.nodes._common import UNKNOWN_NODE as UNKNOWN
 
 SKIP = ("/diagnostics", "/model", "/rosout", "/parameter_events", "/clock")
 DEEP_ENOUGH_S = 0.1  # a subscriber's queue should hold this much of a topic's stream
 
 
-UNKNOWN = "_NODE_NAME_UNKNOWN_"  # the graph's name of an endpoint whose node it has
-                                 # not yet heard of (its participant's node list)
 
 
 def _subscribers(node, topic: str, wait_s: float = 1.0) -> list:

@@ -21,6 +21,9 @@ QOS_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 QOS_DIAG = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+# the graph's name of an endpoint whose node it has not yet heard of: an endpoint is
+# discovered before its participant's node list names its node
+UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
 
 
 def steady_timer(node, period_s, callback):

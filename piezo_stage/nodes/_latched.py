@@ -28,11 +28,25 @@ import time
 
 from rclpy.qos import DurabilityPolicy
 
-from piezo_stage.nodes._common import QOS_LATCHED, steady_timer
+from piezo_stage.nodes._common import QOS_LATCHED, UNKNOWN_NODE, steady_timer
 
 # our nodes (in the same namespace) whose latched publishers send their message again
 # to a consumer that lacks it: no fetch is needed from them
 RESENDING = ("trajectory",)
+
+
+def fetchable(infos, ns: str, resending=RESENDING) -> tuple[set, bool]:
+    """(the endpoint gids of the latched publishers in ``infos`` (a topic's publishers,
+    as the graph gives them) a fetch is for, whether a volatile publisher is among
+    them). Left out: our own nodes in namespace ``ns`` that resend (``resending``), and
+    a latched publisher whose node the graph cannot name yet, which may be one of
+    those: decided at a later poll, once named (a fetch opened for our own trajectory
+    node would meet a lab's volatile publisher discovered a moment later, and both
+    would log incompatible QoS, as a fresh clone's CI once saw)."""
+    durable = [i for i in infos if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL]
+    latched = {bytes(i.endpoint_gid) for i in durable if i.node_name != UNKNOWN_NODE
+               and not (i.node_name in resending and i.node_namespace == ns)}
+    return latched, len(durable) < len(infos)
 
 
 class LatchedFetch:
@@ -63,12 +77,7 @@ class LatchedFetch:
         """Open a fetch for new latched publishers; close it when its time is up or a
         volatile publisher appears."""
         infos = self.node.get_publishers_info_by_topic(self.topic)
-        ns = self.node.get_namespace()
-        latched = {bytes(i.endpoint_gid) for i in infos
-                   if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                   and not (i.node_name in self.resending and i.node_namespace == ns)}
-        volatile = any(i.qos_profile.durability != DurabilityPolicy.TRANSIENT_LOCAL
-                       for i in infos)
+        latched, volatile = fetchable(infos, self.node.get_namespace(), self.resending)
         if volatile or time.monotonic() - self.opened_at > self.open_s:
             self._close()
         new = latched - self.fetched
