@@ -2,7 +2,8 @@
 # The project's two commands (see README):
 #   ./dev.sh demo          the main job on the simulated stage
 #   ./dev.sh test [ARGS]   the whole test suite (pytest ARGS)
-# and, for convenience, ./dev.sh <piezo-stage args>.
+# and, for convenience, ./dev.sh <piezo-stage args>; ./dev.sh lock writes requirements.lock
+# again (after a change to setup.py's requirements).
 # Each creates or reuses the virtual environment .venv at the repository root and
 # (re)installs the package when its install files changed.
 set -euo pipefail
@@ -23,15 +24,19 @@ extras=ros
 # uv installs the wheels in seconds where pip takes half a minute: it comes from PATH or,
 # through pip, from the package index into .venv/tools; it is given pip's own
 # configuration (indexes, find-links, constraints, certificate). Without uv, pip.
-# PIEZO_STAGE_INSTALLER=pip: pip alone (as before uv; scripts/bench_setup.sh's baseline).
+# PIEZO_STAGE_INSTALLER=pip: pip alone (as before uv; bench setup's baseline).
 uv=$(command -v uv || true)
 [ -z "$uv" ] && [ -x .venv/tools/bin/uv ] && uv=.venv/tools/bin/uv
 only_pip=$([ "${PIEZO_STAGE_INSTALLER:-}" = pip ] && echo 1 || true)
 [ -n "$only_pip" ] && uv=""
+pip_config=""
 if [ ! -x .venv/bin/python ]; then
+  # pip's configuration (its indexes, for uv below) is read beside the new .venv's set-up
+  pip_config=$(mktemp)
+  "$py" -m pip config list >"$pip_config" 2>/dev/null & pip_config_pid=$!
   if [ -z "$only_pip" ] && [ -z "$uv" ] && "$py" -m venv --without-pip .venv \
-       && "$py" -m pip install --quiet --disable-pip-version-check --target .venv/tools \
-            uv >/dev/null 2>&1; then
+       && "$py" -m pip install --quiet --disable-pip-version-check --no-deps --no-compile \
+            --target .venv/tools uv >/dev/null 2>&1; then
     uv=.venv/tools/bin/uv
   elif [ -z "$only_pip" ] && [ -n "$uv" ]; then
     "$py" -m venv --without-pip .venv
@@ -40,11 +45,10 @@ if [ ! -x .venv/bin/python ]; then
     "$py" -m venv .venv
   fi
 fi
-stamp=.venv/.piezo_stage_install_stamp
-want=$(cat setup.py setup.cfg package.xml dev.sh | sha256sum | cut -d' ' -f1)
-have=$(cat "$stamp" 2>/dev/null || true)
-if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" != ros,test ]; }; then
-  uv_flags=()
+# pip's configuration as uv's flags (indexes, find-links, constraints, certificate)
+uv_flags=()
+pip_config_to_uv() {
+  if [ -n "$pip_config" ]; then wait "$pip_config_pid" || true; fi
   while IFS= read -r line; do
     key=${line%%=*}; key=${key#*.}; val=${line#*=}; val=${val#\'}; val=${val%\'}
     for v in $val; do
@@ -56,7 +60,27 @@ if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" 
         cert) export SSL_CERT_FILE="$v" ;;
       esac
     done
-  done < <("$py" -m pip config list 2>/dev/null || true)
+  done < <(if [ -n "$pip_config" ]; then cat "$pip_config"; rm -f "$pip_config"
+           else "$py" -m pip config list 2>/dev/null; fi || true)
+  pip_config=""
+}
+# requirements.lock: the demo's install (the package with its ROS extra) pinned, every
+# wheel named up front: uv then fetches them all at once instead of finding each level
+# of ROS's dependency tree in turn (about 4 s of a fresh machine's ~35, 2026-12-02).
+# Used while it is the lock of this setup.py (its header says which); `./dev.sh lock`
+# writes it again; where it cannot be installed (another Python, an index without
+# those releases) uv resolves setup.py itself.
+lock=requirements.lock
+lock_is_current() {
+  [ -f "$lock" ] && [ "$(sed -n 's/^# setup.py sha256 //p' "$lock")" \
+                      = "$(sha256sum setup.py | cut -d' ' -f1)" ]
+}
+stamp=.venv/.piezo_stage_install_stamp
+want=$({ cat setup.py setup.cfg package.xml dev.sh; cat "$lock" 2>/dev/null || true; } \
+       | sha256sum | cut -d' ' -f1)
+have=$(cat "$stamp" 2>/dev/null || true)
+if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" != ros,test ]; }; then
+  pip_config_to_uv
   # uv writes no bytecode unless asked (pip does): where Python will not write it either
   # (PYTHONDONTWRITEBYTECODE, as on this project's CI hosts) every process compiles
   # numpy, scipy, numba and rclpy again at each start: 4.7 s of CPU a node where 1.8 s
@@ -66,8 +90,15 @@ if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" 
   # half the time of compiling every module, and a first demo that does not compile
   # its kernels while it runs
   if [ "$extras" = ros,test ]; then uv_flags+=(--compile-bytecode); fi
-  if ! { [ -n "$uv" ] && "$uv" pip install --quiet --python .venv/bin/python \
-           --index-strategy unsafe-best-match "${uv_flags[@]}" -e ".[$extras]"; }; then
+  uv_install() {
+    [ -n "$uv" ] && "$uv" pip install --quiet --python .venv/bin/python \
+      --index-strategy unsafe-best-match "${uv_flags[@]}" "$@"
+  }
+  warm() { ( export PYTHONDONTWRITEBYTECODE=
+             .venv/bin/python -m piezo_stage.warm "$1" >/dev/null 2>&1 ) || true; }
+  if [ "$extras" = ros ] && lock_is_current && uv_install --no-deps -r "$lock" -e .; then
+    :
+  elif ! uv_install -e ".[$extras]"; then
     [ -n "$uv" ] && echo "dev.sh: uv could not install; pip takes over" >&2
     .venv/bin/python -m pip --version >/dev/null 2>&1 || .venv/bin/python -m ensurepip >/dev/null
     .venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[$extras]"
@@ -81,11 +112,13 @@ if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" 
       --ignore-requires-python "nv200==1.6.0"
   fi
   if [ "$extras" = ros ]; then
+    # three processes on two cores: the stage's and identify's kernels, the inverse's,
+    # the modules' bytecode (each 5-8 s alone on a 2-core host, 2026-12-02)
     echo "dev.sh: compiling what the package's processes use (once per install)" >&2
-    ( export PYTHONDONTWRITEBYTECODE=
-      .venv/bin/python -m piezo_stage.warm modules >/dev/null 2>&1 &
-      .venv/bin/python -m piezo_stage.warm kernels >/dev/null 2>&1 &
-      wait ) || true
+    warm stage & s1=$!
+    warm inverse & s2=$!
+    warm modules
+    wait "$s1" "$s2" || true
   fi
   echo "$want $extras" > "$stamp"
 fi
@@ -110,5 +143,21 @@ case "$cmd" in
     fi
     exec .venv/bin/python -m pytest "$@" ;;
   demo) exec .venv/bin/piezo-stage demo "$@" ;;
+  lock)
+    # requirements.lock from setup.py (after a change of its requirements): the package
+    # with its ROS extra, resolved for Python >= 3.11 on every platform, pinned
+    [ -n "$uv" ] || { echo "dev.sh: error: lock needs uv" >&2; exit 2; }
+    [ ${#uv_flags[@]} -gt 0 ] || pip_config_to_uv
+    tmp=$(mktemp "$lock.XXXXXX")
+    { echo "# The demo's install pinned: ./dev.sh installs it while this is the lock of"
+      echo "# setup.py below; written by ./dev.sh lock (uv pip compile of -e .[ros])."
+      echo "# setup.py sha256 $(sha256sum setup.py | cut -d' ' -f1)"
+      printf -- '-e .[ros]\n' | "$uv" pip compile --quiet --universal --python-version 3.11 \
+        --index-strategy unsafe-best-match "${uv_flags[@]}" --no-emit-package piezo-stage \
+        --no-header --no-annotate -
+    } > "$tmp" || { rm -f "$tmp"; echo "dev.sh: error: uv could not resolve setup.py" >&2
+                    exit 1; }
+    mv "$tmp" "$lock"
+    echo "$lock: $(grep -c '==' "$lock") pins" ;;
   *)    exec .venv/bin/piezo-stage "$cmd" "$@" ;;
 esac

@@ -5,11 +5,17 @@ imports (each process again where ``PYTHONDONTWRITEBYTECODE`` is set, as on many
 hosts) and numba's kernels (cached on disk by the first process that needs them). A
 first demo then spends about 9 s of its run compiling kernels, a lockstep set waiting
 the while (the feedforward's inverse of the identified model alone ~3.6 s on a 2-core
-host, 2026-11-28). ``dev.sh`` runs both parts below side by side after an install, so
-that every later process finds the bytecode and the kernels it needs::
+host, 2026-11-28). ``dev.sh`` runs the parts below after an install, so that every
+later process finds the bytecode and the kernels it needs::
 
+    python -m piezo_stage.warm stage     # the kernels of the simulated stage and identify
+    python -m piezo_stage.warm inverse   # the kernels of the feedforward's inverse
     python -m piezo_stage.warm modules   # bytecode of the package and what it imports
-    python -m piezo_stage.warm kernels   # the kernels of the demo's set and of identify
+    python -m piezo_stage.warm kernels   # stage and inverse in one process
+
+The two kernel parts need only the package's own requirements (numpy, scipy, numba):
+dev.sh installs those first and runs them side by side while it installs ROS's wheels,
+then compiles the modules (which import rclpy).
 
 Only what the package's processes import is compiled (about a third of the
 environment's modules, in about half the time of compiling all of them). Each part
@@ -43,16 +49,15 @@ def modules() -> int:
     return n
 
 
-def kernels(rate_hz: float = 1000.0) -> int:
-    """The simulated stage, the identification of an excitation on it (the identifier
-    node's and identify's defaults) and the feedforward's inverse of the model found:
-    each compiled kernel they call, in the types they call it with."""
+def stage(rate_hz: float = 1000.0) -> int:
+    """The simulated stage and the identification of an excitation on it (the identifier
+    node's and identify's defaults): each compiled kernel they call, in the types they
+    call it with."""
     import numpy as np
 
     from piezo_stage.core.estimation.identify import IdentifyOptions
     from piezo_stage.core.estimation.identify.api import identify_stage
     from piezo_stage.core.estimation.record import Record
-    from piezo_stage.core.model.inverse import StageInverse
     from piezo_stage.drivers import SimBackend
     sim = SimBackend("", rate_hz)  # the driver's: compiles the plant's kernels
     t = np.arange(int(2.2 * rate_hz)) / rate_hz
@@ -61,12 +66,27 @@ def kernels(rate_hz: float = 1000.0) -> int:
     w_um = {"x": np.array([s["x"] for s in w]), "y": np.array([s["y"] for s in w])}
     rec = Record(t, {"x": v, "y": v.copy()}, w_um, source="warm-up", voltage_exact=True)
     fitted = identify_stage(rec, ("x", "y"), IdentifyOptions(), skip_unusable=True)
-    inv = StageInverse(fitted.model, use_coupling=True, dt_s=1.0 / rate_hz)
-    inv.warm_kernels()
     return len(fitted.model.axes)
 
 
-PARTS = {"modules": modules, "kernels": kernels}
+def inverse(rate_hz: float = 1000.0) -> int:
+    """The feedforward's inverse (of the stage's shipped model: the kernels take every
+    model in the same packed types, so an identified one finds them too)."""
+    from piezo_stage.core.model.inverse import StageInverse
+    from piezo_stage.io.model_file import load_model
+    from piezo_stage.paths import default_config
+    model, _ = load_model(default_config("stage_model.yaml"))
+    StageInverse(model, use_coupling=True, dt_s=1.0 / rate_hz).warm_kernels()
+    return len(model.axes)
+
+
+def kernels(rate_hz: float = 1000.0) -> int:
+    """Both parts above, one after the other (``stage`` and ``inverse`` side by side
+    take half the time on two cores: dev.sh runs them so)."""
+    return stage(rate_hz) + inverse(rate_hz)
+
+
+PARTS = {"modules": modules, "kernels": kernels, "stage": stage, "inverse": inverse}
 
 
 def main(argv: list[str] | None = None) -> int:

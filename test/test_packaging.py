@@ -156,14 +156,81 @@ def test_dev_sh_sets_up_a_fresh_checkout_for_the_demo_alone(tmp_path):
     # bytecode of what they import, the kernels of the demo's set and of identify
     site = next((venv / "lib").glob("python3*/site-packages"))
     assert list((site / "rclpy" / "__pycache__").glob("node.*.pyc"))
+    # installed as requirements.lock pins it (dev.sh's set-up used the lock)
+    from importlib.metadata import distributions
+
+    from packaging.utils import canonicalize_name
+    got = {canonicalize_name(d.metadata["Name"]): d.version
+           for d in distributions(path=[str(site)])}
+    pins = _lock_pins()
+    assert {n: got.get(n) for n in pins} == pins
     kernels = {p.name.split(".")[1].rsplit("-", 1)[0]
                for p in (src / "piezo_stage" / "core").glob("*/__pycache__/_kernels.*.nbi")}
-    assert {"plant_run", "stage_inverse_step", "duhem_regressors"} <= kernels, kernels
+    assert {"plant_run", "stage_inverse_step", "stage_inverse_ahead",
+            "duhem_regressors"} <= kernels, kernels
     stamp = (venv / ".piezo_stage_install_stamp").stat().st_mtime
     again = subprocess.run(["./dev.sh", "--version"], cwd=src, env=env, capture_output=True,
                            text=True, timeout=120)
     assert again.returncode == 0 and again.stderr == ""
     assert (venv / ".piezo_stage_install_stamp").stat().st_mtime == stamp
+    # a lock not of this setup.py (a requirement changed, ./dev.sh lock not run) is left
+    # aside: uv resolves setup.py, which the installed tqdm satisfies (the stale lock's
+    # older release of it, installed, would replace it)
+    lock = (src / "requirements.lock").read_text()
+    (src / "requirements.lock").write_text(
+        lock.replace("# setup.py sha256 ", "# setup.py sha256 0").replace(
+            f"tqdm=={pins['tqdm']}", "tqdm==4.66.1"))
+    stale = subprocess.run(["./dev.sh", "--version"], cwd=src, env=env,
+                           capture_output=True, text=True, timeout=600)
+    assert stale.returncode == 0 and stale.stdout.strip() == "piezo-stage 0.1.0", stale
+    assert (venv / ".piezo_stage_install_stamp").stat().st_mtime > stamp
+    tqdm = subprocess.run([str(venv / "bin" / "python"), "-c",
+                           "import importlib.metadata as m; print(m.version('tqdm'))"],
+                          capture_output=True, text=True)
+    assert tqdm.stdout.strip() == pins["tqdm"], tqdm
+
+
+def _lock_pins():
+    """requirements.lock's pins for this Python: {normalized name: version}."""
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+    pins = {}
+    with open(os.path.join(ROOT, "requirements.lock")) as fh:
+        for line in fh:
+            if line.strip() and not line.startswith("#"):
+                r = Requirement(line.strip())
+                if r.marker is None or r.marker.evaluate():
+                    (spec,) = r.specifier
+                    assert spec.operator == "==", line
+                    pins[canonicalize_name(r.name)] = spec.version
+    return pins
+
+
+def test_the_lock_is_setup_py_s_and_pins_each_of_its_requirements():
+    """requirements.lock (dev.sh installs it for the demo and the commands) names the
+    setup.py it was written from, and pins a release within each of that file's
+    requirements and its ROS extra's: a setup.py changed without ``./dev.sh lock``
+    fails here before a user's install falls back to resolving it."""
+    import hashlib
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+    with open(os.path.join(ROOT, "setup.py"), "rb") as fh:
+        digest = hashlib.sha256(fh.read()).hexdigest()
+    with open(os.path.join(ROOT, "requirements.lock")) as fh:
+        head = fh.read(1000)
+    assert f"# setup.py sha256 {digest}\n" in head, "requirements.lock: run ./dev.sh lock"
+    tree = ast.parse(open(os.path.join(ROOT, "setup.py")).read())
+    kws = {kw.arg: kw.value for node in ast.walk(tree) if isinstance(node, ast.Call)
+           for kw in node.keywords}
+    wanted = ast.literal_eval(kws["install_requires"]) + \
+        ast.literal_eval(kws["extras_require"])["ros"]
+    pins = _lock_pins()
+    for req in map(Requirement, wanted):
+        name = canonicalize_name(req.name)
+        assert name in pins, f"requirements.lock has no {name}"
+        assert req.specifier.contains(pins[name], prereleases=True), (req, pins[name])
+    assert "piezo-stage" not in pins and "pytest" not in pins  # (the tests' tools: no)
 
 
 def test_warm_up_takes_one_known_part():
@@ -172,4 +239,4 @@ def test_warm_up_takes_one_known_part():
     import sys
     r = subprocess.run([sys.executable, "-m", "piezo_stage.warm", "everything"],
                        capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and "modules, kernels" in r.stderr, r
+    assert r.returncode == 2 and "modules, kernels, stage, inverse" in r.stderr, r
