@@ -3,8 +3,9 @@ clones of the checkout's HEAD, each `./dev.sh` from nothing: the set-up alone
 (`./dev.sh --version`) with pip alone (PIEZO_STAGE_INSTALLER=pip, the baseline, as
 dev.sh installed before uv) and as dev.sh does it now; then a fresh clone's whole
 `./dev.sh demo` with the package caches emptied (uv's and pip's pointed at empty
-folders: every wheel unpacked anew, as on a new machine), and `./dev.sh --version` once
-set up. Each is a wall time on this host, the pip one paired in the same run."""
+folders: every wheel unpacked anew, as on a new machine), against the same without
+requirements.lock (uv resolving setup.py, as before the lock), and `./dev.sh --version`
+once set up. Each is a wall time on this host, the pip one paired in the same run."""
 
 from __future__ import annotations
 
@@ -39,7 +40,8 @@ def bench_setup(rep, runs: int = 2) -> int:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("VIRTUAL_ENV",
                                                                       "PIEZO_STAGE_"))}
     env["ROS_DOMAIN_ID"] = env.get("ROS_DOMAIN_ID", "97")
-    rows: dict[str, list[float]] = {"pip": [], "uv": [], "demo": [], "again": []}
+    rows: dict[str, list[float]] = {"pip": [], "uv": [], "unpinned": [], "demo": [],
+                                    "again": []}
     with tempfile.TemporaryDirectory(prefix="piezo-stage-setup-") as d:
         for i in range(runs):
             for how in ("pip", "uv"):
@@ -48,13 +50,17 @@ def bench_setup(rep, runs: int = 2) -> int:
                 e = dict(env, PIEZO_STAGE_INSTALLER="pip") if how == "pip" else env
                 rows[how].append(_timed(["./dev.sh", "--version"], clone, e))
                 shutil.rmtree(clone)
-            clone = os.path.join(d, f"demo{i}")
-            subprocess.run(["git", "clone", "-q", src, clone], check=True)
-            empty = dict(env, UV_CACHE_DIR=os.path.join(d, f"uv-cache{i}"),
-                         PIP_CACHE_DIR=os.path.join(d, f"pip-cache{i}"))
-            rows["demo"].append(_timed(["./dev.sh", "demo"], clone, empty))
-            rows["again"].append(_timed(["./dev.sh", "--version"], clone, env))
-            shutil.rmtree(clone)
+            for how in ("unpinned", "demo"):
+                clone = os.path.join(d, f"{how}{i}")
+                subprocess.run(["git", "clone", "-q", src, clone], check=True)
+                if how == "unpinned":  # the baseline: uv resolves setup.py itself
+                    os.remove(os.path.join(clone, "requirements.lock"))
+                empty = dict(env, UV_CACHE_DIR=os.path.join(d, f"uv-cache-{how}{i}"),
+                             PIP_CACHE_DIR=os.path.join(d, f"pip-cache-{how}{i}"))
+                rows[how].append(_timed(["./dev.sh", "demo"], clone, empty))
+                if how == "demo":
+                    rows["again"].append(_timed(["./dev.sh", "--version"], clone, env))
+                shutil.rmtree(clone)
             rep.progress(f"run {i + 1}/{runs}: " + ", ".join(f"{k} {v[-1]:.1f} s"
                                                             for k, v in rows.items()))
     mid = {k: sorted(v)[len(v) // 2] for k, v in rows.items()}
@@ -64,8 +70,10 @@ def bench_setup(rep, runs: int = 2) -> int:
         ("set-up, pip alone (the baseline)", f"{mid['pip']:.1f}", "1.00"),
         ("set-up, as dev.sh does it (uv)", f"{mid['uv']:.1f}",
          f"{mid['uv'] / mid['pip']:.2f}"),
+        ("./dev.sh demo from a fresh clone, package caches empty, without requirements.lock "
+         "(the baseline)", f"{mid['unpinned']:.1f}", ""),
         ("./dev.sh demo from a fresh clone, package caches empty", f"{mid['demo']:.1f}",
-         ""),
+         f"{mid['demo'] / mid['unpinned']:.2f} x unpinned"),
         ("./dev.sh --version once set up", f"{mid['again']:.1f}", "")])
     rep.target("./dev.sh demo from a fresh clone, package caches empty, <= 30 s",
                mid["demo"] <= 30)
