@@ -13,9 +13,11 @@ later process finds the bytecode and the kernels it needs::
     python -m piezo_stage.warm modules   # bytecode of the package and what it imports
     python -m piezo_stage.warm kernels   # stage and inverse in one process
 
-The two kernel parts need only the package's own requirements (numpy, scipy, numba):
-dev.sh installs those first and runs them side by side while it installs ROS's wheels,
-then compiles the modules (which import rclpy).
+dev.sh runs ``stage``, ``inverse`` and ``modules`` side by side (three processes on
+two cores: about 11 s on a 2-core host, 2026-12-02, where ``kernels`` beside
+``modules`` took as long; installing the package's own requirements first, to compile
+the kernels while ROS's wheels were fetched, took longer in all: each install's
+overhead, and unpacking ROS's wheels needs the CPU too).
 
 Only what the package's processes import is compiled (about a third of the
 environment's modules, in about half the time of compiling all of them). Each part
