@@ -66,7 +66,7 @@ pip_config_to_uv() {
 }
 # requirements.lock: the demo's install (the package with its ROS extra) pinned, every
 # wheel named up front: uv then fetches them all at once instead of finding each level
-# of ROS's dependency tree in turn (about 4 s of a fresh machine's ~35, 2026-12-02).
+# of ROS's dependency tree one after another (1-4 s of a fresh machine's 31-38 s, 2026-12-02).
 # Used while it is the lock of this setup.py (its header says which); `./dev.sh lock`
 # writes it again; where it cannot be installed (another Python, an index without
 # those releases) uv resolves setup.py itself.
