@@ -11,13 +11,12 @@ later process finds the bytecode and the kernels it needs::
     python -m piezo_stage.warm stage     # the kernels of the simulated stage and identify
     python -m piezo_stage.warm inverse   # the kernels of the feedforward's inverse
     python -m piezo_stage.warm modules   # bytecode of the package and what it imports
-    python -m piezo_stage.warm kernels   # stage and inverse in one process
 
-dev.sh runs ``stage``, ``inverse`` and ``modules`` side by side (three processes on
-two cores: about 11 s on a 2-core host, 2026-12-02, where ``kernels`` beside
-``modules`` took as long; installing the package's own requirements first, to compile
-the kernels while ROS's wheels were fetched, took longer in all: each install's
-overhead, and unpacking ROS's wheels needs the CPU too).
+dev.sh runs the three side by side (three processes on two cores: about 11 s on a
+2-core host, 2026-12-02, as long as the two kernel parts in one process beside
+``modules`` took; installing the package's own requirements first, to compile the
+kernels while ROS's wheels were fetched, took longer in all: each install's overhead,
+and unpacking ROS's wheels needs the CPU too).
 
 Only what the package's processes import is compiled (about a third of the
 environment's modules, in about half the time of compiling all of them). Each part
@@ -82,13 +81,7 @@ def inverse(rate_hz: float = 1000.0) -> int:
     return len(model.axes)
 
 
-def kernels(rate_hz: float = 1000.0) -> int:
-    """Both parts above, one after the other (``stage`` and ``inverse`` side by side
-    take half the time on two cores: dev.sh runs them so)."""
-    return stage(rate_hz) + inverse(rate_hz)
-
-
-PARTS = {"modules": modules, "kernels": kernels, "stage": stage, "inverse": inverse}
+PARTS = {"modules": modules, "stage": stage, "inverse": inverse}
 
 
 def main(argv: list[str] | None = None) -> int:
