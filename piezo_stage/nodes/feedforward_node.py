@@ -297,7 +297,7 @@ class Feedforward(LeanNode, Node):
             self.on_target_pub.publish(on_target_msg(r.on_target))
         for a in r.answers:
             self.publish_answer(a, w, r.applied)
-        self.stats["saturated"] = self.core.saturated
+        self.stats["saturated"], self.stats["rejoins"] = self.core.saturated, self.core.rejoins
 
     def publish_answer(self, a, w, applied):
         """One target's reference (and the phase first, when it changed)."""

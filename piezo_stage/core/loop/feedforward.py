@@ -9,7 +9,11 @@ what learning learned (core/loop/compensation.py, core/loop/learning.py), and th
 commands still in flight, turns it into voltages. While the driver does not apply
 commands the reference holds where the stage is and the feedforward is the applied
 voltage, so enabling is bumpless. A new model replaces the inverse at once; while
-armed, the jump between the old model's answer and the new one's is eased out.
+armed, the jump between the old model's answer and the new one's is eased out. So is the
+jump a backlog leaves (real time, a host stall: the driver held its voltage while the
+trajectory went on): the reference rejoins the trajectory from where it was asked last,
+at the trajectory's own pace, so the stage moves at most twice as fast as the
+trajectory asks, never in one step that a stage's resonance would ring on.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ MAX_FILLED_TICKS = 20  # after a skipped sample, at most this many targets answe
 PAST_TRAJECTORY_NS = 1_000_000_000  # a trajectory stamped up to 1 s ago: start now
 ON_TARGET_NAMES = tuple(q.name for q in ON_TARGET)
 MOVE_SLEW_SHARE = 0.5  # a move's speed: at most this share of the driver's slew limit
+REJOIN_MIN_UM_PER_TICK = 0.5  # after a backlog: the reference rejoins at least this fast
 
 # the feedforward node's parameters (core/params.py); effect compensation and the
 # learning ones are live
@@ -82,7 +87,7 @@ PARAMETERS: Schema = (
 # the node's counts on /diagnostics, and those reported as rates (key, name, level)
 COUNTS = ("trajectories", "rejected_trajectories", "rejected_setpoints", "models",
           "rejected_models", "moves", "rejected_moves", "saturated", "bad_messages",
-          "late_dropped", "stray_stamps")
+          "late_dropped", "stray_stamps", "rejoins")
 RATES = tuple((k, k.replace("_", " "), 0) for k in (
     "rejected_models", "rejected_trajectories", "rejected_setpoints", "rejected_moves",
     "bad_messages", "late_dropped"))
@@ -182,6 +187,11 @@ class InverseFeedforward:
         self.inv: StageInverse | None = None
         self.model: StageModel | None = None
         self.handover: dict | None = None
+        self.behind = False  # answers were late (a backlog): the next one rejoins
+        self.rejoin: dict | None = None  # the reference's offset to the planner's [um]
+        self.answered: tuple[int, dict] | None = None  # the planner's last (target, um)
+        self.asked: dict | None = None  # the reference last answered [um]
+        self.rejoins = 0  # backlogs the reference rejoined the planner's from
         self.effects: dict | None = None
         self.comp: EffectCompensator | None = None
         self.started = False  # the inverse has been put where the stage is
@@ -385,17 +395,48 @@ class InverseFeedforward:
         if not enabled:
             self.ref.hold(self.inv.w if self.inv else w, w)
             self.ff, self.planned = dict(applied), {}
+            self.behind, self.rejoin, self.answered, self.asked = False, None, None, None
             return self.planner.desired, None
         desired, h = self.ref.sample(target)
+        if late:  # planned (the answers after it step through it), not computed
+            self.planned[target], self.behind = h, True
+            return desired, None
+        desired, h = self._rejoined(target, desired, h)
         self.learning.note(target, desired)
         self.planned[target] = h
-        if not self.use_ff or late:
+        if not self.use_ff:
             return desired, None
         try:
             self.ff = self._voltages(ns, target, h)
         except PiezoStageError as e:  # hold the last feedforward, say why, go on
             return desired, e
         return desired, None
+
+    def _rejoined(self, target: int, desired: dict, h: dict) -> tuple[dict, dict]:
+        """The reference for ``target``: the planner's ``desired`` (and its hysteresis
+        target ``h``), or, after a backlog, both offset toward where the reference was
+        last asked to be (the driver held that meanwhile). The offset shrinks each tick
+        by the planner's own change per tick since the last answer (averaged over the
+        ticks between), at least REJOIN_MIN_UM_PER_TICK: the first step from the held
+        position is the trajectory's pace, the next ones at most twice it, and the
+        controller follows the same reference. (A 4-tick host stall of a 250 Hz set on
+        the 10 Hz sine left about 20 um, 40-48 V, to step in one tick, 2026-12-02.)"""
+        last, self.answered = self.answered, (target, dict(desired))
+        if self.behind and self.asked is not None:
+            self.rejoin = {a: self.asked[a] - desired[a] for a in desired if a in self.asked}
+            self.rejoins += 1
+        self.behind = False
+        off = self.rejoin
+        if off is not None:
+            ticks = (target - last[0]) / self.dt_ns if last and target > last[0] else 1.0
+            step = {a: max(REJOIN_MIN_UM_PER_TICK, abs(desired[a] - last[1][a]) / ticks)
+                    if last else REJOIN_MIN_UM_PER_TICK for a in off}
+            off = {a: o - max(-step[a], min(step[a], o)) for a, o in off.items()}  # to 0
+            self.rejoin = off if any(off.values()) else None
+            desired = {a: x + off.get(a, 0.0) for a, x in desired.items()}
+            h = {a: x + off.get(a, 0.0) for a, x in h.items()}
+        self.asked = dict(desired)
+        return desired, h
 
     def _voltages(self, ns, target, desired):
         if self.inv is None:
