@@ -296,7 +296,7 @@ def _faults_run(tmp_path, domain):
     # (a tick without a reference before the bag's first one is the recorder still
     # matching the topic, which it may do late: not a stall of the loop)
     first_ref = min(ref)
-    stalls = [int(b) for a, b in zip(t[:-1], t[1:]) if b - a > 1_500_000] + \
+    stalls = [int(b) for a, b in zip(t[:-1], t[1:]) if b - a > 1.5 * DT_NS] + \
         [int(k) for k in t if int(k) not in ref and k > first_ref]
     stalls = np.array(sorted(stalls), dtype=np.int64)
 
