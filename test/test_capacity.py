@@ -99,6 +99,25 @@ def test_a_transient_load_is_not_judged_when_a_later_window_has_the_margin():
     assert not loop.sup.held_by and loop.refusal is None
 
 
+def test_a_refusal_reports_the_measurement_its_line_names():
+    """Below the margin in every window: the line names the best window, and so does
+    what the launcher reads (``refused_by``, the driver's capacity file), not the last
+    window (the launcher's line once said 907 samples/s under the driver's 971)."""
+    from piezo_stage.core.loop.sample_loop import CAPACITY_WINDOWS
+    loop = _loop(2.0, 0.2e-3, 1.8)
+    worse = [Capacity(1000.0, 50, 0.05, 0.2e-3, 1.9 - 0.01 * k, 2)
+             for k in range(CAPACITY_WINDOWS)]
+    best = max(worse, key=lambda c: c.margin)
+    readings = iter([worse[0]] + worse[1:][::-1])  # the best not the last one read
+    loop.capacity.sample = lambda: next(readings)
+    v = {"x": 0.0, "y": 0.0}
+    loop.sup.evidence = loop.sup.p.confirm_ticks
+    for j in range(CAPACITY_WINDOWS):
+        loop.step(j, v, True, j)
+    assert loop.refusal is not None and loop.refused_by is best
+    assert f"{best.capacity_hz:,.0f} samples/s" in loop.refusal
+
+
 def test_no_check_with_min_margin_0():
     loop = _loop(0.0, 0.9e-3, 1.9)
     assert not loop.sup.held_by

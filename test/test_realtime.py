@@ -955,3 +955,54 @@ def _late_run(tmp_path, domain):
     judged_within((done[0] - fault_ns) * 1e-9, v0 / RAMP + 0.01,
                   host_pause_s(run.t_ns, fault_ns, int(done[0])), "the ramp to safe")
     assert_never_beyond_slew(run.t_ns, run.v_V)
+
+
+def test_a_core_taken_before_the_start_refuses_at_start_or_runs_without_a_fault(
+        tmp_path, domain, capfd):
+    """A busy loop takes one core before the set starts; the set runs with `--rate auto`
+    and the driver's own start-up check (a 2 x margin): each refusal runs it again at
+    the lower rate the refusal names, never at the same or a higher one, and it either
+    ends refused at start (never armed, never faulted, the safe voltage throughout,
+    each refusal one line with the capacity it measured) or runs its 8 s armed with no
+    fault. (Here: refused at 1,000, 500 and 250 Hz, 1.09-1.99 x, 2026-12-02.)"""
+    import re
+    d, env = domain
+    cfg = tmp_path / "rt.yaml"
+    cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n"
+                   f"    stale_timeout_s: {STALE}\n    safe_ramp_V_per_s: {RAMP}\n"
+                   "/**/feedforward:\n  ros__parameters:\n    model_file: " + MODEL + "\n"
+                   "/**/controller:\n  ros__parameters:\n    kp: 0.2\n"
+                   "/**/trajectory:\n  ros__parameters:\n    kind: seed\n"
+                   "    duration_s: 60.0\n")
+    bag = str(tmp_path / "hogged")
+    capfd.readouterr()
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.5)
+        launch = Launch(str(cfg), record=bag, env=env, exclusive=False, armed_s=8.0,
+                        nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+                        rate="auto")
+        launch.quiet_stop = True
+        rc = launch.run(launch.wall_bound())
+    finally:
+        hog.kill()
+        hog.wait()
+    err = capfd.readouterr().err
+    sys.stderr.write(err)
+    refusals = re.findall(r"this host sustains ([\d,]+) samples/s = ([\d.]+) x the "
+                          r"(\d+) Hz rate", err)
+    again = [float(r) for r in re.findall(r"running again at (\d+) Hz", err)]
+    tried = [1000.0] + again
+    assert all(a > b for a, b in zip(tried, tried[1:])), tried
+    assert [float(r[2]) for r in refusals] == tried[:len(refusals)], (refusals, tried)
+    run = read_run(bag)  # the last attempt's (a refused one's bag is removed)
+    states = [s for _, s in run.states]
+    assert "faulted" not in states, run.states
+    if rc != 0:  # refused at start, every attempt
+        assert len(refusals) == len(tried), (refusals, tried)
+        assert all(float(m) < 2.0 for _, m, _ in refusals)
+        assert "armed" not in states and "approaching" not in states
+        assert np.all(run.v_V == 0.0)
+    else:
+        assert len(refusals) == len(tried) - 1
+        assert "armed" in states

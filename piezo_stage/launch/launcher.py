@@ -48,6 +48,9 @@ CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # where a driver's refusal puts
 START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # a file: nodes wait for it before they join
 # how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
 # down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
+# rate auto: the runs a set may take in all, each at a lower rate than the last (the
+# standard rate a refusal names, core/loop/capacity.py: from 1 kHz, 500 then 250 Hz)
+AUTO_ATTEMPTS = 3
 STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
 
 
@@ -207,7 +210,7 @@ class Launch:
         self.overrides = {n: dict(o) for n, o in (overrides or {}).items()}
         # the control rate: a number for the loop's three nodes, or "auto" (real time:
         # the configured rate, and where the driver finds this host cannot hold it with
-        # margin, once more at the highest rate it can: core/loop/capacity.py)
+        # margin, again at the highest rate it can: core/loop/capacity.py; run())
         self.auto_rate = rate == "auto"
         if rate not in (None, "auto"):
             self.set_rate(float(rate))
@@ -528,23 +531,27 @@ class Launch:
         ``duration`` or by its driver finishing, 128 + the signal's number for one the
         launcher was told to stop (every node stopped in order), 1 when a node failed
         (died, was stopped by someone else, or had to be killed). With ``rate="auto"``
-        a set whose driver found this host cannot hold its rate with margin runs once
-        more, at the highest rate it can (said in one line)."""
+        a set whose driver found this host cannot hold its rate with margin runs again
+        at the highest rate it found the host holds (said in one line), each time at a
+        lower rate, at most AUTO_ATTEMPTS times in all: a rate picked from the capacity
+        measured at a higher one may be refused in its turn (a host with a core taken by
+        another process: 1,000 Hz said 500 Hz, and 500 Hz measured 1.41 x)."""
         import tempfile
         old = {s: signal.signal(s, self._on_signal) for s in STOP_SIGNALS + (signal.SIGHUP,)}
         cap_dir = tempfile.mkdtemp(prefix="piezo-stage-capacity-")
         cap_file = os.path.join(cap_dir, "capacity.json")
         self.env[CAPACITY_FILE_ENV] = cap_file
         try:
-            for attempt in (1, 2):
+            for attempt in range(1, AUTO_ATTEMPTS + 1):
                 try:
                     self.start()
                     self.wait(duration)
                 finally:
                     self.stop()
                 refused = self._refusal(cap_file)
-                if not (self.auto_rate and attempt == 1 and refused and
-                        refused.get("holdable_rate_hz") and self.stopped_by is None):
+                if not (self.auto_rate and attempt < AUTO_ATTEMPTS and refused and
+                        refused.get("holdable_rate_hz") and self.stopped_by is None and
+                        float(refused["holdable_rate_hz"]) < self.rate_hz()):
                     break
                 rate = float(refused["holdable_rate_hz"])
                 sys.stderr.write(f"piezo-stage launch: this host holds the loop at "

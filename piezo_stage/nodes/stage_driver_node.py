@@ -314,7 +314,7 @@ class StageDriver(LeanNode, LifecycleNode):
         import os
         path = os.environ.get(CAPACITY_FILE_ENV)
         loop = self.running
-        cap = loop.last_capacity
+        cap = loop.refused_by or loop.last_capacity  # the figures its line names
         if not path or cap is None:
             return
         doc = {"capacity_hz": cap.capacity_hz, "margin": cap.margin,

@@ -213,6 +213,7 @@ class SampleLoop:
         self.capacity = None if self.lock else CapacityMeter(rate_hz, capacity_window_s)
         self.min_margin = float(min_margin)
         self.refusal: str | None = None  # why the loop refuses to run (the capacity)
+        self.refused_by: Capacity | None = None  # the measurement it refused on
         self._windows: list[Capacity] = []  # the measurements judged before the first arm
         if self.capacity is not None and self.min_margin > 0:
             self.sup.held_by = "measuring what this host sustains for the loop"
@@ -359,6 +360,7 @@ class SampleLoop:
         if cap.margin >= self.min_margin:
             return
         could = cap.holdable_rate_hz(self.min_margin)
+        self.refused_by = cap  # (what the refusal names, for the launcher too)
         self.refusal = (f"this host sustains {cap.describe()}: under the {self.min_margin:g}"
                         f" x margin a real-time set needs; "
                         + (f"control_rate_hz {could:g} would have it"
