@@ -100,6 +100,7 @@ def figures(run, track_s: float, slew_V_per_s: float, pauses=()) -> dict:
     ff = run.diagnostics.get("feedforward", {})
     f["ff_lag_ms"] = [float(ff.get(f"joint_states_lag_{k}_ms", "nan"))
                       for k in ("median", "p99", "max")]
+    f["rejoins"] = ff.get("rejoins", "?")
     f["driver"] = run.driver
     return f
 
@@ -159,7 +160,9 @@ def bench_realtime(rep, track_s: float = 20.0) -> int:
          + f"; applied {g('lookahead_ms'):.1f} ms after its sample (look-ahead)"),
         ("late commands; tracking ticks without a command of their own",
          f"{int(g('late_commands'))} = {late_pct:.3f} %; {rt['held']} = "
-         f"{100 * rt['held'] / max(1, rt['samples']):.3f} %")], "real time")
+         f"{100 * rt['held'] / max(1, rt['samples']):.3f} %"),
+        ("backlogs the reference rejoined the trajectory from (the feedforward's "
+         "rejoins: docs/realtime.md)", rt["rejoins"])], "real time")
     rep.table(("mode", "samples", "rms x / y", "max x / y", "start-up max error",
                "largest step / slew limit", "lost"),
               [(name, f["samples"], f"{f['rms_um'][0]:.4f} / {f['rms_um'][1]:.4f} um",
