@@ -534,7 +534,7 @@ class Launch:
         a set whose driver found this host cannot hold its rate with margin runs again
         at the highest rate it found the host holds (said in one line), each time at a
         lower rate, at most AUTO_ATTEMPTS times in all: a rate picked from the capacity
-        measured at a higher one may be refused in its turn (a host with a core taken by
+        measured at a higher one may be refused as well (a host with a core taken by
         another process: 1,000 Hz said 500 Hz, and 500 Hz measured 1.41 x)."""
         import tempfile
         old = {s: signal.signal(s, self._on_signal) for s in STOP_SIGNALS + (signal.SIGHUP,)}
