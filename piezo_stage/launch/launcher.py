@@ -46,11 +46,11 @@ LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
 RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"        # and this
 CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # where a driver's refusal puts its figures
 START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # a file: nodes wait for it before they join
-# how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
-# down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
 # rate auto: the runs a set may take in all, each at a lower rate than the last (the
 # standard rate a refusal names, core/loop/capacity.py: from 1 kHz, 500 then 250 Hz)
 AUTO_ATTEMPTS = 3
+# how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
+# down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
 STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
 
 
