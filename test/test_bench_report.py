@@ -120,3 +120,34 @@ def test_docs_and_code_read_as_recipes():
                 text = open(os.path.join(folder, f), encoding="utf-8").read()
                 assert not re.search(r"\bCI run \d", text), f
                 assert not HASH.findall(text), (f, HASH.findall(text))
+
+
+def test_bench_loop_vs_a_revision_that_is_none_is_refused_in_one_line():
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    r = subprocess.run([sys.executable, "-m", "piezo_stage", "bench", "loop", "--vs",
+                        "no-such-revision"], capture_output=True, text=True, env=env,
+                       timeout=120)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "no-such-revision: no such commit" in r.stderr
+
+
+@pytest.mark.slow
+def test_bench_loop_vs_a_revision_runs_that_revisions_own_loop(tmp_path, ros_env):
+    """`bench loop --vs REV`'s arm: a clone at REV's commit, whose own package (not this
+    checkout's) runs the lockstep loop, every message in its bag."""
+    from piezo_stage.benchmarks.loop import RevisionLoop
+    head = subprocess.run(["git", "-C", ROOT, "rev-parse", "HEAD"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    rev = RevisionLoop("HEAD", str(tmp_path))
+    assert rev.sha == head and rev.label == head[:7]
+    assert subprocess.run(["git", "-C", rev.dir, "rev-parse", "HEAD"], capture_output=True,
+                          text=True, check=True).stdout.strip() == head
+    # the revision's package is the one its process imports
+    r = subprocess.run([sys.executable, "-c", "import piezo_stage; print(piezo_stage.__file__)"],
+                       cwd=rev.dir, env=dict(os.environ, PYTHONPATH=rev.dir),
+                       capture_output=True, text=True, check=True)
+    assert r.stdout.strip().startswith(rev.dir)
+    res, err = rev.run(ros_env, 300)
+    assert err is None, err
+    rate, med, p99, lost, steal = res
+    assert rate > 0 and 0 < med <= p99 and not any(lost.values()), res

@@ -19,7 +19,7 @@ import importlib
 BENCHMARKS = {
     "plant": ("plant", "bench_plant", ("samples",)),
     "identify": ("identify", "bench_identify", ()),
-    "loop": ("loop", "bench_loop", ()),
+    "loop": ("loop", "bench_loop", ("vs",)),
     "gap": ("gap", "bench_gap", ()),
     "liveview": ("liveview", "bench_liveview", ()),
     "faults": ("faults", "bench_faults", ()),

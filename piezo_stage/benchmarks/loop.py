@@ -1,6 +1,7 @@
 """`piezo-stage bench loop`: the lockstep loop (five processes and the recorder)
 against a bare three-process ring of empty callbacks on the nodes' own transport path
-and a two-process rclpy ping-pong, in the same run."""
+and a two-process rclpy ping-pong, in the same run; with ``--vs REV`` against the code
+at a git revision too, its own loop run in each pair (``RevisionLoop``)."""
 
 from __future__ import annotations
 
@@ -72,9 +73,77 @@ def loop_run(env, steps, foxglove_port=None, compose=None):
 
 
 
-def bench_loop(rep, steps=3000, runs=5):
-    """The lockstep loop composed and apart, in pairs with the ring (``rep``: the
-    report)."""
+# a revision's own lockstep run, in a process whose package is the revision's: its
+# benchmarks' loop_run(env, steps), which every revision since the ring baseline has
+REV_LOOP = ("import json, os, sys\n"
+            "from piezo_stage.benchmarks.loop import loop_run\n"
+            "res, err = loop_run(dict(os.environ), int(sys.argv[1]))\n"
+            "print(json.dumps({'res': res, 'err': err}))\n")
+
+
+class RevisionLoop:
+    """The lockstep loop of the code at git revision ``rev`` (a commit of this
+    checkout, e.g. the one an issue was measured on): a clone of the checkout at
+    ``rev`` in ``folder``, run with this interpreter and its packages, the clone's
+    package first on the path (its nodes' processes inherit it). A DataError where
+    the revision is none of this checkout's."""
+
+    def __init__(self, rev: str, folder: str):
+        import os
+        import subprocess
+
+        from piezo_stage.benchmarks.procs import source_checkout
+        from piezo_stage.core.errors import DataError
+        src = source_checkout("bench loop --vs")
+        r = subprocess.run(["git", "-C", src, "rev-parse", "--verify", "--quiet",
+                            f"{rev}^{{commit}}"], capture_output=True, text=True)
+        if r.returncode != 0:
+            raise DataError(f"bench loop --vs {rev}: no such commit in {src}")
+        self.sha = r.stdout.strip()
+        self.label = self.sha[:7]
+        self.dir = os.path.join(folder, f"rev-{self.label}")
+        subprocess.run(["git", "clone", "-q", "--no-checkout", src, self.dir], check=True)
+        subprocess.run(["git", "-C", self.dir, "checkout", "-q", self.sha], check=True)
+
+    def run(self, env, steps):
+        """One of the revision's lockstep runs: as ``loop_run``'s answer."""
+        import json
+        import subprocess
+        import sys
+        r = subprocess.run([sys.executable, "-c", REV_LOOP, str(steps)], cwd=self.dir,
+                           env=dict(env, PYTHONPATH=self.dir), capture_output=True,
+                           text=True, timeout=900)
+        try:
+            out = json.loads(r.stdout.strip().splitlines()[-1])
+        except (IndexError, ValueError):
+            return None, f"{self.label}: exit {r.returncode}\n{r.stderr[-2000:]}"
+        if out["res"] is None:
+            return None, f"{self.label}: {out['err']}"
+        rate, med, p99, lost, steal = out["res"]
+        return (int(rate), float(med), float(p99), lost, float(steal)), None
+
+
+def bench_loop(rep, vs=None, steps=3000, runs=5):
+    """The lockstep loop composed and apart, in pairs with the ring, and with the
+    code at git revision ``vs`` where given (``rep``: the report)."""
+    import os
+    import random
+    import tempfile
+    with tempfile.TemporaryDirectory(prefix="piezo-stage-loop-") as folder:
+        rev = None
+        if vs is not None:
+            rev = RevisionLoop(vs, folder)
+            env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
+                       ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+            _, err = rev.run(env, 300)  # its kernels compiled, its bytecode written
+            if err:
+                rep.fail("the revision's loop run failed:\n" + err)
+                return 1
+        return _bench_loop(rep, rev, steps, runs)
+
+
+def _bench_loop(rep, rev, steps, runs):
+    """``bench_loop`` with the revision's loop (``RevisionLoop``) or None."""
     import os
     import random
     import subprocess
@@ -95,22 +164,33 @@ def bench_loop(rep, steps=3000, runs=5):
               "(Fast DDS, this host); the baselines: a two-process ping-pong, and a ring of 3 "
               "processes passing one message round (empty callbacks, the nodes' lean wait "
               "set and raw CDR, no recorder) run in each pair, the loop composed and apart "
-              "one after the other (this host's speed drifts)")
-    results, apart, rings, rows = [], [], [], []
+              "one after the other (this host's speed drifts)"
+              + (f"; and the code at {rev.label} (`--vs`), its own lockstep loop, run in "
+                 "each pair, before the loop in odd pairs and after it in even ones"
+                 if rev else ""))
+    results, apart, rings, rows, revs = [], [], [], [], []
     for k in progress_runs(range(runs), "bench loop: runs"):
         rings.append(ring_rate(env))
+        if rev and k % 2 == 0:
+            revs.append(rev.run(env, steps))
         res, err = loop_run(env, steps)
         sep, err2 = loop_run(env, steps, compose="none")
-        if res is None or sep is None:
-            rep.fail("the loop run failed:\n" + (err or err2))
+        if rev and k % 2 == 1:
+            revs.append(rev.run(env, steps))
+        err3 = revs[-1][1] if rev else None
+        if res is None or sep is None or err3:
+            rep.fail("the loop run failed:\n" + str(err or err2 or err3))
             return 1
         rate, med, p99, lost, steal = res
         results.append(res)
         apart.append(sep)
-        rows.append((k + 1, f"{rings[-1]:.0f}", rate, sep[0], f"{rate / sep[0]:.2f}",
-                     f"{rate / rings[-1]:.2f}", f"{med:.3f} / {p99:.3f} ms",
-                     f"{sum(lost.values())} / {sum(sep[3].values())}",
-                     f"{100 * steal:.1f} %"))
+        row = [k + 1, f"{rings[-1]:.0f}", rate, sep[0], f"{rate / sep[0]:.2f}",
+               f"{rate / rings[-1]:.2f}", f"{med:.3f} / {p99:.3f} ms",
+               f"{sum(lost.values())} / {sum(sep[3].values())}", f"{100 * steal:.1f} %"]
+        if rev:
+            old = revs[-1][0]
+            row[4:4] = [old[0], f"{rate / old[0]:.2f}"]
+        rows.append(tuple(row))
     rates = sorted(r[0] for r in results)
     med_rate = rates[len(rates) // 2]
     med_period = sorted(r[1] for r in results)[len(results) // 2]
@@ -118,10 +198,22 @@ def bench_loop(rep, steps=3000, runs=5):
     vs = sorted(r[0] / s[0] for r, s in zip(results, apart))
     lost = {t: max(max(r[3][t] for r in results), max(s[3][t] for s in apart))
             for t in results[0][3]}
-    rep.table(("pair", "ring steps/s", "composed steps/s", "apart steps/s",
-               "composed / apart", "composed / ring", "step period median / p99",
-               "lost composed / apart", "CPU steal"), rows,
-              f"{runs} pairs of {steps} steps")
+    head = ["pair", "ring steps/s", "composed steps/s", "apart steps/s",
+            "composed / apart", "composed / ring", "step period median / p99",
+            "lost composed / apart", "CPU steal"]
+    if rev:
+        head[4:4] = [f"{rev.label} steps/s", f"composed / {rev.label}"]
+    rep.table(tuple(head), rows, f"{runs} pairs of {steps} steps")
+    figures = []
+    if rev:
+        olds = sorted(r[0] / o[0][0] for r, o in zip(results, revs))
+        old_rates = sorted(o[0][0] for o in revs)
+        old_lost = max(sum(o[0][3].values()) for o in revs)
+        figures = [(f"the code at {rev.label}, median run",
+                    f"{old_rates[len(old_rates) // 2]} steps/s (range {old_rates[0]}-"
+                    f"{old_rates[-1]}); {old_lost} lost, worst run"),
+                   (f"composed against the code at {rev.label}, median of the pairs",
+                    f"{olds[len(olds) // 2]:.2f} x ({olds[0]:.2f}-{olds[-1]:.2f})")]
     rep.figures([
         ("ping-pong round trip (2 processes), median / p99",
          f"{rt_med * 1e3:.3f} / {rt_p99 * 1e3:.3f} ms"),
@@ -134,8 +226,11 @@ def bench_loop(rep, steps=3000, runs=5):
         ("composed against apart, median of the pairs",
          f"{vs[len(vs) // 2]:.2f} x ({vs[0]:.2f}-{vs[-1]:.2f})"),
         ("messages lost per loop topic, worst run (0: every message is in the bag)",
-         str(lost))], "the medians")
+         str(lost)), *figures], "the medians")
     rep.target(">= 1000 steps/s (median run)", med_rate >= 1000)
     rep.target("0 lost", not any(lost.values()))
     rep.target("composed >= 2 x apart (median pair)", vs[len(vs) // 2] >= 2)
+    if rev:
+        rep.target(f"composed >= 2 x the code at {rev.label} (median pair)",
+                   olds[len(olds) // 2] >= 2)
     return 0

@@ -177,6 +177,18 @@ def cpu_ticks():
         return 0, 0
 
 
+def source_checkout(what: str) -> str:
+    """The source checkout this package runs from (a git work tree, a linked one
+    too); a DataError naming ``what`` needs one where there is none."""
+    import os
+    here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    if not os.path.isfile(os.path.join(here, "dev.sh")) or not os.path.exists(
+            os.path.join(here, ".git")):  # (a worktree's .git is a file)
+        from piezo_stage.core.errors import DataError
+        raise DataError(f"{what} needs a source checkout with dev.sh; {here} is none")
+    return here
+
+
 def own_domain_env() -> dict:
     """This process's environment with a ROS_DOMAIN_ID of its own (a whole command run
     as a user runs it, apart from any set running meanwhile) and discovery on this host."""

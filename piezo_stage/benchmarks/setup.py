@@ -15,16 +15,7 @@ import subprocess
 import tempfile
 import time
 
-
-def _checkout() -> str:
-    """The source checkout this package runs from (a git work tree, a linked one
-    too)."""
-    here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    if not os.path.isfile(os.path.join(here, "dev.sh")) or not os.path.exists(
-            os.path.join(here, ".git")):  # (a worktree's .git is a file)
-        from piezo_stage.core.errors import DataError
-        raise DataError(f"bench setup needs a source checkout with dev.sh; {here} is none")
-    return here
+from piezo_stage.benchmarks.procs import source_checkout
 
 
 def _timed(argv, cwd, env) -> float:
@@ -36,7 +27,7 @@ def _timed(argv, cwd, env) -> float:
 
 def bench_setup(rep, runs: int = 2) -> int:
     """A new user's first minute from fresh clones (``rep``: the report)."""
-    src = _checkout()
+    src = source_checkout("bench setup")
     env = {k: v for k, v in os.environ.items() if not k.startswith(("VIRTUAL_ENV",
                                                                       "PIEZO_STAGE_"))}
     env["ROS_DOMAIN_ID"] = env.get("ROS_DOMAIN_ID", "97")

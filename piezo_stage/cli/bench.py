@@ -34,6 +34,9 @@ def add_arguments(s):
     s.add_argument("--out", default=None, metavar="FILE",
                    help="settle: the default stage's motion-time model (JSON), for "
                    "piezo_stage.client")
+    s.add_argument("--vs", default=None, metavar="REV",
+                   help="loop: the code at git revision REV too (a clone of this "
+                   "checkout at REV), its own lockstep loop in each pair")
     s.add_argument("--trials", type=number(1, 10000, integer=True), default=108, metavar="N",
                    help="signals: processes to start and signal (each kind in turn)")
 
