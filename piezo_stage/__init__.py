@@ -11,3 +11,8 @@ the benchmarks (:mod:`piezo_stage.benchmarks`); the ``piezo-stage`` command
 """
 
 __version__ = "0.1.0"
+
+from piezo_stage.rosidl_runtime import runtime_only as _runtime_only
+
+_runtime_only()  # the message packages' import without their code generator
+del _runtime_only

@@ -1,5 +1,5 @@
-"""Files: inputs that must be regular and bounded, atomic writing (a temporary file
-beside the target, then a rename)."""
+"""Files: inputs that must be regular and bounded, YAML files read bounded, atomic
+writing (a temporary file beside the target, then a rename)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import os
 import stat
 import tempfile
 
-from piezo_stage.core.errors import DataError, printable
+from piezo_stage.core.errors import DataError, ModelError, printable
+from piezo_stage.core.yaml_text import MAX_YAML_BYTES, parse_yaml
 
 MAX_INPUT_BYTES = 2 * 1024 ** 3  # a 5 kHz two-axis CSV of 24 h is about 0.5 GB
 
@@ -69,3 +70,20 @@ def atomic_write(path, mode="w", **kw):
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def load_yaml(path, what="file"):
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_YAML_BYTES + 1)
+    except FileNotFoundError:
+        raise ModelError(f"{what} not found: {path}") from None
+    except IsADirectoryError:
+        raise ModelError(f"{what} is a directory: {path}") from None
+    except PermissionError:
+        raise ModelError(f"{what} not readable: {path}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise ModelError(f"{what} is not UTF-8 text: {path}") from None
+    return parse_yaml(text, f"{what} {path}")

@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import yaml
 
-from piezo_stage.core.errors import ModelError
 from piezo_stage.core.model.duhem import StageModel
 from piezo_stage.core.model.model_doc import (  # noqa: F401 - the file's names, as before
-    MAX_YAML_BYTES,
     SCHEMA_KEY,
     as_number,
     checked_doc,
@@ -16,24 +14,7 @@ from piezo_stage.core.model.model_doc import (  # noqa: F401 - the file's names,
     model_to_dict,
     parse_yaml,
 )
-from piezo_stage.io.files import atomic_write
-
-
-def load_yaml(path, what="file"):
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read(MAX_YAML_BYTES + 1)
-    except FileNotFoundError:
-        raise ModelError(f"{what} not found: {path}") from None
-    except IsADirectoryError:
-        raise ModelError(f"{what} is a directory: {path}") from None
-    except PermissionError:
-        raise ModelError(f"{what} not readable: {path}") from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise ModelError(f"{what} is not UTF-8 text: {path}") from None
-    return parse_yaml(text, f"{what} {path}")
+from piezo_stage.io.files import atomic_write, load_yaml  # noqa: F401 - (as before)
 
 
 def load_model(path) -> tuple[StageModel, dict]:

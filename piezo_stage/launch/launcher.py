@@ -23,7 +23,7 @@ import sys
 import time
 
 from piezo_stage.core.errors import ConfigError, ModelError
-from piezo_stage.io.model_file import load_yaml
+from piezo_stage.io.files import load_yaml
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
 from piezo_stage.nodes.declared import (
     DECLARED,

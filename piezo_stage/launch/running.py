@@ -18,7 +18,8 @@ BUSY_WAIT_S = 6.0    # for its node names, when the domain shows other nodes
 
 
 def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
-                cancel: threading.Event | None = None, report=None) -> str | None:
+                cancel: threading.Event | None = None, report=None,
+                looking: threading.Event | None = None) -> str | None:
     """None when nothing runs in ``namespace`` on ``domain_id``; else who runs there
     ("host, pid N", or the node names when no driver announced itself). Up to
     ``wait_s`` for the graph to show the namespace's nodes (``BUSY_WAIT_S`` when it
@@ -28,7 +29,8 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
     clean start pays the whole wait once (on a lab's busy domain up to 6 s): ``Look``
     spends it beside the start-up. ``cancel`` set: it ends within 50 ms, with None.
     ``report``: called with the answer before the look's node is torn down (its
-    participant leaves the graph properly, a little after the answer is out)."""
+    participant leaves the graph properly, a little after the answer is out).
+    ``looking``: set once the look's node is on the graph (its wait counts from then)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.context import Context
@@ -51,6 +53,8 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
     node.create_subscription(DiagnosticArray, f"{ns}/state", on_state, QOS_EVENTS)
 
     def answer() -> str | None:
+        if looking is not None:
+            looking.set()
         t0 = time.monotonic()
         names: list = []
         while not names:
@@ -88,23 +92,37 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
         rclpy.try_shutdown(context=ctx)
 
 
+# how long a command waits for its look's node to be on the graph before it goes on
+# with its own imports [s]: a bound, the node takes about 0.2 s
+LOOKING_WAIT_S = 1.0
+
+
 class Look:
     """``running_set`` in a thread of its own, begun as soon as the namespace and the
     domain are known: its wait (2 s on a clean start) then runs while the command
     imports and reads its config, and while the nodes import, instead of after them
-    (launch to armed, `bench startup`). ``result()`` waits for the answer (raising what
-    the look raised), which is in before the look's node is torn down; ``cancel()``
-    ends a look whose answer is no longer wanted (a config refused, a stop while
-    starting): within 50 ms, with nothing left behind."""
+    (launch to armed, `bench startup`). The command waits (``LOOKING_WAIT_S`` at most)
+    for the look's node to be on the graph first: the node's imports and creation would
+    otherwise share the interpreter with the command's, and the wait, which counts from
+    the node, would end up to 0.3 s later (2-core host, 2026-12-02). ``result()`` waits
+    for the answer (raising what the look raised), which is in before the look's node
+    is torn down; ``cancel()`` ends a look whose answer is no longer wanted (a config
+    refused, a stop while starting): within 50 ms, with nothing left behind."""
 
     def __init__(self, namespace: str, domain_id: int, wait_s: float = 2.0) -> None:
         self.namespace, self.domain_id, self.wait_s = namespace, int(domain_id), wait_s
         self._cancel = threading.Event()
         self._answered = threading.Event()
         self._answer: tuple[str | None, BaseException | None] = (None, None)
+        self._looking = threading.Event()
         self._thread = threading.Thread(target=self._look, name="running-set look",
                                         daemon=True)
         self._thread.start()
+        # (or its answer, an error included)
+        end = time.monotonic() + LOOKING_WAIT_S
+        while not (self._looking.is_set() or self._answered.is_set()) and \
+                time.monotonic() < end:
+            self._looking.wait(0.01)
 
     def _report(self, who: str | None) -> None:
         self._answer = (who, None)
@@ -113,7 +131,7 @@ class Look:
     def _look(self) -> None:
         try:
             running_set(self.namespace, self.domain_id, self.wait_s, cancel=self._cancel,
-                        report=self._report)
+                        report=self._report, looking=self._looking)
         except BaseException as e:  # noqa: BLE001 - raised in result(), in the caller
             if not self._answered.is_set():
                 self._answer = (None, e)

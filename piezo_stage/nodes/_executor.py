@@ -479,6 +479,9 @@ def run_nodes(factories, args=None, warm_kernels: bool = False) -> int:
         if warm_kernels:
             prepare_kernels()
         preload_type_support()
+        warm_caller_lookup()
+        gc.collect()  # what the imports left, collected and frozen before the gate: the
+        gc.freeze()   # collection at the spin's start then scans the nodes alone
         await_start_gate()
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         for factory in factories:
@@ -575,6 +578,17 @@ def preload_type_support() -> int:
                 except Exception:  # noqa: BLE001 - building the node says what is wrong
                     continue
     return loaded
+
+
+def warm_caller_lookup() -> None:
+    """rclpy's logger names each line's caller (``inspect.getframeinfo``), and the
+    process's first line maps the file of every module imported (``inspect.getmodule``'s
+    cache): the driver's first line, its state's announcement as it configures, took
+    0.09 s of a 2-core host's CPU that way (2026-12-02), after the node had joined the
+    graph. Mapped here before the start gate instead; a module imported later is mapped
+    at the next line, alone."""
+    import inspect
+    inspect.getframeinfo(sys._getframe())
 
 
 START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # launch/launcher.py's

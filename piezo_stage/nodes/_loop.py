@@ -163,9 +163,11 @@ class Gate:
         self.queue = []
         self.open = all(n <= 0 for _, n in self.needs)
         if not self.open:
-            self._timer = steady_timer(node, 0.01, self._poll)
+            self._timer = steady_timer(node, 0.01, self.poll)
 
-    def _poll(self):
+    def poll(self):
+        """Open the gate where every publisher has its subscriptions now (its timer's
+        callback; a node whose own clock ticks may call it at each tick)."""
         if not self.open and all(subscriber_count(p) >= n for p, n in self.needs):
             self.open = True
             self._timer.cancel()

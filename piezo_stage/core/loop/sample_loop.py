@@ -175,7 +175,7 @@ class SampleLoop:
                  lookahead_s: float, max_steps: int,
                  on_state_change: Callable[[str, str, int], None],
                  clock_period_s: float = 0.0, from_arming: bool = False,
-                 first_j: int = 0, min_margin: float = 0.0, capacity_window_s: float = 0.5,
+                 first_j: int = 0, min_margin: float = 0.0, capacity_window_s: float = 0.3,
                  arm_on_start: bool | None = None):
         self.backend, self.lock, self.max_steps = backend, bool(lockstep), int(max_steps)
         self.from_arming, self.enabled_j = bool(from_arming), None

@@ -45,7 +45,6 @@ silently ignored.
 from __future__ import annotations
 
 import numpy as np
-import yaml
 
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.core.model.duhem import (
@@ -60,57 +59,16 @@ from piezo_stage.core.model.duhem import (
 )
 from piezo_stage.core.model.effects import validate_effects
 from piezo_stage.core.model.play import MAX_OPERATORS, PlayOperators
+from piezo_stage.core.yaml_text import (  # noqa: F401 - the document's names, as before
+    MAX_YAML_BYTES,
+    MAX_YAML_DEPTH,
+    parse_yaml,
+)
 
 SCHEMA_KEY = "piezo_stage_model"
 
 
 SCHEMA_VERSION = 1
-
-
-MAX_YAML_BYTES = 1_000_000  # a model or plant file is a few kB; this is generous
-
-
-MAX_YAML_DEPTH = 32         # ours nest 5 deep; PyYAML's composer recurses per level
-
-
-# Aliases are refused (a 1 kB 'billion laughs' document expands to gigabytes; our files
-# never need anchors) from the parser's events, before anything is composed.
-_FAST_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-
-
-def parse_yaml(text: str, source: str = "YAML", max_bytes: int = MAX_YAML_BYTES) -> object:
-    """Parse bounded YAML text (no aliases, at most max_bytes); ModelError on any
-    problem, with where."""
-    if len(text) > max_bytes:
-        raise ModelError(f"{source}: {len(text)} bytes, more than the {max_bytes} accepted")
-    try:
-        # the nesting and aliases first, from the parser's events (an iterative state
-        # machine): the composer recurses once per level, and 20,000 '[' would exhaust
-        # the stack. libyaml's parser when there is one: a model message is then parsed
-        # in well under a millisecond, not 5 ms in Python (a feedforward taking a new
-        # model while armed must not hold its loop up)
-        depth = 0
-        for event in yaml.parse(text, Loader=_FAST_LOADER):
-            if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
-                depth += 1
-                if depth > MAX_YAML_DEPTH:
-                    mark = event.start_mark
-                    raise ModelError(f"{source}: nested deeper than {MAX_YAML_DEPTH} levels "
-                                     f"at line {mark.line + 1}")
-            elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
-                depth -= 1
-            elif isinstance(event, yaml.AliasEvent):
-                raise ModelError(f"{source}: aliases are not accepted at line "
-                                 f"{event.start_mark.line + 1}")
-        # no aliases, at most MAX_YAML_DEPTH levels: the safe loader composes it as is
-        return yaml.load(text, Loader=_FAST_LOADER)  # noqa: S506 - a safe loader
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        why = ("aliases are not accepted" if "aliases" in str(e) else
-               f"nested deeper than {MAX_YAML_DEPTH} levels" if "nesting depth" in str(e)
-               else "malformed YAML")  # (libyaml's own bound, met before ours)
-        raise ModelError(f"{source}: {why}{where}") from None
 
 
 def as_number(x: object, where: str, error: type = ModelError) -> float:
