@@ -381,11 +381,10 @@ class Launch:
             finally:
                 signal.pthread_sigmask(signal.SIG_SETMASK, old)
         if look is not None:
-            while not look.done():  # a stop meanwhile: the nodes never pass the gate
+            while not look.wait(0.02):  # a stop meanwhile: the nodes never pass the gate
                 if self.stopped_by is not None:
                     look.cancel()
                     return
-                time.sleep(0.02)
             try:
                 who = look.result()
             except BaseException:

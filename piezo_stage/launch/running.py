@@ -57,16 +57,20 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
             looking.set()
         t0 = time.monotonic()
         names: list = []
+        limit = wait_s
         while not names:
             if cancel is not None and cancel.is_set():
                 return None
-            ex.spin_once(timeout_sec=0.05)
+            # (up to the wait's end, not past it: the answer is in within milliseconds)
+            left = limit - (time.monotonic() - t0)
+            ex.spin_once(timeout_sec=min(0.05, max(left, 0.001)))
             seen = [(n, s) for n, s in node.get_node_names_and_namespaces()
                     if (n, s) != ("launch_check", "/")]
             names = sorted(n for n, s in seen if s == ns)
             # a graph with other nodes in it is being discovered: give ours longer
             # (right after ten nodes joined and left, the set's names took over 2 s)
-            if time.monotonic() - t0 >= (BUSY_WAIT_S if seen else wait_s):
+            limit = BUSY_WAIT_S if seen else wait_s
+            if time.monotonic() - t0 >= limit:
                 break
         if not names:
             return None
@@ -140,6 +144,10 @@ class Look:
 
     def done(self) -> bool:
         return self._answered.is_set()
+
+    def wait(self, timeout: float) -> bool:
+        """Up to ``timeout`` seconds for the answer: whether it is in."""
+        return self._answered.wait(timeout)
 
     def result(self) -> str | None:
         """None: nothing runs in the namespace; else who runs there."""

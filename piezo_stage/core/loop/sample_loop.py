@@ -338,9 +338,10 @@ class SampleLoop:
         if self.lock:
             self.step_times.append(time.perf_counter())
         elif self.capacity is not None and (self.capacity.t0 is not None or
-                                            self.sup.evidence >= self.sup.p.confirm_ticks):
+                                            self.sup.evidence >= 1):
             # from the first sample the loop answers on time (the set's nodes have
-            # started: their start-up is no load of the loop's)
+            # started: their start-up is no load of the loop's), beside the arm's
+            # confirmation ticks
             cap = self.capacity.sample()
             if cap is not None and self.sup.held_by:
                 self._judge(cap)
