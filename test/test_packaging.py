@@ -15,6 +15,7 @@ ROS_PACKAGES = {
     "rclpy", "rcl_interfaces", "builtin_interfaces", "rosgraph_msgs", "std_msgs",
     "std_srvs", "geometry_msgs", "sensor_msgs", "trajectory_msgs", "diagnostic_msgs",
     "lifecycle_msgs",  # (ros2/rcl_interfaces, as rcl_interfaces itself)
+    "rosidl_generator_py",  # (ros2/rosidl_python: every Python message package's)
     "ament_index_python", "launch", "launch_ros",
 }
 # The keys we use, each found in rosdistro's rosdep/python.yaml (read 2026-11-25 from a
