@@ -264,10 +264,10 @@ class StageDriver(LeanNode, LifecycleNode):
             if self.loop.shutdown_requested:  # stopped before any sample went out:
                 rclpy.try_shutdown()          # nothing to ramp down from
                 return
-            # consumers still matching: the gate looks at each of these ticks, not at
-            # its own timer's turn, which a ticking node's executor gives one callback
-            # each SLOW_PERIOD_S among the others ready (the subscribers were seen in
-            # 0.1 s steps, up to 0.3 s after they had matched)
+            # consumers still matching: the gate looks at each of these ticks, not only
+            # when its own timer is served (a ticking node's executor serves one
+            # callback each SLOW_PERIOD_S among the others ready: the subscribers were
+            # seen in 0.1 s steps, up to 0.3 s after they had matched)
             self.gate.poll()
             if not self.gate.open:
                 self.lean_deadline = time.monotonic() + 0.01
