@@ -1006,3 +1006,65 @@ def test_a_core_taken_before_the_start_refuses_at_start_or_runs_without_a_fault(
     else:
         assert len(refusals) == len(tried) - 1
         assert "armed" in states
+
+
+def test_rate_auto_takes_an_outside_trajectory_only_in_the_set_that_runs(tmp_path, domain,
+                                                                          ros_domains):
+    """`launch --rate auto --no-trajectory` started at a rate no host of this kind holds
+    (4 x the one this host holds with margin), with examples/publish_trajectory.py
+    started at the same moment: the driver refuses, the launcher runs the set again at
+    a lower rate, and the publisher, which waits for the feedforward's subscription,
+    meets only the set that runs (the feedforward takes outside inputs once the driver
+    has armed): its trajectory is accepted once, runs to its end within tolerance, and
+    the bag holds it once, with no fault. Before, a publisher that met a refused
+    attempt lost its trajectory with it. (Twice at most, as the other real-time sets.)"""
+    def _auto_run(folder, dom):
+        _rate_auto_outside(folder, dom)
+    run_twice_at_most(_auto_run, tmp_path, domain, ros_domains)
+
+
+def _rate_auto_outside(tmp_path, domain):
+    import re
+
+    from rclpy.serialization import deserialize_message
+    from trajectory_msgs.msg import JointTrajectory
+
+    from piezo_stage.io.bag import iter_messages
+    tmp_path.mkdir()
+    d, env = domain
+    # refused: the host holds RATE with 3 x (host_rate), so 4 x RATE with under 1.5 x
+    start_hz = {1000.0: 5000.0, 500.0: 2000.0, 250.0: 1000.0}[RATE]
+    cfg = realtime_config(tmp_path, rate=start_hz)
+    text = open(cfg).read().replace("min_margin: 0.0", "min_margin: 2.0")
+    open(cfg, "w").write(text)
+    bag = str(tmp_path / "auto")
+    launch = subprocess.Popen(
+        [sys.executable, "-m", "piezo_stage.cli", "launch", "--params", cfg, "--rate",
+         "auto", "--no-trajectory", "--record", bag, "--duration", "120"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True)
+    try:
+        pub = subprocess.run(
+            [sys.executable, os.path.join(CONFIG, "..", "examples", "publish_trajectory.py"),
+             "--timeout", "90"], env=env, capture_output=True, text=True, timeout=200)
+    finally:
+        if launch.poll() is None:
+            launch.send_signal(signal.SIGINT)
+        out, err = launch.communicate(timeout=60)
+    sys.stderr.write(err)  # this test's output, shown where it fails
+    again = [float(r) for r in re.findall(r"running again at (\d+) Hz", err)]
+    assert again and again[0] < start_hz, err[-3000:]
+    assert pub.returncode == 0, (pub.stdout, pub.stderr, err[-3000:])
+    assert "final error x" in pub.stdout, pub.stdout
+    assert launch.returncode == 130, (launch.returncode, err[-3000:])
+    assert "armed: taking trajectories, setpoints and moves" in err, err[-3000:]
+    run = read_run(bag)  # the attempt that ran (a refused one's bag is removed)
+    names = [s for _, s in run.states]
+    try:
+        never_faulted([(n,) for n in names[names.index("armed"):-1]])
+    except AssertionError as e:
+        paused_by_the_host(run, e)
+    held = [deserialize_message(data, JointTrajectory) for topic, _, _, data
+            in iter_messages(bag) if topic == "/stage/trajectory/accepted"]
+    assert len(held) == 1, len(held)
+    assert int(run.diagnostics["feedforward"]["trajectories"]) == 1

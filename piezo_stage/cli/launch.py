@@ -18,7 +18,7 @@ def add_arguments(s):
     s.add_argument("--rate", type=_rate, metavar="HZ|auto",
                    help="the loop's control rate [Hz] (its three nodes' control_rate_hz), "
                    "or auto: real time at the configured rate where this host holds it "
-                   "with margin, else again at the lower rate the refusal names (three runs "
+                   "with margin, else again at the lower rate the refusal names (four runs "
                    "at most) "
                    "(docs/realtime.md)")
     s.add_argument("--no-arm", action="store_true", help="start disarmed and stay so "

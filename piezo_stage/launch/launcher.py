@@ -47,8 +47,12 @@ RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"        # and this
 CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # where a driver's refusal puts its figures
 START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # a file: nodes wait for it before they join
 # rate auto: the runs a set may take in all, each at a lower rate than the last (the
-# standard rate a refusal names, core/loop/capacity.py: from 1 kHz, 500 then 250 Hz)
-AUTO_ATTEMPTS = 3
+# standard rate a refusal names, core/loop/capacity.py: from 1 kHz, 500, 250, 200 Hz).
+# A rate named from a measurement at a higher one is often one step too high (the
+# loop's fixed work a second weighs more per sample at a lower rate): a slow 2-core
+# host refused 2,000, 1,000 and 500 Hz one after the other (1.00, 1.24, 1.41 x) where
+# it held 250 Hz with 3 x, so three runs ended it unarmed (2026-12-02, on 9693767)
+AUTO_ATTEMPTS = 4
 # how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
 # down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
 STOP_GRACE_S = {"stage_driver": 15.0, "producers": 5.0, "recorder": 15.0}
@@ -346,6 +350,11 @@ class Launch:
             extra["port"] = int(self.foxglove_port or 0)
         if self.lockstep:  # one clock: the driver's samples (/clock), bags included
             extra["use_sim_time"] = True
+        elif node == "feedforward" and self.auto_rate:
+            # an attempt the driver refuses is run again at a lower rate (run()): what
+            # it took from outside would be lost with it, so it takes nothing before
+            # it has armed, and an outside publisher waits for the set that runs
+            extra["inputs_once_armed"] = True
         extra.update(self.overrides.get(node, {}))
         return extra
 

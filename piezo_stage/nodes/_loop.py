@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 
 from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.loop.arming import ARMED
 from piezo_stage.nodes._common import QOS_DIAG, QOS_EVENTS, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, local_readers, subscriber_count
 from piezo_stage_msgs_adapters import diagnostic_array
@@ -117,6 +118,7 @@ class DriverState:
         self.node, self.prio, self.heap_bytes = node, prio, int(heap_bytes)
         self.timeline, self.lookahead_ns, self.dt_ns = StateTimeline(), dt_ns, dt_ns
         self.realtime, self.bad = False, 0
+        self.armed_once = False  # the driver has announced armed (its capacity held)
         self.limits: tuple | None = None  # the driver's voltage limits, once announced
         self.slew_V_per_s: float | None = None  # its slew limit (the slowest axis's)
         hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
@@ -146,6 +148,7 @@ class DriverState:
         except (KeyError, ValueError):
             pass
         self.timeline.add(a.since_ns, a.state)
+        self.armed_once = self.armed_once or a.state == ARMED
 
     def enabled(self, ns) -> bool:
         return self.timeline.enabled(ns)

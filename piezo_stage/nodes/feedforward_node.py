@@ -112,18 +112,12 @@ class Feedforward(LeanNode, Node):
                          with_info=True)
         self.lag = LatencyHistogram()  # sample stamp -> its arrival here
         self.sp_latency, self.setpoint_arrival = LatencyHistogram(), None
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        # volatile: every publisher matches, none warns; a latched publisher's trajectory
-        # sent before we matched (a restarted feedforward) comes by a brief
-        # transient-local fetch (_latched.py); the same message twice is taken once
-        # (raw: checked for size, then decoded straight from the bytes, so a long
-        # trajectory does not stall the loop in per-point message objects)
-        self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable,
-                                 raw=True)
-        self.latched = LatchedFetch(self, JointTrajectory, "trajectory", self.on_trajectory)
-        self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
-        # a move is taken at once (with the samples), not at the base executor's turn
-        hot_subscription(self, PointStamped, "move", self.on_move, reliable)
+        # the inputs from outside the loop: at once, or (inputs_once_armed) once the
+        # driver has armed, its capacity judged: what a refused attempt took would be lost
+        # with it, when the launcher's --rate auto runs the set again at a lower rate
+        self.inputs_waiting = p["inputs_once_armed"] and not p["wait_for_trajectory"]
+        if not self.inputs_waiting:
+            self.take_inputs()
         self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
         self.diag = Diagnostics(self, lambda: (
             0, f"{self.planner.phase}, model {self.model_name}, {self.ref.describe()}" + (
@@ -137,6 +131,22 @@ class Feedforward(LeanNode, Node):
             "setpoint_latency_median_ms": self.sp_latency.percentile(50) * 1e3,
             "setpoint_latency_max_ms": self.sp_latency.max_s * 1e3}), "inverse feedforward",
             rates=core_ff.RATES)
+
+    def take_inputs(self):
+        """Subscribe to the trajectories, setpoints and moves of other nodes."""
+        self.inputs_waiting = False
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        # volatile: every publisher matches, none warns; a latched publisher's trajectory
+        # sent before we matched (a restarted feedforward) comes by a brief
+        # transient-local fetch (_latched.py); the same message twice is taken once
+        # (raw: checked for size, then decoded straight from the bytes, so a long
+        # trajectory does not stall the loop in per-point message objects)
+        self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable,
+                                 raw=True)
+        self.latched = LatchedFetch(self, JointTrajectory, "trajectory", self.on_trajectory)
+        self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
+        # a move is taken at once (with the samples), not at the base executor's turn
+        hot_subscription(self, PointStamped, "move", self.on_move, reliable)
 
     def final_report(self):
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
@@ -265,6 +275,9 @@ class Feedforward(LeanNode, Node):
         self.resume()
 
     def on_state(self, msg, info=None, resumed=False):
+        if self.inputs_waiting and self.driver.armed_once:
+            self.take_inputs()
+            self.get_logger().info("armed: taking trajectories, setpoints and moves")
         if self.driver.realtime and self.intake.thread is None:
             # twice: the running trajectory and its latched copy live on meanwhile
             self.intake.start(2 * trajectory_take_bytes(self.max_points))
