@@ -21,7 +21,8 @@ def test_capacity_is_the_smaller_of_the_loop_thread_and_the_host():
     assert thread_bound.host_capacity_hz == pytest.approx(4000.0)
     assert thread_bound.capacity_hz == pytest.approx(1250.0)
     assert thread_bound.margin == pytest.approx(1.25)
-    assert thread_bound.holdable_rate_hz(2.0) == 500.0
+    # 1,250/s at 1 kHz, 1.94 x at 500 Hz (its samples cost more each there): 250 Hz
+    assert thread_bound.holdable_rate_hz(2.0) == 250.0
     host_bound = Capacity(1000.0, 500, 0.5, 0.8e-3, 1.6, 2)  # 1,250/s by the thread
     # 1.6 of 2 CPUs busy at 1 kHz, all of it the set's (1.6 ms a sample, under 3 x the
     # thread's): the idle 0.4 CPU takes 250 samples more
@@ -33,6 +34,25 @@ def test_capacity_is_the_smaller_of_the_loop_thread_and_the_host():
     assert other.margin > 2.0  # the old rate x cores / busy said 196/s: refused
     assert "1.60 of 2 CPUs busy" in host_bound.describe()
     assert Capacity(1000.0, 1, 1.0, 0.02, 2.0, 2).holdable_rate_hz(2.0) is None
+
+
+def test_a_lower_rate_is_judged_with_the_fixed_work_a_second_weighing_more_a_sample():
+    """A refusal names a rate the next run holds: one host's 1 kHz refusal (1,094/s)
+    named 500 Hz when each sample was taken to cost the same at any rate, and the run
+    at 500 Hz read 1.63 x (0.586 ms a sample, 1.44 CPUs busy) and was refused in turn."""
+    at_1k = Capacity(1000.0, 300, 0.3, 0.494e-3, 1.86, 2)
+    assert at_1k.margin == pytest.approx(1.094, abs=0.01)
+    at_500 = at_1k.at(500.0)
+    assert at_500.thread_s_per_sample == pytest.approx(0.586e-3, rel=0.1)
+    assert at_500.margin == pytest.approx(1.63, rel=0.1)
+    assert at_1k.holdable_rate_hz(2.0) == 250.0
+    assert at_1k.at(1000.0) == at_1k  # the rate it was measured at: itself
+    # a load that is not the set's (another program on one CPU) stays what it was
+    hog = Capacity(1000.0, 300, 0.3, 0.3e-3, 1.9, 2)  # 0.9 ms a sample: 1 CPU not the set's
+    assert hog.at(250.0).host_busy_cores > 1.0
+    assert hog.holdable_rate_hz(2.0) is not None and hog.holdable_rate_hz(2.0) < 1000.0
+    # never above the rate measured: a refusal names a lower one
+    assert Capacity(250.0, 75, 0.3, 0.1e-3, 0.2, 2).holdable_rate_hz(2.0) == 250.0
 
 
 def test_the_meter_measures_its_own_thread_over_a_window():

@@ -1043,28 +1043,72 @@ def _rate_auto_outside(tmp_path, domain):
          "auto", "--no-trajectory", "--record", bag, "--duration", "120"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True)
+    pub = subprocess.Popen(
+        [sys.executable, os.path.join(CONFIG, "..", "examples", "publish_trajectory.py"),
+         "--timeout", "90"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
     try:
-        pub = subprocess.run(
-            [sys.executable, os.path.join(CONFIG, "..", "examples", "publish_trajectory.py"),
-             "--timeout", "90"], env=env, capture_output=True, text=True, timeout=200)
+        t_end = time.monotonic() + 200.0
+        while pub.poll() is None and time.monotonic() < t_end:
+            if launch.poll() is not None:  # the launch ended (refused): nothing to wait for
+                pub.send_signal(signal.SIGINT)
+                break
+            time.sleep(0.2)
+        pub_out, pub_err = pub.communicate(timeout=30)
     finally:
+        if pub.poll() is None:
+            pub.kill()
         if launch.poll() is None:
             launch.send_signal(signal.SIGINT)
         out, err = launch.communicate(timeout=60)
+    pub = subprocess.CompletedProcess(pub.args, pub.returncode, pub_out, pub_err)
     sys.stderr.write(err)  # this test's output, shown where it fails
     again = [float(r) for r in re.findall(r"running again at (\d+) Hz", err)]
     assert again and again[0] < start_hz, err[-3000:]
-    assert pub.returncode == 0, (pub.stdout, pub.stderr, err[-3000:])
-    assert "final error x" in pub.stdout, pub.stdout
+    last = re.search(r"stage_driver refused to arm at .*", err)
+    if last:  # every run refused: the host held no rate with margin then
+        assert launch.returncode == 1 and pub.returncode != 0, (launch.returncode, err)
+        raise HostTooSlow(last.group(0))
+    run = read_run(bag)  # the attempt that ran (a refused one's bag is removed)
+    try:
+        assert pub.returncode == 0, (pub.stdout, pub.stderr, err[-3000:])
+        assert "final error x" in pub.stdout, pub.stdout
+        names = [s for _, s in run.states]
+        never_faulted([(n,) for n in names[names.index("armed"):-1]])
+    except AssertionError as e:  # a fault: the host's pause, or this test's failure
+        paused_by_the_host(run, e)
     assert launch.returncode == 130, (launch.returncode, err[-3000:])
     assert "armed: taking trajectories, setpoints and moves" in err, err[-3000:]
-    run = read_run(bag)  # the attempt that ran (a refused one's bag is removed)
-    names = [s for _, s in run.states]
-    try:
-        never_faulted([(n,) for n in names[names.index("armed"):-1]])
-    except AssertionError as e:
-        paused_by_the_host(run, e)
     held = [deserialize_message(data, JointTrajectory) for topic, _, _, data
             in iter_messages(bag) if topic == "/stage/trajectory/accepted"]
     assert len(held) == 1, len(held)
     assert int(run.diagnostics["feedforward"]["trajectories"]) == 1
+
+
+def test_a_margin_no_rate_holds_ends_the_launch_in_one_line_never_armed(tmp_path, domain):
+    """`launch --rate auto` with a min_margin no host holds (100 x, the highest it
+    takes): the driver refuses at start, no standard rate would have it, so the
+    launcher runs no second set and ends with one line naming the rate refused, the
+    capacity and the runs (exit 1); the stage never armed and stayed at the safe
+    voltage."""
+    import re
+    d, env = domain
+    cfg = realtime_config(tmp_path)
+    text = open(cfg).read().replace("min_margin: 0.0", "min_margin: 100.0")
+    open(cfg, "w").write(text)
+    bag = str(tmp_path / "refused")
+    r = subprocess.run(
+        [sys.executable, "-m", "piezo_stage.cli", "launch", "--params", cfg, "--rate",
+         "auto", "--record", bag, "--duration", "60"],
+        env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1, (r.returncode, r.stderr[-3000:])
+    assert "running again" not in r.stderr, r.stderr[-3000:]
+    last = r.stderr.strip().splitlines()[-1]
+    assert re.fullmatch(
+        rf"piezo-stage launch: stage_driver refused to arm at {RATE:g} Hz: this host holds "
+        rf"the loop at [\d,]+ samples/s, \d+\.\d\d x, under min_margin 100; rate auto ran "
+        rf"it once, at {RATE:g} Hz", last), last
+    assert "died with exit code" not in r.stderr, r.stderr[-3000:]
+    run = read_run(bag)
+    assert "armed" not in [s for _, s in run.states], run.states
+    assert np.all(run.v_V == 0.0)

@@ -549,8 +549,11 @@ class Launch:
         cap_dir = tempfile.mkdtemp(prefix="piezo-stage-capacity-")
         cap_file = os.path.join(cap_dir, "capacity.json")
         self.env[CAPACITY_FILE_ENV] = cap_file
+        tried: list[float] = []
+        refused: dict | None = None
         try:
             for attempt in range(1, AUTO_ATTEMPTS + 1):
+                tried.append(self.rate_hz())
                 try:
                     self.start()
                     self.wait(duration)
@@ -578,6 +581,20 @@ class Launch:
             shutil.rmtree(cap_dir, ignore_errors=True)
             for s, h in old.items():
                 signal.signal(s, h)
+        holder = LOOP if "stage_driver" in self.composed else "stage_driver"
+        driver = self.procs.get(holder)
+        if refused and driver is not None and driver.returncode == 2:
+            # the driver's own line gave the figures; this one says what the launch did
+            n = len(tried)
+            runs = (f"; rate auto ran it {'once' if n == 1 else f'{n} times'}, at "
+                    f"{', '.join(f'{r:g}' for r in tried)} Hz" if self.auto_rate else "")
+            floor = (f" {refused['min_margin']:g}" if "min_margin" in refused else "")
+            self.failed = [f for f in self.failed
+                           if not f.startswith(self.label(holder) + " ")]
+            self.failed.append(
+                f"{self.label(holder)} refused to arm at {self.rate_hz():g} Hz: "
+                f"this host holds the loop at {refused['capacity_hz']:,.0f} samples/s, "
+                f"{refused['margin']:.2f} x, under min_margin{floor}{runs}")
         for n, p in self.procs.items():
             if not self.stopped_cleanly(n) and not any(f.startswith(self.label(n) + " ")
                                                        for f in self.failed):

@@ -328,8 +328,8 @@ class StageDriver(LeanNode, LifecycleNode):
         if not path or cap is None:
             return
         doc = {"capacity_hz": cap.capacity_hz, "margin": cap.margin,
-               "rate_hz": cap.rate_hz, "holdable_rate_hz": cap.holdable_rate_hz(
-                   loop.min_margin)}
+               "rate_hz": cap.rate_hz, "min_margin": loop.min_margin,
+               "holdable_rate_hz": cap.holdable_rate_hz(loop.min_margin)}
         tmp = path + ".tmp"
         with open(tmp, "w") as fh:
             json.dump(doc, fh)

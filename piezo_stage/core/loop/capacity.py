@@ -53,6 +53,15 @@ MIN_WINDOW_SAMPLES = 100
 # threads carrying each sample
 HOST_PER_THREAD = 3.0
 
+# the loop's fixed work a second (timers, diagnostics, the executor's own turns), in
+# samples' worth: at a lower rate it weighs more per sample, so a measurement at one
+# rate says too much of a lower one. Per sample at rate r the cost is c (1 + K / r):
+# one host read 0.44 ms a sample at 1 kHz and 0.88 ms at 250 Hz (K 500), another 0.494
+# ms at 1 kHz and 0.586 ms at 500 Hz (K 230), 2026-12; a rate named from the 1 kHz
+# figure with no such term was refused at the next run (1,091/s named 500 Hz, which
+# read 1.63 x)
+FIXED_SAMPLES_A_SECOND = 400.0
+
 # the rates a set may be run at, the highest first: what a refusal proposes
 STANDARD_RATES_HZ = (20000.0, 10000.0, 5000.0, 2000.0, 1000.0, 500.0, 250.0, 200.0, 100.0)
 
@@ -115,11 +124,27 @@ class Capacity:
         """The capacity over the rate."""
         return self.capacity_hz / self.rate_hz
 
+    def at(self, rate_hz: float) -> Capacity:
+        """What this measurement says of the same set at ``rate_hz``: each sample's
+        cost (the loop thread's, the set's share of the host's) scaled by the fixed
+        work a second (FIXED_SAMPLES_A_SECOND), and a load of the host that is not the
+        set's (another program) as it was."""
+        k = FIXED_SAMPLES_A_SECOND
+        f = (1.0 + k / rate_hz) / (1.0 + k / self.rate_hz)
+        per_sample = self.host_busy_cores / self.rate_hz
+        if self.thread_s_per_sample > 0:
+            per_sample = min(per_sample, HOST_PER_THREAD * self.thread_s_per_sample)
+        other = max(self.host_busy_cores - self.rate_hz * per_sample, 0.0)
+        busy = other + rate_hz * per_sample * f
+        return Capacity(rate_hz, self.samples, self.seconds, self.thread_s_per_sample * f,
+                        min(busy, float(self.cores)), self.cores)
+
     def holdable_rate_hz(self, min_margin: float) -> float | None:
-        """The highest standard rate this capacity holds with ``min_margin`` (each
-        sample's cost taken as the same at any rate), None: not even the lowest."""
+        """The highest standard rate, at most this one, that this measurement says the
+        host holds with ``min_margin`` (``at``: a lower rate's samples cost more each),
+        None: not even the lowest."""
         for r in STANDARD_RATES_HZ:
-            if r * max(min_margin, 1e-9) <= self.capacity_hz:
+            if r <= self.rate_hz and self.at(r).margin >= max(min_margin, 1e-9):
                 return r
         return None
 
