@@ -588,13 +588,13 @@ class Launch:
             n = len(tried)
             runs = (f"; rate auto ran it {'once' if n == 1 else f'{n} times'}, at "
                     f"{', '.join(f'{r:g}' for r in tried)} Hz" if self.auto_rate else "")
-            floor = (f" {refused['min_margin']:g}" if "min_margin" in refused else "")
             self.failed = [f for f in self.failed
                            if not f.startswith(self.label(holder) + " ")]
             self.failed.append(
                 f"{self.label(holder)} refused to arm at {self.rate_hz():g} Hz: "
                 f"this host holds the loop at {refused['capacity_hz']:,.0f} samples/s, "
-                f"{refused['margin']:.2f} x, under min_margin{floor}{runs}")
+                f"{refused['margin']:.2f} x, under min_margin "
+                f"{refused['min_margin']:g}{runs}")
         for n, p in self.procs.items():
             if not self.stopped_cleanly(n) and not any(f.startswith(self.label(n) + " ")
                                                        for f in self.failed):

@@ -99,20 +99,25 @@ class Capacity:
             float("inf")
 
     @property
+    def host_s_per_sample(self) -> float:
+        """The set's cost of a sample to the host [CPU s]: the host's busy CPU time per
+        sample, but never more than HOST_PER_THREAD times the loop thread's (a load
+        that does not grow with the rate, another program or the set's own fixed work,
+        is no cost of a sample: at 100 Hz it would otherwise count a hundred times
+        more per sample than at 10 kHz)."""
+        per_sample = self.host_busy_cores / self.rate_hz
+        if self.thread_s_per_sample > 0:
+            per_sample = min(per_sample, HOST_PER_THREAD * self.thread_s_per_sample)
+        return per_sample
+
+    @property
     def host_capacity_hz(self) -> float:
         """Samples a second until every CPU is busy: the rate and what the idle CPUs
-        would take at the set's cost per sample. That cost is the host's busy CPU time
-        per sample, but never more than HOST_PER_THREAD times the loop thread's (a
-        load that does not grow with the rate, another program or the set's own fixed
-        work, is no cost of a sample: at 100 Hz it would otherwise count a hundred
-        times more per sample than at 10 kHz)."""
+        would take at the set's cost per sample (host_s_per_sample)."""
         busy = self.host_busy_cores
         if busy <= 0:
             return float("inf")
-        per_sample = busy / self.rate_hz
-        if self.thread_s_per_sample > 0:
-            per_sample = min(per_sample, HOST_PER_THREAD * self.thread_s_per_sample)
-        return self.rate_hz + max(self.cores - busy, 0.0) / per_sample
+        return self.rate_hz + max(self.cores - busy, 0.0) / self.host_s_per_sample
 
     @property
     def capacity_hz(self) -> float:
@@ -131,9 +136,7 @@ class Capacity:
         set's (another program) as it was."""
         k = FIXED_SAMPLES_A_SECOND
         f = (1.0 + k / rate_hz) / (1.0 + k / self.rate_hz)
-        per_sample = self.host_busy_cores / self.rate_hz
-        if self.thread_s_per_sample > 0:
-            per_sample = min(per_sample, HOST_PER_THREAD * self.thread_s_per_sample)
+        per_sample = self.host_s_per_sample
         other = max(self.host_busy_cores - self.rate_hz * per_sample, 0.0)
         busy = other + rate_hz * per_sample * f
         return Capacity(rate_hz, self.samples, self.seconds, self.thread_s_per_sample * f,
