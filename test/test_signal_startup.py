@@ -43,6 +43,22 @@ def test_frames_before_the_handlers_are_python_s_own_and_any_later_one_is_not():
     assert not before_our_handlers("KeyboardInterrupt\n")  # no traceback: not this case
 
 
+def test_the_message_runtime_the_package_init_sets_up_is_start_up_too():
+    """A SIGINT 0.11 s after the launcher's start landed in the import of the message
+    packages' runtime, which the package's __init__ runs (rosidl_runtime.runtime_only)
+    before any entry module can install the handlers. Its frames, as printed there; a
+    frame of the package past them is still a miss."""
+    pkg = os.path.dirname(os.path.dirname(NODE))
+    start = [RUNPY, (os.path.join(pkg, "__init__.py"), 17, "<module>"),
+             (os.path.join(pkg, "rosidl_runtime.py"), 43, "runtime_only"),
+             (os.path.join(sys.prefix, "lib", "python3.11", "site-packages", "rpyutils",
+                           "import_c_library.py"), 18, "<module>"),
+             ("/usr/lib/python3.11/typing.py", 1253, "_is_dunder")]
+    assert before_our_handlers(_traceback(*start))
+    assert not before_our_handlers(_traceback(
+        *start[:3], (os.path.join(pkg, "io", "bag.py"), 10, "<module>")))
+
+
 def test_an_editable_installs_finder_run_by_site_is_start_up_too():
     """A SIGINT 0.11 s after the launcher's start landed in the
     editable install's finder, which site imports from a .pth line (its file name holds

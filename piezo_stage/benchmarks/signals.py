@@ -98,6 +98,8 @@ def before_our_handlers(text: str) -> bool:
             continue
         if func == "<module>" and name == "__init__.py":
             continue
+        if name == "rosidl_runtime.py":  # what the package's __init__ runs at import
+            continue
         src = linecache.getline(path, int(line))
         if func in ("<module>", "main") and ("_signals" in src or "stopping" in src):
             continue
