@@ -133,6 +133,13 @@ def test_real_time_sets_publish_synchronously_over_loopback_udp(tmp_path):
         "/lab/profiles.xml"
     with open(LOCKSTEP_PROFILE) as fh:  # the file Fast DDS reads: the period as said
         assert "<heartbeatPeriod><sec>0</sec><nanosec>50000000</nanosec>" in fh.read()
+    # real time too: with Fast DDS's 3 s the loop's topics were acknowledged in one burst
+    # every 3 s, and the driver missed a tick or the commands came late right then
+    with open(LOOPBACK_UDP_PROFILE) as fh:
+        text = fh.read()
+    assert '<publisher profile_name="piezo_stage_loopback_udp_writer" ' \
+        'is_default_profile="true">' in text
+    assert "<heartbeatPeriod><sec>0</sec><nanosec>50000000</nanosec>" in text
 
 
 @pytest.mark.parametrize("given, wanted", [
