@@ -151,3 +151,29 @@ def test_bench_loop_vs_a_revision_runs_that_revisions_own_loop(tmp_path, ros_env
     assert err is None, err
     rate, med, p99, lost, steal = res
     assert rate > 0 and 0 < med <= p99 and not any(lost.values()), res
+
+
+def test_start_up_motion_is_the_fastest_move_before_arming_and_over_each_approach():
+    """bench realtime's start-up motion: the true position's fastest step while the
+    driver arms and approaches (a re-arm's too), over the time between the stamps; the
+    tracking after arming is not start-up."""
+    import numpy as np
+
+    from piezo_stage.benchmarks.realtime import startup_speed
+    from piezo_stage.io.run_bag import Run
+    ms = 1_000_000
+    t = np.arange(0, 40) * ms
+    t[10:] += 2 * ms  # two missed ticks after sample 9: its next step is over 3 ms
+    x = np.zeros(40)
+    x[10] = 0.3  # 0.3 um in 3 ms while arming: 0.1 um/ms
+    x[11:] = 0.3 + np.arange(29) * 1.5  # tracking at 1.5 um/ms from sample 12 on
+    x[31] = x[30] + 4.0  # a 4 um step 20 samples into tracking
+    true = {int(k): np.array([v, -v]) for k, v in zip(t, x)}
+    run = Run(t, np.zeros((40, 2)), np.zeros((40, 2)), t, true, {},
+              [(0, "disarmed"), (int(t[2]), "arming"), (int(t[11]), "armed")])
+    assert startup_speed(run) == pytest.approx(0.1)
+    run.states += [(int(t[30]), "approaching"), (int(t[33]), "armed")]  # a re-arm
+    assert startup_speed(run) == pytest.approx(4.0)
+    run.true_um = {}  # no true position (hardware): the measured one
+    run.w_um[:, 0] = x
+    assert startup_speed(run) == pytest.approx(4.0)
