@@ -29,15 +29,28 @@ Start the node set first, e.g. `piezo-stage launch --params config/realtime.yaml
 
 import argparse
 import csv
+import signal
 import sys
 import time
 
-import rclpy
-from builtin_interfaces.msg import Duration
-from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import JointState
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+def _stopped(signum, frame):
+    """Ctrl-C or SIGTERM, from the first line on: one line, exit 128 + the signal (the
+    node is destroyed on the way out; rclpy's own handlers are left out, rclpy.init)."""
+    print(f"publish_trajectory: stopped by {signal.Signals(signum).name} before the "
+          "stage finished", file=sys.stderr)
+    raise SystemExit(128 + signum)
+
+
+signal.signal(signal.SIGINT, _stopped)
+signal.signal(signal.SIGTERM, _stopped)
+
+import rclpy  # noqa: E402
+from builtin_interfaces.msg import Duration  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
 DEFAULT = [(0.0, 20.0, 20.0), (0.25, 40.0, 20.0), (0.5, 40.0, 40.0), (0.75, 20.0, 40.0),
            (1.0, 30.0, 30.0)]  # t [s], x [um], y [um]
@@ -86,7 +99,7 @@ def main(argv=None):
         return 2
     ns = "/" + args.namespace.strip("/")
 
-    rclpy.init()
+    rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = rclpy.create_node("publish_trajectory")
     seen = {"state": {}, "position": None}
 
@@ -160,9 +173,6 @@ def main(argv=None):
         ex, ey = x - pts[-1][1], y - pts[-1][2]
         print(f"done: final error x {ex:+.3f} um, y {ey:+.3f} um")
         return 0 if abs(ex) <= args.tolerance and abs(ey) <= args.tolerance else 1
-    except KeyboardInterrupt:
-        print("publish_trajectory: stopped (Ctrl-C)", file=sys.stderr)
-        return 130
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

@@ -210,3 +210,22 @@ def test_the_example_node_runs_on_a_stage_that_recovered_from_a_fault(tmp_path, 
     finally:
         probe.close()
         launch.stop()
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_the_example_node_stopped_by_a_signal_says_so_in_one_line(ros_env, sig):
+    """Ctrl-C or SIGTERM while examples/publish_trajectory.py waits for a set (none runs
+    here): one line, exit 128 + the signal; no traceback (rclpy's own handler shut the
+    context down under spin_once, and the ExternalShutdownException it raised came out
+    as a traceback, exit 1)."""
+    import signal
+    import time
+    p = subprocess.Popen([sys.executable, os.path.join(CONFIG, "..", "examples",
+                                                       "publish_trajectory.py")],
+                         env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    time.sleep(2.0)  # in its wait for the feedforward, on most hosts
+    p.send_signal(getattr(signal, sig))
+    out, err = p.communicate(timeout=30)
+    r = subprocess.CompletedProcess(p.args, p.returncode, out, err)
+    _one_line(r, 128 + getattr(signal, sig), f"stopped by {sig} before the stage finished")
