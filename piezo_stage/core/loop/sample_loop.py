@@ -87,6 +87,13 @@ RATES = (("missed_ticks", "missed ticks", 0), ("late_commands", "late commands",
 COMMAND_WINDOW_NS = 1_000_000_000
 
 CAPACITY_WINDOWS = 3  # windows measured before a refusal; the best judged
+# where the loop's own thread holds the margin and the host's other load is what falls
+# short, up to this many: a lab's node starting beside the set passes within a few
+# seconds (examples/publish_trajectory.py building and sending 60,001 points, 0.6 of a
+# CPU for about a second, as a 1 kHz set measured: refused at 1.52 x, the host 1.53 of
+# 2 CPUs busy, the loop's thread 3.3 x); a lasting load (another program) shows in
+# every window, and is refused after them
+CAPACITY_WINDOWS_HOST = 10
 
 
 def check_mode(backend: str, mode: str, use_sim_time: bool) -> None:
@@ -351,12 +358,17 @@ class SampleLoop:
         """A measurement of the capacity before the first arm: at the margin, the arm
         waits no more; below it, up to CAPACITY_WINDOWS windows are measured (the set's
         other nodes may still be starting: a transient load of the host, where a lasting
-        one, another program, shows in every window) and the best of them judged: the
-        loop refuses to run (``refusal``: one line naming the rate it could hold)."""
+        one, another program, shows in every window), up to CAPACITY_WINDOWS_HOST where
+        the loop's thread alone has the margin (the host's other load falls short), and
+        the best of them judged: the loop refuses to run (``refusal``: one line naming
+        the rate it could hold)."""
         self._windows.append(cap)
-        if cap.margin < self.min_margin and len(self._windows) < CAPACITY_WINDOWS:
+        best = max(self._windows, key=lambda c: c.margin)
+        windows = CAPACITY_WINDOWS_HOST if (
+            best.thread_capacity_hz >= self.min_margin * best.rate_hz) else CAPACITY_WINDOWS
+        if cap.margin < self.min_margin and len(self._windows) < windows:
             return  # held: another window
-        cap = max(self._windows, key=lambda c: c.margin)
+        cap = best
         self.sup.held_by = ""
         if cap.margin >= self.min_margin:
             return
