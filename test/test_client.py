@@ -188,7 +188,7 @@ def test_the_example_node_runs_on_a_stage_that_recovered_from_a_fault(tmp_path, 
     armed again: the latched state topic replays that fault to the example as it joins,
     and the example takes it for the present only if it began after the sample it saw
     last before publishing. (It exited 1 "the stage faulted" here while the stage was
-    armed and would have run its trajectory.)"""
+    armed and would have run its trajectory.) While it waits it takes no samples."""
     from ros_probe import Probe
     launch, _ = _set(tmp_path, ros_env, "lockstep")
     probe = Probe(int(ros_env["ROS_DOMAIN_ID"]))
@@ -201,12 +201,31 @@ def test_the_example_node_runs_on_a_stage_that_recovered_from_a_fault(tmp_path, 
         n = len(probe.states)
         assert probe.wait(lambda: probe.arm(True).success, 10)
         assert probe.wait_state("armed", 30, after=n)
-        r = subprocess.run([sys.executable, os.path.join(CONFIG, "..", "examples",
-                                                         "publish_trajectory.py"),
-                            "--start-in", "0", "--timeout", "60"],
-                           env=ros_env, capture_output=True, text=True, timeout=90)
-        assert r.returncode == 0, (r.stdout, r.stderr)
-        assert "done: final error x" in r.stdout, r.stdout
+        p = subprocess.Popen([sys.executable, os.path.join(CONFIG, "..", "examples",
+                                                           "publish_trajectory.py"),
+                              "--points", "0,20,20 1,25,25 30,30,30", "--start-in", "0",
+                              "--timeout", "120"],
+                             env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+        try:
+            first = p.stdout.readline()
+            assert first.startswith("published 3 points"), (first, p.stderr.read())
+            # while it waits for the stage it takes none of the stage's samples (they
+            # come at the control rate): its node subscribes to the state, not to them
+            def topics():
+                try:
+                    return {t for t, _ in probe.node.get_subscriber_names_and_types_by_node(
+                        "publish_trajectory", "/")}
+                except Exception:  # (not on the graph yet)
+                    return set()
+            assert probe.wait(lambda: "/stage/state" in topics(), 10), topics()
+            probe.spin(0.5)
+            assert "/stage/joint_states" not in topics(), topics()
+            out, err = p.communicate(timeout=150)
+        finally:
+            p.kill()
+        assert p.returncode == 0, (first, out, err)
+        assert "done: final error x" in out, out
     finally:
         probe.close()
         launch.stop()
