@@ -793,3 +793,31 @@ def test_launch_and_replay_show_their_progress_on_a_terminal(tmp_path, env):
     piped = subprocess.run([exe, "replay", "bag", "--rate", "0"], env=env, cwd=tmp_path,
                            capture_output=True, text=True, timeout=120)
     assert "%|" not in piped.stdout + piped.stderr
+
+
+def test_a_nodes_diagnostics_learn_the_device_from_the_drivers_state_bytes(ros_env):
+    """The recorder learns the driver's hardware_id from the state it records (bytes),
+    not only from its own subscription, which its executor may serve after its last
+    report (a short lockstep run's bag once had the recorder's status naming
+    "stage /stage"). Bytes that are no announcement leave what it knew."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from rclpy.context import Context
+    from rclpy.serialization import serialize_message
+
+    from piezo_stage.nodes._loop import Diagnostics
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=int(ros_env["ROS_DOMAIN_ID"]))
+    try:
+        node = rclpy.create_node("recorder", namespace="/stage", context=ctx)
+        diag = Diagnostics(node, lambda: (0, "recording", {}), "recording")
+        assert diag.hw == "stage /stage"
+        diag.learn_from_state(b"\x00\x01 not a message")
+        assert diag.hw == "stage /stage"
+        msg = DiagnosticArray(status=[DiagnosticStatus(name="/stage/stage_driver: state",
+                                                       hardware_id="sim seed 3 (x, y)")])
+        diag.learn_from_state(serialize_message(msg))
+        assert diag.hw == "sim seed 3 (x, y)"
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)

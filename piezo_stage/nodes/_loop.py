@@ -213,6 +213,16 @@ class Diagnostics:
         if msg.status and msg.status[0].hardware_id:
             self.hw = msg.status[0].hardware_id
 
+    def learn_from_state(self, data: bytes) -> None:
+        """The driver's ``state`` as the recorder takes it, bytes: the recorder's own
+        subscription to it is served only now and then by its executor, and in a short
+        lockstep run its last report once went out still naming "stage /stage"."""
+        from piezo_stage.io.bag import deserialize
+        try:
+            self._on_driver_state(deserialize(data, "diagnostic_msgs/msg/DiagnosticArray"))
+        except Exception:  # noqa: BLE001 - not the driver's announcement: nothing learnt
+            pass
+
     @property
     def name(self) -> str:
         return f"{self.node.get_namespace().rstrip('/')}/{self.node.get_name()}: {self.task}"

@@ -58,13 +58,16 @@ class Recorder(LeanNode, Node):
             set_realtime_priority(p["thread_priority"], self.get_logger(), main_thread=False)
         self.get_logger().info(f"recording to {out}")
         self.bad_stamps = 0
+        # the device is the driver's: learnt from its state as the tap records it
+        self.state_topic = f"{self.get_namespace().rstrip('/')}/state"
+        self.diag: Diagnostics | None = None
         self.tap = TopicTap(self, self.add_topic, self.write)
         steady_timer(self, p["flush_period_s"], self.bag.flush)
-        Diagnostics(self, lambda: (0, f"recording to {out}: {sum(self.bag.counts.values())} "
-                                   f"messages on {len(self.bag.counts)} topics",
-                                   {"bag": out, "batch_period_s": self.lean_batch_s,
-                                    "bad_stamps": self.bad_stamps,
-                                    **self.bag.counts}), "recording")
+        self.diag = Diagnostics(self, lambda: (
+            0, f"recording to {out}: {sum(self.bag.counts.values())} messages on "
+               f"{len(self.bag.counts)} topics",
+            {"bag": out, "batch_period_s": self.lean_batch_s, "bad_stamps": self.bad_stamps,
+             **self.bag.counts}), "recording")
 
     def add_topic(self, topic, msgtype, kind):
         self.bag.add_topic(topic, msgtype, self.offered(topic, kind))
@@ -99,6 +102,8 @@ class Recorder(LeanNode, Node):
         # log time: when it arrived (real time), or its stamp (lockstep's simulated
         # time, so reruns are identical); publish time: its stamp
         self.bag.write(topic, data, received if self.log_received else t, t)
+        if topic == self.state_topic and self.diag is not None:
+            self.diag.learn_from_state(data)
 
     def stop_summary(self) -> str:
         """What a stop left (run_node prints it)."""
