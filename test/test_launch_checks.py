@@ -302,3 +302,31 @@ def test_the_look_for_a_running_set_begun_early_names_it_or_answers_none(ros_env
         fresh.cancel()
     with begin_look("/stage", dict(ros_env, ROS_DOMAIN_ID="x")) as none:
         assert none is None
+
+
+def test_compose_is_a_launch_option_refused_in_one_line_when_unknown():
+    r = cli("launch", "--compose", "bogus", "--duration", "1")
+    one_line_exit_2(r)
+    assert "--compose" in r.stderr and "bogus" in r.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("compose,says", [
+    (None, "controller + feedforward + stage_driver composed in one process"),
+    ("none", "each node in its own process")])
+def test_launch_compose_runs_the_loop_as_asked_and_says_so(tmp_path, ros_env, compose,
+                                                           says):
+    """`launch --compose` chooses which of the loop's nodes share a process (the
+    launcher's COMPOSE): the first line names it, and the set apart (none) arms, runs
+    its samples and ends as the composed one does."""
+    extra = [] if compose is None else ["--compose", compose]
+    bag = tmp_path / "bag"
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "launch", "--duration",
+                        "0.5", "--record", str(bag), *extra], env=ros_env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-1500:]
+    first = next(line for line in r.stdout.splitlines() if line.startswith("launch:"))
+    assert f"; {says};" in first, first
+    from piezo_stage.io.bag import iter_messages
+    states = sum(1 for _ in iter_messages(str(bag), topics=["/stage/joint_states"]))
+    assert states >= 500, states  # 0.5 s of samples at 1 kHz after arming, and more

@@ -23,7 +23,7 @@ BENCHMARKS = {
     "gap": ("gap", "bench_gap", ()),
     "liveview": ("liveview", "bench_liveview", ()),
     "faults": ("faults", "bench_faults", ()),
-    "realtime": ("realtime", "bench_realtime", ("track",)),
+    "realtime": ("realtime", "bench_realtime", ("track", "compose")),
     "learning": ("learning", "bench_learning", ("draws",)),
     "signals": ("signals", "main", ("trials",)),
     "experiments": ("experiments", "bench_experiments", ("runs", "kinds")),

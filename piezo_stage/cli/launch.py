@@ -37,6 +37,13 @@ def add_arguments(s):
                    "port 8765)")
     s.add_argument("--params", action="append", metavar="FILE",
                    help="more node parameters over CONFIG's (e.g. from `tune`), may repeat")
+    s.add_argument("--compose", choices=("loop", "command", "none"),
+                   help="which of the loop's nodes share a process (ROS's composition: "
+                   "still separate nodes on the same topics): loop, the driver, "
+                   "feedforward and controller; command, the feedforward and controller; "
+                   "none, each its own (default: loop in lockstep, command in real "
+                   "time, where it holds more samples a second on two cores; "
+                   "docs/realtime.md)")
     s.add_argument("--seed", type=number(0, 2**31 - 1, integer=True), metavar="N",
                    help="the simulated stage's noise seed (default: its config's): a "
                    "second run to hold out must differ from the first")
@@ -62,7 +69,8 @@ def _launch(args, look):
                     namespace=args.namespace, arm=not args.no_arm,
                     foxglove_port=args.foxglove, overrides=overrides,
                     trajectory=not args.no_trajectory, managed=args.managed,
-                    armed_s=args.duration, rate=args.rate, look=look)
+                    armed_s=args.duration, rate=args.rate, compose=args.compose,
+                    look=look)
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)
@@ -70,6 +78,7 @@ def _launch(args, look):
           f"({'lockstep' if launch.lockstep else 'real time'}"
           + ((f", for {args.duration:g} s after arming" if launch.armed_s is not None
               else f", for {args.duration:g} s") if args.duration else ", until Ctrl-C")
+          + f"; {_composition(launch)}"
           + ("; the driver unconfigured until a manager configures and activates it"
              if args.managed else "")
           + "; Ctrl-C stops them in order, the driver first)", flush=True)
@@ -88,6 +97,13 @@ def _launch(args, look):
                              "driver published one (during its start-up)\n")
             return rc or 1
     return rc
+
+
+def _composition(launch) -> str:
+    """Which nodes share a process, in words (the launch's first line)."""
+    if not launch.composed:
+        return "each node in its own process"
+    return f"{' + '.join(launch.composed)} composed in one process"
 
 
 def _rate(text):

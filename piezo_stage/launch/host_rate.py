@@ -16,7 +16,7 @@ RATES_HZ = (1000.0, 500.0, 250.0)
 CHOOSE_MARGIN = 3.0
 
 
-def host_rate(env: dict, rates=RATES_HZ, margin: float = CHOOSE_MARGIN
+def host_rate(env: dict, rates=RATES_HZ, margin: float = CHOOSE_MARGIN, compose=None
               ) -> tuple[float | None, str]:
     """(the highest of ``rates`` this host holds with ``margin``, or None; the figures
     in words). One capacity run at the highest rate: there the loop thread's CPU a
@@ -26,7 +26,8 @@ def host_rate(env: dict, rates=RATES_HZ, margin: float = CHOOSE_MARGIN
     ``Capacity.at`` judges a lower rate's samples dearer (1,091/s at 1 kHz chooses
     250 Hz here at 3 x, where ``at`` gives it 2.35 x), so a chosen rate keeps the 2 x a
     set's own check asks, not all of the 3 x. The sets run at the rate chosen then
-    take ``min_margin: 0`` (the host has been measured already)."""
+    take ``min_margin: 0`` (the host has been measured already). ``compose``: the
+    loop's composition (the launcher's, ``COMPOSE``; None its real-time default)."""
     from piezo_stage.core.loop.capacity import Capacity
     from piezo_stage.io.run_bag import read_run
     from piezo_stage.launch.launcher import Launch
@@ -38,7 +39,7 @@ def host_rate(env: dict, rates=RATES_HZ, margin: float = CHOOSE_MARGIN
          "trajectory": {"kind": "seed", "duration_s": 3.0}}
     launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
                     nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                    exclusive=False, armed_s=3.0, rate=top)
+                    exclusive=False, armed_s=3.0, rate=top, compose=compose)
     launch.quiet_stop = True
     launch.run(launch.wall_bound())
     try:
