@@ -330,3 +330,34 @@ def test_launch_compose_runs_the_loop_as_asked_and_says_so(tmp_path, ros_env, co
     from piezo_stage.io.bag import iter_messages
     states = sum(1 for _ in iter_messages(str(bag), topics=["/stage/joint_states"]))
     assert states >= 500, states  # 0.5 s of samples at 1 kHz after arming, and more
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("argv", [["lifecycle", "stage_driver", "--timeout", "4"],
+                                  ["move", "1", "1", "--timeout", "4"]])
+def test_commands_that_talk_to_a_set_open_no_shared_memory(ros_env, argv):
+    """`lifecycle` and `move` keep off Fast DDS's shared-memory transport (as a real-time
+    set does): with stale shared-memory ports on a host, Fast DDS wrote its port errors
+    into `lifecycle`'s output, whose lines a test compared (a CI-host flake). Here
+    no set runs, so each waits for one while its process's maps are read."""
+    pytest.importorskip("rclpy")
+    env = {k: v for k, v in ros_env.items() if k not in (
+        "FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_BUILTIN_TRANSPORTS")}
+    p = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", *argv], env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    import time
+    seen, t0 = set(), time.monotonic()
+    try:
+        while p.poll() is None and time.monotonic() - t0 < 3.0:
+            try:
+                with open(f"/proc/{p.pid}/maps") as fh:
+                    seen |= {ln.split()[-1] for ln in fh if "/dev/shm/fastrtps" in ln}
+                libs = open(f"/proc/{p.pid}/maps").read()
+            except OSError:
+                break
+            time.sleep(0.05)
+        assert "librmw_fastrtps" in libs or "rmw_fastrtps" in libs, "no participant yet"
+    finally:
+        p.kill()
+        p.communicate()
+    assert not seen, seen

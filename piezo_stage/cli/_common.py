@@ -153,3 +153,18 @@ def pair(text):
     if not all(-1e4 < v < 1e4 for v in (a, b)):  # NaN and inf fail this too
         raise argparse.ArgumentTypeError(f"{text!r}: each within +-10,000 um")
     return [a, b]
+
+
+def client_transport() -> None:
+    """A command that only talks to a running set (``lifecycle``, ``move``) keeps off
+    Fast DDS's shared-memory transport, as the real-time set does
+    (launch/launcher.py ``realtime_transport_env``; a transport configuration of the
+    user's own is left as it is). Call before the command's participant is made: on a
+    host with stale shared-memory ports from killed processes Fast DDS printed
+    "RTPS_TRANSPORT_SHM Error ... open_and_lock_file failed" into the command's
+    output, and its lines were no longer its own."""
+    import os
+
+    from piezo_stage.launch.launcher import realtime_transport_env
+    for key, value in realtime_transport_env(os.environ).items():
+        os.environ[key] = value

@@ -23,11 +23,13 @@ def add_arguments(s):
 def main(args):
     import os
 
+    from piezo_stage.cli._common import client_transport
     from piezo_stage.core.errors import ConfigError
     from piezo_stage.launch.lifecycle import STATES, TRANSITIONS, drive, full_name
     if args.target is not None and args.target not in TRANSITIONS + STATES:
         raise ConfigError(f"{args.target!r}: give a transition ({', '.join(TRANSITIONS)}) "
                           f"or a state ({', '.join(STATES)})")
+    client_transport()
     drive(full_name(args.node, args.namespace), args.target,
           int(os.environ.get("ROS_DOMAIN_ID") or 0), args.timeout)
     return 0

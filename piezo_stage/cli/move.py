@@ -28,8 +28,9 @@ def add_arguments(s):
 def main(args):
     import sys
 
-    from piezo_stage.cli._common import die
+    from piezo_stage.cli._common import client_transport, die
     from piezo_stage.client import MoveRefused, MoveTimeout, NoStage, Stage, StageFault
+    client_transport()
     try:
         with Stage(args.namespace, timeout=min(args.timeout, 30.0)) as stage:
             done = stage.move_to(args.x, args.y, args.tol_um, args.settle_ms, args.timeout)
