@@ -361,3 +361,30 @@ def test_commands_that_talk_to_a_set_open_no_shared_memory(ros_env, argv):
         p.kill()
         p.communicate()
     assert not seen, seen
+
+
+@pytest.mark.slow
+def test_a_short_runs_bag_ends_with_the_recorders_own_last_report(tmp_path, ros_env):
+    """A lockstep run shorter than the 1 s diagnostics cadence: the recorder's report
+    in its bag was the first one, made before the driver's state named the device
+    ("stage /stage"; a flake of test_nodes' lockstep test). The recorder now writes its
+    own last report into the bag as it finishes it: the last there counts every message
+    before it and names the device."""
+    from piezo_stage.io.bag import deserialize, iter_messages
+    bag = tmp_path / "bag"
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "launch", "--duration",
+                        "0.2", "--record", str(bag)], env=ros_env, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-1500:]
+    total, last = 0, None
+    for topic, _, _, data in iter_messages(str(bag)):
+        total += 1
+        if topic == "/diagnostics":
+            for st in deserialize(data, "diagnostic_msgs/msg/DiagnosticArray").status:
+                if st.name == "/stage/recorder: recording":
+                    last = (total, st)
+    assert last is not None
+    at, st = last
+    assert at == total, "messages after the recorder's last report"
+    assert f": {total - 1} messages on " in st.message, (st.message, total)
+    assert st.hardware_id.startswith("sim seed"), st.hardware_id

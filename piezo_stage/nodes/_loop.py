@@ -259,8 +259,12 @@ class Diagnostics:
         except Exception:  # noqa: BLE001 - the context already shut down: nothing to tell
             pass
 
-    def publish(self):
+    def report(self):
+        """(stamp [ns], the report now as a DiagnosticArray)."""
         level, message, values = self.evaluate()
         ns = self.node.get_clock().now().nanoseconds
-        self.pub.publish(diagnostic_array(ns, self.name, level, message, values,
-                                          self.hw() if callable(self.hw) else self.hw))
+        return ns, diagnostic_array(ns, self.name, level, message, values,
+                                    self.hw() if callable(self.hw) else self.hw)
+
+    def publish(self):
+        self.pub.publish(self.report()[1])

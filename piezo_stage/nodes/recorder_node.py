@@ -111,10 +111,26 @@ class Recorder(LeanNode, Node):
 
     def close(self):
         """The bag is finished (its summary and index written) before the node goes
-        (run_node calls this, then destroys the node)."""
+        (run_node calls this, then destroys the node). Its own last report goes into
+        it first: a lockstep run shorter than the 1 s cadence had only the recorder's
+        first report in its bag, made before the driver's state had named the device
+        ("stage /stage")."""
+        self._record_final_report()
         self.bag.finish()
         # the ROS context may already be shut down here: plain stderr, not the logger
         sys.stderr.write(f"[recorder] bag complete: {dict(self.bag.counts)}\n")
+
+
+    def _record_final_report(self) -> None:
+        topic = "/diagnostics"
+        if self.diag is None or topic not in self.bag.counts:
+            return
+        try:
+            from rclpy.serialization import serialize_message
+            ns, msg = self.diag.report()
+            self.write(topic, serialize_message(msg), ns, {})
+        except Exception as e:  # noqa: BLE001 - the bag still finishes; said, not raised
+            sys.stderr.write(f"[recorder] its last report was not recorded: {e}\n")
 
 
 def main(args=None):
