@@ -388,3 +388,9 @@ def test_a_short_runs_bag_ends_with_the_recorders_own_last_report(tmp_path, ros_
     assert at == total, "messages after the recorder's last report"
     assert f": {total - 1} messages on " in st.message, (st.message, total)
     assert st.hardware_id.startswith("sim seed"), st.hardware_id
+
+
+def test_the_command_lines_compositions_are_the_launchers():
+    from piezo_stage.cli._common import COMPOSITIONS
+    from piezo_stage.launch.launcher import COMPOSE
+    assert set(COMPOSITIONS) == set(COMPOSE)

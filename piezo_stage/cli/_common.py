@@ -155,6 +155,11 @@ def pair(text):
     return [a, b]
 
 
+# which of the loop's nodes share a process (launch/launcher.py COMPOSE's keys, named
+# here so that parsing a command line does not import the launcher)
+COMPOSITIONS = ("loop", "command", "none")
+
+
 def client_transport() -> None:
     """A command that only talks to a running set (``lifecycle``, ``move``) keeps off
     Fast DDS's shared-memory transport, as the real-time set does

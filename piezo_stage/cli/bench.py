@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from piezo_stage.cli._common import number
+from piezo_stage.cli._common import COMPOSITIONS, number
 
 HELP = "performance benchmarks (figures as ratios)"
 
@@ -37,7 +37,7 @@ def add_arguments(s):
     s.add_argument("--vs", default=None, metavar="REV",
                    help="loop: the code at git revision REV too (a clone of this "
                    "checkout at REV), its own lockstep loop in each pair")
-    s.add_argument("--compose", choices=("loop", "command", "none"), default=None,
+    s.add_argument("--compose", choices=COMPOSITIONS, default=None,
                    help="realtime: which of the loop's nodes share a process in the real-"
                    "time set (as launch --compose; default the launcher's)")
     s.add_argument("--trials", type=number(1, 10000, integer=True), default=108, metavar="N",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from piezo_stage.cli._common import number, param_overrides, port
+from piezo_stage.cli._common import COMPOSITIONS, number, param_overrides, port
 
 HELP = "start the ROS 2 node set"
 
@@ -37,7 +37,7 @@ def add_arguments(s):
                    "port 8765)")
     s.add_argument("--params", action="append", metavar="FILE",
                    help="more node parameters over CONFIG's (e.g. from `tune`), may repeat")
-    s.add_argument("--compose", choices=("loop", "command", "none"),
+    s.add_argument("--compose", choices=COMPOSITIONS,
                    help="which of the loop's nodes share a process (ROS's composition: "
                    "still separate nodes on the same topics): loop, the driver, "
                    "feedforward and controller; command, the feedforward and controller; "
