@@ -39,6 +39,78 @@ def sine_v(freq, fs, cycles, lo=0.0, hi=150.0, phase=0.0):
     return t, lo + (hi - lo) / 2 * (1 - np.cos(2 * np.pi * freq * t + phase))
 
 
+# -- Fast DDS's shared memory: what killed processes left behind ------------------------
+# A participant killed (SIGKILL, a crash, a timeout's kill) leaves its segments and port
+# files in /dev/shm; after a few suites there were 700-1,300 of them here. A new
+# participant that opens such a port can crash inside Fast DDS (Fast-DDS issue 6501:
+# check_sanity() on a stale segment; a lab node on the default transports died with
+# SIGSEGV in a fresh clone's run) or write port errors into a command's output. The
+# suite removes, at its start, the ones no process on this host has open or mapped,
+# as `fastdds shm clean` (not in the wheels) would.
+SHM = "/dev/shm"
+STALE_AFTER_S = 60.0
+
+
+def stale_fastdds_shm(shm=SHM, proc="/proc", older_than_s=STALE_AFTER_S) -> list:
+    """Fast DDS's files in ``shm`` that no live process has open or mapped (its fds and
+    its maps, read through ``proc``; a port's named mutex while its port is held) and
+    that are older than ``older_than_s`` (a participant starting now may not have
+    mapped what it just opened)."""
+    import time
+    try:
+        names = [n for n in os.listdir(shm) if n.startswith(("fastrtps_", "fastdds_",
+                                                              "sem.fastrtps_",
+                                                              "sem.fastdds_"))]
+    except OSError:
+        return []
+    if not names:
+        return []
+    used = set()
+    for pid in os.listdir(proc):
+        if not pid.isdigit():
+            continue
+        try:
+            with open(os.path.join(proc, pid, "maps"), encoding="utf-8",
+                      errors="replace") as fh:
+                for line in fh:
+                    if shm in line:
+                        used.add(os.path.basename(line.split(None, 5)[-1].strip()
+                                                  .removesuffix(" (deleted)")))
+            fd_dir = os.path.join(proc, pid, "fd")
+            for fd in os.listdir(fd_dir):
+                try:
+                    target = os.readlink(os.path.join(fd_dir, fd))
+                except OSError:
+                    continue
+                if target.startswith(shm + "/"):
+                    used.add(os.path.basename(target))
+        except OSError:  # gone, or not ours to read
+            continue
+    # a port's named mutex is opened only while it is taken: it goes with its port
+    held = {n.removesuffix("_el") for n in used}
+    now = time.time()
+    stale = []
+    for n in names:
+        if n in used or (n.startswith("sem.") and n[4:].removesuffix("_mutex") in held):
+            continue
+        try:
+            if now - os.stat(os.path.join(shm, n)).st_mtime > older_than_s:
+                stale.append(n)
+        except OSError:
+            continue
+    return sorted(stale)
+
+
+def pytest_sessionstart(session):
+    if hasattr(session.config, "workerinput"):  # a pytest-xdist worker: its controller did
+        return
+    for n in stale_fastdds_shm():
+        try:
+            os.unlink(os.path.join(SHM, n))
+        except OSError:  # another user's, or gone already
+            pass
+
+
 # -- ROS domains: each test its own, never shared between parallel runs --------------
 # Fast DDS takes domain ids 0-232; 0 is left to the user's own graph. Each test process
 # (a pytest-xdist worker, or pytest alone) claims a slice of 1-228 that no other process

@@ -363,6 +363,35 @@ def test_commands_that_talk_to_a_set_open_no_shared_memory(ros_env, argv):
     assert not seen, seen
 
 
+def test_the_suites_shared_memory_sweep_takes_only_what_no_process_holds(tmp_path):
+    """conftest's sweep at the suite's start: a Fast DDS file that a process has open or
+    mapped stays, as does one just made; one nobody holds goes; others are not its to
+    judge."""
+    import mmap
+
+    from conftest import stale_fastdds_shm
+    for name in ("fastrtps_open", "fastrtps_mapped", "fastrtps_port7000_el",
+                 "sem.fastrtps_port7000_mutex", "lttng-ust-wait-6"):
+        (tmp_path / name).write_bytes(b"\0" * 4096)
+    for name in ("fastrtps_port7001", "sem.fastrtps_port7001_mutex"):
+        (tmp_path / name).write_bytes(b"\0" * 4096)
+    held = open(tmp_path / "fastrtps_open", "rb")
+    port = open(tmp_path / "fastrtps_port7001", "rb")  # its mutex stays with it
+    with open(tmp_path / "fastrtps_mapped", "r+b") as fh:
+        mapped = mmap.mmap(fh.fileno(), 4096)
+    try:
+        assert stale_fastdds_shm(str(tmp_path), older_than_s=0.0) == [
+            "fastrtps_port7000_el", "sem.fastrtps_port7000_mutex"]
+        assert stale_fastdds_shm(str(tmp_path), older_than_s=60.0) == []  # just made
+    finally:
+        held.close()
+        mapped.close()
+        port.close()
+    assert stale_fastdds_shm(str(tmp_path), older_than_s=0.0) == [
+        "fastrtps_mapped", "fastrtps_open", "fastrtps_port7000_el", "fastrtps_port7001",
+        "sem.fastrtps_port7000_mutex", "sem.fastrtps_port7001_mutex"]
+
+
 @pytest.mark.slow
 def test_a_short_runs_bag_ends_with_the_recorders_own_last_report(tmp_path, ros_env):
     """A lockstep run shorter than the 1 s diagnostics cadence: the recorder's report
