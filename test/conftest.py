@@ -101,8 +101,8 @@ def stale_fastdds_shm(shm=SHM, proc="/proc", older_than_s=STALE_AFTER_S) -> list
     return sorted(stale)
 
 
-def pytest_sessionstart(session):
-    if hasattr(session.config, "workerinput"):  # a pytest-xdist worker: its controller did
+def pytest_configure(config):
+    if hasattr(config, "workerinput"):  # a pytest-xdist worker: its controller did
         return
     for n in stale_fastdds_shm():
         try:
