@@ -214,3 +214,74 @@ def test_a_host_that_holds_no_rate_skips_the_real_time_tests_except_where_ci_req
         lines = [ln.strip() for ln in f]
     assert f"export {REALTIME_REQUIRED}=1" in lines
     assert lines.index(f"export {REALTIME_REQUIRED}=1") < lines.index("exec ./dev.sh test -q")
+
+
+def _run(states=(), reports=(), reasons=()):
+    import numpy as np
+
+    from piezo_stage.io.run_bag import Run
+    z = np.zeros(0)
+    return Run(z, z.reshape(0, 2), z.reshape(0, 2), z, states=list(states),
+               fault_reasons=list(reasons), driver_reports=list(reports))
+
+
+def _report(ms, busy, state="armed", faults=0):
+    return {"loop_thread_ms_per_sample": str(ms), "host_busy_cpus": str(busy),
+            "state": state, "faults": str(faults), "reason": ""}
+
+
+def test_a_capacity_run_that_faulted_says_nothing_of_its_rate_and_the_median_reading_chooses():
+    """host_rate: a capacity run whose set faulted (a state, or the driver's fault count)
+    gives no capacity, and the next rate down is measured on a run of its own (a CI run's
+    capacity run at 1 kHz faulted on stale commands, and its last report chose 1 kHz);
+    a run that did not fault is judged by its median reading, repeats of one window left
+    out, never by its last alone; a run short of the margin at every rate gives None."""
+    from piezo_stage.launch.host_rate import host_rate, rate_run
+    good = [_report(0.2, 0.3), _report(0.2, 0.3), _report(0.6, 1.8), _report(0.21, 0.35)]
+    r = rate_run(_run(reports=good), 1000.0, cores=2)
+    assert len(r.readings) == 3 and not r.faulted  # the repeated window once
+    assert r.capacity.thread_s_per_sample == pytest.approx(0.21e-3)  # median, not last
+    assert "3 readings" in r.describe()
+    faulted = [_run(states=[(0, "armed"), (5, "faulted")], reports=good,
+                    reasons=["stale commands: none on time for 0.050 s"]),
+               _run(reports=good[:1] + [_report(0.2, 0.3, "armed", faults=1)])]
+    for run in faulted:
+        f = rate_run(run, 1000.0, cores=2)
+        assert f.faulted and f.capacity is None, f
+    assert "stale commands" in rate_run(faulted[0], 1000.0).faulted
+
+    asked = []
+
+    def measure_at(rate):  # recorded runs judged as host_rate judges a run of its own
+        asked.append(rate)
+        return rate_run(faulted[0] if rate == 1000.0 else _run(reports=good), rate, 2)
+    rate, why = host_rate({}, measure_at=measure_at)
+    assert asked == [1000.0, 500.0] and rate == 500.0, (asked, rate, why)
+    assert why.startswith("the capacity run at 1000 Hz faulted (1 fault, the first: stale")
+    asked.clear()
+    rate, why = host_rate({}, measure_at=lambda r: asked.append(r) or rate_run(
+        _run(reports=[_report(1.5, 1.9)]), r, 2))
+    assert rate is None and asked == [1000.0], why  # short: lower rates judged from it
+    rate, _ = host_rate({}, measure_at=lambda r: rate_run(faulted[1], r, 2))
+    assert rate is None  # every rate faulted
+
+
+def test_the_suites_real_time_rate_is_measured_again_when_old_or_asked_fresh():
+    """conftest.HostRates: the rate is measured at the first ask, kept while younger than
+    its age limit, measured again past it and when a test runs again after a failure
+    (fresh), and every measurement is a line of the suite's summary."""
+    from conftest import HostRates
+    now = [0.0]
+    figures = iter([(1000.0, "3.1 x"), (500.0, "at 1000 Hz 2.4 x"), (None, "1.2 x"),
+                    (250.0, "2.0 x")])
+    rates = HostRates(lambda env: next(figures), every_s=90.0, clock=lambda: now[0])
+    assert rates({})[0] == 1000.0
+    now[0] = 89.0
+    assert rates({})[0] == 1000.0 and len(rates.measured) == 1
+    now[0] = 91.0
+    assert rates({})[0] == 500.0
+    rate, why = rates({}, fresh=True)
+    assert rate is None and why.endswith("1.2 x") and "no real-time rate" in why
+    assert rates({}, fresh=True)[0] == 250.0
+    assert [ln.split(" ", 1)[1] for ln in rates.measured] == [
+        "1000 Hz: 3.1 x", "500 Hz: at 1000 Hz 2.4 x", "no rate: 1.2 x", "250 Hz: 2.0 x"]

@@ -7,13 +7,12 @@ import csv
 import os
 import subprocess
 import sys
-import warnings
 
 import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
-from conftest import CONFIG, realtime_rate_hz  # noqa: E402
+from conftest import CONFIG, realtime_twice  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
@@ -25,10 +24,9 @@ def _cli(env, *args, timeout=120):
                           capture_output=True, text=True, timeout=timeout)
 
 
-def _set(tmp_path, env, mode, record=None):
+def _set(tmp_path, env, mode, rate=None, record=None):
     o = {"stage_driver": {"mode": mode, "min_margin": 0.0},
          "feedforward": {"model_file": MODEL}}
-    rate = realtime_rate_hz(env) if mode == "realtime" else None
     return Launch(STAGE, record=record, overrides=o, env=env, trajectory=False,
                   exclusive=False, rate=rate), rate or 1000.0
 
@@ -45,26 +43,21 @@ def _one_line(r, code, said):
 def test_move_scan_and_the_client_against_a_running_set(tmp_path, ros_env, ros_domains,
                                                         mode):
     """Real time on a shared 2-core VM: a run the host stalls (a pause of tens of ms
-    faults the set on stale commands) is run once more on a fresh domain, as the
-    real-time set tests do (test_realtime.run_twice_at_most); two failures fail."""
+    faults the set on stale commands) is run once more on a fresh domain, at the rate
+    the host holds then (conftest.realtime_twice); two failures fail."""
     if mode == "lockstep":
         _client_run(tmp_path, ros_env, mode)
         return
     from piezo_stage.client import StageError
-    try:
-        _client_run(tmp_path / "first", ros_env, mode)
-    except (AssertionError, StageError) as e:
-        warnings.warn("the client's first real-time run failed, ran it again on a fresh "
-                      f"domain: {str(e)[:2000]}", stacklevel=1)
-        _client_run(tmp_path / "second", dict(ros_env, ROS_DOMAIN_ID=str(ros_domains())),
-                    mode)
+    realtime_twice(lambda env, rate, which: _client_run(tmp_path / which, env, mode, rate),
+                   ros_env, ros_domains, (AssertionError, StageError), "the client")
 
 
-def _client_run(tmp_path, env, mode):
+def _client_run(tmp_path, env, mode, rate=None):
     from piezo_stage.client import MoveRefused, MoveTimeout, Stage
     from piezo_stage.io.run_bag import read_run
     tmp_path.mkdir(exist_ok=True)
-    launch, rate = _set(tmp_path, env, mode)
+    launch, rate = _set(tmp_path, env, mode, rate)
     try:
         launch.start()
         # `move` from another process: on target, its settle time and final error

@@ -335,7 +335,7 @@ TWIN_STEPS = 2.0
 
 @pytest.mark.slow
 @pytest.mark.realtime
-def test_a_real_time_run_identifies_like_its_lockstep_twin(tmp_path, ros_env):
+def test_a_real_time_run_identifies_like_its_lockstep_twin(tmp_path, ros_env, ros_domains):
     """The same run recorded in real time (at the rate this host holds with margin:
     its stamps skip the ticks the host stalled) and in lockstep: identify, gap and
     refit take the real-time bag; its model predicts a held-out record within 10 % RMS
@@ -344,14 +344,21 @@ def test_a_real_time_run_identifies_like_its_lockstep_twin(tmp_path, ros_env):
     10 % RMS of the lockstep bag's model whenever the real-time run applied the same
     excitation (its largest step within TWIN_STEPS x the lockstep run's: see above;
     recorded once more when not, and said in a warning with the figures when neither
-    run was a twin)."""
-    from conftest import CONFIG, realtime_rate_hz
+    run was a twin). A pair that fails, once more at the rate the host holds then
+    (conftest.realtime_twice)."""
+    from conftest import realtime_twice
+    realtime_twice(lambda e, rate, which: _twins(tmp_path / which, e, rate), ros_env,
+                   ros_domains, name="the real-time twin")
+
+
+def _twins(tmp_path, ros_env, rate):
+    from conftest import CONFIG
     from piezo_stage.core.estimation.identify.api import identify_stage, predict_axis
     from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     from piezo_stage.io.records import load_record
     from piezo_stage.launch.launcher import Launch
-    rate = realtime_rate_hz(ros_env)
+    tmp_path.mkdir()
     traj = {"kind": "seed", "duration_s": 6.0, "excite_s": 8.0}
 
     def record(mode, bag):

@@ -4,7 +4,8 @@ experiments and the tests judge a run by.
 ``read_run(bag)`` -> ``Run`` with, per sample of joint_states (stamp order): stamps [ns],
 measured position [um], applied voltage [V], receive time at the recorder [ns] (its log
 time in real time); the true positions and the references (desired [um]) by stamp; the
-driver's state changes; the driver's last diagnostics (key -> value string).
+driver's state changes and the reason of each fault; the driver's diagnostics (key ->
+value string), its last and all of them in order.
 """
 
 from __future__ import annotations
@@ -36,7 +37,9 @@ class Run:
     true_um: dict = field(default_factory=dict)       # stamp -> (2,)
     desired_um: dict = field(default_factory=dict)    # reference stamp -> (2,)
     states: list = field(default_factory=list)        # (since ns, state)
+    fault_reasons: list = field(default_factory=list)  # each fault's reason, in order
     driver: dict = field(default_factory=dict)        # last driver diagnostics
+    driver_reports: list = field(default_factory=list)  # all of them, in order
     diagnostics: dict = field(default_factory=dict)   # node name -> its last ones
     models: int = 0                                   # models handed over (on model)
     skipped: int = 0                                  # joint states not the driver's
@@ -69,6 +72,8 @@ def read_run(bag) -> Run:
     ref: dict = {}
     states: list[tuple[int, str]] = []
     diags: dict = {}
+    reports: list[dict] = []
+    reasons: list[str] = []
     models = skipped = 0
     for topic, msgtype, log_ns, data in iter_messages(bag):
         if topic.endswith("/joint_states"):
@@ -99,7 +104,9 @@ def read_run(bag) -> Run:
             except DataError:  # a foreign or malformed state: no change of the driver's
                 continue
             if not states or states[-1][1] != a.state:
-                states.append((a.since_ns, a.state))  # changes (not the relays of the
+                states.append((a.since_ns, a.state))
+                if a.state == "faulted":
+                    reasons.append(a.reason)  # changes (not the relays of the
                 # feedforward's phase, which repeat the state)
         elif topic.endswith("/model"):
             models += 1
@@ -109,7 +116,10 @@ def read_run(bag) -> Run:
                 kv = {k.key: k.value for k in st.values}
                 kv["hardware_id"] = st.hardware_id
                 diags[status_node(st.name)] = kv
+                if status_node(st.name) == "stage_driver":
+                    reports.append(kv)
     order = np.argsort(t, kind="stable")
     arr = lambda x, shape: np.array(x).reshape(shape)[order]  # noqa: E731
     return Run(arr(t, -1), arr(w, (-1, 2)), arr(v, (-1, 2)), arr(recv, -1), true, ref,
-               states, diags.get("stage_driver", {}), diags, models, skipped)
+               states, reasons, diags.get("stage_driver", {}), reports, diags, models,
+               skipped)
