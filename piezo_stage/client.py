@@ -350,6 +350,15 @@ class Stage:
         msg.header.frame_id = f"{self.node.get_name()}-{next(self._ids)}"  # a new one
         n_acc = self.accepted
         limit = timeout if timeout is not None else float(t_s[-1]) + 30.0
+        # its phases: from here on, and naming it (the feedforward's phase follows
+        # "trajectory of N points stamped S"). Counted from acceptance, a short one's
+        # "done" was missed now and then in lockstep, where it can come in before the
+        # acceptance is read (two topics, no order between them), and the client waited
+        # out its timeout for a trajectory that had ended
+        n_phase = len(self.phases)
+        st = msg.header.stamp
+        follows = (f"trajectory of {len(msg.points)} points stamped "
+                   f"{st.sec * 1_000_000_000 + st.nanosec}")
         t0 = time.monotonic()
         self.traj_pub.publish(msg)
         def accepted():
@@ -359,10 +368,9 @@ class Stage:
         if not accepted():
             raise StageError(f"{self.ns}: the trajectory was not accepted (see the "
                              "feedforward's log)")
-        n_phase = len(self.phases)  # (the phases it starts with come after acceptance)
         def ended():
             d = self.driver
-            return any(p == "done" for p, _ in self.phases[n_phase:]) or (
+            return any(p == "done" and f == follows for p, f in self.phases[n_phase:]) or (
                 d is not None and d.state == "faulted")
         if not self._wait(ended, limit):
             raise MoveTimeout(f"the trajectory did not end within {limit:g} s")
