@@ -64,13 +64,14 @@ def rate_run(run, rate_hz: float, cores: int | None = None) -> RateRun:
     capacity readings while it reported them."""
     from piezo_stage.core.loop.capacity import Capacity
     cores = cores or os.cpu_count() or 1
-    faults = [r for r in run.driver_reports if r.get("state") == "faulted"
-              or int(float(r.get("faults", 0) or 0)) > 0]
+    def count(r: dict) -> int:  # the driver's faults so far, as its report says
+        return int(float(r.get("faults", 0) or 0))
+    faults = [r for r in run.driver_reports if r.get("state") == "faulted" or count(r)]
     if run.state_times("faulted") or faults:
         reasons = run.fault_reasons or [r.get("reason", "") for r in faults
                                         if r.get("state") == "faulted"]
         n = max(len(run.state_times("faulted")),
-                max((int(float(r.get("faults", 0) or 0)) for r in faults), default=0))
+                max(map(count, faults), default=0))
         return RateRun(rate_hz, faulted=f"{n} fault{'s' * (n != 1)}"
                        + (f", the first: {reasons[0]}" if reasons else ""))
     readings, seen = [], set()
