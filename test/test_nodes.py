@@ -821,3 +821,54 @@ def test_a_nodes_diagnostics_learn_the_device_from_the_drivers_state_bytes(ros_e
         node.destroy_node()
     finally:
         rclpy.shutdown(context=ctx)
+
+
+def test_the_probe_waits_for_a_steady_state_and_says_what_it_saw(env):
+    """Before a test injects a fault it waits for a set armed for a while (a set faulted
+    again after a re-arm shows no new fault when its controller stops): here a
+    publisher of the driver's state topic says armed, faulted, armed; the probe calls
+    the set steady only once the last armed has held for ``hold`` s, and ``seen`` lists
+    every state with its reason and time."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from rclpy.context import Context
+
+    from piezo_stage.nodes._common import QOS_EVENTS
+    from ros_probe import Probe
+    d = int(env["ROS_DOMAIN_ID"])
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=d)
+    node = rclpy.create_node("state_source", context=ctx)
+    pub = node.create_publisher(DiagnosticArray, "/stage/state", QOS_EVENTS)
+    probe = Probe(d)
+
+    def say(state, reason):
+        m = DiagnosticArray()
+        m.status = [DiagnosticStatus(name="stage_driver", values=[
+            KeyValue(key="state", value=state), KeyValue(key="reason", value=reason)])]
+        pub.publish(m)
+
+    try:
+        assert probe.wait(lambda: pub.get_subscription_count() > 0, 10)
+        assert not probe.wait_steady("armed", 0.2, 0.3)  # nothing heard yet
+        assert "no state seen" in probe.seen()
+        say("armed", "tracking")
+        assert probe.wait_state("armed", 5)
+        t_armed = time.monotonic()
+        say("faulted", "stale commands: none on time for 0.051 s")
+        assert probe.wait_state("faulted", 5, after=1)
+        assert not probe.wait_steady("armed", 0.2, 0.5)  # faulted now, however long
+        say("armed", "tracking")
+        assert probe.wait_state("armed", 5, after=2)
+        t0 = time.monotonic()
+        assert probe.wait_steady("armed", 0.4, 5)
+        assert time.monotonic() - t0 >= 0.35  # held for its hold, not at once
+        seen = probe.seen(0, t_armed)
+        assert [s.split(" (")[0] for s in seen.split("; ")] == ["armed", "faulted", "armed"]
+        assert "faulted (stale commands: none on time for 0.051 s) +" in seen, seen
+        assert probe.seen(1).startswith("faulted (stale commands") and " +0.000 s;" in \
+            probe.seen(1), probe.seen(1)
+    finally:
+        probe.close()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)

@@ -265,7 +265,12 @@ def _faults_run(tmp_path, domain):
         for node, how in (("controller", "kill"), ("controller", "stop"),
                           ("feedforward", "kill")):
             probe.spin(1.0)
+            # each fault meets a set armed for 0.5 s at least: a restarted controller
+            # still behind can fault it again, and a controller stopped while the set is
+            # faulted shows no new fault
             n = len(probe.states)
+            assert probe.wait_steady("armed", 0.5, 30), (node, how, probe.seen(n - 3))
+            n, t_inject = len(probe.states), time.monotonic()
             faults.append(time.time_ns())
             p = launch.procs[node]
             if how == "kill":
@@ -273,7 +278,8 @@ def _faults_run(tmp_path, domain):
                 p.wait(10)
             else:
                 p.send_signal(signal.SIGSTOP)
-            assert probe.wait_state("faulted", 5, after=n), (node, how)
+            assert probe.wait_state("faulted", 5, after=n), \
+                (node, how, probe.seen(n - 1, t_inject))
             assert probe.wait(lambda: probe.effort == [0.0, 0.0], 5)  # ramped to safe
             if how == "stop":
                 for _ in range(30):  # NaN while faulted: never fresh, never applied
@@ -284,7 +290,8 @@ def _faults_run(tmp_path, domain):
                 p.send_signal(signal.SIGCONT)
             else:
                 launch.procs[node] = subprocess.Popen(launch.command(node), env=env)
-            assert probe.wait_state("armed", 30, after=n), (node, how)
+            assert probe.wait_state("armed", 30, after=n), \
+                (node, how, probe.seen(n - 1, t_inject))
         probe.spin(1.0)
     finally:
         probe.close()
@@ -944,7 +951,7 @@ def _late_run(tmp_path, domain):
         open(flag, "w").close()
         switched_ns = time.time_ns()
         k = len(probe.states)
-        assert probe.wait_state("faulted", 5, after=k), probe.states[-3:]
+        assert probe.wait_state("faulted", 5, after=k), probe.seen(k - 3)
         reason = next(r for s, r, _ in probe.states[k:] if s == "faulted")
         probe.spin(1.0)
     except _NotArmed:

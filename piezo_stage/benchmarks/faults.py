@@ -253,6 +253,10 @@ def bench_faults(rep) -> int:
         for name in progress_runs(FAULTS, "bench faults: faults"):
             probe.spin(1.5)
             n = len(probe.states)
+            if not probe.wait_steady("armed", 0.5, 30):  # each fault meets an armed set
+                rep.fail(f"not armed before '{name}': {probe.seen(n - 3)}")
+                return 1
+            n = len(probe.states)
             t0 = time.time_ns()
             _inject(launch, probe, env, name)
             rearmed = probe.wait_state("armed", 30, after=n) if \

@@ -68,6 +68,24 @@ class Probe:
     def wait_state(self, name: str, timeout: float = 30.0, after: int = 0) -> bool:
         return self.wait(lambda: any(s[0] == name for s in self.states[after:]), timeout)
 
+    def wait_steady(self, name: str = "armed", hold: float = 0.5,
+                    timeout: float = 30.0) -> bool:
+        """``name`` is the state now and has been, unchanged, for ``hold`` s: a fault
+        injected then meets that state (a set still settling after its last re-arm can
+        be faulted again, and a fault injected into a faulted set shows no new state)."""
+        return self.wait(lambda: bool(self.states) and self.states[-1][0] == name
+                         and time.monotonic() - self.states[-1][2] >= hold, timeout)
+
+    def seen(self, after: int = 0, since: float | None = None) -> str:
+        """The states seen from index ``after`` on, in one line: each with its reason
+        and its time in s from ``since`` (a ``time.monotonic()``; the first one's by
+        default) -> what a failed wait for a state can say of the set."""
+        rows = self.states[max(after, 0):]
+        if not rows:
+            return f"no state seen after the first {after} (now {self.state})"
+        t0 = rows[0][2] if since is None else since
+        return "; ".join(f"{s} ({r}) {t - t0:+.3f} s" for s, r, t in rows)
+
     def call(self, client, request, timeout: float = 10.0):
         assert client.wait_for_service(timeout_sec=timeout), client.srv_name
         fut = client.call_async(request)
