@@ -56,7 +56,7 @@ def test_creep_under_a_class_is_found_exactly():
 def _written(res, fit, hold, tmp_path):
     """The model `gap --out-model` writes, saved and loaded back, run through our
     simulator with its effects over HOLDOUT's voltages: (model, effects, output)."""
-    model, effects = res.model(fit)
+    model, effects = res.model()
     path = os.fspath(tmp_path / "model.yaml")
     save_model(path, model, effects=effects or None)
     model, effects = load_model(path)

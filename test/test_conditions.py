@@ -223,7 +223,7 @@ def test_a_calibration_at_two_rates_names_rate_and_carries_to_a_faster_line_rate
     assert row["gap_model_um"] <= 0.8 * row["peer_um"], row
     assert row["inverse_back_V"] < 1e-6, row
     fit, hold, _ = conditions.case_records("rate", "two-rate->fast")
-    model, _ = diagnose(fit, hold, axes=["x"]).model(fit)
+    model, _ = diagnose(fit, hold, axes=["x"]).model()
     beta = model.plays["x"].rate_widening_s
     assert 0.5e-3 < beta < 1.9e-3  # the stage's own: 1 ms
     save_model(tmp_path / "m.yaml", model)
@@ -519,7 +519,7 @@ def test_a_law_whose_branch_would_turn_back_is_kept_rising_and_inverts_exactly()
     loose, _ = free_reg.models(alphas, free.theta)
     res = identify_axis(fit, "x", IdentifyOptions())
     assert res.fit["rms_um"] <= 1.1 * free.rms, (res.fit, free.rms)
-    written, _ = diagnose(fit, hold, axes=["x"]).model(fit)
+    written, _ = diagnose(fit, hold, axes=["x"]).model()
     for vv in (v, hold.v["x"]):
         out, _ = loose.simulate(vv)
         assert np.max(np.abs(invert(loose, out, (0.0, 150.0)).v - vv)) > 1.0  # turned back

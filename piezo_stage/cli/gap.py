@@ -115,6 +115,19 @@ def main(args):
                   f"{st['rms_after_um']:9.4f} {before['gap_before_um']:10.4f} "
                   f"{st['gap_after_um']:9.4f} {st['shrink_pct']:10.1f} "
                   f"{st.get('shrink_pm_pct', float('nan')):5.1f} (joined)")
+        # what --out-model writes for the axis, its figure the file's on HOLDOUT
+        before = d.ranking[0]
+        g0 = before["gap_before_um"]
+        print(f"{a:>4} {'written':>9} {before['rms_before_um']:10.4f} "
+              f"{d.written_rms_um:9.4f} {g0:10.4f} {d.written_gap_um:9.4f} "
+              f"{100.0 * (1 - d.written_gap_um / g0) if g0 > 0 else 0.0:10.1f} "
+              f"{'':>5} ({d.written_as})")
+    sc = res["scored"]
+    print(f"HOLDOUT figures [um]: each model as --out-model writes it, run as `simulate "
+          f"--model` runs the file over HOLDOUT's voltages from its initial state (FIT's "
+          f"start); RMS after HOLDOUT's first {sc['start_up_s']:g} s, its mean offset "
+          f"removed; gap = the part above the noise floor (and a line the input does not "
+          f"cause), in quadrature")
     print(f"where: axis {res['where']['axis']}, band {res['where']['band_hz'][0]:g}-"
           f"{res['where']['band_hz'][1]:g} Hz, segment {res['where']['segment']}; noise floor "
           f"{res['noise_floor_um']:.4f} um; {res['seconds']:.1f} s")
@@ -143,10 +156,11 @@ def main(args):
         from piezo_stage.io.gap_report import write_report
         print(f"report: {write_report(args.report, res, hold or fit)}")
     if args.out_model:
-        from piezo_stage.io.model_file import save_model
-        model, effects = res.model(fit, args.limits)
-        bounded = save_model(args.out_model, model, effects=effects or None)
-        print(f"model with the found effects: {args.out_model}")
-        for note in res.notes + bounded:
+        from piezo_stage.io.model_file import save_document
+        doc, bounded = res.document()
+        save_document(args.out_model, doc)
+        print(f"model written: {args.out_model} (" + "; ".join(
+            f"{a}: {d.written_as}" for a, d in per.items()) + ")")
+        for note in bounded:
             print(f"note: {note}")
     return 0

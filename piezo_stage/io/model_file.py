@@ -28,6 +28,13 @@ def save_model(path, model: StageModel, effects=None, extra=None) -> list[str]:
     ModelError and nothing written where it is no stage). -> the notes of what was
     bounded."""
     doc, notes = checked_doc(model, effects, extra)
+    save_document(path, doc)
+    return notes
+
+
+def save_document(path, doc: dict) -> None:
+    """Write a model document built by ``checked_doc`` (``save_model``'s, or a
+    diagnosis's ``document()``) atomically, as it is: what its writer scored is what a
+    reader loads (YAML keeps every float exactly)."""
     with atomic_write(path) as fh:
         yaml.safe_dump(doc, fh, sort_keys=False, default_flow_style=None)
-    return notes

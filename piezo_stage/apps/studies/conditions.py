@@ -145,7 +145,7 @@ def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, st
     from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.model_file import load_model, save_model
     res = diagnose(fit, hold, axes=["x"])
-    model, effects = res.model(fit)
+    model, effects = res.model()
     with tempfile.TemporaryDirectory() as d:
         path = os.path.join(d, "model.yaml")
         save_model(path, model, effects=effects or None)

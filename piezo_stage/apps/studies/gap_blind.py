@@ -221,6 +221,12 @@ def scan_cut(fs=5000.0, config="structure_stage.yaml"):
 
 def locked_truth(fit, hold, true, axis):
     """The true input-locked part of the base model's held-out residual [um]: the
-    identified Duhem model's error against the plant's noise-free displacement."""
-    e = fit_candidate(fit, axis, "none").predict(hold, axis) - true
-    return float(np.sqrt(np.mean((e - e.mean()) ** 2)))
+    identified Duhem model, as the diagnosis scores it (written and run over HOLDOUT,
+    after its start-up, offset removed: core/estimation/gap/written.py), against the
+    plant's noise-free displacement."""
+    from piezo_stage.core.estimation.gap.written import held_out, predicted, start_up_samples
+    from piezo_stage.core.model.duhem import voltage_limits_for
+    limits = voltage_limits_for([fit.v[axis], hold.v[axis]])
+    pred = predicted(fit_candidate(fit, axis, "none").written(), axis, hold, limits)
+    e = held_out(pred, true, start_up_samples(len(hold), hold.fs_hz))
+    return float(np.sqrt(np.mean(e ** 2)))

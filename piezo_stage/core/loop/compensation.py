@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.model.effects import effects_on
 
 if TYPE_CHECKING:
     from piezo_stage.core.loop.planner import ReferencePlanner
@@ -191,7 +192,8 @@ class EffectCompensator:
     (the whole periods of the delay), ``step`` turns it into hysteresis targets.
 
     ``effects`` is a model file's ``effects`` block ({name: {params..., axes: [...]}},
-    as ``gap --out-model`` writes it; ``enabled: false`` entries are skipped). A
+    or a list of such per set of axes, as ``gap --out-model`` writes it; read per axis
+    by ``effects_on``: ``enabled: false`` entries are skipped). A
     resonance above ``max_resonance_hz`` (None or 0: no limit) is not inverted: its
     group delay joins the delay."""
 
@@ -205,71 +207,66 @@ class EffectCompensator:
         self.lead_ticks = {a: 0 for a in axes}
         # of lead_ticks, the samples a stable inverse previews (not a time advance)
         self.preview_ticks = {a: 0 for a in axes}
-        self.compensated, self.uncompensated, self.notes = set(), {}, {}
-        for name, p in (effects or {}).items():
-            p = dict(p or {})
-            if not p.pop("enabled", True):
-                continue
-            on = [a for a in p.pop("axes", axes) if a in axes]
-            if name == "delay":
-                d = float(p["delay_s"])
-                for a in on:
-                    self.lead_ticks[a] = int(math.floor(d / T + 1e-9))
-            elif name == "creep":
-                for a in on:
-                    self.creep[a] = CreepInverse(self.rate_hz, p["gamma"],
-                                                 p.get("tau_s", CREEP_TAUS_S))
-            elif name == "dynamics":
-                pass  # below, once the delay's fraction is known
-            elif name == "drift":
-                self.uncompensated[name] = "ignores the input (left to the feedback)"
-                continue
-            else:
-                raise ConfigError(f"unknown effect {name!r} in the model's effects")
-            self.compensated.add(name)
-        dyn = dict((effects or {}).get("dynamics") or {})
-        if dyn and dyn.pop("enabled", True):
-            on = [a for a in dyn.pop("axes", axes) if a in axes]
-            delay = dict((effects or {}).get("delay") or {})
-            d = float(delay.get("delay_s", 0.0)) if delay.get("enabled", True) else 0.0
-            dl_axes = delay.get("axes", axes)
-            fn = float(dyn.get("fn_hz", 0.0))
-            if dyn.get("kind", "resonance") == "resonance" and fn > max_fn:
-                # a resonance the user does not trust enough to invert (inverting one
-                # whose parameters are off amplifies their error: a diagnosis biased to
-                # 824 Hz / 0.62 ms for 800 Hz / 0.5 ms gave 10 Hz tracking 0.39 %,
-                # 0.13 % as a group delay, 0.06 % inverting the accurate one): its
-                # low-frequency part, the group delay 2 zeta / wn, joins the delay
-                gd = 2.0 * float(dyn.get("zeta", 0.0)) / (2 * math.pi * fn)
-                for a in on:
-                    da = (d if a in dl_axes else 0.0) + gd
-                    self.lead_ticks[a] = int(math.floor(da / T + 1e-9))
-                self.uncompensated["dynamics"] = (
-                    f"resonance at {fn:.0f} Hz, above {max_fn:.0f} Hz: taken as its group "
-                    f"delay of {gd * 1e6:.0f} us")
-                self.compensated.discard("dynamics")
-                on = []
-            for a in on:
-                delta = (d - self.lead_ticks[a] * T) if a in dl_axes else 0.0
-                inv = DynamicsInverse(self.rate_hz, delta_s=delta, **dyn)
-                if inv.ok:
-                    self.dynamics[a] = inv
-                    continue
-                # not minimum phase at this rate: the stable inverse with preview
-                try:
-                    pinv = PreviewDynamicsInverse(inv)
-                except ConfigError as e:
-                    self.compensated.discard("dynamics")
-                    self.uncompensated["dynamics"] = (
-                        f"not minimum phase when sampled at {self.rate_hz:g} Hz: {e}")
-                    continue
-                self.dynamics[a] = pinv
-                self.preview_ticks[a] = pinv.preview
-                self.lead_ticks[a] += pinv.preview
-                self.notes["dynamics"] = (
-                    f"not minimum phase at {self.rate_hz:g} Hz: inverted with "
-                    f"{pinv.preview} samples of preview")
+        self.compensated: set[str] = set()
+        self.uncompensated: dict[str, str] = {}
+        self.notes: dict[str, str] = {}
+        for a in axes:  # each axis's own parameter sets (effects_on)
+            eff = effects_on(effects, a)
+            unknown = sorted(set(eff) - {"delay", "creep", "dynamics", "drift"})
+            if unknown:
+                raise ConfigError(f"unknown effect {unknown[0]!r} in the model's effects")
+            d = float(eff["delay"]["delay_s"]) if "delay" in eff else 0.0
+            if "delay" in eff:
+                self.lead_ticks[a] = int(math.floor(d / T + 1e-9))
+                self.compensated.add("delay")
+            if "creep" in eff:
+                c = eff["creep"]
+                self.creep[a] = CreepInverse(self.rate_hz, c["gamma"],
+                                             c.get("tau_s", CREEP_TAUS_S))
+                self.compensated.add("creep")
+            if "drift" in eff:
+                self.uncompensated["drift"] = "ignores the input (left to the feedback)"
+            if "dynamics" in eff:
+                self._dynamics(a, dict(eff["dynamics"]), d, max_fn)
         self.axes = tuple(axes)
+
+    def _dynamics(self, a: str, dyn: dict, d: float, max_fn: float) -> None:
+        """Axis ``a``'s dynamics inverted (read at the fraction of its delay ``d`` [s]
+        past the whole periods), with preview where the sampled plant is not minimum
+        phase, or taken as a group delay above ``max_fn`` [Hz]."""
+        T = 1.0 / self.rate_hz
+        fn = float(dyn.get("fn_hz", 0.0))
+        if dyn.get("kind", "resonance") == "resonance" and fn > max_fn:
+            # a resonance the user does not trust enough to invert (inverting one
+            # whose parameters are off amplifies their error: a diagnosis biased to
+            # 824 Hz / 0.62 ms for 800 Hz / 0.5 ms gave 10 Hz tracking 0.39 %,
+            # 0.13 % as a group delay, 0.06 % inverting the accurate one): its
+            # low-frequency part, the group delay 2 zeta / wn, joins the delay
+            gd = 2.0 * float(dyn.get("zeta", 0.0)) / (2 * math.pi * fn)
+            self.lead_ticks[a] = int(math.floor((d + gd) / T + 1e-9))
+            self.uncompensated["dynamics"] = (
+                f"resonance at {fn:.0f} Hz, above {max_fn:.0f} Hz: taken as its group "
+                f"delay of {gd * 1e6:.0f} us")
+            return
+        inv = DynamicsInverse(self.rate_hz, delta_s=d - self.lead_ticks[a] * T, **dyn)
+        if inv.ok:
+            self.dynamics[a] = inv
+            self.compensated.add("dynamics")
+            return
+        # not minimum phase at this rate: the stable inverse with preview
+        try:
+            pinv = PreviewDynamicsInverse(inv)
+        except ConfigError as e:
+            self.uncompensated["dynamics"] = (
+                f"not minimum phase when sampled at {self.rate_hz:g} Hz: {e}")
+            return
+        self.dynamics[a] = pinv
+        self.compensated.add("dynamics")
+        self.preview_ticks[a] = pinv.preview
+        self.lead_ticks[a] += pinv.preview
+        self.notes["dynamics"] = (
+            f"not minimum phase at {self.rate_hz:g} Hz: inverted with "
+            f"{pinv.preview} samples of preview")
 
     @property
     def max_lead_ticks(self) -> int:

@@ -30,6 +30,7 @@ from piezo_stage.core.loop.compensation import (
     EffectCompensator,
     PreviewedReference,
 )
+from piezo_stage.core.model.effects import effects_on
 
 EFFECTS_WITH_DYNAMICS = ("creep", "dynamics", "delay")  # drift ignores the input
 NOISE_KAPPA = 1.5  # a bin is learned where it exceeds this many noise RMS
@@ -85,9 +86,8 @@ def effects_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: 
     """The axis's effects chain (creep, dynamics, delay; drift ignores the input) as the
     sampled plant shows it at the control rate, every parameter times ``scale``'s
     factor for it (a perturbed model)."""
-    on = {name: _scaled(p, scale) for name, p in (effects or {}).items()
-          if name in EFFECTS_WITH_DYNAMICS and p.get("enabled", True)
-          and axis in p.get("axes", ("x", "y"))}
+    on = {name: _scaled(p, scale) for name, p in effects_on(effects, axis).items()
+          if name in EFFECTS_WITH_DYNAMICS}
     g = np.ones(len(freqs_hz), complex)
     if "creep" in on:
         g = g * creep_response(on["creep"], rate_hz, freqs_hz)
@@ -108,7 +108,7 @@ def loop_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: np.
     run ahead, creep divided out, and where the dynamics are inverted, the dynamics read
     at the delay's fraction divided out."""
     f = np.asarray(freqs_hz, float)
-    model = (effects or {}) if model is None else model
+    model = effects_on(effects if model is None else model, axis)
     g = effects_response(effects, axis, rate_hz, f, scale)
     if compensator is None:
         return g
@@ -119,9 +119,8 @@ def loop_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: np.
     if axis in compensator.creep:
         g = g / creep_response(model["creep"], rate_hz, f)
     if axis in compensator.dynamics:
-        dl = model.get("delay", {})
-        frac = float(dl.get("delay_s", 0.0)) - lead \
-            if axis in dl.get("axes", ("x", "y")) else 0.0
+        frac = float(model.get("delay", {}).get("delay_s", 0.0)) - lead \
+            if "delay" in model else 0.0
         g = g / held_dynamics_response(model["dynamics"], frac, rate_hz, f)
     return g
 
@@ -206,7 +205,7 @@ def design(n: int, rate_hz: float, effects: dict | None = None, axis: str = "x",
     ok = np.abs(g) >= 0.1
     learn = np.where(ok, 1.0 / np.where(ok, g, 1.0), 0.0)
     worst = np.zeros(f.size)
-    for sc in _scales(effects or {}, perturb):
+    for sc in _scales(effects_on(effects, axis), perturb):
         gt = loop_response(effects, axis, rate_hz, f, compensator, sc, model=effects)
         worst = np.maximum(worst, np.abs(1 - gain * learn * gt))
     edge = 0.4 * rate_hz if max_cutoff_hz is None else min(max_cutoff_hz, 0.4 * rate_hz)

@@ -28,6 +28,7 @@ import numpy as np
 from piezo_stage.core.errors import ModelError
 from piezo_stage.core.loop.compensation import CREEP_TAUS_S, DynamicsInverse
 from piezo_stage.core.model.duhem import StageModel
+from piezo_stage.core.model.effects import effects_on
 
 
 def model_gain(model: StageModel, axis: str, n: int = 2001) -> tuple[float, float]:
@@ -55,8 +56,7 @@ def effects_response(effects: dict, axis: str, rate_hz: float,
     T = 1.0 / rate_hz
     H = np.ones_like(z)
     lead = 0
-    eff = {n: dict(p or {}) for n, p in (effects or {}).items()
-           if (p or {}).get("enabled", True) and axis in (p or {}).get("axes", ("x", "y"))}
+    eff = effects_on(effects, axis)
     delay = float(eff.get("delay", {}).get("delay_s", 0.0))
     lead = int(math.floor(delay / T + 1e-9))
     if "creep" in eff:

@@ -26,7 +26,13 @@ from piezo_stage.core._jit import as_f64
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.model._kernels import plant_run, sensor_run
 from piezo_stage.core.model.duhem import AXES, StageModel
-from piezo_stage.core.model.effects import EFFECTS, enabled_effects, make_effect
+from piezo_stage.core.model.effects import (
+    EFFECTS,
+    effects_on,
+    enabled_effects,
+    make_effect,
+    sampled_pair,
+)
 from piezo_stage.core.model.play import PlayHysteresis
 
 # Order in which effects act on the displacement (see module docstring).
@@ -120,15 +126,15 @@ class Plant:
         if unknown:
             raise ConfigError(f"unknown effect(s) {sorted(unknown)}; known: "
                               f"{', '.join(EFFECTS)}")
-        for name in EFFECT_ORDER:
-            if name not in config.effects:
-                continue
-            params = dict(config.effects[name] or {})
-            axes = params.pop("axes", list(AXES))
-            for a in axes:
-                if a not in AXES:
-                    raise ConfigError(f"effect {name}: unknown axis {a!r}")
-                self._effects[a].append(make_effect(name, self.fs_hz, params))
+        for name, p in config.effects.items():
+            for e in p if isinstance(p, list) else [p]:
+                bad = [a for a in (e or {}).get("axes", ()) if a not in AXES]
+                if bad:
+                    raise ConfigError(f"effect {name}: unknown axis {bad[0]!r}")
+        for a in AXES:  # (the one reading of the block per axis: effects_on)
+            on = sampled_pair(effects_on(config.effects, a), self.fs_hz)
+            self._effects[a] = [make_effect(n, self.fs_hz, on[n]) for n in EFFECT_ORDER
+                                if n in on]
         self._play = {}
         if config.hysteresis:
             params = dict(config.hysteresis)
@@ -170,10 +176,12 @@ class Plant:
         self._vstate[:] = max(self.v_limits[0], min(self.v_limits[1], 0.0))
         for i, m in enumerate(self._models):
             self._dstate[i] = (m.initial.v, m.initial.w) if m is not None else (0.0, 0.0)
-        for a in AXES:  # at rest at the hysteresis's initial output (its plays' too)
-            x0 = model.axes[a].initial.w if a in model.axes else 0.0
+        for a in AXES:  # at rest at the hysteresis's initial output (its plays' and
+            x0 = model.axes[a].initial.w if a in model.axes else 0.0  # coupling's too)
             if a in model.plays:
                 x0 += model.plays[a].output(model.plays[a].state())
+            if a in model.axes and a in model.coupling:
+                x0 += model.coupling[a].initial.w
             for e in self._effects[a]:
                 e.reset(x0)
         self._z = {a: law.rest(self._vstate[i]) for i, a in enumerate(AXES)
@@ -181,7 +189,10 @@ class Plant:
         self._rate = {a: law.rate_state(self._vstate[i]) for i, a in enumerate(AXES)
                       if (law := self._play.get(a)) is not None}
         self._mz = {a: p.state() for a, p in model.plays.items()}
-        self._mq = {a: np.array([self._vstate[AXES.index(a)], 0.0]) for a in model.plays}
+        # (the operators' rate filter at rest at the law's initial voltage, as its state:
+        # play_columns' start, where a model's operators were fitted from)
+        self._mq = {a: np.array([model.axes[a].initial.v if a in model.axes else
+                                 self._vstate[AXES.index(a)], 0.0]) for a in model.plays}
         self._rng = np.random.default_rng(self.config.seed)
         self.limit_hits = 0
         self.samples = 0

@@ -35,7 +35,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from piezo_stage.core.errors import DataError
@@ -54,7 +54,7 @@ from piezo_stage.core.estimation.gap.candidates import (  # noqa: F401
 from piezo_stage.core.estimation.gap.selection import AxisDiagnosis, diagnose_axis  # noqa: F401
 from piezo_stage.core.estimation.gap.where import held, holds  # noqa: F401
 from piezo_stage.core.estimation.record import Record
-from piezo_stage.core.model.duhem import AxisParts, StageModel, voltage_limits_for
+from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
 from piezo_stage.core.workers import forking, quiet_worker
 
 # The other speed-up (see candidates.ONE_COLUMN_SEARCH): the axes in processes
@@ -65,12 +65,13 @@ AXES_IN_PROCESSES = True
 @dataclass
 class Diagnosis:
     """What ``diagnose`` found: ``json``, the --json contract (see the module docstring
-    and docs/gap.md; ``diagnosis["verdict"]`` reads it), and ``per_axis``, each axis's
-    full diagnosis (its kept model and candidates: for reports and ``model``)."""
+    and docs/gap.md; ``diagnosis["verdict"]`` reads it), ``per_axis``, each axis's full
+    diagnosis (its kept model and candidates: for reports and ``model``), and
+    ``limits_V``, the voltage limits of every model it wrote and scored."""
 
     json: dict
     per_axis: dict
-    notes: list = field(default_factory=list)  # what ``model`` had to leave out
+    limits_V: tuple = (0.0, 150.0)
 
     def __getitem__(self, key: str) -> Any:  # the JSON contract's values
         return self.json[key]
@@ -78,63 +79,18 @@ class Diagnosis:
     def __contains__(self, key: str) -> bool:
         return key in self.json
 
-    def model(self, fit: Record, limits_V: tuple | None = None) -> tuple[StageModel, dict]:
-        """The model with every kept effect, as ``gap --out-model`` writes it: (StageModel,
-        effects). Each axis's Duhem model (and coupling) from its kept fit; the model
-        file holds one parameter set per effect, so where both axes have one, the set of
-        the axis where it explains the most; ``memory`` as the axis's play
-        operators. Voltage limits: the amplifier's ``limits_V``, else 0-150 V
-        widened to FIT's (core.duhem.voltage_limits_for)."""
-        parts: dict[str, AxisParts] = {}
-        effects: dict[str, dict] = {}
-        weight: dict[str, float] = {}
-        self.notes = []
-        for a, d in self.per_axis.items():
-            c = d.model or d.candidates["none"]
-            if isinstance(c, ClassCandidate):  # memory as the other class: its parts
-                law, plays, coup = c.stage_parts()
-                parts[a] = AxisParts(law, coup, plays)
-            else:  # the Duhem law kept rising, and memory's play operators beside it
-                law, coup = _rising_law(c)
-                parts[a] = AxisParts(law, coup, c.play_operators())
-            if isinstance(c, Candidate) and c.plays_V is not None:
-                if any(n in TRANSFORMS for n, _ in c.effects):
-                    # the fit put the operators' sum after the kept transform effects,
-                    # the model file before them (as the hysteresis it is)
-                    self.notes.append(f"axis {a}: the play operators were fitted after "
-                                      "the transform effects; the model applies the "
-                                      "effects to them too")
-            for name, params in c.model_effects().items():
-                e = effects.setdefault(name, {"axes": []})
-                e["axes"].append(a)
-                w = d.budget.get("explained_um", {}).get(name, 0.0)
-                if w >= weight.get(name, -1.0):
-                    weight[name] = w
-                    e.update(params)
-        lim = voltage_limits_for([fit.v[a] for a in parts], limits_V)
-        return StageModel.from_fits(parts, lim), effects
+    def document(self) -> tuple[dict, list[str]]:
+        """The model document ``gap --out-model`` writes -> (document, notes): each
+        axis's kept model (the sim's where none was kept) as the diagnosis scored it
+        on HOLDOUT (``gap/written.py``), the effects with each axis's own parameters."""
+        from piezo_stage.core.estimation.gap.written import document
+        return document({a: d.written.written() for a, d in self.per_axis.items()},
+                        self.limits_V)
 
-
-def _rising_law(c: Candidate) -> tuple:
-    """The Duhem law (and coupling) of a kept candidate as written: where a branch of
-    its law turns back (a descending branch whose shape goes negative where its
-    memory's pull does not make up for it, found on a rate-dependent stage's rising
-    triangles: the exact inverse then missed by 9 V), refitted with every branch kept
-    rising (identify's rule, ``fast.keep_rising``: within 10 % of the fit's RMS, else
-    as fitted). A law with play operators beside it keeps its own guard
-    (``Candidate.inverse_miss``)."""
-    from piezo_stage.core.estimation.identify.fast import keep_rising
-    from piezo_stage.core.estimation.identify.prandtl import min_slope
-    from piezo_stage.core.estimation.identify.regress import Fit
-    reg, alphas, theta = c.reg, c.alphas, c.theta
-    if c.plays_V is None:
-        reg.monotone_floor = min_slope(reg.v, reg.w)
-        try:
-            alphas, kept = keep_rising(reg, alphas, Fit(theta, c.fit_rms_um))
-            theta = kept.theta
-        finally:
-            reg.monotone_floor = None
-    return reg.models(alphas, theta)
+    def model(self) -> tuple[StageModel, dict]:
+        """The written model read back as a model file is read: (StageModel, effects)."""
+        from piezo_stage.core.model.model_doc import model_from_dict
+        return model_from_dict(self.document()[0], "the model to write")
 
 
 def _holes_filled(fit: Record, axes: Sequence[str]) -> Record:
@@ -243,6 +199,9 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
         raise DataError("records too short for a gap diagnosis (need >= 200 samples)")
     if fit.measured is not None:  # FIT's long holes: left out of every candidate's fit
         fit = _holes_filled(fit, axes)
+    # the amplifier's limits, or 0-150 V widened to take both records' voltages: the
+    # limits of every model written and scored (one for all axes, as the file has one)
+    limits_V = voltage_limits_for([r.v[a] for a in axes for r in (fit, holdout)], limits_V)
     # the axes are independent problems, one per core; one BLAS thread each (two of
     # each on two cores fight, ~20 % slower). threadpoolctl is optional (rosdep has no
     # key for it): without it the diagnosis is the same, only slower on two axes.
@@ -260,8 +219,12 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
            "effects": worst.effects, "budget": worst.budget,
            "axes": {a: {"verdict": d.verdict, "reason": d.reason, "ranking": d.ranking,
                         "where": d.where, "noise_floor_um": d.noise_floor_um,
-                        "effects": d.effects, "budget": d.budget}
+                        "effects": d.effects, "budget": d.budget,
+                        "written": {"model": d.written_as, "rms_after_um": d.written_rms_um,
+                                    "gap_after_um": d.written_gap_um}}
                     for a, d in per.items()},
            "holdout_is_fit": holdout is fit,
+           "scored": {"start_up_s": worst.skip / holdout.fs_hz, "offset": "removed",
+                      "from": "the written model's initial state (FIT's start)"},
            "seconds": time.perf_counter() - t0}
-    return Diagnosis(out, per)
+    return Diagnosis(out, per, limits_V)

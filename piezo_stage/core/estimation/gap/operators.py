@@ -4,12 +4,11 @@ to the Duhem regressors)."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from piezo_stage.core.model.effects import Creep, Delay, Dynamics
+from piezo_stage.core.model.effects import Creep, Delay, Dynamics, sampled_pair
 
 TRANSFORMS = ("creep", "dynamics", "delay")  # linear time-invariant: they commute
 CREEP_TAUS = (0.05, 0.5, 5.0, 50.0)
@@ -29,21 +28,10 @@ def effect_operator(name: str, fs: float, params: dict) -> Callable[[np.ndarray]
 def transform_ops(effects: Sequence[tuple[str, dict]],
                   fs: float) -> Callable[[np.ndarray], np.ndarray] | None:
     """The column operator of the transform effects among ``effects`` [(name, params)]
-    (None: none). With both dynamics and a delay, the delay shifts by its whole samples
-    and its fraction goes into the dynamics' sampling (Dynamics ``delay_frac_s``): the
-    exact sampled form of dynamics then a delay for an input held over each sample,
-    which linear interpolation of the fraction only approximates (it biased the
-    resonance and the delay found: 824 Hz and 0.62 ms for 800 Hz and 0.5 ms)."""
-    eff = [(n, dict(p)) for n, p in effects if n in TRANSFORMS]
-    names = [n for n, _ in eff]
-    if "delay" in names and "dynamics" in names:
-        d = float(dict(eff)["delay"]["delay_s"])
-        whole = math.floor(d * fs + 1e-9)
-        frac = max(0.0, d - whole / fs)
-        frac = frac if frac < 1.0 / fs * (1 - 1e-9) else 0.0
-        eff = [(n, {"delay_s": whole / fs} if n == "delay" else
-                ({**p, "delay_frac_s": frac} if n == "dynamics" else p)) for n, p in eff]
-    return compose([effect_operator(n, fs, p) for n, p in eff])
+    (None: none), as the plant applies them at the rate ``fs`` (with both dynamics and
+    a delay, their exact sampled pair form: effects.sampled_pair)."""
+    eff = sampled_pair({n: dict(p) for n, p in effects if n in TRANSFORMS}, fs)
+    return compose([effect_operator(n, fs, p) for n, p in eff.items()])
 
 
 class _Chain:

@@ -38,40 +38,69 @@ def search_1d(f: Callable[[float], float], lo: float, hi: float, n_grid: int = 1
     return (r.x, r.fun) if r.fun <= vals[i] else (g[i], vals[i])
 
 
+def delay_max_s(fs: float) -> float:
+    """The longest delay the delay candidate searches [s] (20 ms, or 50 samples)."""
+    return min(0.02, 50 / fs)
+
+
+def delay_rows(effects: Sequence[tuple[str, dict]], fs: float) -> int:
+    """A record's first rows a model with these effects runs but does not fit: those
+    whose output its delay takes from voltages before the record (held at the record's
+    first voltage there, which a record cut from a run never was: on a measured stack's
+    record that started moving, its 15 ms lag was found as 0.7 ms). 0 without a delay."""
+    d = float(dict(effects).get("delay", {}).get("delay_s", 0.0))
+    return int(np.ceil(d * fs - 1e-9))
+
+
 def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.ndarray],
                      extra: list, w: np.ndarray, fs: float,
-                     kept: Sequence[tuple[str, dict]]) -> tuple[dict, list]:
+                     kept: Sequence[tuple[str, dict]], rows: int = 0) -> tuple[dict, list]:
     """A transform effect's parameters (creep, delay, dynamics) searched on FIT, the
-    model's other coefficients refitted by least squares at each step.
+    model's other coefficients refitted by least squares at each step over the rows
+    from ``rows`` on (the columns run from the record's start; a delay's search over
+    those its longest trial takes from before the record: ``delay_rows``).
     ``design_without(names)`` gives the model's columns through the kept transform
     effects except ``names``; ``extra`` are columns after them (a constant, a drift).
     -> (params, kept: a kept delay polished together with a resonance found now)."""
     kept = list(kept)
+    if effect == "delay":  # every delay tried is judged on the rows none takes from
+        rows = max(rows, delay_rows([("delay", {"delay_s": delay_max_s(fs)})], fs))
     # the kept operators applied once; the new effect's parameter search then filters
     # only what it must (creep: once in all)
     KX = np.array(design_without(()))  # (a copy: a design may be a reused buffer)
+    wf = w[rows:]
+    extra_f = [e[rows:] for e in extra]
 
     def solve(cols):
-        return solve_gram(*gram_blocks([cols] + extra, w), len(w)).rms
+        return solve_gram(*gram_blocks([cols[rows:]] + extra_f, wf), len(wf)).rms
 
     if effect == "creep":
         F = Creep(fs, tau_s=CREEP_TAUS).fast_part(KX)
         g, _ = search_1d(lambda g: solve(KX - g * F), 0.0, 0.3)
         return {"gamma": float(g), "tau_s": list(CREEP_TAUS)}, kept
     if effect == "delay":
-        dmax = min(0.02, 50 / fs)
+        dmax = delay_max_s(fs)
 
         def search_delay(cost, p0):
             return {"delay_s": float(search_1d(lambda d: cost({"delay_s": d}), 0.0,
                                                 dmax, n_grid=15)[0])}
+
+        def delay_op(p):
+            return Delay(fs, delay_s=p["delay_s"]).apply
+        B = KX
         if "dynamics" in dict(kept):  # the pair's exact sampled form
             dyn = dict(kept)["dynamics"]
-            KB = design_without(("delay", "dynamics"))
-            return _alternate(KB, extra, w, search_delay, {"delay_s": 0.0},
-                              lambda p: transform_ops([("dynamics", dyn), ("delay", p)],
-                                                      fs)), kept
-        return _alternate(KX, extra, w, search_delay, {"delay_s": 0.0},
-                          lambda p: Delay(fs, delay_s=p["delay_s"]).apply), kept
+            B = design_without(("delay", "dynamics"))
+
+            def delay_op(p):
+                return transform_ops([("dynamics", dyn), ("delay", p)], fs)
+        # the alternation starts from the whole-sample delay whose exact refit fits best
+        # (held coefficients fitted without a delay take the lag's phase in and lead a
+        # one-column search to a small delay: a measured stack's 3-sample lag was found
+        # as 0.7 ms)
+        whole = np.unique(np.round(np.linspace(0, np.floor(dmax * fs), 12)).astype(int))
+        p0 = min(({"delay_s": k / fs} for k in whole), key=lambda p: solve(delay_op(p)(B)))
+        return _alternate(B, extra, w, search_delay, p0, delay_op, rows=rows), kept
     if effect != "dynamics":
         raise ValueError(f"{effect} is not a transform effect")
     seeds = _resonance_seeds(KX, w, fs, extra)
@@ -81,13 +110,14 @@ def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.n
         return _search_dynamics(fs, cost, seeds + last if seeds else seeds)
     if "delay" not in dict(kept):
         return _alternate(KX, extra, w, search, None, lambda p: Dynamics(fs, **p).apply,
-                          start=identity), kept
+                          start=identity, rows=rows), kept
     d0 = dict(kept)["delay"]
     KB = design_without(("delay",))
 
     def dyn_op(p):
         return transform_ops([("dynamics", p), ("delay", d0)], fs)
-    params = _alternate(KB, extra, w, search, None, dyn_op, start=Delay(fs, **d0).apply)
+    params = _alternate(KB, extra, w, search, None, dyn_op, start=Delay(fs, **d0).apply,
+                        rows=rows)
     if seeds and params["kind"] == "resonance":
         # a delay fitted before the resonance took the resonance's phase as well (on a
         # record whose chirp excites it): the resonance and the delay polished together
@@ -96,7 +126,7 @@ def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.n
             return transform_ops([("dynamics", dyn_p),
                                   ("delay", {"delay_s": p["delay_s"]})], fs)
         both = _alternate(KB, extra, w, lambda cost, p0: _polish_pair(p0, fs, cost),
-                          {**params, "delay_s": float(d0["delay_s"])}, pair_op)
+                          {**params, "delay_s": float(d0["delay_s"])}, pair_op, rows=rows)
         d = both.pop("delay_s")
         params = both
         kept = [(n, {**p, "delay_s": d} if n == "delay" else p) for n, p in kept]
@@ -121,9 +151,13 @@ def rate_search(reg: DuhemRegression, alphas: ArrayLike, kept: Sequence[tuple[st
     KX = fixed_op(KX) if fixed_op is not None else KX
     drift = [Drift.columns(len(v), fs, tau)] if tau is not None else []
 
+    s = reg.fit_from
+
     def cost(beta):
         P, _ = play_start_columns(v, w, plays, reg.B, float(beta), fs)
-        return solve_gram(*gram_blocks([KX, P] + drift, w), len(w)).rms
+        P = fixed_op(P) if fixed_op is not None else P  # (part of the hysteresis)
+        return solve_gram(*gram_blocks([X[s:] for X in [KX, P] + drift], w[s:]),
+                          len(w) - s).rms
     beta, best = search_1d(cost, 0.0, MAX_RATE_WIDENING_S * 0.999, n_grid=8)
     return float(beta) if best < cost(0.0) * (1.0 - RATE_MIN_GAIN) else 0.0
 
@@ -187,7 +221,7 @@ ALTERNATIONS = 4  # profile searches per effect fit, at most
 ONE_COLUMN_SEARCH = True
 
 
-def _alternate(B, extra, w, search, p0, make_op, start=None):
+def _alternate(B, extra, w, search, p0, make_op, start=None, rows=0):
     """An effect's parameters searched with the Duhem coefficients held, alternating
     with their exact refit (block coordinate descent; each step lowers the exact cost,
     and its fixed point is where neither block can improve, the joint optimum's).
@@ -198,14 +232,18 @@ def _alternate(B, extra, w, search, p0, make_op, start=None):
     operator of the fit to begin from (default ``make_op(p0)``). Held coefficients make
     the cost one column through the operator, scaled by least squares (the scale keeps
     it an exact-model value: c theta is a coefficient vector too): ~15x cheaper than
-    filtering every column of B, and the refit after each search keeps it exact."""
+    filtering every column of B, and the refit after each search keeps it exact.
+    ``rows``: the rows before it are run (the operator acts from the record's start),
+    not fitted."""
     k = B.shape[1]
-    E = np.column_stack(extra) if extra else None
+    E = np.column_stack(extra)[rows:] if extra else None
+    wf = w[rows:]
 
     def refit(op):
-        fit = solve_gram(*gram_blocks([op(B)] + list(extra), w), len(w))
+        fit = solve_gram(*gram_blocks([op(B)[rows:]] + [e[rows:] for e in extra], wf),
+                         len(wf))
         p = B @ fit.theta[:k]
-        r = w - E @ fit.theta[k:] if E is not None else w
+        r = wf - E @ fit.theta[k:] if E is not None else wf
         return fit.rms, p, r
 
     if not ONE_COLUMN_SEARCH:
@@ -216,7 +254,7 @@ def _alternate(B, extra, w, search, p0, make_op, start=None):
         rr = float(r @ r)
 
         def cost(q, p=p, r=r, rr=rr):
-            y = make_op(q)(p)
+            y = make_op(q)(p)[rows:]
             yy = float(y @ y)
             c = float(y @ r) / yy if yy > 0 else 0.0
             return float(np.sqrt(max(rr - c * c * yy, 0.0) / len(r)))

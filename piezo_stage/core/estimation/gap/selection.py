@@ -16,6 +16,7 @@ from piezo_stage.core.estimation.gap.candidates import (
     INVERSE_MISS_FRACTION,
     MEMORY_CLASSES,
     TRANSFORMS,
+    AxisWritten,
     Candidate,
     ClassCandidate,
     Fitted,
@@ -33,35 +34,49 @@ from piezo_stage.core.estimation.gap.where import (
     several_rates,
     where,
 )
+from piezo_stage.core.estimation.gap.written import held_out, predicted, start_up_samples
 from piezo_stage.core.estimation.identify.api import check_identifiable
 from piezo_stage.core.estimation.identify.fast import fit_fast
 from piezo_stage.core.estimation.identify.segmentation import inner_reversals
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.metrics import noise_floor, rms
-from piezo_stage.core.model.duhem import OTHER, StageModel
+from piezo_stage.core.model.duhem import OTHER, AxisParts, StageModel, voltage_limits_for
+from piezo_stage.core.model.effects import effects_on
 
 
 class GivenModel:
-    """A model from a file as the base ("the sim"): prediction with the initial state
-    and a constant offset re-estimated on the record, like every candidate."""
+    """A model from a file as the base ("the sim"): its axis and the effects its file
+    gives that axis, run as ``simulate --model`` runs the file, like every candidate."""
 
     effect = "given"
     params: dict = {}
 
-    def __init__(self, stage_model: StageModel):
-        self.model = stage_model
+    def __init__(self, stage_model: StageModel, effects: dict | None, axis: str):
+        self.model, self.effects, self.axis = stage_model, effects, axis
 
-    def predict(self, rec: Record, axis: str) -> np.ndarray:
-        """The given model's prediction on a record (no fit)."""
-        from piezo_stage.core.estimation.identify.api import simulate_axis
-        m = self.model.axes[axis]
-        c = self.model.coupling.get(axis)
-        vo = rec.v.get(OTHER[axis])
-        if c is not None and vo is None:
-            c = None
-        w = simulate_axis(m, c, rec.v[axis], vo, w_meas=rec.w[axis])
-        r = rec.w[axis] - w
-        return w + r.mean()
+    def written(self) -> AxisWritten:
+        """The given model's axis as its file holds it."""
+        a, m = self.axis, self.model
+        return AxisWritten(AxisParts(m.axes[a], m.coupling.get(a), m.plays.get(a)),
+                           effects_on(self.effects, a))
+
+
+class IdentifiedModel:
+    """What ``identify`` writes for FIT's axis (its Duhem law, coupling and lag, the lag as
+    its delay effect): the model a lab has before any diagnosis, which the diagnosis
+    never writes a worse one than on HOLDOUT (``AxisSearch.written_choice``)."""
+
+    effect = "identify"
+    params: dict = {}
+
+    def __init__(self, res: Any):
+        self.res = res
+
+    def written(self) -> AxisWritten:
+        """The model identify writes for the axis, as its file holds it."""
+        effects = {"delay": {"delay_s": float(self.res.delay_s)}} if self.res.delay_s > 0 \
+            else {}
+        return AxisWritten(self.res.parts(), effects)
 
 
 @dataclass
@@ -77,6 +92,13 @@ class AxisDiagnosis:
     effects: list = field(default_factory=list)    # forward selection: kept, in order
     budget: dict = field(default_factory=dict)
     model: Fitted | None = None  # the model with every kept effect
+    skip: int = 0  # HOLDOUT's samples run but not scored (written.start_up_samples)
+    # what --out-model writes for the axis (AxisSearch.written_choice): the model, what
+    # it is, and its held-out figures [um]
+    written: Any = None
+    written_as: str = ""
+    written_rms_um: float = float("nan")
+    written_gap_um: float = float("nan")
 
 
 FIRST_SHRINK_PCT = 30.0  # the dominant effect must close this much of the held-out gap
@@ -178,11 +200,17 @@ class AxisSearch:
         for rec in (fit, holdout):
             if axis not in rec.v or axis not in rec.w:
                 raise DataError(f"{rec.source}: no v{axis}/w{axis} for axis {axis}")
-        self.scored = holdout.slice(history, len(holdout)) if history else holdout
+        # every held-out figure is the written model's, run from its file's initial
+        # state over all of HOLDOUT; scored after its start-up (gap/written.py)
+        self.skip = start_up_samples(len(holdout), holdout.fs_hz, history)
+        self.scored = holdout.slice(self.skip, len(holdout)) if self.skip else holdout
         for rec in (fit, self.scored):
             check_identifiable(rec.v[axis], rec.source)
         self.fit, self.holdout, self.axis, self.history = fit, holdout, axis, history
-        self.base_model, self.limits_V = base_model, limits_V
+        self.base_model, self.base_effects = base_model, base_effects
+        # the limits of the models written (diagnose gives those of every axis)
+        self.limits_V = voltage_limits_for([fit.v[axis], holdout.v[axis]], limits_V)
+        self._resid: dict[int, tuple[Any, np.ndarray]] = {}  # id -> (model, residual)
         self.notes: list[str] = []
         if holdout is fit:
             self.notes.append("no HOLDOUT: scored on FIT itself, where extra freedom is "
@@ -225,9 +253,23 @@ class AxisSearch:
         return testable
 
     def resid_of(self, c: Fitted | GivenModel | None) -> np.ndarray:
-        """A model's held-out residual, over the scored part."""
+        """A model's held-out residual over the scored part: the model as written, run
+        over HOLDOUT as ``simulate --model`` runs the file, its mean offset removed
+        (gap/written.py)."""
         assert c is not None
-        return (c.predict(self.holdout, self.axis) - self.holdout.w[self.axis])[self.history:]
+        hit = self._resid.get(id(c))
+        if hit is not None and hit[0] is c:
+            return hit[1]
+        pred = predicted(c.written(), self.axis, self.holdout, self.limits_V)
+        r = held_out(pred, self.holdout.w[self.axis], self.skip)
+        if not np.all(np.isfinite(r)):  # a model that diverges there: no candidate
+            r = np.full(r.shape, np.inf)
+        self._resid[id(c)] = (c, r)  # (the model kept: its id is not reused meanwhile)
+        return r
+
+    def forget(self, c: Fitted) -> None:
+        """``c`` changed (polished): its held-out residual is computed again."""
+        self._resid.pop(id(c), None)
 
     # -- the candidates -------------------------------------------------------------------
     def candidate(self, e: str, on: Fitted, kept: list) -> Fitted:
@@ -304,7 +346,7 @@ class AxisSearch:
         scored, axis = self.scored, self.axis
         self.nf = nf = noise_floor(scored.w[axis])
         self.n = len(scored.w[axis])
-        sim: Fitted | GivenModel = GivenModel(self.base_model) \
+        sim: Fitted | GivenModel = GivenModel(self.base_model, self.base_effects, axis) \
             if self.base_model is not None and axis in self.base_model.axes else self.base
         self.resid = resid = self.resid_of(sim)
         self.r_before = r_before = rms(resid)
@@ -457,6 +499,7 @@ class AxisSearch:
         was = (c.alphas, c.theta, c.fit_rms_um, c.effects)
         c.alphas, c.theta, c.fit_rms_um = alphas, fitted.theta, fitted.rms
         c.effects = with_drift(c.effects, c.reg, c.theta, c.drift_tau_s)
+        self.forget(c)
         polished = rms(self.resid_of(c))
         if polished <= self.scores[e]:
             self.scores[e] = polished
@@ -466,6 +509,7 @@ class AxisSearch:
                         if self.g_before else 0.0)
         else:  # closer on FIT, further on HOLDOUT: the extra freedom overfits
             c.alphas, c.theta, c.fit_rms_um, c.effects = was
+            self.forget(c)
 
     # -- the verdict ---------------------------------------------------------------------------
     def decide(self, ranking: list[dict[str, Any]], steps: list[dict[str, Any]],
@@ -512,8 +556,41 @@ class AxisSearch:
                 verdict, reason = "disturbance", said
             else:
                 reason += "; what is left is a " + said
+        written, written_as, r_written = self.written_choice(model)
+        if not (written is model or (model is None and written is self.base)):
+            reason += (f"; the model written is {written_as} (held-out RMS "
+                       f"{r_written:.4g} um), closer on HOLDOUT than "
+                       f"{'the kept effects' if model is not None else 'the sim'}' "
+                       f"({rms(self.resid_of(model or self.base)):.4g} um)")
         return AxisDiagnosis(axis, verdict, reason, ranking, loc, nf, cands, steps, budget,
-                             model)
+                             model, self.skip, written, written_as, r_written,
+                             gap_above_floor(r_written, self.floor))
+
+    def written_choice(self, model: Fitted | None) -> tuple[Any, str, float]:
+        """What ``--out-model`` writes for the axis: the model with the kept effects (the
+        sim's own fit where none was kept), unless the model a lab already has does
+        better on HOLDOUT: the given model (``--model``), else what ``identify`` writes
+        for FIT. -> (the model, what it is, its held-out RMS [um])."""
+        own = model if model is not None else self.base
+        r_own = rms(self.resid_of(own))
+        name = "the model with the kept effects" if model is not None else "the sim's fit"
+        rival: Any = None
+        if self.base_model is not None and self.axis in self.base_model.axes:
+            rival, rival_name = GivenModel(self.base_model, self.base_effects,
+                                           self.axis), "the given model (--model)"
+        else:
+            from piezo_stage.core.errors import SolverError
+            from piezo_stage.core.estimation.identify.api import identify_axis
+            try:
+                rival = IdentifiedModel(identify_axis(self.fit, self.axis))
+                rival_name = "identify's model of FIT"
+            except (DataError, SolverError):
+                rival = None
+        if rival is not None:
+            r = rms(self.resid_of(rival))
+            if r < r_own:
+                return rival, rival_name, r
+        return own, name, r_own
 
 
 def _decide(ranking, steps, g_before, nf, fit, holdout, axis):

@@ -528,12 +528,11 @@ def _fit_class_axis(rec: Record, axis: str, kind: str, opts: IdentifyOptions | N
 
 def delay_effect(fits: dict) -> dict:
     """The model file's ``effects`` for the lags of identified axes ({axis: AxisResult
-    or ClassFit}): one delay for the axes that lag (the file holds one per effect; the
-    longest where they differ), {} where none does."""
-    lags = {a: f.delay_s for a, f in fits.items() if f.delay_s > 0}
-    if not lags:
-        return {}
-    return {"delay": {"delay_s": float(max(lags.values())), "axes": sorted(lags)}}
+    or ClassFit}): each lagging axis's own delay (one entry for the axes that share
+    it), {} where none lags."""
+    from piezo_stage.core.model.effects import effects_block
+    return effects_block({a: {"delay": {"delay_s": float(f.delay_s)}}
+                          for a, f in sorted(fits.items()) if f.delay_s > 0})
 
 
 @dataclass

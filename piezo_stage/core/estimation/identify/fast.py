@@ -85,13 +85,17 @@ MONOTONE_COST = 1.1   # a fit kept rising replaces the free one within this fact
 
 def keep_rising(reg: DuhemRegression, alphas: np.ndarray, fit: Fit,
                 lows: np.ndarray | None = None, hi: float = LOG_ALPHA_BOUNDS[1],
-                history: list[float] | None = None) -> tuple[np.ndarray, Fit]:
+                history: list[float] | None = None,
+                near: bool = False) -> tuple[np.ndarray, Fit]:
     """The best fit (``alphas``, ``fit``) with every branch of the main law kept rising
     (``reg.monotone``, at least ``reg.monotone_floor``): at these alphas, else with the
     alphas searched again under that constraint; taken where its RMS is within
     MONOTONE_COST of the free fit's, else the free fit stays (a record whose law cannot
     keep its branches rising at a fair cost: its exact inverse may then take another
-    root where a branch turns back)."""
+    root where a branch turns back). ``near``: the search from ``alphas`` alone (no
+    grid of shared alphas, half the budget): a fit whose alphas are already the free
+    optimum's, refitted under the constraint where it is cheap to (the gap's
+    candidates, each written as scored)."""
     if reg.monotone_floor is None:
         return alphas, fit
     kept = reg.monotone(alphas, fit)
@@ -101,15 +105,15 @@ def keep_rising(reg: DuhemRegression, alphas: np.ndarray, fit: Fit,
         return alphas, kept
     low = np.full(len(alphas), LOG_ALPHA_BOUNDS[0]) if lows is None else lows
     found = _search_monotone(reg, alphas, kept, low, hi,
-                             history if history is not None else [])
+                             history if history is not None else [], near)
     if found is not None and found[1].rms <= fit.rms * MONOTONE_COST:
         return found
     return alphas, fit
 
 
 def _search_monotone(reg: DuhemRegression, alphas: np.ndarray, fit: Fit | None,
-                     lows: np.ndarray, hi: float,
-                     history: list[float]) -> tuple[np.ndarray, Fit] | None:
+                     lows: np.ndarray, hi: float, history: list[float],
+                     near: bool = False) -> tuple[np.ndarray, Fit] | None:
     """The alphas whose fit, kept rising on every branch, is closest (None: none
     found): a coarse grid of shared alphas and a simplex from the best of it and from
     ``alphas`` (whose kept fit is ``fit``, or None)."""
@@ -127,9 +131,12 @@ def _search_monotone(reg: DuhemRegression, alphas: np.ndarray, fit: Fit | None,
             best.update(rms=f.rms, alphas=a, fit=f)
         history.append(best["rms"])
         return f.rms
-    g = np.linspace(LOG_ALPHA_BOUNDS[0], hi, 9)
-    vals = [objective(np.full(k, x)) for x in g]
-    for start in (np.full(k, g[int(np.argmin(vals))]), np.log(best["alphas"])):
+    starts = [np.log(best["alphas"])]
+    if not near:
+        g = np.linspace(LOG_ALPHA_BOUNDS[0], hi, 9)
+        vals = [objective(np.full(k, x)) for x in g]
+        starts.insert(0, np.full(k, g[int(np.argmin(vals))]))
+    for start in starts:
         simplex = [start] + [start + 0.5 * e for e in np.eye(k)]
         minimize(objective, start, method="Nelder-Mead",
                  options={"maxfev": MONOTONE_BUDGET // 2, "xatol": 1e-3, "fatol": 1e-9,

@@ -101,11 +101,13 @@ class DuhemRegression:
 
     Notes
     -----
-    The attributes ``transform`` (a linear operator on the columns, X to E X: an
-    unmodelled effect such as creep or dynamics acting after the hysteresis) and
-    ``extra`` (fixed extra columns, e.g. a drift trend, appended after the transform)
-    keep the fit one linear least-squares problem for fixed alphas; their
-    coefficients come last in theta.
+    The attributes ``beside`` (fixed columns of the hysteresis beside the Duhem law,
+    e.g. play operators: part of its output, so after the law's and the coupling's
+    columns, under the transform with them), ``transform`` (a linear operator on the
+    columns, X to E X: an unmodelled effect such as creep or dynamics acting after the
+    hysteresis, as the plant applies it) and ``extra`` (fixed extra columns, e.g. a
+    drift trend, appended after the transform) keep the fit one linear least-squares
+    problem for fixed alphas; their coefficients come last in theta, in that order.
     """
 
     def __init__(self, v: ArrayLike, w: ArrayLike, structure: str = "segmented", n: int = 3,
@@ -130,7 +132,12 @@ class DuhemRegression:
             self.olo, self.ohi = float(self.v_other.min()), float(self.v_other.max())
             self.Bo = legendre_basis(self.v_other, self.olo, self.ohi, self.cdeg)
         self.evaluations = 0
-        # an operator on the columns (the gap's effects) and more columns after them
+        # more columns of the hysteresis, an operator on the columns (the gap's
+        # effects) and more columns after them
+        self.beside: np.ndarray | None = None
+        # the record's first rows are run, not fitted (a delay's first outputs hold
+        # voltages from before the record, which a record cut from a run never had)
+        self.fit_from = 0
         self.transform: Callable[[np.ndarray], np.ndarray] | None = None
         self.extra: np.ndarray | None = None
         # the least slope [um/V] the main law keeps on every branch (``monotone``), or
@@ -184,8 +191,9 @@ class DuhemRegression:
         return fold_branches(X, self.cdeg + 1, self.cstate, self._Xc)
 
     def blocks(self, alphas: ArrayLike) -> list[np.ndarray]:
-        """The regressor columns for these alphas as blocks [main, coupling] (the main
-        block is a buffer reused by the next call: use or copy it before then)."""
+        """The regressor columns of the hysteresis for these alphas as blocks [main,
+        coupling, beside] (the main block is a buffer reused by the next call: use or
+        copy it before then)."""
         alphas = np.atleast_1d(np.asarray(alphas, float))
         if self.structure == "whole":
             out = [self._main_columns(alphas[0], alphas[0])]
@@ -193,6 +201,8 @@ class DuhemRegression:
             out = [self._main_columns(alphas[0], alphas[1])]
         if self.v_other is not None:
             out.append(self._coupling_columns(alphas[-1]))
+        if self.beside is not None:
+            out.append(self.beside)
         return out
 
     def design(self, alphas: ArrayLike) -> np.ndarray:
@@ -202,13 +212,18 @@ class DuhemRegression:
 
     def column_blocks(self, alphas: ArrayLike) -> list[np.ndarray]:
         """Every column of the fit for these alphas, in blocks: design blocks
-        transformed, then the extra columns."""
+        transformed, then the extra columns; the rows fitted (from ``fit_from``)."""
         out = self.blocks(alphas)
         if self.transform is not None:
             out = [self.transform(b) for b in out]
         if self.extra is not None:
             out.append(self.extra)
-        return out
+        return [b[self.fit_from:] for b in out] if self.fit_from else out
+
+    @property
+    def fitted_w(self) -> np.ndarray:
+        """The displacement of the rows fitted (from ``fit_from``) [um]."""
+        return self.w[self.fit_from:]
 
     def columns(self, alphas: ArrayLike) -> np.ndarray:
         """Every column of the fit for these alphas: design, transformed, extra."""
@@ -218,10 +233,12 @@ class DuhemRegression:
     def solve(self, alphas: Sequence[float]) -> Fit:
         """Exact least squares in the coefficients for these alphas."""
         self.evaluations += 1
-        return solve_gram(*gram_blocks(self.column_blocks(alphas), self.w), len(self.w))
+        w = self.fitted_w
+        return solve_gram(*gram_blocks(self.column_blocks(alphas), w), len(w))
 
     def predict(self, alphas: Sequence[float], theta: np.ndarray) -> np.ndarray:
-        """The fitted output for these alphas and coefficients [um]."""
+        """The fitted output for these alphas and coefficients over the rows fitted
+        [um]."""
         return self.columns(alphas) @ theta
 
     def monotone(self, alphas: ArrayLike, fit: Fit) -> Fit | None:
@@ -243,7 +260,7 @@ class DuhemRegression:
         th = monotone_theta(self, alphas, fit.theta, self.monotone_floor, probe)
         if th is None or th is fit.theta:
             return None if th is None else fit
-        r = self.w - self.columns(alphas) @ th
+        r = self.fitted_w - self.columns(alphas) @ th
         return Fit(th, float(np.sqrt(np.mean(r ** 2))))
 
     def models(self, alphas: ArrayLike,
@@ -361,7 +378,7 @@ def monotone_theta(reg: DuhemRegression, alphas: ArrayLike, theta: np.ndarray,
     scale = np.sqrt(np.clip(np.einsum("ij,ij->j", A, A), 1e-300, None))
     As = A / scale  # unit columns: a well-conditioned factor
     Rf = np.asarray(np.linalg.qr(As, mode="r"))
-    q = np.linalg.solve(Rf.T, As.T @ reg.w)
+    q = np.linalg.solve(Rf.T, As.T @ reg.fitted_w)
     Rinv = np.linalg.inv(Rf)
     Gs = G / scale  # in the scaled coefficients
     E = Gs @ Rinv
