@@ -208,7 +208,8 @@ class Stage:
     def _resend(self, pub, msg, answered, t_end: float) -> None:
         """``msg`` (published once already) sent again each RESEND_S until ``answered()``
         or ``t_end`` (monotonic [s]): a reader that had not yet matched this writer
-        dropped what came before it; the stage takes a repeat as the same request."""
+        dropped what came before it. For a move only: the stage takes a move asked again
+        under its id as the same move (a trajectory sent again is another one)."""
         while not self._wait(answered, min(RESEND_S, max(0.0, t_end - time.monotonic()))):
             if time.monotonic() >= t_end:
                 return
@@ -347,7 +348,8 @@ class Stage:
         from piezo_stage_msgs_adapters import trajectory_msg
         self._check_driver()
         msg = trajectory_msg(t_s, w_um)
-        msg.header.frame_id = f"{self.node.get_name()}-{next(self._ids)}"  # a new one
+        # its name: the acceptance that carries it is this run's
+        msg.header.frame_id = f"{self.node.get_name()}-{next(self._ids)}"
         n_acc = self.accepted
         limit = timeout if timeout is not None else float(t_s[-1]) + 30.0
         # its phases: from here on, and naming it (the feedforward's phase follows
@@ -360,11 +362,17 @@ class Stage:
         follows = (f"trajectory of {len(msg.points)} points stamped "
                    f"{st.sec * 1_000_000_000 + st.nanosec}")
         t0 = time.monotonic()
+        t_end = t0 + min(limit, 30.0)
+        self._wait(lambda: self.traj_pub.get_subscription_count() > 0, min(limit, 30.0))
         self.traj_pub.publish(msg)
+        # sent once, reliably, and kept until every matched reader has it: sent again it
+        # would be another publication, which the stage runs again
+        from rclpy.duration import Duration
+        self.traj_pub.wait_for_all_acked(Duration(seconds=max(0.0, t_end - time.monotonic())))
+
         def accepted():
             return self.accepted > n_acc and self.last_frame == msg.header.frame_id
-        t_end = t0 + min(limit, 30.0)
-        self._resend(self.traj_pub, msg, accepted, t_end)  # (taken twice: as one)
+        self._wait(accepted, max(0.0, t_end - time.monotonic()))
         if not accepted():
             raise StageError(f"{self.ns}: the trajectory was not accepted (see the "
                              "feedforward's log)")

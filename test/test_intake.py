@@ -7,7 +7,7 @@ import time
 import pytest
 
 from piezo_stage.core.errors import DataError, PiezoStageError
-from piezo_stage.nodes._intake import Intake, trajectory_key, warm_up
+from piezo_stage.nodes._intake import Intake, warm_up
 
 
 def _drain(intake, n, timeout=5.0):
@@ -44,12 +44,6 @@ def test_an_error_it_was_not_told_of_is_not_swallowed_as_a_result():
     intake.submit("model", "x")
     time.sleep(0.2)
     assert intake.ready() == []  # the worker died loudly (threading's excepthook)
-
-
-def test_the_same_bytes_give_the_same_key_and_others_another():
-    a = bytes(range(256)) * 100
-    assert trajectory_key(a) == trajectory_key(bytes(a))
-    assert trajectory_key(a) != trajectory_key(a[:-1] + b"\x00")
 
 
 def test_warm_up_runs_both_decoding_paths():

@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
+from lab_nodes import SAME_AGAIN, assert_ran_each  # noqa: E402
+
 from conftest import CONFIG, ROOT, on_a_terminal  # noqa: E402
 from piezo_stage.io.bag import deserialize, iter_messages, read_bag_record  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
@@ -216,6 +218,24 @@ def with_lab_node(tmp_path, env, code, name, steps):
         if lab.poll() is None:
             lab.kill()
     return bag
+
+
+def test_the_same_trajectory_published_three_times_runs_three_times(tmp_path, env):
+    """A trajectory is its publication (docs/nodes.md): one lab node publishes the same
+    trajectory (the same bytes) three times, each after the last run ended; the stage
+    accepts all three, the bag holds all three on trajectory/accepted, and it runs each
+    (through its middle point) to its end. (Before, a repeat of the bytes taken last
+    was dropped without a word.)"""
+    lab = subprocess.Popen([sys.executable, "-c", SAME_AGAIN, "3"], env=env)
+    try:
+        bag = lockstep(tmp_path, env, "same_again", steps=30000,
+                       nodes=["stage_driver", "feedforward", "controller"],
+                       overrides={"feedforward": {"wait_for_trajectory": True}})
+        assert lab.wait(60) == 0
+    finally:
+        if lab.poll() is None:
+            lab.kill()
+    assert_ran_each(bag, 3)
 
 
 def test_a_run_shorter_than_the_report_cadence_has_every_nodes_final_report(tmp_path,

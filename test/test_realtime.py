@@ -18,6 +18,8 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
+from lab_nodes import SAME_AGAIN, assert_ran_each  # noqa: E402
+
 from conftest import CONFIG, realtime_rate_hz, realtime_twice  # noqa: E402
 from piezo_stage.io.run_bag import (
     read_run,  # noqa: E402
@@ -848,6 +850,43 @@ def _outside(tmp_path, domain, capfd):
     assert "incompatible" not in err.lower(), err[-2000:]
     assert "s in the past" in err
 
+
+
+def test_the_same_trajectory_from_three_outside_processes_runs_three_times(
+        tmp_path, domain, ros_domains):
+    """A trajectory is its publication: three outside processes, one after another, each
+    publish the same trajectory (the same bytes) to a real-time set and wait for its
+    run's end; the stage accepts, records and runs all three to their end, no fault.
+    (Before, the second and later were dropped as the bytes taken last, without a
+    word.)"""
+    def _same_run(folder, dom):
+        folder.mkdir()
+        d, env = dom
+        bag = str(folder / "same")
+        launch = Launch(realtime_config(folder), record=bag, env=env, trajectory=False,
+                        exclusive=False)
+        probe = Probe(d)
+        failed = None
+        try:
+            launch.start()
+            assert probe.wait_state("armed", 60)
+            for _ in range(3):
+                r = subprocess.run([sys.executable, "-c", SAME_AGAIN, "1"], env=env,
+                                   capture_output=True, text=True, timeout=120)
+                assert r.returncode == 0, r.stderr[-2000:]
+            assert probe.state == "armed", probe.states[-3:]
+        except AssertionError as e:
+            failed = e
+        finally:
+            probe.close()
+            launch.stop()
+        run = read_run(bag)
+        if failed is not None:
+            paused_by_the_host(run, failed)
+        names = [s for _, s in run.states]
+        never_faulted([(n,) for n in names[names.index("armed"):-1]])
+        assert_ran_each(bag, 3)
+    run_twice_at_most(_same_run, tmp_path, domain, ros_domains)
 
 
 # an outside node between the real controller (its output remapped to command_raw) and

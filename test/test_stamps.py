@@ -1,7 +1,7 @@
 """StampGuard: a stray stamp is counted and dropped, never taken; a stream that really
 moved is followed after a run of consistent stamps."""
 
-from piezo_stage.core.loop.stamps import StampGuard
+from piezo_stage.core.loop.stamps import Publications, StampGuard, publication_key
 
 MS = 1_000_000
 
@@ -36,3 +36,24 @@ def test_scattered_strays_never_form_a_run():
         g.accept(MS * (k + 2))
         assert not g.accept(10 ** 15 * (k % 2 + 1))  # alternating far stamps: no run
     assert g.rebased == 0
+
+
+def test_a_publication_is_taken_once_and_the_same_content_published_again_is_new():
+    """The identity is the publication (source timestamp, sequence number): a second
+    delivery of one (volatile and latched) is not new; another publication is, whatever
+    its bytes; a delivery without an identity is always new; only the newest are
+    remembered."""
+    p = Publications(remember=3)
+    a = publication_key({"source_timestamp": 10, "publication_sequence_number": 1})
+    assert p.first(a) and not p.first(a) and p.repeated == 1
+    again = publication_key({"source_timestamp": 11, "publication_sequence_number": 2})
+    assert p.first(again)  # the same trajectory sent again: a new request
+    other_writer = publication_key({"source_timestamp": 12,
+                                    "publication_sequence_number": 1})
+    assert p.first(other_writer)
+    assert publication_key({"source_timestamp": None}) is None
+    assert publication_key(None) is None
+    assert p.first(None) and p.first(None)
+    for k in range(20, 23):
+        p.first((k, k))
+    assert p.first(a)  # forgotten: three newer ones since

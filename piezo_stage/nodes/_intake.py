@@ -3,29 +3,23 @@ and prepared off the loop's thread.
 
 In real time the feedforward answers every sample within the driver's look-ahead (5 ms
 by default). Taking a 200,000-point trajectory (11.2 MB of CDR) costs its thread about
-10 ms on this host: the middleware's take (1-2 ms on pre-faulted heap), a hash to
-recognise a repeat, the decoding and the republishing on ``trajectory/accepted``. Done
+10 ms on this host: the middleware's take (1-2 ms on pre-faulted heap), the
+decoding and the republishing on ``trajectory/accepted``. Done
 on the loop's thread that held the driver 4-6 ticks without a command (`bench faults`,
 2026-11-26). Here only the take stays there; one worker thread, at normal priority,
-does the rest (hashlib and numpy release the GIL on large buffers), and the loop's
+does the rest (numpy releases the GIL on large buffers), and the loop's
 thread picks up the result at its next sample (``ready``). A model message is the
 same: parsing its YAML, checking it and building its inverse held the loop 5-8 ticks.
 """
 
 from __future__ import annotations
 
-import hashlib
 import os
 import queue
 import sys
 import threading
 
 SWITCH_INTERVAL_S = 0.0005  # the GIL handed over this often while the worker runs
-
-
-def trajectory_key(data: bytes) -> bytes:
-    """What recognises the same trajectory delivered twice (volatile and latched)."""
-    return hashlib.blake2b(data, digest_size=16).digest()
 
 
 def warm_up(decode, errors: tuple) -> None:

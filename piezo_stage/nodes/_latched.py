@@ -18,8 +18,10 @@ fetch, and a default-QoS publisher already on the graph sees no warning then. Wh
 left: with an outside latched publisher, a default-QoS publisher that joins in that
 moment may see the fetch and log one incompatible-QoS warning; it is still matched by
 the volatile subscription and its messages are taken.
-The callback may then see one message twice (live and fetched): callers take a message
-once by its content.
+The callback may then see one publication twice (live and fetched): it gets the
+message info with the bytes, and callers take a publication once by its identity
+(core/loop/stamps.py ``Publications``), never by its content: the same bytes published
+again are another request.
 """
 
 from __future__ import annotations
@@ -50,7 +52,8 @@ def fetchable(infos, ns: str, resending=RESENDING) -> tuple[set, bool]:
 
 
 class LatchedFetch:
-    """See the module docstring. ``callback(data)`` gets the raw CDR bytes."""
+    """See the module docstring. ``callback(data, info)`` gets the raw CDR bytes and
+    rclpy's message info (the publication's source timestamp and sequence number)."""
 
     def __init__(self, node, msg_type, topic: str, callback, poll_s: float = 0.25,
                  open_s: float = 1.0, resending=RESENDING):
@@ -62,9 +65,9 @@ class LatchedFetch:
         self.fetches, self.expected, self.got = 0, 0, 0
         steady_timer(node, poll_s, self.poll)
 
-    def _take(self, data) -> None:
+    def _take(self, data, info) -> None:
         self.got += 1
-        self.callback(data)
+        self.callback(data, info)
         if self.got >= self.expected:  # the history it opened for: close at once
             self._close()
 

@@ -32,11 +32,11 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop import feedforward as core_ff
 from piezo_stage.core.loop.ontarget import REFUSED, TargetState
 from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
-from piezo_stage.core.loop.stamps import StampGuard
+from piezo_stage.core.loop.stamps import Publications, StampGuard, publication_key
 from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
-from piezo_stage.nodes._intake import Intake, trajectory_key, warm_up
+from piezo_stage.nodes._intake import Intake, warm_up
 from piezo_stage.nodes._latched import LatchedFetch
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare_schema
@@ -80,7 +80,10 @@ class Feedforward(LeanNode, Node):
             name, v) for q in live}))
         for q in live:
             self.core.set_live(q.name, p[q.name])
-        self.model_name, self.pending, self.decoded_key = "nominal", None, None
+        self.model_name, self.pending = "nominal", None
+        # a trajectory is its publication: the same bytes sent again run again, one
+        # publication delivered twice (volatile and the latched fetch) runs once
+        self.publications = Publications()
         # real time: trajectories and models are taken apart on the intake's thread
         self.intake = Intake({"trajectory": self.decode_trajectory,
                               "model": self.prepare_model}, (PiezoStageError,))
@@ -138,11 +141,13 @@ class Feedforward(LeanNode, Node):
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         # volatile: every publisher matches, none warns; a latched publisher's trajectory
         # sent before we matched (a restarted feedforward) comes by a brief
-        # transient-local fetch (_latched.py); the same message twice is taken once
-        # (raw: checked for size, then decoded straight from the bytes, so a long
+        # transient-local fetch (_latched.py); one publication delivered twice is taken
+        # once (raw: checked for size, then decoded straight from the bytes, so a long
         # trajectory does not stall the loop in per-point message objects)
-        self.create_subscription(JointTrajectory, "trajectory", self.on_trajectory, reliable,
-                                 raw=True)
+        # (a callback of two arguments gets the message info, the publication's
+        # identity: rclpy's annotation names the one-argument form only)
+        self.create_subscription(JointTrajectory, "trajectory",
+                                 self.on_trajectory, reliable, raw=True)  # type: ignore[arg-type]
         self.latched = LatchedFetch(self, JointTrajectory, "trajectory", self.on_trajectory)
         self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
         # a move is taken at once (with the samples), not at the base executor's turn
@@ -201,30 +206,32 @@ class Feedforward(LeanNode, Node):
             msg, self.pending = self.pending, None
             self.on_state(msg, resumed=True)
 
-    def on_trajectory(self, msg):
-        """A trajectory's bytes: checked, decoded and republished as accepted inline
-        in lockstep, on the intake's thread in real time (``_intake.py``)."""
+    def on_trajectory(self, msg, info):
+        """A trajectory's bytes and its publication (rclpy's message info): checked,
+        decoded and republished as accepted inline in lockstep, on the intake's thread
+        in real time (``_intake.py``)."""
+        item = (bytes(msg), publication_key(info))
         if self.driver.realtime:
-            self.intake.submit("trajectory", bytes(msg))
+            self.intake.submit("trajectory", item)
             return
         try:
-            self.take_trajectory(self.decode_trajectory(msg))
+            self.take_trajectory(self.decode_trajectory(item))
         except PiezoStageError as e:
             self.reject_trajectory(e)
 
-    def decode_trajectory(self, msg):
-        """-> (t, w, stamp, start, now) of a trajectory that is new and accepted (every
-        check passed, its stamp's too), republished as accepted; None for the one taken
-        last, delivered again (volatile and latched). Any thread."""
-        check_trajectory_size(msg, self.max_points)  # before anything else
-        key = trajectory_key(msg)
-        if key == self.decoded_key:
+    def decode_trajectory(self, item):
+        """(bytes, publication) -> (t, w, stamp, start, now) of a trajectory that is
+        accepted (every check passed, its stamp's too), republished as accepted; None
+        for a publication taken already, delivered again (volatile and latched). Any
+        thread (one at a time)."""
+        msg, key = item
+        if not self.publications.first(key):
             return None
+        check_trajectory_size(msg, self.max_points)  # before anything else
         t, w = trajectory_from_cdr(msg, self.p["range_um"], self.max_points)
         stamp, now = trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
         start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
-        self.decoded_key = key
-        self.accepted_pub.publish(bytes(msg))  # only what the stage will run
+        self.accepted_pub.publish(msg)  # only what the stage will run
         return t, w, stamp, start, now
 
     def take_trajectory(self, decoded):

@@ -11,8 +11,9 @@ when the feedforward says it holds with no trajectory a second after the send (i
 matched too late for it, or it was restarted): the publisher is latched, but the set's
 nodes take trajectories on a volatile subscription and fetch no history from this node
 (nodes/_latched.py), so a default-QoS publisher on the graph sees no QoS warning. At
-most RESENDS times until the feedforward reports something else; it takes a
-trajectory once by its content.
+most RESENDS times until the feedforward reports something else; a resend is a new
+publication, which the feedforward runs (a trajectory is its publication), so it is
+sent only while the feedforward holds with none.
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)

@@ -59,3 +59,49 @@ class StampGuard:
             return True
         self.dropped += 1
         return False
+
+
+class Publications:
+    """Which publications a node has taken. A request (a trajectory) is identified by its
+    publication, not by its content: the same bytes published again are a new request
+    and run again; one publication delivered twice (a volatile subscription and a
+    latched fetch both hand it over) is taken once. The identity is what the
+    middleware stamps on a publication (``publication_key``: its writer's source
+    timestamp and sequence number); a delivery without one is always new.
+
+    Parameters
+    ----------
+    remember : int
+        How many of the newest publications are remembered (a latched fetch delivers
+        only the one its publisher holds, soon after the live copy).
+    """
+
+    def __init__(self, remember: int = 64):
+        self.remember = int(remember)
+        self._order: list = []
+        self._seen: set = set()
+        self.repeated = 0  # deliveries of a publication taken already
+
+    def first(self, key: tuple | None) -> bool:
+        """True the first time publication ``key`` is seen (then remembered); False for
+        a delivery of one taken already (counted in ``repeated``). None: no identity,
+        always True."""
+        if key is None:
+            return True
+        if key in self._seen:
+            self.repeated += 1
+            return False
+        self._seen.add(key)
+        self._order.append(key)
+        if len(self._order) > self.remember:
+            self._seen.discard(self._order.pop(0))
+        return True
+
+
+def publication_key(info: dict | None) -> tuple | None:
+    """A publication's identity from the message info rclpy hands a two-argument
+    subscription callback: (source timestamp [ns], publication sequence number);
+    None where the middleware gives no source timestamp."""
+    if not info or not info.get("source_timestamp"):
+        return None
+    return int(info["source_timestamp"]), info.get("publication_sequence_number")
