@@ -14,7 +14,10 @@ way a lab's own node would:
    "done" and ``feedforward_follows`` "trajectory of N points stamped S") for this very
    trajectory; a fault of the stage's that begins after the sample it saw last before
    publishing ends the wait (the latched topic also replays older changes: an earlier
-   fault, since recovered from, is not this trajectory's);
+   fault, since recovered from, is not this trajectory's); a refusal of this very
+   trajectory on <namespace>/trajectory/refused (diagnostic_msgs/DiagnosticArray: the
+   trajectory's header.frame_id, which this node sets to a name of its own, and the
+   reason) ends it at once: the reason printed, exit 2;
 3. read where the stage is (sensor_msgs/JointState on <namespace>/joint_states, taken
    only before publishing and at the end: they come at the control rate) and print the
    error per axis against the last point; exit 0 if both are within the tolerance, 1 if
@@ -109,12 +112,18 @@ def main(argv=None):
             seen["state"] = {kv.key: kv.value for kv in msg.status[0].values}
             seen["since"] = stamp_ns(msg.header)
 
+    def on_refused(msg):
+        if msg.status:
+            kv = {v.key: v.value for v in msg.status[0].values}
+            seen.setdefault("refused", {})[kv.get("frame_id", "")] = kv.get("reason", "")
+
     def on_joints(msg):
         if list(msg.name[:2]) == ["x", "y"] and len(msg.position) >= 2:
             seen["position"] = (msg.position[0] * 1e6, msg.position[1] * 1e6)
             seen["sample"] = stamp_ns(msg.header)
 
     node.create_subscription(DiagnosticArray, f"{ns}/state", on_state, STATE)
+    node.create_subscription(DiagnosticArray, f"{ns}/trajectory/refused", on_refused, STATE)
     # the stage's samples come at the control rate (1 kHz): this node takes them only
     # while it needs one (before publishing, and at the end), not the whole run long
     # (a Python callback a sample cost a third of a CPU, which the set's start-up
@@ -140,6 +149,8 @@ def main(argv=None):
         published_after = seen["sample"]
         node.destroy_subscription(joints)
         msg = JointTrajectory(joint_names=["x", "y"])
+        # its name: a refusal of it on trajectory/refused carries it back
+        msg.header.frame_id = f"publish_trajectory-{node.get_clock().now().nanoseconds}"
         # 0: no start time (the stage starts it once it has approached the first point;
         # a lockstep set, whose clock is its own samples, takes only this)
         start = node.get_clock().now().nanoseconds + int(args.start_in * 1e9) \
@@ -161,6 +172,10 @@ def main(argv=None):
         end = time.monotonic() + args.timeout
         while time.monotonic() < end and phase() != mine:
             rclpy.spin_once(node, timeout_sec=0.05)
+            if msg.header.frame_id in seen.get("refused", {}):
+                print(f"the stage refused the trajectory: "
+                      f"{seen['refused'][msg.header.frame_id]}", file=sys.stderr)
+                return 2
             if seen["state"].get("state") == "faulted" and seen["since"] > published_after:
                 print(f"the stage faulted: {seen['state'].get('reason')}", file=sys.stderr)
                 return 1

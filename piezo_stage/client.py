@@ -39,6 +39,7 @@ from piezo_stage_msgs_adapters.wire import Announcement
 
 RESEND_S = 1.0  # a move unanswered this long is sent again
 SETTLE_IN_S = 0.3  # after the first answers: the rest of the latched history
+DISCOVERY_S = 3.0  # no node of the set on the graph this long after the start: no set
 SAMPLES_KEPT = 200_000  # the samples a client keeps for its dwells (minutes at 1 kHz)
 
 
@@ -60,6 +61,11 @@ class MoveTimeout(StageError, TimeoutError):
 
 class MoveRefused(StageError):
     """The stage refused the move (a target outside its range)."""
+
+
+class TrajectoryRefused(StageError):
+    """The stage refused the trajectory (a point outside its range, stamped in the
+    past, too long, malformed): the feedforward's reason."""
 
 
 @dataclass(frozen=True)
@@ -148,21 +154,40 @@ class Stage:
                               QOS_EVENTS)
         n.create_subscription(JointTrajectory, f"{self.ns}/trajectory/accepted",
                               self._on_accepted, QOS_LATCHED)
+        self.refused: dict[str, str] = {}  # a refused trajectory's frame_id -> why
+        n.create_subscription(DiagnosticArray, f"{self.ns}/trajectory/refused",
+                              self._on_refused, QOS_EVENTS)
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.move_pub = n.create_publisher(PointStamped, f"{self.ns}/move", reliable)
         self.traj_pub = n.create_publisher(JointTrajectory, f"{self.ns}/trajectory", reliable)
         self.params: dict[str, float] = {}
         try:
-            if not self._wait(lambda: self.driver is not None and self.w is not None
-                              and self.move_pub.get_subscription_count() > 0, timeout):
-                raise NoStage(f"no stage at {self.ns} in domain {domain_id} within "
-                              f"{timeout:g} s (is the set launched there?)")
+            def answered():
+                return (self.driver is not None and self.w is not None
+                        and self.move_pub.get_subscription_count() > 0)
+            # a set's nodes announce themselves twice a second: none on the graph after
+            # DISCOVERY_S is no set (said then, not after the whole timeout); one that
+            # is there but not yet answering (starting, arming) gets the timeout
+            if not self._wait(lambda: answered() or self._set_on_graph(),
+                              min(timeout, DISCOVERY_S)) or not self._wait(answered,
+                                                                           timeout):
+                raise NoStage(f"no stage at {self.ns} in domain {domain_id} "
+                              f"(is the set launched there?)")
             # the latched history (the driver's earlier states, the phases) comes in
             # order on matching: the last of it is the present
             self._wait(lambda: False, SETTLE_IN_S)
         except BaseException:
             self.close()
             raise
+
+    def _set_on_graph(self) -> bool:
+        """Whether a node of the set's namespace (its driver's state publisher, or any
+        node there) is on the graph."""
+        n = self.node
+        if n.count_publishers(f"{self.ns}/state") > 0:
+            return True
+        ns = "/" + self.ns.strip("/")
+        return any(node_ns == ns for _, node_ns in n.get_node_names_and_namespaces())
 
     # -- what comes in ----------------------------------------------------------------
     def _on_state(self, msg) -> None:
@@ -191,6 +216,14 @@ class Stage:
     def _on_phase(self, msg) -> None:
         from piezo_stage_msgs_adapters import phase_from_msg
         self.phases.append(phase_from_msg(msg))
+
+    def _on_refused(self, msg) -> None:
+        from piezo_stage_msgs_adapters import refusal_from_msg
+        try:
+            frame_id, _, reason = refusal_from_msg(msg)
+        except PiezoStageError:
+            return
+        self.refused[frame_id] = reason
 
     def _on_accepted(self, msg) -> None:
         self.accepted += 1
@@ -343,8 +376,9 @@ class Stage:
 
     def run(self, t_s, w_um: dict, timeout: float | None = None) -> float:
         """Run a trajectory (t [s], {axis: um}) and wait for its end (the
-        feedforward's phase done) -> the seconds waited. Raises StageFault and
-        MoveTimeout (``timeout``: the trajectory's length plus 30 s when None)."""
+        feedforward's phase done) -> the seconds waited, from its publication to its
+        end (a float). Raises TrajectoryRefused (with the stage's reason), StageFault
+        and MoveTimeout (``timeout``: the trajectory's length plus 30 s when None)."""
         from piezo_stage_msgs_adapters import trajectory_msg
         self._check_driver()
         msg = trajectory_msg(t_s, w_um)
@@ -372,7 +406,11 @@ class Stage:
 
         def accepted():
             return self.accepted > n_acc and self.last_frame == msg.header.frame_id
-        self._wait(accepted, max(0.0, t_end - time.monotonic()))
+        self._wait(lambda: accepted() or msg.header.frame_id in self.refused,
+                   max(0.0, t_end - time.monotonic()))
+        if msg.header.frame_id in self.refused:
+            raise TrajectoryRefused(f"{self.ns}: the trajectory was refused: "
+                                    f"{self.refused[msg.header.frame_id]}")
         if not accepted():
             raise StageError(f"{self.ns}: the trajectory was not accepted (see the "
                              "feedforward's log)")

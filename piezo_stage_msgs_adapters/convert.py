@@ -34,7 +34,8 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "arming_state_msg", "announcement_from_msg", "trajectory_from_cdr", "clock_msg",
            "check_trajectory_size", "trajectory_max_bytes", "trajectory_take_bytes",
            "trajectory_stamp_ns", "phase_msg", "phase_from_msg", "move_msg",
-           "move_from_msg", "on_target_msg", "on_target_from_msg"]
+           "move_from_msg", "on_target_msg", "on_target_from_msg", "trajectory_header",
+           "refusal_msg", "refusal_from_msg"]
 
 FRAME = "stage"  # header.frame_id of everything the nodes publish
 
@@ -355,6 +356,37 @@ def model_from_msg(msg: String):
     from piezo_stage.core.model.model_doc import model_from_dict, parse_yaml
     return model_from_dict(parse_yaml(msg.data, "model message", max_bytes=65536),
                            "model message")
+
+
+def trajectory_header(data: bytes) -> tuple[str, int]:
+    """(header.frame_id, header.stamp [ns]) of a trajectory's CDR bytes, what its sender
+    names it by; ("", 0) where the bytes do not hold a header."""
+    try:
+        r = cdr.CdrReader(data)
+        stamp = r.stamp()
+        return r.string(), stamp
+    except DataError:
+        return "", 0
+
+
+def refusal_msg(ns: int, frame_id: str, stamp_ns: int, reason: str) -> DiagnosticArray:
+    """A trajectory the feedforward refused, on the ``trajectory/refused`` topic (as
+    ``on_target`` answers a refused move): header.stamp when it was refused; one status
+    named ``trajectory``, level 2, its message the reason, ``hardware_id`` the
+    trajectory's ``header.frame_id``; key-values ``frame_id``, ``stamp_ns`` (its
+    header.stamp) and ``reason``."""
+    return diagnostic_array(ns, "trajectory", 2, reason, {
+        "frame_id": frame_id, "stamp_ns": int(stamp_ns), "reason": reason}, frame_id)
+
+
+def refusal_from_msg(msg: DiagnosticArray) -> tuple[str, int, str]:
+    """``trajectory/refused`` -> (frame_id, stamp_ns, reason); DataError when it is not
+    one."""
+    try:
+        kv = {v.key: v.value for v in msg.status[0].values}
+        return kv["frame_id"], int(kv["stamp_ns"]), kv["reason"]
+    except (IndexError, KeyError, ValueError):
+        raise DataError("trajectory/refused: not a refusal") from None
 
 
 def phase_msg(phase: str, follows: str = "") -> KeyValue:

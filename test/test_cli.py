@@ -114,7 +114,8 @@ def _bad(tmp_path, text, *extra):
 
 
 @pytest.mark.parametrize("text,needle", [
-    ("t,vx,vz\n0,1,2\n0.1,1,2\n", "missing column"),
+    ("t,vx,vz\n0,1,2\n0.1,1,2\n", "the axes are x and y"),
+    ("t,wx\n0,1\n0.1,1\n", "missing columns: need t and, for at least one axis, v"),
     ("t,vx,vy\n0,1,nan\n0.1,1,2\n", "NaN"),
     ("t,vx,vy\n0,1,inf\n0.1,1,2\n", "NaN or inf"),
     ("t,vx,vy\n0,1,2\n0,1,2\n", "not increasing"),
@@ -126,6 +127,34 @@ def _bad(tmp_path, text, *extra):
 ])
 def test_simulate_bad_input(tmp_path, text, needle):
     assert needle in _bad(tmp_path, text)
+
+
+def test_one_axis_records_are_taken_wherever_two_axis_ones_are(tmp_path):
+    """A lab's record of one axis (t,vx; t,wx) where a two-axis one is taken: simulate
+    (the other axis at rest; the record's own displacement scored), invert (a model of
+    both axes, the other held at rest, its coupling taken in), play (the other at the
+    safe voltage), and what they write runs on (before: "missing column(s) vy")."""
+    t = np.arange(2000) / 1000.0
+    v = 75 - 60 * np.cos(2 * np.pi * t)
+    write_table(tmp_path / "v.csv", {"t": t, "vx": v})
+    model = os.path.join(ROOT, "config", "stage_model.yaml")
+    run("simulate", "--in", tmp_path / "v.csv", "--out", tmp_path / "w.csv", "--model",
+        model)
+    w = read_table(tmp_path / "w.csv", ["t", "vx", "wx"])
+    assert "vy" not in w and np.ptp(w["wx"]) > 50
+    r = run("simulate", "--in", tmp_path / "w.csv", "--out", tmp_path / "w2.csv",
+            "--model", model)
+    assert "x: 0.0000 um RMS from" in r.stdout, r.stdout  # the same stage: no error
+    write_table(tmp_path / "target.csv", {"t": t, "wx": w["wx"]})
+    run("invert", "--model", model, "--in", tmp_path / "target.csv", "--out",
+        tmp_path / "back.csv")
+    back = read_table(tmp_path / "back.csv", ["t", "vx", "vy"])
+    assert np.all(back["vy"] == 0.0)
+    np.testing.assert_allclose(back["vx"], v, atol=1e-6)  # the coupling of vy at rest
+    run("play", tmp_path / "v.csv", "--out", tmp_path / "played.csv")
+    played = read_table(tmp_path / "played.csv", ["t", "vx", "vy", "wx", "wy"])
+    np.testing.assert_allclose(played["vx"], v, atol=1e-6)  # (the CSV's 10 digits)
+    assert np.all(played["vy"] == 0.0)
 
 
 def test_malformed_yaml_config(tmp_path, volts):
@@ -199,7 +228,7 @@ def test_a_figure_drawn_apart_is_the_figure_drawn_here_and_a_lost_worker_loses_n
     from piezo_stage.io import plots
     t = np.arange(400) / 100.0
     v = 75 - 75 * np.cos(2 * np.pi * 0.5 * t)
-    curves = {"x": (v, 0.5 * v + 0.01 * np.sin(7 * t), 0.5 * v)}
+    curves = {"x": (v, 0.5 * v + 0.01 * np.sin(7 * t), 0.5 * v, 0)}
     here = plots.identification_png(str(tmp_path / "here.png"), t, curves)
     with plots.FigureWorker() as w:
         proc = w.proc

@@ -128,6 +128,16 @@ def _client_run(tmp_path, env, mode, rate=None):
     _one_line(_cli(env, "move", "1", "2", "--timeout", "2"), 4, "no stage at /stage")
 
 
+def test_no_stage_is_said_once_discovery_had_its_time_not_after_the_timeout(ros_env):
+    """`move` where no set runs: exit 4, one line, once discovery had its seconds (a
+    set's nodes announce themselves twice a second), not after the move's whole
+    timeout (it took the 10 s default to say so)."""
+    import time
+    t0 = time.monotonic()
+    _one_line(_cli(ros_env, "move", "1", "2", "--timeout", "60"), 4, "no stage at /stage")
+    assert time.monotonic() - t0 < 30.0  # (DISCOVERY_S and a start, not 60 s)
+
+
 def test_move_and_scan_refuse_bad_input_before_any_stage(tmp_path, ros_env):
     _one_line(_cli(ros_env, "move", "1"), 2, "")
     _one_line(_cli(ros_env, "move", "1", "2", "--tol-um", "0"), 2, "--tol-um")
@@ -241,3 +251,33 @@ def test_the_example_node_stopped_by_a_signal_says_so_in_one_line(ros_env, sig):
     out, err = p.communicate(timeout=30)
     r = subprocess.CompletedProcess(p.args, p.returncode, out, err)
     _one_line(r, 128 + getattr(signal, sig), f"stopped by {sig} before the stage finished")
+
+
+@pytest.mark.slow
+def test_a_refused_trajectory_is_answered_to_its_sender(tmp_path, ros_env):
+    """A trajectory the stage refuses (a point at 500 um, outside its range) is answered
+    on trajectory/refused with the name its sender gave it and the reason: the example
+    node says so in one line and exits 2 at once, the client's run raises
+    TrajectoryRefused with the reason (before: nothing but a counter on /diagnostics,
+    and the sender waited out its timeout)."""
+    import time
+
+    from piezo_stage.client import Stage, TrajectoryRefused
+    launch, _ = _set(tmp_path, ros_env, "lockstep")
+    try:
+        launch.start()
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, os.path.join(CONFIG, "..", "examples",
+                                                         "publish_trajectory.py"),
+                            "--points", "0,20,20 0.5,500,20", "--start-in", "0",
+                            "--timeout", "60"],
+                           env=ros_env, capture_output=True, text=True, timeout=90)
+        _one_line(r, 2, "the stage refused the trajectory")
+        assert "500" in r.stderr and "range" in r.stderr, r.stderr
+        assert time.monotonic() - t0 < 30  # at once, not after its 60 s timeout
+        with Stage(domain_id=int(ros_env["ROS_DOMAIN_ID"])) as stage:
+            with pytest.raises(TrajectoryRefused, match="range"):
+                stage.run([0.0, 0.5], {"x": [20.0, 500.0], "y": [20.0, 20.0]},
+                          timeout=60)
+    finally:
+        launch.stop()

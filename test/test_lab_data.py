@@ -191,6 +191,31 @@ def test_the_model_gap_writes_scores_what_its_table_says_and_no_worse_than_ident
     assert got <= ident * (1 + 1e-9), (got, ident, written)
 
 
+def test_gap_s_verdict_does_not_turn_on_the_amplifier_limits_the_data_lie_inside(
+        tmp_path):
+    """On the measured P-885 (0-3.6 V; the calibration held out on its nested minor
+    loops, where memory is the verdict), `gap` with the default limits (0-150 V) and
+    with `--limits=0,3.6` (the record's own span) names the same effects with the same
+    figures, every candidate's: the memory classes' operators reach half the span of
+    the records' voltages, not of an amplifier's range beyond them (before: memory
+    without, and inconclusive with the limits)."""
+    v, w = p885("Model_Vi_Do.dat")
+    vt, wt = p885("Test_Vi_Do_Di.dat")
+    write_axis(tmp_path / "fit.csv", v, w)  # the calibration -> its nested minor loops
+    write_axis(tmp_path / "hold.csv", vt[:UNCOMPENSATED], wt[:UNCOMPENSATED])
+    got = []
+    for extra in ([], ["--limits=0,3.6"]):
+        r = cli("gap", tmp_path / "fit.csv", "--holdout", tmp_path / "hold.csv", "--axis",
+                "x", "--json", tmp_path / "g.json", *extra)
+        assert r.returncode == 0, r.stderr[-2000:]
+        d = json.loads((tmp_path / "g.json").read_text())
+        got.append((d["verdict"], [(s["effect"], round(s["rms_after_um"], 4))
+                                   for s in d["effects"]],
+                    [(c["effect"], round(c["rms_after_um"], 4)) for c in d["ranking"]],
+                    round(d["axes"]["x"]["written"]["rms_after_um"], 4)))
+    assert got[0] == got[1], got
+
+
 def _sim_record(seconds=12.0, fs=1000.0, seed=0, freqs=(1.0, 2.7)):
     """Axis x of the simulated stage driven by two sines (minor loops in it)."""
     from piezo_stage.core.model.plant import Plant

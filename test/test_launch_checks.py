@@ -423,3 +423,49 @@ def test_the_command_lines_compositions_are_the_launchers():
     from piezo_stage.cli._common import COMPOSITIONS
     from piezo_stage.launch.launcher import COMPOSE
     assert set(COMPOSITIONS) == set(COMPOSE)
+
+
+@pytest.mark.parametrize("node, name, content, said", [
+    ("feedforward", "model_file", "typo", "unknown key(s) ['ascendng'] (did you mean "
+     "'ascending'?)"),
+    ("feedforward", "model_file", None, "no such file or directory"),
+    ("stage_driver", "plant_config", "typo", "not a plant config"),
+    ("trajectory", "csv_path", "t,wx\n0,1\n", "missing column(s) wy"),
+    ("recorder", "model_file", None, "no such file or directory"),
+])
+def test_every_file_a_set_reads_is_checked_before_any_node_starts(tmp_path, node, name,
+                                                                 content, said):
+    """A file a parameter names (a model, the plant, a trajectory CSV, a recorder's
+    metadata file) that its node would refuse is refused before any node starts, in one
+    line naming the node, the parameter and the file's own error, exit 2, as a
+    misspelled parameter is (before: the launcher started the nodes and the set died
+    with exit 1 on "fatal: ... unknown key(s) ['ascendng']")."""
+    path = tmp_path / ("f.csv" if name == "csv_path" else "f.yaml")
+    if content == "typo":
+        path.write_text(open(MODEL).read().replace("ascending:  {alpha: 0.030",
+                                                   "ascendng:  {alpha: 0.030"))
+    elif content is not None:
+        path.write_text(content)
+    params = tmp_path / "p.yaml"
+    extra = "    kind: csv\n" if node == "trajectory" else ""
+    params.write_text(f"/**/{node}:\n  ros__parameters:\n    {name}: {path}\n{extra}")
+    args = ["launch", "--params", params, "--duration", "5"]
+    if node == "recorder":
+        args += ["--record", tmp_path / "bag"]
+    r = cli(*args)
+    one_line_exit_2(r)
+    assert f"{node}: {name}: {path}" in r.stderr and said in r.stderr, r.stderr
+    assert not (tmp_path / "bag").exists()
+
+
+@pytest.mark.parametrize("managed", [False, True])
+def test_a_duration_counts_from_arming_managed_or_not(managed):
+    """`launch --duration S` is S seconds of the stage's own samples from its first
+    arming, whether the launcher or an outside manager (`--managed`) brings the driver
+    up (with --managed it counted from the launch)."""
+    from piezo_stage.launch.launcher import Launch
+    launch = Launch(os.path.join(CONFIG, "stage.yaml"), managed=managed, armed_s=5.0,
+                    exclusive=False)
+    drv = launch.overrides["stage_driver"]
+    assert launch.armed_s == 5.0 and drv["max_steps_from_arming"] is True
+    assert drv["max_steps"] == int(round(5.0 * launch.rate_hz()))

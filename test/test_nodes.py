@@ -659,7 +659,8 @@ def test_the_bag_holds_the_trajectories_the_stage_accepted(tmp_path, env):
     accepted, byte for byte and latched, on /stage/trajectory/accepted, which the
     recorder takes: one accepted before the recorder started is in the bag; one sent
     once by a default-QoS publisher as soon as its one subscriber matched reached the
-    stage and the bag; one refused (out of range) is in neither, and said."""
+    stage and the bag; one refused (out of range) is in neither, and said to its sender
+    on trajectory/refused (in the bag too), by the name it gave it."""
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.qos import QoSProfile
     from trajectory_msgs.msg import JointTrajectory
@@ -702,8 +703,9 @@ def test_the_bag_holds_the_trajectories_the_stage_accepted(tmp_path, env):
         assert probe.wait(lambda: plain.get_subscription_count() >= 1, 10)
         plain.publish(A.trajectory_msg(t, {"x": np.full(t.size, 7.0),
                                            "y": np.full(t.size, 7.0)}))
-        plain.publish(A.trajectory_msg(t, {"x": np.full(t.size, 500.0),
-                                           "y": np.full(t.size, 7.0)}))
+        too_far = A.trajectory_msg(t, {"x": np.full(t.size, 500.0), "y": np.full(t.size, 7.0)})
+        too_far.header.frame_id = "too-far"  # its sender's name for it
+        plain.publish(too_far)
         from rclpy.duration import Duration
         assert plain.wait_for_all_acked(Duration(seconds=10))
         assert probe.wait(lambda: accepted_in_bag() >= 2, 30), recorded
@@ -721,6 +723,11 @@ def test_the_bag_holds_the_trajectories_the_stage_accepted(tmp_path, env):
     assert [round(p * 1e6, 6) for p in got] == [5.0, 7.0]
     assert not topic_data(str(bag), "/stage/trajectory")
     assert "trajectory rejected" in ff_err and "500" in ff_err, ff_err[-2000:]
+    # the refusal reached its sender's topic, with the name it gave it and the reason
+    refused = [A.refusal_from_msg(deserialize(data, "diagnostic_msgs/msg/DiagnosticArray"))
+               for _, data in topic_data(str(bag), "/stage/trajectory/refused")]
+    assert [(f, "500" in why and "range" in why) for f, _, why in refused] == \
+        [("too-far", True)], refused
 
 
 def test_learning_feedforward_through_the_node_set(tmp_path, env):

@@ -1132,6 +1132,11 @@ def _rate_auto_outside(tmp_path, domain):
     sys.stderr.write(err)  # this test's output, shown where it fails
     again = [float(r) for r in re.findall(r"running again at (\d+) Hz", err)]
     assert again and again[0] < start_hz, err[-3000:]
+    # each try run again is said once, with what becomes of its bag; no node of a
+    # refused try says it was stopped by a SIGINT the user never sent
+    assert f"its bag replaces the {start_hz:g} Hz try's in {bag}" in err, err[-3000:]
+    tries = err[:err.rindex("running again at")]  # (the last stop is this test's SIGINT)
+    assert "stopped by SIGINT" not in tries, tries[-3000:]
     last = re.search(r"stage_driver refused to arm at .*", err)
     if last:  # every run refused: the host held no rate with margin then
         assert launch.returncode == 1 and pub.returncode != 0, (launch.returncode, err)

@@ -22,14 +22,15 @@ def _refit(*args, timeout=600):
 
 def test_refit_names_the_growing_creep_the_drifting_resonance_and_the_day_30_percent(
         tmp_path):
-    arch = tmp_path / "archive"
+    arch = tmp_path / "stage_two_daily_calibrations"  # (names longer than a column)
     make_archive(str(arch), runs=6, fs_hz=500.0, resonance=True)
     out = tmp_path / "refit"
     r = _refit(arch, "--out", out, "--against", arch / "reference.yaml", "--jobs", 2)
     assert r.returncode == 0, r.stderr[-3000:]
     doc = json.loads((out / "refit.json").read_text())
     rows = doc["bags"]
-    assert [b["name"] for b in rows] == [f"archive_run{d:02d}" for d in range(6)]
+    assert [b["name"] for b in rows] == [f"stage_two_daily_calibrations_run{d:02d}"
+                                         for d in range(6)]
     assert all(b["dated_by"] == "recorded start" for b in rows)
     assert all(b["axes"]["x"]["against"]["verdict"] in ("creep", "dynamics") for b in rows)
     g = {(e["axis"], e["effect"]): e for e in doc["growth"]}
@@ -54,6 +55,9 @@ def test_refit_names_the_growing_creep_the_drifting_resonance_and_the_day_30_per
     assert len(table) == 6 and table[0]["x_verdict"] in ("creep", "dynamics")
     assert float(table[-1]["x_creep"]) > float(table[0]["x_creep"])
     assert (out / "refit.png").stat().st_size > 10_000
+    for b in rows:  # each bag's whole name in the table (it was cut from the left)
+        assert any(ln.split()[1:2] == [b["name"]] for ln in r.stdout.splitlines()), \
+            (b["name"], r.stdout)
 
 
 def test_growth_dates_the_first_crossing_and_an_effect_that_appears():

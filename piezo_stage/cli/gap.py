@@ -16,9 +16,8 @@ def add_arguments(s):
     s.add_argument("--json", metavar="FILE")
     s.add_argument("--report", metavar="DIR", help="Markdown report with PNG plots")
     s.add_argument("--limits", type=limits, metavar="LO,HI", help="the amplifier's "
-                   "voltage limits [V], e.g. --limits=-90,90: --out-model's model's, "
-                   "and how far the memory class's play operators reach (half their "
-                   "range; default: 0,150 widened to take FIT)")
+                   "voltage limits [V], e.g. --limits=-90,90: --out-model's model's "
+                   "(default: 0,150 widened to take both records)")
     s.add_argument("--out-model", metavar="MODEL.yaml",
                    help="write the model with the found effect (simulate --model uses it)")
 
@@ -107,7 +106,9 @@ def main(args):
                   f"{r['gap_before_um']:10.4f} {r['gap_after_um']:9.4f} {r['shrink_pct']:10.1f} "
                   f"{r.get('shrink_pm_pct', float('nan')):5.1f}"
                   + (" (at its no-effect limit: its search did worse on FIT)"
-                     if r["params"].get("no_effect_limit") else ""))
+                     if r["params"].get("no_effect_limit") else "")
+                  + (f" (not writable: {r['params']['not_writable']})"
+                     if r["params"].get("not_writable") else ""))
         if len(d.effects) > 1:  # the kept effects joined: the verdict's "in all" figure
             st, before = d.effects[-1], d.ranking[0]
             name = "+".join(x["effect"] for x in d.effects)

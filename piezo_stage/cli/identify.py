@@ -161,10 +161,11 @@ def _identify(args, plot, figures):
     if args.json:
         with atomic_write(args.json) as fh:
             json.dump(report, fh, indent=1)
-    if plot:
-        from piezo_stage.core.estimation.identify.api import predict_axis
-        curves = {a: predict_axis(r, rec) for a, r in results.items()}
-        curves.update({a: (rec.v[a], rec.w[a], p.predict(rec, a)) for a, p in pis.items()})
+    if plot:  # the fit figures as the table's: the same prediction, the same samples
+        from piezo_stage.core.estimation.identify.api import fit_prediction, predict_axis
+        curves = {a: fit_prediction(r, rec) for a, r in results.items()}
+        curves.update({a: (rec.v[a], rec.w[a], p.predict(rec, a), 0)
+                       for a, p in pis.items()})
         checked = None
         if val is not None:  # the record it was scored on, beside it
             vcurves = {a: predict_axis(r, val) for a, r in results.items() if a in val.w}

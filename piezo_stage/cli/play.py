@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from piezo_stage.cli._common import number
 
 HELP = "play a voltage waveform (excite or invert CSV) on a stage and record it"
@@ -13,7 +15,8 @@ DEVICE_FORMS = {"pi": "tcp:HOST[:PORT], serial:DEVICE[:BAUD] or usb:SERIAL:PID",
 def add_arguments(s):
     from piezo_stage.drivers.playback import PLAY_BACKENDS
     s.add_argument("inp", metavar="WAVE.csv", help="CSV with t,vx,vy (s, V), as excite "
-                   "and invert write it")
+                   "and invert write it, or t and one axis's column (the other held at "
+                   "the driver's safe voltage)")
     s.add_argument("--backend", choices=PLAY_BACKENDS, default="sim",
                    help="sim: the simulated stage; pi: a PI controller's wave generator "
                    "and data recorder (pipython); nv200: two NV200 amplifiers' "
@@ -41,9 +44,8 @@ def main(args):
     from piezo_stage.core.estimation.record import Record
     from piezo_stage.core.loop.arming import ArmingParams
     from piezo_stage.drivers.playback import play_record
-    from piezo_stage.io.csv_table import read_table, write_table
-    cols = read_table(args.inp, ["t", "vx", "vy"])
-    rec = Record(cols["t"], {"x": cols["vx"], "y": cols["vy"]}, source=args.inp)
+    from piezo_stage.io.csv_table import read_record, write_table
+    rec = read_record(args.inp, need_w=False)  # both axes, or one (the other at rest)
     if len(rec) < 2:
         raise DataError(f"{args.inp}: a waveform needs at least two samples")
     params = param_overrides([args.params]).get("stage_driver", {}) if args.params else {}
@@ -64,6 +66,9 @@ def main(args):
     arm = ArmingParams()
     safe = float(params.pop("safe_voltage_V", arm.safe_V))
     ramp = float(params.pop("safe_ramp_V_per_s", arm.ramp_V_per_s))
+    # an axis the waveform leaves out is held at the driver's safe voltage
+    rec = Record(rec.t, {a: rec.v.get(a, np.full(len(rec), safe)) for a in ("x", "y")},
+                 source=args.inp)
     cfg = load_plant(args, rec.fs_hz) if args.backend == "sim" else None
     out = play_record(args.backend, rec, params, cfg, safe, ramp)
     if args.out.lower().endswith(".csv"):

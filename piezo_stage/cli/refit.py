@@ -69,7 +69,8 @@ def main(args):
     from piezo_stage.io.plots import refit_png
     png = refit_png(os.path.join(args.out, "refit.png"), rows)
     axes = [a for a in ("x", "y") if any(a in r["axes"] for r in rows)]
-    print(f"{'started (UTC)':<20} {'bag':<28} " + " ".join(
+    width = max([len(r["name"]) for r in rows] + [3])  # every name whole
+    print(f"{'started (UTC)':<20} {'bag':<{width}} " + " ".join(
         f"{a + ' gain um/V':>13} {a + ' held-out um':>14} {a + ' change um':>12}"
         for a in axes) + ("  verdicts" if args.against else ""))
     for r in rows:
@@ -81,7 +82,7 @@ def main(args):
                          f"{ax.get('change_um', float('nan')):12.4f}")
         verdicts = ", ".join(f"{a} {r['axes'][a]['against']['verdict']}" for a in axes
                              if "against" in r["axes"].get(a, {}))
-        print(f"{r['started_utc'][:19]:<20} {r['name'][-28:]:<28} " + " ".join(cells)
+        print(f"{r['started_utc'][:19]:<20} {r['name']:<{width}} " + " ".join(cells)
               + (f"  {verdicts}" if verdicts else ""))
     for line in R.growth_lines(g):
         print(line)

@@ -103,6 +103,9 @@ def read_record(path, axes=("x", "y"), need_w=True) -> Record:
         if near and n not in expected:
             raise DataError(f"{printable(path)}: column {printable(n, 40)!r} is not one "
                             f"of t, vx, vy, wx, wy (did you mean {near!r}?)")
+        if len(n) == 2 and n[0] in "vw" and n not in expected:  # another axis's name
+            raise DataError(f"{printable(path)}: column {printable(n, 40)!r} is not one "
+                            "of t, vx, vy, wx, wy (the axes are x and y)")
     if need_w:
         for a in axes:  # half an axis: its voltage without its displacement, or back
             got = [c for c in (f"v{a}", f"w{a}") if c in names]

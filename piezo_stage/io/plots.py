@@ -118,20 +118,24 @@ def _save(fig, path):
 
 
 def identification_png(path, t, per_axis: dict, validation: tuple | None = None):
-    """``per_axis``: {axis: (v [V], measured [um], model [um])} -> the loop (measured
-    and model against voltage) and the fit error over time, one row per axis; with
-    ``validation`` (t_val [s], {axis: (v, measured, model)}), the record the model was
-    scored on beside it: its loop and its error, in a second colour."""
+    """``per_axis``: {axis: (v [V], measured [um], model [um], samples left out at the
+    start)} -> the loop (measured and model against voltage) and the fit error over
+    time, one row per axis, its figures over the samples the table's are (the first
+    ones, a lag's start-up, drawn but not counted); with ``validation`` (t_val [s],
+    {axis: (v, measured, model)}), the record the model was scored on beside it: its
+    loop and its error, in a second colour."""
     plt = _pyplot()
     fig, ax = plt.subplots(len(per_axis), 2, figsize=(12, 3.8 * len(per_axis)),
                            squeeze=False)
     t_val, val = validation if validation is not None else (None, {})
-    for row, (axis, (v, w, pred)) in enumerate(per_axis.items()):
+    for row, (axis, (v, w, pred, skip)) in enumerate(per_axis.items()):
         e = w - pred
         ax[row, 0].plot(v, w, ".", ms=0.6, color="0.6", label="measured (fit)")
         ax[row, 0].plot(v, pred, lw=0.8, color="tab:red", label="identified model")
-        title = (f"axis {axis}: fit error, rms {np.sqrt(np.mean(e ** 2)):.4f} um, "
-                 f"max {np.max(np.abs(e)):.4f} um")
+        title = (f"axis {axis}: fit error, rms {np.sqrt(np.mean(e[skip:] ** 2)):.4f} um, "
+                 f"max {np.max(np.abs(e[skip:])):.4f} um"
+                 + (f"\nafter the first {skip} samples (the lag's start-up)" if skip
+                    else ""))
         ax[row, 1].plot(t, e, lw=0.5, label="fit record")
         if axis in val:
             vv, wv, pv = val[axis]

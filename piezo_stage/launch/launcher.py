@@ -135,6 +135,45 @@ def read_parameters(config_path) -> dict:
     return out
 
 
+def check_files(params: dict) -> None:
+    """ConfigError, one line, before any node starts, for a file the set's parameters
+    ({node: parameters}) name that its node would refuse: a model (the feedforward's and
+    the gap node's ``model_file``), the sim's plant (``plant_config``), the trajectory
+    node's CSV (``csv_path`` with kind csv), a bag to replay, the recorder's metadata
+    files: read by the same readers the nodes use, their errors (with their "did you
+    mean") prefixed by the node and parameter (the value may come from any --params
+    file)."""
+    from piezo_stage.core.errors import PiezoStageError
+
+    def check(node, name, read):
+        path = params.get(node, {}).get(name) or ""
+        if not path:
+            return
+        try:
+            if not os.path.exists(path):
+                raise ConfigError(f"{path}: no such file or directory")
+            read(path)
+        except PiezoStageError as e:
+            raise ConfigError(f"{node}: {name}: {e}") from None
+
+    from piezo_stage.io.model_file import load_model
+    for node in ("feedforward", "gap"):
+        check(node, "model_file", load_model)
+    drv = params.get("stage_driver", {})
+    backend = drv.get("backend", "sim")
+    if backend == "sim":
+        from piezo_stage.io.plant_file import load_plant_config
+        check("stage_driver", "plant_config", load_plant_config)
+    elif backend == "replay":
+        from piezo_stage.io.bag import read_bag_record
+        check("stage_driver", "replay_bag", read_bag_record)
+    if params.get("trajectory", {}).get("kind") == "csv":
+        from piezo_stage.io.csv_table import read_table
+        check("trajectory", "csv_path", lambda p: read_table(p, ["t", "wx", "wy"]))
+    for name in ("config_file", "model_file"):  # (the recorder keeps them as they are)
+        check("recorder", name, lambda p: open(p, "rb").close())
+
+
 def _fmt(v):
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -223,7 +262,7 @@ class Launch:
         # long it takes on this host, is no part of it
         self.armed_s = None
         self._drv_params = drv
-        if armed_s is not None and "stage_driver" in self.nodes and not self.managed:
+        if armed_s is not None and "stage_driver" in self.nodes:  # (managed or not)
             self.armed_s = float(armed_s)
             self._armed_steps()
         self.env = dict(os.environ if env is None else env)
@@ -248,12 +287,16 @@ class Launch:
             raise ConfigError(f"compose {compose!r}: one of {', '.join(COMPOSE)}")
         self.composed = [n for n in COMPOSE[compose] if n in self.nodes] \
             if all(n in self.nodes for n in COMPOSE[compose]) else []
+        # every file the parameters name, read as its node would, before any starts
+        check_files({n: {**params.get(n, {}), **self.overrides.get(n, {})}
+                     for n in self.nodes})
         self.procs = Processes(self)
         self.failed = []
         self.signalled = set()   # the nodes this launcher sent SIGINT
         self.stopped_by = None   # the signal that told the launcher to stop
         self.quiet_stop = False  # a command that runs sets says a stop in its own line
         self.ended = False       # the run ended by itself (driver done, duration passed)
+        self.retrying = False    # a try --rate auto runs again at a lower rate
         self._ended_file = None  # made before the SIGINTs of a run that ended (_signals)
 
     def _gates(self):
@@ -436,9 +479,10 @@ class Launch:
         driver = self.process_of("stage_driver")
         producers = [n for n in reversed(self.processes())
                      if n not in ("recorder", driver, "live_view")]
-        if self.ended and self.stopped_by is None and self._ended_file:
-            with open(self._ended_file, "w"):  # the nodes' SIGINT is the run's end
-                pass
+        why = "retried" if self.retrying else "" if self.ended else None
+        if why is not None and self.stopped_by is None and self._ended_file:
+            with open(self._ended_file, "w") as fh:  # the nodes' SIGINT is the run's end
+                fh.write(why)
         for group, grace in (([driver], grace_s["stage_driver"]),
                              (producers, grace_s["producers"]),
                              (["recorder", "live_view"], grace_s["recorder"])):
@@ -554,26 +598,35 @@ class Launch:
         try:
             for attempt in range(1, AUTO_ATTEMPTS + 1):
                 tried.append(self.rate_hz())
+
+                def again() -> bool:  # refused, and --rate auto runs it at a lower rate
+                    r = self._refusal(cap_file)
+                    return bool(self.auto_rate and attempt < AUTO_ATTEMPTS and r and
+                                r.get("holdable_rate_hz") and self.stopped_by is None and
+                                float(r["holdable_rate_hz"]) < self.rate_hz())
                 try:
                     self.start()
                     self.wait(duration)
+                    self.retrying = again()  # (its nodes then say nothing of a stop)
                 finally:
                     self.stop()
                 refused = self._refusal(cap_file)
-                if not (self.auto_rate and attempt < AUTO_ATTEMPTS and refused and
-                        refused.get("holdable_rate_hz") and self.stopped_by is None and
-                        float(refused["holdable_rate_hz"]) < self.rate_hz()):
+                if not again():
                     break
+                assert refused is not None
                 rate = float(refused["holdable_rate_hz"])
+                # the refused try never armed: its bag (if any) is replaced by this one
+                bag = (f"; its bag replaces the {self.rate_hz():g} Hz try's in "
+                       f"{self.record}" if self.record else "")
                 sys.stderr.write(f"piezo-stage launch: this host holds the loop at "
                                  f"{refused['capacity_hz']:,.0f} samples/s, "
                                  f"{refused['margin']:.2f} x {self.rate_hz():g} Hz: "
-                                 f"running again at {rate:g} Hz (rate auto)\n")
+                                 f"running again at {rate:g} Hz (rate auto{bag})\n")
                 self.set_rate(rate)
                 self.procs, self.failed, self.signalled = Processes(self), [], set()
-                self.ended = False
+                self.ended = self.retrying = False
                 os.remove(cap_file)
-                if self.record:  # the refused attempt's bag is no record of the run
+                if self.record:  # the refused try's bag is no record of the run
                     import shutil
                     shutil.rmtree(self.record, ignore_errors=True)
         finally:

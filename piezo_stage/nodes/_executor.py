@@ -522,10 +522,11 @@ def run_nodes(factories, args=None, warm_kernels: bool = False) -> int:
         return code
     where = "while running" if phase == "running" else "during start-up"
     did = next((s for s in (hooks(n).stop_summary() for n in nodes) if s), None)
-    if signum == signal.SIGINT and phase == "running" and signals.run_ended():
-        if did:  # the run ended: what the node leaves, nothing of a stop
+    ended = signals.run_ended() if signum == signal.SIGINT else None
+    if ended is not None and (phase == "running" or ended == "retried"):
+        if did and ended != "retried":  # the run ended: what it leaves, not a stop
             sys.stderr.write(f"{signals.STATE.name}: at the run's end: {did}\n")
-        return 0
+        return 0  # (a try run again at a lower rate: the launcher says so, once)
     sys.stderr.write(f"{signals.STATE.name or _node_name(args)}: stopped by "
                      f"{signal.Signals(signum).name} {where}"
                      f"{': ' + did if did else ''}\n")

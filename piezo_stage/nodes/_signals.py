@@ -122,13 +122,20 @@ def hold() -> None:
         signal.signal(s, signal.SIG_IGN)
 
 
-def run_ended() -> bool:
-    """Whether the launcher stopped the set because its run ended (its driver finished,
-    or its duration passed), not because it was told to stop: it makes the file named
-    in ``PIEZO_STAGE_RUN_ENDED`` before its SIGINTs. A node's SIGINT then is the run's
-    end, and the node says nothing of being stopped."""
+def run_ended() -> str | None:
+    """Why the launcher stopped the set where its run ended (its driver finished, or
+    its duration passed: "" ; a try that ``--rate auto`` runs again at a lower rate:
+    "retried"), None where it was told to stop: it makes the file named in
+    ``PIEZO_STAGE_RUN_ENDED``, holding the why, before its SIGINTs. A node's SIGINT
+    then is the run's end, and the node says nothing of being stopped."""
     path = os.environ.get(RUN_ENDED_ENV, "")
-    return bool(path) and os.path.exists(path)
+    if not path:
+        return None
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return fh.read().strip()
+    except OSError:
+        return None
 
 
 def watch(seconds: float | None = None) -> None:

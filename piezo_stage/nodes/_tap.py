@@ -48,6 +48,8 @@ CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag): wh
     "feedforward/phase": ("diagnostic_msgs/msg/KeyValue", "events"),
     # a move's state: its id, target and verdict (the move itself is the feedforward's)
     "on_target": ("diagnostic_msgs/msg/DiagnosticArray", "latched"),
+    # a trajectory refused: its sender's name for it, and why
+    "trajectory/refused": ("diagnostic_msgs/msg/DiagnosticArray", "events"),
     "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", "diag"),
 }
 STAMPED = {t for t, _ in CONTRACT.values()} - {"std_msgs/msg/String",

@@ -48,11 +48,21 @@ from piezo_stage_msgs_adapters import (
     on_target_msg,
     phase_msg,
     reference_cdr,
+    refusal_msg,
     setpoint_from_msg,
     trajectory_from_cdr,
+    trajectory_header,
     trajectory_stamp_ns,
     trajectory_take_bytes,
 )
+
+
+class Refused(PiezoStageError):
+    """A trajectory refused: the reason, and its header's frame_id and stamp [ns]."""
+
+    def __init__(self, reason: str, frame_id: str, stamp_ns: int):
+        super().__init__(reason)
+        self.frame_id, self.stamp_ns = frame_id, stamp_ns
 
 
 class Feedforward(LeanNode, Node):
@@ -110,6 +120,9 @@ class Feedforward(LeanNode, Node):
         # a move's state, judged on the sensor (core/loop/ontarget.py), latched
         self.on_target_pub = self.create_publisher(DiagnosticArray, "on_target",
                                                    QOS_LATCHED)
+        # a trajectory refused, said to its sender (its frame_id and stamp, the reason)
+        self.refused_pub = self.create_publisher(DiagnosticArray, "trajectory/refused",
+                                                 QOS_EVENTS)
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
@@ -227,10 +240,13 @@ class Feedforward(LeanNode, Node):
         msg, key = item
         if not self.publications.first(key):
             return None
-        check_trajectory_size(msg, self.max_points)  # before anything else
-        t, w = trajectory_from_cdr(msg, self.p["range_um"], self.max_points)
-        stamp, now = trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
-        start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
+        try:
+            check_trajectory_size(msg, self.max_points)  # before anything else
+            t, w = trajectory_from_cdr(msg, self.p["range_um"], self.max_points)
+            stamp, now = trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
+            start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
+        except PiezoStageError as e:  # what its sender names it by, with the reason
+            raise Refused(str(e), *trajectory_header(msg)) from None
         self.accepted_pub.publish(msg)  # only what the stage will run
         return t, w, stamp, start, now
 
@@ -248,6 +264,9 @@ class Feedforward(LeanNode, Node):
     def reject_trajectory(self, e):
         self.stats["rejected_trajectories"] += 1
         self.get_logger().warning(f"trajectory rejected: {e}")
+        frame_id, stamp = (e.frame_id, e.stamp_ns) if isinstance(e, Refused) else ("", 0)
+        self.refused_pub.publish(refusal_msg(self.get_clock().now().nanoseconds,
+                                             frame_id, stamp, str(e)))
         self.resume()
 
     def publish_phase(self):

@@ -137,26 +137,29 @@ def invert_seed_eq12(model: DuhemModel, w_target: ArrayLike,
 
 def invert_stage(model: StageModel, wx: ArrayLike, wy: ArrayLike, states: dict | None = None,
                  tol_V: float = 1e-10, max_iter: int = 50,
-                 dt_s: float = 0.0) -> dict[str, InverseResult]:
+                 dt_s: float = 0.0, held_V: dict | None = None) -> dict[str, InverseResult]:
     """Joint inverse of a 2-axis model with coupling.
 
     w_x = H_xx(v_x) + P_x(v_x) + H_xy(v_y) and likewise for y: Gauss-Seidel on whole
     sequences (v_x from w_x minus the coupling of the current v_y, then v_y likewise),
     which converges because the coupling is small against the direct gain. ``dt_s``:
-    the targets' spacing [s] (rate-dependent play operators need it).
+    the targets' spacing [s] (rate-dependent play operators need it). ``held_V``
+    ({axis: voltages [V]}): axes driven with these voltages, not inverted (their
+    target is ignored; the others' inverse takes their coupling in).
 
     Returns dict axis -> InverseResult (w is the model's total output on that axis).
     """
     targets = {"x": as_f64(wx), "y": as_f64(wy)}
     lo_hi = model.voltage_limits
     states = dict(states or {})
+    held = {a: as_f64(x) for a, x in (held_V or {}).items()}
     n = targets["x"].size
-    v = {a: np.full(n, lo_hi[0]) for a in AXES}
+    v = {a: held[a] if a in held else np.full(n, lo_hi[0]) for a in AXES}
     res = {}
     for _ in range(max_iter):
         change = 0.0
         for a in AXES:
-            if a not in model.axes:
+            if a not in model.axes or a in held:
                 continue
             c = model.coupling.get(a)
             wc = c.simulate(v[OTHER[a]], states.get("c" + a))[0] if c else 0.0

@@ -97,9 +97,13 @@ def _numbers(xs, where):
 def _check_keys(d, allowed, where):
     if not isinstance(d, dict):
         raise ModelError(f"{where}: expected a mapping")
-    extra = set(d) - set(allowed)
+    extra = sorted(str(k) for k in set(d) - set(allowed))
     if extra:
-        raise ModelError(f"{where}: unknown key(s) {sorted(extra)}")
+        import difflib
+        near = difflib.get_close_matches(extra[0], [str(a) for a in allowed], n=1,
+                                         cutoff=0.6)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        raise ModelError(f"{where}: unknown key(s) {extra}{hint}")
 
 
 def _branch(d, where):

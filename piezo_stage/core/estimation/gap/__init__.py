@@ -183,8 +183,8 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
              history: int = 0) -> Diagnosis:
     """Diagnose the gap on every axis (see the module docstring). ``progress(what)`` is
     called after each candidate fit (in this thread: relayed from the axes' processes);
-    ``limits_V`` are the amplifier's (the memory class's thresholds reach half its
-    range; None: 0-150 V widened to FIT's); HOLDOUT's first ``history`` samples are run
+    ``limits_V`` are the amplifier's, the written models' (None: 0-150 V widened to
+    both records' voltages); HOLDOUT's first ``history`` samples are run
     but not scored (``diagnose_axis``: a record's later part held out with its
     history, as ``refit`` holds out each bag's second half)."""
     t0 = time.perf_counter()

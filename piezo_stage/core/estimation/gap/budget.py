@@ -33,6 +33,8 @@ def shrink_uncertainty(before: np.ndarray, after: np.ndarray, floor: float,
     SHRINK_BLOCK_S, so the residuals' correlation in time is kept): how much the figure
     would move on another stretch of the same stage."""
     n = min(len(before), len(after))
+    if not (np.all(np.isfinite(before[:n])) and np.all(np.isfinite(after[:n]))):
+        return float("nan")  # (a model that cannot be run there: no figure)
     size = max(int(SHRINK_BLOCK_S * fs), 1)
     k = n // size
     if k < 4:

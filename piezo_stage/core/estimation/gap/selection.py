@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from piezo_stage.core.errors import DataError
+from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.core.estimation.gap.budget import gap_above_floor, gap_budget, shrink_uncertainty
 from piezo_stage.core.estimation.gap.candidates import (
     EFFECTS,
@@ -172,7 +172,8 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     StageModel, with ``base_effects`` from its file) replaces the FIT-identified Duhem
     model as the sim to compare with; what it already has is not a candidate.
     ``progress(what)`` is called after each candidate is fitted; ``limits_V``, the
-    amplifier's, bound the memory class's thresholds (fit_class_candidate). HOLDOUT's
+    amplifier's, are the written models' (the memory classes' thresholds reach half the
+    span of FIT's and HOLDOUT's voltages: ``AxisSearch.reach_V``). HOLDOUT's
     first ``history`` samples are its history: every model runs over them (the stage's
     state at the scored part's start follows from them: a creep in progress is no
     drift), and only the rest is scored. The stages are AxisSearch's."""
@@ -210,6 +211,13 @@ class AxisSearch:
         self.base_model, self.base_effects = base_model, base_effects
         # the limits of the models written (diagnose gives those of every axis)
         self.limits_V = voltage_limits_for([fit.v[axis], holdout.v[axis]], limits_V)
+        # how far the memory classes' operators reach: half the span of the voltages
+        # the models are fitted and scored on (a threshold past every excursion there
+        # never moves: it is no term of the fit), not an amplifier's range far beyond
+        # them (0-150 V for a 0-3.6 V input made every operator a constant there, and
+        # the verdict turned on --limits)
+        both = np.concatenate([fit.v[axis], holdout.v[axis]])
+        self.reach_V = (float(both.min()), float(both.max()))
         self._resid: dict[int, tuple[Any, np.ndarray]] = {}  # id -> (model, residual)
         self.notes: list[str] = []
         if holdout is fit:
@@ -260,8 +268,12 @@ class AxisSearch:
         hit = self._resid.get(id(c))
         if hit is not None and hit[0] is c:
             return hit[1]
-        pred = predicted(c.written(), self.axis, self.holdout, self.limits_V)
-        r = held_out(pred, self.holdout.w[self.axis], self.skip)
+        try:
+            pred = predicted(c.written(), self.axis, self.holdout, self.limits_V)
+            r = held_out(pred, self.holdout.w[self.axis], self.skip)
+        except ModelError as e:  # no model file would hold it (no stage): no candidate
+            c.params = {**getattr(c, "params", {}), "not_writable": str(e)}
+            r = np.full(len(self.scored.t), np.inf)
         if not np.all(np.isfinite(r)):  # a model that diverges there: no candidate
             r = np.full(r.shape, np.inf)
         self._resid[id(c)] = (c, r)  # (the model kept: its id is not reused meanwhile)
@@ -281,7 +293,7 @@ class AxisSearch:
         if isinstance(on, ClassCandidate):
             assert on.twin is not None  # a class is kept with its twin (below)
             law = self.candidate(e, on.twin, on.twin.effects)
-            k = fit_class_effect(fit, axis, on, e, law, self.limits_V) \
+            k = fit_class_effect(fit, axis, on, e, law, self.reach_V) \
                 if isinstance(law, Candidate) else None
             if k is None or not isinstance(law, Candidate):
                 return law
@@ -305,7 +317,7 @@ class AxisSearch:
         best = rms(self.resid_of(law))
         tried = not self.class_tried or self.class_tried[0] <= CLASS_WITH_EFFECTS
         classes = [(k, rms(self.resid_of(k)))
-                   for k in (fit_class_candidate(fit, axis, limits_V, kind, on, kept)
+                   for k in (fit_class_candidate(fit, axis, self.reach_V, kind, on, kept)
                              for kind in (MEMORY_CLASSES if tried else ()))]
         for form in (("memory", "rate") if self.rates else ("memory",)):
             m = fit_candidate(fit, axis, e, on, kept, memory=True, rate=form == "rate")
@@ -350,6 +362,10 @@ class AxisSearch:
             if self.base_model is not None and axis in self.base_model.axes else self.base
         self.resid = resid = self.resid_of(sim)
         self.r_before = r_before = rms(resid)
+        if not np.isfinite(r_before):
+            raise DataError(f"axis {axis}: the sim's model cannot be run over HOLDOUT "
+                            f"({sim.params.get('not_writable', 'it diverges')}): nothing "
+                            "to compare the candidates with")
         # a line the input does not cause (a floor vibration) is no model's to close: for
         # choosing effects it counts with the noise (the gap is what a model could close)
         dist0 = disturbance(scored, axis, resid, nf)

@@ -257,22 +257,27 @@ def _identify_axis(rec: Record, axis: str, opts: IdentifyOptions | None,
     lag = delay_samples(opts, rec.fs_hz)
     if lag is None and opts.method != "fast":
         lag = 0  # (the paper's swarms: as the paper fits them)
+    base = None
     if lag is None:
         base = _fit_axis(rec, axis, opts, progress)
-        lag, rms = choose_lag(rec, axis, base)
+        lag, _ = choose_lag(rec, axis, base)
         if lag == 0:
             return base
-        note = (f"the displacement lags the voltage by {lag} sample(s) "
-                f"({lag * rec.dt * 1e3:.4g} ms): fitted with that delay (FIT RMS "
-                f"{rms[lag]:.4g} um against {rms[0]:.4g} um without, at the same "
-                "alphas); the model file holds it as its delay effect")
-    else:
-        note = f"fitted with a delay of {lag} sample(s) ({lag * rec.dt * 1e3:.4g} ms)"
     if lag == 0:
         return _fit_axis(rec, axis, opts, progress)
     res = _fit_axis(lagged(rec, lag), axis, replace(opts, delay=0.0), progress)
     res.delay_samples, res.delay_s = lag, lag * rec.dt
-    res.notes.append(note)
+    ms = f"{lag} sample(s) ({lag * rec.dt * 1e3:.4g} ms)"
+    if base is not None:  # the same figure, over the same samples, with the lag and not
+        _, w, p0, _ = fit_prediction(base, rec)
+        without = float(np.sqrt(np.mean((w - p0)[lag:] ** 2)))
+        res.notes.append(f"the displacement lags the voltage by {ms}: fitted with that "
+                         f"delay, FIT RMS {res.fit['rms_um']:.4g} um (the table's, after "
+                         f"the record's first {lag} sample(s), which the lag takes from "
+                         f"before it) against {without:.4g} um without it; the model "
+                         "file holds it as its delay effect")
+    else:
+        res.notes.append(f"fitted with a delay of {ms}")
     return res
 
 
@@ -348,6 +353,24 @@ def predict_axis(res: AxisResult,
         pred = simulate_axis(res.model, res.coupling, v[:n - k], vo, w_meas=w[k:])
         return v, w, np.concatenate([np.full(k, pred[0]), pred])
     return v, w, simulate_axis(res.model, res.coupling, v, v_other, w_meas=w)
+
+
+def fit_prediction(res: AxisResult,
+                   rec: Record) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """An identified axis over the record it was fitted on, as its fit figures (the
+    table's, the note's, the figure's) take it: the model from its own initial state
+    (as its file holds it), delayed by its lag (the voltage made monotone per branch
+    where it was for the fit). The lag's first samples take voltages from before the
+    record: they are left out of every fit figure. -> (v [V], measured w [um], model
+    output [um], the samples left out at the start)."""
+    v, w = _axis_data(rec, res.axis)
+    if not rec.voltage_exact and voltage_noise(v) > 1e-4 * np.ptp(v):
+        v = branch_monotone(v)
+    vo = rec.v.get(OTHER[res.axis]) if res.coupling is not None else None
+    k = res.delay_samples
+    pred = simulate_axis(res.model, res.coupling, v[:len(v) - k],
+                         None if vo is None else vo[:len(v) - k])
+    return v, w, np.concatenate([np.full(k, pred[0]), pred]) if k else pred, k
 
 
 def validate_axis(res: AxisResult, rec: Record) -> dict:
