@@ -655,3 +655,20 @@ def test_the_live_residual_takes_the_sensors_zero_out_and_measures_the_gap():
     assert max(abs(r["x"]), abs(r["y"])) < 1e-9  # the offset is the sensor's zero
     assert max(mon.rms_um().values()) < 1e-9 and mon.n == len(v)
     assert min(mon_c.rms_um().values()) > 0.05
+
+
+@pytest.mark.slow
+def test_stages_generated_with_fresh_seeds_meet_the_rules_error_rates():
+    """Six stages generated with seeds drawn now (not the ones any threshold was tuned
+    on: gap_blind.generated_case, one or two effects of the candidates or none, their
+    sizes, noise, rate and protocol drawn). At the rates `bench gap` measures
+    (spurious <= 2 %, missed <= 5 % of stages) two spurious stages of six come by chance
+    once in 170 runs and three missed once in 500: more says the rule names what is not
+    there, or leaves out what is (the seeds are in the message, to run it again)."""
+    from piezo_stage.apps.studies.gap_blind import run_generated
+    base = int(np.random.SeedSequence().entropy % (2 ** 31 - 10))
+    rows = run_generated(range(base, base + 6))
+    spurious = [r for r in rows if r["spurious"]]
+    missed = [r for r in rows if r["missed"]]
+    said = [(r["seed"], r["truth"], r["named"], r["spurious"], r["missed"]) for r in rows]
+    assert len(spurious) <= 1 and len(missed) <= 2, said

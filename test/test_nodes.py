@@ -899,3 +899,53 @@ def test_the_probe_waits_for_a_steady_state_and_says_what_it_saw(env):
         probe.close()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+# a stand-in for the feedforward's side of the trajectory topic (a real node): it takes
+# every publication on /stage/trajectory, says it holds with none, and answers on
+# trajectory/accepted only if told to; it prints how many publications it got in 4 s
+HOLDING_FF = r"""
+import sys, time, rclpy
+from diagnostic_msgs.msg import KeyValue
+from trajectory_msgs.msg import JointTrajectory
+from piezo_stage.nodes._common import QOS_EVENTS
+answer = sys.argv[1] == "answer"
+rclpy.init()
+n = rclpy.create_node("feedforward", namespace="/stage")
+got = []
+acc = n.create_publisher(JointTrajectory, "trajectory/accepted", QOS_EVENTS)
+phase = n.create_publisher(KeyValue, "feedforward/phase", QOS_EVENTS)
+def take(m):
+    got.append(time.monotonic())
+    if answer:
+        acc.publish(m)
+n.create_subscription(JointTrajectory, "trajectory", take, 10)
+t0 = time.monotonic()
+while time.monotonic() - t0 < 6.0 and (not got or time.monotonic() - got[0] < 4.0):
+    phase.publish(KeyValue(key="holding", value=""))
+    rclpy.spin_once(n, timeout_sec=0.1)
+print(len(got))
+"""
+
+
+@pytest.mark.parametrize("answer, most", [("answer", 1), ("silent", 4)])
+def test_the_trajectory_node_resends_only_what_the_feedforward_did_not_take(env, answer,
+                                                                              most):
+    """The trajectory node (a real process) publishes its trajectory once a consumer
+    listens; a feedforward that keeps saying it holds with none and never answers on
+    trajectory/accepted gets it again, a second apart, at most RESENDS times more; one
+    that answered it (it runs the publication, whatever its phase says next) never
+    gets a second publication: a trajectory is its publication, so a resend would run
+    the trajectory twice."""
+    ff = subprocess.Popen([sys.executable, "-c", HOLDING_FF, answer], env=env,
+                          stdout=subprocess.PIPE, text=True)
+    node = subprocess.Popen([sys.executable, "-m", "piezo_stage.nodes.trajectory_node",
+                             "--ros-args", "-r", "__ns:=/stage"], env=env,
+                            stderr=subprocess.DEVNULL)
+    try:
+        out, _ = ff.communicate(timeout=60)
+    finally:
+        node.send_signal(signal.SIGINT)
+        node.wait(30)
+    got = int(out.split()[-1])
+    assert (got == 1) if answer == "answer" else (2 <= got <= most), got

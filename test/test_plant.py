@@ -1,6 +1,7 @@
 """The simulated 2-axis stage and the signatures of its unmodelled effects."""
 
 import copy
+import os
 
 import numpy as np
 import pytest
@@ -278,3 +279,52 @@ def test_a_model_with_play_operators_is_the_plant_exactly():
     without = Plant(PlantConfig.exact(model, fs), fs)
     without.run(vx, vy)
     assert np.max(np.abs(without.last_true["x"] - want["x"])) > 1.0
+
+
+def test_a_scheduled_change_switches_an_effect_on_mid_run(cfg, tmp_path):
+    """``changes`` (a plant file's block): creep switched on at 1.5 s of the run. Before
+    it the stage is the one without changes, sample for sample; from it the held
+    stage creeps after the next step of the voltage (before, a held voltage held),
+    its creep starting at rest (no jump at the change); stepping one command at a time gives the batch's samples; a
+    reset runs the schedule again from the start."""
+    changed = load_plant_config(_with_block(tmp_path, {"changes": [
+        {"at_s": 1.5, "effects": {"creep": {"enabled": True, "gamma": 0.08}}}]}))
+    assert len(changed.changes) == 1
+    v = np.concatenate([np.linspace(0, 100, 500), np.full(1500, 100.0), np.full(1500, 60.0)])
+    a, b = Plant(changed, 1000.0), Plant(cfg, 1000.0)
+    wa, wb = a.run(v, 0 * v), b.run(v, 0 * v)
+    np.testing.assert_array_equal(wa["x"][:1500], wb["x"][:1500])
+    ta, tb = a.last_true["x"], b.last_true["x"]
+    assert abs(ta[1500] - tb[1500]) < 0.05  # at rest at the change: no jump
+    assert np.ptp(tb[2100:]) < 0.05 and abs(ta[-1] - ta[2100]) > 0.3  # creeping after
+    s = Plant(changed, 1000.0)
+    stepped = np.array([s.step(x, 0.0)[0] for x in v])
+    np.testing.assert_allclose(stepped, wa["x"], atol=1e-9)
+    a.reset()
+    np.testing.assert_array_equal(a.run(v, 0 * v)["x"], wa["x"])
+
+
+@pytest.mark.parametrize("block, says", [
+    ("changes: {at_s: 1}", "changes must be a list"),
+    ("changes: [{at_s: 1, effects: {creep: {enabled: true}}, when: 2}]", "nothing else"),
+    ("changes: [{at_s: -1, effects: {}}]", "at_s"),
+    ("changes: [{at_s: 1, effects: {creap: {enabled: true}}}]", "creap"),
+])
+def test_a_bad_changes_block_is_refused_by_name(tmp_path, block, says):
+    import yaml
+    with pytest.raises(ConfigError, match=says):
+        load_plant_config(_with_block(tmp_path, yaml.safe_load(block)))
+
+
+def _with_block(tmp_path, block: dict) -> str:
+    """config/sim_stage.yaml with ``block`` added, written under ``tmp_path``."""
+    import yaml
+
+    from conftest import CONFIG
+    with open(os.path.join(CONFIG, "sim_stage.yaml")) as f:
+        doc = yaml.safe_load(f)
+    doc["model"] = os.path.join(CONFIG, doc["model"])
+    doc.update(block)
+    path = tmp_path / "plant.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return str(path)

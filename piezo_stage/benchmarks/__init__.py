@@ -20,7 +20,7 @@ BENCHMARKS = {
     "plant": ("plant", "bench_plant", ("samples",)),
     "identify": ("identify", "bench_identify", ()),
     "loop": ("loop", "bench_loop", ("vs",)),
-    "gap": ("gap", "bench_gap", ()),
+    "gap": ("gap", "bench_gap", ("stages",)),
     "liveview": ("liveview", "bench_liveview", ()),
     "faults": ("faults", "bench_faults", ()),
     "realtime": ("realtime", "bench_realtime", ("track", "compose")),

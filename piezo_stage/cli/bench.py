@@ -42,6 +42,9 @@ def add_arguments(s):
                    "time set (as launch --compose; default the launcher's)")
     s.add_argument("--trials", type=number(1, 10000, integer=True), default=108, metavar="N",
                    help="signals: processes to start and signal (each kind in turn)")
+    s.add_argument("--stages", type=number(1, 100_000, integer=True), default=200,
+                   metavar="N", help="gap: stages generated with seeds drawn at the run, "
+                   "for the rates of spurious and missed effects")
 
 
 def _page(path):

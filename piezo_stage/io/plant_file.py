@@ -13,6 +13,8 @@ Schema (version 1)::
       dynamics: {enabled: false, kind: resonance, fn_hz: 800, zeta: 0.05}
       delay: {enabled: false, delay_s: 0.0005}
       drift: {enabled: false, rate_um_per_s: 0.01, amplitude_um: 0.5, tau_s: 60}
+    changes:                         # optional: the stage changing during a run
+      - {at_s: 20, effects: {creep: {enabled: true, gamma: 0.06}}}
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from piezo_stage.io.model_file import as_number, load_model, load_yaml
 
 SCHEMA_KEY = "piezo_stage_plant"
 _TOP = (SCHEMA_KEY, "model", "internal_rate_hz", "amplifier", "sensor", "seed", "effects",
-        "hysteresis", "note")
+        "hysteresis", "changes", "note")
 
 
 def _num(d, key, default, where, lo=-math.inf, hi=math.inf):
@@ -70,7 +72,9 @@ def plant_config_from_dict(doc, base_dir=".", source="plant config") -> PlantCon
         from piezo_stage.core.model.play import PlayHysteresis
         PlayHysteresis.from_params({k: v for k, v in hyst.items() if k != "axes"},
                                    f"{source}: hysteresis")
+    changes = _changes(doc.get("changes"), source)
     return PlantConfig(
+        changes=changes,
         model=model,
         hysteresis=dict(hyst),
         internal_rate_hz=_num(doc, "internal_rate_hz", 10_000.0, source, 1.0, 1.0e6),
@@ -80,6 +84,26 @@ def plant_config_from_dict(doc, base_dir=".", source="plant config") -> PlantCon
         effects=effects,
         seed=seed,
     )
+
+
+def _changes(doc, source) -> list:
+    """The ``changes`` block: a list of {at_s: seconds from the run's first sample,
+    effects: an effects block whose entries replace the effect's parameters from then
+    on (``enabled: false`` switches one off)}, checked, in time order."""
+    if doc is None:
+        return []
+    if not isinstance(doc, list):
+        raise ConfigError(f"{source}: changes must be a list of {{at_s, effects}}")
+    out = []
+    for i, c in enumerate(doc):
+        where = f"{source}: changes[{i}]"
+        if not isinstance(c, dict) or set(c) - {"at_s", "effects"} or "at_s" not in c:
+            raise ConfigError(f"{where}: give at_s and effects (nothing else)")
+        at = _num(c, "at_s", 0.0, where, 0.0, 1e7)
+        from piezo_stage.core.model.effects import validate_effects
+        out.append({"at_s": at, "effects": validate_effects(c.get("effects") or {},
+                                                             f"{where}.effects")})
+    return sorted(out, key=lambda c: c["at_s"])
 
 
 def load_plant_config(path) -> PlantConfig:

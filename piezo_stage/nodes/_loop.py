@@ -165,6 +165,7 @@ class Gate:
         self.needs = [(p, int(n)) for p, n in needs]
         self.queue = []
         self.open = all(n <= 0 for _, n in self.needs)
+        self.opened_at = time.monotonic()  # when what it held went out (steady clock)
         if not self.open:
             self._timer = steady_timer(node, 0.01, self.poll)
 
@@ -172,7 +173,7 @@ class Gate:
         """Open the gate where every publisher has its subscriptions now (its timer's
         callback; a node whose own clock ticks may call it at each tick)."""
         if not self.open and all(subscriber_count(p) >= n for p, n in self.needs):
-            self.open = True
+            self.open, self.opened_at = True, time.monotonic()
             self._timer.cancel()
             self._node.destroy_timer(self._timer)  # out of the executor's wait set
             for pub, m in self.queue:

@@ -13,7 +13,10 @@ nodes take trajectories on a volatile subscription and fetch no history from thi
 (nodes/_latched.py), so a default-QoS publisher on the graph sees no QoS warning. At
 most RESENDS times until the feedforward reports something else; a resend is a new
 publication, which the feedforward runs (a trajectory is its publication), so it is
-sent only while the feedforward holds with none.
+sent only on the feedforward's word: it holds with none, it has not answered this
+publication on trajectory/accepted, and the node itself was not held up (a timer tick
+that comes late, on a loaded host, may have messages waiting that say otherwise: it
+waits one more tick).
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
@@ -39,7 +42,7 @@ from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes.declared import TRAJECTORY
 from piezo_stage_msgs_adapters import phase_from_msg, trajectory_msg
 
-RESENDS, RESEND_AFTER_S = 3, 1.0
+RESENDS, RESEND_AFTER_S, TICK_S = 3, 1.0, 0.25
 
 class Trajectory(LeanNode, Node):
     def __init__(self):
@@ -51,10 +54,13 @@ class Trajectory(LeanNode, Node):
         self.gate = Gate(self, [(self.pub, wait_for)])
         self.published, self.resent, self.last = 0, 0, None
         self.sent_at, self.ff_phase, self.budget = 0.0, None, RESENDS  # (last: None)
+        self.accepted, self.ticked_at = False, time.monotonic()  # (this publication's)
         self.add_on_set_parameters_callback(self.on_set)
         self.publish(self.build(self.p))
         self.create_subscription(KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
-        steady_timer(self, 0.25, self.resend_if_held)
+        self.create_subscription(JointTrajectory, "trajectory/accepted", self.on_accepted,
+                                 QOS_EVENTS)
+        steady_timer(self, TICK_S, self.resend_if_held)
         self.diag = Diagnostics(self, lambda: (
             0, f"{self.published} trajectories published (last: {self.p.get('kind')})",
             {"published": self.published, "resent": self.resent, **self.p}), "trajectory")
@@ -89,17 +95,30 @@ class Trajectory(LeanNode, Node):
         self.gate.publish(self.pub, msg)
         self.published += 1
         self.last, self.sent_at, self.budget = msg, time.monotonic(), RESENDS
+        self.accepted = False
+
+    def on_accepted(self, msg):
+        if msg == self.last:  # the feedforward took what was sent
+            self.accepted = True
 
     def on_phase(self, msg):
-        self.ff_phase = phase_from_msg(msg)
+        was, self.ff_phase = self.ff_phase, phase_from_msg(msg)
         if self.ff_phase != (HOLD, ""):
             self.budget = RESENDS  # it has one: a later restart may ask again
+        elif was is not None and was != (HOLD, ""):
+            self.accepted = False  # it had one and holds with none: restarted
 
     def resend_if_held(self):
         """The last trajectory again when the feedforward still holds with none a
-        second after it was sent (and the gate has let it out)."""
-        if (self.ff_phase == (HOLD, "") and self.gate.open and self.last is not None
-                and self.budget > 0 and time.monotonic() - self.sent_at > RESEND_AFTER_S):
+        second after it went out (a message the gate held goes out when it opens)."""
+        now, ticked = time.monotonic(), self.ticked_at
+        self.ticked_at = now
+        if now - ticked > 2 * TICK_S:  # held up: what waits may say otherwise
+            return
+        sent = max(self.sent_at, self.gate.opened_at)
+        if (self.ff_phase == (HOLD, "") and not self.accepted and self.gate.open
+                and self.last is not None and self.budget > 0
+                and now - sent > RESEND_AFTER_S):
             self.pub.publish(self.last)
             self.resent += 1
             self.budget -= 1

@@ -62,6 +62,12 @@ class PlantConfig:
         'axes'): that law replaces the Duhem one on those axes.
     seed : int
         Seed of the sensor-noise generator.
+    changes : list
+        The stage changing during a run: [{at_s, effects}] in time order, each
+        effects block replacing the named effects' parameters from the first command
+        at or after ``at_s`` seconds of the run (``enabled: false`` switches one
+        off); an effect switched on or changed starts at rest at the hysteresis's
+        output then.
     """
 
     model: StageModel
@@ -72,6 +78,7 @@ class PlantConfig:
     effects: dict = field(default_factory=dict)
     seed: int = 0
     hysteresis: dict = field(default_factory=dict)
+    changes: list = field(default_factory=list)
 
     def __post_init__(self):
         if not self.internal_rate_hz > 0:
@@ -131,10 +138,8 @@ class Plant:
                 bad = [a for a in (e or {}).get("axes", ()) if a not in AXES]
                 if bad:
                     raise ConfigError(f"effect {name}: unknown axis {bad[0]!r}")
-        for a in AXES:  # (the one reading of the block per axis: effects_on)
-            on = sampled_pair(effects_on(config.effects, a), self.fs_hz)
-            self._effects[a] = [make_effect(n, self.fs_hz, on[n]) for n in EFFECT_ORDER
-                                if n in on]
+        self._effect_params = dict(config.effects)  # as they stand (``changes``)
+        self._build_effects(None)
         self._play = {}
         if config.hysteresis:
             params = dict(config.hysteresis)
@@ -170,6 +175,39 @@ class Plant:
         self._has_effects = any(self._effects[a] for a in AXES)
         self._one = np.zeros((2, 1))  # step's command buffer
 
+    def _build_effects(self, at_rest: dict | None) -> None:
+        """Each axis's effects from the parameters as they stand (the one reading of
+        the block per axis: effects_on); with ``at_rest`` ({axis: um}), only those
+        whose parameters changed are built again, at rest there."""
+        old = getattr(self, "_on", {})
+        self._on = {}
+        for a in AXES:
+            on = sampled_pair(effects_on(self._effect_params, a), self.fs_hz)
+            self._on[a] = on
+            kept = {type(e).__name__.lower(): e for e in self._effects.get(a, [])}
+            built = []
+            for n in EFFECT_ORDER:
+                if n not in on:
+                    continue
+                if at_rest is not None and old.get(a, {}).get(n) == on[n] and n in kept:
+                    built.append(kept[n])
+                    continue
+                e = make_effect(n, self.fs_hz, on[n])
+                if at_rest is not None:
+                    e.reset(at_rest[a])
+                built.append(e)
+            self._effects[a] = built
+        self._has_effects = any(self._effects[a] for a in AXES)
+
+    def _apply_change(self, change: dict) -> None:
+        """A scheduled change (PlantConfig.changes) from now on."""
+        for name, p in change["effects"].items():
+            if isinstance(p, dict) and not p.get("enabled", True):
+                self._effect_params.pop(name, None)
+            else:
+                self._effect_params[name] = p
+        self._build_effects(dict(self._h_last))
+
     def reset(self) -> None:
         """Back to rest: initial hysteresis states, 0 V applied, effects at rest."""
         model = self.config.model
@@ -194,6 +232,12 @@ class Plant:
         self._mq = {a: np.array([model.axes[a].initial.v if a in model.axes else
                                  self._vstate[AXES.index(a)], 0.0]) for a in model.plays}
         self._rng = np.random.default_rng(self.config.seed)
+        if self.config.changes:  # back to the effects before any change
+            self._effect_params = dict(self.config.effects)
+            self._build_effects(None)
+        self._pending = [(int(np.ceil(c["at_s"] * self.command_rate_hz - 1e-9)), c)
+                         for c in self.config.changes]
+        self._h_last = {a: 0.0 for a in AXES}  # the hysteresis's last output [um]
         self.limit_hits = 0
         self.samples = 0
         self.last_true = {a: np.zeros(0) for a in AXES}
@@ -225,8 +269,32 @@ class Plant:
         return float(meas[0, 0]), float(meas[1, 0])
 
     def _advance(self, vx, vy):
-        """The plant over commands vx, vy: hysteresis path, effects, sensor; returns the
-        measured (2, n) [um] and keeps the true and applied values of the call."""
+        """The plant over commands vx, vy (a scheduled change splits them where it
+        comes): hysteresis path, effects, sensor; returns the measured (2, n) [um] and
+        keeps the true and applied values of the call."""
+        if self._pending and self._pending[0][0] < self.samples + vx.size:
+            k = max(0, self._pending[0][0] - self.samples)
+            parts, trues, fines, applied = [], [], [], []
+            if k:
+                parts.append(self._advance(vx[:k], vy[:k]))
+                trues.append(self.last_true)
+                fines.append(self.last_true_fine)
+                applied.append(self.last_applied)
+            self._apply_change(self._pending.pop(0)[1])
+            parts.append(self._advance(vx[k:], vy[k:]))
+            trues.append(self.last_true)
+            fines.append(self.last_true_fine)
+            applied.append(self.last_applied)
+            self.last_true = {a: np.concatenate([t[a] for t in trues]) for a in AXES}
+            self.last_applied = {a: np.concatenate([t[a] for t in applied]) for a in AXES}
+            if self.keep_fine:
+                self.last_true_fine = {a: np.concatenate([t[a] for t in fines])
+                                       for a in AXES}
+            return np.concatenate(parts, axis=1)
+        return self._advance_plain(vx, vy)
+
+    def _advance_plain(self, vx, vy):
+        """``_advance`` with no change within the commands."""
         n, R = vx.size, self.substeps
         applied, w = np.empty((2, n * R)), np.empty((2, n * R))
         self.limit_hits += plant_run(vx, vy, R, self._vstate, self._dstate, self._alpha,
@@ -239,6 +307,8 @@ class Plant:
             elif a in self._mz:  # the model's own play operators, beside its Duhem law
                 w[i] += self.config.model.plays[a].run(applied[i], self._mz[a],
                                                        1.0 / self.fs_hz, self._mq[a])
+        if w.shape[1]:
+            self._h_last = {"x": float(w[0, -1]), "y": float(w[1, -1])}
         fine = w
         if self._has_effects:
             fine = np.empty_like(w)

@@ -100,7 +100,22 @@ def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.n
         # as 0.7 ms)
         whole = np.unique(np.round(np.linspace(0, np.floor(dmax * fs), 12)).astype(int))
         p0 = min(({"delay_s": k / fs} for k in whole), key=lambda p: solve(delay_op(p)(B)))
-        return _alternate(B, extra, w, search_delay, p0, delay_op, rows=rows), kept
+        found = _alternate(B, extra, w, search_delay, p0, delay_op, rows=rows)
+        dyn0 = dict(kept).get("dynamics")
+        if dyn0 is None or dyn0.get("kind") != "resonance":
+            return found, kept
+        # a resonance fitted before the delay took the delay's phase as well (a lag-like
+        # resonance stood in for it): the two polished together, as where the
+        # resonance comes second
+        def pair_op(p):
+            dyn_p = {k: v for k, v in p.items() if k != "delay_s"}
+            return transform_ops([("dynamics", dyn_p),
+                                  ("delay", {"delay_s": p["delay_s"]})], fs)
+        both = _alternate(B, extra, w, lambda cost, q0: _polish_pair(q0, fs, cost),
+                          {**dyn0, **found}, pair_op, rows=rows)
+        d = {"delay_s": float(both.pop("delay_s"))}
+        kept = [(n, both if n == "dynamics" else p) for n, p in kept]
+        return d, kept
     if effect != "dynamics":
         raise ValueError(f"{effect} is not a transform effect")
     seeds = _resonance_seeds(KX, w, fs, extra)
