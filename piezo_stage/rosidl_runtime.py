@@ -3,9 +3,9 @@
 Every generated message module imports ``rosidl_generator_py`` for its one runtime
 function, ``import_type_support``. The package's ``__init__`` also imports its code
 generator (``generate_py_impl``: empy, lark and the IDL parser), which a running
-process never calls: about 0.14 s of CPU in every process that imports a message (each
-node, the launcher's look for a running set, the recorder), paid at once by the set's
-processes on a 2-core host as it starts (2026-12-02: `bench startup`).
+process never calls: CPU in every process that imports a message (each node, the launcher's
+look for a running set, the recorder), paid at once by the set's processes as it
+starts (`bench startup` measures it).
 
 ``runtime_only()`` puts the package in ``sys.modules`` with that function alone, before
 any message is imported; its submodules import as before, and ``from

@@ -64,7 +64,7 @@ def in_finalizer(frame) -> bool:
     """Whether ``frame`` runs inside an object's finalizer (``__del__``), where an
     exception is printed as "Exception ignored in ... __del__" with its traceback and
     dropped: a Ctrl-C landing in llvmlite's ``ObjectRef.__del__`` while numba compiled
-    was printed so, and the stop lost (`test_cli` Ctrl-C at a random moment, 2026-11-28)."""
+    was printed so, and the stop lost (`test_cli`'s Ctrl-C at a random moment)."""
     while frame is not None:
         if frame.f_code.co_name == "__del__":
             return True
@@ -82,8 +82,7 @@ def in_import_machinery(frame) -> bool:
     """Whether ``frame`` is importlib's own code (its module locks, their weakref
     callbacks), not a module's top level being imported: a KeyboardInterrupt raised
     there was printed and dropped ("Exception ignored in _get_module_lock.cb") and the
-    launcher ran on (bench signals: 2 of 30 launcher stops 0.1-0.6 s after start,
-    2026-11-28)."""
+    launcher ran on (`bench signals`: stops soon after the start)."""
     return frame is not None and frame.f_code.co_filename.startswith("<frozen importlib")
 
 
@@ -92,7 +91,7 @@ def forget_interrupt() -> None:
     as unhandled for good (the mark is cleared only by the next such ``exec``), and
     the interpreter then ends by SIGINT at its exit even though the command caught the
     stop and said so: a stop during an import that builds a dataclass (numba's) exited
-    -2 after "stopped by SIGTERM" (bench signals, 4 of 50 launcher stops, 2026-11-28).
+    -2 after "stopped by SIGTERM" (`bench signals`).
     An ``exec`` that completes clears the mark."""
     exec("None")
 

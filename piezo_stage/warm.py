@@ -4,19 +4,19 @@ A fresh environment compiles on first use: Python's bytecode of every module a p
 imports (each process again where ``PYTHONDONTWRITEBYTECODE`` is set, as on many CI
 hosts) and numba's kernels (cached on disk by the first process that needs them). A
 first demo then spends about 9 s of its run compiling kernels, a lockstep set waiting
-the while (the feedforward's inverse of the identified model alone ~3.6 s on a 2-core
-host, 2026-11-28). ``dev.sh`` runs the parts below after an install, so that every
+the while (the feedforward's inverse of the identified model the largest part; `bench
+startup` measures it). ``dev.sh`` runs the parts below after an install, so that every
 later process finds the bytecode and the kernels it needs::
 
     python -m piezo_stage.warm stage     # the kernels of the simulated stage and identify
     python -m piezo_stage.warm inverse   # the kernels of the feedforward's inverse
     python -m piezo_stage.warm modules   # bytecode of the package and what it imports
 
-dev.sh runs the three side by side (three processes on two cores: about 11 s on a
-2-core host, 2026-12-02, as long as the two kernel parts in one process beside
-``modules`` took; installing the package's own requirements first, to compile the
-kernels while ROS's wheels were fetched, took longer in all: each install's overhead,
-and unpacking ROS's wheels needs the CPU too).
+dev.sh runs the three side by side (three processes on two cores take as long as the
+two kernel parts in one process beside ``modules``; installing the package's own
+requirements first, to compile the kernels while ROS's wheels were fetched, took
+longer in all: each install's overhead, and unpacking ROS's wheels needs the CPU
+too).
 
 Only what the package's processes import is compiled (about a third of the
 environment's modules, in about half the time of compiling all of them). Each part

@@ -294,3 +294,21 @@ def test_each_folder_uses_only_the_layers_below_it():
                 if not ok and not t.endswith(os.path.join("piezo_stage", "__init__.py")):
                     bad.append(f"{os.path.relpath(path, ROOT)}:{line}: {module} ({rel})")
     assert not bad, "\n".join(bad)
+
+
+def test_no_history_in_the_package_s_code():
+    """A comment says why; what was measured, when, on which run, lives in the docs
+    (docs/benchmarks.md, docs/realtime.md), generated. No date ("2026-...") and no
+    "CI run" anecdote in the package's code."""
+    import re
+    pattern = re.compile(r"\b20\d\d-\d\d|CI run")
+    found = []
+    for base, _, files in os.walk(os.path.join(ROOT, "piezo_stage")):
+        for f in files:
+            if f.endswith(".py"):
+                path = os.path.join(base, f)
+                with open(path, encoding="utf-8") as fh:
+                    for i, line in enumerate(fh, 1):
+                        if pattern.search(line):
+                            found.append(f"{os.path.relpath(path, ROOT)}:{i}: {line.strip()}")
+    assert not found, "\n".join(found)

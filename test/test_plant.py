@@ -285,8 +285,8 @@ def test_a_scheduled_change_switches_an_effect_on_mid_run(cfg, tmp_path):
     """``changes`` (a plant file's block): creep switched on at 1.5 s of the run. Before
     it the stage is the one without changes, sample for sample; from it the held
     stage creeps after the next step of the voltage (before, a held voltage held),
-    its creep starting at rest (no jump at the change); stepping one command at a time gives the batch's samples; a
-    reset runs the schedule again from the start."""
+    its creep starting at rest (no jump at the change); stepping one command at a
+    time gives the batch's samples; a reset runs the schedule again from the start."""
     changed = load_plant_config(_with_block(tmp_path, {"changes": [
         {"at_s": 1.5, "effects": {"creep": {"enabled": True, "gamma": 0.08}}}]}))
     assert len(changed.changes) == 1

@@ -382,14 +382,14 @@ def growth(rows) -> list[dict]:
 
 
 def _when(iso: str) -> str:
-    """A run's start to the second, UTC ("2026-11-28 09:20:45"): runs of one day are
+    """A run's start to the second, UTC ("YYYY-MM-DD hh:mm:ss"): runs of one day are
     told apart."""
     return iso[:19].replace("T", " ")
 
 
 def growth_lines(g: list[dict]) -> list[str]:
-    """What changed, one line each ("x: creep +45 % since 2026-11-02 09:00:00 (gamma
-    0.0300 -> 0.0435); changed by 30 % on 2026-11-10 09:00:00")."""
+    """What changed, one line each ("x: creep +45 % since <first run> (gamma 0.0300 ->
+    0.0435); changed by 30 % on <that run>")."""
     lines = []
     for e in g:
         since = _when(e["first_utc"])

@@ -14,8 +14,8 @@ from statistics import median_low
 RATES_HZ = (1000.0, 500.0, 250.0)
 # a rate is chosen where the capacity run measured this much: the set's own check asks
 # 2 x, and one host's measurements of one rate spread by 1.5 x run to run (1.1-2.1 x at
-# 1 kHz on a 2-core VM), so a rate chosen at 2.0 x is refused by the next set as often;
-# at 2.5 x a 500 Hz set still faulted on stale commands in one CI run of that host
+# 1 kHz on a 2-core VM), so a rate chosen at 2.0 x is refused by the next set as often,
+# and at 2.5 x a set can still fault on stale commands
 CHOOSE_MARGIN = 3.0
 RUN_S = 3.0  # a capacity run's tracking: three of the driver's 1 s reports
 
@@ -123,9 +123,8 @@ def host_rate(env: dict, rates=RATES_HZ, margin: float = CHOOSE_MARGIN, compose=
     ``Capacity.at`` judges a lower rate's samples dearer (1,091/s at 1 kHz chooses
     250 Hz here at 3 x, where ``at`` gives it 2.35 x), so a chosen rate keeps the 2 x a
     set's own check asks, not all of the 3 x. A run that faulted says the host did not
-    hold its rate while it ran (a CI run's capacity run at 1 kHz faulted on stale
-    commands, and the suite then ran at 1 kHz from its last report, faulting in four
-    tests): the next rate down gets a run of its own. The sets run at the rate chosen
+    hold its rate while it ran (taking its last report instead, a suite would run at a
+    rate that faults): the next rate down gets a run of its own. The sets run at the rate chosen
     then take ``min_margin: 0`` (the host has been measured already). ``compose``: the
     loop's composition (the launcher's, ``COMPOSE``; None its real-time default).
     ``runs``: a list each capacity run (RateRun) is appended to. ``measure_at``:

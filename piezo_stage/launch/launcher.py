@@ -49,9 +49,8 @@ START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # a file: nodes wait for it before th
 # rate auto: the runs a set may take in all, each at a lower rate than the last (the
 # standard rate a refusal names, core/loop/capacity.py: from 1 kHz, 500, 250, 200 Hz).
 # A rate named from a measurement at a higher one is often one step too high (the
-# loop's fixed work a second weighs more per sample at a lower rate): a slow 2-core
-# host refused 2,000, 1,000 and 500 Hz one after the other (1.00, 1.24, 1.41 x) where
-# it held 250 Hz with 3 x, so three runs ended it unarmed (2026-12-02, on 9693767)
+# loop's fixed work a second weighs more per sample at a lower rate): a slow host may
+# be refused three rates one after the other before one it holds
 AUTO_ATTEMPTS = 4
 # how long each group may take to stop after its SIGINT [s]: the driver ramps the stage
 # down (up to its limit's span at ramp_V_per_s), the recorder finishes the bag
@@ -272,9 +271,8 @@ class Launch:
         # health check on a joining participant's port held every publish of a node up
         # to ~0.33 s (realtime_transport_env), and publish synchronously: on UDP a
         # send is the caller's sendto, where the asynchronous mode's hand-off to a
-        # writer thread per participant cost more CPU than it saved (capacity 1,400
-        # against 1,060 samples/s for the composed set on a 2-core host, 2026-11-28;
-        # docs/realtime.md). Lockstep keeps the transports its byte-identical reruns
+        # writer thread per participant costs more CPU than it saves (docs/realtime.md).
+        # Lockstep keeps the transports its byte-identical reruns
         # were measured with.
         transport = lockstep_transport_env(self.env) if self.lockstep else \
             realtime_transport_env(self.env)

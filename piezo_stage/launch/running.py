@@ -25,7 +25,7 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
     ``wait_s`` for the graph to show the namespace's nodes (``BUSY_WAIT_S`` when it
     shows other nodes, whose discovery is going on): on a loaded host their names took
     longer than 0.5 s to arrive, and after ten outside nodes joined and left, over
-    2 s; each time the second launch went ahead (fresh clones' suites, 2026-11-25). A
+    2 s; a shorter wait let a second launch go ahead beside a running set. A
     clean start pays the whole wait once (on a lab's busy domain up to 6 s): ``Look``
     spends it beside the start-up. ``cancel`` set: it ends within 50 ms, with None.
     ``report``: called with the answer before the look's node is torn down (its
@@ -74,9 +74,9 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
                 break
         if not names:
             return None
-        # its driver's latched state, if it has one: on a loaded 2-core host, with ten
-        # other nodes just gone, it took longer than 3 s to arrive (a fresh clone's
-        # suite, 2026-11-25), and the refusal named only the nodes seen by then
+        # its driver's latched state, if it has one: on a loaded host, with other nodes
+        # just gone, it can take seconds to arrive, and a refusal sooner names only the
+        # nodes seen by then
         end = time.monotonic() + STATE_WAIT_S
         while time.monotonic() < end and "host" not in who:
             if cancel is not None and cancel.is_set():
@@ -108,7 +108,7 @@ class Look:
     (launch to armed, `bench startup`). The command waits (``LOOKING_WAIT_S`` at most)
     for the look's node to be on the graph first: the node's imports and creation would
     otherwise share the interpreter with the command's, and the wait, which counts from
-    the node, would end up to 0.3 s later (2-core host, 2026-12-02). ``result()`` waits
+    the node, would end later by as long as those took. ``result()`` waits
     for the answer (raising what the look raised), which is in before the look's node
     is torn down; ``cancel()`` ends a look whose answer is no longer wanted (a config
     refused, a stop while starting): within 50 ms, with nothing left behind."""

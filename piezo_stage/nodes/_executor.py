@@ -553,8 +553,8 @@ def preload_type_support() -> int:
     """Load the C type support of every message and service type the process has
     imported, and of those rclpy's Node makes for itself, before the node joins the
     graph: each package's support is a library loaded on its first use, and a
-    process's first node took 0.24 s to build where 9 ms do once they are loaded (2-core
-    host, 2026-12-01). Done while the launcher looks for a set already running, it
+    process's first node takes far longer to build than the next ones (`bench
+    startup`). Done while the launcher looks for a set already running, it
     leaves the set's start-up. The number of types loaded."""
     import importlib
     import re
@@ -584,10 +584,9 @@ def preload_type_support() -> int:
 def warm_caller_lookup() -> None:
     """rclpy's logger names each line's caller (``inspect.getframeinfo``), and the
     process's first line maps the file of every module imported (``inspect.getmodule``'s
-    cache): the driver's first line, its state's announcement as it configures, took
-    0.09 s of a 2-core host's CPU that way (2026-12-02), after the node had joined the
-    graph. Mapped here before the start gate instead; a module imported later is mapped
-    at the next line, alone."""
+    cache): the driver's first line, its state's announcement as it configures, would
+    pay that after the node joined the graph. Mapped here before the start gate
+    instead; a module imported later is mapped at the next line, alone."""
     import inspect
     inspect.getframeinfo(sys._getframe())
 

@@ -2,14 +2,14 @@
 and prepared off the loop's thread.
 
 In real time the feedforward answers every sample within the driver's look-ahead (5 ms
-by default). Taking a 200,000-point trajectory (11.2 MB of CDR) costs its thread about
-10 ms on this host: the middleware's take (1-2 ms on pre-faulted heap), the
-decoding and the republishing on ``trajectory/accepted``. Done
-on the loop's thread that held the driver 4-6 ticks without a command (`bench faults`,
-2026-11-26). Here only the take stays there; one worker thread, at normal priority,
-does the rest (numpy releases the GIL on large buffers), and the loop's
-thread picks up the result at its next sample (``ready``). A model message is the
-same: parsing its YAML, checking it and building its inverse held the loop 5-8 ticks.
+by default). Taking a 200,000-point trajectory (11.2 MB of CDR) costs its thread
+several ticks: the middleware's take, the decoding and the republishing on
+``trajectory/accepted``. Done on the loop's thread, that held the driver ticks without
+a command (`bench faults` measures it). Here only the take stays there; one worker
+thread, at normal priority, does the rest (numpy releases the GIL on large buffers),
+and the loop's thread picks up the result at its next sample (``ready``). A model
+message is the same: parsing its YAML, checking it and building its inverse would
+hold the loop ticks.
 """
 
 from __future__ import annotations
@@ -26,8 +26,7 @@ def warm_up(decode, errors: tuple) -> None:
     """Run ``decode`` (CDR bytes -> trajectory) once on each of its paths now: a layout
     the fast decoder covers, and one it hands to rclpy's ordinary deserialization,
     whose first call loads the type support's shared library and imports with the GIL
-    held (3-4 ticks of the loop when a malformed trajectory first came, `bench faults`
-    2026-11-26)."""
+    held (ticks of the loop when a malformed trajectory first came: `bench faults`)."""
     from rclpy.serialization import serialize_message
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
     point = JointTrajectoryPoint(positions=[0.0, 0.0])

@@ -42,10 +42,8 @@ PARAMETERS: Schema = (
 )
 
 # a window holds at least this many samples, whatever its length: 150 at 500 Hz in the
-# default 0.3 s, 300 at 1 kHz. A 0.5 s window cost every start 0.2 s more, and gave
-# no steadier figures: the first windows of six starts at 500 Hz read 2.5-5.0 x in 0.5
-# s, 3.0-4.4 x in 0.3 s (2-core host, 2026-12-02); the spread is the host's, start to
-# start
+# default 0.3 s, 300 at 1 kHz. A longer window costs every start its length and gives
+# no steadier figures: the spread is the host's, start to start (docs/realtime.md)
 MIN_WINDOW_SAMPLES = 100
 
 # the host's CPU per sample is at most this many times the loop thread's: the loop's
@@ -56,10 +54,8 @@ HOST_PER_THREAD = 3.0
 # the loop's fixed work a second (timers, diagnostics, the executor's own turns), in
 # samples' worth: at a lower rate it weighs more per sample, so a measurement at one
 # rate says too much of a lower one. Per sample at rate r the cost is c (1 + K / r):
-# one host read 0.44 ms a sample at 1 kHz and 0.88 ms at 250 Hz (K 500), another 0.494
-# ms at 1 kHz and 0.586 ms at 500 Hz (K 230), 2026-12; a rate named from the 1 kHz
-# figure with no such term was refused at the next run (1,091/s named 500 Hz, which
-# read 1.63 x)
+# K differs host to host (docs/realtime.md); a rate named from the 1 kHz figure with
+# no such term is refused at the next run
 FIXED_SAMPLES_A_SECOND = 400.0
 
 # the rates a set may be run at, the highest first: what a refusal proposes

@@ -424,8 +424,8 @@ class InverseFeedforward:
         by the planner's own change per tick since the last answer (averaged over the
         ticks between), at least REJOIN_MIN_UM_PER_TICK: the first step from the held
         position is the trajectory's pace, the next ones at most twice it, and the
-        controller follows the same reference. (A 4-tick host stall of a 250 Hz set on
-        the 10 Hz sine left about 20 um, 40-48 V, to step in one tick, 2026-12-02.)"""
+        controller follows the same reference. (Without it a few ticks' host stall
+        leaves tens of volts to step in one tick.)"""
         last, self.answered = self.answered, (target, dict(desired))
         if self.behind and self.asked is not None:
             self.rejoin = {a: self.asked[a] - desired[a] for a in desired if a in self.asked}

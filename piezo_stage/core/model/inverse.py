@@ -315,8 +315,8 @@ class StageInverse:
         """Call each compiled kernel the per-sample path calls (``sync``, ``step``,
         ``step_ahead`` with commands in flight), in the types it calls them with, so that
         none is compiled or loaded from numba's cache at a sample: loaded at the first
-        tracked sample, the look-ahead's alone held a real-time loop's thread 11 ms
-        (py-spy on a 2-core VM, 2026-12-02). Moves this inverse's state: warm a
+        tracked sample, the look-ahead's alone would hold a real-time loop's thread
+        for many ticks. Moves this inverse's state: warm a
         throwaway one."""
         self.sync(*self.limits)
         self.step(0.0, 0.0)
