@@ -39,7 +39,10 @@ from piezo_stage_msgs_adapters.wire import Announcement
 
 RESEND_S = 1.0  # a move unanswered this long is sent again
 SETTLE_IN_S = 0.3  # after the first answers: the rest of the latched history
-DISCOVERY_S = 3.0  # no node of the set on the graph this long after the start: no set
+# no node of the set on the graph this long after the start: no set. Fast DDS announces a
+# participant in a burst at its start, then every 3 s: a busy host that missed the burst
+# (a set in lockstep takes every core it gets) sees the set by the next announcement
+DISCOVERY_S = 6.0
 SAMPLES_KEPT = 200_000  # the samples a client keeps for its dwells (minutes at 1 kHz)
 
 

@@ -262,3 +262,27 @@ def test_a_stop_after_the_first_case_writes_the_finished_cases_report(tmp_path, 
     assert {c["freq_hz"] for c in doc["cases"]} == {10.0}
     assert (rep / "tracking.png").stat().st_size > 10_000
     assert "piezo-stage: stopped by SIGINT" in err
+
+
+def test_a_motion_shorter_than_its_periods_is_refused_with_where_it_moved():
+    """A bag whose desired position stops moving early (here after 20 ms of a 0.5 s
+    motion) is not judged: the error says where the motion went, the largest gap
+    between stamps and the driver's states, so a short run says why it was short."""
+    import numpy as np
+
+    from piezo_stage.apps.scan import _motion, plan
+    from piezo_stage.core.errors import RunError
+    from piezo_stage.io.run_bag import Run
+    case = [c for c in plan(periods=20, raster_hz=(), seed_hz=(40.0,), rate_hz=5000.0,
+                            learning=(True,))][0]
+    ks = np.arange(5000, dtype=np.int64) * 200_000  # 1 s at 5 kHz
+    moving = np.minimum(ks, 20_000_000) * 1e-6  # moves for 20 ms, then held
+    run = Run(ks, np.zeros((ks.size, 2)), np.zeros((ks.size, 2)), ks,
+              true_um={int(k): np.zeros(2) for k in ks},
+              desired_um={int(k): np.array([m, 0.0]) for k, m in zip(ks, moving)},
+              states=[(0, "disarmed"), (200_000, "armed")])
+    with pytest.raises(RunError) as e:
+        _motion(case, run)
+    said = str(e.value)
+    assert "moving from 0.0 to 20.0 ms" in said and "largest gap 0.2 ms" in said, said
+    assert "states: disarmed 0.0, armed 0.2" in said, said

@@ -105,6 +105,16 @@ def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
     return cases
 
 
+def _span(ks, moved, states) -> str:
+    """Where the desired position moved, the largest gap between stamps and the
+    driver's states, in ms from the first stamp: what a short motion is judged from."""
+    ms = lambda k: f"{(int(k) - int(ks[0])) * 1e-6:.1f}"  # noqa: E731
+    gap = int(np.diff(ks).max()) if ks.size > 1 else 0
+    said = ", ".join(f"{st} {ms(since)}" for since, st in states)
+    return (f"{ks.size} stamps to {ms(ks[-1])} ms, moving from {ms(ks[moved[0]])} to "
+            f"{ms(ks[moved[-1] + 1])} ms, largest gap {gap * 1e-6:.1f} ms; states: {said}")
+
+
 def _motion(case, run):
     """(period index (m,), desired (m, 2), true (m, 2), applied (m, 2) V) over the
     motion's periods x n samples' time, found from its end (the last stamp the desired
@@ -129,7 +139,7 @@ def _motion(case, run):
     sel = (ks >= t0 - half) & (ks < t_end - half)
     if ks[0] > t0 + period_ns or sel.sum() < 0.9 * case.periods * case.n:
         raise RunError(f"{case.name}: the bag holds {int(sel.sum())} of the motion's "
-                        f"{case.periods * case.n} samples")
+                        f"{case.periods * case.n} samples ({_span(ks, moved, run.states)})")
     ks, d = ks[sel], d[sel]
     tau = (ks - t0) * 1e-9
     want = np.column_stack([np.interp(tau, case.t, case.w[a]) for a in "xy"])
