@@ -205,10 +205,11 @@ sys.exit(0 if acked else 1)
 """
 
 
-def with_lab_node(tmp_path, env, code, name, steps):
-    """A lab node (Python ``code`` in its own process) beside a lockstep set that waits
-    for its trajectory (a bad one does not count); the node must exit 0. -> the bag."""
-    lab = subprocess.Popen([sys.executable, "-c", code], env=env)
+def with_lab_node(tmp_path, env, code, name, steps, args=()):
+    """A lab node (Python ``code`` in its own process, given ``args``) beside a lockstep
+    set that waits for its trajectory (a bad one does not count); the node must exit 0.
+    -> the bag."""
+    lab = subprocess.Popen([sys.executable, "-c", code, *args], env=env)
     try:
         bag = lockstep(tmp_path, env, name, steps=steps,
                        nodes=["stage_driver", "feedforward", "controller"],
@@ -226,15 +227,7 @@ def test_the_same_trajectory_published_three_times_runs_three_times(tmp_path, en
     accepts all three, the bag holds all three on trajectory/accepted, and it runs each
     (through its middle point) to its end. (Before, a repeat of the bytes taken last
     was dropped without a word.)"""
-    lab = subprocess.Popen([sys.executable, "-c", SAME_AGAIN, "3"], env=env)
-    try:
-        bag = lockstep(tmp_path, env, "same_again", steps=30000,
-                       nodes=["stage_driver", "feedforward", "controller"],
-                       overrides={"feedforward": {"wait_for_trajectory": True}})
-        assert lab.wait(60) == 0
-    finally:
-        if lab.poll() is None:
-            lab.kill()
+    bag = with_lab_node(tmp_path, env, SAME_AGAIN, "same_again", 30000, args=("3",))
     assert_ran_each(bag, 3)
 
 
