@@ -24,6 +24,7 @@ from piezo_stage_msgs_adapters.wire import (
     announcement_of,
     joint_state_axes,
     reference_of,
+    trajectory_header,
 )
 
 __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
@@ -356,17 +357,6 @@ def model_from_msg(msg: String):
     from piezo_stage.core.model.model_doc import model_from_dict, parse_yaml
     return model_from_dict(parse_yaml(msg.data, "model message", max_bytes=65536),
                            "model message")
-
-
-def trajectory_header(data: bytes) -> tuple[str, int]:
-    """(header.frame_id, header.stamp [ns]) of a trajectory's CDR bytes, what its sender
-    names it by; ("", 0) where the bytes do not hold a header."""
-    try:
-        r = cdr.CdrReader(data)
-        stamp = r.stamp()
-        return r.string(), stamp
-    except DataError:
-        return "", 0
 
 
 def refusal_msg(ns: int, frame_id: str, stamp_ns: int, reason: str) -> DiagnosticArray:

@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 
 from piezo_stage.core.errors import DataError
+from piezo_stage_msgs_adapters.cdr import CdrReader
 
 JOINTS = ("x", "y")
 UM = 1e-6  # metres per micrometre: um = m / UM, m = um * UM
@@ -125,3 +126,14 @@ def announcement_of(msg) -> Announcement:
     stamp = msg.header.stamp
     return Announcement(int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec), kv["state"],
                         kv.get("reason", ""), lookahead, limits, kv.get("mode", ""), kv)
+
+
+def trajectory_header(data: bytes) -> tuple[str, int]:
+    """(header.frame_id, header.stamp [ns]) of a trajectory's CDR bytes, what its sender
+    names it by; ("", 0) where the bytes do not hold a header."""
+    try:
+        r = CdrReader(data)
+        stamp = r.stamp()
+        return r.string(), stamp
+    except DataError:
+        return "", 0

@@ -267,7 +267,8 @@ def test_a_stop_after_the_first_case_writes_the_finished_cases_report(tmp_path, 
 def test_a_motion_shorter_than_its_periods_is_refused_with_where_it_moved():
     """A bag whose desired position stops moving early (here after 20 ms of a 0.5 s
     motion) is not judged: the error says where the motion went, the largest gap
-    between stamps and the driver's states, so a short run says why it was short."""
+    between stamps, the driver's states and the trajectories the stage ran (by name,
+    from trajectory/accepted), so a short run says why it was short."""
     import numpy as np
 
     from piezo_stage.apps.scan import _motion, plan
@@ -280,9 +281,11 @@ def test_a_motion_shorter_than_its_periods_is_refused_with_where_it_moved():
     run = Run(ks, np.zeros((ks.size, 2)), np.zeros((ks.size, 2)), ks,
               true_um={int(k): np.zeros(2) for k in ks},
               desired_um={int(k): np.array([m, 0.0]) for k, m in zip(ks, moving)},
-              states=[(0, "disarmed"), (200_000, "armed")])
+              states=[(0, "disarmed"), (200_000, "armed")],
+              accepted=["request:/stage/trajectory@1#1", "request:/stage/trajectory@1#2"])
     with pytest.raises(RunError) as e:
         _motion(case, run)
     said = str(e.value)
     assert "moving from 0.0 to 20.0 ms" in said and "largest gap 0.2 ms" in said, said
     assert "states: disarmed 0.0, armed 0.2" in said, said
+    assert "trajectories run: 2 (request:/stage/trajectory@1#1, " in said, said

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
-from lab_nodes import SAME_AGAIN, assert_ran_each  # noqa: E402
+from lab_nodes import REQUEST_AGAIN, SAME_AGAIN, assert_ran_each  # noqa: E402
 
 from conftest import CONFIG, ROOT, on_a_terminal  # noqa: E402
 from piezo_stage.io.bag import deserialize, iter_messages, read_bag_record  # noqa: E402
@@ -229,6 +229,25 @@ def test_the_same_trajectory_published_three_times_runs_three_times(tmp_path, en
     was dropped without a word.)"""
     bag = with_lab_node(tmp_path, env, SAME_AGAIN, "same_again", 30000, args=("3",))
     assert_ran_each(bag, 3)
+
+
+def test_a_trajectory_named_as_a_request_runs_once_however_often_it_is_sent(tmp_path,
+                                                                           env):
+    """A sender that resends until it hears an answer names its trajectory as a request
+    (``header.frame_id`` ``request:...``, docs/nodes.md): the same request sent twice at
+    once and again after its run runs once; the next request runs. The bag holds the
+    two on trajectory/accepted, and the feedforward counts the two it took already."""
+    bag = with_lab_node(tmp_path, env, REQUEST_AGAIN, "request_again", 30000, args=("0",))
+    assert_ran_each(bag, 2)
+    names = [deserialize(data, "trajectory_msgs/msg/JointTrajectory").header.frame_id
+             for _, data in topic_data(bag, "/stage/trajectory/accepted")]
+    assert names == ["request:/lab@1#1", "request:/lab@1#2"], names
+    last = {}
+    for _, data in topic_data(bag, "/diagnostics"):
+        for st in deserialize(data, "diagnostic_msgs/msg/DiagnosticArray").status:
+            last[st.name] = {kv.key: kv.value for kv in st.values}
+    ff = last["/stage/feedforward: inverse feedforward"]
+    assert int(float(ff["trajectories_taken_already"])) == 2, ff
 
 
 def test_a_run_shorter_than_the_report_cadence_has_every_nodes_final_report(tmp_path,

@@ -171,3 +171,27 @@ def test_a_run_re_identified_from_its_bag_gives_the_model_of_its_record(
         assert a.results[ax].fit["rms_um"] == pytest.approx(b.results[ax].fit["rms_um"],
                                                             rel=1e-3)
         assert a.results[ax].delay_samples == b.results[ax].delay_samples
+
+
+@given(sends=st.lists(st.tuples(st.integers(0, 5), st.booleans(), st.integers(1, 3)),
+                      max_size=30))
+@settings(max_examples=200, deadline=None)
+def test_each_request_runs_once_and_every_other_publication_runs(sends):
+    """Any sequence of sends, each a request (``request:<n>``) or plain, each sent one
+    to three times as separate publications (a resender): a request runs the first time
+    it comes and never again; a plain publication runs every time."""
+    from piezo_stage.core.loop.stamps import Publications, publication_key, request_key
+    p = Publications(remember=1000)
+    ran, want, seen = [], [], set()
+    i = 0
+    for n, is_request, times in sends:
+        name = f"request:{n}" if is_request else f"line {n}"
+        for _ in range(times):
+            i += 1
+            info = {"source_timestamp": 1_000 + i, "publication_sequence_number": i}
+            if p.admit(publication_key(info), request_key(name)):
+                ran.append(name)
+            if not is_request or name not in seen:
+                want.append(name)
+            seen.add(name)
+    assert ran == want

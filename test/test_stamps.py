@@ -57,3 +57,24 @@ def test_a_publication_is_taken_once_and_the_same_content_published_again_is_new
     for k in range(20, 23):
         p.first((k, k))
     assert p.first(a)  # forgotten: three newer ones since
+
+
+def test_a_request_is_taken_once_however_often_it_is_sent():
+    """A frame_id that begins ``request:`` names one request: admitted once, whatever
+    its publications; any other frame_id names nothing (every publication is new); a
+    publication delivered twice is admitted once either way."""
+    from piezo_stage.core.loop.stamps import request_key
+    p = Publications()
+    key = iter(range(100))
+    pub = lambda: (next(key), 0)  # noqa: E731 - a new publication each call
+    r = request_key("request:/stage/trajectory@1a#1")
+    assert r is not None
+    assert p.admit(pub(), r) and not p.admit(pub(), r) and not p.admit(pub(), r)
+    assert p.repeated == 2
+    assert p.admit(pub(), request_key("request:/stage/trajectory@1a#2"))
+    assert p.admit(pub(), request_key("request:/stage/trajectory@1b#1"))  # restarted
+    once = pub()
+    assert p.admit(once, request_key("request:x")) and not p.admit(once, None)
+    for plain in ("", "scan line 3", "request", "request:", "Request:x"):
+        assert request_key(plain) is None
+        assert p.admit(pub(), request_key(plain)) and p.admit(pub(), request_key(plain))

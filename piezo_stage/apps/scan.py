@@ -105,14 +105,16 @@ def plan(periods: int = PERIODS, raster_hz=RASTER_HZ, seed_hz=SEED_HZ,
     return cases
 
 
-def _span(ks, moved, states) -> str:
-    """Where the desired position moved, the largest gap between stamps and the
-    driver's states, in ms from the first stamp: what a short motion is judged from."""
+def _span(ks, moved, states, accepted=()) -> str:
+    """Where the desired position moved, the largest gap between stamps, the driver's
+    states, in ms from the first stamp, and the trajectories the stage ran (by name):
+    what a short motion is judged from."""
     ms = lambda k: f"{(int(k) - int(ks[0])) * 1e-6:.1f}"  # noqa: E731
     gap = int(np.diff(ks).max()) if ks.size > 1 else 0
     said = ", ".join(f"{st} {ms(since)}" for since, st in states)
     return (f"{ks.size} stamps to {ms(ks[-1])} ms, moving from {ms(ks[moved[0]])} to "
-            f"{ms(ks[moved[-1] + 1])} ms, largest gap {gap * 1e-6:.1f} ms; states: {said}")
+            f"{ms(ks[moved[-1] + 1])} ms, largest gap {gap * 1e-6:.1f} ms; states: {said}; "
+            f"trajectories run: {len(accepted)} ({', '.join(accepted) or 'unnamed'})")
 
 
 def _motion(case, run):
@@ -137,16 +139,17 @@ def _motion(case, run):
     t_end = int(ks[int(moved[-1]) + 1])  # the motion's last point
     t0 = t_end - case.periods * period_ns
     sel = (ks >= t0 - half) & (ks < t_end - half)
+    where = _span(ks, moved, run.states, run.accepted)
     if ks[0] > t0 + period_ns or sel.sum() < 0.9 * case.periods * case.n:
         raise RunError(f"{case.name}: the bag holds {int(sel.sum())} of the motion's "
-                        f"{case.periods * case.n} samples ({_span(ks, moved, run.states)})")
+                        f"{case.periods * case.n} samples ({where})")
     ks, d = ks[sel], d[sel]
     tau = (ks - t0) * 1e-9
     want = np.column_stack([np.interp(tau, case.t, case.w[a]) for a in "xy"])
     step = np.max(np.abs(np.diff(want, axis=0)), axis=0) if len(want) > 1 else 0.0
     if np.any(np.max(np.abs(d - want), axis=0) > step + 1e-6):
         raise RunError(f"{case.name}: the recorded desired positions are not the "
-                        "trajectory's (did the run end before the trajectory did?)")
+                        f"trajectory's (did the run end before the trajectory did? {where})")
     period = np.clip(np.floor((ks - t0 + half) / period_ns).astype(int), 0,
                      case.periods - 1)
     vmap = dict(zip(run.t_ns.tolist(), run.v_V))

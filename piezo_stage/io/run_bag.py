@@ -21,6 +21,7 @@ from piezo_stage_msgs_adapters.wire import (
     joint_state_um,
     point_um,
     reference_um,
+    trajectory_header,
 )
 
 
@@ -43,6 +44,7 @@ class Run:
     diagnostics: dict = field(default_factory=dict)   # node name -> its last ones
     models: int = 0                                   # models handed over (on model)
     skipped: int = 0                                  # joint states not the driver's
+    accepted: list = field(default_factory=list)      # trajectories run: frame_ids
 
     def state_times(self, name: str) -> list:
         return [s for s, n in self.states if n == name]
@@ -75,6 +77,7 @@ def read_run(bag) -> Run:
     reports: list[dict] = []
     reasons: list[str] = []
     models = skipped = 0
+    accepted: list[str] = []
     for topic, msgtype, log_ns, data in iter_messages(bag):
         if topic.endswith("/joint_states"):
             try:  # an outside node's malformed or foreign joint state is not a sample
@@ -110,6 +113,8 @@ def read_run(bag) -> Run:
                 # feedforward's phase, which repeat the state)
         elif topic.endswith("/model"):
             models += 1
+        elif topic.endswith("/trajectory/accepted"):
+            accepted.append(trajectory_header(data)[0])
         elif topic == "/diagnostics":
             m = deserialize(data, msgtype)
             for st in m.status:
@@ -122,4 +127,4 @@ def read_run(bag) -> Run:
     arr = lambda x, shape: np.array(x).reshape(shape)[order]  # noqa: E731
     return Run(arr(t, -1), arr(w, (-1, 2)), arr(v, (-1, 2)), arr(recv, -1), true, ref,
                states, reasons, diags.get("stage_driver", {}), reports, diags, models,
-               skipped)
+               skipped, accepted)

@@ -32,7 +32,12 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop import feedforward as core_ff
 from piezo_stage.core.loop.ontarget import REFUSED, TargetState
 from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
-from piezo_stage.core.loop.stamps import Publications, StampGuard, publication_key
+from piezo_stage.core.loop.stamps import (
+    Publications,
+    StampGuard,
+    publication_key,
+    request_key,
+)
 from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
@@ -139,6 +144,7 @@ class Feedforward(LeanNode, Node):
             0, f"{self.planner.phase}, model {self.model_name}, {self.ref.describe()}" + (
             f" (last rejected: {self.last_rejection})" if self.last_rejection else ""), {
             **self.stats, "model": self.model_name, "phase": self.planner.phase,
+            "trajectories_taken_already": self.publications.repeated,
             "effects": self.ref.describe(), "learning": self.learning.describe(),
             "lookahead_ms": self.driver.lookahead_ns * 1e-6,
             "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
@@ -235,10 +241,12 @@ class Feedforward(LeanNode, Node):
     def decode_trajectory(self, item):
         """(bytes, publication) -> (t, w, stamp, start, now) of a trajectory that is
         accepted (every check passed, its stamp's too), republished as accepted; None
-        for a publication taken already, delivered again (volatile and latched). Any
-        thread (one at a time)."""
+        for a publication taken already, delivered again (volatile and latched), and for
+        a request taken already, sent again (``request_key``: a resend that crossed the
+        answer). Any thread (one at a time)."""
         msg, key = item
-        if not self.publications.first(key):
+        request = request_key(trajectory_header(msg)[0])
+        if not self.publications.admit(key, request):
             return None
         try:
             check_trajectory_size(msg, self.max_points)  # before anything else

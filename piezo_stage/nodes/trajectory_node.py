@@ -11,12 +11,15 @@ when the feedforward says it holds with no trajectory a second after the send (i
 matched too late for it, or it was restarted): the publisher is latched, but the set's
 nodes take trajectories on a volatile subscription and fetch no history from this node
 (nodes/_latched.py), so a default-QoS publisher on the graph sees no QoS warning. At
-most RESENDS times until the feedforward reports something else; a resend is a new
-publication, which the feedforward runs (a trajectory is its publication), so it is
-sent only on the feedforward's word: it holds with none, it has not answered this
-publication on trajectory/accepted, and the node itself was not held up (a timer tick
-that comes late, on a loaded host, may have messages waiting that say otherwise: it
-waits one more tick).
+most RESENDS times until the feedforward reports something else. Each publication is
+named as a request (``header.frame_id`` ``request:<node>@<start>#<n>``,
+core/loop/stamps.py ``request_key``) and a resend is the same request: the feedforward
+takes a request once, so a resend that crossed the feedforward's answer (a loaded host
+delays either) is dropped there, not run again from its start. It is sent only on the
+feedforward's word: it holds with none, it has not answered this request on
+trajectory/accepted, and the node itself was not held up (a timer tick that comes
+late, on a loaded host, may have messages waiting that say otherwise: it waits one
+more tick).
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
@@ -34,6 +37,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.planner import HOLD
+from piezo_stage.core.loop.stamps import REQUEST_PREFIX
 from piezo_stage.core.loop.trajectory import generate
 from piezo_stage.nodes._common import QOS_EVENTS, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import LeanNode, run_node
@@ -55,6 +59,8 @@ class Trajectory(LeanNode, Node):
         self.published, self.resent, self.last = 0, 0, None
         self.sent_at, self.ff_phase, self.budget = 0.0, None, RESENDS  # (last: None)
         self.accepted, self.ticked_at = False, time.monotonic()  # (this publication's)
+        # this node's requests: its name and start, so a restarted node's are new ones
+        self.request = f"{REQUEST_PREFIX}{self.get_fully_qualified_name()}@{time.time_ns():x}"
         self.add_on_set_parameters_callback(self.on_set)
         self.publish(self.build(self.p))
         self.create_subscription(KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
@@ -92,13 +98,15 @@ class Trajectory(LeanNode, Node):
         return trajectory_msg(t, w)
 
     def publish(self, msg):
+        msg.header.frame_id = f"{self.request}#{self.published + 1}"
         self.gate.publish(self.pub, msg)
         self.published += 1
         self.last, self.sent_at, self.budget = msg, time.monotonic(), RESENDS
         self.accepted = False
 
     def on_accepted(self, msg):
-        if msg == self.last:  # the feedforward took what was sent
+        if self.last is not None and msg.header.frame_id == self.last.header.frame_id:
+            # the feedforward took this request (its name: the bytes of a resend crossed)
             self.accepted = True
 
     def on_phase(self, msg):

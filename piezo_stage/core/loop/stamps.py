@@ -97,6 +97,31 @@ class Publications:
             self._seen.discard(self._order.pop(0))
         return True
 
+    def admit(self, key: tuple | None, request: tuple | None = None) -> bool:
+        """Whether a delivery is a new request to run: a publication not taken already
+        (``key``), of a request not taken already (``request``, ``request_key``: a
+        resend of one is not new). Both are remembered; a delivery turned away is
+        counted in ``repeated``."""
+        if not self.first(key):
+            return False
+        if request is not None and request in self._seen:
+            self.repeated += 1
+            return False
+        return self.first(request)
+
+
+REQUEST_PREFIX = "request:"
+
+
+def request_key(frame_id: str) -> tuple | None:
+    """A request's identity, where its sender gave it one: a ``header.frame_id`` that
+    begins with ``request:`` names one request however often it is sent (a sender
+    that resends until it hears an answer: our trajectory node), so it is taken once;
+    any other frame_id (or none) names nothing, and every publication of it runs."""
+    if frame_id.startswith(REQUEST_PREFIX) and len(frame_id) > len(REQUEST_PREFIX):
+        return ("request", frame_id)
+    return None
+
 
 def publication_key(info: dict | None) -> tuple | None:
     """A publication's identity from the message info rclpy hands a two-argument
