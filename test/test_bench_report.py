@@ -153,6 +153,15 @@ def test_bench_loop_vs_a_revision_runs_that_revisions_own_loop(tmp_path, ros_env
     assert rate > 0 and 0 < med <= p99 and not any(lost.values()), res
 
 
+def test_the_events_executor_ring_runs_rclpys_fast_path_to_its_count(ros_env):
+    """bench loop's anchor: 3 nodes in one process on rclpy's EventsExecutor pass a
+    JointState round to the count asked and say their rate (the process exits 0, its
+    spin not hung)."""
+    from piezo_stage.benchmarks.loop import events_ring_rate
+    rate = events_ring_rate(ros_env, steps=400)
+    assert rate > 0
+
+
 def test_start_up_motion_is_the_fastest_move_before_arming_and_over_each_approach():
     """bench realtime's start-up motion: the true position's fastest step while the
     driver arms and approaches (a re-arm's too), over the time between the stamps; the

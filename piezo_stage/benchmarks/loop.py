@@ -26,6 +26,19 @@ def ring_rate(env, steps=3000):
             p.wait()
 
 
+def events_ring_rate(env, steps=5000):
+    """Steps/s of rclpy's own fast path: 3 nodes in one process on the EventsExecutor
+    passing a 2-joint JointState (``procs events``), the physical anchor of a loop of
+    three nodes composed in one process on this host."""
+    import subprocess
+    import sys
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.benchmarks.procs", "events",
+                        str(steps)], env=env, capture_output=True, text=True, timeout=300)
+    if r.returncode != 0:
+        raise RuntimeError(f"the EventsExecutor ring exited {r.returncode}: "
+                           f"{(r.stderr.strip().splitlines() or [''])[-1]}")
+    return float(r.stdout.split()[0])
+
 
 def loop_run(env, steps, foxglove_port=None, compose=None):
     """One lockstep run with the recorder: (steps/s, median ms, p99 ms, lost per topic,
@@ -163,14 +176,20 @@ def _bench_loop(rep, rev, steps, runs):
               "one process (the default) against each in its own, + trajectory + recorder "
               "(Fast DDS, this host); the baselines: a two-process ping-pong, and a ring of 3 "
               "processes passing one message round (empty callbacks, the nodes' lean wait "
-              "set and raw CDR, no recorder) run in each pair, the loop composed and apart "
-              "one after the other (this host's speed drifts)"
+              "set and raw CDR, no recorder) and rclpy's own fast path, 3 nodes in one "
+              "process on its EventsExecutor passing a 2-joint JointState, run in each "
+              "pair, the loop composed and apart one after the other (this host's speed drifts)"
               + (f"; and the code at {rev.label} (`--vs`), its own lockstep loop, run in "
                  "each pair, before the loop in odd pairs and after it in even ones"
                  if rev else ""))
-    results, apart, rings, rows, revs = [], [], [], [], []
+    results, apart, rings, rows, revs, events = [], [], [], [], [], []
     for k in progress_runs(range(runs), "bench loop: runs"):
         rings.append(ring_rate(env))
+        try:
+            events.append(events_ring_rate(env))
+        except (RuntimeError, ValueError, IndexError) as e:
+            rep.fail(str(e))
+            return 1
         if rev and k % 2 == 0:
             revs.append(rev.run(env, steps))
         res, err = loop_run(env, steps)
@@ -184,25 +203,28 @@ def _bench_loop(rep, rev, steps, runs):
         rate, med, p99, lost, steal = res
         results.append(res)
         apart.append(sep)
-        row = [k + 1, f"{rings[-1]:.0f}", rate, sep[0], f"{rate / sep[0]:.2f}",
-               f"{rate / rings[-1]:.2f}", f"{med:.3f} / {p99:.3f} ms",
+        row = [k + 1, f"{rings[-1]:.0f}", f"{events[-1]:.0f}", rate, sep[0],
+               f"{rate / sep[0]:.2f}", f"{rate / rings[-1]:.2f}", f"{rate / events[-1]:.2f}",
+               f"{med:.3f} / {p99:.3f} ms",
                f"{sum(lost.values())} / {sum(sep[3].values())}", f"{100 * steal:.1f} %"]
         if rev:
             old = revs[-1][0]
-            row[4:4] = [old[0], f"{rate / old[0]:.2f}"]
+            row[5:5] = [old[0], f"{rate / old[0]:.2f}"]
         rows.append(tuple(row))
     rates = sorted(r[0] for r in results)
     med_rate = rates[len(rates) // 2]
     med_period = sorted(r[1] for r in results)[len(results) // 2]
     ratios = sorted(r[0] / g for r, g in zip(results, rings))
     vs = sorted(r[0] / s[0] for r, s in zip(results, apart))
+    anchor = sorted(r[0] / e for r, e in zip(results, events))
     lost = {t: max(max(r[3][t] for r in results), max(s[3][t] for s in apart))
             for t in results[0][3]}
-    head = ["pair", "ring steps/s", "composed steps/s", "apart steps/s",
-            "composed / apart", "composed / ring", "step period median / p99",
+    head = ["pair", "ring steps/s", "EventsExecutor ring steps/s", "composed steps/s",
+            "apart steps/s", "composed / apart", "composed / ring",
+            "composed / EventsExecutor ring", "step period median / p99",
             "lost composed / apart", "CPU steal"]
     if rev:
-        head[4:4] = [f"{rev.label} steps/s", f"composed / {rev.label}"]
+        head[5:5] = [f"{rev.label} steps/s", f"composed / {rev.label}"]
     rep.table(tuple(head), rows, f"{runs} pairs of {steps} steps")
     figures = []
     if rev:
@@ -223,6 +245,10 @@ def _bench_loop(rep, rev, steps, runs):
          f"{med_period / (rt_med * 1e3):.2f} x"),
         ("composed against the ring, median of the pairs",
          f"{ratios[len(ratios) // 2]:.2f} x ({ratios[0]:.2f}-{ratios[-1]:.2f})"),
+        ("EventsExecutor ring (3 nodes, one process), median run",
+         f"{sorted(events)[len(events) // 2]:.0f} steps/s"),
+        ("composed against the EventsExecutor ring, median of the pairs",
+         f"{anchor[len(anchor) // 2]:.2f} x ({anchor[0]:.2f}-{anchor[-1]:.2f})"),
         ("composed against apart, median of the pairs",
          f"{vs[len(vs) // 2]:.2f} x ({vs[0]:.2f}-{vs[-1]:.2f})"),
         ("messages lost per loop topic, worst run (0: every message is in the bag)",
@@ -230,6 +256,8 @@ def _bench_loop(rep, rev, steps, runs):
     rep.target(">= 1000 steps/s (median run)", med_rate >= 1000)
     rep.target("0 lost", not any(lost.values()))
     rep.target("composed >= 2 x apart (median pair)", vs[len(vs) // 2] >= 2)
+    rep.target("composed >= 0.5 x the EventsExecutor ring (median pair)",
+               anchor[len(anchor) // 2] >= 0.5)
     if rev:
         rep.target(f"composed >= 2 x the code at {rev.label} (median pair)",
                    olds[len(olds) // 2] >= 2)

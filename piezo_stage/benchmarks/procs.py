@@ -6,6 +6,10 @@ WHAT ARGS...`` runs one of them (the benchmarks start them; each prints its figu
 * ``ping pong`` / ``ping ping N``: a two-process round trip through rclpy's stock path.
 * ``ring ME NEXT N``: one node of a 3-process ring on the loop nodes' own transport path
   (lean wait set, raw CDR) with empty callbacks; node ``a`` prints the steps/s.
+* ``events N``: rclpy's own fast path, the physical anchor: a ring of 3 nodes in one
+  process on rclpy's EventsExecutor passing a 2-joint JointState (deserialized at each
+  hop), spun by ``spin_once`` (its ``spin()`` hangs a core in rclpy 7.1.6: docs/realtime.md);
+  prints the steps/s.
 * ``once QOS UM``: a lab's node (rclpy and trajectory_msgs only) that sends one
   trajectory, 0.3 s at UM on both axes, to /stage/trajectory with QOS (``latched`` or
   ``default``) as soon as its publisher matched one subscriber, waits for every
@@ -117,6 +121,60 @@ def ring(me: str, nxt: str, n_steps: int):
     return 0
 
 
+def events_ring(n_steps: int) -> int:
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.experimental.events_executor import EventsExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState
+
+    from piezo_stage.nodes._common import QOS_DATA
+    ctx = Context()
+    rclpy.init(context=ctx)
+    count = {"n": 0, "t0": 0.0}
+
+    class Hop(Node):
+        def __init__(self, me: str, nxt: str):
+            super().__init__("events_ring_" + me, context=ctx)
+            self.me = me
+            self.pub = self.create_publisher(JointState, "/bench/events_" + nxt, QOS_DATA)
+            self.create_subscription(JointState, "/bench/events_" + me, self.cb, QOS_DATA)
+
+        def cb(self, msg):
+            if self.me == "a":
+                count["n"] += 1
+                if count["n"] == 1:
+                    count["t0"] = time.perf_counter()
+                if count["n"] == n_steps:
+                    print((n_steps - 1) / (time.perf_counter() - count["t0"]), flush=True)
+                    ctx.try_shutdown()
+                    return
+            self.pub.publish(msg)
+
+    hops = [Hop(a, b) for a, b in (("a", "b"), ("b", "c"), ("c", "a"))]
+    ex = EventsExecutor(context=ctx)
+    for h in hops:
+        ex.add_node(h)
+    t_end = time.monotonic() + 30.0
+    # every hop matched (discovery, in one process too), then the first message
+    while not all(h.pub.get_subscription_count() >= 1 for h in hops):
+        ex.spin_once(timeout_sec=0.05)
+        if time.monotonic() > t_end:
+            sys.stderr.write("benchmarks.procs events: the ring's hops never matched\n")
+            return 1
+    hops[0].pub.publish(JointState(name=["x", "y"], position=[0.0, 0.0],
+                                   velocity=[0.0, 0.0], effort=[0.0, 0.0]))
+    try:
+        while ctx.ok():
+            ex.spin_once(timeout_sec=0.2)
+            if time.monotonic() > t_end + 300.0:
+                sys.stderr.write("benchmarks.procs events: the ring did not finish\n")
+                return 1
+    except rclpy.executors.ExternalShutdownException:  # the last hop's shutdown
+        pass
+    return 0
+
+
 def once(qos: str, um: float) -> int:
     import rclpy
     from rclpy.duration import Duration
@@ -153,6 +211,8 @@ def main(argv):
         return ping(args[0], int(args[1]) if len(args) > 1 else 0)
     if what == "ring":
         return ring(args[0], args[1], int(args[2]))
+    if what == "events":
+        return events_ring(int(args[0]))
     sys.stderr.write(f"benchmarks.procs: unknown helper {what!r}\n")
     return 2
 
