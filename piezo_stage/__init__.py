@@ -5,8 +5,9 @@ never ROS); records and files (:mod:`piezo_stage.io`); the stage backends
 (:mod:`piezo_stage.drivers`); the ROS 2 nodes, thin shells over those
 (:mod:`piezo_stage.nodes`); the launcher (:mod:`piezo_stage.launch`); the
 applications that run the node set and the offline studies (:mod:`piezo_stage.apps`);
-the benchmarks (:mod:`piezo_stage.benchmarks`); the ``piezo-stage`` command
-(:mod:`piezo_stage.cli`). Each folder imports only from those below it
+the ``piezo-stage`` command (:mod:`piezo_stage.cli`). The benchmarks are the
+workbench beside the package (the checkout's ``benchmarks/``, not installed), which
+``piezo-stage bench`` runs from a checkout. Each folder imports only from those below it
 (test/test_lint.py).
 """
 

@@ -1,3 +1,3 @@
-"""The tests' outside node: piezo_stage.benchmarks.probe."""
+"""The tests' outside node: benchmarks.probe."""
 
-from piezo_stage.benchmarks.probe import Probe, _param_call_raw, get_params, set_params  # noqa: F401
+from benchmarks.probe import Probe, _param_call_raw, get_params, set_params  # noqa: F401

@@ -237,7 +237,7 @@ def test_host_pauses_are_where_every_cpu_sentinel_stopped_at_once():
     import signal
     import time
 
-    from piezo_stage.benchmarks.host_pauses import HostPauseMonitor, inside, overlap
+    from benchmarks.host_pauses import HostPauseMonitor, inside, overlap
     # the overlap logic: only what every CPU shares, longer than the floor
     assert overlap([[(0, 10), (20, 30)], [(5, 25)]]) == [(5, 10), (20, 25)]
     assert overlap([[(0, 10)], [(12, 20)]]) == []

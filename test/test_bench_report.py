@@ -10,8 +10,8 @@ import sys
 
 import pytest
 
-from piezo_stage.benchmarks import BENCHMARKS
-from piezo_stage.benchmarks.report import BEGIN, END, Report, splice
+from benchmarks import BENCHMARKS
+from benchmarks.report import BEGIN, END, Report, splice
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAGE = os.path.join(ROOT, "docs", "benchmarks.md")
@@ -122,6 +122,25 @@ def test_docs_and_code_read_as_recipes():
                 assert not HASH.findall(text), (f, HASH.findall(text))
 
 
+def test_the_installed_package_holds_no_workbench_and_bench_says_so_in_one_line(tmp_path):
+    """The package as a wheel installs it (piezo_stage and the adapters, without the
+    checkout's benchmarks/ beside them): `bench` says, in one line with exit 2, that
+    the benchmarks run from a source checkout; the package itself still works."""
+    import shutil
+    for pkg in ("piezo_stage", "piezo_stage_msgs_adapters"):
+        shutil.copytree(os.path.join(ROOT, pkg), tmp_path / pkg,
+                        ignore=shutil.ignore_patterns("__pycache__"))
+    assert not os.path.exists(os.path.join(ROOT, "piezo_stage", "benchmarks"))
+    env = dict(os.environ, PYTHONPATH=str(tmp_path))
+    r = subprocess.run([sys.executable, "-m", "piezo_stage", "bench", "loop"], cwd=tmp_path,
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "run from a source checkout" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "piezo_stage", "--help"], cwd=tmp_path,
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0 and "bench" in r.stdout, r.stderr
+
+
 def test_bench_loop_vs_a_revision_that_is_none_is_refused_in_one_line():
     env = dict(os.environ, PYTHONPATH=ROOT)
     r = subprocess.run([sys.executable, "-m", "piezo_stage", "bench", "loop", "--vs",
@@ -135,7 +154,7 @@ def test_bench_loop_vs_a_revision_that_is_none_is_refused_in_one_line():
 def test_bench_loop_vs_a_revision_runs_that_revisions_own_loop(tmp_path, ros_env):
     """`bench loop --vs REV`'s arm: a clone at REV's commit, whose own package (not this
     checkout's) runs the lockstep loop, every message in its bag."""
-    from piezo_stage.benchmarks.loop import RevisionLoop
+    from benchmarks.loop import RevisionLoop
     head = subprocess.run(["git", "-C", ROOT, "rev-parse", "HEAD"], capture_output=True,
                           text=True, check=True).stdout.strip()
     rev = RevisionLoop("HEAD", str(tmp_path))
@@ -157,7 +176,7 @@ def test_the_events_executor_ring_runs_rclpys_fast_path_to_its_count(ros_env):
     """bench loop's anchor: 3 nodes in one process on rclpy's EventsExecutor pass a
     JointState round to the count asked and say their rate (the process exits 0, its
     spin not hung)."""
-    from piezo_stage.benchmarks.loop import events_ring_rate
+    from benchmarks.loop import events_ring_rate
     rate = events_ring_rate(ros_env, steps=400)
     assert rate > 0
 
@@ -168,7 +187,7 @@ def test_start_up_motion_is_the_fastest_move_before_arming_and_over_each_approac
     tracking after arming is not start-up."""
     import numpy as np
 
-    from piezo_stage.benchmarks.realtime import startup_speed
+    from benchmarks.realtime import startup_speed
     from piezo_stage.io.run_bag import Run
     ms = 1_000_000
     t = np.arange(0, 40) * ms

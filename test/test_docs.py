@@ -49,7 +49,7 @@ def test_links_resolve_to_files_and_headings(page):
 @pytest.mark.parametrize("page", PAGES)
 def test_every_command_named_exists(page):
     """`piezo-stage WORD` and `bench WORD` in the docs name real subcommands."""
-    from piezo_stage.benchmarks import BENCHMARKS
+    from benchmarks import BENCHMARKS
     from piezo_stage.cli import COMMANDS
     text = _text(page)
     for word in re.findall(r"piezo-stage ([a-z]+)\b", text):

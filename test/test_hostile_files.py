@@ -6,8 +6,8 @@ import os
 import numpy as np
 import pytest
 
+from benchmarks.faults import ALIAS_BOMB, scaled_model
 from conftest import CONFIG, cli, one_line_exit_2
-from piezo_stage.benchmarks.faults import ALIAS_BOMB, scaled_model
 from piezo_stage.core.errors import ModelError
 from piezo_stage.io.model_file import load_model, parse_yaml
 

@@ -9,8 +9,8 @@ import sys
 import numpy as np
 import pytest
 
+from benchmarks.faults import ALIAS_BOMB, scaled_model
 from conftest import CONFIG
-from piezo_stage.benchmarks.faults import ALIAS_BOMB, scaled_model
 from piezo_stage.core.errors import DataError
 from piezo_stage.io.run_bag import status_node
 

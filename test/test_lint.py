@@ -14,7 +14,7 @@ import pytest
 
 from conftest import ROOT
 
-PACKAGES = ("piezo_stage", "piezo_stage_msgs_adapters")
+PACKAGES = ("piezo_stage", "piezo_stage_msgs_adapters", "benchmarks")
 
 
 def test_ruff_passes():
@@ -231,9 +231,10 @@ LAYERS = {
     "piezo_stage/launch": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes"},
     "piezo_stage/apps": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes",
                          "piezo_stage/launch", "piezo_stage_msgs_adapters"},
-    "piezo_stage/benchmarks": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/drivers",
-                               "piezo_stage/nodes", "piezo_stage/launch", "piezo_stage/apps",
-                               "piezo_stage_msgs_adapters"},
+    # the workbench beside the package (never installed with it)
+    "benchmarks": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/drivers",
+                   "piezo_stage/nodes", "piezo_stage/launch", "piezo_stage/apps",
+                   "piezo_stage_msgs_adapters", "piezo_stage/client"},
     # the Python client of a running set (a module): rclpy and the adapters, the nodes'
     # QoS; the commands above use it
     "piezo_stage/client": {"piezo_stage/core", "piezo_stage/nodes",

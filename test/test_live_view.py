@@ -12,8 +12,8 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("foxglove")
 pytest.importorskip("websockets")
+from benchmarks.foxglove_probe import connect, decoder, receive  # noqa: E402
 from conftest import CONFIG, ROOT  # noqa: E402
-from piezo_stage.benchmarks.foxglove_probe import connect, decoder, receive  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 
 # real node processes in real time: -m "not slow" leaves them out, and ./dev.sh test
@@ -69,7 +69,7 @@ def check_parameters(env):
     are writable (and applied); the port refuses a set as read-only."""
     from rcl_interfaces.srv import DescribeParameters, ListParameters
 
-    from piezo_stage.benchmarks.probe import Probe, _param_call_raw, set_params
+    from benchmarks.probe import Probe, _param_call_raw, set_params
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # as the nodes'
     probe = Probe(int(env["ROS_DOMAIN_ID"]))
     try:

@@ -172,8 +172,8 @@ def test_moves_on_the_simulated_stage_settle_faster_with_the_inverse_and_are_jud
     and misses none, with either law."""
     from dataclasses import replace
 
+    from benchmarks.settle import STAGES, _stage, _walk
     from piezo_stage.apps.studies.moves import MoveSetup, run_moves
-    from piezo_stage.benchmarks.settle import STAGES, _stage, _walk
     name, plant, model = STAGES[0]
     res = {}
     for comp in (True, False):

@@ -678,7 +678,7 @@ def test_the_bag_holds_the_trajectories_the_stage_accepted(tmp_path, env):
     from trajectory_msgs.msg import JointTrajectory
 
     import piezo_stage_msgs_adapters as A
-    from piezo_stage.benchmarks.probe import Probe
+    from benchmarks.probe import Probe
     from piezo_stage.io.run_bag import status_node
     from piezo_stage.nodes._common import QOS_LATCHED
     probe = Probe(int(env["ROS_DOMAIN_ID"]))

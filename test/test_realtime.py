@@ -491,7 +491,7 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
 
-    from piezo_stage.benchmarks.faults import scaled_model
+    from benchmarks.faults import scaled_model
     from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS
     d, env = domain
     bag = str(tmp_path / "outside")

@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 import piezo_stage.nodes.trajectory_node as traj
-from piezo_stage.benchmarks.signals import Trial, before_our_handlers
+from benchmarks.signals import Trial, before_our_handlers
 
 
 def _line(path, text):

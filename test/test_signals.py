@@ -13,8 +13,8 @@ import time
 import pytest
 
 pytest.importorskip("rclpy")
+from benchmarks import signals as bench_signals  # noqa: E402
 from conftest import CONFIG, ROOT  # noqa: E402
-from piezo_stage.benchmarks import signals as bench_signals  # noqa: E402
 from piezo_stage.launch.launcher import Launch  # noqa: E402
 
 pytestmark = pytest.mark.slow

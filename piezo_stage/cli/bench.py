@@ -1,15 +1,36 @@
-"""`piezo-stage bench`: the performance benchmarks (figures as ratios)."""
+"""`piezo-stage bench`: the performance benchmarks (figures as ratios).
+
+The benchmarks are the workbench beside the package (the checkout's ``benchmarks/``
+folder), never installed with it: this command runs them from a source checkout and
+says so, in one line, from an installed package."""
 
 from __future__ import annotations
 
+import os
+import sys
+from types import ModuleType
+
 from piezo_stage.cli._common import COMPOSITIONS, number
 
-HELP = "performance benchmarks (figures as ratios)"
+HELP = "performance benchmarks (figures as ratios), from a source checkout"
+
+
+def workbench() -> ModuleType | None:
+    """The checkout's ``benchmarks`` package, the checkout put first on this process's
+    path (and on its helpers', which run from it); None where this package is an
+    installed one, with no workbench beside it."""
+    import importlib
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    if not os.path.isfile(os.path.join(root, "benchmarks", "__init__.py")):
+        return None
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    return importlib.import_module("benchmarks")
 
 
 def add_arguments(s):
-    from piezo_stage.benchmarks import BENCHMARKS
-    s.add_argument("what", choices=tuple(BENCHMARKS))
+    bench = workbench()
+    s.add_argument("what", choices=tuple(bench.BENCHMARKS) if bench else None)
     s.add_argument("--markdown", type=_page, default=None, metavar="PAGE",
                    help="the report as markdown, each table headed by the date, commit "
                    "and host: written into PAGE's section for this benchmark (replaced "
@@ -57,27 +78,35 @@ def _page(path):
     if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
         raise argparse.ArgumentTypeError(f"{path}: no folder to write it in")
     if os.path.exists(path):
-        from piezo_stage.benchmarks.report import BEGIN, END
         text = open(path).read()
         if text.count("<!-- bench ") != text.count("<!-- /bench "):
             raise argparse.ArgumentTypeError(
-                f"{path}: a {BEGIN.format('X')} without its {END.format('X')}")
+                f"{path}: a <!-- bench X --> without its <!-- /bench X -->")
     return path
 
 
 def _kinds(text):
     import argparse
-
-    from piezo_stage.benchmarks.experiments import KINDS
+    bench = workbench()
+    if bench is None:
+        raise argparse.ArgumentTypeError(_NO_WORKBENCH)
+    from benchmarks.experiments import KINDS
     out = tuple(x.strip() for x in text.split(","))
     if not out or any(k not in KINDS for k in out):
         raise argparse.ArgumentTypeError(f"{text!r}: use {', '.join(KINDS)}")
     return out
 
 
+_NO_WORKBENCH = ("the benchmarks run from a source checkout (its benchmarks/ folder beside "
+                 "piezo_stage/); this piezo_stage is an installed package")
+
+
 def main(args):
+    bench = workbench()
+    if bench is None:
+        from piezo_stage.core.errors import DataError
+        raise DataError(f"bench {args.what}: {_NO_WORKBENCH}")
     if args.kinds is None:
-        from piezo_stage.benchmarks.experiments import KINDS
+        from benchmarks.experiments import KINDS
         args.kinds = KINDS
-    from piezo_stage import benchmarks
-    return benchmarks.main(args)
+    return bench.main(args)

@@ -28,9 +28,10 @@ import tempfile
 
 import numpy as np
 
+from benchmarks import ROOT
+
 KINDS = ("latched", "default", "example")
-EXAMPLE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(
-    os.path.abspath(__file__)))), "examples", "publish_trajectory.py")
+EXAMPLE = os.path.join(ROOT, "examples", "publish_trajectory.py")
 
 
 def _send(kind: str, um: float, env: dict) -> int:
@@ -38,16 +39,17 @@ def _send(kind: str, um: float, env: dict) -> int:
         cmd = [sys.executable, EXAMPLE, "--points", f"0,{um:g},{um:g} 0.3,{um:g},{um:g}",
                "--start-in", "0", "--tolerance", "5", "--timeout", "60"]
     else:
-        cmd = [sys.executable, "-m", "piezo_stage.benchmarks.procs", "once", kind, f"{um:g}"]
+        cmd = [sys.executable, "-m", "benchmarks.procs", "once", kind, f"{um:g}"]
     try:
-        return subprocess.run(cmd, env=env, capture_output=True, timeout=90).returncode
+        return subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True,
+                              timeout=90).returncode
     except subprocess.TimeoutExpired:
         return -1
 
 
 def _mode(mode: str, runs: int, tmp: str) -> dict:
     """{kind: (sent levels, failed sends)} and the bag of one mode's set."""
-    from piezo_stage.benchmarks.probe import Probe
+    from benchmarks.probe import Probe
     from piezo_stage.launch.launcher import Launch
     from piezo_stage.paths import default_config
     domain = random.randint(101, 200)

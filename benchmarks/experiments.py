@@ -24,7 +24,7 @@ KINDS = ("tracking", "noise", "amplitude", "decoupling", "scan")
 
 def _one(kind: str, model: str | None, out: str) -> tuple[int, str, float]:
     """(exit code, last line on stderr, wall seconds) of one experiment run."""
-    from piezo_stage.benchmarks.procs import own_domain_env
+    from benchmarks.procs import own_domain_env
     env = own_domain_env()
     cmd = [sys.executable, "-m", "piezo_stage.cli", "experiment", kind, "--record", out]
     if model:

@@ -73,8 +73,8 @@ def bench_learning(rep, draws: int = 5) -> int:
               "holds with margin), the node set; each noise seed in lockstep and "
               "in real time; the 20th period's mean absolute error against the true "
               "position (% of the range)")
+    from benchmarks.procs import progress_runs
     from piezo_stage.apps.scan import own_model
-    from piezo_stage.benchmarks.procs import progress_runs
     from piezo_stage.paths import default_config
     plant = default_config("sim_stage_effects.yaml")
     model = own_model(plant, tmp)

@@ -15,7 +15,7 @@ import subprocess
 import tempfile
 import time
 
-from piezo_stage.benchmarks.procs import source_checkout
+from benchmarks.procs import source_checkout
 
 
 def _timed(argv, cwd, env) -> float:

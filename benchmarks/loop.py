@@ -5,7 +5,8 @@ at a git revision too, its own loop run in each pair (``RevisionLoop``)."""
 
 from __future__ import annotations
 
-from piezo_stage.benchmarks.procs import cpu_ticks, progress_runs
+from benchmarks import ROOT
+from benchmarks.procs import cpu_ticks, progress_runs
 
 
 def ring_rate(env, steps=3000):
@@ -13,11 +14,11 @@ def ring_rate(env, steps=3000):
     transport path: the ceiling of any three-hop lockstep loop with it on this host."""
     import subprocess
     import sys
-    ring = [sys.executable, "-m", "piezo_stage.benchmarks.procs", "ring"]
-    others = [subprocess.Popen(ring + [a, b, str(steps)], env=env)
+    ring = [sys.executable, "-m", "benchmarks.procs", "ring"]
+    others = [subprocess.Popen(ring + [a, b, str(steps)], env=env, cwd=ROOT)
               for a, b in (("b", "c"), ("c", "a"))]
     try:
-        r = subprocess.run(ring + ["a", "b", str(steps)], env=env,
+        r = subprocess.run(ring + ["a", "b", str(steps)], env=env, cwd=ROOT,
                            capture_output=True, text=True, timeout=300)
         return float(r.stdout.split()[0])
     finally:
@@ -32,8 +33,9 @@ def events_ring_rate(env, steps=5000):
     three nodes composed in one process on this host."""
     import subprocess
     import sys
-    r = subprocess.run([sys.executable, "-m", "piezo_stage.benchmarks.procs", "events",
-                        str(steps)], env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-m", "benchmarks.procs", "events",
+                        str(steps)], env=env, cwd=ROOT, capture_output=True, text=True,
+                       timeout=300)
     if r.returncode != 0:
         raise RuntimeError(f"the EventsExecutor ring exited {r.returncode}: "
                            f"{(r.stderr.strip().splitlines() or [''])[-1]}")
@@ -89,7 +91,10 @@ def loop_run(env, steps, foxglove_port=None, compose=None):
 # a revision's own lockstep run, in a process whose package is the revision's: its
 # benchmarks' loop_run(env, steps), which every revision since the ring baseline has
 REV_LOOP = ("import json, os, sys\n"
-            "from piezo_stage.benchmarks.loop import loop_run\n"
+            "try:\n"
+            "    from benchmarks.loop import loop_run\n"
+            "except ImportError:  # a revision whose workbench sat in the package\n"
+            "    from piezo_stage.benchmarks.loop import loop_run\n"
             "res, err = loop_run(dict(os.environ), int(sys.argv[1]))\n"
             "print(json.dumps({'res': res, 'err': err}))\n")
 
@@ -105,7 +110,7 @@ class RevisionLoop:
         import os
         import subprocess
 
-        from piezo_stage.benchmarks.procs import source_checkout
+        from benchmarks.procs import source_checkout
         from piezo_stage.core.errors import DataError
         src = source_checkout("bench loop --vs")
         r = subprocess.run(["git", "-C", src, "rev-parse", "--verify", "--quiet",
@@ -163,10 +168,10 @@ def _bench_loop(rep, rev, steps, runs):
     import sys
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    ping = [sys.executable, "-m", "piezo_stage.benchmarks.procs", "ping"]
-    pong = subprocess.Popen(ping + ["pong"], env=env)
+    ping = [sys.executable, "-m", "benchmarks.procs", "ping"]
+    pong = subprocess.Popen(ping + ["pong"], env=env, cwd=ROOT)
     try:
-        r = subprocess.run(ping + ["ping", "2000"], env=env,
+        r = subprocess.run(ping + ["ping", "2000"], env=env, cwd=ROOT,
                            capture_output=True, text=True, timeout=300)
     finally:
         pong.terminate()

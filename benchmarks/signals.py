@@ -75,7 +75,8 @@ class Trial:
 _FRAME = re.compile(r'File "([^"]+)", line (\d+), in (\S+)')
 # the package's own files; the editable install's finder (site-packages'
 # ``__editable___piezo_stage_*_finder.py``, run by site from a .pth line) is start-up
-_PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
+_PACKAGE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                        "piezo_stage") + os.sep
 
 
 def before_our_handlers(text: str) -> bool:

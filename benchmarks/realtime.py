@@ -26,8 +26,8 @@ DT_NS = 1_000_000  # the sample period; set to the rate the host holds (bench_re
 
 
 def _run(mode: str, track_s: float, env: dict, bag: str, rate: float, compose=None):
-    from piezo_stage.benchmarks.host_pauses import HostPauseMonitor
-    from piezo_stage.benchmarks.procs import cpu_ticks
+    from benchmarks.host_pauses import HostPauseMonitor
+    from benchmarks.procs import cpu_ticks
     from piezo_stage.launch.launcher import Launch
     from piezo_stage.paths import default_config
     o: dict[str, dict] = {"stage_driver": {"mode": mode},
@@ -86,7 +86,7 @@ def figures(run, track_s: float, slew_V_per_s: float, pauses=()) -> dict:
     """The benchmark's figures of one run (see the module docstring). ``pauses``: host
     pauses (both CPUs stopped) on the run's clock, to attribute missed ticks and to give
     the tracking figure without the samples they disturbed."""
-    from piezo_stage.benchmarks.host_pauses import inside
+    from benchmarks.host_pauses import inside
     f = {}
     armed = run.state_times("armed")
     if not armed:
@@ -154,7 +154,7 @@ def bench_realtime(rep, track_s: float = 20.0, compose=None) -> int:
               "+ controller + trajectory + recorder, in real time (composed: "
               f"{compose}) and in lockstep")
     out = {}
-    from piezo_stage.benchmarks.procs import progress_runs
+    from benchmarks.procs import progress_runs
     for mode in progress_runs(("realtime", "lockstep"), "bench realtime: runs"):
         run, steal, pauses, rate = _run(mode, track_s, env, os.path.join(tmp, mode), rate,
                                         compose)

@@ -31,13 +31,13 @@ PAPER_DECOUPLING_PCT = 71.0    # the paper's best coupling reduction
 
 
 def _env() -> dict:
-    from piezo_stage.benchmarks.procs import own_domain_env
+    from benchmarks.procs import own_domain_env
     return own_domain_env()
 
 
 def _experiment(rep, tmp: str, kind: str, model: str, *more: str) -> dict:
     """One ``experiment KIND`` as a whole command; its JSON document."""
-    from piezo_stage.benchmarks.procs import command_json
+    from benchmarks.procs import command_json
     argv = ["experiment", kind, "--model", model, *more]
     rep.progress(" ".join(["piezo-stage", *(x.replace(tmp + os.sep, "") for x in argv)]))
     return command_json([*argv, "--namespace", NAMESPACE],

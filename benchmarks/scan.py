@@ -43,7 +43,7 @@ def _lin(r: dict) -> str:
 
 def _scan(rep, tmp: str, *more: str) -> dict:
     """``experiment scan`` as a whole command; its JSON document."""
-    from piezo_stage.benchmarks.procs import command_json
+    from benchmarks.procs import command_json
     rep.progress("piezo-stage experiment scan " + " ".join(more))
     return command_json(["experiment", "scan", *more, "--namespace", NAMESPACE],
                         os.path.join(tmp, f"scan_{len(os.listdir(tmp))}"), timeout=7200)

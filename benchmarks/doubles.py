@@ -25,12 +25,11 @@ import time
 
 import numpy as np
 
+from benchmarks import ROOT
+
 STEPS = 2000          # streamed PI steps timed
 NV_STEPS = 100        # streamed NV200 samples timed (each ~20 ms)
 FS = 5000.0           # the played waveform's rate [Hz]
-
-
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def _double(script: str, tmp: str) -> tuple[subprocess.Popen, str]:

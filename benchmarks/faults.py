@@ -220,7 +220,7 @@ FAULTS = ("controller killed", "controller stopped 1 s", "feedforward killed",
 
 def bench_faults(rep) -> int:
     """One fault at a time, then hostile inputs (``rep``: the report)."""
-    from piezo_stage.benchmarks.probe import Probe
+    from benchmarks.probe import Probe
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     from piezo_stage.launch.launcher import Launch
     from piezo_stage.paths import default_config
@@ -249,7 +249,7 @@ def bench_faults(rep) -> int:
         if not probe.wait_state("armed", 60):
             rep.fail("the set did not arm")
             return 1
-        from piezo_stage.benchmarks.procs import progress_runs
+        from benchmarks.procs import progress_runs
         for name in progress_runs(FAULTS, "bench faults: faults"):
             probe.spin(1.5)
             n = len(probe.states)

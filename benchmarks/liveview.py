@@ -3,8 +3,8 @@ a client watching joint_states, alternated in pairs."""
 
 from __future__ import annotations
 
-from piezo_stage.benchmarks.loop import loop_run
-from piezo_stage.benchmarks.procs import progress_runs
+from benchmarks.loop import loop_run
+from benchmarks.procs import progress_runs
 
 
 def watched_loop_run(env, steps, port):
@@ -12,7 +12,7 @@ def watched_loop_run(env, steps, port):
     figures, and (messages received, their rate per wall-clock second)."""
     import threading
 
-    from piezo_stage.benchmarks.foxglove_probe import connect, receive
+    from benchmarks.foxglove_probe import connect, receive
     done, got = threading.Event(), {}
 
     def watch():

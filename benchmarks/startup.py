@@ -91,7 +91,7 @@ def _stats(xs: list[float]) -> tuple[str, str, str]:
 def bench_startup(rep, runs: int = 3) -> int:
     """Whole `identify` against a plain script, and launch to armed (``rep``: the
     report)."""
-    from piezo_stage.benchmarks.procs import own_domain_env, progress_runs
+    from benchmarks.procs import own_domain_env, progress_runs
     from piezo_stage.launch.host_rate import host_rate
     from piezo_stage.paths import default_config
     env = own_domain_env()

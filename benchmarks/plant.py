@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from benchmarks import ROOT
 from piezo_stage.core.model.plant import Plant
 from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
 
@@ -21,9 +22,10 @@ def _plain_python_plant(n: int, fs: float):
     import tempfile
     with tempfile.TemporaryDirectory() as d:
         out = os.path.join(d, "w.npy")
-        r = subprocess.run([sys.executable, "-m", "piezo_stage.benchmarks.procs", "plain",
+        r = subprocess.run([sys.executable, "-m", "benchmarks.procs", "plain",
                             str(n), str(fs), out],
-                           env=dict(os.environ, NUMBA_DISABLE_JIT="1"), capture_output=True,
+                           env=dict(os.environ, NUMBA_DISABLE_JIT="1"), cwd=ROOT,
+                           capture_output=True,
                            text=True, check=True)
         w = np.load(out)
     return float(r.stdout.split()[-1]), (w[0], w[1])

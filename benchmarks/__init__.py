@@ -14,6 +14,11 @@ client), ``report`` (what a benchmark found, as text or as the page's markdown).
 from __future__ import annotations
 
 import importlib
+import os
+
+# the checkout the workbench sits in (beside the package, never installed with it): its
+# helper processes run from here (``python -m benchmarks.procs`` finds this folder)
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 # what -> (module, function, the arguments it takes from the command line)
 BENCHMARKS = {
@@ -42,9 +47,9 @@ BENCHMARKS = {
 def main(args) -> int:
     """Run the benchmark ``args.what`` with its command-line arguments; its report as
     text, or as markdown (``args.markdown``: a page to write its section into, or -)."""
-    from piezo_stage.benchmarks.report import Report
+    from benchmarks.report import Report
     module, function, takes = BENCHMARKS[args.what]
-    run = getattr(importlib.import_module(f"piezo_stage.benchmarks.{module}"), function)
+    run = getattr(importlib.import_module(f"benchmarks.{module}"), function)
     page = getattr(args, "markdown", None)
     rep = Report(args.what, markdown=page is not None)
     rc = run(rep, *(getattr(args, k) for k in takes))

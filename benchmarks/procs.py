@@ -1,4 +1,4 @@
-"""The benchmarks' helper processes, as a module: ``python -m piezo_stage.benchmarks.procs
+"""The benchmarks' helper processes, as a module: ``python -m benchmarks.procs
 WHAT ARGS...`` runs one of them (the benchmarks start them; each prints its figure).
 
 * ``plain N FS OUT``: the simulated stage's ``Plant.run`` over N samples, timed; run
@@ -241,7 +241,7 @@ def source_checkout(what: str) -> str:
     """The source checkout this package runs from (a git work tree, a linked one
     too); a DataError naming ``what`` needs one where there is none."""
     import os
-    here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     if not os.path.isfile(os.path.join(here, "dev.sh")) or not os.path.exists(
             os.path.join(here, ".git")):  # (a worktree's .git is a file)
         from piezo_stage.core.errors import DataError

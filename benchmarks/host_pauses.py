@@ -12,7 +12,7 @@ does not stop the others. Cost: about 1,000 short wake-ups per second per CPU (e
 sentinel used 7-9 % of a CPU at 2,000; on a 2-core machine whose real-time loop
 already needs most of both, the instrument must not take what it measures).
 
-Run as ``python -m piezo_stage.benchmarks.host_pauses CPU PERIOD THRESHOLD``: sleeps until
+Run as ``python -m benchmarks.host_pauses CPU PERIOD THRESHOLD``: sleeps until
 stdin closes, then prints its gaps (one ``start end`` pair of ns per line).
 """
 
@@ -23,6 +23,8 @@ import subprocess
 import sys
 import threading
 import time
+
+from benchmarks import ROOT
 
 
 def _sentinel(cpu: int, period_s: float, threshold_s: float) -> int:
@@ -77,9 +79,9 @@ class HostPauseMonitor:
     def __enter__(self):
         for cpu in sorted(os.sched_getaffinity(0)):
             self.procs.append(subprocess.Popen(
-                [sys.executable, "-m", "piezo_stage.benchmarks.host_pauses", str(cpu),
+                [sys.executable, "-m", "benchmarks.host_pauses", str(cpu),
                  repr(self.period_s), repr(self.threshold_s)],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True))
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT))
         return self
 
     def __exit__(self, *exc):
