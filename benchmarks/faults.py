@@ -222,7 +222,7 @@ def bench_faults(rep) -> int:
     """One fault at a time, then hostile inputs (``rep``: the report)."""
     from benchmarks.probe import Probe
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     slew = load_plant_config(default_plant_config_path()).slew_V_per_s
     d = random.randint(101, 200)
@@ -239,9 +239,9 @@ def bench_faults(rep) -> int:
          "feedforward": {"model_file": default_config("stage_model.yaml")},
          "trajectory": {"kind": "seed", "frequency_hz": 10.0, "duration_s": 120.0}}
     # each node its own process: a fault kills or stops one node, not the loop's three
-    launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                    rate=rate, compose="none")
+    launch = Launch(default_config("stage.yaml"), LaunchOptions(record=bag, overrides=o,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"], rate=rate,
+        compose="none"), env=env)
     probe = Probe(d)
     marks = []
     try:

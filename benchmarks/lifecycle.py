@@ -62,7 +62,7 @@ def _row(label: str, name: str, xs: list[float], base: float) -> tuple:
 def _against(mode: str, runs: int) -> dict[str, list[float]]:
     import tempfile
 
-    from piezo_stage.launch.launcher import Launch, read_parameters
+    from piezo_stage.launch.launcher import Launch, LaunchOptions, read_parameters
     from piezo_stage.paths import default_config
     domain = random.randint(101, 200)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
@@ -75,9 +75,9 @@ def _against(mode: str, runs: int) -> dict[str, list[float]]:
     overrides = read_parameters(default_config("realtime.yaml")) if mode == "realtime" \
         else {}
     with tempfile.TemporaryDirectory() as tmp:
-        launch = Launch(default_config("stage.yaml"), record=os.path.join(tmp, "bag"),
-                        env=env, trajectory=False, exclusive=False, managed=True,
-                        overrides=overrides, rate=RT_RATE_HZ if mode == "realtime" else None)
+        launch = Launch(default_config("stage.yaml"), LaunchOptions(
+            record=os.path.join(tmp, "bag"), trajectory=False, exclusive=False, managed=True,
+            overrides=overrides, rate=RT_RATE_HZ if mode == "realtime" else None), env=env)
         try:
             launch.start()
             _timed(cli + ["active", "--timeout", "60"], env)  # configure, activate

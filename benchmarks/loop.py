@@ -53,14 +53,14 @@ def loop_run(env, steps, foxglove_port=None, compose=None):
     import tempfile
 
     from piezo_stage.io.bag import iter_messages
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     bag = os.path.join(tempfile.mkdtemp(), "bench")
     o = {"stage_driver": {"max_steps": steps, "exit_after_max_steps": True},
          "feedforward": {"model_file": default_config("stage_model.yaml")}}
-    launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                    foxglove_port=foxglove_port, compose=compose)
+    launch = Launch(default_config("stage.yaml"), LaunchOptions(record=bag, overrides=o,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+        foxglove_port=foxglove_port, compose=compose), env=env)
     log = tempfile.TemporaryFile("w+")
     c0 = cpu_ticks()
     with contextlib.redirect_stderr(log):

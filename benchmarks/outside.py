@@ -50,7 +50,7 @@ def _send(kind: str, um: float, env: dict) -> int:
 def _mode(mode: str, runs: int, tmp: str) -> dict:
     """{kind: (sent levels, failed sends)} and the bag of one mode's set."""
     from benchmarks.probe import Probe
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     domain = random.randint(101, 200)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
@@ -62,9 +62,9 @@ def _mode(mode: str, runs: int, tmp: str) -> dict:
         rate, why = host_rate(env)
         if rate is None:
             raise RuntimeError(f"this host holds no real-time rate with margin: {why}")
-    launch = Launch(default_config("stage.yaml"), record=bag, env=env, trajectory=False,
-                    exclusive=False, rate=rate, overrides={"stage_driver": {
-                        "mode": mode, "min_margin": 0.0}})
+    launch = Launch(default_config("stage.yaml"), LaunchOptions(record=bag, trajectory=False,
+        exclusive=False, rate=rate,
+        overrides={"stage_driver": {"mode": mode, "min_margin": 0.0}}), env=env)
     sent: dict[str, tuple[list, int]] = {k: ([], 0) for k in KINDS}
     probe = Probe(domain)
     try:

@@ -28,7 +28,7 @@ DT_NS = 1_000_000  # the sample period; set to the rate the host holds (bench_re
 def _run(mode: str, track_s: float, env: dict, bag: str, rate: float, compose=None):
     from benchmarks.host_pauses import HostPauseMonitor
     from benchmarks.procs import cpu_ticks
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     o: dict[str, dict] = {"stage_driver": {"mode": mode},
          "feedforward": {"model_file": default_config("stage_model.yaml")},
@@ -38,10 +38,9 @@ def _run(mode: str, track_s: float, env: dict, bag: str, rate: float, compose=No
     # however long the processes took to start
     o["stage_driver"].update(max_steps_from_arming=True, exit_after_max_steps=True,
                              min_margin=0.0)  # (the host's rate was measured already)
-    launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                    armed_s=track_s + 2.0, rate=rate,
-                    compose=compose if mode == "realtime" else None)
+    launch = Launch(default_config("stage.yaml"), LaunchOptions(record=bag, overrides=o,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"], armed_s=track_s + 2.0,
+        rate=rate, compose=compose if mode == "realtime" else None), env=env)
     c0 = cpu_ticks()
     with HostPauseMonitor() as mon:
         rc = launch.run(duration=900.0)

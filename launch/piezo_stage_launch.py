@@ -16,7 +16,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from launch import LaunchDescription
-from piezo_stage.launch.launcher import Launch
+from piezo_stage.launch.launcher import Launch, LaunchOptions
 
 
 def _nodes(context):
@@ -25,8 +25,8 @@ def _nodes(context):
     record = LaunchConfiguration("record").perform(context) or None
     arm = LaunchConfiguration("arm").perform(context).lower() in ("true", "1", "yes")
     port = LaunchConfiguration("foxglove").perform(context)
-    launch = Launch(cfg, record=record, namespace=ns, arm=arm,
-                    foxglove_port=int(port) if port else None)
+    launch = Launch(cfg, LaunchOptions(record=record, namespace=ns, arm=arm,
+        foxglove_port=int(port) if port else None))
     return [Node(package="piezo_stage", executable=n, name=n, namespace=ns,
                  parameters=[cfg, launch.node_params(n)], output="screen",
                  additional_env=launch.node_env)

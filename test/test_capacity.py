@@ -78,8 +78,9 @@ def _loop(min_margin, thread_s, busy):
     from piezo_stage.core.loop.arming import ArmingParams
     from piezo_stage.drivers import make_backend
     arm = ArmingParams(**{q.field: q.default for q in ARMING})
-    loop = S.SampleLoop(make_backend("sim", 1000.0, {}), arm, 1000.0, False, 0.005, 0,
-                        lambda *a: None, min_margin=min_margin, capacity_window_s=0.0)
+    loop = S.SampleLoop(make_backend("sim", 1000.0, {}), arm, S.LoopOptions(
+        rate_hz=1000.0, lockstep=False, min_margin=min_margin, capacity_window_s=0.0),
+        lambda *a: None)
     fixed = Capacity(1000.0, 50, 0.05, thread_s, busy, 2)
     loop.capacity.sample = lambda: fixed  # the host's reading, given
     loop.capacity.last = fixed

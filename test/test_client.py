@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 from conftest import CONFIG, realtime_twice  # noqa: E402
-from piezo_stage.launch.launcher import Launch  # noqa: E402
+from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
 STAGE = os.path.join(CONFIG, "stage.yaml")
@@ -27,8 +27,8 @@ def _cli(env, *args, timeout=120):
 def _set(tmp_path, env, mode, rate=None, record=None):
     o = {"stage_driver": {"mode": mode, "min_margin": 0.0},
          "feedforward": {"model_file": MODEL}}
-    return Launch(STAGE, record=record, overrides=o, env=env, trajectory=False,
-                  exclusive=False, rate=rate), rate or 1000.0
+    return Launch(STAGE, LaunchOptions(record=record, overrides=o, trajectory=False,
+        exclusive=False, rate=rate), env=env), rate or 1000.0
 
 
 def _one_line(r, code, said):

@@ -182,7 +182,7 @@ def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp
     made 4 misses in the 5 s of samples a 250 Hz set takes, where 5 are asked.)"""
     pytest.importorskip("rclpy")
     from piezo_stage.io.bag import deserialize, iter_messages
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     rate = realtime_rate_hz(ros_env)  # the host's (skips where it holds none)
     env = dict(ros_env, PYTHONPATH=os.pathsep.join([DOUBLE, ROOT]),
                PIEZO_STAGE_NI_DOUBLE=json.dumps({"clock": "wall",
@@ -198,8 +198,8 @@ def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp
                    "/**/trajectory:\n  ros__parameters:\n    kind: sine\n"
                    "    frequency_hz: 2.0\n    duration_s: 20.0\n")
     bag = tmp_path / "daq_run"
-    assert Launch(str(cfg), record=str(bag), env=env, exclusive=False,
-                  rate=rate).run(duration=8.0) == 0
+    assert Launch(str(cfg), LaunchOptions(record=str(bag), exclusive=False, rate=rate),
+                  env=env).run(duration=8.0) == 0
     stamps, volts, states, diag = [], [], [], {}
     for topic, mt, _, data in iter_messages(bag):
         m = deserialize(data, mt)

@@ -416,7 +416,7 @@ def _twins(tmp_path, ros_env, rate):
     from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     from piezo_stage.io.records import load_record
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     tmp_path.mkdir()
     traj = {"kind": "seed", "duration_s": 6.0, "excite_s": 8.0}
 
@@ -424,10 +424,9 @@ def _twins(tmp_path, ros_env, rate):
         o = {"stage_driver": {"mode": mode, "min_margin": 0.0},
              "feedforward": {"model_file": os.path.join(CONFIG, "stage_model.yaml")},
              "trajectory": traj}
-        launch = Launch(os.path.join(CONFIG, "stage.yaml"), record=bag, overrides=o,
-                        env=ros_env, exclusive=False, armed_s=15.0,
-                        rate=rate,  # twins: one rate, one on the wall clock
-                        nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+        launch = Launch(os.path.join(CONFIG, "stage.yaml"), LaunchOptions(record=bag, overrides=o,
+            exclusive=False, armed_s=15.0, rate=rate,
+            nodes=["stage_driver", "feedforward", "controller", "trajectory"]), env=ros_env)
         assert launch.run(launch.wall_bound()) == 0, launch.failed
         return bag
     bags = {mode: record(mode, str(tmp_path / mode)) for mode in ("realtime", "lockstep")}

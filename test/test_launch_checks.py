@@ -27,11 +27,11 @@ def test_lockstep_gates_count_the_live_view_as_a_subscriber(tmp_path, record):
     every lockstep publisher waits for one subscriber more, so its gate cannot open on
     the taps before a loop node listens (a lockstep run with the live view once hung:
     the driver's first sample went out before the feedforward had matched)."""
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     cfg = os.path.join(CONFIG, "stage.yaml")
     rec = None if record is None else str(tmp_path / record)
-    plain = Launch(cfg, record=rec)._gates()
-    watched = Launch(cfg, record=rec, foxglove_port=0)._gates()
+    plain = Launch(cfg, LaunchOptions(record=rec))._gates()
+    watched = Launch(cfg, LaunchOptions(record=rec, foxglove_port=0))._gates()
     for node, gates in plain.items():
         for key in ("min_subscribers", "min_record_subscribers"):
             if key in gates:
@@ -104,17 +104,17 @@ def test_real_time_sets_publish_synchronously_over_loopback_udp(tmp_path):
     asynchronous mode's writer threads cost the composed set a quarter of its
     capacity), off shared memory; lockstep keeps the transports its byte-identical
     reruns were measured with; a publication mode of the user's own is left alone."""
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     rt = tmp_path / "rt.yaml"
     rt.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n")
     from piezo_stage.launch.launcher import LOCKSTEP_PROFILE, LOOPBACK_UDP_PROFILE
     env = {k: v for k, v in os.environ.items() if k not in (
         "RMW_FASTRTPS_PUBLICATION_MODE", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    real = Launch(str(rt), env=env, arm=False)  # the driver alone
+    real = Launch(str(rt), LaunchOptions(arm=False), env=env)  # the driver alone
     assert "RMW_FASTRTPS_PUBLICATION_MODE" not in real.env
     assert "RMW_FASTRTPS_PUBLICATION_MODE" not in real.node_env
-    own = Launch(str(rt), env=dict(env, RMW_FASTRTPS_PUBLICATION_MODE="ASYNCHRONOUS"),
-                 arm=False)
+    own = Launch(str(rt), LaunchOptions(
+        arm=False), env=dict(env, RMW_FASTRTPS_PUBLICATION_MODE="ASYNCHRONOUS"))
     assert own.env["RMW_FASTRTPS_PUBLICATION_MODE"] == "ASYNCHRONOUS"
     # and off shared memory: a simulated set on this host gets LOCALHOST's discovery
     # over loopback UDP (rmw_fastrtps would add shared memory back under LOCALHOST)
@@ -272,7 +272,7 @@ def test_the_look_for_a_running_set_begun_early_names_it_or_answers_none(ros_env
     launch it was begun for (another namespace's is cancelled and looked for anew);
     its answer is in before its node leaves the graph."""
     pytest.importorskip("rclpy")
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     from piezo_stage.launch.running import Look, begin_look, running_set
     d = int(ros_env["ROS_DOMAIN_ID"])
     p = subprocess.Popen([sys.executable, "-c", A_SET_RUNNING], env=ros_env, text=True,
@@ -295,8 +295,8 @@ def test_the_look_for_a_running_set_begun_early_names_it_or_answers_none(ros_env
     with begin_look("/stage", ros_env) as early:
         launch = Launch(os.path.join(CONFIG, "stage.yaml"), env=ros_env, look=early)
         assert launch._look_for_this_set() is early
-        other = Launch(os.path.join(CONFIG, "stage.yaml"), env=ros_env, look=early,
-                       namespace="/stage2")
+        other = Launch(os.path.join(CONFIG, "stage.yaml"), LaunchOptions(
+            namespace="/stage2"), env=ros_env, look=early)
         fresh = other._look_for_this_set()
         assert fresh is not early and fresh.namespace == "/stage2" and early.done()
         fresh.cancel()
@@ -463,9 +463,9 @@ def test_a_duration_counts_from_arming_managed_or_not(managed):
     """`launch --duration S` is S seconds of the stage's own samples from its first
     arming, whether the launcher or an outside manager (`--managed`) brings the driver
     up (with --managed it counted from the launch)."""
-    from piezo_stage.launch.launcher import Launch
-    launch = Launch(os.path.join(CONFIG, "stage.yaml"), managed=managed, armed_s=5.0,
-                    exclusive=False)
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    launch = Launch(os.path.join(CONFIG, "stage.yaml"), LaunchOptions(managed=managed, armed_s=5.0,
+        exclusive=False))
     drv = launch.overrides["stage_driver"]
     assert launch.armed_s == 5.0 and drv["max_steps_from_arming"] is True
     assert drv["max_steps"] == int(round(5.0 * launch.rate_hz()))

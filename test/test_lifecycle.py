@@ -16,7 +16,7 @@ from test_realtime import assert_never_beyond_slew  # noqa: E402
 
 from conftest import CONFIG, realtime_twice  # noqa: E402
 from piezo_stage.io.run_bag import read_run  # noqa: E402
-from piezo_stage.launch.launcher import Launch  # noqa: E402
+from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
 from piezo_stage.launch.lifecycle import GRAPH, plan  # noqa: E402
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
@@ -180,9 +180,9 @@ def _transitions(tmp_path, ros_env, mode, rate):
     tmp_path.mkdir(exist_ok=True)
     d = int(ros_env["ROS_DOMAIN_ID"])
     bag = str(tmp_path / "bag")
-    launch = Launch(_config(tmp_path, mode), record=bag, env=ros_env, managed=True, rate=rate,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                    exclusive=False)
+    launch = Launch(_config(tmp_path, mode), LaunchOptions(record=bag, managed=True, rate=rate,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+        exclusive=False), env=ros_env)
     m = Manager(d)
     marks = {}
     try:

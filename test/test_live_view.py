@@ -14,7 +14,7 @@ pytest.importorskip("foxglove")
 pytest.importorskip("websockets")
 from benchmarks.foxglove_probe import connect, decoder, receive  # noqa: E402
 from conftest import CONFIG, ROOT  # noqa: E402
-from piezo_stage.launch.launcher import Launch  # noqa: E402
+from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
 
 # real node processes in real time: -m "not slow" leaves them out, and ./dev.sh test
 # runs them alone after the rest
@@ -30,9 +30,9 @@ def test_live_view_serves_decodable_joint_states(tmp_path, ros_env):
     port = free_port()
     env = ros_env
     # a real-time driver on the sim, disarmed: it samples the stage at 1 kHz
-    la = Launch(os.path.join(CONFIG, "stage.yaml"), nodes=["stage_driver"], env=env,
-                arm=False, foxglove_port=port,
-                overrides={"stage_driver": {"mode": "realtime"}}, exclusive=False)
+    la = Launch(os.path.join(CONFIG, "stage.yaml"), LaunchOptions(nodes=["stage_driver"],
+        arm=False, foxglove_port=port, overrides={"stage_driver": {"mode": "realtime"}},
+        exclusive=False), env=env)
     assert la.nodes[0] == "live_view" and la.node_params("live_view")["port"] == port
     la.start()
     try:

@@ -108,7 +108,7 @@ def test_never_declared_while_the_true_position_is_outside(tau_ms, ring_um, ring
 
 
 def test_a_move_runs_on_its_profile_and_a_one_point_trajectory_is_a_move():
-    from piezo_stage.core.loop.feedforward import InverseFeedforward
+    from piezo_stage.core.loop.feedforward import FeedforwardOptions, InverseFeedforward
     p = ReferencePlanner(200.0, 20000.0)
     p.hold({"x": 0.0, "y": 0.0})
     p.set_move({"x": 10.0, "y": 0.0}, 5000.0, 5e6)
@@ -118,7 +118,8 @@ def test_a_move_runs_on_its_profile_and_a_one_point_trajectory_is_a_move():
     assert int(np.argmax(np.asarray(xs) >= 10.0)) <= 4
     p.set_move({"x": 0.0, "y": 0.0}, 5000.0, 5e6, start_ns=20 * DT_NS)  # held to its start
     assert p.sample(15 * DT_NS)["x"] == 10.0 and p.phase == APPROACH
-    ff = InverseFeedforward(ReferencePlanner(), DT_NS, wait_for_trajectory=True)
+    ff = InverseFeedforward(ReferencePlanner(), DT_NS,
+                            FeedforwardOptions(wait_for_trajectory=True))
     r = ff.on_sample(0, {"x": 0.0, "y": 0.0}, {"x": 0.0, "y": 0.0}, DT_NS, lambda t: True,
                      realtime=False)
     assert r.wait  # lockstep waits for a trajectory...

@@ -18,7 +18,7 @@ from lab_nodes import REQUEST_AGAIN, SAME_AGAIN, assert_ran_each  # noqa: E402
 
 from conftest import CONFIG, ROOT, on_a_terminal  # noqa: E402
 from piezo_stage.io.bag import deserialize, iter_messages, read_bag_record  # noqa: E402
-from piezo_stage.launch.launcher import Launch  # noqa: E402
+from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
 
 pytestmark = pytest.mark.slow  # real node processes: -m "not slow" leaves them out
 
@@ -42,8 +42,8 @@ def lockstep(tmp_path, env, name, steps=400, nodes=None, overrides=None):
     for k, v in (overrides or {}).items():
         o.setdefault(k, {}).update(v)
     bag = str(tmp_path / name)
-    rc = Launch(STAGE, record=bag, overrides=o, nodes=nodes, env=env,
-                exclusive=False).run(duration=300)
+    rc = Launch(STAGE, LaunchOptions(record=bag, overrides=o, nodes=nodes,
+        exclusive=False), env=env).run(duration=300)
     assert rc == 0
     return bag
 
@@ -75,8 +75,8 @@ def test_lockstep_sends_no_sample_before_every_reader_holds_the_state(env, capfd
     from ros_probe import Probe
     o = {"stage_driver": {"seed": 3}, "feedforward": {"model_file": MODEL},
          "trajectory": {"kind": "seed", "duration_s": 1.0}}
-    launch = Launch(STAGE, overrides=o, env=env, arm=False, exclusive=False,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+    launch = Launch(STAGE, LaunchOptions(overrides=o, arm=False, exclusive=False,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"]), env=env)
     launch.start()
     reader = subprocess.Popen([sys.executable, "-c", STALLED_STATE_READER], env=env,
                               stdout=subprocess.PIPE, text=True)
@@ -656,7 +656,7 @@ def test_launch_file_and_launcher_share_one_node_list_and_parameters(tmp_path):
     assert "launch.node_params(n)" in src and "for n in launch.nodes" in src
     cfg = tmp_path / "c.yaml"
     cfg.write_text(open(STAGE).read() + "/**/gap:\n  ros__parameters:\n    window: 500\n")
-    la = Launch(str(cfg), record=str(tmp_path / "bag"))
+    la = Launch(str(cfg), LaunchOptions(record=str(tmp_path / "bag")))
     assert la.nodes[0] == "recorder" and "gap" in la.nodes and "stage_driver" in la.nodes
     for n in la.nodes:
         cmd = la.command(n)

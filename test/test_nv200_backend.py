@@ -238,15 +238,15 @@ def test_driver_node_on_the_nv200_double_arms_tracks_and_ramps_down(tmp_path, ro
     pytest.importorskip("rclpy")
     import warnings
 
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
 
     def run(folder):
         folder.mkdir()
         c = AmplifiersProcess(folder)
         try:
             bag = str(folder / "nv200_run")
-            assert Launch(_config(folder, c.addresses), record=bag,
-                          env=ros_env, exclusive=False).run(duration=10.0) == 0
+            assert Launch(_config(folder, c.addresses), LaunchOptions(record=bag,
+                exclusive=False), env=ros_env).run(duration=10.0) == 0
         finally:
             end = c.end()
         assert not end["unmodelled"], end["unmodelled"]
@@ -283,11 +283,11 @@ def test_driver_node_on_the_nv200_double_faults_on_a_lost_link_or_an_error(
     import signal
     import threading
     pytest.importorskip("rclpy")
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     from ros_probe import Probe
     c = AmplifiersProcess(tmp_path)
-    launch = Launch(_config(tmp_path, c.addresses), record=str(tmp_path / "bag"),
-                    env=ros_env, exclusive=False)
+    launch = Launch(_config(tmp_path, c.addresses), LaunchOptions(record=str(tmp_path / "bag"),
+        exclusive=False), env=ros_env)
     probe = Probe(int(ros_env["ROS_DOMAIN_ID"]))
 
     def hurt():

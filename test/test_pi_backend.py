@@ -370,13 +370,13 @@ def test_driver_node_on_the_pi_double_arms_tracks_and_ramps_down(tmp_path, ros_e
     over TCP; at _rt_rate): it arms and tracks, the controller is named, the outputs
     stay in their limits and end at the safe voltage."""
     pytest.importorskip("rclpy")
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     rate = _rt_rate(ros_env)
     c = ControllerProcess(tmp_path)
     try:
         bag = str(tmp_path / "pi_run")
-        assert Launch(_pi_config(tmp_path, c.address, rate), record=bag, rate=rate,
-                      env=ros_env, exclusive=False).run(duration=8.0) == 0
+        assert Launch(_pi_config(tmp_path, c.address, rate), LaunchOptions(record=bag, rate=rate,
+            exclusive=False), env=ros_env).run(duration=8.0) == 0
     finally:
         end = c.end()
     assert not end["unmodelled"], end["unmodelled"]
@@ -408,12 +408,12 @@ def test_driver_node_on_the_pi_double_faults_on_a_lost_link_or_a_controller_erro
     import signal
     import threading
     pytest.importorskip("rclpy")
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     from ros_probe import Probe
     rate = _rt_rate(ros_env)
     c = ControllerProcess(tmp_path)
-    launch = Launch(_pi_config(tmp_path, c.address, rate), record=str(tmp_path / "bag"),
-                    env=ros_env, exclusive=False, rate=rate)
+    launch = Launch(_pi_config(tmp_path, c.address, rate), LaunchOptions(
+        record=str(tmp_path / "bag"), exclusive=False, rate=rate), env=ros_env)
     probe = Probe(int(ros_env["ROS_DOMAIN_ID"]))
 
     def hurt():

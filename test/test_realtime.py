@@ -25,7 +25,7 @@ from piezo_stage.io.run_bag import (
     read_run,  # noqa: E402
     status_node,
 )
-from piezo_stage.launch.launcher import Launch  # noqa: E402
+from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
 from ros_probe import Probe  # noqa: E402
 
 # real node processes in real time: -m "not slow" leaves them out, and ./dev.sh test
@@ -161,8 +161,8 @@ def test_a_capacity_run_that_faulted_is_not_the_hosts_rate(domain):
 
 def test_arming_is_refused_with_the_missing_link_and_e_stop_stays_latched(tmp_path, domain):
     d, env = domain
-    launch = Launch(realtime_config(tmp_path), env=env, arm=False,
-                    nodes=["stage_driver", "feedforward", "controller"], exclusive=False)
+    launch = Launch(realtime_config(tmp_path), LaunchOptions(arm=False,
+        nodes=["stage_driver", "feedforward", "controller"], exclusive=False), env=env)
     probe = Probe(d)
     drv = subprocess.Popen(launch.command("stage_driver"), env=env)
     others = []
@@ -256,9 +256,9 @@ def _faults_run(tmp_path, domain):
     tmp_path.mkdir()
     d, env = domain
     bag = str(tmp_path / "faults")
-    launch = Launch(realtime_config(tmp_path), record=bag, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                    exclusive=False, compose="none")  # (each node killed on its own)
+    launch = Launch(realtime_config(tmp_path), LaunchOptions(record=bag,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"], exclusive=False,
+        compose="none"), env=env)  # (each node killed on its own)
     probe = Probe(d)
     faults = []
     try:
@@ -351,9 +351,9 @@ def test_a_node_dying_under_launch_ends_the_run_at_the_safe_voltage(tmp_path, do
     """The launcher stops the producers, then waits for the driver to ramp down."""
     d, env = domain
     bag = str(tmp_path / "dies")
-    launch = Launch(realtime_config(tmp_path), record=bag, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                    exclusive=False, compose="none")  # (the controller killed alone)
+    launch = Launch(realtime_config(tmp_path), LaunchOptions(record=bag,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"], exclusive=False,
+        compose="none"), env=env)  # (the controller killed alone)
     probe = Probe(d)
     try:
         launch.start()
@@ -389,7 +389,8 @@ def test_controller_gains_and_feedback_are_live_and_read_only_ones_refused(tmp_p
     values and read-only ones are refused with the reason."""
     from ros_probe import get_params, set_params
     d, env = domain
-    launch = Launch(realtime_config(tmp_path), env=env, nodes=["controller"], exclusive=False)
+    launch = Launch(realtime_config(tmp_path), LaunchOptions(nodes=["controller"],
+        exclusive=False), env=env)
     proc = subprocess.Popen(launch.command("controller"), env=env)
     probe = Probe(d)
     try:
@@ -445,8 +446,8 @@ def test_every_parameter_of_every_node_is_live_or_read_only(tmp_path, domain):
     # CPU it needs to answer the parameter services on a loaded host
     calm = {n: {"thread_priority": 0} for n in ("stage_driver", "feedforward", "controller",
                                                 "recorder")}
-    launch = Launch(realtime_config(tmp_path), record=str(tmp_path / "bag"), env=env,
-                    nodes=nodes, arm=False, overrides=calm, exclusive=False)
+    launch = Launch(realtime_config(tmp_path), LaunchOptions(record=str(tmp_path / "bag"),
+        nodes=nodes, arm=False, overrides=calm, exclusive=False), env=env)
     launch.start()
     probe = Probe(d)
     seen = {}
@@ -495,9 +496,9 @@ def test_outside_stamps_and_a_refit_model_while_armed_never_fault_or_jump(tmp_pa
     from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS
     d, env = domain
     bag = str(tmp_path / "outside")
-    launch = Launch(realtime_config(tmp_path), record=bag, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                    exclusive=False)
+    launch = Launch(realtime_config(tmp_path), LaunchOptions(record=bag,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+        exclusive=False), env=env)
     probe = Probe(d)
     try:
         launch.start()
@@ -680,16 +681,15 @@ def _joining_run(tmp_path, domain):
                     "is judged at half of it, from 250 Hz up (a host that holds 500 Hz "
                     "with margin)")
     cfg = realtime_config(tmp_path, rate=rate / 2)
-    launch = Launch(cfg, record=bag, env=env,
-                    nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+    launch = Launch(cfg, LaunchOptions(record=bag,
+        nodes=["stage_driver", "feedforward", "controller", "trajectory"]), env=env)
     # the second stage as this 2-core host can hold it beside the first: its driver, at
     # 200 Hz and normal priority. One real-time set at 1 kHz takes 1.3 cores here, two
     # thirds of the host at SCHED_FIFO; with a whole second set starting beside it (four
     # more processes importing) the driver lost 50-55 ms at once and faulted on stale
     # commands in 5 of 33 runs, at the same priorities or not (docs/realtime.md)
-    second = Launch(cfg, namespace="/stage2", env=env, nodes=["stage_driver"],
-                    overrides={"stage_driver": {"control_rate_hz": SECOND_RATE_HZ,
-                                                "thread_priority": 0}})
+    second = Launch(cfg, LaunchOptions(namespace="/stage2", nodes=["stage_driver"], overrides={
+        "stage_driver": {"control_rate_hz": SECOND_RATE_HZ, "thread_priority": 0}}), env=env)
     probe = Probe(d)
     cpu0 = host_cpu()
     try:
@@ -787,8 +787,8 @@ def _outside(tmp_path, domain, capfd):
     d, env = domain
     capfd.readouterr()  # a first run's output is its own: its fault is not this run's
     bag = str(tmp_path / "outside")
-    launch = Launch(realtime_config(tmp_path), record=bag, env=env, trajectory=False,
-                    exclusive=False)
+    launch = Launch(realtime_config(tmp_path), LaunchOptions(record=bag, trajectory=False,
+        exclusive=False), env=env)
     assert "trajectory" not in launch.nodes and "feedforward" in launch.nodes
     probe = Probe(d)
     t = np.arange(0, 1.0, 1e-3)
@@ -863,8 +863,8 @@ def test_the_same_trajectory_from_three_outside_processes_runs_three_times(
         folder.mkdir()
         d, env = dom
         bag = str(folder / "same")
-        launch = Launch(realtime_config(folder), record=bag, env=env, trajectory=False,
-                        exclusive=False)
+        launch = Launch(realtime_config(folder), LaunchOptions(record=bag, trajectory=False,
+            exclusive=False), env=env)
         probe = Probe(d)
         failed = None
         try:
@@ -1046,9 +1046,9 @@ def test_a_core_taken_before_the_start_refuses_at_start_or_runs_without_a_fault(
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
         time.sleep(0.5)
-        launch = Launch(str(cfg), record=bag, env=env, exclusive=False, armed_s=8.0,
-                        nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                        rate="auto")
+        launch = Launch(str(cfg), LaunchOptions(record=bag, exclusive=False, armed_s=8.0,
+            nodes=["stage_driver", "feedforward", "controller", "trajectory"],
+            rate="auto"), env=env)
         launch.quiet_stop = True
         rc = launch.run(launch.wall_bound())
     finally:

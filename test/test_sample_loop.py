@@ -4,7 +4,12 @@ import pytest
 
 from piezo_stage.core.errors import DataError
 from piezo_stage.core.loop.arming import ArmingParams
-from piezo_stage.core.loop.sample_loop import COMMAND_WINDOW_NS, SampleLoop, check_mode
+from piezo_stage.core.loop.sample_loop import (
+    COMMAND_WINDOW_NS,
+    LoopOptions,
+    SampleLoop,
+    check_mode,
+)
 from piezo_stage.drivers import SimBackend
 
 RATE = 1000.0
@@ -12,8 +17,9 @@ RATE = 1000.0
 
 def loop(lockstep=True, max_steps=0, **arm):
     changes = []
-    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(**arm), RATE, lockstep, 0.005,
-                   max_steps, lambda *a: changes.append(a), clock_period_s=0.01)
+    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(**arm), LoopOptions(
+        rate_hz=RATE, lockstep=lockstep, max_steps=max_steps, clock_period_s=0.01),
+        lambda *a: changes.append(a))
     s.changes = changes
     return s
 
@@ -164,8 +170,8 @@ def test_the_lifecycle_transitions_are_the_loops_own():
     """A managed driver's configure (arming left to activate), activate (the explicit
     re-arm of a latched e-stop), deactivate and a hardware fault, on the core alone."""
     changes = []
-    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(auto_arm=True), RATE, True, 0.005,
-                   0, lambda *a: changes.append(a), arm_on_start=False)
+    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(auto_arm=True), LoopOptions(
+        rate_hz=RATE, lockstep=True, arm_on_start=False), lambda *a: changes.append(a))
     close_the_loop(s)
     assert s.sup.state == "disarmed" and not s.sup.arm_requested  # configure: held
     state, reason = s.activate(arm=False)
@@ -190,8 +196,8 @@ def test_a_whole_lockstep_run_from_the_loops_outcomes_alone():
     answered by an Outcome the driver only has to follow."""
     from piezo_stage.core.loop.planner import TRACK
     from piezo_stage.core.loop.sample_loop import Next
-    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(auto_arm=True), RATE, True, 0.005,
-                   600, lambda *a: None)
+    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(auto_arm=True), LoopOptions(
+        rate_hz=RATE, lockstep=True, max_steps=600), lambda *a: None)
     out = s.on_start()
     assert out.sample is not None and out.next is Next.NONE and out.sample.ns == s.stamp(0)
     assert not s.on_command(s.stamp(7), {"x": 0.0, "y": 0.0}, 0).sample  # not the next one
@@ -226,8 +232,8 @@ def test_a_real_time_stop_and_a_hardware_fault_are_outcomes():
     SHUT_DOWN; a backend fault is a FAULT outcome carrying the error, no sample."""
     from piezo_stage.core.errors import BackendFault
     from piezo_stage.core.loop.sample_loop import Next
-    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(), RATE, False, 0.005, 50,
-                   lambda *a: None)
+    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(), LoopOptions(
+        rate_hz=RATE, lockstep=False, max_steps=50), lambda *a: None)
     t, outs = 100.0, []
     while not outs or outs[-1].next is Next.NONE:
         t += 1 / RATE
@@ -242,8 +248,8 @@ def test_a_real_time_stop_and_a_hardware_fault_are_outcomes():
             if self.plant.samples >= 20:
                 raise BackendFault("link lost")
             return super().step(vx, vy)
-    f = SampleLoop(Failing("", RATE, 0), ArmingParams(), RATE, True, 0.005, 0,
-                   lambda *a: None)
+    f = SampleLoop(Failing("", RATE, 0), ArmingParams(), LoopOptions(
+        rate_hz=RATE, lockstep=True), lambda *a: None)
     out = f.on_start()
     while out.next is Next.NONE:
         out = f.on_command(f.stamp(f.j + 1), dict(f.v), 0)

@@ -15,7 +15,7 @@ import pytest
 pytest.importorskip("rclpy")
 from benchmarks import signals as bench_signals  # noqa: E402
 from conftest import CONFIG, ROOT  # noqa: E402
-from piezo_stage.launch.launcher import Launch  # noqa: E402
+from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
 
 pytestmark = pytest.mark.slow
 STAGE = os.path.join(CONFIG, "stage.yaml")
@@ -225,7 +225,7 @@ def test_a_killed_launcher_leaves_no_node_behind(tmp_path, ros_env):
         for line in la.stderr:
             if "armed: tracking" in line:
                 break
-        processes = Launch(STAGE, record=str(bag)).processes()
+        processes = Launch(STAGE, LaunchOptions(record=str(bag))).processes()
         assert len(bench_signals.left_behind("/killed")) == len(processes)
         la.kill()
         la.wait()

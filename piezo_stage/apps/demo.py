@@ -35,7 +35,7 @@ def run_demo(args):
 
 
 def _run_demo(args, look):
-    from piezo_stage.launch.launcher import Launch, run_set
+    from piezo_stage.launch.launcher import Launch, LaunchOptions, run_set
     from piezo_stage.paths import default_config
     bag = args.out or new_bag_dir("bags")
     rate = 1000.0
@@ -52,8 +52,8 @@ def _run_demo(args, look):
     }
     print(f"demo: lockstep simulated stage, {args.excite:g} s excitation + {args.track:g} s "
           f"of the paper's 10 Hz trajectory ({steps} steps at {rate:g} Hz)", flush=True)
-    launch = Launch(default_config("stage.yaml"), record=bag, namespace=args.namespace,
-                    overrides=overrides, look=look)
+    launch = Launch(default_config("stage.yaml"), LaunchOptions(record=bag,
+        namespace=args.namespace, overrides=overrides), look=look)
     run_set(launch, "demo", duration=600.0)  # RunError: exit 1; a stop: 128 + signal
     if not os.path.isdir(bag):
         sys.stderr.write("piezo-stage demo: the node set wrote no bag\n")

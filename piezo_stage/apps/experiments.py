@@ -186,7 +186,7 @@ def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=N
     The driver counts the run's samples from the one at which the stage first enabled
     (``max_steps_from_arming``): the approach, the trajectory and a little slack, in both
     modes, however long discovery and arming took before it."""
-    from piezo_stage.launch.launcher import Launch, run_set
+    from piezo_stage.launch.launcher import Launch, LaunchOptions, run_set
     os.makedirs(os.path.dirname(os.path.abspath(bag)) or ".", exist_ok=True)
     csv = os.path.abspath(bag) + ".trajectory.csv"
     _write_csv(csv, case.t, case.w)
@@ -203,8 +203,8 @@ def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=N
                                                                  "csv_path": csv}},
                {"feedforward": {"model_file": os.path.abspath(model)}} if model else {},
                case.params)
-    launch = Launch(config, record=bag, overrides=o, namespace=namespace, env=env,
-                    nodes=list(NODES), exclusive=exclusive)
+    launch = Launch(config, LaunchOptions(record=bag, overrides=o, namespace=namespace,
+        nodes=list(NODES), exclusive=exclusive), env=env)
     run_set(launch, case.name, duration=900.0)
 
 

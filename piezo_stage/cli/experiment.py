@@ -80,7 +80,7 @@ def identify_first(out_dir, config, plant, mode, extra, namespace):
     from piezo_stage.core.errors import RunError
     from piezo_stage.io.bag import deserialize, iter_messages
     from piezo_stage.io.files import atomic_write
-    from piezo_stage.launch.launcher import Launch, run_set
+    from piezo_stage.launch.launcher import Launch, LaunchOptions, run_set
     bag = os.path.join(out_dir, "identification")
     drv = {"mode": mode}
     if plant:
@@ -91,8 +91,8 @@ def identify_first(out_dir, config, plant, mode, extra, namespace):
                              "trajectory": {"kind": "seed", "duration_s": 0.5, "excite_s": 4.0},
                              "identifier": {"auto_cycles": 2},
                              "feedforward": {"model_required_after_s": 4.0}})
-    launch = Launch(config, record=bag, overrides=o, namespace=namespace,
-                    nodes=list(NODES) + ["identifier"])
+    launch = Launch(config, LaunchOptions(record=bag, overrides=o, namespace=namespace,
+        nodes=list(NODES) + ["identifier"]))
     run_set(launch, "identification run", duration=7.0 if mode == "realtime" else 900.0)
     text = None
     for topic, msgtype, _, data in iter_messages(bag, topics=None):

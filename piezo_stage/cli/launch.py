@@ -57,7 +57,7 @@ def main(args):
 
 def _launch(args, look):
     from piezo_stage.io.bag import new_bag_dir
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     record = args.record
     if record == "auto":
@@ -65,12 +65,10 @@ def _launch(args, look):
     overrides = param_overrides(args.params)
     if args.seed is not None:
         overrides.setdefault("stage_driver", {})["seed"] = args.seed
-    launch = Launch(args.config or default_config("stage.yaml"), record=record,
-                    namespace=args.namespace, arm=not args.no_arm,
-                    foxglove_port=args.foxglove, overrides=overrides,
-                    trajectory=not args.no_trajectory, managed=args.managed,
-                    armed_s=args.duration, rate=args.rate, compose=args.compose,
-                    look=look)
+    launch = Launch(args.config or default_config("stage.yaml"), LaunchOptions(record=record,
+        namespace=args.namespace, arm=not args.no_arm, foxglove_port=args.foxglove,
+        overrides=overrides, trajectory=not args.no_trajectory, managed=args.managed,
+        armed_s=args.duration, rate=args.rate, compose=args.compose), look=look)
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)

@@ -91,7 +91,7 @@ def measure(env: dict, rate_hz: float, compose=None, overrides=None) -> RateRun:
     """One capacity run of the set at ``rate_hz``, recorded and judged (``rate_run``).
     ``overrides``: more parameters per node (a test's, to make a run fault)."""
     from piezo_stage.io.run_bag import read_run
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launch.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     where = tempfile.mkdtemp(prefix="piezo-stage-host-rate-")
     bag = os.path.join(where, "capacity")
@@ -101,9 +101,9 @@ def measure(env: dict, rate_hz: float, compose=None, overrides=None) -> RateRun:
     for node, params in (overrides or {}).items():
         o.setdefault(node, {}).update(params)
     try:
-        launch = Launch(default_config("stage.yaml"), record=bag, overrides=o, env=env,
-                        nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-                        exclusive=False, armed_s=RUN_S, rate=rate_hz, compose=compose)
+        launch = Launch(default_config("stage.yaml"), LaunchOptions(record=bag, overrides=o,
+            nodes=["stage_driver", "feedforward", "controller", "trajectory"], exclusive=False,
+            armed_s=RUN_S, rate=rate_hz, compose=compose), env=env)
         launch.quiet_stop = True
         launch.run(launch.wall_bound())
         return rate_run(read_run(bag), rate_hz)

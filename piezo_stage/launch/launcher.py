@@ -21,6 +21,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.io.files import load_yaml
@@ -203,11 +204,61 @@ class Processes(dict):
         raise KeyError(name)
 
 
+@dataclass(frozen=True)
+class LaunchOptions:
+    """What a ``Launch`` starts and how, built by keyword (the defaults: the whole set
+    of the parameter file, armed, in /stage, nothing recorded).
+
+    Attributes
+    ----------
+    record : str or None
+        The bag folder the recorder writes (None: no recorder).
+    namespace : str
+        The set's namespace.
+    overrides : dict or None
+        Parameters per node over the file's ({node: {name: value}}).
+    nodes : list of str or None
+        The nodes to start (None: every node the file has a section for).
+    arm : bool
+        Whether the set arms by itself (False: started disarmed).
+    foxglove_port : int or None
+        The live view's port (None: no live view).
+    trajectory : bool
+        Whether the trajectory node runs (False: trajectories from outside nodes only).
+    exclusive : bool
+        Refuse a namespace where a set already runs.
+    managed : bool
+        The driver's lifecycle is left to an outside manager.
+    armed_s : float or None
+        Seconds to run from the sample the stage first enabled, on its own clock.
+    compose : str or None
+        Which of the loop's nodes share a process (None: the default for the mode).
+    rate : float, "auto" or None
+        The control rate of the loop's nodes (None: the file's; "auto": real time's
+        highest the host holds).
+    """
+    record: str | None = None
+    namespace: str = "/stage"
+    overrides: dict | None = None
+    nodes: list | None = None
+    arm: bool = True
+    foxglove_port: int | None = None
+    trajectory: bool = True
+    exclusive: bool = True
+    managed: bool = False
+    armed_s: float | None = None
+    compose: str | None = None
+    rate: float | str | None = None
+
+
 class Launch:
-    def __init__(self, config_path, record=None, namespace="/stage", overrides=None,
-                 nodes=None, env=None, arm=True, foxglove_port=None, trajectory=True,
-                 exclusive=True, managed=False, armed_s=None, compose=None,
-                 rate=None, look=None):
+    def __init__(self, config_path, options: LaunchOptions | None = None, env=None,
+                 look=None):
+        o = self.options = options or LaunchOptions()
+        record, namespace, overrides, nodes = o.record, o.namespace, o.overrides, o.nodes
+        arm, foxglove_port, trajectory, exclusive = o.arm, o.foxglove_port, o.trajectory, \
+            o.exclusive
+        managed, armed_s, compose, rate = o.managed, o.armed_s, o.compose, o.rate
         self._look = look  # a running_set look begun before (launch/running.py's Look)
         self.config_path = os.path.abspath(config_path)
         params = read_parameters(self.config_path)
@@ -289,13 +340,13 @@ class Launch:
         check_files({n: {**params.get(n, {}), **self.overrides.get(n, {})}
                      for n in self.nodes})
         self.procs = Processes(self)
-        self.failed = []
-        self.signalled = set()   # the nodes this launcher sent SIGINT
+        self.failed: list[str] = []
+        self.signalled: set[str] = set()   # the nodes this launcher sent SIGINT
         self.stopped_by = None   # the signal that told the launcher to stop
         self.quiet_stop = False  # a command that runs sets says a stop in its own line
         self.ended = False       # the run ended by itself (driver done, duration passed)
         self.retrying = False    # a try --rate auto runs again at a lower rate
-        self._ended_file = None  # made before the SIGINTs of a run that ended (_signals)
+        self._ended_file: str | None = None  # made before the SIGINTs of a run that ended (_signals)
 
     def _gates(self):
         has = set(self.nodes)
@@ -385,7 +436,7 @@ class Launch:
         passes the same)."""
         extra = dict(self._gates().get(node, {}))
         if node == "recorder":
-            extra.update(output=os.path.abspath(self.record), config_file=self.config_path,
+            extra.update(output=os.path.abspath(str(self.record)), config_file=self.config_path,
                          log_time="stamp" if self.lockstep else "receive")
         if node == "live_view":
             extra["port"] = int(self.foxglove_port or 0)

@@ -83,11 +83,13 @@ class Feedforward(LeanNode, Node):
         self.planner = ReferencePlanner(p["approach_speed_um_per_s"],
                                         p["approach_accel_um_per_s2"])
         # the per-sample work (core/loop/feedforward.py): reference, learning, inverse
-        self.core = core_ff.InverseFeedforward(
-            self.planner, self.dt_ns, p["nominal_um_per_V"], p["use_coupling"],
-            p["inverse_feedforward"], p["max_resonance_inverse_hz"],
-            p["wait_for_trajectory"], p["model_required_after_s"],
-            (p["move_speed_um_per_s"], p["move_accel_um_per_s2"]))
+        opts = core_ff.FeedforwardOptions(
+            nominal_um_per_V=p["nominal_um_per_V"], use_coupling=p["use_coupling"],
+            inverse=p["inverse_feedforward"], max_resonance_hz=p["max_resonance_inverse_hz"],
+            wait_for_trajectory=p["wait_for_trajectory"],
+            model_required_after_s=p["model_required_after_s"],
+            move_profile=(p["move_speed_um_per_s"], p["move_accel_um_per_s2"]))
+        self.core = core_ff.InverseFeedforward(self.planner, self.dt_ns, opts)
         self.ref, self.learning = self.core.ref, self.core.learning
         # the live ones once the core is there (a start-up override calls them at once):
         # effect compensation and learning feedforward (core/loop/learning.py)

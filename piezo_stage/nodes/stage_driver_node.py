@@ -52,6 +52,7 @@ from piezo_stage.core.loop.arming import PARAMETERS as ARMING
 from piezo_stage.core.loop.sample_loop import (
     PARAMETERS,
     RATES,
+    LoopOptions,
     Next,
     Outcome,
     SampleLoop,
@@ -170,12 +171,13 @@ class StageDriver(LeanNode, LifecycleNode):
             return SUCCESS
 
         def start(p, arm):
-            self.loop = SampleLoop(self.backend, arm, p["control_rate_hz"], self.lock,
-                                   p["lookahead_s"], p["max_steps"], self.on_state_change,
-                                   p["clock_period_s"], p["max_steps_from_arming"],
-                                   first_j=self.next_j, min_margin=p["min_margin"],
-                                   capacity_window_s=p["capacity_window_s"],
-                                   arm_on_start=False)  # activate's (or the arm service's)
+            self.loop = SampleLoop(self.backend, arm, LoopOptions(
+                rate_hz=p["control_rate_hz"], lockstep=self.lock,
+                lookahead_s=p["lookahead_s"], max_steps=p["max_steps"],
+                clock_period_s=p["clock_period_s"], from_arming=p["max_steps_from_arming"],
+                first_j=self.next_j, min_margin=p["min_margin"],
+                capacity_window_s=p["capacity_window_s"],
+                arm_on_start=False), self.on_state_change)  # activate's (or the arm service's)
             # lockstep: nothing is published before every consumer listens; real time:
             # the sample clock starts then (the first publishes to new readers are slow)
             self.gate = Gate(self, [(self.jpub, p["min_subscribers"]),

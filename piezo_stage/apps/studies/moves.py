@@ -16,7 +16,7 @@ import numpy as np
 
 from piezo_stage.core.loop.control import PARAMETERS as CONTROL_PARAMETERS
 from piezo_stage.core.loop.control import CompositeController, clamp_slew
-from piezo_stage.core.loop.feedforward import InverseFeedforward
+from piezo_stage.core.loop.feedforward import FeedforwardOptions, InverseFeedforward
 from piezo_stage.core.loop.ontarget import ON_TARGET, TargetState
 from piezo_stage.core.loop.planner import ReferencePlanner
 from piezo_stage.core.model.plant import Plant
@@ -71,8 +71,8 @@ class _Loop:
 
     def __init__(self, plant: Plant, model, effects, setup: MoveSetup):
         self.plant, self.dt_ns = plant, int(round(1e9 / setup.rate_hz))
-        self.ff = InverseFeedforward(ReferencePlanner(), self.dt_ns, inverse=setup.composite,
-                                     move_profile=(setup.speed_um_s, setup.accel_um_s2))
+        self.ff = InverseFeedforward(ReferencePlanner(), self.dt_ns, FeedforwardOptions(
+            inverse=setup.composite, move_profile=(setup.speed_um_s, setup.accel_um_s2)))
         self.slew_V_per_s = plant.config.slew_V_per_s  # (the driver announces its own)
         self.ff.judge.configure(setup.tol_um, setup.window_s, setup.filter_s)
         self.limits = model.voltage_limits

@@ -149,15 +149,12 @@ class PreparedModel:
     gain_um_per_V: float  # the steepest axis's stroke over the voltage range
 
 
-class InverseFeedforward:
-    """Desired positions to voltages, sample by sample.
+@dataclass(frozen=True)
+class FeedforwardOptions:
+    """How an ``InverseFeedforward`` answers, built by keyword.
 
-    Parameters
+    Attributes
     ----------
-    planner : ReferencePlanner
-        The desired position's source (trajectory, setpoint, approach, hold).
-    dt_ns : int
-        The control period [ns].
     nominal_um_per_V : float
         The gain used before any model.
     use_coupling : bool
@@ -175,12 +172,35 @@ class InverseFeedforward:
         A move's speed [um/s] and acceleration [um/s^2] (``move``; capped by the slew
         limit it is given).
     """
+    nominal_um_per_V: float = 0.5
+    use_coupling: bool = True
+    inverse: bool = True
+    max_resonance_hz: float = 0.0
+    wait_for_trajectory: bool = False
+    model_required_after_s: float = 0.0
+    move_profile: tuple[float, float] = (5000.0, 5.0e6)
 
-    def __init__(self, planner: ReferencePlanner, dt_ns: int, nominal_um_per_V: float = 0.5,
-                 use_coupling: bool = True, inverse: bool = True,
-                 max_resonance_hz: float = 0.0, wait_for_trajectory: bool = False,
-                 model_required_after_s: float = 0.0,
-                 move_profile: tuple[float, float] = (5000.0, 5.0e6)):
+
+class InverseFeedforward:
+    """Desired positions to voltages, sample by sample.
+
+    Parameters
+    ----------
+    planner : ReferencePlanner
+        The desired position's source (trajectory, setpoint, approach, hold).
+    dt_ns : int
+        The control period [ns].
+    options : FeedforwardOptions
+        How it answers: the gain before any model, decoupling, the inverse, the
+        lockstep waits and a move's profile (by keyword; the defaults by default).
+    """
+
+    def __init__(self, planner: ReferencePlanner, dt_ns: int,
+                 options: FeedforwardOptions | None = None):
+        o = self.options = options or FeedforwardOptions()
+        nominal_um_per_V, use_coupling, inverse = o.nominal_um_per_V, o.use_coupling, o.inverse
+        max_resonance_hz, wait_for_trajectory = o.max_resonance_hz, o.wait_for_trajectory
+        model_required_after_s, move_profile = o.model_required_after_s, o.move_profile
         self.wait_traj, self.model_after_s = bool(wait_for_trajectory), model_required_after_s
         self.planner, self.dt_ns = planner, int(dt_ns)
         self.ref = PreviewedReference(planner, self.dt_ns)  # effects compensated

@@ -143,16 +143,12 @@ class Outcome:
     deadline: float | None = None
 
 
-class SampleLoop:
-    """Commands in, samples out, for one backend.
+@dataclass(frozen=True)
+class LoopOptions:
+    """How a ``SampleLoop`` runs, built by keyword.
 
-    Parameters
+    Attributes
     ----------
-    backend : object
-        A stage backend (the drivers package): ``limits``, ``slew_V_per_s``, ``paced``,
-        ``step``, ``start``, ``close``.
-    arm : ArmingParams
-        The supervisor's parameters (safe voltage, ramp, staleness, ...).
     rate_hz : float
         The sample rate [Hz].
     lockstep : bool
@@ -161,8 +157,6 @@ class SampleLoop:
         Real time: how far ahead of its sample a command is computed [s].
     max_steps : int
         Samples to take (0: no end).
-    on_state_change : callable
-        ``(state, reason, since_ns)``, called by the supervisor on every change.
     clock_period_s : float
         Lockstep: /clock is due every this much sample time (0: never).
     from_arming : bool
@@ -176,14 +170,49 @@ class SampleLoop:
         driver configured again after a cleanup or an error) goes on where the last one
         ended and the set's simulated time never runs back. Real time maps its first
         tick to the ROS time of that tick, so its stamps go on by themselves.
+    min_margin : float
+        Real time: the capacity over the rate the first arm needs (0: no check).
+    capacity_window_s : float
+        Real time: how long the capacity is measured before the first arm [s].
+    arm_on_start : bool or None
+        Whether the loop asks to arm at its start (None: the arming parameters'
+        ``auto_arm``).
+    """
+    rate_hz: float
+    lockstep: bool
+    lookahead_s: float = 0.005
+    max_steps: int = 0
+    clock_period_s: float = 0.0
+    from_arming: bool = False
+    first_j: int = 0
+    min_margin: float = 0.0
+    capacity_window_s: float = 0.3
+    arm_on_start: bool | None = None
+
+
+class SampleLoop:
+    """Commands in, samples out, for one backend.
+
+    Parameters
+    ----------
+    backend : object
+        A stage backend (the drivers package): ``limits``, ``slew_V_per_s``, ``paced``,
+        ``step``, ``start``, ``close``.
+    arm : ArmingParams
+        The supervisor's parameters (safe voltage, ramp, staleness, ...).
+    options : LoopOptions
+        How the loop runs: its rate, lockstep or real time, and the rest (by keyword).
+    on_state_change : callable
+        ``(state, reason, since_ns)``, called by the supervisor on every change.
     """
 
-    def __init__(self, backend: Backend, arm: ArmingParams, rate_hz: float, lockstep: bool,
-                 lookahead_s: float, max_steps: int,
-                 on_state_change: Callable[[str, str, int], None],
-                 clock_period_s: float = 0.0, from_arming: bool = False,
-                 first_j: int = 0, min_margin: float = 0.0, capacity_window_s: float = 0.3,
-                 arm_on_start: bool | None = None):
+    def __init__(self, backend: Backend, arm: ArmingParams, options: LoopOptions,
+                 on_state_change: Callable[[str, str, int], None]):
+        o = self.options = options
+        rate_hz, lookahead_s, max_steps = o.rate_hz, o.lookahead_s, o.max_steps
+        clock_period_s, arm_on_start = o.clock_period_s, o.arm_on_start
+        lockstep, from_arming, first_j = o.lockstep, o.from_arming, o.first_j
+        min_margin, capacity_window_s = o.min_margin, o.capacity_window_s
         self.backend, self.lock, self.max_steps = backend, bool(lockstep), int(max_steps)
         self.from_arming, self.enabled_j = bool(from_arming), None
         self.rate_hz = float(rate_hz)

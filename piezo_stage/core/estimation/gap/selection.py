@@ -174,6 +174,20 @@ CLASS_WITH_EFFECTS = 1.5
 # its held-out RMS is below this fraction of that one's
 NOT_INVERTIBLE_PAYS = 0.9
 
+@dataclass(frozen=True)
+class SearchOptions:
+    """What one axis's search tries and against what (``AxisSearch``, by keyword): the
+    ``effects`` it may add, the sim to compare with (``base_model`` with the
+    ``base_effects`` of its file; None: the Duhem model identified on FIT), the written
+    models' voltage ``limits_V`` (None: from the records) and HOLDOUT's first
+    ``history`` samples run but not scored."""
+    effects: tuple[str, ...] = tuple(EFFECTS)
+    base_model: StageModel | None = None
+    base_effects: dict | None = None
+    limits_V: tuple | None = None
+    history: int = 0
+
+
 def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str] = EFFECTS,
                   base_model: StageModel | None = None,
                   progress: Callable[[str], None] | None = None,
@@ -190,8 +204,9 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     first ``history`` samples are its history: every model runs over them (the stage's
     state at the scored part's start follows from them: a creep in progress is no
     drift), and only the rest is scored. The stages are AxisSearch's."""
-    search = AxisSearch(fit, holdout, axis, effects, base_model, progress, base_effects,
-                        limits_V, history)
+    search = AxisSearch(fit, holdout, axis, SearchOptions(
+        effects=tuple(effects), base_model=base_model, base_effects=base_effects,
+        limits_V=limits_V, history=history), progress)
     cands = search.fit_candidates()
     ranking = search.rank(cands)
     steps, model = search.select(cands)
@@ -207,9 +222,11 @@ class AxisSearch:
     (``decide``). A candidate is a Fitted: an effect's (Candidate) or a class's
     (ClassCandidate), judged alike by its held-out residual."""
 
-    def __init__(self, fit: Record, holdout: Record, axis: str, effects: Sequence[str],
-                 base_model: StageModel | None, progress: Callable[[str], None] | None,
-                 base_effects: dict | None, limits_V: tuple | None, history: int):
+    def __init__(self, fit: Record, holdout: Record, axis: str, options: SearchOptions,
+                 progress: Callable[[str], None] | None = None):
+        effects, base_model, base_effects = options.effects, options.base_model, \
+            options.base_effects
+        limits_V, history = options.limits_V, options.history
         self.progress = progress or _quiet
         for rec in (fit, holdout):
             if axis not in rec.v or axis not in rec.w:
