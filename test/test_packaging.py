@@ -102,9 +102,10 @@ def test_package_xml_declares_what_the_code_imports():
            "numba": "python3-numba", "matplotlib": "python3-matplotlib",
            "tqdm": "python3-tqdm", "rosbags": "python3-rosbags-pip",
            "websockets": "python3-websockets"}
-    std = set(sys.stdlib_module_names) | {"piezo_stage", "piezo_stage_msgs_adapters"}
+    std = set(sys.stdlib_module_names) | {"piezo_stage", "piezo_stage_msgs_adapters",
+                                          "benchmarks"}
     files = [os.path.join(d, f) for base in ("piezo_stage", "piezo_stage_msgs_adapters",
-                                             "launch")
+                                             "launch", "benchmarks")
              for d, _, fs in os.walk(os.path.join(ROOT, base)) for f in fs
              if f.endswith(".py")]
     used = set()

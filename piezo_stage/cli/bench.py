@@ -87,18 +87,23 @@ def _page(path):
 
 def _kinds(text):
     import argparse
-    bench = workbench()
-    if bench is None:
+    if workbench() is None:
         raise argparse.ArgumentTypeError(_NO_WORKBENCH)
-    from benchmarks.experiments import KINDS
+    kinds = _experiment_kinds()
     out = tuple(x.strip() for x in text.split(","))
-    if not out or any(k not in KINDS for k in out):
-        raise argparse.ArgumentTypeError(f"{text!r}: use {', '.join(KINDS)}")
+    if not out or any(k not in kinds for k in out):
+        raise argparse.ArgumentTypeError(f"{text!r}: use {', '.join(kinds)}")
     return out
 
 
 _NO_WORKBENCH = ("the benchmarks run from a source checkout (its benchmarks/ folder beside "
                  "piezo_stage/); this piezo_stage is an installed package")
+
+
+def _experiment_kinds() -> tuple:
+    """The experiments ``bench experiments`` runs (the workbench's, found first)."""
+    import importlib
+    return tuple(importlib.import_module("benchmarks.experiments").KINDS)
 
 
 def main(args):
@@ -107,6 +112,5 @@ def main(args):
         from piezo_stage.core.errors import DataError
         raise DataError(f"bench {args.what}: {_NO_WORKBENCH}")
     if args.kinds is None:
-        from benchmarks.experiments import KINDS
-        args.kinds = KINDS
+        args.kinds = _experiment_kinds()
     return bench.main(args)

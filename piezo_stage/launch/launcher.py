@@ -346,7 +346,8 @@ class Launch:
         self.quiet_stop = False  # a command that runs sets says a stop in its own line
         self.ended = False       # the run ended by itself (driver done, duration passed)
         self.retrying = False    # a try --rate auto runs again at a lower rate
-        self._ended_file: str | None = None  # made before the SIGINTs of a run that ended (_signals)
+        # made before the SIGINTs of a run that ended (_signals)
+        self._ended_file: str | None = None
 
     def _gates(self):
         has = set(self.nodes)
