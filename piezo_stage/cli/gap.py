@@ -98,6 +98,37 @@ def main(args):
     if len(per) > 1:
         for a, d in per.items():
             print(f"verdict {a}: {d.verdict} ({d.reason})")
+    _print_ranking(per)
+    sc = res["scored"]
+    print(f"HOLDOUT figures [um]: each model as --out-model writes it, run as `simulate "
+          f"--model` runs the file over HOLDOUT's voltages from its initial state (FIT's "
+          f"start); RMS after HOLDOUT's first {sc['start_up_s']:g} s, its mean offset "
+          f"removed; gap = the part above the noise floor (and a line the input does not "
+          f"cause), in quadrature")
+    print(f"where: axis {res['where']['axis']}, band {res['where']['band_hz'][0]:g}-"
+          f"{res['where']['band_hz'][1]:g} Hz, segment {res['where']['segment']}; noise floor "
+          f"{res['noise_floor_um']:.4f} um; {res['seconds']:.1f} s")
+    _print_effects_and_budgets(per)
+    if args.json:
+        with atomic_write(args.json) as fh:
+            json.dump(res.json, fh, indent=1, default=float)
+    if args.report:
+        from piezo_stage.io.gap_report import write_report
+        print(f"report: {write_report(args.report, res, hold or fit)}")
+    if args.out_model:
+        from piezo_stage.io.model_file import save_document
+        doc, bounded = res.document()
+        save_document(args.out_model, doc)
+        print(f"model written: {args.out_model} (" + "; ".join(
+            f"{a}: {d.written_as}" for a, d in per.items()) + ")")
+        for note in bounded:
+            print(f"note: {note}")
+    return 0
+
+
+def _print_ranking(per):
+    """Each axis's candidates against the sim, the kept effects joined, and what
+    --out-model writes, one line each (HOLDOUT figures [um])."""
     print(f"{'axis':>4} {'effect':>9} {'rms_before':>10} {'rms_after':>9} {'gap_before':>10} "
           f"{'gap_after':>9} {'shrink_pct':>10} {'+-':>5}")
     for a, d in per.items():
@@ -123,15 +154,10 @@ def main(args):
               f"{d.written_rms_um:9.4f} {g0:10.4f} {d.written_gap_um:9.4f} "
               f"{100.0 * (1 - d.written_gap_um / g0) if g0 > 0 else 0.0:10.1f} "
               f"{'':>5} ({d.written_as})")
-    sc = res["scored"]
-    print(f"HOLDOUT figures [um]: each model as --out-model writes it, run as `simulate "
-          f"--model` runs the file over HOLDOUT's voltages from its initial state (FIT's "
-          f"start); RMS after HOLDOUT's first {sc['start_up_s']:g} s, its mean offset "
-          f"removed; gap = the part above the noise floor (and a line the input does not "
-          f"cause), in quadrature")
-    print(f"where: axis {res['where']['axis']}, band {res['where']['band_hz'][0]:g}-"
-          f"{res['where']['band_hz'][1]:g} Hz, segment {res['where']['segment']}; noise floor "
-          f"{res['noise_floor_um']:.4f} um; {res['seconds']:.1f} s")
+
+
+def _print_effects_and_budgets(per):
+    """Each axis's kept effects in the order added, its budget and any disturbance."""
     for a, d in per.items():
         if d.effects:
             print(f"effects {a} (in the order added): " + ", ".join(
@@ -150,18 +176,3 @@ def main(args):
                   f"{x['band_hz'][0]:.1f}-{x['band_hz'][1]:.1f} Hz), not caused by the "
                   f"input; feedback bandwidth to reject it: >= "
                   f"{x['feedback_bandwidth_hz']:.0f} Hz")
-    if args.json:
-        with atomic_write(args.json) as fh:
-            json.dump(res.json, fh, indent=1, default=float)
-    if args.report:
-        from piezo_stage.io.gap_report import write_report
-        print(f"report: {write_report(args.report, res, hold or fit)}")
-    if args.out_model:
-        from piezo_stage.io.model_file import save_document
-        doc, bounded = res.document()
-        save_document(args.out_model, doc)
-        print(f"model written: {args.out_model} (" + "; ".join(
-            f"{a}: {d.written_as}" for a, d in per.items()) + ")")
-        for note in bounded:
-            print(f"note: {note}")
-    return 0

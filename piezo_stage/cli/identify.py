@@ -94,31 +94,10 @@ def _identify(args, plot, figures):
                            structure="whole" if args.whole else "segmented",
                            budget=args.budget, seed=args.seed, coupling=args.coupling,
                            n=n, m=m, delay=args.delay)
-    classes = {a: args.model_class for a in axes}
-    if args.model_class == "auto":
-        from piezo_stage.core.estimation.identify.api import choose_class
-        for a in axes:
-            classes[a], held, why = choose_class(rec, a, opts, args.limits)
-            print(f"class {a}: {classes[a]} (held-out RMS on the record's last 40 %: "
-                  + ", ".join(f"{k} {e:.4f} um" for k, e in held.items()) + ")")
-            for note in why:
-                print(f"note: axis {a}: {note}")
+    classes = _classes(rec, axes, opts, args)
     pi_axes = {a: classes[a] for a in axes if classes[a] in ("pi", "preisach")}
     axes = [a for a in axes if classes[a] == "duhem"]
-    chosen = {}
-    if args.structure == "auto":
-        from dataclasses import replace
-
-        from piezo_stage.core.estimation.identify.api import choose_degree
-        for a in axes:
-            d, held = choose_degree(rec, a, opts)
-            chosen[a] = (d, held)
-            print(f"structure {a}: degree {d} (held-out RMS on the record's last 40 %: "
-                  + ", ".join(f"{k}: {e:.4f} um" for k, e in held.items()) + ")")
-        opts_for = {a: replace(opts, n=chosen[a][0], m=max(chosen[a][0] - 1, 0))
-                    for a in axes}
-    else:
-        opts_for = {a: opts for a in axes}
+    opts_for, chosen = _structures(rec, axes, opts, args)
     from contextlib import ExitStack
 
     from piezo_stage.progress import bar, best_so_far
@@ -136,15 +115,7 @@ def _identify(args, plot, figures):
                 str(k): e for k, e in chosen[a][1].items()}}
         if val is not None:
             report[a].update(validate_axis(r, val))
-    print(f"{'axis':>4} {'method':>8} {'structure':>9} {'fit_rms_um':>10} {'fit_pct':>8} "
-          f"{'max_err_um':>10} {'noise_um':>8} {'val_rms_um':>10} {'val_pct':>8} "
-          f"{'evals':>7} {'seconds':>7}")
-    for a, j in report.items():
-        vr = j.get("validate_rms_um", float("nan"))
-        vp = j.get("validate_rms_pct", float("nan"))
-        print(f"{a:>4} {j['method']:>8} {j['structure']:>9} {j['fit_rms_um']:10.4f} "
-              f"{j['fit_rms_pct']:8.4f} {j['max_err_um']:10.4f} {j['noise_floor_um']:8.4f} "
-              f"{vr:10.4f} {vp:8.4f} {j['evaluations']:7d} {j['seconds']:7.2f}")
+    _print_table(report)
     pis = _fit_pi(rec, pi_axes, val, report, args.limits, opts)
     for note in {n for r in list(results.values()) + list(pis.values()) for n in r.notes}:
         print(f"note: {note}")
@@ -174,6 +145,52 @@ def _identify(args, plot, figures):
             checked = (val.t, vcurves)
         print(f"plot: {figures.draw('identification_png', plot, rec.t, curves, checked)}")
     return 0
+
+
+def _classes(rec, axes, opts, args) -> dict:
+    """Each axis's model class: the one asked, or with ``auto`` the one
+    ``choose_class`` picks on the record's held-out last part (said in a line)."""
+    classes = {a: args.model_class for a in axes}
+    if args.model_class == "auto":
+        from piezo_stage.core.estimation.identify.api import choose_class
+        for a in axes:
+            classes[a], held, why = choose_class(rec, a, opts, args.limits)
+            print(f"class {a}: {classes[a]} (held-out RMS on the record's last 40 %: "
+                  + ", ".join(f"{k} {e:.4f} um" for k, e in held.items()) + ")")
+            for note in why:
+                print(f"note: axis {a}: {note}")
+    return classes
+
+
+def _structures(rec, axes, opts, args) -> tuple[dict, dict]:
+    """(each axis's options, the degrees chosen with their held-out RMS): the options
+    as asked, or with ``--structure auto`` the degree ``choose_degree`` picks."""
+    chosen: dict[str, tuple] = {}
+    if args.structure != "auto":
+        return {a: opts for a in axes}, chosen
+    from dataclasses import replace
+
+    from piezo_stage.core.estimation.identify.api import choose_degree
+    for a in axes:
+        d, held = choose_degree(rec, a, opts)
+        chosen[a] = (d, held)
+        print(f"structure {a}: degree {d} (held-out RMS on the record's last 40 %: "
+              + ", ".join(f"{k}: {e:.4f} um" for k, e in held.items()) + ")")
+    return {a: replace(opts, n=chosen[a][0], m=max(chosen[a][0] - 1, 0))
+            for a in axes}, chosen
+
+
+def _print_table(report: dict) -> None:
+    """The identification's table: a line per axis."""
+    print(f"{'axis':>4} {'method':>8} {'structure':>9} {'fit_rms_um':>10} {'fit_pct':>8} "
+          f"{'max_err_um':>10} {'noise_um':>8} {'val_rms_um':>10} {'val_pct':>8} "
+          f"{'evals':>7} {'seconds':>7}")
+    for a, j in report.items():
+        vr = j.get("validate_rms_um", float("nan"))
+        vp = j.get("validate_rms_pct", float("nan"))
+        print(f"{a:>4} {j['method']:>8} {j['structure']:>9} {j['fit_rms_um']:10.4f} "
+              f"{j['fit_rms_pct']:8.4f} {j['max_err_um']:10.4f} {j['noise_floor_um']:8.4f} "
+              f"{vr:10.4f} {vp:8.4f} {j['evaluations']:7d} {j['seconds']:7.2f}")
 
 
 def _fit_pi(rec, axes, val, report, limits, opts) -> dict:

@@ -252,55 +252,66 @@ class LaunchOptions:
 
 
 class Launch:
-    def __init__(self, config_path, options: LaunchOptions | None = None, env=None,
-                 look=None):
-        o = self.options = options or LaunchOptions()
-        record, namespace, overrides, nodes = o.record, o.namespace, o.overrides, o.nodes
-        arm, foxglove_port, trajectory, exclusive = o.arm, o.foxglove_port, o.trajectory, \
-            o.exclusive
-        managed, armed_s, compose, rate = o.managed, o.armed_s, o.compose, o.rate
-        self._look = look  # a running_set look begun before (launch/running.py's Look)
-        self.config_path = os.path.abspath(config_path)
-        params = read_parameters(self.config_path)
+    def _nodes_to_start(self, params: dict, o: LaunchOptions) -> list[str]:
+        """The nodes this launch starts, in start order (``outside_trajectories`` set)."""
         # outside trajectories only (--no-trajectory, or the trajectory node's kind: none):
         # the set arms, holds position and takes trajectories from other nodes
         kind = {**params.get("trajectory", {}),
-                **(overrides or {}).get("trajectory", {})}.get("kind")
-        self.outside_trajectories = not trajectory or kind == "none"
+                **(o.overrides or {}).get("trajectory", {})}.get("kind")
+        self.outside_trajectories = not o.trajectory or kind == "none"
         # the recorder and the live view run when asked for (record, foxglove_port)
-        self.nodes = [n for n in ORDER if n in (nodes or params)
-                      and n not in ("recorder", "live_view")
-                      and not (n == "trajectory" and self.outside_trajectories)]
-        if foxglove_port is not None:
-            self.nodes.insert(0, "live_view")
-        if record:
-            self.nodes.insert(0, "recorder")
-        self.foxglove_port = foxglove_port
-        self.ns = namespace
-        self.record = record
-        drv = {**params.get("stage_driver", {}), **(overrides or {}).get("stage_driver", {})}
+        nodes = [n for n in ORDER if n in (o.nodes or params)
+                 and n not in ("recorder", "live_view")
+                 and not (n == "trajectory" and self.outside_trajectories)]
+        if o.foxglove_port is not None:
+            nodes.insert(0, "live_view")
+        if o.record:
+            nodes.insert(0, "recorder")
+        return nodes
+
+    def _checked_mode(self, config_path, params: dict, drv: dict, o: LaunchOptions) -> bool:
+        """Whether the set runs in lockstep (else real time), its file checked: a mode
+        of the two, no simulated time in real time, and the loop's three nodes where
+        the set is to arm. ConfigError naming the file."""
         mode = drv.get("mode", "lockstep")
         if mode not in ("lockstep", "realtime"):
             raise ConfigError(f"{config_path}: stage_driver mode {mode!r}: use lockstep "
                               "or realtime")
-        self.lockstep = mode == "lockstep"
+        lockstep = mode == "lockstep"
         sim_time = [n for n in ORDER if (params.get(n, {}).get("use_sim_time") or (
-            overrides or {}).get(n, {}).get("use_sim_time"))]
-        if not self.lockstep and sim_time:
+            o.overrides or {}).get(n, {}).get("use_sim_time"))]
+        if not lockstep and sim_time:
             raise ConfigError(f"{config_path}: use_sim_time on {', '.join(sim_time)} in a "
                               "real-time set: simulated time is lockstep's (the driver's "
                               "samples); leave it out")
         missing = [n for n in LOOP_NODES if n not in self.nodes]
-        if nodes is None and arm and missing:
+        if o.nodes is None and o.arm and missing:
             raise ConfigError(
                 f"{config_path}: no section for {', '.join(missing)}: the set could not "
                 "close its loop, so it would never arm (a file of changes goes with "
                 "--params, over config/stage.yaml; --no-arm starts such a set anyway)")
+        return lockstep
+
+    def __init__(self, config_path, options: LaunchOptions | None = None, env=None,
+                 look=None):
+        o = self.options = options or LaunchOptions()
+        record, namespace, overrides = o.record, o.namespace, o.overrides
+        arm, foxglove_port, exclusive = o.arm, o.foxglove_port, o.exclusive
+        managed, armed_s, compose, rate = o.managed, o.armed_s, o.compose, o.rate
+        self._look = look  # a running_set look begun before (launch/running.py's Look)
+        self.config_path = os.path.abspath(config_path)
+        params = read_parameters(self.config_path)
+        self.nodes = self._nodes_to_start(params, o)
+        self.foxglove_port = foxglove_port
+        self.ns = namespace
+        self.record = record
+        drv = {**params.get("stage_driver", {}), **(overrides or {}).get("stage_driver", {})}
+        self.lockstep = self._checked_mode(config_path, params, drv, o)
         self.arm = bool(arm)
         self.managed = bool(managed)  # the driver's lifecycle left to an outside manager
         self.exclusive = bool(exclusive)  # refuse a namespace where a set runs already
         self.backend = drv.get("backend", "sim")
-        self.overrides = {n: dict(o) for n, o in (overrides or {}).items()}
+        self.overrides = {n: dict(x) for n, x in (overrides or {}).items()}
         # the control rate: a number for the loop's three nodes, or "auto" (real time:
         # the configured rate, and where the driver finds this host cannot hold it with
         # margin, again at the highest rate it can: core/loop/capacity.py; run())
@@ -664,26 +675,35 @@ class Launch:
                 if not again():
                     break
                 assert refused is not None
-                rate = float(refused["holdable_rate_hz"])
-                # the refused try never armed: its bag (if any) is replaced by this one
-                bag = (f"; its bag replaces the {self.rate_hz():g} Hz try's in "
-                       f"{self.record}" if self.record else "")
-                sys.stderr.write(f"piezo-stage launch: this host holds the loop at "
-                                 f"{refused['capacity_hz']:,.0f} samples/s, "
-                                 f"{refused['margin']:.2f} x {self.rate_hz():g} Hz: "
-                                 f"running again at {rate:g} Hz (rate auto{bag})\n")
-                self.set_rate(rate)
-                self.procs, self.failed, self.signalled = Processes(self), [], set()
-                self.ended = self.retrying = False
-                os.remove(cap_file)
-                if self.record:  # the refused try's bag is no record of the run
-                    import shutil
-                    shutil.rmtree(self.record, ignore_errors=True)
+                self._again_at_the_rate_held(refused, cap_file)
         finally:
             import shutil
             shutil.rmtree(cap_dir, ignore_errors=True)
             for s, h in old.items():
                 signal.signal(s, h)
+        return self._verdict(refused, tried)
+
+    def _again_at_the_rate_held(self, refused: dict, cap_file: str) -> None:
+        """A try refused (rate auto): the next one at the rate the host held, said in
+        one line, with a fresh set of processes and no bag of the refused try."""
+        rate = float(refused["holdable_rate_hz"])
+        # the refused try never armed: its bag (if any) is replaced by this one
+        bag = (f"; its bag replaces the {self.rate_hz():g} Hz try's in "
+               f"{self.record}" if self.record else "")
+        sys.stderr.write(f"piezo-stage launch: this host holds the loop at "
+                         f"{refused['capacity_hz']:,.0f} samples/s, "
+                         f"{refused['margin']:.2f} x {self.rate_hz():g} Hz: "
+                         f"running again at {rate:g} Hz (rate auto{bag})\n")
+        self.set_rate(rate)
+        self.procs, self.failed, self.signalled = Processes(self), [], set()
+        self.ended = self.retrying = False
+        os.remove(cap_file)
+        if self.record:  # the refused try's bag is no record of the run
+            import shutil
+            shutil.rmtree(self.record, ignore_errors=True)
+
+    def _verdict(self, refused: dict | None, tried: list[float]) -> int:
+        """The run's exit code (``run``), each failure said in one line."""
         holder = LOOP if "stage_driver" in self.composed else "stage_driver"
         driver = self.procs.get(holder)
         if refused and driver is not None and driver.returncode == 2:

@@ -73,15 +73,10 @@ class Refused(PiezoStageError):
 class Feedforward(LeanNode, Node):
     USES_KERNELS = True  # the model's inverse (LeanNode)
 
-    def __init__(self, **node_options):
-        # node_options: a node of a composed loop gets its own arguments (loop_container)
-        super().__init__("feedforward", **node_options)
-        live = tuple(q for q in core_ff.PARAMETERS if q.live)
-        p = self.p = declare_schema(self, tuple(q for q in core_ff.PARAMETERS if not q.live))
-        self.dt_ns = int(round(1e9 / p["control_rate_hz"]))
-        self.max_points = p["max_trajectory_points"]
-        self.planner = ReferencePlanner(p["approach_speed_um_per_s"],
-                                        p["approach_accel_um_per_s2"])
+    def _core(self, p: dict) -> tuple[ReferencePlanner, core_ff.InverseFeedforward]:
+        """The planner and the per-sample core of the node's parameters ``p``."""
+        planner = ReferencePlanner(p["approach_speed_um_per_s"],
+                                   p["approach_accel_um_per_s2"])
         # the per-sample work (core/loop/feedforward.py): reference, learning, inverse
         opts = core_ff.FeedforwardOptions(
             nominal_um_per_V=p["nominal_um_per_V"], use_coupling=p["use_coupling"],
@@ -89,7 +84,33 @@ class Feedforward(LeanNode, Node):
             wait_for_trajectory=p["wait_for_trajectory"],
             model_required_after_s=p["model_required_after_s"],
             move_profile=(p["move_speed_um_per_s"], p["move_accel_um_per_s2"]))
-        self.core = core_ff.InverseFeedforward(self.planner, self.dt_ns, opts)
+        return planner, core_ff.InverseFeedforward(planner, self.dt_ns, opts)
+
+    def _make_publishers(self, min_subscribers: int) -> None:
+        """The node's publishers (the reference gated on ``min_subscribers`` readers)."""
+        self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
+        self.phase_pub = self.create_publisher(KeyValue, "feedforward/phase", QOS_EVENTS)
+        self.phase_pub.publish(phase_msg(HOLD))
+        # what the stage runs, byte for byte as it came, latched: the recorder takes it
+        # from here whenever its own match with the sender came late or not at all
+        self.accepted_pub = self.create_publisher(JointTrajectory, "trajectory/accepted",
+                                                  QOS_LATCHED)
+        # a move's state, judged on the sensor (core/loop/ontarget.py), latched
+        self.on_target_pub = self.create_publisher(DiagnosticArray, "on_target",
+                                                   QOS_LATCHED)
+        # a trajectory refused, said to its sender (its frame_id and stamp, the reason)
+        self.refused_pub = self.create_publisher(DiagnosticArray, "trajectory/refused",
+                                                 QOS_EVENTS)
+        self.gate = Gate(self, [(self.pub, min_subscribers)])
+
+    def __init__(self, **node_options):
+        # node_options: a node of a composed loop gets its own arguments (loop_container)
+        super().__init__("feedforward", **node_options)
+        live = tuple(q for q in core_ff.PARAMETERS if q.live)
+        p = self.p = declare_schema(self, tuple(q for q in core_ff.PARAMETERS if not q.live))
+        self.dt_ns = int(round(1e9 / p["control_rate_hz"]))
+        self.max_points = p["max_trajectory_points"]
+        self.planner, self.core = self._core(p)
         self.ref, self.learning = self.core.ref, self.core.learning
         # the live ones once the core is there (a start-up override calls them at once):
         # effect compensation and learning feedforward (core/loop/learning.py)
@@ -117,20 +138,7 @@ class Feedforward(LeanNode, Node):
         if p["model_file"]:
             from piezo_stage.io.model_file import load_model
             self.set_model(*load_model(p["model_file"]), p["model_file"])
-        self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
-        self.phase_pub = self.create_publisher(KeyValue, "feedforward/phase", QOS_EVENTS)
-        self.phase_pub.publish(phase_msg(HOLD))
-        # what the stage runs, byte for byte as it came, latched: the recorder takes it
-        # from here whenever its own match with the sender came late or not at all
-        self.accepted_pub = self.create_publisher(JointTrajectory, "trajectory/accepted",
-                                                  QOS_LATCHED)
-        # a move's state, judged on the sensor (core/loop/ontarget.py), latched
-        self.on_target_pub = self.create_publisher(DiagnosticArray, "on_target",
-                                                   QOS_LATCHED)
-        # a trajectory refused, said to its sender (its frame_id and stamp, the reason)
-        self.refused_pub = self.create_publisher(DiagnosticArray, "trajectory/refused",
-                                                 QOS_EVENTS)
-        self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
+        self._make_publishers(p["min_subscribers"])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
         self.lag = LatencyHistogram()  # sample stamp -> its arrival here
