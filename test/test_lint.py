@@ -313,3 +313,32 @@ def test_no_history_in_the_package_s_code():
                         if pattern.search(line):
                             found.append(f"{os.path.relpath(path, ROOT)}:{i}: {line.strip()}")
     assert not found, "\n".join(found)
+
+
+def _functions():
+    """(path, function node) of every function and method of the product (the
+    workbench, benchmarks/, aside)."""
+    for path in _modules():
+        if os.path.relpath(path, ROOT).startswith("benchmarks" + os.sep):
+            continue
+        for node in ast.walk(ast.parse(open(path).read())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                yield path, node
+
+
+def test_constructors_take_named_options_not_long_argument_lists():
+    """No constructor takes more than 8 parameters (self aside): a longer list is a
+    dataclass of options built by keyword (LoopOptions, FeedforwardOptions,
+    SearchOptions, LaunchOptions); and at most 3 functions run over 80 lines."""
+    long_ctors, long_functions = [], []
+    for path, f in _functions():
+        a = f.args
+        n = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs) + bool(a.vararg) \
+            + bool(a.kwarg) - (1 if a.args and a.args[0].arg in ("self", "cls") else 0)
+        where = f"{os.path.relpath(path, ROOT)}:{f.lineno} {f.name}"
+        if f.name == "__init__" and n > 8:
+            long_ctors.append(f"{where}: {n} parameters")
+        if f.end_lineno - f.lineno + 1 > 80:
+            long_functions.append(f"{where}: {f.end_lineno - f.lineno + 1} lines")
+    assert not long_ctors, "\n".join(long_ctors)
+    assert len(long_functions) <= 3, "\n".join(long_functions)
