@@ -78,3 +78,24 @@ def test_a_request_is_taken_once_however_often_it_is_sent():
     for plain in ("", "scan line 3", "request", "request:", "Request:x"):
         assert request_key(plain) is None
         assert p.admit(pub(), request_key(plain)) and p.admit(pub(), request_key(plain))
+
+
+def test_the_sample_guard_drops_and_counts_in_the_cores_counters():
+    """One guard for every loop core: a malformed message, a duplicate, a stray stamp
+    and (real time) a sample already past are dropped, each counted in the counters it
+    was given (the core's); a sample on time passes, and an answer the core judged late
+    or past its tick is dropped and counted."""
+    from piezo_stage.core.loop.stamps import SampleGuard
+    stats = {"bad_messages": 0, "stray_stamps": 0, "late_dropped": 0}
+    g = SampleGuard(stats)
+    g.malformed()
+    assert stats["bad_messages"] == 1
+    assert g.admit(1_000) and not g.admit(1_000)  # a duplicate changes nothing
+    assert stats == {"bad_messages": 1, "stray_stamps": 0, "late_dropped": 0}
+    assert not g.admit(10 ** 18)  # a stray stamp far ahead: dropped, counted
+    assert stats["stray_stamps"] == 1
+    assert g.admit(2_000, now_ns=1_500)  # real time, on time
+    assert not g.admit(3_000, now_ns=5_000) and stats["late_dropped"] == 1  # past
+    assert g.on_time(9_000, None) and g.on_time(9_000, 8_000)
+    assert not g.on_time(9_000, None, late=True) and not g.on_time(9_000, 9_500)
+    assert stats["late_dropped"] == 3

@@ -25,7 +25,6 @@ from sensor_msgs.msg import JointState
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.control import PARAMETERS, CompositeController
-from piezo_stage.core.loop.stamps import StampGuard
 from piezo_stage.nodes._common import QOS_DATA
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
@@ -44,7 +43,7 @@ class Controller(LeanNode, Node):
         self.stats = self.core.stats
         # the driver's announcements: taken before the data in each lean-loop pass
         self.driver = DriverState(self, self.core.dt_ns, p["thread_priority"])
-        self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
+        self.guard = self.core.guard  # the stamp and late checks, counted in the core
         self.pub = self.create_publisher(Vector3Stamped, "command", QOS_DATA)
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
         hot_subscription(self, JointState, "reference", self.on_reference, QOS_DATA, raw=True)
@@ -72,14 +71,12 @@ class Controller(LeanNode, Node):
         try:
             r = reference_from_msg(msg)
         except PiezoStageError:
-            self.stats["bad_messages"] += 1
+            self.guard.malformed()
             return
         ns = r.ns
-        if not self.stamps.accept(ns):
-            self.stats["stray_stamps"] = self.stamps.dropped
-            return  # a duplicate changes nothing; a stray stamp is counted
-        if self.driver.realtime and ns < time.time_ns():
-            self.stats["late_dropped"] += 1  # its command would arrive after its tick
+        # a duplicate changes nothing; a stray stamp, or in real time a reference whose
+        # command would arrive after its tick, is dropped and counted
+        if not self.guard.admit(ns, time.time_ns() if self.driver.realtime else None):
             return
         t_k = ns - self.driver.lookahead_ns
         v = self.core.on_sample(ns, t_k, r.desired_um, r.ff_V, r.measured_um, r.applied_V,

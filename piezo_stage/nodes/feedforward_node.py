@@ -34,7 +34,6 @@ from piezo_stage.core.loop.ontarget import REFUSED, TargetState
 from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
 from piezo_stage.core.loop.stamps import (
     Publications,
-    StampGuard,
     publication_key,
     request_key,
 )
@@ -134,7 +133,8 @@ class Feedforward(LeanNode, Node):
                                   heap_bytes=trajectory_take_bytes(self.max_points))
         self.last_ns, self.last_rejection = -1, ""
         # a stray stamp from the graph never poisons the loop
-        self.stamps, self.stats = StampGuard(), dict.fromkeys(core_ff.COUNTS, 0)
+        # the core's counters and its guard (stamps, late answers)
+        self.stats, self.guard = self.core.stats, self.core.guard
         if p["model_file"]:
             from piezo_stage.io.model_file import load_model
             self.set_model(*load_model(p["model_file"]), p["model_file"])
@@ -333,10 +333,9 @@ class Feedforward(LeanNode, Node):
         try:
             ns, w, v_applied = joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:
-            self.stats["bad_messages"] += 1
+            self.guard.malformed()
             return
-        if not resumed and not self.stamps.accept(ns):
-            self.stats["stray_stamps"] = self.stamps.dropped
+        if not resumed and not self.guard.admit(ns):
             return  # a duplicate changes nothing; a stray stamp is counted
         if self.driver.realtime and info:
             self.lag.add((info["received_timestamp"] - ns) * 1e-9)
@@ -368,9 +367,9 @@ class Feedforward(LeanNode, Node):
             # a streamed setpoint cannot be previewed: it starts at this target tick
             self.sp_latency.add((a.target - self.setpoint_arrival) * 1e-9)
             self.setpoint_arrival = None
-        if a.late or (self.driver.realtime and a.target < time.time_ns()):
-            self.stats["late_dropped"] += 1  # it could only reach the driver too late
-            return
+        if not self.guard.on_time(a.target, time.time_ns() if self.driver.realtime else None,
+                                  a.late):
+            return  # it could only reach the driver too late (counted)
         self.gate.publish(self.pub, reference_cdr(a.target, a.desired, a.ff, w, applied))
 
 

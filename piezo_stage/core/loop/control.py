@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.loop.stamps import SampleGuard
 from piezo_stage.core.params import Param, Schema
 
 # the real-time priority of a loop node that answers samples (the controller's and the
@@ -244,6 +245,7 @@ class CompositeController:
         self.sent: dict = {}  # target stamp -> (desired um, command V): for t_k's check
         self.last_ns = -1
         self.stats = dict.fromkeys(COUNTS, 0)
+        self.guard = SampleGuard(self.stats)  # what it drops before on_sample, counted
 
     @property
     def feedback(self) -> bool:

@@ -30,6 +30,7 @@ from piezo_stage.core.loop.learning import LearnedFeedforward
 from piezo_stage.core.loop.ontarget import PARAMETERS as ON_TARGET
 from piezo_stage.core.loop.ontarget import OnTargetJudge, TargetState
 from piezo_stage.core.loop.planner import ReferencePlanner
+from piezo_stage.core.loop.stamps import SampleGuard
 from piezo_stage.core.model.duhem import StageModel, check_model_change, stroke_um
 from piezo_stage.core.model.inverse import StageInverse
 from piezo_stage.core.params import Param, Schema
@@ -203,6 +204,8 @@ class InverseFeedforward:
         model_required_after_s, move_profile = o.model_required_after_s, o.move_profile
         self.wait_traj, self.model_after_s = bool(wait_for_trajectory), model_required_after_s
         self.planner, self.dt_ns = planner, int(dt_ns)
+        self.stats = dict.fromkeys(COUNTS, 0)  # what it took, refused and dropped
+        self.guard = SampleGuard(self.stats)  # what it drops before on_sample, counted
         self.ref = PreviewedReference(planner, self.dt_ns)  # effects compensated
         self.learning = LearnedFeedforward(self.ref, self.dt_ns)
         self.gain, self.use_c, self.use_ff = nominal_um_per_V, use_coupling, inverse

@@ -12,6 +12,11 @@ stream that really moved (a driver restarted, a clock re-based) is recognised by
 within the window of the one before) but not with the old stream: the guard then
 follows it. A lone stray stamp never forms such a run, so it is counted and dropped,
 never taken. Times are integers in ns.
+
+``SampleGuard`` is the one guard every loop core puts before its per-sample work: a
+malformed message counted, the stamp taken by a ``StampGuard``, and in real time a
+sample whose answer could only reach the driver after its tick dropped; each counted
+in the core's own counters.
 """
 
 from __future__ import annotations
@@ -61,6 +66,38 @@ class StampGuard:
         return False
 
 
+
+
+class SampleGuard:
+    """The guard before a loop core's per-sample work (the feedforward's, the
+    controller's): what it drops, counted in ``stats`` (the core's counters:
+    ``bad_messages``, ``stray_stamps``, ``late_dropped``)."""
+
+    def __init__(self, stats: dict[str, int]):
+        self.stats = stats
+        self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
+
+    def malformed(self) -> None:
+        """A message that did not decode: counted, nothing else changes."""
+        self.stats["bad_messages"] += 1
+
+    def admit(self, ns: int, now_ns: int | None = None) -> bool:
+        """Whether to work on the sample stamped ``ns``: not a duplicate, an old or a
+        stray stamp (``StampGuard``), and in real time (``now_ns``, the wall clock)
+        not already past, so its answer could still reach the driver on time."""
+        if not self.stamps.accept(ns):
+            self.stats["stray_stamps"] = self.stamps.dropped
+            return False
+        return self.on_time(ns, now_ns)
+
+    def on_time(self, target_ns: int, now_ns: int | None = None, late: bool = False) -> bool:
+        """Whether an answer for ``target_ns`` can still reach the driver: not ``late``
+        by the core's own judgement and, in real time, not past ``now_ns``; a late one
+        is counted and dropped."""
+        if late or (now_ns is not None and target_ns < now_ns):
+            self.stats["late_dropped"] += 1
+            return False
+        return True
 class Publications:
     """Which publications a node has taken. A request (a trajectory) is identified by its
     publication, not by its content: the same bytes published again are a new request
