@@ -6,6 +6,7 @@ e-stop), and then checks the recorded bag: the applied voltage never steps beyon
 slew limit, reaches the safe voltage in time, and the set re-arms through the approach
 without a jump."""
 
+import dataclasses
 import math
 import os
 import signal
@@ -925,8 +926,8 @@ class _ControllerBehindARelay(Launch):
     """The controller in a process of its own (not composed with the feedforward), its
     commands remapped to the relay's input."""
 
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, compose="none", **kwargs)
+    def __init__(self, config_path, options: LaunchOptions, env=None):
+        super().__init__(config_path, dataclasses.replace(options, compose="none"), env=env)
 
     def command(self, node):
         cmd = super().command(node)
@@ -971,10 +972,9 @@ def _late_run(tmp_path, domain):
     # command then comes 70 ms and the relay's own after the last on time, within a
     # 150 ms stale timeout (at 50 ms it was a race with "stale commands")
     launch = _ControllerBehindARelay(
-        realtime_config(tmp_path, "    lookahead_s: 0.040\n", LATE_STALE), record=bag,
-        env=env,
-        exclusive=False,
-        nodes=["stage_driver", "feedforward", "controller", "trajectory"])
+        realtime_config(tmp_path, "    lookahead_s: 0.040\n", LATE_STALE), LaunchOptions(
+            record=bag, exclusive=False,
+            nodes=["stage_driver", "feedforward", "controller", "trajectory"]), env=env)
     relay = subprocess.Popen([sys.executable, "-c", DELAYING_RELAY, flag, "0.070"], env=env)
     probe = Probe(d)
     try:
