@@ -255,3 +255,16 @@ def test_a_real_time_stop_and_a_hardware_fault_are_outcomes():
         out = f.on_command(f.stamp(f.j + 1), dict(f.v), 0)
     assert out.next is Next.FAULT and out.sample is None and "link lost" in str(out.error)
     assert f.sup.state == "faulted"
+
+
+def test_the_loop_says_its_state_and_why_without_the_supervisor_read_through_it():
+    """The driver node reads the loop's state and reason from the loop itself (the
+    supervisor stays the loop's own): they follow every change."""
+    s = SampleLoop(SimBackend("", RATE, 0), ArmingParams(auto_arm=True), LoopOptions(
+        rate_hz=RATE, lockstep=True, arm_on_start=False), lambda *a: None)
+    assert (s.state, s.reason) == ("disarmed", "started disarmed")
+    close_the_loop(s)
+    s.activate(arm=True)
+    assert s.reason == "activated: waiting for the loop to close" == s.sup.reason
+    s.hardware_fault("link lost")
+    assert (s.state, s.reason) == ("faulted", "hardware: link lost")

@@ -183,7 +183,7 @@ class StageDriver(LeanNode, LifecycleNode):
             self.gate = Gate(self, [(self.jpub, p["min_subscribers"]),
                                     (self.tpub,
                                      p["min_record_subscribers"] * (p["backend"] == "sim"))])
-            self.on_state_change(self.loop.sup.state,
+            self.on_state_change(self.loop.state,
                                  "configured: started disarmed at the safe voltage",
                                  self.loop.stamp(self.loop.j + 1))
             if self.lock:
@@ -441,14 +441,14 @@ class StageDriver(LeanNode, LifecycleNode):
     def check_links(self):
         """Graph queries cost the loop thread ~1 ms: only while not armed, where a
         refusal or the arming reason needs them."""
-        if self.loop is not None and self.loop.sup.state not in ENABLED:
+        if self.loop is not None and self.loop.state not in ENABLED:
             self.link = missing_links(self)
 
     def on_phase(self, msg):
         """The feedforward's phase and what it follows: the arming state follows it,
         and /stage/state relays it."""
         if self.loop is not None and self.loop.feedforward_phase(*phase_from_msg(msg)):
-            self.on_state_change(self.loop.sup.state, self.loop.sup.reason, self.state_since,
+            self.on_state_change(self.loop.state, self.loop.reason, self.state_since,
                                  log=False)  # the same state, from the same sample
 
     def on_arm(self, request, response):

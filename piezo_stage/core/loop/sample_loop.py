@@ -410,6 +410,16 @@ class SampleLoop:
                         + " (min_margin 0 runs it anyway, and it will fault)")
 
     @property
+    def state(self) -> str:
+        """The arming supervisor's state (disarmed, arming, armed, fault, ...)."""
+        return self.sup.state
+
+    @property
+    def reason(self) -> str:
+        """Why the supervisor is in its state (the last change's reason)."""
+        return self.sup.reason
+
+    @property
     def last_capacity(self) -> Capacity | None:
         """The latest measurement of what the host sustains (real time)."""
         return self.capacity.last if self.capacity is not None else None
