@@ -31,11 +31,16 @@ from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.motion import MotionTimeModel
 from piezo_stage.core.loop.ontarget import ON_TARGET, REFUSED, TargetState
+from piezo_stage.core.types import PerAxis
 from piezo_stage_msgs_adapters.wire import Announcement
+
+if TYPE_CHECKING:
+    import numpy as np
 
 RESEND_S = 1.0  # a move unanswered this long is sent again
 SETTLE_IN_S = 0.3  # after the first answers: the rest of the latched history
@@ -79,8 +84,8 @@ class Dwell:
     samples: int
     t0_ns: int
     t1_ns: int
-    mean_um: dict
-    std_um: dict
+    mean_um: PerAxis[float]
+    std_um: PerAxis[float]
 
 
 @dataclass(frozen=True)
@@ -92,9 +97,9 @@ class MoveDone:
 
     move_id: str
     settle_s: float
-    error_um: dict
+    error_um: PerAxis[float]
     elapsed_s: float
-    target_um: dict
+    target_um: PerAxis[float]
     stamp_ns: int = 0  # the sample it was declared at (the set's clock)
 
 
@@ -139,7 +144,7 @@ class Stage:
         self.ex.add_node(self.node)
         self.motion_model = motion_model
         self.driver: Announcement | None = None  # the driver's last state
-        self.w: dict | None = None
+        self.w: PerAxis[float] | None = None
         self.targets: dict[str, TargetState] = {}  # move id -> its last state
         self.phases: list[tuple[str, str]] = []
         self.accepted = 0
@@ -377,7 +382,7 @@ class Stage:
                      {"x": float(w[:, 0].mean()), "y": float(w[:, 1].mean())},
                      {"x": float(w[:, 0].std()), "y": float(w[:, 1].std())})
 
-    def run(self, t_s, w_um: dict, timeout: float | None = None) -> float:
+    def run(self, t_s, w_um: PerAxis[np.ndarray], timeout: float | None = None) -> float:
         """Run a trajectory (t [s], {axis: um}) and wait for its end (the
         feedforward's phase done) -> the seconds waited, from its publication to its
         end (a float). Raises TrajectoryRefused (with the stage's reason), StageFault

@@ -14,6 +14,7 @@ from std_msgs.msg import Header, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.types import Doc, PerAxis
 from piezo_stage_msgs_adapters import cdr
 from piezo_stage_msgs_adapters.wire import (
     JOINTS,
@@ -59,7 +60,7 @@ def _finite(vals, what):
         raise DataError(f"{what}: NaN or inf")
 
 
-def joint_state(ns: int, w_um: dict, v_applied=None) -> JointState:
+def joint_state(ns: int, w_um: PerAxis[float], v_applied=None) -> JointState:
     """Measured position [um] -> sensor_msgs/JointState (names x, y; metres). The
     voltage applied during that sample [V], when given, goes in ``effort`` (the
     actuator's drive effort), so position and drive arrive in one message."""
@@ -76,7 +77,7 @@ def _register_layouts() -> None:
     cdr.known_joint_state_layout(FRAME, JOINTS + MEASURED, (4, 0, 4))
 
 
-def joint_state_cdr(ns: int, w_um: dict, v_applied=None) -> bytes:
+def joint_state_cdr(ns: int, w_um: PerAxis[float], v_applied=None) -> bytes:
     """The same message as ``joint_state``, as the CDR bytes a raw publisher sends."""
     return cdr.encode_joint_state(ns, FRAME, JOINTS, [float(w_um[a]) * UM for a in JOINTS],
                                   (), [float(v_applied[a]) for a in JOINTS]
@@ -101,19 +102,19 @@ def joint_state_to_um(msg, with_effort=False):
     return (ns, w, v) if with_effort else (ns, w)
 
 
-def voltage_msg(ns: int, v: dict) -> Vector3Stamped:
+def voltage_msg(ns: int, v: PerAxis[float]) -> Vector3Stamped:
     """Voltages [V] per axis -> geometry_msgs/Vector3Stamped (x, y in volts; z unused)."""
     m = Vector3Stamped(header=header(ns))
     m.vector.x, m.vector.y = float(v["x"]), float(v["y"])
     return m
 
 
-def voltage_cdr(ns: int, v: dict) -> bytes:
+def voltage_cdr(ns: int, v: PerAxis[float]) -> bytes:
     """The same message as ``voltage_msg``, as CDR bytes."""
     return cdr.encode_vector3_stamped(ns, FRAME, float(v["x"]), float(v["y"]), 0.0)
 
 
-def voltage_from_msg(msg) -> tuple[int, dict]:
+def voltage_from_msg(msg) -> tuple[int, Doc]:
     """Vector3Stamped (message or CDR bytes) -> (ns, {axis: V}). Raises DataError on
     NaN/inf (the driver rejects such commands) or malformed bytes."""
     if isinstance(msg, (bytes, bytearray, memoryview)):
@@ -127,8 +128,9 @@ def voltage_from_msg(msg) -> tuple[int, dict]:
 
 
 
-def reference_msg(ns: int, desired_um: dict, ff_V: dict, measured_um: dict,
-                  applied_V: dict) -> JointState:
+def reference_msg(ns: int, desired_um: PerAxis[float], ff_V: PerAxis[float],
+                  measured_um: PerAxis[float],
+                  applied_V: PerAxis[float]) -> JointState:
     """Internal /reference for a target sample: joints x, y with position = desired
     position [m] and effort = feedforward [V], and joints x_measured, y_measured with
     position = the measurement it was computed from [m] and effort = the voltage the
@@ -141,8 +143,9 @@ def reference_msg(ns: int, desired_um: dict, ff_V: dict, measured_um: dict,
                                          + [float(applied_V[a]) for a in JOINTS]))
 
 
-def reference_cdr(ns: int, desired_um: dict, ff_V: dict, measured_um: dict,
-                  applied_V: dict) -> bytes:
+def reference_cdr(ns: int, desired_um: PerAxis[float], ff_V: PerAxis[float],
+                  measured_um: PerAxis[float],
+                  applied_V: PerAxis[float]) -> bytes:
     """The same message as ``reference_msg``, as CDR bytes."""
     return cdr.encode_joint_state(
         ns, FRAME, JOINTS + MEASURED,
@@ -157,19 +160,19 @@ def reference_from_msg(msg) -> Reference:
     return reference_of(*_joint_state_fields(msg))
 
 
-def point_msg(ns: int, w_um: dict) -> PointStamped:
+def point_msg(ns: int, w_um: PerAxis[float]) -> PointStamped:
     m = PointStamped(header=header(ns))
     m.point.x, m.point.y = float(w_um["x"]) * UM, float(w_um["y"]) * UM
     return m
 
 
-def point_cdr(ns: int, w_um: dict) -> bytes:
+def point_cdr(ns: int, w_um: PerAxis[float]) -> bytes:
     """The same message as ``point_msg``, as CDR bytes."""
     return cdr.encode_point_stamped(ns, FRAME, float(w_um["x"]) * UM, float(w_um["y"]) * UM,
                                     0.0)
 
 
-def setpoint_from_msg(msg: PointStamped, range_um=None) -> dict:
+def setpoint_from_msg(msg: PointStamped, range_um=None) -> Doc:
     w = {"x": msg.point.x / UM, "y": msg.point.y / UM}
     _finite(w.values(), "setpoint")
     if range_um is not None:
@@ -184,7 +187,7 @@ def setpoint_from_msg(msg: PointStamped, range_um=None) -> dict:
 MAX_MOVE_ID = 200  # characters of a move's id
 
 
-def move_msg(move_id: str, w_um: dict, ns: int = 0) -> PointStamped:
+def move_msg(move_id: str, w_um: PerAxis[float], ns: int = 0) -> PointStamped:
     """A move request (geometry_msgs/PointStamped on ``move``): the target in metres,
     ``header.frame_id`` the move's id (the stage's own frame is implied), the stamp
     when it was asked."""
@@ -193,7 +196,7 @@ def move_msg(move_id: str, w_um: dict, ns: int = 0) -> PointStamped:
     return m
 
 
-def move_from_msg(msg: PointStamped, range_um=None) -> tuple[str, dict]:
+def move_from_msg(msg: PointStamped, range_um=None) -> tuple[str, Doc]:
     """A move request -> (its id, {axis: um}); DataError when the target is not finite,
     leaves the stage range, or the id is longer than MAX_MOVE_ID."""
     if len(msg.header.frame_id) > MAX_MOVE_ID:
@@ -236,7 +239,7 @@ def on_target_from_msg(msg: DiagnosticArray):
         raise DataError(f"on_target: not an on-target state ({e})") from None
 
 
-def trajectory_msg(t_s, w_um: dict) -> JointTrajectory:
+def trajectory_msg(t_s, w_um: PerAxis[np.ndarray]) -> JointTrajectory:
     """(t [s], {axis: um}) -> JointTrajectory (joint_names x, y; metres)."""
     msg = JointTrajectory(joint_names=list(JOINTS))
     for k, t in enumerate(t_s):
@@ -394,7 +397,7 @@ def phase_from_msg(msg: KeyValue) -> tuple[str, str]:
 ARM_LEVEL = {"armed": 0, "approaching": 0, "arming": 1, "disarmed": 1, "faulted": 2}
 
 
-def arming_state_msg(since_ns: int, name: str, state: str, reason: str, values: dict,
+def arming_state_msg(since_ns: int, name: str, state: str, reason: str, values: Doc,
                      hardware_id: str = "") -> DiagnosticArray:
     """The driver's arming state (latched ``state`` topic): header.stamp is the first
     sample stamp the state applies to; one status whose message is the state, with
@@ -415,7 +418,7 @@ def clock_msg(ns: int):
     return Clock(clock=ns_to_time(ns))
 
 
-def diagnostic_array(ns: int, name: str, level: int, message: str, values: dict,
+def diagnostic_array(ns: int, name: str, level: int, message: str, values: Doc,
                      hardware_id: str = "") -> DiagnosticArray:
     """One DiagnosticStatus (level: 0 OK, 1 WARN, 2 ERROR, 3 STALE) in an array."""
     st = DiagnosticStatus(level=bytes([int(level)]), name=name, message=message,

@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.types import Doc
 from piezo_stage_msgs_adapters.cdr import CdrReader
 
 JOINTS = ("x", "y")
@@ -16,7 +17,7 @@ UM = 1e-6  # metres per micrometre: um = m / UM, m = um * UM
 
 
 def joint_state_axes(names, position, effort, what: str = "joint_states"
-                     ) -> tuple[dict, dict | None]:
+                     ) -> tuple[dict, Doc | None]:
     """A joint state's fields -> ({joint: um} for the stage's joints it holds, {joint:
     V} from effort, or None when effort is not one value a joint). DataError when
     positions and names differ in number, a name repeats, or a value is not finite."""
@@ -33,7 +34,7 @@ def joint_state_axes(names, position, effort, what: str = "joint_states"
     return w, v
 
 
-def joint_state_um(data: bytes, what: str = "joint_states") -> tuple[int, dict, dict | None]:
+def joint_state_um(data: bytes, what: str = "joint_states") -> tuple[int, Doc, Doc | None]:
     """sensor_msgs/JointState CDR bytes -> (stamp ns, {joint: um}, {joint: V} or None)."""
     from piezo_stage_msgs_adapters.cdr import decode_joint_state
     ns, _, names, position, _, effort = decode_joint_state(data)
@@ -41,7 +42,7 @@ def joint_state_um(data: bytes, what: str = "joint_states") -> tuple[int, dict, 
     return ns, w, v
 
 
-def point_um(data: bytes) -> tuple[int, dict]:
+def point_um(data: bytes) -> tuple[int, Doc]:
     """geometry_msgs/PointStamped CDR bytes -> (stamp ns, {"x": um, "y": um})."""
     from piezo_stage_msgs_adapters.cdr import decode_point_stamped
     ns, _, (x, y, _) = decode_point_stamped(data)

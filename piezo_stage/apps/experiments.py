@@ -35,6 +35,7 @@ import numpy as np
 
 from piezo_stage.core.errors import ConfigError, DataError, RunError
 from piezo_stage.core.loop.arming import ENABLED
+from piezo_stage.core.types import Doc, Params, PerAxis
 from piezo_stage.io.files import atomic_write
 
 EXPERIMENTS = ("decoupling", "tracking", "amplitude", "noise")
@@ -56,12 +57,12 @@ class Case:
     name: str
     freq_hz: float
     t: np.ndarray
-    w: dict                       # axis -> desired [um]
+    w: PerAxis[np.ndarray]                  # axis -> desired [um]
     controller: str               # feedforward | feedback | composite | none
     judged: tuple = ("x", "y")    # axes whose errors are figures
     moving: str = "x"             # an axis that moves (the window is found on it)
     eval_s: float = 2.0
-    params: dict = field(default_factory=dict)  # node -> extra parameters
+    params: Params = field(default_factory=dict)  # node -> extra parameters
     group: str = ""               # decoupling: runs compared pairwise share a group
     saturated: int = 0            # targets saturated to the stage's range
 
@@ -91,9 +92,9 @@ def _controller_params(c):
             "controller": ctl}
 
 
-def merge_params(*ds: dict) -> dict:
+def merge_params(*ds: Doc) -> Params:
     """{node: parameters} mappings merged, later ones over earlier ones, per node."""
-    out: dict[str, dict] = {}
+    out: dict[str, Doc] = {}
     for d in ds:
         for node, p in d.items():
             out.setdefault(node, {}).update(p)
@@ -166,7 +167,7 @@ def lockstep_margin_s(case, config, extra=None) -> float:
     from piezo_stage.core.loop.planner import Approach
     from piezo_stage.core.params import defaults
     from piezo_stage.launch.launcher import read_parameters
-    p: dict = defaults(PARAMETERS)
+    p: Params = defaults(PARAMETERS)
     p.update(read_parameters(config).get("feedforward", {}))
     p.update({**(extra or {}).get("feedforward", {}), **case.params.get("feedforward", {})})
     first = {a: float(v[0]) for a, v in case.w.items()}
@@ -255,7 +256,7 @@ def _window(case, run):
     return [k for k in ks if start < k <= end]
 
 
-def evaluate(case, bag) -> dict:
+def evaluate(case, bag) -> Doc:
     """Per judged axis, the errors against the true and the measured position."""
     from piezo_stage.io.run_bag import read_run
     run = read_run(bag)
@@ -316,7 +317,7 @@ class Interrupted(KeyboardInterrupt):
     """A stop in the middle of an experiment, with what the finished cases gave:
     ``doc`` and ``evals`` as ``run_experiment`` returns them."""
 
-    def __init__(self, doc: dict, evals: list, total: int):
+    def __init__(self, doc: Doc, evals: list, total: int):
         super().__init__()
         self.doc, self.evals, self.total = doc, evals, total
 
@@ -376,7 +377,7 @@ def run_experiment(name, out_dir, config, plant=None, model=None, mode="lockstep
 
 def _reductions(doc):
     """Decoupling: each 'on' case gets the coupling RMS before (off) and after (on)."""
-    by: dict[tuple, dict] = {}
+    by: dict[tuple, Doc] = {}
     for c in doc["cases"]:
         driven = c["name"].split()[1]
         by.setdefault((driven, c["axis"], c["reference"]), {})[
@@ -417,7 +418,7 @@ def relay_case(setpoint_um: float = 30.0, duration_s: float = 3.0, amplitude_V: 
                                    "relay_hysteresis_um": float(hysteresis_um)}})
 
 
-def relay_points(bag, amplitude_V: float, settle_s: float = 1.0) -> dict:
+def relay_points(bag, amplitude_V: float, settle_s: float = 1.0) -> Doc:
     """Each axis's ultimate point (core.tuning.relay_point) from a relay run's bag: the
     samples of the enabled stretch from ``settle_s`` after its start to the end of the
     held trajectory, on the driver's sample grid (a missed tick holds its voltage and
@@ -450,7 +451,7 @@ def relay_points(bag, amplitude_V: float, settle_s: float = 1.0) -> dict:
 
 def run_relay(bag, config, plant=None, model=None, mode="lockstep", setpoint_um=30.0,
               duration_s=3.0, amplitude_V=2.0, hysteresis_um=0.0, settle_s=1.0, extra=None,
-              namespace="/stage", env=None) -> dict:
+              namespace="/stage", env=None) -> Doc:
     """Run the relay experiment through the node set into ``bag``; each axis's
     ultimate point. RunError when the node set fails."""
     if not settle_s + 0.5 < duration_s:

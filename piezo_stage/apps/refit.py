@@ -25,10 +25,15 @@ import math
 import os
 import re
 from datetime import datetime, timezone
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.types import Doc, PerAxis
+
+if TYPE_CHECKING:
+    from piezo_stage.core.estimation.record import Record
 
 SPLIT = 0.5          # the share of each bag identified on; the rest is held out
 GROWTH_PCT = 30.0    # an effect's change worth a date
@@ -119,7 +124,8 @@ def moving_span(v: np.ndarray) -> tuple[int, int] | None:
     return int(moves[0]), int(moves[-1]) + 2
 
 
-def axis_parts(rec, spans: dict | None = None) -> tuple[dict, list[str]]:
+def axis_parts(rec, spans: PerAxis[Record] | None = None
+               ) -> tuple[PerAxis[tuple[Record, Record]], list[str]]:
     """Each axis's (FIT, HOLD): the halves of the span where its voltage moves, and a
     note for each axis left out (at rest, or moving too briefly to fit and score);
     ``spans`` gets each axis's whole span (from t = 0). -> ({axis: (fit, hold)},
@@ -144,7 +150,7 @@ def axis_parts(rec, spans: dict | None = None) -> tuple[dict, list[str]]:
     return parts, notes
 
 
-def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
+def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> Doc:
     """One bag: each axis identified on the first half of the span where its voltage
     moves and scored on the second (``axis_parts``), the model written to ``out_dir``;
     with ``against`` (a model file) the gap diagnosis of each axis's second half
@@ -160,7 +166,7 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
     rec = load_record(path)
     rec.voltage_exact = True  # a bag holds the voltage the driver applied
     lim = voltage_limits_for(list(rec.v.values()), limits_V)
-    spans: dict = {}
+    spans: PerAxis[Record] = {}
     parts, notes = axis_parts(rec, spans)
     results = {}
     for a, (fit, _) in parts.items():
@@ -177,8 +183,8 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
     save_model(model_path, model, extra={"identification": {
         "bag": os.path.abspath(path), "started_utc": started.isoformat(),
         "fitted_on": f"the first {SPLIT:.0%} of the span where each axis moves"}})
-    per_axis: dict[str, dict] = {}
-    row: dict = {"bag": os.path.abspath(path), "name": name,
+    per_axis: PerAxis[Doc] = {}
+    row: Doc = {"bag": os.path.abspath(path), "name": name,
                  "started_utc": started.isoformat(), "dated_by": dated_by,
                  "model": model_path, "axes": per_axis,
                  "notes": list(rec.notes) + [f"{path}: {n}" for n in notes]}
@@ -207,12 +213,12 @@ def refit_bag(path: str, out_dir: str, limits_V=None, against=None) -> dict:
     return row
 
 
-def _against_row(j: dict) -> dict:
+def _against_row(j: Doc) -> Doc:
     """One axis's diagnosis against the reference as a row's: the verdict and each
     named effect's size (its parameter that scales with it, else the held-out gap it
     explains)."""
     explained = j.get("budget", {}).get("explained_um", {})
-    effects: dict[str, dict] = {}
+    effects: dict[str, Doc] = {}  # effect -> its size
     for st in j["effects"]:
         key = SIZE_OF.get(st["effect"])
         val = st["params"].get(key) if key else None
@@ -405,7 +411,7 @@ def growth_lines(g: list[dict]) -> list[str]:
     return lines
 
 
-def table_columns(rows) -> dict:
+def table_columns(rows) -> Doc:
     """The CSV's columns: bag, date and per axis the figures (and the effect sizes)."""
     cols = {"bag": [r["name"] for r in rows], "started_utc": [r["started_utc"] for r in rows],
             "dated_by": [r["dated_by"] for r in rows]}

@@ -47,7 +47,7 @@ def _warn_shallow_subscribers(node, pubs, msgs, rate) -> None:
     import sys
 
     from rclpy.qos import ReliabilityPolicy
-    span: dict = {}
+    span: dict[str, tuple[int, int, int]] = {}  # topic -> first, last stamp, count
     for topic, _, log_ns, _ in msgs:
         first, last, n = span.get(topic, (log_ns, log_ns, 0))
         span[topic] = (first, log_ns, n + 1)

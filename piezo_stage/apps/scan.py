@@ -31,6 +31,7 @@ import numpy as np
 
 from piezo_stage.apps.experiments import RATE_HZ, Case, control_rate, merge_params, run_case
 from piezo_stage.core.errors import DataError, RunError
+from piezo_stage.core.types import Doc
 
 RASTER_HZ = (5.0, 20.0, 50.0)
 SEED_HZ = (40.0, 100.0)
@@ -166,7 +167,7 @@ def converged_at(per: list[float], floor: float = 0.002) -> int:
     return int(bad[-1] + 1) if bad.size else 0
 
 
-def evaluate(case, bag) -> dict:
+def evaluate(case, bag) -> Doc:
     """Per axis, per period and for the last period: the figures of the module doc."""
     from piezo_stage.io.run_bag import read_run
     period, d, true, v = _motion(case, read_run(bag))

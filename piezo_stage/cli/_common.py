@@ -6,8 +6,13 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from typing import TYPE_CHECKING
 
 from piezo_stage.core.errors import DataError, printable
+from piezo_stage.core.types import Doc, PerAxis
+
+if TYPE_CHECKING:
+    import numpy as np
 
 EXIT_USAGE = 2
 EXIT_SOLVER = 3
@@ -59,7 +64,7 @@ def check_voltages(rec, limits, source):
                                   f"the voltage limits [{lo:g}, {hi:g}] V")
 
 
-def warn_past_fit_range(model, v: dict, source: str) -> None:
+def warn_past_fit_range(model, v: PerAxis[np.ndarray], source: str) -> None:
     """One line on stderr when the voltages ``v`` take ``model`` past the range it was
     fitted on (it runs there, its branches continuing straight from their ends)."""
     from piezo_stage.core.model.duhem import past_fit_range
@@ -132,10 +137,10 @@ def port(text):
     return port
 
 
-def param_overrides(paths) -> dict:
+def param_overrides(paths) -> Doc:
     """Node parameters from parameter files (as `tune` writes), later files win."""
     from piezo_stage.launch.launcher import read_parameters
-    out: dict[str, dict] = {}
+    out: dict[str, Doc] = {}
     for p in paths or ():
         for node, params in read_parameters(p).items():
             out.setdefault(node, {}).update(params)

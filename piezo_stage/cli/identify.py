@@ -6,6 +6,7 @@ import numpy as np
 
 from piezo_stage.cli._common import limits, number, warn_small_span
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.types import Doc, Params
 
 HELP = "identify the Duhem model from a record"
 
@@ -147,7 +148,7 @@ def _identify(args, plot, figures):
     return 0
 
 
-def _classes(rec, axes, opts, args) -> dict:
+def _classes(rec, axes, opts, args) -> Doc:
     """Each axis's model class: the one asked, or with ``auto`` the one
     ``choose_class`` picks on the record's held-out last part (said in a line)."""
     classes = {a: args.model_class for a in axes}
@@ -162,7 +163,7 @@ def _classes(rec, axes, opts, args) -> dict:
     return classes
 
 
-def _structures(rec, axes, opts, args) -> tuple[dict, dict]:
+def _structures(rec, axes, opts, args) -> tuple[dict, Doc]:
     """(each axis's options, the degrees chosen with their held-out RMS): the options
     as asked, or with ``--structure auto`` the degree ``choose_degree`` picks."""
     chosen: dict[str, tuple] = {}
@@ -180,7 +181,7 @@ def _structures(rec, axes, opts, args) -> tuple[dict, dict]:
             for a in axes}, chosen
 
 
-def _print_table(report: dict) -> None:
+def _print_table(report: Doc) -> None:
     """The identification's table: a line per axis."""
     print(f"{'axis':>4} {'method':>8} {'structure':>9} {'fit_rms_um':>10} {'fit_pct':>8} "
           f"{'max_err_um':>10} {'noise_um':>8} {'val_rms_um':>10} {'val_pct':>8} "
@@ -193,7 +194,7 @@ def _print_table(report: dict) -> None:
               f"{vr:10.4f} {vp:8.4f} {j['evaluations']:7d} {j['seconds']:7.2f}")
 
 
-def _fit_pi(rec, axes, val, report, limits, opts) -> dict:
+def _fit_pi(rec, axes, val, report, limits, opts) -> Params:
     """The classes with memory on ``axes`` ({axis: 'pi' or 'preisach'}): the
     Prandtl-Ishlinskii class or the discretized Preisach class, monotone weights
     (non-negative least squares), thresholds up to half the amplifier's range

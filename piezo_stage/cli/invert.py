@@ -7,6 +7,7 @@ import sys
 import numpy as np
 
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.types import EffectsBlock
 
 HELP = "voltages that make a model follow a target"
 
@@ -78,7 +79,7 @@ def main(args):
     return 0
 
 
-def compensate_effects(effects: dict, rec, axes=("x", "y")) -> dict:
+def compensate_effects(effects: EffectsBlock, rec, axes=("x", "y")) -> EffectsBlock:
     """The hysteresis targets {axis: um} of ``axes`` that make the model's effects give
     ``rec``'s positions at its samples: each axis's inverse fed its target
     ``lead_ticks`` ahead (the last target held past the end); the record must be

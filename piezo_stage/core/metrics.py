@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+from piezo_stage.core.types import Doc
+
 
 def rms(x: ArrayLike) -> float:
     """Root mean square of ``x`` (0 for an empty array)."""
@@ -12,7 +14,7 @@ def rms(x: ArrayLike) -> float:
     return float(np.sqrt(np.mean(x * x))) if x.size else float("nan")
 
 
-def error_figures(w_meas: ArrayLike, w_model: ArrayLike) -> dict:
+def error_figures(w_meas: ArrayLike, w_model: ArrayLike) -> Doc:
     """RMS and max error [um], and RMS as % of the measured displacement range."""
     e = np.asarray(w_model, float) - np.asarray(w_meas, float)
     span = float(np.ptp(w_meas)) if np.size(w_meas) else 0.0
@@ -37,7 +39,7 @@ def noise_floor(w: ArrayLike) -> float:
     return float(1.4826 * mad / np.sqrt(20.0))
 
 
-def loop_figures(v: ArrayLike, w: ArrayLike) -> dict:
+def loop_figures(v: ArrayLike, w: ArrayLike) -> Doc:
     """Shape of one periodic hysteresis loop (pass exactly one cycle).
 
     Returns range, the widest vertical opening between the branches (and as % of the
@@ -70,7 +72,7 @@ class LatencyHistogram:
     """Whole-run percentiles of a latency at fixed cost: 10 us bins up to ``top_s``
     (beyond it, the last bin), one integer increment per sample, bounded memory."""
 
-    def __init__(self, bin_s: float = 1e-5, top_s: float = 0.1):
+    def __init__(self, bin_s: float = 1e-5, top_s: float = 0.1) -> None:
         self.bin = float(bin_s)
         self.counts = [0] * (int(top_s / bin_s) + 1)
         self.n, self.max_s = 0, 0.0

@@ -10,6 +10,7 @@ from __future__ import annotations
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.loop.backend import Backend, StepResult
 from piezo_stage.core.params import Param, Schema
+from piezo_stage.core.types import Params
 from piezo_stage.drivers.daq import DAQ_PARAMS
 from piezo_stage.drivers.nv200 import NV200_PARAMS
 from piezo_stage.drivers.pi import PI_PARAMS
@@ -44,7 +45,7 @@ class SimBackend:
     paced = False  # the driver paces it (lockstep: by commands; real time: wall clock)
     exhausted = False  # never runs out
 
-    def __init__(self, config_path: str, rate_hz: float, seed=None):
+    def __init__(self, config_path: str, rate_hz: float, seed=None) -> None:
         from piezo_stage.core.model.plant import Plant
         from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
         cfg = load_plant_config(config_path or default_plant_config_path())
@@ -63,10 +64,10 @@ class SimBackend:
         true = {a: float(x[0]) for a, x in self.plant.last_true.items()}
         return StepResult({"x": mx, "y": my}, {"x": vx, "y": vy}, true)
 
-    def start(self):
+    def start(self) -> None:
         pass  # the driver paces the simulation
 
-    def close(self, safe_V=0.0, ramp_V_per_s=0.0):
+    def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0) -> None:
         pass  # nothing stays energised
 
 
@@ -74,7 +75,7 @@ class ReplayBackend:
     """Plays a recorded bag's measurements (and applied voltages) as if live."""
     paced = False
 
-    def __init__(self, bag_path: str, rate_hz: float):
+    def __init__(self, bag_path: str, rate_hz: float) -> None:
         from piezo_stage.io.bag import read_bag_record
         self.rec = read_bag_record(bag_path)
         self.k = 0
@@ -94,14 +95,14 @@ class ReplayBackend:
         v = {a: float(self.rec.v.get(a, [0.0] * len(self.rec))[k]) for a in ("x", "y")}
         return StepResult({"x": w.get("x", 0.0), "y": w.get("y", 0.0)}, v)
 
-    def start(self):
+    def start(self) -> None:
         pass
 
-    def close(self, safe_V=0.0, ramp_V_per_s=0.0):
+    def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0) -> None:
         pass
 
 
-def make_backend(kind: str, rate_hz: float, params: dict, safe_V: float = 0.0) -> Backend:
+def make_backend(kind: str, rate_hz: float, params: Params, safe_V: float = 0.0) -> Backend:
     if kind == "sim":
         return SimBackend(params.get("plant_config", ""), rate_hz, params.get("seed"))
     if kind == "replay":

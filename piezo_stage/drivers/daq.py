@@ -36,6 +36,7 @@ from typing import Any
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.loop.backend import StepResult
 from piezo_stage.core.params import Param, Schema
+from piezo_stage.core.types import Params
 
 LATE_CODES = {209800, 209801, 209802, 209803}  # |code|: read/write not complete before
 # the sample clock, missed sample clock, three or more missed sample clocks
@@ -57,7 +58,7 @@ DAQ_PARAMS: Schema = (  # the driver node declares them read-only (core/params.p
 )
 
 
-def _pair(params, name, n=2):
+def _pair(params, name, n: int = 2):
     val = [float(x) for x in params[name]]
     if len(val) != n:
         raise ConfigError(f"{name} needs {n} values, got {len(val)}")
@@ -68,7 +69,7 @@ class DaqBackend:
     paced = True  # step() blocks until the hardware's next sample clock
     exhausted = False
 
-    def __init__(self, rate_hz: float, params: dict, safe_V: float):
+    def __init__(self, rate_hz: float, params: Params, safe_V: float) -> None:
         try:
             import nidaqmx  # the optional dependency, loaded on demand
             from nidaqmx.constants import AcquisitionType, TerminalConfiguration
@@ -137,7 +138,7 @@ class DaqBackend:
             raise
         self.started = False
 
-    def start(self):
+    def start(self) -> None:
         """Start the sample clock and the watchdog at the first step, not when built: a
         driver may wait seconds for its readers, and a clock started then would count
         those seconds as missed samples and the watchdog would expire before the loop."""
@@ -161,7 +162,7 @@ class DaqBackend:
             raise ConfigError(f"{self.device}: hardware watchdog unavailable ({e.error_code}); "
                               "set watchdog_timeout_s: 0 to run without it") from None
 
-    def _write(self, v):
+    def _write(self, v) -> None:
         self.raw_out[0] = v["x"] / self.gain[0]
         self.raw_out[1] = v["y"] / self.gain[1]
         self.writer.write_one_sample(self.raw_out)
@@ -221,7 +222,7 @@ class DaqBackend:
         finally:
             self._close_tasks()
 
-    def _close_tasks(self):
+    def _close_tasks(self) -> None:
         for t in (self.ao, self.ai, self.wd):
             if t is None:
                 continue

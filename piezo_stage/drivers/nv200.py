@@ -33,6 +33,7 @@ import numpy as np
 from piezo_stage.core.errors import BackendFault, ConfigError
 from piezo_stage.core.loop.backend import StepResult
 from piezo_stage.core.params import Param, Schema
+from piezo_stage.core.types import Params, PerAxis
 
 NV200_PARAMS: Schema = (  # the driver node declares them read-only (core/params.py)
     Param("nv200_addresses", ["tcp:192.168.0.20", "tcp:192.168.0.21"], "NV200 amplifiers "
@@ -64,7 +65,7 @@ class Nv200Backend:
     paced = False
     exhausted = False
 
-    def __init__(self, rate_hz: float, params: dict, safe_V: float):
+    def __init__(self, rate_hz: float, params: Params, safe_V: float) -> None:
         try:
             from nv200.nv200_device import NV200Device
         except ImportError:
@@ -139,7 +140,7 @@ class Nv200Backend:
         return dict(zip(self.devs, await asyncio.gather(*(fn(a, d) for a, d in
                                                            self.devs.items()))))
 
-    async def _set_up(self):
+    async def _set_up(self) -> None:
         from nv200.shared_types import ModulationSource, PidLoopMode
 
         async def one(a, dev):
@@ -152,7 +153,7 @@ class Nv200Backend:
         self.v = {a: float(s) for a, (_, s) in got.items()}
 
     # -- the streamed loop --------------------------------------------------------------
-    def start(self):
+    def start(self) -> None:
         self.started = True
 
     def step(self, vx: float, vy: float) -> StepResult:
@@ -168,7 +169,7 @@ class Nv200Backend:
         self.v = out
         return StepResult({a: float(x) for a, x in w.items()}, dict(out))
 
-    def ramp_to(self, target: dict, rate_V_per_s: float) -> None:
+    def ramp_to(self, target: PerAxis[float], rate_V_per_s: float) -> None:
         """Ramp both outputs to ``target`` at ``rate_V_per_s``, in steps at the pace the
         package keeps (LINK_HZ at most): a staircase of rate / pace volts."""
         import time
@@ -249,7 +250,7 @@ class Nv200Backend:
         return await self._both(finish)
 
     # -- the end ----------------------------------------------------------------------
-    def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0):
+    def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0) -> None:
         """Ramp to the safe voltage at the safe rate and close both links. Safe to call
         twice; a lost link cannot be ramped (the fault said so)."""
         if not self.devs:
@@ -262,8 +263,8 @@ class Nv200Backend:
         finally:
             self._close_links()
 
-    def _close_links(self):
-        async def close_all():
+    def _close_links(self) -> None:
+        async def close_all() -> None:
             for dev in self.devs.values():
                 try:
                     await dev.close()

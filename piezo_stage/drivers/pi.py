@@ -36,6 +36,7 @@ from typing import Any
 from piezo_stage.core.errors import BackendFault, ConfigError
 from piezo_stage.core.loop.backend import StepResult
 from piezo_stage.core.params import Param, Schema
+from piezo_stage.core.types import Params, PerAxis
 
 PI_PARAMS: Schema = (  # the driver node declares them read-only (core/params.py)
     Param("pi_address", "tcp:192.168.0.10:50000", "PI controller: tcp:HOST[:PORT] | "
@@ -82,7 +83,7 @@ class PiBackend:
     exhausted = False
     dev: Any = None  # pipython's GCSDevice once connected (close: nothing before)
 
-    def __init__(self, rate_hz: float, params: dict, safe_V: float):
+    def __init__(self, rate_hz: float, params: Params, safe_V: float) -> None:
         try:
             from pipython import GCSDevice, GCSError
         except ImportError:
@@ -153,10 +154,10 @@ class PiBackend:
         gw.connect(serialnumber=args[0], pid=args[1])
         return gw
 
-    def _clamp(self, v: dict) -> list:
+    def _clamp(self, v: PerAxis[float]) -> list:
         return [min(max(v[a], self.limits[a][0]), self.limits[a][1]) for a in ("x", "y")]
 
-    def start(self):
+    def start(self) -> None:
         self.started = True
 
     def step(self, vx: float, vy: float) -> StepResult:
@@ -178,7 +179,7 @@ class PiBackend:
             return f"PI controller error {e.val}: {e}"
         return f"link to the PI controller at {self.address} lost ({e})"
 
-    def ramp_to(self, target: dict, rate_V_per_s: float) -> None:
+    def ramp_to(self, target: PerAxis[float], rate_V_per_s: float) -> None:
         """Ramp both outputs to ``target`` at ``rate_V_per_s`` (streamed, paced here)."""
         step = rate_V_per_s / self.rate_hz
         v = dict(self.v)
@@ -254,7 +255,7 @@ class PiBackend:
         return ({"x": np.array(cols[2][:n]), "y": np.array(cols[3][:n])},
                 {"x": np.array(cols[0][:n]), "y": np.array(cols[1][:n])})
 
-    def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0):
+    def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0) -> None:
         """Ramp to the safe voltage at the safe rate, leave it there, close the link.
         Safe to call twice; a lost link cannot be ramped (said by the fault before)."""
         if self.dev is None:
@@ -267,7 +268,7 @@ class PiBackend:
         finally:
             self._release()
 
-    def _release(self):
+    def _release(self) -> None:
         """Close the link the way pipython's device object does (its context exit): that
         also takes it off pipython's class-wide list of connection callbacks, which would
         otherwise keep it alive and call it on the next connection this process opens.

@@ -24,11 +24,12 @@ import numpy as np
 
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
 from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.types import Params, PerAxis
 
 PLAY_BACKENDS = ("sim", "pi", "nv200", "daq")
 
 
-def _check_limits(rec: Record, limits: dict) -> None:
+def _check_limits(rec: Record, limits: PerAxis[tuple[float, float]]) -> None:
     for a, (lo, hi) in limits.items():
         v = rec.v[a]
         bad = np.flatnonzero((v < lo) | (v > hi))
@@ -38,7 +39,7 @@ def _check_limits(rec: Record, limits: dict) -> None:
                             f"the output limits [{lo:g}, {hi:g}] V")
 
 
-def _check_slew(rec: Record, slew: dict) -> None:
+def _check_slew(rec: Record, slew: PerAxis[float]) -> None:
     for a, s in slew.items():
         step = np.abs(np.diff(rec.v[a]))
         bad = np.flatnonzero(step > s / rec.fs_hz * (1 + 1e-9))
@@ -48,7 +49,7 @@ def _check_slew(rec: Record, slew: dict) -> None:
                             f"beyond the slew limit {s:g} V/s at {rec.fs_hz:g} Hz")
 
 
-def play_record(kind: str, rec: Record, params: dict | None = None, plant_config=None,
+def play_record(kind: str, rec: Record, params: Params | None = None, plant_config=None,
                 safe_V: float = 0.0, ramp_V_per_s: float = 500.0) -> Record:
     """Play ``rec.v`` (both axes, V) on backend ``kind`` and return the record of it:
     the voltage each sample got and the displacement measured [um].
@@ -65,7 +66,8 @@ def play_record(kind: str, rec: Record, params: dict | None = None, plant_config
         from piezo_stage.core.model.plant import Plant
         if plant_config is None:
             raise ConfigError("backend sim needs a plant config")
-        _check_limits(rec, {a: tuple(plant_config.model.voltage_limits) for a in "xy"})
+        _check_limits(rec, {a: (float(plant_config.model.voltage_limits[0]),
+                                float(plant_config.model.voltage_limits[1])) for a in "xy"})
         plant = Plant(plant_config, rec.fs_hz)
         w = plant.run(rec.v["x"], rec.v["y"])
         applied = {a: np.array(x) for a, x in plant.last_applied.items()}

@@ -19,11 +19,16 @@ import os
 import time
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import yaml
 
 from piezo_stage.core.errors import ConfigError, DataError
+from piezo_stage.core.types import Doc
 from piezo_stage.io.files import atomic_write
+
+if TYPE_CHECKING:
+    from mcap.records import Channel, Schema
 
 # What our publishers offer, by kind (see nodes/_common.py): (depth, transient local)
 QOS_KINDS = {"data": (5000, False), "latched": (1, True), "events": (20, True),
@@ -151,7 +156,7 @@ class BagWriter:
         self.counts[topic] = 0
         return cid
 
-    def add_metadata(self, name: str, data: dict):
+    def add_metadata(self, name: str, data: Doc):
         self._w.add_metadata(name, {str(k): str(v) for k, v in data.items()})
 
     def write(self, topic: str, data: bytes, log_time_ns: int, publish_time_ns=None):
@@ -262,8 +267,8 @@ class BagScan:
     """What a record-by-record read of an MCAP file recovered (see ``scan_bag``)."""
 
     path: str
-    schemas: dict = field(default_factory=dict)      # id -> mcap Schema
-    channels: dict = field(default_factory=dict)     # id -> mcap Channel
+    schemas: dict[int, Schema] = field(default_factory=dict)  # id -> mcap Schema
+    channels: dict[int, Channel] = field(default_factory=dict)  # id -> mcap Channel
     messages: list = field(default_factory=list)     # mcap Message, file order
     metadata: list = field(default_factory=list)     # mcap Metadata
     corrupt: list = field(default_factory=list)      # (chunk number, offset, lost, why)
@@ -432,7 +437,7 @@ def repair_bag(path) -> BagScan:
     return scan
 
 
-def read_metadata(path) -> dict:
+def read_metadata(path) -> Doc:
     """MCAP metadata records: name -> dict."""
     _need_mcap()
     from mcap.reader import make_reader

@@ -6,10 +6,11 @@ import numpy as np
 
 from piezo_stage.core.errors import DataError, printable
 from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.types import Doc
 from piezo_stage.io.files import atomic_write, check_input
 
 
-def read_table(path, required, optional=()) -> dict:
+def read_table(path, required, optional=()) -> Doc:
     """Read columns by header name.
 
     Raises DataError (one line) for a missing file, missing or misnamed columns,
@@ -80,7 +81,7 @@ def _near(name: str, candidates: list[str]) -> str | None:
     return low[hit[0]] if hit else None
 
 
-def write_table(path, columns: dict, fmt="%.10g"):
+def write_table(path, columns: Doc, fmt="%.10g"):
     """Write named columns (equal length) with a header row, atomically."""
     names = list(columns)
     data = np.column_stack([np.asarray(columns[n], float) for n in names])

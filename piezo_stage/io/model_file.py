@@ -14,10 +14,11 @@ from piezo_stage.core.model.model_doc import (  # noqa: F401 - the file's names,
     model_to_dict,
     parse_yaml,
 )
+from piezo_stage.core.types import Doc
 from piezo_stage.io.files import atomic_write, load_yaml  # noqa: F401 - (as before)
 
 
-def load_model(path) -> tuple[StageModel, dict]:
+def load_model(path) -> tuple[StageModel, Doc]:
     """Read a model file; returns (StageModel, effects)."""
     return model_from_dict(load_yaml(path, "model file"), str(path))
 
@@ -32,7 +33,7 @@ def save_model(path, model: StageModel, effects=None, extra=None) -> list[str]:
     return notes
 
 
-def save_document(path, doc: dict) -> None:
+def save_document(path, doc: Doc) -> None:
     """Write a model document built by ``checked_doc`` (``save_model``'s, or a
     diagnosis's ``document()``) atomically, as it is: what its writer scored is what a
     reader loads (YAML keeps every float exactly)."""

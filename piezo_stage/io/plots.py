@@ -4,8 +4,11 @@ run (desired and measured, error over time), like the paper's figures."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
+from piezo_stage.core.types import PerAxis
 from piezo_stage.io.files import atomic_write
 
 # the figure functions a ``FigureWorker`` draws (by name: the request crosses a pipe)
@@ -117,7 +120,7 @@ def _save(fig, path):
     return path
 
 
-def identification_png(path, t, per_axis: dict, validation: tuple | None = None):
+def identification_png(path, t, per_axis: PerAxis[Any], validation: tuple | None = None):
     """``per_axis``: {axis: (v [V], measured [um], model [um], samples left out at the
     start)} -> the loop (measured and model against voltage) and the fit error over
     time, one row per axis, its figures over the samples the table's are (the first

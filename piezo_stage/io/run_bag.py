@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.types import Doc
 from piezo_stage.io.bag import deserialize, iter_messages
 from piezo_stage_msgs_adapters.wire import (
     announcement_of,
@@ -35,13 +36,13 @@ class Run:
     w_um: np.ndarray                       # (n, 2) measured x, y
     v_V: np.ndarray                        # (n, 2) applied x, y
     recv_ns: np.ndarray                    # recorder's log time of each sample
-    true_um: dict = field(default_factory=dict)       # stamp -> (2,)
-    desired_um: dict = field(default_factory=dict)    # reference stamp -> (2,)
+    true_um: dict[int, np.ndarray] = field(default_factory=dict) # stamp -> (2,)
+    desired_um: dict[int, np.ndarray] = field(default_factory=dict) # reference stamp -> (2,)
     states: list = field(default_factory=list)        # (since ns, state)
     fault_reasons: list = field(default_factory=list)  # each fault's reason, in order
-    driver: dict = field(default_factory=dict)        # last driver diagnostics
+    driver: Doc = field(default_factory=dict)        # last driver diagnostics
     driver_reports: list = field(default_factory=list)  # all of them, in order
-    diagnostics: dict = field(default_factory=dict)   # node name -> its last ones
+    diagnostics: Doc = field(default_factory=dict)   # node name -> its last ones
     models: int = 0                                   # models handed over (on model)
     skipped: int = 0                                  # joint states not the driver's
     accepted: list = field(default_factory=list)      # trajectories run: frame_ids
@@ -70,10 +71,10 @@ def read_run(bag) -> Run:
     w: list = []
     v: list = []
     recv: list[int] = []
-    true: dict = {}
-    ref: dict = {}
+    true: dict[int, np.ndarray] = {}
+    ref: dict[int, np.ndarray] = {}
     states: list[tuple[int, str]] = []
-    diags: dict = {}
+    diags: Doc = {}
     reports: list[dict] = []
     reasons: list[str] = []
     models = skipped = 0

@@ -11,6 +11,8 @@ import tempfile
 from dataclasses import dataclass, field
 from statistics import median_low
 
+from piezo_stage.core.types import Doc
+
 RATES_HZ = (1000.0, 500.0, 250.0)
 # a rate is chosen where the capacity run measured this much: the set's own check asks
 # 2 x, and one host's measurements of one rate spread by 1.5 x run to run (1.1-2.1 x at
@@ -64,7 +66,7 @@ def rate_run(run, rate_hz: float, cores: int | None = None) -> RateRun:
     capacity readings while it reported them."""
     from piezo_stage.core.loop.capacity import Capacity
     cores = cores or os.cpu_count() or 1
-    def count(r: dict) -> int:  # the driver's faults so far, as its report says
+    def count(r: Doc) -> int:  # the driver's faults so far, as its report says
         return int(float(r.get("faults", 0) or 0))
     faults = [r for r in run.driver_reports if r.get("state") == "faulted" or count(r)]
     if run.state_times("faulted") or faults:
@@ -87,7 +89,7 @@ def rate_run(run, rate_hz: float, cores: int | None = None) -> RateRun:
     return RateRun(rate_hz, readings=readings)
 
 
-def measure(env: dict, rate_hz: float, compose=None, overrides=None) -> RateRun:
+def measure(env: dict[str, str], rate_hz: float, compose=None, overrides=None) -> RateRun:
     """One capacity run of the set at ``rate_hz``, recorded and judged (``rate_run``).
     ``overrides``: more parameters per node (a test's, to make a run fault)."""
     from piezo_stage.io.run_bag import read_run
@@ -95,7 +97,7 @@ def measure(env: dict, rate_hz: float, compose=None, overrides=None) -> RateRun:
     from piezo_stage.paths import default_config
     where = tempfile.mkdtemp(prefix="piezo-stage-host-rate-")
     bag = os.path.join(where, "capacity")
-    o: dict[str, dict] = {"stage_driver": {"mode": "realtime", "min_margin": 0.0},
+    o: dict[str, Doc] = {"stage_driver": {"mode": "realtime", "min_margin": 0.0},
                           "feedforward": {"model_file": default_config("stage_model.yaml")},
                           "trajectory": {"kind": "seed", "duration_s": RUN_S}}
     for node, params in (overrides or {}).items():
@@ -113,7 +115,7 @@ def measure(env: dict, rate_hz: float, compose=None, overrides=None) -> RateRun:
         shutil.rmtree(where, ignore_errors=True)
 
 
-def host_rate(env: dict, rates=RATES_HZ, margin: float = CHOOSE_MARGIN, compose=None,
+def host_rate(env: dict[str, str], rates=RATES_HZ, margin: float = CHOOSE_MARGIN, compose=None,
               runs: list | None = None, measure_at=None) -> tuple[float | None, str]:
     """(the highest of ``rates`` this host holds with ``margin``, or None; the figures
     in words). A capacity run at the highest rate first: there the loop thread's CPU a

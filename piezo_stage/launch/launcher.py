@@ -24,6 +24,7 @@ import time
 from dataclasses import dataclass
 
 from piezo_stage.core.errors import ConfigError, ModelError
+from piezo_stage.core.types import Doc, Params
 from piezo_stage.io.files import load_yaml
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
 from piezo_stage.nodes.declared import (
@@ -64,7 +65,7 @@ _OWN_TRANSPORT_KEYS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFIL
                        "FASTDDS_BUILTIN_TRANSPORTS", "RMW_FASTRTPS_USE_QOS_FROM_XML")
 
 
-def realtime_transport_env(env) -> dict:
+def realtime_transport_env(env) -> Doc:
     """The environment that keeps a real-time set's participants off Fast DDS's
     shared-memory transport, on the discovery range ``env`` asks for.
 
@@ -96,7 +97,7 @@ LOCKSTEP_PROFILE = os.path.join(os.path.dirname(os.path.abspath(__file__)),
                                 "fastdds_lockstep.xml")
 
 
-def lockstep_transport_env(env) -> dict:
+def lockstep_transport_env(env) -> Doc:
     """The environment of a lockstep set's nodes: writers' heartbeats every 50 ms
     (fastdds_lockstep.xml), so the driver's last wait for its readers' acknowledgements
     takes milliseconds, not up to Fast DDS's 3 s period. Left as it is: another RMW, or
@@ -107,7 +108,7 @@ def lockstep_transport_env(env) -> dict:
     return {"FASTRTPS_DEFAULT_PROFILES_FILE": LOCKSTEP_PROFILE}
 
 
-def read_parameters(config_path) -> dict:
+def read_parameters(config_path) -> Doc:
     """{node name: parameters} of a node-parameters YAML (the file ros2 run takes),
     checked: bounded, a mapping of '<node>: ros__parameters:' sections."""
     try:  # bounded: size, nesting, no aliases (the one YAML reader, io/model_file.py)
@@ -135,7 +136,7 @@ def read_parameters(config_path) -> dict:
     return out
 
 
-def check_files(params: dict) -> None:
+def check_files(params: Params) -> None:
     """ConfigError, one line, before any node starts, for a file the set's parameters
     ({node: parameters}) name that its node would refuse: a model (the feedforward's and
     the gap node's ``model_file``), the sim's plant (``plant_config``), the trajectory
@@ -239,7 +240,7 @@ class LaunchOptions:
     """
     record: str | None = None
     namespace: str = "/stage"
-    overrides: dict | None = None
+    overrides: Doc | None = None
     nodes: list | None = None
     arm: bool = True
     foxglove_port: int | None = None
@@ -252,7 +253,7 @@ class LaunchOptions:
 
 
 class Launch:
-    def _nodes_to_start(self, params: dict, o: LaunchOptions) -> list[str]:
+    def _nodes_to_start(self, params: Params, o: LaunchOptions) -> list[str]:
         """The nodes this launch starts, in start order (``outside_trajectories`` set)."""
         # outside trajectories only (--no-trajectory, or the trajectory node's kind: none):
         # the set arms, holds position and takes trajectories from other nodes
@@ -269,7 +270,7 @@ class Launch:
             nodes.insert(0, "recorder")
         return nodes
 
-    def _checked_mode(self, config_path, params: dict, drv: dict, o: LaunchOptions) -> bool:
+    def _checked_mode(self, config_path, params: Params, drv: Doc, o: LaunchOptions) -> bool:
         """Whether the set runs in lockstep (else real time), its file checked: a mode
         of the two, no simulated time in real time, and the loop's three nodes where
         the set is to arm. ConfigError naming the file."""
@@ -442,7 +443,7 @@ class Launch:
         """A process in words: a node's name, or the composed loop's with its nodes."""
         return f"{LOOP} ({', '.join(self.composed)})" if process == LOOP else process
 
-    def node_params(self, node) -> dict:
+    def node_params(self, node) -> Doc:
         """What the launcher sets on ``node`` beyond the parameter file: start-up
         gating, the recorder's bag, one clock, the overrides (the ros2 launch file
         passes the same)."""
@@ -618,7 +619,7 @@ class Launch:
         except KeyboardInterrupt:  # wait() used without run(): Ctrl-C as usual
             return
 
-    def _refusal(self, cap_file) -> dict | None:
+    def _refusal(self, cap_file) -> Doc | None:
         """What the driver found when it refused to run for want of capacity (its
         capacity file, core/loop/capacity.py's figures), else None."""
         import json
@@ -655,7 +656,7 @@ class Launch:
         cap_file = os.path.join(cap_dir, "capacity.json")
         self.env[CAPACITY_FILE_ENV] = cap_file
         tried: list[float] = []
-        refused: dict | None = None
+        refused: Doc | None = None
         try:
             for attempt in range(1, AUTO_ATTEMPTS + 1):
                 tried.append(self.rate_hz())
@@ -683,7 +684,7 @@ class Launch:
                 signal.signal(s, h)
         return self._verdict(refused, tried)
 
-    def _again_at_the_rate_held(self, refused: dict, cap_file: str) -> None:
+    def _again_at_the_rate_held(self, refused: Doc, cap_file: str) -> None:
         """A try refused (rate auto): the next one at the rate the host held, said in
         one line, with a fresh set of processes and no bag of the refused try."""
         rate = float(refused["holdable_rate_hz"])
@@ -702,7 +703,7 @@ class Launch:
             import shutil
             shutil.rmtree(self.record, ignore_errors=True)
 
-    def _verdict(self, refused: dict | None, tried: list[float]) -> int:
+    def _verdict(self, refused: Doc | None, tried: list[float]) -> int:
         """The run's exit code (``run``), each failure said in one line."""
         holder = LOOP if "stage_driver" in self.composed else "stage_driver"
         driver = self.procs.get(holder)

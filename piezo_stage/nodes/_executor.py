@@ -55,7 +55,7 @@ class LeanLoop(CallbackGroup):
     builds it into its wait set nor dispatches it. ``with_info``: the callback also
     takes the middleware's message info."""
 
-    def __init__(self, with_info: bool = False):
+    def __init__(self, with_info: bool = False) -> None:
         super().__init__()
         self.with_info = bool(with_info)
 
@@ -69,7 +69,8 @@ class LeanLoop(CallbackGroup):
         pass
 
 
-def hot_subscription(node, msg_type, topic, callback, qos, raw=False, with_info=False):
+def hot_subscription(node, msg_type, topic, callback, qos, raw: bool = False,
+                     with_info: bool = False):
     """A per-sample subscription (loop inputs, the recorder's topics), dispatched by
     ``LeanExecutor``. With ``raw`` the callback gets the CDR bytes; with ``with_info``
     it also gets the middleware's message info (``received_timestamp`` [ns], ...)."""
@@ -99,7 +100,7 @@ class LocalLinks:
     ``subscriber_count`` and ``local_readers`` count a linked subscriber where the
     middleware's counts no longer do (gates, the driver's missing-link check)."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.queue: deque = deque()  # (reader, message) in publish order
 
     def link(self, nodes) -> int:
@@ -131,7 +132,7 @@ class LocalLinks:
         if not readers:  # the publisher's own publish, then the queue
             send, queue = pub.publish, self.queue
 
-            def publish(msg):
+            def publish(msg) -> None:
                 send(msg)
                 for r in readers:
                     queue.append((r, msg))
@@ -153,7 +154,7 @@ class LocalLinks:
 class LocalReader:
     """A linked subscription's callback and the form it takes its messages in."""
 
-    def __init__(self, sub):
+    def __init__(self, sub) -> None:
         from rclpy.serialization import deserialize_message, serialize_message
         self.topic_name = sub.topic_name
         self.msg_type, self.raw, self.callback = sub.msg_type, sub.raw, sub.callback
@@ -279,7 +280,7 @@ class LeanExecutor(Executor):
     (``lean_take_at_tick`` is a lone driver's) and batches nothing (``lean_batch_s``
     nodes run alone)."""
 
-    def __init__(self, node, *, context=None):
+    def __init__(self, node, *, context=None) -> None:
         nodes = list(node) if isinstance(node, (list, tuple)) else [node]
         super().__init__(context=context or nodes[0].context)
         for n in nodes:

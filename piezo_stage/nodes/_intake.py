@@ -19,6 +19,8 @@ import queue
 import sys
 import threading
 
+from piezo_stage.core.types import Doc
+
 SWITCH_INTERVAL_S = 0.0005  # the GIL handed over this often while the worker runs
 
 
@@ -82,7 +84,7 @@ class Intake:
     came; ``ready()`` returns the finished ones [(kind, result or the error of
     ``errors`` it raised)] for the caller's thread to apply."""
 
-    def __init__(self, works: dict, errors: tuple):
+    def __init__(self, works: Doc, errors: tuple) -> None:
         self.works, self.errors = works, errors
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.done: queue.SimpleQueue = queue.SimpleQueue()

@@ -56,7 +56,7 @@ class LatchedFetch:
     rclpy's message info (the publication's source timestamp and sequence number)."""
 
     def __init__(self, node, msg_type, topic: str, callback, poll_s: float = 0.25,
-                 open_s: float = 1.0, resending=RESENDING):
+                 open_s: float = 1.0, resending=RESENDING) -> None:
         self.node, self.msg_type, self.topic, self.callback = node, msg_type, topic, callback
         self.resending = frozenset(resending)
         self.open_s = open_s

@@ -13,7 +13,7 @@ from piezo_stage.nodes._executor import hot_subscription, local_readers, subscri
 from piezo_stage_msgs_adapters import diagnostic_array
 
 
-def set_realtime_priority(prio, logger, main_thread=True) -> int:
+def set_realtime_priority(prio, logger, main_thread: bool = True) -> int:
     """SCHED_FIFO at ``prio`` for every thread of this process (the loop's and the
     middleware's, so a publish never waits on a starved middleware thread: priority
     inversion), as ros2_control does for its control thread. Where the OS does not
@@ -111,7 +111,7 @@ class DriverState:
     ``heap_bytes`` of heap: ``reserve_heap``), the driver's voltage and slew limits. ``bad``
     counts malformed announcements."""
 
-    def __init__(self, node, dt_ns, prio, heap_bytes: int = 0):
+    def __init__(self, node, dt_ns, prio, heap_bytes: int = 0) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
 
         from piezo_stage.core.loop.arming import StateTimeline
@@ -123,7 +123,7 @@ class DriverState:
         self.slew_V_per_s: float | None = None  # its slew limit (the slowest axis's)
         hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
 
-    def on_state(self, msg):
+    def on_state(self, msg) -> None:
         from piezo_stage_msgs_adapters import announcement_from_msg
         try:
             a = announcement_from_msg(msg)
@@ -160,16 +160,16 @@ class Gate:
     every consumer (the recorder included) listens, so a run loses nothing and is
     reproducible. ``needs``: list of (publisher, n)."""
 
-    def __init__(self, node, needs):
+    def __init__(self, node, needs) -> None:
         self._node = node
         self.needs = [(p, int(n)) for p, n in needs]
-        self.queue = []
+        self.queue: list = []
         self.open = all(n <= 0 for _, n in self.needs)
         self.opened_at = time.monotonic()  # when what it held went out (steady clock)
         if not self.open:
             self._timer = steady_timer(node, 0.01, self.poll)
 
-    def poll(self):
+    def poll(self) -> None:
         """Open the gate where every publisher has its subscriptions now (its timer's
         callback; a node whose own clock ticks may call it at each tick)."""
         if not self.open and all(subscriber_count(p) >= n for p, n in self.needs):
@@ -180,7 +180,7 @@ class Gate:
                 pub.publish(m)
             self.queue.clear()
 
-    def publish(self, pub, msg):
+    def publish(self, pub, msg) -> None:
         if self.open:
             pub.publish(msg)
         else:  # the timer polls the graph: a query per message would cost ~1 ms each
@@ -199,10 +199,12 @@ class Diagnostics:
     last ``window_s``): levels come from what happened recently, so a warning clears
     once its cause stops; the cumulative counters stay in the values."""
 
-    def __init__(self, node, status, task, hardware_id=None, rates=(), window_s=5.0):
+    def __init__(self, node, status, task, hardware_id=None, rates=(),
+                 window_s: float = 5.0) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         self.node, self.status, self.task, self.rates = node, status, task, tuple(rates)
-        self.hw, self.window_s, self.history = hardware_id, window_s, []
+        self.hw, self.window_s = hardware_id, window_s
+        self.history: list = []
         self.pub = node.create_publisher(DiagnosticArray, "/diagnostics", QOS_DIAG)
         if hardware_id is None:  # the device is the driver's: from its announcements
             self.hw = f"stage {node.get_namespace()}"
@@ -210,7 +212,7 @@ class Diagnostics:
                                      QOS_EVENTS)
         steady_timer(node, 1.0, self.publish)
 
-    def _on_driver_state(self, msg):
+    def _on_driver_state(self, msg) -> None:
         if msg.status and msg.status[0].hardware_id:
             self.hw = msg.status[0].hardware_id
 
@@ -267,5 +269,5 @@ class Diagnostics:
         return ns, diagnostic_array(ns, self.name, level, message, values,
                                     self.hw() if callable(self.hw) else self.hw)
 
-    def publish(self):
+    def publish(self) -> None:
         self.pub.publish(self.report()[1])

@@ -14,6 +14,7 @@ from rcl_interfaces.msg import (
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.params import Schema
+from piezo_stage.core.types import Doc
 
 
 def declare(node, name, default, description, lo=None, hi=None, choices=None, live=None):
@@ -54,7 +55,7 @@ def declare(node, name, default, description, lo=None, hi=None, choices=None, li
     return value
 
 
-def declare_schema(node, schema: Schema, live: dict | None = None) -> dict:
+def declare_schema(node, schema: Schema, live: Doc | None = None) -> Doc:
     """Declare every parameter of ``schema`` (core/params.py) and return {name: value}.
     A live one is applied by ``live[name]`` (called with each new value) when given,
     else by the node's own on-set callback; the others are read-only."""

@@ -63,7 +63,7 @@ class Stopped(BaseException):
     """A stop signal, raised where the node was (start-up, a long fit). A BaseException,
     as KeyboardInterrupt is, so ``except Exception`` handlers do not swallow it."""
 
-    def __init__(self, signum: int):
+    def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
 

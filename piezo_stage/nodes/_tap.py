@@ -74,7 +74,8 @@ class TopicTap:
     (the live view: a slow viewer then costs the loop's publishers nothing; the
     recorder keeps reliable, it must lose nothing)."""
 
-    def __init__(self, node, on_topic, on_message, best_effort=False, discover_s=1.0):
+    def __init__(self, node, on_topic, on_message, best_effort: bool = False,
+                 discover_s: float = 1.0) -> None:
         self.node, self.on_topic, self.on_message = node, on_topic, on_message
         self.best_effort = best_effort
         self.subs: dict[str, object] = {}
@@ -97,7 +98,7 @@ class TopicTap:
                               durability=DurabilityPolicy.VOLATILE)
         return {"latched": QOS_LATCHED, "events": QOS_EVENTS, "diag": QOS_DIAG}[kind]
 
-    def subscribe(self, topic: str, msgtype: str, kind: str = "data"):
+    def subscribe(self, topic: str, msgtype: str, kind: str = "data") -> None:
         if topic in self.subs:
             return
         cls = msg_class(msgtype)  # before on_topic: an unknown type raises here
@@ -105,12 +106,12 @@ class TopicTap:
         stamped = msgtype in STAMPED
         on_message = self.on_message
 
-        def cb(data, info):
+        def cb(data, info) -> None:
             on_message(topic, data, header_stamp_ns(data) if stamped else None, info)
         self.subs[topic] = hot_subscription(self.node, cls, topic, cb,
                                             self.qos(topic, kind), raw=True, with_info=True)
 
-    def discover(self):
+    def discover(self) -> None:
         # the set's own namespace only: a second stage on the domain (/stage2) is its
         # own bag's, and subscribing to its topics loads both sets
         ns = self.node.get_namespace().rstrip("/") + "/"

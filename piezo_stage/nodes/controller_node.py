@@ -35,7 +35,7 @@ GAINS = ("kp", "ki", "kd")
 
 
 class Controller(LeanNode, Node):
-    def __init__(self, **node_options):
+    def __init__(self, **node_options) -> None:
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("controller", **node_options)
         p = declare_schema(self, PARAMETERS)  # the gains live through on_set
@@ -53,7 +53,7 @@ class Controller(LeanNode, Node):
             "feedback control", rates=[(k, k.replace("_", " "), 0) for k in (
                 "bad_messages", "late_dropped", "non_finite", "clamped")])
 
-    def final_report(self):
+    def final_report(self) -> None:
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
     def on_set(self, params):
@@ -66,7 +66,7 @@ class Controller(LeanNode, Node):
                 self.core.set_feedback(bool(p.value))
         return SetParametersResult(successful=True)
 
-    def on_reference(self, msg):
+    def on_reference(self, msg) -> None:
         """One reference: decoded, its stamp checked, then the core's one call."""
         try:
             r = reference_from_msg(msg)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from piezo_stage.core.loop.trajectory import KINDS
 from piezo_stage.core.params import Param, Schema, names
+from piezo_stage.core.types import Doc
 
 RCLPY_OWN = frozenset({"use_sim_time", "start_type_description_service"})
 
@@ -83,7 +84,7 @@ LIVE_VIEW: Schema = (
           hi=1.0, live=True),
 )
 
-def __getattr__(name: str) -> dict:
+def __getattr__(name: str) -> Doc:
     """``SCHEMAS`` (every node's schema) and ``DECLARED`` (their names), built at first
     use: the loop nodes' schemas live in their cores, whose numerics (numba, scipy) the
     other nodes, which import this module for their own schema, need not start with."""

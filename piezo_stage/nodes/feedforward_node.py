@@ -1,3 +1,4 @@
+
 """feedforward: the inverse Duhem model turns desired positions into voltages.
 
 Clocked by joint_states: sample k (stamp t_k) is answered by the internal ``reference``
@@ -19,6 +20,7 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 # isort: split
 
 import time
+from typing import TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PointStamped
@@ -29,6 +31,10 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
+from piezo_stage.core.types import Params
+
+if TYPE_CHECKING:
+    from piezo_stage.core.model.duhem import StageModel
 from piezo_stage.core.loop import feedforward as core_ff
 from piezo_stage.core.loop.ontarget import REFUSED, TargetState
 from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
@@ -64,7 +70,7 @@ from piezo_stage_msgs_adapters import (
 class Refused(PiezoStageError):
     """A trajectory refused: the reason, and its header's frame_id and stamp [ns]."""
 
-    def __init__(self, reason: str, frame_id: str, stamp_ns: int):
+    def __init__(self, reason: str, frame_id: str, stamp_ns: int) -> None:
         super().__init__(reason)
         self.frame_id, self.stamp_ns = frame_id, stamp_ns
 
@@ -72,7 +78,7 @@ class Refused(PiezoStageError):
 class Feedforward(LeanNode, Node):
     USES_KERNELS = True  # the model's inverse (LeanNode)
 
-    def _core(self, p: dict) -> tuple[ReferencePlanner, core_ff.InverseFeedforward]:
+    def _core(self, p: Params) -> tuple[ReferencePlanner, core_ff.InverseFeedforward]:
         """The planner and the per-sample core of the node's parameters ``p``."""
         planner = ReferencePlanner(p["approach_speed_um_per_s"],
                                    p["approach_accel_um_per_s2"])
@@ -102,7 +108,7 @@ class Feedforward(LeanNode, Node):
                                                  QOS_EVENTS)
         self.gate = Gate(self, [(self.pub, min_subscribers)])
 
-    def __init__(self, **node_options):
+    def __init__(self, **node_options) -> None:
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("feedforward", **node_options)
         live = tuple(q for q in core_ff.PARAMETERS if q.live)
@@ -124,7 +130,7 @@ class Feedforward(LeanNode, Node):
         # real time: trajectories and models are taken apart on the intake's thread
         self.intake = Intake({"trajectory": self.decode_trajectory,
                               "model": self.prepare_model}, (PiezoStageError,))
-        self.model_base = None  # the model the next one is checked against
+        self.model_base: StageModel | None = None  # the model the next one is checked against
         warm_up(lambda data: trajectory_from_cdr(data, self.p["range_um"], self.max_points),
                 (PiezoStageError,))
         # the driver's announcements: taken before the data in each lean-loop pass
@@ -142,7 +148,8 @@ class Feedforward(LeanNode, Node):
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
         self.lag = LatencyHistogram()  # sample stamp -> its arrival here
-        self.sp_latency, self.setpoint_arrival = LatencyHistogram(), None
+        self.sp_latency = LatencyHistogram()
+        self.setpoint_arrival: int | None = None
         # the inputs from outside the loop: at once, or (inputs_once_armed) once the
         # driver has armed, its capacity judged: what a refused attempt took would be lost
         # with it, when the launcher's --rate auto runs the set again at a lower rate
@@ -164,7 +171,7 @@ class Feedforward(LeanNode, Node):
             "setpoint_latency_max_ms": self.sp_latency.max_s * 1e3}), "inverse feedforward",
             rates=core_ff.RATES)
 
-    def take_inputs(self):
+    def take_inputs(self) -> None:
         """Subscribe to the trajectories, setpoints and moves of other nodes."""
         self.inputs_waiting = False
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -182,10 +189,10 @@ class Feedforward(LeanNode, Node):
         # a move is taken at once (with the samples), not at the base executor's turn
         hot_subscription(self, PointStamped, "move", self.on_move, reliable)
 
-    def final_report(self):
+    def final_report(self) -> None:
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
-    def set_model(self, model, effects, name):
+    def set_model(self, model, effects, name) -> None:
         self.use_model(self.prepare_model((model, effects, name)))
 
     def prepare_model(self, item):
@@ -202,7 +209,7 @@ class Feedforward(LeanNode, Node):
         self.model_base = prepared.model
         return prepared, name
 
-    def use_model(self, prepared_name):
+    def use_model(self, prepared_name) -> None:
         prepared, name = prepared_name
         self.core.use_model(prepared, armed=self.core.inv is not None and
                             self.driver.enabled(self.last_ns))
@@ -212,13 +219,13 @@ class Feedforward(LeanNode, Node):
         self.get_logger().info(f"using model {name}")
         self.resume()
 
-    def reject_model(self, e):
+    def reject_model(self, e) -> None:
         self.stats["rejected_models"] += 1
         self.last_rejection = str(e)
         self.get_logger().error(f"model rejected, keeping {self.model_name}: {e}")
         self.resume()
 
-    def on_model(self, msg):
+    def on_model(self, msg) -> None:
         """A model message: parsed, checked and its inverse built inline in lockstep,
         on the intake's thread in real time."""
         if self.driver.realtime:
@@ -229,13 +236,13 @@ class Feedforward(LeanNode, Node):
         except PiezoStageError as e:  # the old model stays
             self.reject_model(e)
 
-    def resume(self):
+    def resume(self) -> None:
         """Lockstep: answer the sample the loop was held at, once what it waited for is here."""
         if self.pending is not None:
             msg, self.pending = self.pending, None
             self.on_state(msg, resumed=True)
 
-    def on_trajectory(self, msg, info):
+    def on_trajectory(self, msg, info) -> None:
         """A trajectory's bytes and its publication (rclpy's message info): checked,
         decoded and republished as accepted inline in lockstep, on the intake's thread
         in real time (``_intake.py``)."""
@@ -268,7 +275,7 @@ class Feedforward(LeanNode, Node):
         self.accepted_pub.publish(msg)  # only what the stage will run
         return t, w, stamp, start, now
 
-    def take_trajectory(self, decoded):
+    def take_trajectory(self, decoded) -> None:
         if decoded is not None:
             t, w, stamp, start, now = decoded
             self.stats["trajectories"] += 1
@@ -279,7 +286,7 @@ class Feedforward(LeanNode, Node):
             self.publish_phase()
         self.resume()
 
-    def reject_trajectory(self, e):
+    def reject_trajectory(self, e) -> None:
         self.stats["rejected_trajectories"] += 1
         self.get_logger().warning(f"trajectory rejected: {e}")
         frame_id, stamp = (e.frame_id, e.stamp_ns) if isinstance(e, Refused) else ("", 0)
@@ -287,12 +294,12 @@ class Feedforward(LeanNode, Node):
                                              frame_id, stamp, str(e)))
         self.resume()
 
-    def publish_phase(self):
+    def publish_phase(self) -> None:
         """The planner's phase and what it follows, as data (core: ``phase``); the driver
         relays it on /stage/state, so an outside node can wait for the end."""
         self.phase_pub.publish(phase_msg(*self.core.phase()))
 
-    def on_setpoint(self, msg):
+    def on_setpoint(self, msg) -> None:
         try:
             self.planner.set_setpoint(setpoint_from_msg(msg, self.p["range_um"]))
             self.setpoint_arrival = time.time_ns()  # for its arrival-to-applied latency
@@ -300,7 +307,7 @@ class Feedforward(LeanNode, Node):
             self.stats["rejected_setpoints"] += 1
             self.get_logger().warning(f"setpoint rejected: {e}")
 
-    def on_move(self, msg):
+    def on_move(self, msg) -> None:
         """A move request: the move's profile to its target, judged on target."""
         try:
             move_id, target = move_from_msg(msg, self.p["range_um"])
@@ -318,7 +325,7 @@ class Feedforward(LeanNode, Node):
         self.publish_phase()
         self.resume()
 
-    def on_state(self, msg, info=None, resumed=False):
+    def on_state(self, msg, info=None, resumed: bool = False) -> None:
         if self.inputs_waiting and self.driver.armed_once:
             self.take_inputs()
             self.get_logger().info("armed: taking trajectories, setpoints and moves")
@@ -355,7 +362,7 @@ class Feedforward(LeanNode, Node):
             self.publish_answer(a, w, r.applied)
         self.stats["saturated"], self.stats["rejoins"] = self.core.saturated, self.core.rejoins
 
-    def publish_answer(self, a, w, applied):
+    def publish_answer(self, a, w, applied) -> None:
         """One target's reference (and the phase first, when it changed)."""
         if a.error is not None:
             self.stats["bad_messages"] += 1

@@ -30,7 +30,7 @@ from piezo_stage_msgs_adapters import joint_state_to_um, point_cdr
 class Gap(LeanNode, Node):
     USES_KERNELS = True  # the model's twin (LeanNode)
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__("gap")
         p = declare_schema(self, GAP)
         path = p["model_file"] or f"{default_config_dir()}/stage_model.yaml"
@@ -44,7 +44,7 @@ class Gap(LeanNode, Node):
                          raw=True)
         Diagnostics(self, self.status, "sim-to-real residual")
 
-    def on_state(self, msg):
+    def on_state(self, msg) -> None:
         try:
             ns, w, v = joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:

@@ -39,7 +39,7 @@ BATCH_S = 0.05
 class Identifier(LeanNode, Node):
     USES_KERNELS = True  # the identification's (LeanNode)
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__("identifier")
         # the live ones as attributes the next fit reads
         p = declare_schema(self, IDENTIFIER, {q.name: lambda v, name=q.name: setattr(
@@ -72,7 +72,7 @@ class Identifier(LeanNode, Node):
                     **self.stats, "buffered": len(self.buf), "method": self.method,
                     "structure": self.structure, "auto_cycles": self.auto_cycles},)
 
-    def on_state(self, msg):
+    def on_state(self, msg) -> None:
         try:
             ns, w, v = joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:  # a malformed or foreign JointState: count it, go on
@@ -115,7 +115,7 @@ class Identifier(LeanNode, Node):
         return (f"identified on {len(rec)} samples: fit rms " +
                 ", ".join(f"{a} {r.fit['rms_um']:.4f} um" for a, r in res.items()))
 
-    def on_timer(self):
+    def on_timer(self) -> None:
         if self.auto_cycles <= 0 or self.done_auto or len(self.buf) < 100:
             return
         vx = np.array([b[3] for b in self.buf])

@@ -18,6 +18,7 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 # isort: split
 
 import time
+from typing import Any
 
 from foxglove import Channel, Schema, start_server
 from foxglove.websocket import ServerListener
@@ -34,18 +35,18 @@ from piezo_stage.nodes.declared import LIVE_VIEW
 class _Subscriptions(ServerListener):
     """Which channels clients subscribe to (for /diagnostics)."""
 
-    def __init__(self):
-        self.active = {}
+    def __init__(self) -> None:
+        self.active: dict[tuple[int, int], str] = {}  # (client, channel) -> topic
 
-    def on_subscribe(self, client, channel):
+    def on_subscribe(self, client, channel) -> None:
         self.active[(client.id, channel.id)] = channel.topic
 
-    def on_unsubscribe(self, client, channel):
+    def on_unsubscribe(self, client, channel) -> None:
         self.active.pop((client.id, channel.id), None)
 
 
 class LiveView(LeanNode, Node):
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__("live_view")
         self.min_gap_ns = 0
         p = declare_schema(self, LIVE_VIEW, {
@@ -54,7 +55,9 @@ class LiveView(LeanNode, Node):
         host, port = p["host"], p["port"]
         self.set_rate(p["max_rate_hz"])
         self.lean_batch_s = p["batch_period_s"]
-        self.channels, self.last_ns, self.sent = {}, {}, 0
+        self.channels: dict[str, Any] = {}  # topic -> foxglove Channel
+        self.last_ns: dict[str, int] = {}  # topic -> when last sent
+        self.sent = 0
         # the contract's channels exist before the server listens: a client's first
         # subscription then never races a channel's registration (the SDK advertises a
         # channel made while a client is connected a moment before it accepts it)
@@ -67,14 +70,14 @@ class LiveView(LeanNode, Node):
                                "Foxglove WebSocket)")
         Diagnostics(self, self.status, "live view")
 
-    def set_rate(self, hz):
+    def set_rate(self, hz) -> None:
         self.min_gap_ns = int(1e9 / hz) if hz > 0 else 0
 
-    def add_topic(self, topic, msgtype, kind):
+    def add_topic(self, topic, msgtype, kind) -> None:
         self.channels[topic] = Channel(topic, message_encoding="cdr", schema=Schema(
             name=msgtype, encoding="ros2msg", data=msgdef(msgtype).encode()))
 
-    def forward(self, topic, data, stamp_ns, info):
+    def forward(self, topic, data, stamp_ns, info) -> None:
         ch = self.channels[topic]
         if not ch.has_sinks():
             return  # nobody watches this topic
@@ -95,7 +98,7 @@ class LiveView(LeanNode, Node):
             "url": self.url, "messages_sent": self.sent, "topics": len(self.channels),
             "watched": ", ".join(watched)}
 
-    def close(self):
+    def close(self) -> None:
         """The WebSocket server stops before the node goes (run_node calls this, then
         destroys the node)."""
         self.server.stop()

@@ -35,7 +35,7 @@ class Recorder(LeanNode, Node):
     # without its summary and those messages untaken (seen once, on a loaded host)
     DEFERS_STOPS = True
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__("recorder")
         p = declare_schema(self, RECORDER, {
             "batch_period_s": lambda v: setattr(self, "lean_batch_s", v)})
@@ -69,7 +69,7 @@ class Recorder(LeanNode, Node):
             {"bag": out, "batch_period_s": self.lean_batch_s, "bad_stamps": self.bad_stamps,
              **self.bag.counts}), "recording")
 
-    def add_topic(self, topic, msgtype, kind):
+    def add_topic(self, topic, msgtype, kind) -> None:
         self.bag.add_topic(topic, msgtype, self.offered(topic, kind))
 
     def offered(self, topic, kind):
@@ -87,7 +87,7 @@ class Recorder(LeanNode, Node):
             return "data"
         return kind
 
-    def write(self, topic, data, stamp_ns, info):
+    def write(self, topic, data, stamp_ns, info) -> None:
         if stamp_ns is not None and not 0 <= stamp_ns <= MAX_STAMP_NS:
             # a negative stamp (sec = -1) cannot be an MCAP time: the message is kept,
             # logged at its arrival, and counted
@@ -109,7 +109,7 @@ class Recorder(LeanNode, Node):
         """What a stop left (run_node prints it)."""
         return f"bag {self.bag.path} finished, {sum(self.bag.counts.values())} messages"
 
-    def close(self):
+    def close(self) -> None:
         """The bag is finished (its summary and index written) before the node goes
         (run_node calls this, then destroys the node). Its own last report goes into
         it first: a lockstep run shorter than the 1 s cadence had only the recorder's

@@ -1,3 +1,4 @@
+
 """stage_driver: the stage (sim, NI-DAQ, PI, NV200 or replay) on topics; the last line of
 defence. The sample loop itself (the sample clock, the command schedule, the arming
 supervisor, the voltage and slew clamp) is core/loop/sample_loop.py; this node gives it its
@@ -58,6 +59,7 @@ from piezo_stage.core.loop.sample_loop import (
     SampleLoop,
     check_mode,
 )
+from piezo_stage.core.types import Doc
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
 from piezo_stage.nodes._executor import LeanNode, end_run, hot_subscription, run_node
@@ -91,7 +93,7 @@ class StageDriver(LeanNode, LifecycleNode):
     TICKS = True  # real time: the sample clock is its tick (LeanNode)
     USES_KERNELS = True  # the simulated stage's (LeanNode)
 
-    def __init__(self, **node_options):
+    def __init__(self, **node_options) -> None:
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("stage_driver", **node_options)
         STOP_STATE.watch_s = 12.0  # its stop ramps and closes the backend (see below)
@@ -107,9 +109,10 @@ class StageDriver(LeanNode, LifecycleNode):
         self.rt_priority = 0
         self._exit_timer: Any = None  # lockstep, all steps done: the timer that ends it
         self.lock = p["mode"] == "lockstep"
-        self.link, self.failed = "", None  # the missing links; the hardware's fault
+        self.failed: BaseException | None = None
+        self.link = ""  # the missing links (self.failed: the hardware's fault)
         self.next_j = 0  # lockstep: the first sample of the next configure
-        self.last_values: dict = {}  # the last announcement's values (for unconfigured)
+        self.last_values: Doc = {}  # the last announcement's values (for unconfigured)
         self.why_error = ""  # a fault that takes the error transition
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
         self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
@@ -170,7 +173,7 @@ class StageDriver(LeanNode, LifecycleNode):
                 raise
             return SUCCESS
 
-        def start(p, arm):
+        def start(p, arm) -> None:
             self.loop = SampleLoop(self.backend, arm, LoopOptions(
                 rate_hz=p["control_rate_hz"], lockstep=self.lock,
                 lookahead_s=p["lookahead_s"], max_steps=p["max_steps"],
@@ -257,7 +260,7 @@ class StageDriver(LeanNode, LifecycleNode):
             self._announce("disarmed", f"{why}: the backend is closed", log=True)
 
     # -- the sample loop ----------------------------------------------------------------
-    def on_lean_tick(self):
+    def on_lean_tick(self) -> None:
         """Real time: the sample clock's tick."""
         if self.loop is None:
             self.lean_deadline = None
@@ -280,7 +283,7 @@ class StageDriver(LeanNode, LifecycleNode):
         if self.loop is not None:  # (a hardware fault may have closed it)
             self.lean_deadline = out.deadline
 
-    def on_command(self, msg, info):
+    def on_command(self, msg, info) -> None:
         if self.loop is None:  # unconfigured: no sample to answer
             return
         try:
@@ -358,14 +361,14 @@ class StageDriver(LeanNode, LifecycleNode):
             return None
         raise error if error is not None else BackendFault("hardware: unknown")
 
-    def done(self):
+    def done(self) -> None:
         if self.lock:
             if self.p["exit_after_max_steps"] and self._exit_timer is None:
                 self._exit_timer = steady_timer(self, 0.2, self.finish)
         elif not self.running.shutdown_requested:
             self.request_shutdown()
 
-    def finish(self):
+    def finish(self) -> None:
         """Lockstep, all steps done: make sure every subscriber has them, then exit."""
         t0 = time.monotonic()
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
@@ -373,7 +376,7 @@ class StageDriver(LeanNode, LifecycleNode):
             self.get_logger().info(done_line(self.running, time.monotonic() - t0))
             end_run(self)
 
-    def final_report(self):
+    def final_report(self) -> None:
         """Last diagnostics with the final counts, delivered before exiting."""
         self.diag.final()
 
@@ -404,12 +407,12 @@ class StageDriver(LeanNode, LifecycleNode):
         watch_stop(max(STOP_STATE.watch_s, self.loop.begin_shutdown()))
 
     # -- arming ---------------------------------------------------------------------------
-    def on_state_change(self, state, reason, since_ns, log=True):
+    def on_state_change(self, state, reason, since_ns, log: bool = True) -> None:
         self.state_since = since_ns
         self.last_values = {**self.running.announced(), "mode": self.p["mode"]}
         self._announce(state, reason, log)
 
-    def _announce(self, state, reason, log=True):
+    def _announce(self, state, reason, log: bool = True) -> None:
         """The state topic: the arming state, the driver's values and its lifecycle
         state. Announced a few samples ahead of when it applies, and before the next
         sample is published: the loop nodes take `state` before their data in every
@@ -438,13 +441,13 @@ class StageDriver(LeanNode, LifecycleNode):
         elif log:
             self.get_logger().info(f"{state}: {reason}")
 
-    def check_links(self):
+    def check_links(self) -> None:
         """Graph queries cost the loop thread ~1 ms: only while not armed, where a
         refusal or the arming reason needs them."""
         if self.loop is not None and self.loop.state not in ENABLED:
             self.link = missing_links(self)
 
-    def on_phase(self, msg):
+    def on_phase(self, msg) -> None:
         """The feedforward's phase and what it follows: the arming state follows it,
         and /stage/state relays it."""
         if self.loop is not None and self.loop.feedforward_phase(*phase_from_msg(msg)):
@@ -493,7 +496,7 @@ class StageDriver(LeanNode, LifecycleNode):
             return f"{self.lifecycle_label()}, the backend closed"
         return f"{self.loop.summary()}; the backend then ramps to safe and closes"
 
-    def close(self):
+    def close(self) -> None:
         """The backend ramps to the safe voltage and closes before the node goes
         (run_node calls this, then destroys the node)."""
         if self.backend is not None:

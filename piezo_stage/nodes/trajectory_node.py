@@ -49,7 +49,7 @@ from piezo_stage_msgs_adapters import phase_from_msg, trajectory_msg
 RESENDS, RESEND_AFTER_S, TICK_S = 3, 1.0, 0.25
 
 class Trajectory(LeanNode, Node):
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__("trajectory")
         # live: a set builds and publishes the new trajectory (or is refused with why)
         self.p = declare_schema(self, TRAJECTORY)
@@ -57,7 +57,8 @@ class Trajectory(LeanNode, Node):
         self.pub = self.create_publisher(JointTrajectory, "trajectory", QOS_LATCHED)
         self.gate = Gate(self, [(self.pub, wait_for)])
         self.published, self.resent, self.last = 0, 0, None
-        self.sent_at, self.ff_phase, self.budget = 0.0, None, RESENDS  # (last: None)
+        self.ff_phase: tuple[str, str] | None = None
+        self.sent_at, self.budget = 0.0, RESENDS  # (last: None)
         self.accepted, self.ticked_at = False, time.monotonic()  # (this publication's)
         # this node's requests: its name and start, so a restarted node's are new ones
         self.request = f"{REQUEST_PREFIX}{self.get_fully_qualified_name()}@{time.time_ns():x}"
@@ -71,7 +72,7 @@ class Trajectory(LeanNode, Node):
             0, f"{self.published} trajectories published (last: {self.p.get('kind')})",
             {"published": self.published, "resent": self.resent, **self.p}), "trajectory")
 
-    def final_report(self):
+    def final_report(self) -> None:
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
     def build(self, p):
@@ -97,26 +98,26 @@ class Trajectory(LeanNode, Node):
             w = {a: np.concatenate([we[a], wb[a], w[a]]) for a in w}
         return trajectory_msg(t, w)
 
-    def publish(self, msg):
+    def publish(self, msg) -> None:
         msg.header.frame_id = f"{self.request}#{self.published + 1}"
         self.gate.publish(self.pub, msg)
         self.published += 1
         self.last, self.sent_at, self.budget = msg, time.monotonic(), RESENDS
         self.accepted = False
 
-    def on_accepted(self, msg):
+    def on_accepted(self, msg) -> None:
         if self.last is not None and msg.header.frame_id == self.last.header.frame_id:
             # the feedforward took this request (its name: the bytes of a resend crossed)
             self.accepted = True
 
-    def on_phase(self, msg):
+    def on_phase(self, msg) -> None:
         was, self.ff_phase = self.ff_phase, phase_from_msg(msg)
         if self.ff_phase != (HOLD, ""):
             self.budget = RESENDS  # it has one: a later restart may ask again
         elif was is not None and was != (HOLD, ""):
             self.accepted = False  # it had one and holds with none: restarted
 
-    def resend_if_held(self):
+    def resend_if_held(self) -> None:
         """The last trajectory again when the feedforward still holds with none a
         second after it went out (a message the gate held goes out when it opens)."""
         now, ticked = time.monotonic(), self.ticked_at

@@ -23,6 +23,7 @@ from piezo_stage.core.estimation.excitation import CHIRP_S, gap_protocol
 from piezo_stage.core.estimation.gap import diagnose, fit_candidate
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.model.plant import Plant
+from piezo_stage.core.types import Doc
 from piezo_stage.io.plant_file import (
     default_config_dir,
     default_plant_config_path,
@@ -254,7 +255,7 @@ def _scaled_law(law, rng):
     return replace(law, ascending=branch(law.ascending), descending=branch(law.descending))
 
 
-def generated_case(seed: int) -> dict:
+def generated_case(seed: int) -> Doc:
     """A stage drawn at random from ``seed``: our simulated stage's kind (its hysteresis
     scaled, ``_scaled_law``), a case kind of ``GENERATED_KINDS`` (no effect, one, or a
     pair), each effect's magnitude drawn in the blind suite's ranges (``_own_effect``;
@@ -296,7 +297,7 @@ def generated_case(seed: int) -> dict:
                        "chirp_s": chirp_s, "effects": cfg.effects}}
 
 
-def effect_sizes(cfg, hold: Record, truth) -> dict:
+def effect_sizes(cfg, hold: Record, truth) -> Doc:
     """How far each effect of ``truth`` moves HOLDOUT's noise-free displacement, per
     axis, as a diagnosis scores it ({axis: {effect: RMS [um]}}: the plant with every
     effect on, against the plant without that one, after HOLDOUT's start-up, the mean
@@ -310,7 +311,7 @@ def effect_sizes(cfg, hold: Record, truth) -> dict:
         p.run(hold.v["x"], hold.v["y"])
         return p.last_true
     full = true_w(cfg)
-    out: dict = {a: {} for a in full}
+    out: Doc = {a: {} for a in full}
     for e in truth:
         c = copy.deepcopy(cfg)
         if e == "coupling":
@@ -325,7 +326,7 @@ def effect_sizes(cfg, hold: Record, truth) -> dict:
 
 
 def short_case(seed: int, truth: tuple = (), seconds: float = 4.0,
-               fs: float = 1000.0) -> dict:
+               fs: float = 1000.0) -> Doc:
     """A generated stage as ``generated_case`` draws one (its hysteresis scaled, the
     noise), with the effects ``truth`` at magnitudes drawn from ``seed``, and two
     short records of it (FIT and HOLDOUT, ``seconds`` each) driven by two sines per
@@ -356,7 +357,7 @@ def short_case(seed: int, truth: tuple = (), seconds: float = 4.0,
             "params": {"fs_hz": fs, "noise_um": cfg.noise_rms_um, "effects": cfg.effects}}
 
 
-def named_effects(axis_json: dict) -> set:
+def named_effects(axis_json: Doc) -> set:
     """What a diagnosis names on an axis: its kept effects, and a disturbance where it
     says the residual is one."""
     named = {s["effect"] for s in axis_json["effects"]}

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from piezo_stage.core.types import Doc, EffectsBlock, PerAxis
+
 RATE_HZ = 1000.0
 
 
-def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
+def run_case(plant_cfg, model, effects: EffectsBlock | None, t: np.ndarray, w: PerAxis[np.ndarray],
              freq_hz: float, learn: bool = True, gain: float = 1.0, seed: int = 0,
-             fast_axis: str | None = None, rate_hz: float = RATE_HZ) -> dict:
+             fast_axis: str | None = None, rate_hz: float = RATE_HZ) -> Doc:
     """One periodic trajectory on the plant, feedforward only (the model's inverse and
     its effects compensated), learning or not.
 
@@ -88,7 +90,7 @@ def run_case(plant_cfg, model, effects: dict | None, t: np.ndarray, w: dict,
     if comp is not None:
         comp.reset({"x": wx, "y": wy})
     planner.set_trajectory(t, w)
-    err: dict[str, dict] = {a: {} for a in ("x", "y")}
+    err: PerAxis[dict[int, float]] = {a: {} for a in ("x", "y")}
     vs: list = []
     # the last period's intersample deviations
     between: dict[str, list] = {a: [] for a in ("x", "y")}

@@ -21,6 +21,7 @@ from piezo_stage.core.loop.ontarget import ON_TARGET, TargetState
 from piezo_stage.core.loop.planner import ReferencePlanner
 from piezo_stage.core.model.plant import Plant
 from piezo_stage.core.params import defaults
+from piezo_stage.core.types import Doc, PerAxis
 
 
 @dataclass(frozen=True)
@@ -115,11 +116,11 @@ def run_moves(plant: Plant, model, effects, targets, setup: MoveSetup = MoveSetu
     return [_one(loop, f"move {k}", t, setup) for k, t in enumerate(targets)]
 
 
-def _true(plant: Plant) -> dict:
+def _true(plant: Plant) -> Doc:
     return {a: float(x[-1]) for a, x in plant.last_true.items()}
 
 
-def _one(loop: _Loop, move_id: str, target: dict, setup: MoveSetup) -> MoveResult:
+def _one(loop: _Loop, move_id: str, target: PerAxis[float], setup: MoveSetup) -> MoveResult:
     """One move: run until declared and dwelt, or the timeout; judged on the truth."""
     ff = loop.ff
     here = dict(ff.planner.desired or loop.w)

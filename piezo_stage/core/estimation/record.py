@@ -32,6 +32,7 @@ from typing import TypeVar
 import numpy as np
 
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.types import PerAxis
 
 # Relative tolerance on sample spacing: CSV files round time stamps, DAQ clocks do not
 # jitter at this level.
@@ -64,8 +65,8 @@ class Record:
     """
 
     t: np.ndarray
-    v: dict = field(default_factory=dict)
-    w: dict = field(default_factory=dict)
+    v: PerAxis[np.ndarray] = field(default_factory=dict)
+    w: PerAxis[np.ndarray] = field(default_factory=dict)
     source: str = "record"
     # True when v is exactly what the actuator got (the driver's applied voltage, as
     # in our bags); False for a voltage of unknown origin, possibly a noisy measurement
@@ -257,7 +258,7 @@ def sample_clock(t: np.ndarray, source: str = "record") -> tuple[float, float, n
     return t0, dt, j
 
 
-def fill_unmeasured(rec: Record, pred: dict) -> Record:
+def fill_unmeasured(rec: Record, pred: PerAxis[np.ndarray]) -> Record:
     """``rec`` with the displacement inside its holes (``measured`` False) replaced by
     ``pred`` ({axis: [um] over the record}, a model's output); every sample counts as
     measured in the result."""
@@ -272,7 +273,7 @@ T = TypeVar("T")
 
 
 def fitted_together(rec: Record, fit: Callable[[Record], T],
-                    predict: Callable[[T, Record], dict]) -> T:
+                    predict: Callable[[T, Record], PerAxis[np.ndarray]]) -> T:
     """``fit(rec)`` with the samples of its holes left out of the cost: where some
     displacement was not measured (``measured``), fitted once on the record as it is
     (the holes interpolated), the holes then filled with that fit's own prediction

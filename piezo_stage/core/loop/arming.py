@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.loop.control import clamp_slew
 from piezo_stage.core.params import Param, Schema
+from piezo_stage.core.types import Doc, PerAxis
 
 DISARMED, ARMING, APPROACHING, ARMED, FAULTED = (
     "disarmed", "arming", "approaching", "armed", "faulted")
@@ -86,8 +87,8 @@ class ArmingSupervisor:
     from which commands are applied). ``on_change`` is called with each transition.
     """
 
-    def __init__(self, params: ArmingParams, v0: dict, dt_s: float, lead_ns: int,
-                 on_change: Callable[[str, str, int], None] | None = None):
+    def __init__(self, params: ArmingParams, v0: PerAxis[float], dt_s: float, lead_ns: int,
+                 on_change: Callable[[str, str, int], None] | None = None) -> None:
         self.p = params
         self.ramp_step_V = params.ramp_V_per_s * dt_s  # per tick
         self.lead_ns = int(lead_ns)     # an enable takes effect this far ahead
@@ -158,8 +159,9 @@ class ArmingSupervisor:
             self.late_since_fresh += 1
             self.late_lag_ns = int(lag_ns)
 
-    def tick(self, stamp_ns: int, now_ns: int, cmd: dict | None, on_time: bool, link: str = "",
-             periods: int = 1) -> dict:
+    def tick(self, stamp_ns: int, now_ns: int, cmd: PerAxis[float] | None, on_time: bool,
+             link: str = "",
+             periods: int = 1) -> Doc:
         """Target voltages for the sample stamped ``stamp_ns`` (driver time), ``now_ns``
         the receipt clock of ``note_command``. ``cmd``: the command due for this sample
         ({axis: V}) or None; ``on_time``: it arrived before its tick. ``link``: the
@@ -211,25 +213,25 @@ class ArmingSupervisor:
                                if self.evidence < self.p.confirm_ticks else self.held_by)
         return target
 
-    def applied(self, v: dict) -> None:
+    def applied(self, v: PerAxis[float]) -> None:
         """The voltage really applied this tick (after clamp and slew)."""
         self.v = dict(v)
 
     # internals --------------------------------------------------------------------
-    def _toward_safe(self) -> dict:
+    def _toward_safe(self) -> PerAxis[float]:
         safe = {a: self.p.safe_V for a in self.v}
         if self.estop:  # as fast as the amplifier's slew limit allows (the driver's)
             return safe
         step = self.ramp_step_V * self._periods
         return clamp_slew(safe, self.v, (-math.inf, math.inf), step)[0]
 
-    def _enable(self, stamp_ns: int):
+    def _enable(self, stamp_ns: int) -> None:
         self.counts["arms"] += 1
         self.enable_ns = int(stamp_ns) + self.lead_ns
         self.tracking = False
         self._set(APPROACHING, "loop closed: approaching the first point", stamp_ns)
 
-    def _set(self, state: str, reason: str, stamp_ns: int):
+    def _set(self, state: str, reason: str, stamp_ns: int) -> None:
         if state not in ENABLED:
             self.enable_ns = None
         changed = state != self.state
@@ -245,7 +247,7 @@ class StateTimeline:
     its ``since`` stamp on, and a newer announcement supersedes whatever was announced
     for its stamp and later. ``at(ns)`` is the state for the sample stamped ns."""
 
-    def __init__(self, initial: str = DISARMED, keep: int = 16):
+    def __init__(self, initial: str = DISARMED, keep: int = 16) -> None:
         self.entries = [(-(2 ** 63), initial)]
         self.keep = keep
 

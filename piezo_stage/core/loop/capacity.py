@@ -159,7 +159,7 @@ class CapacityMeter:
     """Measures the loop's capacity over a window of samples (``start``, then
     ``sample`` each sample, ``result`` once ``done``); call from the loop's thread."""
 
-    def __init__(self, rate_hz: float, window_s: float):
+    def __init__(self, rate_hz: float, window_s: float) -> None:
         self.rate_hz, self.window_s = float(rate_hz), float(window_s)
         self.t0: float | None = None
         self.n = 0

@@ -4,6 +4,8 @@ the hardware's own count) and the schedule of commands by the tick they are stam
 
 from __future__ import annotations
 
+from piezo_stage.core.types import PerAxis
+
 
 class CommandSchedule:
     """Commands by the sample tick they are stamped for (real time).
@@ -18,7 +20,7 @@ class CommandSchedule:
     ``add`` can measure the sample-to-arrival latency.
     """
 
-    def __init__(self, t0_ns: int, dt_ns: int, lookahead_ns: int):
+    def __init__(self, t0_ns: int, dt_ns: int, lookahead_ns: int) -> None:
         from piezo_stage.core.metrics import LatencyHistogram
         self.t0, self.dt, self.lookahead = int(t0_ns), int(dt_ns), int(lookahead_ns)
         self.pending: dict[int, dict[str, float]] = {}  # tick -> voltages
@@ -34,7 +36,7 @@ class CommandSchedule:
         """The sample tick a command stamped ``ns`` is for."""
         return (int(stamp_ns) - self.t0 + self.dt // 2) // self.dt
 
-    def add(self, stamp_ns: int, v: dict, recv_ns: int, last_tick: int) -> bool:
+    def add(self, stamp_ns: int, v: PerAxis[float], recv_ns: int, last_tick: int) -> bool:
         """Keep a command for its tick (late ones are counted and dropped). -> whether
         it arrived before its tick."""
         j = self.tick_of(stamp_ns)
@@ -52,7 +54,7 @@ class CommandSchedule:
         n, self.longest = self.longest, self.streak
         return n
 
-    def due(self, j: int, count_held: bool = True) -> tuple[dict | None, bool]:
+    def due(self, j: int, count_held: bool = True) -> tuple[PerAxis[float] | None, bool]:
         """-> (voltages or None, exactly on time for tick j). With ``count_held`` (the
         stage is applying commands), a tick with no command stamped for it counts as
         held (``held_ticks``)."""
@@ -77,7 +79,7 @@ class SampleClock:
     passed (the ones skipped are missed ticks). ``late`` holds how late each serviced
     tick ran. A hardware-paced backend (the DAQ) counts its own ticks instead."""
 
-    def __init__(self, dt_s: float, paced: bool):
+    def __init__(self, dt_s: float, paced: bool) -> None:
         from piezo_stage.core.metrics import LatencyHistogram
         self.dt, self.paced = float(dt_s), bool(paced)
         self.mono0: float | None = None  # the first tick's monotonic time [s]

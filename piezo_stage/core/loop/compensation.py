@@ -33,6 +33,7 @@ import numpy as np
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.model.effects import effects_on
+from piezo_stage.core.types import Doc, EffectsBlock, Params, PerAxis
 
 if TYPE_CHECKING:
     from piezo_stage.core.loop.planner import ReferencePlanner
@@ -53,7 +54,8 @@ def _phi_gamma(A, B, tau):
 class CreepInverse:
     """The exact inverse of core.effects.Creep: h_k from the wanted creep output y_k."""
 
-    def __init__(self, rate_hz: float, gamma: float, tau_s: Sequence[float] = CREEP_TAUS_S):
+    def __init__(self, rate_hz: float, gamma: float,
+                 tau_s: Sequence[float] = CREEP_TAUS_S) -> None:
         self.gamma = float(gamma)
         if not 0 <= self.gamma < 1:
             raise ConfigError(f"creep gamma must be in [0, 1), got {gamma}")
@@ -78,7 +80,7 @@ class DynamicsInverse:
     is held in."""
 
     def __init__(self, rate_hz: float, kind: str = "resonance", fn_hz: float = 800.0,
-                 zeta: float = 0.05, tau_s: float = 0.5e-3, delta_s: float = 0.0):
+                 zeta: float = 0.05, tau_s: float = 0.5e-3, delta_s: float = 0.0) -> None:
         T = 1.0 / rate_hz
         if kind == "resonance":
             wn = 2 * math.pi * float(fn_hz)
@@ -134,7 +136,7 @@ class PreviewDynamicsInverse:
     no command held for a whole period can prevent.
     """
 
-    def __init__(self, inv: DynamicsInverse, tol: float = 1e-6, max_taps: int = 2000):
+    def __init__(self, inv: DynamicsInverse, tol: float = 1e-6, max_taps: int = 2000) -> None:
         # here, not at the top: scipy.signal adds 0.7 s to every node's start-up
         from scipy.signal import lfilter, lfilter_zi, ss2tf
         self._lfilter = lfilter
@@ -197,12 +199,12 @@ class EffectCompensator:
     resonance above ``max_resonance_hz`` (None or 0: no limit) is not inverted: its
     group delay joins the delay."""
 
-    def __init__(self, effects: dict, rate_hz: float, axes: Sequence[str] = ("x", "y"),
-                 max_resonance_hz: float | None = None):
+    def __init__(self, effects: EffectsBlock, rate_hz: float, axes: Sequence[str] = ("x", "y"),
+                 max_resonance_hz: float | None = None) -> None:
         self.rate_hz = float(rate_hz)
         T = 1.0 / self.rate_hz
         max_fn = float(max_resonance_hz) if max_resonance_hz else math.inf
-        self.creep: dict = {}
+        self.creep: Params = {}
         self.dynamics: dict[str, DynamicsInverse | PreviewDynamicsInverse] = {}
         self.lead_ticks = {a: 0 for a in axes}
         # of lead_ticks, the samples a stable inverse previews (not a time advance)
@@ -230,7 +232,7 @@ class EffectCompensator:
                 self._dynamics(a, dict(eff["dynamics"]), d, max_fn)
         self.axes = tuple(axes)
 
-    def _dynamics(self, a: str, dyn: dict, d: float, max_fn: float) -> None:
+    def _dynamics(self, a: str, dyn: Params, d: float, max_fn: float) -> None:
         """Axis ``a``'s dynamics inverted (read at the fraction of its delay ``d`` [s]
         past the whole periods), with preview where the sampled plant is not minimum
         phase, or taken as a group delay above ``max_fn`` [Hz]."""
@@ -273,14 +275,14 @@ class EffectCompensator:
         """The longest preview any axis needs [periods]."""
         return max(self.lead_ticks.values(), default=0)
 
-    def reset(self, w0: dict) -> None:
+    def reset(self, w0: PerAxis[float]) -> None:
         """At rest at w0 [um] (everything settled)."""
         for a, c in self.creep.items():
             c.reset(w0[a])
         for a, d in self.dynamics.items():
             d.reset(w0[a])
 
-    def step(self, wanted: dict, preview: bool = True) -> dict:
+    def step(self, wanted: PerAxis[float], preview: bool = True) -> PerAxis[float]:
         """Hysteresis targets [um] for one period from the wanted positions (each
         asked ``lead_ticks`` ahead). Without preview (a streamed setpoint) the dynamics
         are not inverted."""
@@ -308,7 +310,7 @@ class EffectCompensator:
 class LearnedOffsets(Protocol):
     """What the reference needs of a learner (core.learning.PeriodicLearner)."""
 
-    def offset(self, k: int, axes: tuple | None = None) -> dict:
+    def offset(self, k: int, axes: tuple | None = None) -> PerAxis[float]:
         """The correction {axis: um} at trajectory sample ``k``, given to ``axes``
         (default: every axis)."""
 
@@ -325,11 +327,11 @@ class PreviewedReference:
     measured position.
     """
 
-    def __init__(self, planner: ReferencePlanner, dt_ns: int):
+    def __init__(self, planner: ReferencePlanner, dt_ns: int) -> None:
         self.planner, self.dt_ns = planner, int(dt_ns)
         self.comp: EffectCompensator | None = None
         self.on = True
-        self.ahead: dict = {}
+        self.ahead: dict[int, PerAxis[float]] = {}
         self.learner: LearnedOffsets | None = None  # a core.learning.PeriodicLearner
 
     def set_compensator(self, comp: EffectCompensator | None) -> None:
@@ -350,7 +352,7 @@ class PreviewedReference:
             return None
         return int(round(clock * 1e9 / self.dt_ns))
 
-    def _learned(self, wanted: dict, stamps: dict) -> dict:
+    def _learned(self, wanted: PerAxis[float], stamps: Doc) -> PerAxis[float]:
         """``wanted`` with the learned correction of each axis's stamp added."""
         if self.learner is None:
             return wanted
@@ -367,21 +369,21 @@ class PreviewedReference:
             return "no effects in the model"
         return self.comp.describe() + ("" if self.on else " (switched off)")
 
-    def hold(self, w_hold: dict, w_measured: dict) -> None:
+    def hold(self, w_hold: PerAxis[float], w_measured: PerAxis[float]) -> None:
         """Disabled: the planner holds ``w_hold``; the compensator rests at the stage."""
         self.planner.hold(w_hold)
         self.ahead = {}
         if self.comp is not None:
             self.comp.reset(w_measured)
 
-    def sample(self, target_ns: int) -> tuple[dict, dict]:
+    def sample(self, target_ns: int) -> tuple[PerAxis[float], PerAxis[float]]:
         """(where the stage should be at target_ns, the hysteresis target for it)."""
         comp = self.comp if self.on else None
         if comp is None:
             d = self.planner.sample(target_ns)
             return d, self._learned(d, {a: target_ns for a in d})
         preview = self.planner.traj is not None
-        held: dict = dict(self.planner.desired or {})
+        held: PerAxis[float] = dict(self.planner.desired or {})
         lead = comp.max_lead_ticks if preview else 0
         t_lead = target_ns + lead * self.dt_ns
         self.ahead[t_lead] = self.planner.sample(t_lead)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.loop.stamps import SampleGuard
 from piezo_stage.core.params import Param, Schema
+from piezo_stage.core.types import Params, PerAxis
 
 # the real-time priority of a loop node that answers samples (the controller's and the
 # feedforward's: the driver's own sample loop runs above them)
@@ -69,7 +70,7 @@ class PID:
     """Discrete PID on the error (backward Euler integral, filtered derivative,
     clamped integral). Explicit state; ``reset`` clears it."""
 
-    def __init__(self, gains: PIDGains, dt: float):
+    def __init__(self, gains: PIDGains, dt: float) -> None:
         if not dt > 0:
             raise ConfigError("PID dt must be > 0")
         self.g = gains
@@ -109,7 +110,7 @@ class CompositeAxis:
     """
 
     def __init__(self, pid: PID, limits: tuple[float, float] = (0.0, 150.0),
-                 feedback: bool = True, fade_s: float = 0.05):
+                 feedback: bool = True, fade_s: float = 0.05) -> None:
         self.pid, self.limits = pid, tuple(limits)
         self.feedback = bool(feedback)
         self.fade = math.exp(-pid.dt / fade_s) if fade_s > 0 else 0.0
@@ -172,7 +173,7 @@ class Relay:
 
     def __init__(self, amplitude_V: float, hysteresis_um: float, dt: float,
                  bias_gain: float = 20.0, bias_rate: float = 5.0,
-                 bias_limit_V: float = 150.0):
+                 bias_limit_V: float = 150.0) -> None:
         if not (amplitude_V > 0 and hysteresis_um >= 0 and dt > 0 and bias_gain >= 0
                 and bias_rate > 0):
             raise ConfigError("relay: amplitude > 0 V, hysteresis >= 0 um, dt > 0, "
@@ -198,8 +199,9 @@ class Relay:
         return self.bias + self.side * self.d
 
 
-def clamp_slew(v: dict, prev: dict, limits: tuple[float, float] | dict,
-               max_step: float | dict) -> tuple[dict, bool]:
+def clamp_slew(v: PerAxis[float], prev: PerAxis[float],
+               limits: tuple[float, float] | PerAxis[tuple[float, float]],
+               max_step: float | PerAxis[float]) -> tuple[PerAxis[float], bool]:
     """Clamp each axis's voltage to ``limits`` (V: (lo, hi), or per axis {axis: (lo,
     hi)}), then move it from ``prev`` by at most ``max_step`` (V, or per axis).
     Returns (voltages, whether anything was limited). The driver's last line of
@@ -231,7 +233,7 @@ class CompositeController:
     amplitude > 0 the feedback is a relay (core.control.Relay) under the same rules.
     ``on_sample`` is the one entry; ``stats`` its counts."""
 
-    def __init__(self, p: dict):
+    def __init__(self, p: Params) -> None:
         rate = p["control_rate_hz"]
         self.dt_ns = int(round(1e9 / rate))
         self.gains = PIDGains(kp=p["kp"], ki=p["ki"], kd=p["kd"],
@@ -242,7 +244,8 @@ class CompositeController:
         relay_V, relay_eps = p["relay_amplitude_V"], p["relay_hysteresis_um"]
         self.relays = {a: Relay(relay_V, relay_eps, 1.0 / rate) for a in self.axes} \
             if relay_V > 0 else {}
-        self.sent: dict = {}  # target stamp -> (desired um, command V): for t_k's check
+        # target stamp -> (desired um, command V): for t_k's check
+        self.sent: dict[int, tuple[PerAxis[float], PerAxis[float] | None]] = {}
         self.last_ns = -1
         self.stats = dict.fromkeys(COUNTS, 0)
         self.guard = SampleGuard(self.stats)  # what it drops before on_sample, counted
@@ -271,8 +274,9 @@ class CompositeController:
         for ax in self.axes.values():
             ax.set_feedback(bool(on))
 
-    def on_sample(self, ns: int, t_k: int, desired: dict, ff: dict, w: dict,
-                  applied: dict, enabled: bool) -> dict | None:
+    def on_sample(self, ns: int, t_k: int, desired: PerAxis[float], ff: PerAxis[float],
+                  w: PerAxis[float],
+                  applied: PerAxis[float], enabled: bool) -> PerAxis[float] | None:
         """The command {axis: V} for target ``ns``, from the reference (``desired``
         for ns, feedforward ``ff``, measured ``w`` and ``applied`` at t_k); None when
         the result is not finite (never sent)."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
 from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import DataError, PiezoStageError
@@ -34,6 +35,7 @@ from piezo_stage.core.loop.stamps import SampleGuard
 from piezo_stage.core.model.duhem import StageModel, check_model_change, stroke_um
 from piezo_stage.core.model.inverse import StageInverse
 from piezo_stage.core.params import Param, Schema
+from piezo_stage.core.types import EffectsBlock, PerAxis
 
 HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
 MAX_FILLED_TICKS = 20  # after a skipped sample, at most this many targets answered
@@ -118,8 +120,8 @@ class Answer:
     applies commands at ``target``."""
 
     target: int
-    desired: dict | None
-    ff: dict
+    desired: PerAxis[float] | None
+    ff: PerAxis[float]
     error: PiezoStageError | None
     phase_changed: bool
     enabled: bool
@@ -136,7 +138,7 @@ class SampleResult:
     answers: tuple[Answer, ...] = ()
     wait: bool = False
     silent: bool = False
-    applied: dict | None = None
+    applied: PerAxis[float] | None = None
     on_target: TargetState | None = None  # a move's state, when it changed here
 
 
@@ -144,7 +146,7 @@ class SampleResult:
 class PreparedModel:
     """A model ready to be used (``InverseFeedforward.prepare_model``)."""
     model: StageModel
-    effects: dict | None
+    effects: EffectsBlock | None
     compensator: EffectCompensator | None
     inverse: StageInverse
     gain_um_per_V: float  # the steepest axis's stroke over the voltage range
@@ -197,7 +199,7 @@ class InverseFeedforward:
     """
 
     def __init__(self, planner: ReferencePlanner, dt_ns: int,
-                 options: FeedforwardOptions | None = None):
+                 options: FeedforwardOptions | None = None) -> None:
         o = self.options = options or FeedforwardOptions()
         nominal_um_per_V, use_coupling, inverse = o.nominal_um_per_V, o.use_coupling, o.inverse
         max_resonance_hz, wait_for_trajectory = o.max_resonance_hz, o.wait_for_trajectory
@@ -214,17 +216,17 @@ class InverseFeedforward:
         self.limits = (0.0, 150.0)
         self.inv: StageInverse | None = None
         self.model: StageModel | None = None
-        self.handover: dict | None = None
+        self.handover: PerAxis[float] | None = None
         self.behind = False  # answers were late (a backlog): the next one rejoins
-        self.rejoin: dict | None = None  # the reference's offset to the planner's [um]
-        self.answered: tuple[int, dict] | None = None  # the planner's last (target, um)
-        self.asked: dict | None = None  # the reference last answered [um]
+        self.rejoin: PerAxis[float] | None = None  # the reference's offset to the planner's [um]
+        self.answered: tuple[int, PerAxis[float]] | None = None  # the planner's last (target, um)
+        self.asked: PerAxis[float] | None = None  # the reference last answered [um]
         self.rejoins = 0  # backlogs the reference rejoined the planner's from
-        self.effects: dict | None = None
+        self.effects: EffectsBlock | None = None
         self.comp: EffectCompensator | None = None
         self.started = False  # the inverse has been put where the stage is
         self.ff: dict[str, float] = {"x": 0.0, "y": 0.0}
-        self.planned: dict = {}
+        self.planned: dict[int, PerAxis[float]] = {}
         self.last_target: int | None = None
         self.traj_text = ""  # which trajectory runs: "trajectory of N points stamped S"
         self.judge = OnTargetJudge(self.dt_ns * 1e-9)  # a move's arrival (ontarget.py)
@@ -233,7 +235,7 @@ class InverseFeedforward:
         self.move_text = ""  # what the phase follows in a move ("move M")
         self.last_ns = 0
 
-    def set_model(self, model: StageModel, effects: dict | None, name: str,
+    def set_model(self, model: StageModel, effects: EffectsBlock | None, name: str,
                   driver_limits: tuple | None = None, range_um: float = 100.0,
                   armed: bool = False) -> None:
         """Use ``model`` (and its ``effects``) from the next sample: ``prepare_model``,
@@ -241,7 +243,7 @@ class InverseFeedforward:
         self.use_model(self.prepare_model(model, effects, name, driver_limits, range_um),
                        armed)
 
-    def prepare_model(self, model: StageModel, effects: dict | None, name: str,
+    def prepare_model(self, model: StageModel, effects: EffectsBlock | None, name: str,
                       driver_limits: tuple | None = None, range_um: float = 100.0,
                       base: StageModel | None = None) -> PreparedModel:
         """A model checked and its inverse built (the compiled kernels warmed), ready
@@ -297,7 +299,7 @@ class InverseFeedforward:
         self.learning.configure(self.learn_p["learning_period_s"],
                                 self.learn_p["learning_gain"], self.effects, self.comp)
 
-    def set_trajectory(self, t: ArrayLike, w: dict, stamp_ns: int,
+    def set_trajectory(self, t: ArrayLike, w: PerAxis[np.ndarray], stamp_ns: int,
                        start_ns: int | None, slew_V_per_s: float | None = None) -> None:
         """Run a new trajectory (t [s], {axis: um}), stamped ``stamp_ns`` by its sender,
         from ``start_ns`` (None: once approached): the learner starts over, and the
@@ -311,7 +313,7 @@ class InverseFeedforward:
         self.planner.set_trajectory(t, w, start_ns=start_ns)
         self.learning.reset()
 
-    def move(self, move_id: str, target: dict, start_ns: int | None = None,
+    def move(self, move_id: str, target: PerAxis[float], start_ns: int | None = None,
              slew_V_per_s: float | None = None) -> TargetState:
         """A point-to-point move to ``target`` ({axis: um}; the others held), called
         ``move_id``: the move's profile (``move_profile``), then held; judged on target
@@ -361,7 +363,8 @@ class InverseFeedforward:
         else:
             raise DataError(f"feedforward: {name} is no live parameter")
 
-    def on_sample(self, ns: int, w: dict, v_applied: dict | None, lookahead_ns: int,
+    def on_sample(self, ns: int, w: PerAxis[float], v_applied: PerAxis[float] | None,
+                  lookahead_ns: int,
                   enabled: Callable[[int], bool], realtime: bool,
                   now_ns: int = 0) -> SampleResult:
         """The sample stamped ``ns``: the stage at ``w`` [um] with ``v_applied`` [V]
@@ -394,7 +397,7 @@ class InverseFeedforward:
                                   self.planner.phase != phase, on, late))
         return SampleResult(tuple(answers), applied=applied, on_target=on_target)
 
-    def measured(self, ns: int, w: dict, applied: dict) -> None:
+    def measured(self, ns: int, w: PerAxis[float], applied: PerAxis[float]) -> None:
         """The sample at ``ns``: the stage at ``w`` with ``applied`` [V]. The inverse
         starts (or restarts, or takes a new model) from where the stage is, not from the
         model's initial state (hysteresis remembers what this node did not see), and is
@@ -414,8 +417,9 @@ class InverseFeedforward:
         return range(target - (min(gap, MAX_FILLED_TICKS) - 1) * self.dt_ns, target + 1,
                      self.dt_ns)
 
-    def answer(self, ns: int, target: int, w: dict, applied: dict,
-               enabled: bool, late: bool = False) -> tuple[dict | None, PiezoStageError | None]:
+    def answer(self, ns: int, target: int, w: PerAxis[float], applied: PerAxis[float],
+               enabled: bool, late: bool = False
+               ) -> tuple[PerAxis[float] | None, PiezoStageError | None]:
         """(desired position [um], the error that held the last feedforward or None) for
         ``target``; the feedforward [V] is ``self.ff``. Not ``enabled`` (the driver does
         not apply commands): hold where the stage is, at the applied voltage. ``late``:
@@ -440,7 +444,8 @@ class InverseFeedforward:
             return desired, e
         return desired, None
 
-    def _rejoined(self, target: int, desired: dict, h: dict) -> tuple[dict, dict]:
+    def _rejoined(self, target: int, desired: PerAxis[float],
+                  h: PerAxis[float]) -> tuple[PerAxis[float], PerAxis[float]]:
         """The reference for ``target``: the planner's ``desired`` (and its hysteresis
         target ``h``), or, after a backlog, both offset toward where the reference was
         last asked to be (the driver held that meanwhile). The offset shrinks each tick

@@ -31,6 +31,7 @@ from piezo_stage.core.loop.compensation import (
     PreviewedReference,
 )
 from piezo_stage.core.model.effects import effects_on
+from piezo_stage.core.types import Doc, EffectsBlock, Params, PerAxis
 
 EFFECTS_WITH_DYNAMICS = ("creep", "dynamics", "delay")  # drift ignores the input
 NOISE_KAPPA = 1.5  # a bin is learned where it exceeds this many noise RMS
@@ -39,7 +40,7 @@ DISTURBED_FACTOR = 2.0  # a period whose error RMS jumps past this times the las
 DISTURBED_RUN = 3       # ... is skipped, unless this many in a row have (a lasting change)
 
 
-def _scaled(params: dict, scale: dict | None) -> dict:
+def _scaled(params: Params, scale: Params | None) -> Params:
     sc = scale or {}
     out = {k: v for k, v in params.items() if k not in ("axes", "enabled")}
     for k, f in sc.items():
@@ -48,7 +49,7 @@ def _scaled(params: dict, scale: dict | None) -> dict:
     return out
 
 
-def creep_response(params: dict, rate_hz: float, freqs_hz: np.ndarray) -> np.ndarray:
+def creep_response(params: Params, rate_hz: float, freqs_hz: np.ndarray) -> np.ndarray:
     """Creep (core/model/effects.py's form) at the control rate: 1 - gamma (1 - the mean of
     its low-passes (1 - p) / (1 - p z^-1), p = exp(-T / tau))."""
     z1 = np.exp(-2j * np.pi * np.asarray(freqs_hz, float) / rate_hz)
@@ -58,7 +59,7 @@ def creep_response(params: dict, rate_hz: float, freqs_hz: np.ndarray) -> np.nda
     return 1 - min(float(params.get("gamma", 0.03)), 0.99) * (1 - slow)
 
 
-def held_dynamics_response(params: dict, delay_s: float, rate_hz: float,
+def held_dynamics_response(params: Params, delay_s: float, rate_hz: float,
                            freqs_hz: np.ndarray) -> np.ndarray:
     """Dynamics (and a transport delay) driven by a command held over each control
     period and read at the period's end, as the plant's sampled output: the delay's
@@ -81,8 +82,8 @@ def held_dynamics_response(params: dict, delay_s: float, rate_hz: float,
     return h * shift
 
 
-def effects_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: np.ndarray,
-                     scale: dict | None = None) -> np.ndarray:
+def effects_response(effects: EffectsBlock | None, axis: str, rate_hz: float, freqs_hz: np.ndarray,
+                     scale: Params | None = None) -> np.ndarray:
     """The axis's effects chain (creep, dynamics, delay; drift ignores the input) as the
     sampled plant shows it at the control rate, every parameter times ``scale``'s
     factor for it (a perturbed model)."""
@@ -98,9 +99,9 @@ def effects_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: 
     return g
 
 
-def loop_response(effects: dict | None, axis: str, rate_hz: float, freqs_hz: np.ndarray,
-                  compensator: EffectCompensator | None = None, scale: dict | None = None,
-                  model: dict | None = None) -> np.ndarray:
+def loop_response(effects: EffectsBlock | None, axis: str, rate_hz: float, freqs_hz: np.ndarray,
+                  compensator: EffectCompensator | None = None, scale: Params | None = None,
+                  model: Doc | None = None) -> np.ndarray:
     """From a correction of the desired position to the stage's position: the effects
     chain (``effects``, perhaps perturbed by ``scale``) times what the feedforward's
     ``compensator`` (a core.compensation.EffectCompensator, or None) does about the
@@ -149,11 +150,11 @@ class LearningDesign:
                 f"with its parameters off by the design's margin ({ok}: < 1)")
 
 
-def _scales(effects: dict, perturb: float) -> list[dict]:
+def _scales(effects: EffectsBlock, perturb: float) -> list[dict[str, float]]:
     """Every parameter of the effects off by +-perturb, one at a time and all together."""
     names = {"delay_s", "fn_hz", "zeta", "gamma", "tau_s"}
     present = sorted({k for p in (effects or {}).values() for k in p} & names)
-    out: list[dict] = [{}]
+    out: list[dict[str, float]] = [{}]
     for k in present:
         out += [{k: 1 + perturb}, {k: 1 - perturb}]
     if present:
@@ -161,7 +162,7 @@ def _scales(effects: dict, perturb: float) -> list[dict]:
     return out
 
 
-def design(n: int, rate_hz: float, effects: dict | None = None, axis: str = "x",
+def design(n: int, rate_hz: float, effects: EffectsBlock | None = None, axis: str = "x",
            compensator: EffectCompensator | None = None, gain: float = 1.0,
            perturb: float = 0.01,
            margin: float = 0.05, max_cutoff_hz: float | None = None) -> LearningDesign:
@@ -235,7 +236,7 @@ class PeriodicLearner:
     """
 
     def __init__(self, designs: dict[str, LearningDesign], gain_floor: float = 0.05,
-                 limit_um: float = 5.0):
+                 limit_um: float = 5.0) -> None:
         ns = {d.n for d in designs.values()}
         if len(ns) != 1:
             raise ConfigError("learning: every axis needs the same period")
@@ -266,12 +267,12 @@ class PeriodicLearner:
         self._done = False
         self._buf = {a: np.full(self.n, np.nan) for a in self.designs}
         self._ubuf = {a: np.full(self.n, np.nan) for a in self.designs}
-        self._used: dict[int, dict] = {}  # trajectory sample -> its correction (offset)
+        self._used: dict[int, Doc] = {}  # trajectory sample -> its correction (offset)
         self._gen = 0    # updates so far: the generation of the present correction
         self._gbuf = np.zeros(self.n, int)  # each sample's correction's generation
         self._period_gen: int | None = None
 
-    def observe(self, k: int, error: dict) -> bool:
+    def observe(self, k: int, error: PerAxis[float]) -> bool:
         """One sample's error [um] (desired - measured) at trajectory sample ``k``;
         learns as soon as the period's last sample has come with every other one (so the
         next period's first sample already gets the new correction). A period that
@@ -324,7 +325,7 @@ class PeriodicLearner:
         j = max(self.applied - FULL_GAIN_PERIODS + 2, 1)
         return float(min(j, (2 - f) / f)) if f > 0 else float(j)
 
-    def offset(self, k: int, axes: tuple | None = None) -> dict:
+    def offset(self, k: int, axes: tuple | None = None) -> PerAxis[float]:
         """The correction [um] at sample ``k`` of the trajectory, kept as what sample
         ``k`` of ``axes`` (default: every axis) was given, for learning its period."""
         i = int(k) % self.n
@@ -335,7 +336,8 @@ class PeriodicLearner:
         used["gen"] = self._gen
         return out
 
-    def update(self, errors: dict, applied: dict | None = None) -> None:
+    def update(self, errors: PerAxis[np.ndarray],
+               applied: PerAxis[np.ndarray] | None = None) -> None:
         """Learn one period's errors [um] (desired - measured) made with the correction
         ``applied`` (per axis, n samples; default ``c``, the present correction)."""
         errors = {a: np.asarray(errors[a], float) for a in self.designs}
@@ -376,7 +378,7 @@ class PeriodicLearner:
         self.applied += learned and gen >= 1
         self._gen += learned
 
-    def _disturbed_period(self, errors: dict) -> bool:
+    def _disturbed_period(self, errors: PerAxis[np.ndarray]) -> bool:
         """A period whose error RMS on some axis is more than DISTURBED_FACTOR times the
         last learned period's, plus three noise RMS, was disturbed (a host pause: the
         driver held a late command, the stage stood while the motion went on): it is not
@@ -466,13 +468,14 @@ class LearnedFeedforward:
     switches it (off: nothing applied, what was learned is kept); ``reset`` forgets
     (a new trajectory)."""
 
-    def __init__(self, reference: PreviewedReference, dt_ns: int, axes: tuple = ("x", "y")):
+    def __init__(self, reference: PreviewedReference, dt_ns: int,
+                 axes: tuple = ("x", "y")) -> None:
         self.ref, self.dt_ns, self.axes = reference, int(dt_ns), tuple(axes)
         self.learner: PeriodicLearner | None = None
         self.enabled, self.why = False, "off"
         self.asked: dict[int, tuple] = {}  # stamp [ns] -> (trajectory sample, {axis: um})
 
-    def configure(self, period_s: float, gain: float = 1.0, effects: dict | None = None,
+    def configure(self, period_s: float, gain: float = 1.0, effects: EffectsBlock | None = None,
                   compensator: EffectCompensator | None = None) -> None:
         """A learner for ``period_s`` (0: none) at the reference's rate."""
         self.learner, self.asked = None, {}
@@ -500,7 +503,7 @@ class LearnedFeedforward:
         if self.learner is not None:
             self.learner.reset()
 
-    def note(self, target_ns: int, desired: dict) -> None:
+    def note(self, target_ns: int, desired: PerAxis[float]) -> None:
         """What was asked for the sample at ``target_ns`` (while a trajectory runs)."""
         if self.learner is None or not self.enabled:
             return
@@ -508,7 +511,7 @@ class LearnedFeedforward:
         if k is not None:
             self.asked[int(target_ns)] = (k, dict(desired))
 
-    def measured(self, stamp_ns: int, w: dict) -> None:
+    def measured(self, stamp_ns: int, w: PerAxis[float]) -> None:
         """The measured position of the sample at ``stamp_ns``: its error is learned."""
         got = self.asked.pop(int(stamp_ns), None)
         self.asked = {t: v for t, v in self.asked.items() if t > stamp_ns}

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import DataError
+from piezo_stage.core.types import Doc
 
 
 @dataclass(frozen=True)
@@ -49,13 +50,13 @@ class MotionTimeModel:
         x, _ = nnls(A, t)
         return cls(float(x[0]), float(x[1]), float(x[2]), float(tol_um))
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> Doc:
         """The model as data (the client's file, a bench's JSON)."""
         return {"a_s": self.a_s, "b_s_per_um": self.b_s_per_um, "ring_s": self.ring_s,
                 "tol_um": self.tol_um}
 
     @classmethod
-    def from_dict(cls, d: dict) -> MotionTimeModel:
+    def from_dict(cls, d: Doc) -> MotionTimeModel:
         """The model from ``to_dict``'s data (DataError when a field is missing)."""
         try:
             return cls(float(d["a_s"]), float(d["b_s_per_um"]), float(d["ring_s"]),

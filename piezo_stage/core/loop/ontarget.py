@@ -20,9 +20,11 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.params import Param, Schema
+from piezo_stage.core.types import PerAxis
 
 MOVING, ON_TARGET, REFUSED = "moving", "on_target", "refused"
 GUARD_SIGMAS = 3.0  # the guard band: this many standard deviations of the filtered noise
@@ -51,10 +53,10 @@ class TargetState:
 
     move_id: str
     state: str
-    axes: dict
+    axes: PerAxis[Any]
     settle_s: float | None
-    error_um: dict
-    target_um: dict
+    error_um: PerAxis[float]
+    target_um: PerAxis[float]
     stamp_ns: int
     started_ns: int
     reason: str = ""
@@ -132,17 +134,17 @@ class OnTargetJudge:
     """
 
     def __init__(self, dt_s: float, tol_um: float = 0.3, window_s: float = 0.005,
-                 filter_s: float = 0.005):
+                 filter_s: float = 0.005) -> None:
         if not dt_s > 0:
             raise ConfigError("on target: the sample period must be > 0")
         self.dt_s = float(dt_s)
         self.move_id: str | None = None
-        self.target: dict = {}
+        self.target: PerAxis[float] = {}
         self.started_ns = 0
         self.axes: dict[str, _Axis] = {}
         self.settle_s: float | None = None
         self.state = MOVING
-        self.last: tuple[int, dict] | None = None  # the running move's last errors
+        self.last: tuple[int, PerAxis[float]] | None = None  # the running move's last errors
         self.configure(tol_um, window_s, filter_s)
 
     def configure(self, tol_um: float, window_s: float, filter_s: float) -> None:
@@ -157,7 +159,7 @@ class OnTargetJudge:
         for ax in self.axes.values():
             ax.n_filter = self.n_filter
 
-    def begin(self, move_id: str, target_um: dict, started_ns: int) -> None:
+    def begin(self, move_id: str, target_um: PerAxis[float], started_ns: int) -> None:
         """A new move to ``target_um`` ({axis: um}) from the sample stamped
         ``started_ns``: moving until judged on target."""
         self.move_id, self.target = str(move_id), dict(target_um)
@@ -173,7 +175,7 @@ class OnTargetJudge:
             ax = self.axes[a] = _Axis(self.n_filter)
         return ax
 
-    def sample(self, ns: int, w: dict) -> TargetState | None:
+    def sample(self, ns: int, w: PerAxis[float]) -> TargetState | None:
         """The measured sample ``w`` ({axis: um}) stamped ``ns``: the move's state when
         it changed (on target, or moving again), else None. No move: None."""
         quiet = self.move_id is None or self.state == ON_TARGET
@@ -214,7 +216,7 @@ class OnTargetJudge:
             self.settle_s = (since - self.started_ns) * 1e-9
         return self.report(ns, errors)
 
-    def report(self, ns: int, errors: dict) -> TargetState:
+    def report(self, ns: int, errors: PerAxis[float]) -> TargetState:
         """The move's state at ``ns`` (the filtered ``errors``)."""
         return TargetState(self.move_id or "", self.state,
                            {a: ON_TARGET if self.axes[a].on else MOVING

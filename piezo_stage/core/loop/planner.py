@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.types import Doc, PerAxis
 
 # -- approach -----------------------------------------------------------------------
 
@@ -22,8 +23,8 @@ class Approach:
     profile: speed <= ``speed_um_s`` and acceleration <= ``accel_um_s2`` along the path,
     all axes arriving together. ``at(tau)`` gives the position tau seconds in."""
 
-    start: dict
-    end: dict
+    start: Doc
+    end: Doc
     speed_um_s: float
     accel_um_s2: float
     duration_s: float = field(init=False)
@@ -60,7 +61,7 @@ class Approach:
             s = 0.5 * a * ta ** 2 + a * ta * (tau - ta)
         return min(max(s / self._dist, 0.0), 1.0)
 
-    def at(self, tau: float) -> dict:
+    def at(self, tau: float) -> Doc:
         """The position [um] ``tau`` seconds into the approach."""
         f = self.fraction(tau)
         return {a: self.start[a] + f * (self.end[a] - self.start[a]) for a in self.start}
@@ -85,7 +86,7 @@ class ReferencePlanner:
     stamps [ns] the caller asks for.
     """
 
-    def __init__(self, speed_um_s: float = 200.0, accel_um_s2: float = 20000.0):
+    def __init__(self, speed_um_s: float = 200.0, accel_um_s2: float = 20000.0) -> None:
         Approach({"x": 0.0}, {"x": 0.0}, speed_um_s, accel_um_s2)  # validates
         self.speed, self.accel = float(speed_um_s), float(accel_um_s2)
         self.traj: tuple[np.ndarray, dict[str, np.ndarray]] | None = None  # (t [s], {axis: um})
@@ -97,7 +98,8 @@ class ReferencePlanner:
         self.start_ns: int | None = None  # the trajectory's own start time, if it asked
         self.profile: tuple[float, float] | None = None  # a move's (speed, accel)
 
-    def set_trajectory(self, t: ArrayLike, w: dict, start_ns: int | None = None) -> None:
+    def set_trajectory(self, t: ArrayLike, w: PerAxis[np.ndarray],
+                       start_ns: int | None = None) -> None:
         """A new trajectory (t [s], {axis: um}): approached from where the stage is
         asked to be; its clock starts when the approach ends, or at ``start_ns`` if
         that is later."""
@@ -107,12 +109,12 @@ class ReferencePlanner:
         self.profile = None
         self._restart()
 
-    def set_setpoint(self, w: dict) -> None:
+    def set_setpoint(self, w: PerAxis[float]) -> None:
         """A new streamed setpoint {axis: um}: approached, then held."""
         self.setpoint, self.traj, self.profile = dict(w), None, None
         self._restart()
 
-    def set_move(self, w: dict, speed_um_s: float, accel_um_s2: float,
+    def set_move(self, w: PerAxis[float], speed_um_s: float, accel_um_s2: float,
                  start_ns: int | None = None) -> None:
         """A point-to-point move to {axis: um}: the same straight path as an approach,
         with the move's own speed and acceleration, then held (phase *done* once
@@ -123,11 +125,11 @@ class ReferencePlanner:
         self.profile = (float(speed_um_s), float(accel_um_s2))
         self._restart()
 
-    def _restart(self):
+    def _restart(self) -> None:
         if self.phase != HOLD:
             self.phase, self._approach, self._track_ns = APPROACH, None, None
 
-    def hold(self, w_now: dict) -> None:
+    def hold(self, w_now: Doc) -> None:
         """Disabled: ask for where the stage is; the next enable starts over."""
         self.phase, self._approach, self._track_ns = HOLD, None, None
         self.desired = dict(w_now)
@@ -138,7 +140,7 @@ class ReferencePlanner:
             return None
         return (target_ns - self._track_ns) * 1e-9
 
-    def _goal(self, desired: dict[str, float]) -> dict:
+    def _goal(self, desired: dict[str, float]) -> Doc:
         if self.traj is not None:
             t, w = self.traj
             return {a: float(w[a][0]) if a in w else desired[a] for a in desired}
@@ -146,7 +148,7 @@ class ReferencePlanner:
             return {a: self.setpoint.get(a, desired[a]) for a in desired}
         return dict(desired)
 
-    def sample(self, target_ns: int) -> dict:
+    def sample(self, target_ns: int) -> PerAxis[float]:
         """The desired position [um] for ``target_ns`` while enabled."""
         desired = self.desired
         if desired is None:
@@ -181,7 +183,8 @@ class ReferencePlanner:
         return dict(desired)
 
 
-def interp_axes(tau: float, t: np.ndarray, w: dict, held: dict) -> dict:
+def interp_axes(tau: float, t: np.ndarray, w: PerAxis[np.ndarray],
+                held: PerAxis[float]) -> PerAxis[float]:
     """Each axis of ``w`` ({axis: array over ``t``}) at ``tau`` [s], linearly
     interpolated and held past the ends (``np.interp``'s rule), the others as in
     ``held``: one search a sample for every axis (np.interp per axis and sample cost

@@ -33,6 +33,7 @@ from piezo_stage.core.loop.clock import CommandSchedule, SampleClock
 from piezo_stage.core.loop.control import clamp_slew
 from piezo_stage.core.loop.planner import DONE, TRACK
 from piezo_stage.core.params import Param, Schema
+from piezo_stage.core.types import Doc, PerAxis
 
 # the driver node's parameters (core/params.py); its arming supervisor's are arming.py's
 # real time, max_steps counted from arming: how long a run waits for its loop to close
@@ -111,9 +112,9 @@ class Sample:
     """One sample taken: its stamp [ns], the measured and (simulated stage) true
     positions [um] and the voltages applied [V]."""
     ns: int
-    w: dict
-    true: dict | None
-    applied: dict
+    w: PerAxis[float]
+    true: PerAxis[float] | None
+    applied: PerAxis[float]
 
 
 class Next(Enum):
@@ -207,7 +208,7 @@ class SampleLoop:
     """
 
     def __init__(self, backend: Backend, arm: ArmingParams, options: LoopOptions,
-                 on_state_change: Callable[[str, str, int], None]):
+                 on_state_change: Callable[[str, str, int], None]) -> None:
         o = self.options = options
         rate_hz, lookahead_s, max_steps = o.rate_hz, o.lookahead_s, o.max_steps
         clock_period_s, arm_on_start = o.clock_period_s, o.arm_on_start
@@ -259,7 +260,7 @@ class SampleLoop:
         return self.t0_ns + j * self.dt_ns
 
     def next_tick(self, now: float,
-                  ros_now_ns: Callable[[], int]) -> tuple[int, dict | None, bool, int]:
+                  ros_now_ns: Callable[[], int]) -> tuple[int, Doc | None, bool, int]:
         """Real time: (the sample due at monotonic ``now``, its command or None, whether
         that was on time, the ticks missed since the last one). At the first tick the
         hardware clock starts (not when built) and the sample clock is mapped to ROS
@@ -272,7 +273,7 @@ class SampleLoop:
         return j, cmd, on_time, j - self.j - 1
 
     # -- one call per message: the driver's whole sample -------------------------------
-    def on_command(self, ns: int, v: dict, recv_ns: int, link: str = "") -> Outcome:
+    def on_command(self, ns: int, v: PerAxis[float], recv_ns: int, link: str = "") -> Outcome:
         """A command (already decoded) for the sample stamped ``ns``, received at
         ``recv_ns``: lockstep, when it is the next sample's, that sample is taken;
         real time it is scheduled for its tick. ``link``: the missing links, named
@@ -293,7 +294,7 @@ class SampleLoop:
         j, cmd, on_time, missed = self.next_tick(now, ros_now_ns)
         return self._take(j, cmd, on_time, int(ros_now_ns()), link, missed)
 
-    def _take(self, j: int, cmd: dict | None, on_time: bool, now_ns: int, link: str,
+    def _take(self, j: int, cmd: PerAxis[float] | None, on_time: bool, now_ns: int, link: str,
               missed: int) -> Outcome:
         """Sample ``j`` and what follows it (``Outcome``)."""
         if self.ended(j):
@@ -315,7 +316,7 @@ class SampleLoop:
             after, why = Next.NONE, ""
         return Outcome(s, self.clock_due, after, why, None, stop, deadline)
 
-    def command(self, ns: int, v: dict, recv_ns: int) -> bool:
+    def command(self, ns: int, v: PerAxis[float], recv_ns: int) -> bool:
         """A command for the sample stamped ``ns`` (a valid one: the adapter checked
         it), received at ``recv_ns``. True in lockstep when it is the next sample's:
         take that sample now. A stamp that is no sample of this loop is counted."""
@@ -352,7 +353,7 @@ class SampleLoop:
         """Real time: ``max_steps`` taken and no shutdown asked for yet."""
         return self._past(j) and not self.shutdown_requested
 
-    def step(self, j: int, cmd: dict | None, on_time: bool, now_ns: int, link: str = "",
+    def step(self, j: int, cmd: PerAxis[float] | None, on_time: bool, now_ns: int, link: str = "",
              missed: int = 0) -> Sample:
         """Take sample ``j``: the supervisor's target, clamped and slewed (over the
         missed ticks too, where the backend held the last voltage), applied. Raises the
@@ -513,7 +514,7 @@ class SampleLoop:
         return f"faulted: {self.sup.reason}" if self.sup.state == FAULTED and \
             self.at_safe else None
 
-    def announced(self) -> dict:
+    def announced(self) -> Doc:
         """What the state topic tells: the look-ahead, the rate and the voltage range
         every axis can take (for the loop's nodes), whose set this is (host, and the
         launcher or shell that started the driver: a second launch on the namespace
@@ -528,7 +529,7 @@ class SampleLoop:
                 "feedforward_phase": self.ff_phase[0],
                 "feedforward_follows": self.ff_phase[1]}
 
-    def status(self) -> tuple[int, str, dict]:
+    def status(self) -> tuple[int, str, Doc]:
         """(level, message, values) for /diagnostics: 2 when faulted (disarmed is a
         state asked for, not a fault)."""
         lag, late, ms = self.sched.arrival_lag, self.clock.late, 1e3

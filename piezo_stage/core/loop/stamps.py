@@ -21,6 +21,8 @@ in the core's own counters.
 
 from __future__ import annotations
 
+from piezo_stage.core.types import Doc
+
 MAX_STAMP_NS = 2 ** 63 - 1
 
 
@@ -35,7 +37,7 @@ class StampGuard:
         Consistent stamps in a row, away from the stream, that re-base it.
     """
 
-    def __init__(self, window_ns: int = 10 * 10 ** 9, rebase_after: int = 50):
+    def __init__(self, window_ns: int = 10 * 10 ** 9, rebase_after: int = 50) -> None:
         self.window_ns = int(window_ns)
         self.rebase_after = int(rebase_after)
         self.last: int | None = None
@@ -73,7 +75,7 @@ class SampleGuard:
     controller's): what it drops, counted in ``stats`` (the core's counters:
     ``bad_messages``, ``stray_stamps``, ``late_dropped``)."""
 
-    def __init__(self, stats: dict[str, int]):
+    def __init__(self, stats: dict[str, int]) -> None:
         self.stats = stats
         self.stamps = StampGuard()  # a stray stamp from the graph never poisons the loop
 
@@ -113,7 +115,7 @@ class Publications:
         only the one its publisher holds, soon after the live copy).
     """
 
-    def __init__(self, remember: int = 64):
+    def __init__(self, remember: int = 64) -> None:
         self.remember = int(remember)
         self._order: list = []
         self._seen: set = set()
@@ -160,7 +162,7 @@ def request_key(frame_id: str) -> tuple | None:
     return None
 
 
-def publication_key(info: dict | None) -> tuple | None:
+def publication_key(info: Doc | None) -> tuple | None:
     """A publication's identity from the message info rclpy hands a two-argument
     subscription callback: (source timestamp [ns], publication sequence number);
     None where the middleware gives no source timestamp."""

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from piezo_stage.core.errors import ConfigError
+from piezo_stage.core.types import Doc
 
 KINDS = ("sine", "variable_sine", "steps", "triangle", "seed", "csv", "raster")
 
@@ -25,8 +26,8 @@ def generate(kind: str = "seed", duration_s: float = 1.0, dt_s: float = 1e-3,
              frequency_hz: float = 10.0, center_um: float = 21.0, amplitude_um: float = 24.0,
              axes: Sequence[str] = ("x", "y"),
              step_levels_um: Sequence[float] = (10.0, 40.0, 25.0, 55.0),
-             table: dict | None = None,
-             scan: dict | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+             table: Doc | None = None,
+             scan: Doc | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Returns (t [s], {axis: w [um]}) sampled every dt_s over duration_s. Kind ``csv``
     takes ``table``: {"t", "wx", "wy"} arrays, as the caller read them (io.csv_table).
     Kind ``raster`` takes ``scan``: :func:`raster`'s keyword arguments (its line rate is

@@ -29,6 +29,7 @@ from piezo_stage.core.errors import ModelError
 from piezo_stage.core.loop.compensation import CREEP_TAUS_S, DynamicsInverse
 from piezo_stage.core.model.duhem import StageModel
 from piezo_stage.core.model.effects import effects_on
+from piezo_stage.core.types import Doc, EffectsBlock, PerAxis
 
 
 def model_gain(model: StageModel, axis: str, n: int = 2001) -> tuple[float, float]:
@@ -49,7 +50,7 @@ def model_gain(model: StageModel, axis: str, n: int = 2001) -> tuple[float, floa
     return float(np.max(slope)), float(np.median(slope))
 
 
-def effects_response(effects: dict, axis: str, rate_hz: float,
+def effects_response(effects: EffectsBlock, axis: str, rate_hz: float,
                      z: np.ndarray) -> tuple[np.ndarray, int]:
     """The unmodelled effects' frequency response at z = e^(j w T) for ``axis``, and
     the whole periods of its delay."""
@@ -85,7 +86,7 @@ class Tuning:
     phase_margin_deg: float
     gain_margin_db: float
     noise_gain: float
-    gains_um_per_V: dict = field(default_factory=dict)
+    gains_um_per_V: Doc = field(default_factory=dict)
     method: str = ""
     source: str = ""
     notes: str = ""
@@ -141,7 +142,7 @@ def _margins(Lw, w):
     return pm, gm, w[cross[0]]
 
 
-def tune(model: StageModel, effects: dict | None = None, rate_hz: float = 1000.0,
+def tune(model: StageModel, effects: EffectsBlock | None = None, rate_hz: float = 1000.0,
          phase_margin_deg: float = 60.0, gain_margin_db: float = 10.0,
          latency_periods: float = 1.0, max_noise_gain: float = 0.3,
          source: str = "model") -> Tuning:
@@ -154,7 +155,8 @@ def tune(model: StageModel, effects: dict | None = None, rate_hz: float = 1000.0
     w = np.concatenate([np.geomspace(1e-4, math.pi * 0.999, 1500), [math.pi]])
     z = np.exp(1j * w)
     L = int(math.ceil(latency_periods - 1e-9))
-    plants, gains = {}, {}
+    plants: PerAxis[np.ndarray] = {}
+    gains: PerAxis[tuple[float, float]] = {}
     for a in ("x", "y"):
         if a not in model.axes:
             continue
@@ -174,8 +176,9 @@ def tune(model: StageModel, effects: dict | None = None, rate_hz: float = 1000.0
                   method, source)
 
 
-def _shape(plants: dict, w: np.ndarray, T: float, phase_margin_deg: float,
-           gain_margin_db: float, max_noise_gain: float, gains: dict, method: str,
+def _shape(plants: PerAxis[np.ndarray], w: np.ndarray, T: float, phase_margin_deg: float,
+           gain_margin_db: float, max_noise_gain: float,
+           gains: PerAxis[tuple[float, float]], method: str,
            source: str, notes: str = "") -> Tuning:
     """The PI search both tunings share: on a log grid of (kp, ki), the largest
     crossover whose loop meets the margins and the noise bound on every axis's plant
@@ -270,7 +273,7 @@ def relay_point(u_V: np.ndarray, y_um: np.ndarray, rate_hz: float, amplitude_V: 
                       float(2 * abs(Y1) / n), m, int(latency_periods))
 
 
-def tune_relay(points: dict, rate_hz: float = 1000.0, phase_margin_deg: float = 60.0,
+def tune_relay(points: Doc, rate_hz: float = 1000.0, phase_margin_deg: float = 60.0,
                gain_margin_db: float = 10.0, max_noise_gain: float = 0.3,
                source: str = "relay experiment") -> Tuning:
     """PI gains from relay experiments (``points``: axis -> RelayPoint). Each axis's

@@ -35,6 +35,7 @@ from piezo_stage.core._jit import PREFIX, as_f64
 from piezo_stage.core.errors import DataError, ModelError
 from piezo_stage.core.model._kernels import duhem_run, duhem_step
 from piezo_stage.core.model.play import PlayOperators
+from piezo_stage.core.types import Doc, Params, PerAxis
 
 
 def _coeffs(x, name):
@@ -308,7 +309,7 @@ class DuhemHysteresis:
     state.
     """
 
-    def __init__(self, model: DuhemModel):
+    def __init__(self, model: DuhemModel) -> None:
         self.model = model
         self._alpha, self._H = model.kernel_params()
         self.reset()
@@ -363,10 +364,10 @@ class StageModel:
     w_x = H_xx(v_x) + P_x(v_x) + H_xy(v_y). Axes absent from ``axes`` are not modelled.
     """
 
-    axes: dict
-    coupling: dict = field(default_factory=dict)
+    axes: PerAxis[Any]
+    coupling: Params = field(default_factory=dict)
     voltage_limits: tuple = (0.0, 150.0)
-    plays: dict = field(default_factory=dict)
+    plays: Doc = field(default_factory=dict)
 
     def __post_init__(self):
         for a in list(self.axes) + list(self.coupling) + list(self.plays):
@@ -380,8 +381,8 @@ class StageModel:
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise ModelError(f"voltage limits must be finite with min < max, got {lo}, {hi}")
 
-    def simulate(self, vx: ArrayLike, vy: ArrayLike, states: dict | None = None,
-                 dt_s: float = 0.0) -> tuple[dict[str, np.ndarray], dict]:
+    def simulate(self, vx: ArrayLike, vy: ArrayLike, states: PerAxis[Any] | None = None,
+                 dt_s: float = 0.0) -> tuple[dict[str, np.ndarray], Doc]:
         """Noise-free response [um] of each modelled axis to voltages [V].
 
         ``states`` maps 'x', 'y', 'cx', 'cy' to DuhemState, 'px', 'py' to the play
@@ -402,7 +403,7 @@ class StageModel:
             out[a] = w
         return out, states
 
-    def axis_simulate(self, axis: str, v: ArrayLike, states: dict | None = None,
+    def axis_simulate(self, axis: str, v: ArrayLike, states: PerAxis[Any] | None = None,
                       dt_s: float = 0.0) -> tuple[np.ndarray, DuhemState]:
         """One axis's own response [um] (its Duhem model and play operators, no
         coupling) to ``v`` [V]; ``states`` and ``dt_s`` as for ``simulate`` (the play
@@ -483,7 +484,7 @@ def voltage_limits_for(voltages: Iterable[ArrayLike],
             max(DEFAULT_LIMITS_V[1], float(np.ceil(vmax))))
 
 
-def past_fit_range(model: StageModel, v: dict) -> list[str]:
+def past_fit_range(model: StageModel, v: PerAxis[np.ndarray]) -> list[str]:
     """Where the voltages ``v`` ({axis: array} [V]) go past the range each axis's model
     was fitted on (beyond it the branches continue straight from their ends), one
     phrase an axis: "vx reaches 148 V, 15 V past the 0-133 V it was fitted on"."""

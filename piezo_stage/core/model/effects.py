@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.model._kernels import delay_columns
+from piezo_stage.core.types import AxisEffects, Doc, EffectsBlock, Params, PerAxis
 
 EFFECTS = ("creep", "dynamics", "delay", "drift")
 AXES_OF_EFFECTS = ("x", "y")  # an effect without ``axes`` acts on both
@@ -62,13 +63,13 @@ def from_rest(op: Callable[[np.ndarray], np.ndarray], X: np.ndarray) -> np.ndarr
 class _LinearFilter:
     """An IIR filter y = (b/a) x with carried state (scipy lfilter with zi)."""
 
-    def __init__(self, b, a):
+    def __init__(self, b, a) -> None:
         self.b = np.asarray(b, float)
         self.a = np.asarray(a, float)
         self._lfilter, self._lfilter_zi = _signal().lfilter, _signal().lfilter_zi
         self.reset()
 
-    def reset(self, x0: float = 0.0):
+    def reset(self, x0: float = 0.0) -> None:
         # start at rest with input and output at x0 (steady state of a unit-DC filter)
         self.zi = self._lfilter_zi(self.b, self.a) * x0
 
@@ -98,7 +99,7 @@ class Creep:
     """
 
     def __init__(self, fs_hz: float, gamma: float = 0.03,
-                 tau_s: Sequence[float] = (0.05, 0.5, 5.0, 50.0)):
+                 tau_s: Sequence[float] = (0.05, 0.5, 5.0, 50.0)) -> None:
         self.gamma = float(gamma)
         if not 0 <= self.gamma < 1:
             raise ConfigError(f"creep gamma must be in [0, 1), got {gamma}")
@@ -171,7 +172,7 @@ class Dynamics:
     """
 
     def __init__(self, fs_hz: float, kind: str = "resonance", fn_hz: float = 800.0,
-                 zeta: float = 0.05, tau_s: float = 0.5e-3, delay_frac_s: float = 0.0):
+                 zeta: float = 0.05, tau_s: float = 0.5e-3, delay_frac_s: float = 0.0) -> None:
         self.kind = kind
         dt = 1.0 / fs_hz
         if kind == "resonance":
@@ -223,7 +224,7 @@ class Dynamics:
 class Delay:
     """Pure delay of ``delay_s`` seconds (fractional samples by linear interpolation)."""
 
-    def __init__(self, fs_hz: float, delay_s: float = 0.5e-3):
+    def __init__(self, fs_hz: float, delay_s: float = 0.5e-3) -> None:
         self.delay_s = float(delay_s)
         if not np.isfinite(self.delay_s) or self.delay_s < 0:
             raise ConfigError(f"delay_s must be >= 0, got {delay_s}")
@@ -260,7 +261,7 @@ class Drift:
     """Thermal drift independent of the input: rate * t + amplitude * (1 - exp(-t/tau))."""
 
     def __init__(self, fs_hz: float, rate_um_per_s: float = 0.01, amplitude_um: float = 0.5,
-                 tau_s: float = 60.0):
+                 tau_s: float = 60.0) -> None:
         self.dt = 1.0 / fs_hz
         self.rate = float(rate_um_per_s)
         self.amplitude = float(amplitude_um)
@@ -320,7 +321,7 @@ def _in_range(where: str, x, lo: float, hi: float) -> float:
     return v
 
 
-def validate_effects(effects: dict | None, where: str = "effects") -> dict:
+def validate_effects(effects: EffectsBlock | None, where: str = "effects") -> EffectsBlock:
     """The ``effects`` block of a model or plant file, checked and normalised.
 
     Each effect a mapping with only its own parameters (``EFFECT_RANGES``, ``kind``
@@ -347,7 +348,7 @@ def validate_effects(effects: dict | None, where: str = "effects") -> dict:
         return {}
     if not isinstance(effects, dict):
         raise ConfigError(f"{where} must be a mapping")
-    out: dict = {}
+    out: Doc = {}
     for name, p in effects.items():
         w = f"{where}.{name}"
         if name not in EFFECT_RANGES:
@@ -371,7 +372,7 @@ def validate_effects(effects: dict | None, where: str = "effects") -> dict:
     return out
 
 
-def _checked_effect(name: str, p: object, w: str) -> dict:
+def _checked_effect(name: str, p: object, w: str) -> Params:
     """One effect's mapping, checked and normalised (``validate_effects``)."""
     if p is None:
         p = {}
@@ -408,14 +409,14 @@ def _checked_effect(name: str, p: object, w: str) -> dict:
     return q
 
 
-def _entries(p: dict | list | None) -> list[dict]:
+def _entries(p: Params | list | None) -> list[dict]:
     """An effect's entries: its mapping, or each of its list's."""
     if p is None:
         return [{}]
     return [dict(x or {}) for x in p] if isinstance(p, list) else [dict(p)]
 
 
-def sampled_pair(on: dict[str, dict], fs_hz: float) -> dict[str, dict]:
+def sampled_pair(on: AxisEffects, fs_hz: float) -> AxisEffects:
     """An axis's effects ({name: params}) as they act at a rate ``fs_hz`` where it
     has both dynamics and a delay: the delay's whole samples a plain shift, its fraction
     the instant the dynamics' output is read within a sample (``Dynamics``'s
@@ -434,11 +435,11 @@ def sampled_pair(on: dict[str, dict], fs_hz: float) -> dict[str, dict]:
                 {**p, "delay_frac_s": frac} if n == "dynamics" else p) for n, p in on.items()}
 
 
-def effects_on(effects: dict | None, axis: str) -> dict[str, dict]:
+def effects_on(effects: EffectsBlock | None, axis: str) -> AxisEffects:
     """The effects that act on ``axis``, each as its parameters alone ({name: params},
     no ``axes`` or ``enabled``): the one reading of a model or plant file's ``effects``
     block per axis (an entry without ``axes`` acts on both; ``enabled: false`` on none)."""
-    out: dict[str, dict] = {}
+    out: AxisEffects = {}
     for name, p in (effects or {}).items():
         for e in _entries(p):
             if e.pop("enabled", True) and axis in e.pop("axes", AXES_OF_EFFECTS):
@@ -447,11 +448,11 @@ def effects_on(effects: dict | None, axis: str) -> dict[str, dict]:
 
 
 
-def effects_block(per_axis: dict[str, dict[str, dict]]) -> dict:
+def effects_block(per_axis: PerAxis[AxisEffects]) -> EffectsBlock:
     """The ``effects`` block of a model file from each axis's effects ({axis: {name:
     params}}, as ``effects_on`` reads them back): one mapping per effect whose axes share
     its parameters, else one entry per axis."""
-    out: dict = {}
+    out: Doc = {}
     names = [n for n in EFFECTS if any(n in e for e in per_axis.values())]
     for name in names:
         sets: list[dict] = []
@@ -469,7 +470,7 @@ def effects_block(per_axis: dict[str, dict[str, dict]]) -> dict:
     return out
 
 
-def make_effect(name: str, fs_hz: float, params: dict) -> Creep | Dynamics | Delay | Drift:
+def make_effect(name: str, fs_hz: float, params: Params) -> Creep | Dynamics | Delay | Drift:
     """Build effect ``name`` from a parameter dict (unknown keys are an error)."""
     if name not in _CLASSES:
         raise ConfigError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
@@ -485,11 +486,11 @@ def make_effect(name: str, fs_hz: float, params: dict) -> Creep | Dynamics | Del
         raise ConfigError(f"effect {name}: {e}") from None
 
 
-def enabled_effects(effects: dict, where: str = "effects") -> dict:
+def enabled_effects(effects: EffectsBlock, where: str = "effects") -> EffectsBlock:
     """Keep the effects with enabled: true (default true when the key is absent);
     the block checked by the one validation every model and plant file shares
     (core/model/effects.py validate_effects)."""
-    out: dict = {}
+    out: Doc = {}
     for name, p in validate_effects(effects, where).items():
         if isinstance(p, list):
             kept = [x for x in p if x.pop("enabled", True)]

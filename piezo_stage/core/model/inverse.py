@@ -28,8 +28,9 @@ Seed eq. 12 (for comparison)
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -51,6 +52,7 @@ from piezo_stage.core.model.duhem import (
     branch_values,
 )
 from piezo_stage.core.model.play import PlayOperators
+from piezo_stage.core.types import PerAxis
 
 # Scan resolution for the first root: the voltage span is split into this many
 # intervals; a branch would need two roots within span/64 (> 2 V) to fool it.
@@ -135,9 +137,11 @@ def invert_seed_eq12(model: DuhemModel, w_target: ArrayLike,
     return InverseResult(v, w, sat, DuhemState(vp, wp))
 
 
-def invert_stage(model: StageModel, wx: ArrayLike, wy: ArrayLike, states: dict | None = None,
+def invert_stage(model: StageModel, wx: ArrayLike, wy: ArrayLike,
+                 states: PerAxis[Any] | None = None,
                  tol_V: float = 1e-10, max_iter: int = 50,
-                 dt_s: float = 0.0, held_V: dict | None = None) -> dict[str, InverseResult]:
+                 dt_s: float = 0.0, held_V: Mapping[str, ArrayLike] | None = None
+                 ) -> PerAxis[InverseResult]:
     """Joint inverse of a 2-axis model with coupling.
 
     w_x = H_xx(v_x) + P_x(v_x) + H_xy(v_y) and likewise for y: Gauss-Seidel on whole
@@ -190,7 +194,7 @@ class StageInverse:
     """
 
     def __init__(self, model: StageModel, use_coupling: bool = True, sweeps: int = 4,
-                 dt_s: float = 0.0):
+                 dt_s: float = 0.0) -> None:
         self.model = model
         self.dt_s = float(dt_s)
         self.use_coupling = bool(use_coupling and model.coupling)
@@ -230,7 +234,7 @@ class StageInverse:
         self.saturated = 0
         self.reset()
 
-    def reset(self, v: dict | None = None, w: dict | None = None) -> None:
+    def reset(self, v: PerAxis[float] | None = None, w: PerAxis[float] | None = None) -> None:
         """Back to the model's initial states, or to voltages v / outputs w (dicts)."""
         init = [self.model.axes[a].initial if a in self.model.axes else DuhemState(
             self.limits[0], 0.0) for a in AXES]

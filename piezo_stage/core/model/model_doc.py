@@ -59,6 +59,7 @@ from piezo_stage.core.model.duhem import (
 )
 from piezo_stage.core.model.effects import validate_effects
 from piezo_stage.core.model.play import MAX_OPERATORS, PlayOperators
+from piezo_stage.core.types import Doc, EffectsBlock, PerAxis
 from piezo_stage.core.yaml_text import (  # noqa: F401 - the document's names, as before
     MAX_YAML_BYTES,
     MAX_YAML_DEPTH,
@@ -191,7 +192,7 @@ def _plays(d, v0, where) -> PlayOperators:
         raise ModelError(f"{where}: {e}") from None
 
 
-def model_from_dict(doc: object, source: str = "model") -> tuple[StageModel, dict]:
+def model_from_dict(doc: object, source: str = "model") -> tuple[StageModel, Doc]:
     """Parse a model document; returns (StageModel, effects dict)."""
     if not isinstance(doc, dict) or SCHEMA_KEY not in doc:
         raise ModelError(f"{source}: not a piezo_stage model file (no '{SCHEMA_KEY}' key)")
@@ -282,7 +283,7 @@ def bounded_past_fit(model: StageModel) -> tuple[StageModel, list[str]]:
     that is no stage: nothing is written then."""
     notes: list[str] = []
     v = np.linspace(model.voltage_limits[0], model.voltage_limits[1], 201)
-    parts: dict = {"axes": dict(model.axes), "coupling": dict(model.coupling)}
+    parts: Doc = {"axes": dict(model.axes), "coupling": dict(model.coupling)}
     for kind, models in parts.items():
         for a, m in models.items():
             bad = _branch_problem(m, v)
@@ -330,11 +331,11 @@ def _duhem_doc(m: DuhemModel):
     return d
 
 
-def model_to_dict(model: StageModel, effects: dict | None = None,
-                  extra: dict | None = None) -> dict:
+def model_to_dict(model: StageModel, effects: EffectsBlock | None = None,
+                  extra: Doc | None = None) -> Doc:
     """The model document (the schema above) of ``model``, its ``effects`` and any
     ``extra`` top-level keys (identification figures)."""
-    axes: dict[str, dict] = {}
+    axes: PerAxis[Doc] = {}
     doc: dict[str, object] = {
         SCHEMA_KEY: SCHEMA_VERSION,
         "convention": "seed-eq6",
@@ -364,8 +365,8 @@ def model_to_dict(model: StageModel, effects: dict | None = None,
     return doc
 
 
-def checked_doc(model: StageModel, effects: dict | None = None,
-                extra: dict | None = None) -> tuple[dict, list[str]]:
+def checked_doc(model: StageModel, effects: EffectsBlock | None = None,
+                extra: Doc | None = None) -> tuple[dict, list[str]]:
     """The model document a writer writes (a file, the model message): ``model``
     bounded past its fitted range where it must be (``bounded_past_fit``), then read
     back by the loader's own parser and checks, so no writer of ours writes a model our

@@ -34,6 +34,7 @@ from piezo_stage.core.model.effects import (
     sampled_pair,
 )
 from piezo_stage.core.model.play import PlayHysteresis
+from piezo_stage.core.types import EffectsBlock, Params, PerAxis
 
 # Order in which effects act on the displacement (see module docstring).
 EFFECT_ORDER = ("creep", "dynamics", "drift", "delay")
@@ -75,9 +76,9 @@ class PlantConfig:
     slew_V_per_s: float = 1.0e5
     noise_rms_um: float = 0.1
     quantization_um: float = 0.005
-    effects: dict = field(default_factory=dict)
+    effects: EffectsBlock = field(default_factory=dict)
     seed: int = 0
-    hysteresis: dict = field(default_factory=dict)
+    hysteresis: Params = field(default_factory=dict)
     changes: list = field(default_factory=list)
 
     def __post_init__(self):
@@ -93,7 +94,7 @@ class PlantConfig:
 
     @classmethod
     def exact(cls, model: StageModel, rate_hz: float,
-              effects: dict | None = None) -> "PlantConfig":
+              effects: EffectsBlock | None = None) -> "PlantConfig":
         """The model and nothing else: no noise, slew or quantisation; with
         ``effects`` (a model file's block) the enabled ones."""
         return cls(model, internal_rate_hz=rate_hz, slew_V_per_s=np.inf,
@@ -111,14 +112,14 @@ class Plant:
     """
 
     @classmethod
-    def of_model(cls, model: StageModel, effects: dict | None,
+    def of_model(cls, model: StageModel, effects: EffectsBlock | None,
                  rate_hz: float) -> "Plant":
         """The exact plant of a model (its twin: the model and its enabled ``effects``,
         no noise, slew or quantisation) driven at ``rate_hz``: the one way a model is
         simulated as a stage (simulate --model, the gap node, the studies)."""
         return cls(PlantConfig.exact(model, rate_hz, effects), rate_hz)
 
-    def __init__(self, config: PlantConfig, command_rate_hz: float):
+    def __init__(self, config: PlantConfig, command_rate_hz: float) -> None:
         if not command_rate_hz > 0:
             raise ConfigError("command rate must be > 0")
         self.config = config
@@ -154,7 +155,7 @@ class Plant:
     # by y), coupling into y (driven by x)
     _MODELS = (("x", "axis"), ("y", "axis"), ("x", "coupling"), ("y", "coupling"))
 
-    def _kernel_params(self):
+    def _kernel_params(self) -> None:
         """The models as ``plant_run`` takes them, and the plant's state arrays."""
         model = self.config.model
         self._models = [model.axes.get(a) if kind == "axis" else
@@ -175,7 +176,7 @@ class Plant:
         self._has_effects = any(self._effects[a] for a in AXES)
         self._one = np.zeros((2, 1))  # step's command buffer
 
-    def _build_effects(self, at_rest: dict | None) -> None:
+    def _build_effects(self, at_rest: PerAxis[float] | None) -> None:
         """Each axis's effects from the parameters as they stand (the one reading of
         the block per axis: effects_on); with ``at_rest`` ({axis: um}), only those
         whose parameters changed are built again, at rest there."""
@@ -199,7 +200,7 @@ class Plant:
             self._effects[a] = built
         self._has_effects = any(self._effects[a] for a in AXES)
 
-    def _apply_change(self, change: dict) -> None:
+    def _apply_change(self, change: Params) -> None:
         """A scheduled change (PlantConfig.changes) from now on."""
         for name, p in change["effects"].items():
             if isinstance(p, dict) and not p.get("enabled", True):

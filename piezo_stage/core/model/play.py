@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.core.model._kernels import play_run, play_run_rate
+from piezo_stage.core.types import Params
 
 RATE_FILTER_S = 2e-3  # s: the rate a rate-dependent law sees is |dv/dt| low-passed
 # s: a model's rate widening stays below the filter's time constant, so that the
@@ -245,11 +246,11 @@ class PlayHysteresis:
     rate_widening_s: float = 0.0  # thresholds r_j + this x |dv/dt|: a rate-dependent law
     table: np.ndarray = field(init=False, repr=False, compare=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.table = unbanded(self.thresholds_V)  # the compiled kernels' view
 
     @classmethod
-    def from_params(cls, params: dict, where: str = "hysteresis") -> PlayHysteresis:
+    def from_params(cls, params: Params, where: str = "hysteresis") -> PlayHysteresis:
         """From a plant file's ``hysteresis`` block; ConfigError naming the key."""
         unknown = set(params) - set(KEYS)
         if unknown:

@@ -55,6 +55,7 @@ from piezo_stage.core.estimation.gap.selection import AxisDiagnosis, diagnose_ax
 from piezo_stage.core.estimation.gap.where import held, holds  # noqa: F401
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.model.duhem import StageModel, voltage_limits_for
+from piezo_stage.core.types import Doc, EffectsBlock, PerAxis
 from piezo_stage.core.workers import forking, quiet_worker
 
 # The other speed-up (see candidates.ONE_COLUMN_SEARCH): the axes in processes
@@ -69,8 +70,8 @@ class Diagnosis:
     diagnosis (its kept model and candidates: for reports and ``model``), and
     ``limits_V``, the voltage limits of every model it wrote and scored."""
 
-    json: dict
-    per_axis: dict
+    json: Doc
+    per_axis: PerAxis[Any]
     limits_V: tuple = (0.0, 150.0)
 
     def __getitem__(self, key: str) -> Any:  # the JSON contract's values
@@ -87,7 +88,7 @@ class Diagnosis:
         return document({a: d.written.written() for a, d in self.per_axis.items()},
                         self.limits_V)
 
-    def model(self) -> tuple[StageModel, dict]:
+    def model(self) -> tuple[StageModel, Doc]:
         """The written model read back as a model file is read: (StageModel, effects)."""
         from piezo_stage.core.model.model_doc import model_from_dict
         return model_from_dict(self.document()[0], "the model to write")
@@ -109,7 +110,7 @@ def _holes_filled(fit: Record, axes: Sequence[str]) -> Record:
     return fill_unmeasured(fit, pred)
 
 
-def _axis_child(conn, fit, holdout, axis, args):
+def _axis_child(conn, fit, holdout, axis, args) -> None:
     quiet_worker()  # the parent decides about stops (core/workers.py)
     effects, base_model, base_effects, limits_V, history = args
     try:
@@ -179,7 +180,7 @@ def _axes_apart(fit, holdout, axes, args, progress):
 def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] = EFFECTS,
              axes: Sequence[str] | None = None, base_model: StageModel | None = None,
              progress: Callable[[str], None] | None = None,
-             base_effects: dict | None = None, limits_V: tuple | None = None,
+             base_effects: EffectsBlock | None = None, limits_V: tuple | None = None,
              history: int = 0) -> Diagnosis:
     """Diagnose the gap on every axis (see the module docstring). ``progress(what)`` is
     called after each candidate fit (in this thread: relayed from the axes' processes);

@@ -13,6 +13,7 @@ from piezo_stage.core.metrics import rms
 from piezo_stage.core.model.duhem import OTHER
 from piezo_stage.core.model.effects import Dynamics
 from piezo_stage.core.model.play import play_columns
+from piezo_stage.core.types import Doc
 
 
 def gap_above_floor(r: float, nf: float) -> float:
@@ -186,7 +187,7 @@ def synchronous_split(resid: np.ndarray, period: int) -> tuple[float, float, int
 
 
 def gap_budget(holdout: Record, axis: str, resid: np.ndarray, nf: float, g_before: float,
-               steps: list[dict]) -> dict:
+               steps: list[dict]) -> Doc:
     """Where the held-out residual goes [um]: the noise floor; the part locked to the
     input (cross-validated, ``input_locked``) and the rest above the noise; what each
     kept effect explains (the drop of the gap, in quadrature) and what is left. The

@@ -54,6 +54,7 @@ from piezo_stage.core.model.duhem import (
 from piezo_stage.core.model.effects import Creep, Drift
 from piezo_stage.core.model.inverse import invert
 from piezo_stage.core.model.play import PlayOperators, play_columns
+from piezo_stage.core.types import EffectsBlock, Params
 
 EFFECTS = ("creep", "dynamics", "delay", "drift", "coupling", "structure")
 
@@ -93,7 +94,7 @@ class AxisWritten:
     file (``gap/written.py``)."""
 
     parts: AxisParts
-    effects: dict
+    effects: EffectsBlock
 
 
 class Fitted(Protocol):
@@ -104,14 +105,14 @@ class Fitted(Protocol):
     effects as a model file writes them."""
 
     effect: str
-    params: dict
+    params: Params
     effects: list
     fit_rms_um: float
 
     def predict(self, rec: Record, axis: str) -> np.ndarray:
         """The candidate's output over ``rec`` [um]."""
 
-    def model_effects(self) -> dict:
+    def model_effects(self) -> EffectsBlock:
         """Every kept plant effect as model-file parameters {name: params}."""
 
     def written(self) -> AxisWritten:
@@ -124,7 +125,7 @@ class Candidate:
     they were added (``effect`` is the last one, "none" for the base alone)."""
 
     effect: str
-    params: dict
+    params: Params
     alphas: np.ndarray
     theta: np.ndarray
     reg: DuhemRegression
@@ -213,11 +214,11 @@ class Candidate:
         return PlayOperators.at_rest(self.plays_V, self.theta[k - n:k], float(self.reg.v[0]),
                                      self.plays_start, self.plays_beta)
 
-    def model_effect(self) -> dict | None:
+    def model_effect(self) -> EffectsBlock | None:
         """The effect as model-file / plant parameters (None for none and coupling)."""
         return None if self.effect in SHAPES else dict(self.params)
 
-    def model_effects(self) -> dict:
+    def model_effects(self) -> EffectsBlock:
         """Every kept effect as model-file / plant parameters {name: params} (coupling
         is in the Duhem model itself)."""
         return {n: dict(p) for n, p in self.effects if n not in SHAPES}
@@ -252,7 +253,7 @@ class ClassCandidate:
     fit_rms_um: float
     v0: float
     effect: str = "memory"
-    params: dict = field(default_factory=dict)
+    params: Params = field(default_factory=dict)
     effects: list = field(default_factory=list)
     reg_fs: float = 0.0
     coupling: DuhemModel | None = None   # from the other axis's voltage (whole law)
@@ -311,12 +312,12 @@ class ClassCandidate:
         term or None), as ``identify --class`` writes them."""
         return (*self.pi.to_model(self.v0), self.coupling)
 
-    def model_effect(self) -> dict | None:
+    def model_effect(self) -> EffectsBlock | None:
         """The effect as model-file / plant parameters (None for the shapes: memory,
         coupling)."""
         return None if self.effect in SHAPES else dict(self.params)
 
-    def model_effects(self) -> dict:
+    def model_effects(self) -> EffectsBlock:
         """Every kept plant effect as model-file parameters {name: params} (coupling is
         a term of the model itself, memory the class)."""
         return {n: dict(p) for n, p in self.effects if n not in SHAPES}
@@ -334,7 +335,7 @@ MEMORY_CLASSES = ("pi", "preisach")  # the memory candidate's class forms
 
 def fit_class_candidate(rec: Record, axis: str, limits_V: tuple | None = None,
                         kind: str = "pi", base: Candidate | None = None,
-                        kept: Sequence[tuple[str, dict]] = (),
+                        kept: Sequence[tuple[str, Params]] = (),
                         effect: str = "memory") -> ClassCandidate:
     """A class with memory in place of the Duhem law, as the memory candidate's other
     forms, fitted as ``identify --class`` fits it on ``rec``'s axis: ``kind`` 'pi'
@@ -456,7 +457,7 @@ def fit_class_effect(rec: Record, axis: str, on: ClassCandidate, effect: str,
 
 
 def _class_creep(rec: Record, axis: str, on: ClassCandidate,
-                 kept: Sequence[tuple[str, dict]]) -> float:
+                 kept: Sequence[tuple[str, Params]]) -> float:
     """Creep's fraction gamma for a class (``on``: its operators as regressors, the
     coupling's output as one column), every weight refitted at each gamma
     (``nonneg_family_rms``), the kept transform effects in place."""
@@ -484,7 +485,7 @@ CLASS_ALTERNATIONS = 4  # an effect added to a class: its search and the refit, 
 
 
 def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = None,
-                  kept: Sequence[tuple[str, dict]] = (), memory: bool = False,
+                  kept: Sequence[tuple[str, Params]] = (), memory: bool = False,
                   rate: bool = False) -> Candidate:
     """Fit the Duhem model, the effects already ``kept`` ([(name, params)], their
     parameters fixed) and ``effect`` (its parameters searched) together on rec. The
@@ -529,7 +530,7 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
         return Candidate(effect, {}, alphas, fit.theta, reg, fit.rms, fixed_op, tau,
                          with_drift(list(kept), reg, fit.theta, tau), fs, plays, start, beta)
     alphas = np.asarray(base.alphas, float)
-    params: dict = {}
+    params: Params = {}
     if effect == "coupling" and base.reg.v_other is None:
         alphas = np.append(alphas, alphas.mean())
     elif effect in ("structure", "memory", "rate"):
@@ -563,8 +564,8 @@ def fit_candidate(rec: Record, axis: str, effect: str, base: Candidate | None = 
                      effects, fs, plays, start, beta)
 
 
-def _whole_sample_delay(reg: DuhemRegression, kept: Sequence[tuple[str, dict]],
-                       params: dict, alphas: np.ndarray, fit: Fit, fs: float) -> tuple:
+def _whole_sample_delay(reg: DuhemRegression, kept: Sequence[tuple[str, Params]],
+                       params: Params, alphas: np.ndarray, fit: Fit, fs: float) -> tuple:
     """A delay found between two whole samples, tried at each of them, its alphas
     polished as the fraction's were (a command held over each period makes a plant's
     delay a shift of whole samples at the samples: a stage's 2.8 ms delay was found as

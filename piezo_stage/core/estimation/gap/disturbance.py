@@ -9,11 +9,12 @@ from scipy import signal
 from piezo_stage.core.estimation.gap.where import held
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.model.duhem import OTHER
+from piezo_stage.core.types import Doc
 
 PEAK_RATIO = 20.0   # a narrowband line: this many times the residual's median PSD
 
 
-def disturbance(rec: Record, axis: str, resid: np.ndarray, nf: float) -> dict | None:
+def disturbance(rec: Record, axis: str, resid: np.ndarray, nf: float) -> Doc | None:
     """Motion the input does not cause: the strongest narrow line in the residual's
     spectrum away from where the inputs have power (their tones, harmonics and step
     edges), when it stands clear of the residual's own floor. No model can remove it
@@ -74,7 +75,7 @@ def disturbance(rec: Record, axis: str, resid: np.ndarray, nf: float) -> dict | 
     return None
 
 
-def _joint_holds(rec: Record, axis: str, min_s=0.25, total_s=1.0):
+def _joint_holds(rec: Record, axis: str, min_s: float = 0.25, total_s: float = 1.0):
     """Sample ranges where both inputs are held (>= min_s each, >= total_s in all)."""
     mask = held(rec.v[axis], rec.fs_hz, min_s)
     vo = rec.v.get(OTHER[axis])

@@ -14,6 +14,7 @@ import numpy as np
 
 from piezo_stage.core.model.duhem import AXES, StageModel
 from piezo_stage.core.model.plant import Plant
+from piezo_stage.core.types import EffectsBlock
 
 ZERO_SAMPLES = 100  # the sensor's zero: averaged over this many first samples
 
@@ -22,8 +23,8 @@ class ResidualMonitor:
     """The residual of a stage against the exact twin of ``model`` (with its
     ``effects``, as its file lists them) driven at ``rate_hz``."""
 
-    def __init__(self, model: StageModel, effects: dict | None, rate_hz: float,
-                 window: int):
+    def __init__(self, model: StageModel, effects: EffectsBlock | None, rate_hz: float,
+                 window: int) -> None:
         self.twin = Plant.of_model(model, effects, rate_hz)
         self.res: dict[str, deque[float]] = {a: deque(maxlen=int(window)) for a in AXES}
         self.offset = dict.fromkeys(AXES, 0.0)

@@ -9,12 +9,13 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from piezo_stage.core.model.effects import Creep, Delay, Dynamics, sampled_pair
+from piezo_stage.core.types import EffectsBlock, Params
 
 TRANSFORMS = ("creep", "dynamics", "delay")  # linear time-invariant: they commute
 CREEP_TAUS = (0.05, 0.5, 5.0, 50.0)
 
 
-def effect_operator(name: str, fs: float, params: dict) -> Callable[[np.ndarray], np.ndarray]:
+def effect_operator(name: str, fs: float, params: Params) -> Callable[[np.ndarray], np.ndarray]:
     """The column operator (X -> E(X)) of a transform effect with these parameters."""
     if name == "creep":
         return Creep(fs, gamma=params["gamma"], tau_s=params.get("tau_s", CREEP_TAUS)).apply
@@ -25,7 +26,7 @@ def effect_operator(name: str, fs: float, params: dict) -> Callable[[np.ndarray]
     raise ValueError(f"{name} is not a transform effect")
 
 
-def transform_ops(effects: Sequence[tuple[str, dict]],
+def transform_ops(effects: Sequence[tuple[str, EffectsBlock]],
                   fs: float) -> Callable[[np.ndarray], np.ndarray] | None:
     """The column operator of the transform effects among ``effects`` [(name, params)]
     (None: none), as the plant applies them at the rate ``fs`` (with both dynamics and
@@ -38,7 +39,7 @@ class _Chain:
     """Operators applied in turn (a class, not a closure: a diagnosis crosses a process
     boundary, see ``diagnose``)."""
 
-    def __init__(self, ops):
+    def __init__(self, ops) -> None:
         self.ops = ops
 
     def __call__(self, X):

@@ -24,6 +24,7 @@ from piezo_stage.core.estimation.identify.regress import (
 )
 from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, play_columns
+from piezo_stage.core.types import EffectsBlock, Params
 
 
 def search_1d(f: Callable[[float], float], lo: float, hi: float, n_grid: int = 12,
@@ -43,7 +44,7 @@ def delay_max_s(fs: float) -> float:
     return min(0.02, 50 / fs)
 
 
-def delay_rows(effects: Sequence[tuple[str, dict]], fs: float) -> int:
+def delay_rows(effects: Sequence[tuple[str, EffectsBlock]], fs: float) -> int:
     """A record's first rows a model with these effects runs but does not fit: those
     whose output its delay takes from voltages before the record (held at the record's
     first voltage there, which a record cut from a run never was: on a measured stack's
@@ -54,7 +55,7 @@ def delay_rows(effects: Sequence[tuple[str, dict]], fs: float) -> int:
 
 def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.ndarray],
                      extra: list, w: np.ndarray, fs: float,
-                     kept: Sequence[tuple[str, dict]], rows: int = 0) -> tuple[dict, list]:
+                     kept: Sequence[tuple[str, Params]], rows: int = 0) -> tuple[dict, list]:
     """A transform effect's parameters (creep, delay, dynamics) searched on FIT, the
     model's other coefficients refitted by least squares at each step over the rows
     from ``rows`` on (the columns run from the record's start; a delay's search over
@@ -154,7 +155,7 @@ PLAY_STARTS = (0.0, 1.0, -1.0)  # operators at rest at v[0], after a fall, after
 RATE_MIN_GAIN = 0.01  # relative FIT RMS a widening must win over none to be kept
 
 
-def rate_search(reg: DuhemRegression, alphas: ArrayLike, kept: Sequence[tuple[str, dict]],
+def rate_search(reg: DuhemRegression, alphas: ArrayLike, kept: Sequence[tuple[str, Params]],
                 plays: np.ndarray, v: np.ndarray, w: np.ndarray, fs: float,
                 tau: float | None) -> float:
     """The play thresholds' rate widening beta [s] that fits FIT best, the Duhem alphas
@@ -199,7 +200,7 @@ def play_start_columns(v: np.ndarray, w: np.ndarray, thresholds_V: np.ndarray,
 
 
 def columns_without(reg: DuhemRegression, alphas: ArrayLike,
-                    kept: Sequence[tuple[str, dict]], names: Sequence[str],
+                    kept: Sequence[tuple[str, Params]], names: Sequence[str],
                     fs: float) -> np.ndarray:
     """The design for these alphas with the kept transform effects applied, except
     ``names``."""
@@ -208,7 +209,7 @@ def columns_without(reg: DuhemRegression, alphas: ArrayLike,
     return op(KX) if op is not None else KX
 
 
-def _polish_pair(p0, fs, cost, maxfev=40):
+def _polish_pair(p0, fs, cost, maxfev: int = 40):
     """A resonance and a delay searched together (Nelder-Mead over log fn, log zeta and
     the delay, from ``p0`` {kind, fn_hz, zeta, delay_s}, where the separate searches
     ended): separately, each takes part of the other's phase (found 824 Hz and 0.62 ms
@@ -236,7 +237,7 @@ ALTERNATIONS = 4  # profile searches per effect fit, at most
 ONE_COLUMN_SEARCH = True
 
 
-def _alternate(B, extra, w, search, p0, make_op, start=None, rows=0):
+def _alternate(B, extra, w, search, p0, make_op, start=None, rows: int = 0):
     """An effect's parameters searched with the Duhem coefficients held, alternating
     with their exact refit (block coordinate descent; each step lowers the exact cost,
     and its fixed point is where neither block can improve, the joint optimum's).
@@ -283,7 +284,8 @@ def _alternate(B, extra, w, search, p0, make_op, start=None, rows=0):
     return params
 
 
-def _resonance_seeds(KX, w, fs, extra=(), min_coherence=0.9, min_peak=1.3, min_bins=20):
+def _resonance_seeds(KX, w, fs, extra=(), min_coherence: float = 0.9, min_peak: float = 1.3,
+                     min_bins: int = 20):
     """Where a resonance shows in the data, as starting points for its search: the
     frequency response from the model's prediction without dynamics (KX theta) to the
     measured position (Welch's H1 estimate), where the excitation has broadband content

@@ -42,6 +42,7 @@ from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.metrics import noise_floor, rms
 from piezo_stage.core.model.duhem import OTHER, AxisParts, StageModel, voltage_limits_for
 from piezo_stage.core.model.effects import effects_on
+from piezo_stage.core.types import Doc, EffectsBlock, Params
 
 
 class GivenModel:
@@ -49,9 +50,9 @@ class GivenModel:
     gives that axis, run as ``simulate --model`` runs the file, like every candidate."""
 
     effect = "given"
-    params: dict = {}
+    params: Params = {}
 
-    def __init__(self, stage_model: StageModel, effects: dict | None, axis: str):
+    def __init__(self, stage_model: StageModel, effects: EffectsBlock | None, axis: str) -> None:
         self.model, self.effects, self.axis = stage_model, effects, axis
 
     def written(self) -> AxisWritten:
@@ -67,9 +68,9 @@ class IdentifiedModel:
     never writes a worse one than on HOLDOUT (``AxisSearch.written_choice``)."""
 
     effect = "identify"
-    params: dict = {}
+    params: Params = {}
 
-    def __init__(self, res: Any):
+    def __init__(self, res: Any) -> None:
         self.res = res
 
     def written(self) -> AxisWritten:
@@ -86,11 +87,11 @@ class AxisDiagnosis:
     verdict: str
     reason: str
     ranking: list
-    where: dict
+    where: Doc
     noise_floor_um: float
-    candidates: dict = field(default_factory=dict)
+    candidates: Doc = field(default_factory=dict)
     effects: list = field(default_factory=list)    # forward selection: kept, in order
-    budget: dict = field(default_factory=dict)
+    budget: Doc = field(default_factory=dict)
     model: Fitted | None = None  # the model with every kept effect
     skip: int = 0  # HOLDOUT's samples run but not scored (written.start_up_samples)
     # what --out-model writes for the axis (AxisSearch.written_choice): the model, what
@@ -148,7 +149,7 @@ def _significant(rms_a, rms_b, nf, n):
 def _given_effects(base_model, base_effects, axis):
     """What the user's model already has on this axis: never a candidate, and part of
     every candidate's fit. -> [(name, params)]."""
-    out: list[tuple[str, dict]] = []
+    out: list[tuple[str, Doc]] = []
     if base_model is None or axis not in base_model.axes:
         return out
     if axis in base_model.coupling:
@@ -183,7 +184,7 @@ class SearchOptions:
     ``history`` samples run but not scored."""
     effects: tuple[str, ...] = tuple(EFFECTS)
     base_model: StageModel | None = None
-    base_effects: dict | None = None
+    base_effects: EffectsBlock | None = None
     limits_V: tuple | None = None
     history: int = 0
 
@@ -191,7 +192,7 @@ class SearchOptions:
 def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str] = EFFECTS,
                   base_model: StageModel | None = None,
                   progress: Callable[[str], None] | None = None,
-                  base_effects: dict | None = None,
+                  base_effects: EffectsBlock | None = None,
                   limits_V: tuple | None = None, history: int = 0) -> AxisDiagnosis:
     """Fit every candidate on FIT, score on HOLDOUT, then add effects one at a time
     (forward selection, each refitted jointly with the Duhem model and the effects
@@ -223,7 +224,7 @@ class AxisSearch:
     (ClassCandidate), judged alike by its held-out residual."""
 
     def __init__(self, fit: Record, holdout: Record, axis: str, options: SearchOptions,
-                 progress: Callable[[str], None] | None = None):
+                 progress: Callable[[str], None] | None = None) -> None:
         effects, base_model, base_effects = options.effects, options.base_model, \
             options.base_effects
         limits_V, history = options.limits_V, options.history
@@ -264,7 +265,7 @@ class AxisSearch:
         # other candidate)
         self.class_tried: list[float] = []
 
-    def _given(self, base_effects: dict | None) -> list[tuple[str, dict]]:
+    def _given(self, base_effects: EffectsBlock | None) -> list[tuple[str, Doc]]:
         given = _given_effects(self.base_model, base_effects, self.axis)
         vo_fit = self.fit.v.get(OTHER[self.axis])
         if any(n == "coupling" for n, _ in given) and (vo_fit is None or np.ptp(vo_fit) < 1.0):
@@ -431,7 +432,8 @@ class AxisSearch:
         # (every candidate stays in: one that explains nothing on its own, as creep
         # beside a larger coupling, can show once the larger one is modelled)
         pool = {e: cands[e] for e in self.testable}
-        tried: dict = {}  # (a, b): b fitted on top of a, and its held-out RMS (the pairs)
+        # (a, b): b fitted on top of a, and its held-out RMS (the pairs)
+        tried: dict[tuple[str, str], tuple[Fitted, float]] = {}
         partner: str | None = None  # the second of a pair its first joined for: next
         while pool:
             e, c = min(pool.items(), key=lambda kv: scores[kv[0]])
@@ -498,7 +500,7 @@ class AxisSearch:
                 st["params"] = final.get(st["effect"], st["params"])
         return steps, model
 
-    def chain(self, names: Sequence[str], cache: dict) -> list[Fitted]:
+    def chain(self, names: Sequence[str], cache: dict[tuple[str, ...], Fitted]) -> list[Fitted]:
         """The models of the effects ``names`` added to the sim in this order, each
         fitted on the one before it (as forward selection fits them): [after the
         first, after the second, ...]; ``cache`` keeps each prefix's."""
@@ -525,7 +527,7 @@ class AxisSearch:
         then those of the chain that is left. One the others reach the floor without
         (NOISE_STOP) is dropped too: forward selection would have stopped there."""
         floor, fs = self.floor, self.scored.fs_hz
-        cache: dict = {(e,): c for e, c in cands.items() if e != "none"}
+        cache: dict[tuple[str, ...], Fitted] = {(e,): c for e, c in cands.items() if e != "none"}
         dropped = False
         while len(steps) >= 2:
             r_all = self.resid_of(model)
@@ -576,7 +578,8 @@ class AxisSearch:
         return steps, models[-1]
 
     def pair_first(self, pool: dict[str, Fitted], r_cur: float, g_cur: float, need: float,
-                   tried: dict) -> tuple[str, Fitted, float, float, str, str] | None:
+                   tried: dict[tuple[str, str], tuple[Fitted, float]]
+                   ) -> tuple[str, Fitted, float, float, str, str] | None:
         """The pair rule: effects of similar size, none alone closes 30 %; two of the
         three best together may (the better one of the best such pair joins first; the
         other is tried next, on top of it, and joins when it still closes its share of
@@ -742,7 +745,7 @@ class AxisSearch:
         return own, name, r_own
 
 
-def _decide(ranking, steps, g_before, nf, fit, holdout, axis, told_apart=False):
+def _decide(ranking, steps, g_before, nf, fit, holdout, axis, told_apart: bool = False):
     """The verdict: the first (dominant) effect forward selection kept, unless the
     excitation cannot tell it from another (``told_apart``: the effects kept beside it
     do: AxisSearch.told_apart)."""

@@ -12,6 +12,7 @@ from piezo_stage.core.estimation.identify.segmentation import segment
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.metrics import rms
 from piezo_stage.core.model.duhem import OTHER
+from piezo_stage.core.types import Doc
 
 MIN_HOLD_S = 1.0
 RATE_PARTS = 4  # a record's main tone, read in this many parts (one rate: all alike)
@@ -104,7 +105,7 @@ def holds(v: ArrayLike, fs: float, min_s: float = MIN_HOLD_S) -> list[float]:
     return [(b - a) / fs for a, b in hold_runs(v, fs, min_s)]
 
 
-def where(rec: Record, axis: str, resid: np.ndarray, nf: float) -> dict:
+def where(rec: Record, axis: str, resid: np.ndarray, nf: float) -> Doc:
     """Localise the residual: band, segment, amplitude, correlation with the other axis."""
     v = rec.v[axis]
     fs = rec.fs_hz

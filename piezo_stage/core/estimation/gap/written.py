@@ -24,6 +24,7 @@ from piezo_stage.core.model.duhem import AXES, StageModel
 from piezo_stage.core.model.effects import effects_block
 from piezo_stage.core.model.model_doc import checked_doc, model_from_dict
 from piezo_stage.core.model.plant import Plant
+from piezo_stage.core.types import Doc
 
 START_UP_S = 1.0   # HOLDOUT's first second: run, not scored
 
@@ -49,7 +50,7 @@ def document(per_axis: Mapping[str, AxisWritten], limits_V: tuple) -> tuple[dict
     return checked_doc(model, effects or None)
 
 
-def run_document(doc: dict, rec: Record) -> dict[str, np.ndarray]:
+def run_document(doc: Doc, rec: Record) -> dict[str, np.ndarray]:
     """The document read back as a model file is read and run over ``rec``'s voltages
     by its exact plant, as ``simulate --model`` runs it -> {axis: displacement [um]}
     for the axes it models. An axis ``rec`` has no voltage for rests at 0 V."""

@@ -37,6 +37,7 @@ from piezo_stage.core._jit import as_f64
 from piezo_stage.core.estimation._kernels import branch_rms_batch, duhem_rms_batch, unbounded_rows
 from piezo_stage.core.estimation.identify.regress import legendre_to_power
 from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel, DuhemState
+from piezo_stage.core.types import Doc
 
 if TYPE_CHECKING:  # annotations only (api imports this module)
     from piezo_stage.core.estimation.identify.options import IdentifyOptions
@@ -59,7 +60,7 @@ def _leg2pow_matrix(lo, hi, deg):
 class _Problem:
     """Maps unit-cube positions to model parameters and batches the objective."""
 
-    def __init__(self, lo_hi, n_coef_blocks, deg_list, B, alpha_bounds):
+    def __init__(self, lo_hi, n_coef_blocks, deg_list, B, alpha_bounds) -> None:
         self.la = np.log(alpha_bounds)
         self.degs = deg_list
         self.B = B
@@ -80,7 +81,7 @@ class _Problem:
 
 
 class _BranchProblem(_Problem):
-    def __init__(self, v, w, seg, ascending, deg, B, alpha_bounds):
+    def __init__(self, v, w, seg, ascending, deg, B, alpha_bounds) -> None:
         super().__init__((v.min(), v.max()), 1, [deg], B, alpha_bounds)
         self.v, self.w = v, w
         sign = 1 if ascending else -1
@@ -106,7 +107,7 @@ class _BranchProblem(_Problem):
 
 
 class _WholeProblem(_Problem):
-    def __init__(self, v, w, n, m, B, alpha_bounds):
+    def __init__(self, v, w, n, m, B, alpha_bounds) -> None:
         super().__init__((v.min(), v.max()), 2, [n, m], B, alpha_bounds)
         self.v, self.w = v, w
         self.D = max(n, m) + 1
@@ -133,7 +134,7 @@ class _WholeProblem(_Problem):
 def swarm_minimize(J: Callable[[np.ndarray], np.ndarray], dim: int, rng: np.random.Generator,
                    bat: bool = False, budget: int | None = None,
                    progress: Callable[..., None] | None = None, label: str = "",
-                   **kw: float) -> tuple[np.ndarray, float, dict]:
+                   **kw: float) -> tuple[np.ndarray, float, Doc]:
     """Minimise J over [0, 1]^dim. Returns (best x, best value, history).
 
     history: {"best": best value per iteration, "evaluations": cumulative count}.
@@ -228,7 +229,7 @@ def coefficient_bound(v: np.ndarray, w: np.ndarray, alpha_hi: float) -> float:
 
 
 def fit_swarm(v: np.ndarray, w: np.ndarray, seg: Segmentation, opts: IdentifyOptions,
-              progress: Callable[..., None] | None = None) -> tuple[DuhemModel, int, dict]:
+              progress: Callable[..., None] | None = None) -> tuple[DuhemModel, int, Doc]:
     """Identify one axis with afsa or afsa-bat; returns (DuhemModel, evaluations, history)."""
     v, w = as_f64(v), as_f64(w)
     kw = {**DEFAULTS, **(opts.afsa or {})}

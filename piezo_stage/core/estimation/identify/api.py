@@ -37,6 +37,7 @@ from piezo_stage.core.model.duhem import (
     StageModel,
     voltage_limits_for,
 )
+from piezo_stage.core.types import Doc
 
 METHODS = ("fast", "afsa", "afsa-bat")
 MIN_BRANCH_SAMPLES = 20
@@ -55,21 +56,21 @@ class AxisResult:
     structure: str
     model: DuhemModel
     coupling: DuhemModel | None
-    fit: dict
+    fit: Doc
     noise_floor_um: float
     evaluations: int
     seconds: float
-    history: dict
+    history: Doc
     notes: list = field(default_factory=list)
 
     def parts(self) -> AxisParts:
         """The axis as a stage model holds it (StageModel.from_fits)."""
         return AxisParts(self.model, self.coupling)
-    branch_rms_um: dict = field(default_factory=dict)
+    branch_rms_um: Doc = field(default_factory=dict)
     delay_samples: int = 0   # the displacement lags the voltage by this many samples
     delay_s: float = 0.0     # ... [s]
 
-    def to_json(self) -> dict:
+    def to_json(self) -> Doc:
         """The result as the --json report's dict."""
         m = self.model
         params: dict[str, Any] = {"structure": m.structure,
@@ -201,7 +202,7 @@ def delayed(x: np.ndarray, k: int) -> np.ndarray:
 
 
 def choose_lag(rec: Record, axis: str, base: AxisResult,
-               lags: Sequence[int] = tuple(range(LAG_MAX + 1))) -> tuple[int, dict]:
+               lags: Sequence[int] = tuple(range(LAG_MAX + 1))) -> tuple[int, dict[int, float]]:
     """How many samples the displacement lags the voltage (a DAQ that reads its input
     a sample after it writes its output; a sensor's latency): ``base``, the Duhem law
     fitted at no lag, has its regression solved exactly at its alphas for each lag;
@@ -373,7 +374,7 @@ def fit_prediction(res: AxisResult,
     return v, w, np.concatenate([np.full(k, pred[0]), pred]) if k else pred, k
 
 
-def validate_axis(res: AxisResult, rec: Record) -> dict:
+def validate_axis(res: AxisResult, rec: Record) -> Doc:
     """Error of an identified axis on another record (initial output re-estimated)."""
     _, w, pred = predict_axis(res, rec)
     fig = error_figures(w, pred)
@@ -386,7 +387,7 @@ HELD_OUT_FRACTION = 0.4              # the record's last 40 % judges them
 
 
 def choose_degree(rec: Record, axis: str, opts: IdentifyOptions,
-                  degrees: Sequence[int] = STRUCTURE_DEGREES) -> tuple[int, dict]:
+                  degrees: Sequence[int] = STRUCTURE_DEGREES) -> tuple[int, dict[int, float]]:
     """The branch degree (f of degree d, g of d - 1) that predicts the record's own
     later cycles best: each is fitted on the first 60 % of the span where the axis
     moves and judged on the last 40 %
@@ -434,7 +435,7 @@ MAJOR_LOOPS_ONLY = (
 
 
 def choose_class(rec: Record, axis: str, opts: IdentifyOptions | None = None,
-                 limits_V: tuple | None = None) -> tuple[str, dict, list]:
+                 limits_V: tuple | None = None) -> tuple[str, Doc, list]:
     """``identify --class auto``: the model class that predicts the record's own later
     cycles best, each fitted on the first 60 % of the span where the axis moves and
     judged on the last 40 % (offset removed; the first 10 % of it, where each model's
@@ -549,7 +550,7 @@ def _fit_class_axis(rec: Record, axis: str, kind: str, opts: IdentifyOptions | N
     return ClassFit(law, coupling, notes, lag, lag * rec.dt)
 
 
-def delay_effect(fits: dict) -> dict:
+def delay_effect(fits: Doc) -> Doc:
     """The model file's ``effects`` for the lags of identified axes ({axis: AxisResult
     or ClassFit}): each lagging axis's own delay (one entry for the axes that share
     it), {} where none lags."""
@@ -564,17 +565,17 @@ class StageFit:
     its coupling terms and the amplifier's voltage limits), ``results`` {axis:
     AxisResult} and ``skipped`` {axis: why} (``identify_stage(..., skip_unusable=True)``)."""
     model: StageModel
-    results: dict
-    skipped: dict = field(default_factory=dict)
+    results: Doc
+    skipped: Doc = field(default_factory=dict)
 
     @property
-    def effects(self) -> dict:
+    def effects(self) -> Doc:
         """The model file's ``effects``: the delay of the axes that lag."""
         return delay_effect(self.results)
 
 
 def identify_stage(rec: Record, axes: Sequence[str],
-                   opts: IdentifyOptions | dict | None = None,
+                   opts: IdentifyOptions | Doc | None = None,
                    limits_V: tuple | None = None,
                    progress_for: Callable[[str], Callable[..., None] | None] | None = None,
                    skip_unusable: bool = False) -> StageFit:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from piezo_stage.core.types import Doc
+
 
 @dataclass
 class IdentifyOptions:
@@ -25,5 +27,5 @@ class IdentifyOptions:
     coupling: str = "auto"
     budget: int | None = None
     seed: int = 0
-    afsa: dict = field(default_factory=dict)
+    afsa: Doc = field(default_factory=dict)
     delay: str | float = "auto"

@@ -29,6 +29,7 @@ from numpy.typing import ArrayLike
 from piezo_stage.core._jit import as_f64
 from piezo_stage.core.estimation._kernels import duhem_regressors, fold_branches
 from piezo_stage.core.model.duhem import DuhemBranch, DuhemModel, DuhemState
+from piezo_stage.core.types import Doc
 
 
 def legendre_basis(v: np.ndarray, lo: float, hi: float, deg: int) -> np.ndarray:
@@ -112,7 +113,7 @@ class DuhemRegression:
 
     def __init__(self, v: ArrayLike, w: ArrayLike, structure: str = "segmented", n: int = 3,
                  m: int = 2, v_other: ArrayLike | None = None, coupling_deg: int = 1,
-                 coupling_state: bool = True):
+                 coupling_state: bool = True) -> None:
         self.v = as_f64(v)
         self.w = as_f64(w)
         self.structure = structure
@@ -148,13 +149,13 @@ class DuhemRegression:
             self._Xo = np.empty((self.v.size, 2 * (self.cdeg + 1) + 1))
             self._Xc = np.empty((self.v.size, 2 * (self.cdeg + 1) + self.cstate))
 
-    def __getstate__(self) -> dict:
+    def __getstate__(self) -> Doc:
         # the bases and work buffers follow from v (a fit's regression crosses a process
         # boundary in the gap diagnosis: without them it is the data and the settings)
         return {k: v for k, v in self.__dict__.items()
                 if k not in ("B", "Bo", "_X", "_Xo", "_Xc")}
 
-    def __setstate__(self, state: dict) -> None:
+    def __setstate__(self, state: Doc) -> None:
         self.__dict__.update(state)
         self.B = legendre_basis(self.v, self.lo, self.hi, self.D)
         self._X = np.empty((self.v.size, 2 * (self.D + 1) + 1))
