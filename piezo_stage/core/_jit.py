@@ -9,6 +9,8 @@ gap's holds). With numba switched off (``NUMBA_DISABLE_JIT=1``, or numba missing
 kernel runs as its plain-Python original: ``bench plant`` times that as its baseline.
 """
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -18,15 +20,15 @@ I64 = NDArray[np.int64]
 try:  # numba is a declared dependency; the fallback keeps the core importable without it
     from numba import njit as _njit
 
-    def njit(fn):
+    def njit(fn: Callable) -> Callable:
         """Compile ``fn`` (cached on disk, releasing the GIL)."""
         return _njit(cache=True, nogil=True)(fn)
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - exercised only on installs without numba
-    def njit(fn):
+    def njit(fn: Callable) -> Callable:
         """Without numba: ``fn`` itself, as its plain-Python original."""
-        fn.py_func = fn
+        fn.py_func = fn  # type: ignore[attr-defined]
         return fn
 
     HAVE_NUMBA = False

@@ -56,7 +56,7 @@ def loop_figures(v: ArrayLike, w: ArrayLike) -> Doc:
     lo, hi = v.min(), v.max()
     grid = np.linspace(lo + 0.02 * (hi - lo), hi - 0.02 * (hi - lo), 201)
 
-    def branch(mask):
+    def branch(mask: np.ndarray) -> np.ndarray:
         o = np.argsort(v[mask])
         return np.interp(grid, v[mask][o], w[mask][o])
 

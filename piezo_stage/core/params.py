@@ -33,7 +33,7 @@ class Param:
     live: bool = False
     field: str = ""
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if (self.lo is None) != (self.hi is None) or (
                 self.lo is not None and self.hi is not None and self.lo > self.hi):
             raise ValueError(f"parameter {self.name}: a range needs lo <= hi")

@@ -7,6 +7,9 @@ Each is a core.loop.backend.Backend (what the sample loop asks of a stage) whose
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.loop.backend import Backend, StepResult
 from piezo_stage.core.params import Param, Schema
@@ -14,6 +17,9 @@ from piezo_stage.core.types import Params
 from piezo_stage.drivers.daq import DAQ_PARAMS
 from piezo_stage.drivers.nv200 import NV200_PARAMS
 from piezo_stage.drivers.pi import PI_PARAMS
+
+if TYPE_CHECKING:
+    from piezo_stage.core.loop.sample_loop import SampleLoop
 
 # The backends' configuration (core/params.py): the driver declares it read-only.
 BACKEND_PARAMS: Schema = (
@@ -23,7 +29,7 @@ BACKEND_PARAMS: Schema = (
 ) + DAQ_PARAMS + PI_PARAMS + NV200_PARAMS
 
 
-def step_period_summary(times) -> str:
+def step_period_summary(times: Sequence[float]) -> str:
     """Steps/s, median and p99 step period of a list of step times [s]."""
     import numpy as np
     d = np.diff(times)
@@ -33,7 +39,7 @@ def step_period_summary(times) -> str:
             f"p99 {1e3 * np.percentile(d, 99):.3f} ms")
 
 
-def done_line(loop, acked_s: float) -> str:
+def done_line(loop: SampleLoop, acked_s: float) -> str:
     """A lockstep run's last line: the samples of ``loop`` (a core SampleLoop), their
     step period, and how long its readers took to acknowledge the last of them."""
     return (f"done after {loop.j + 1} samples: "
@@ -45,7 +51,7 @@ class SimBackend:
     paced = False  # the driver paces it (lockstep: by commands; real time: wall clock)
     exhausted = False  # never runs out
 
-    def __init__(self, config_path: str, rate_hz: float, seed=None) -> None:
+    def __init__(self, config_path: str, rate_hz: float, seed: int | None = None) -> None:
         from piezo_stage.core.model.plant import Plant
         from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
         cfg = load_plant_config(config_path or default_plant_config_path())

@@ -31,12 +31,13 @@ limit [V/s].
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.loop.backend import StepResult
 from piezo_stage.core.params import Param, Schema
-from piezo_stage.core.types import Params
+from piezo_stage.core.types import Params, PerAxis
 
 LATE_CODES = {209800, 209801, 209802, 209803}  # |code|: read/write not complete before
 # the sample clock, missed sample clock, three or more missed sample clocks
@@ -58,7 +59,7 @@ DAQ_PARAMS: Schema = (  # the driver node declares them read-only (core/params.p
 )
 
 
-def _pair(params, name, n: int = 2):
+def _pair(params: Params, name: str, n: int = 2) -> list[float]:
     val = [float(x) for x in params[name]]
     if len(val) != n:
         raise ConfigError(f"{name} needs {n} values, got {len(val)}")
@@ -149,7 +150,7 @@ class DaqBackend:
         if self.wd is not None:
             self.wd.start()
 
-    def _make_watchdog(self, ao, safe_V, timeout):
+    def _make_watchdog(self, ao: Sequence[str], safe_V: float, timeout: float) -> None:
         from nidaqmx.constants import WatchdogAOExpirState
         from nidaqmx.errors import DaqError
         from nidaqmx.system.watchdog import AOExpirationState, WatchdogTask
@@ -162,12 +163,12 @@ class DaqBackend:
             raise ConfigError(f"{self.device}: hardware watchdog unavailable ({e.error_code}); "
                               "set watchdog_timeout_s: 0 to run without it") from None
 
-    def _write(self, v) -> None:
+    def _write(self, v: PerAxis[float]) -> None:
         self.raw_out[0] = v["x"] / self.gain[0]
         self.raw_out[1] = v["y"] / self.gain[1]
         self.writer.write_one_sample(self.raw_out)
 
-    def _late_call(self, fn, *args):
+    def _late_call(self, fn: Callable[..., Any], *args: Any) -> bool:
         """Call fn, counting DAQmx's late-sample warnings and errors; True if it
         completed, False if a late error interrupted it."""
         from nidaqmx.errors import DaqError, DaqWarning
@@ -206,7 +207,7 @@ class DaqBackend:
              for i, a in enumerate(("x", "y"))}
         return StepResult(w, dict(self.v), None, index)
 
-    def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0):
+    def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0) -> None:
         """Ramp to the safe voltage on the hardware clock, leave it there, release.
         Safe to call twice."""
         if self.ai is None:

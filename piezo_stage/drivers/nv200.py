@@ -27,6 +27,8 @@ The NV200 keeps its last output when the link is lost.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -40,6 +42,8 @@ NV200_PARAMS: Schema = (  # the driver node declares them read-only (core/params
           "[x, y]: tcp:HOST[:PORT] (the Ethernet model's telnet port, 23) | serial:DEVICE"),
     Param("nv200_timeout_s", 1.0, "NV200: answer timeout [s] (a lost link faults after this)"),
 )
+T = TypeVar("T")  # what a coroutine gives
+
 TICK_S = 50e-6           # the amplifier's cycle
 WAVE_POINTS = 1024       # its generator table
 RECORDER_POINTS = 6144   # its recorder, per channel
@@ -112,7 +116,7 @@ class Nv200Backend:
         self.started = False
 
     @staticmethod
-    def _transport(kind, where, port):
+    def _transport(kind: str, where: str, port: int | None) -> Any:
         if kind == "tcp":
             from nv200.telnet_protocol import TelnetProtocol
             return TelnetProtocol(host=where, port=port)
@@ -120,7 +124,7 @@ class Nv200Backend:
         return SerialProtocol(port=where)
 
     # -- running the package's coroutines ----------------------------------------------
-    def _run(self, coro, what: str, timeout: float | None = None):
+    def _run(self, coro: Awaitable[T], what: str, timeout: float | None = None) -> T:
         """Run ``coro`` on our loop; the package's errors become BackendFault."""
         from nv200.shared_types import DeviceError
         try:
@@ -136,14 +140,14 @@ class Nv200Backend:
                                f"({type(e).__name__}{': ' + str(e) if str(e) else ''})"
                                ) from None
 
-    async def _both(self, fn):
+    async def _both(self, fn: Callable[[str, Any], Awaitable[T]]) -> PerAxis[T]:
         return dict(zip(self.devs, await asyncio.gather(*(fn(a, d) for a, d in
                                                            self.devs.items()))))
 
     async def _set_up(self) -> None:
         from nv200.shared_types import ModulationSource, PidLoopMode
 
-        async def one(a, dev):
+        async def one(a: str, dev: Any) -> tuple[Any, float]:
             await dev.connect(auto_adjust_comm_params=False)
             await dev.pid.set_mode(PidLoopMode.OPEN_LOOP)   # we are the controller
             await dev.set_modulation_source(ModulationSource.SET_CMD)
@@ -162,7 +166,7 @@ class Nv200Backend:
         out = {a: min(max(v, self.limits[a][0]), self.limits[a][1])
                for a, v in (("x", vx), ("y", vy))}
 
-        async def one(a, dev):
+        async def one(a: str, dev: Any) -> float:
             await dev.set_setpoint(out[a])
             return await dev.get_current_position()
         w = self._run(self._both(one), "a sample")
@@ -184,7 +188,8 @@ class Nv200Backend:
             time.sleep(max(0.0, t_next - time.monotonic()))
 
     # -- the generator and recorder -----------------------------------------------------
-    def play(self, vx, vy, fs_hz: float, ramp_V_per_s: float):
+    def play(self, vx: np.ndarray, vy: np.ndarray, fs_hz: float,
+             ramp_V_per_s: float) -> tuple[PerAxis[np.ndarray], PerAxis[np.ndarray]]:
         """Play the waveform on both amplifiers' generators and record it: -> (applied
         {axis: V}, measured {axis: um}), one value per point. At most 1024 points; the
         rate must be 20 kHz divided by a whole number."""
@@ -220,12 +225,13 @@ class Nv200Backend:
             raise BackendFault(f"the NV200 recorders returned fewer than {n} points")
         return v, w
 
-    async def _play(self, waves, factor, stride, length):
+    async def _play(self, waves: PerAxis[np.ndarray], factor: int, stride: int,
+                    length: int) -> PerAxis[Any]:
         from nv200.data_recorder import DataRecorder, DataRecorderSource, RecorderAutoStartMode
         from nv200.shared_types import ModulationSource
         from nv200.waveform_generator import WaveformGenerator, WaveformUnit
 
-        async def load(a, dev):
+        async def load(a: str, dev: Any) -> tuple[Any, Any]:
             gen, rec = WaveformGenerator(dev), DataRecorder(dev)
             await gen.set_waveform_buffer(list(waves[a]), unit=WaveformUnit.VOLTAGE)
             await gen.set_output_sampling_time(int(round(factor * TICK_S * 1e6)))
@@ -240,7 +246,7 @@ class Nv200Backend:
         parts = await self._both(load)
         await asyncio.gather(*(gen.start(cycles=1) for gen, _ in parts.values()))
 
-        async def finish(a, dev):
+        async def finish(a: str, dev: Any) -> Any:
             gen, rec = parts[a]
             await gen.wait_until_finished(timeout_s=30.0 + length * stride * TICK_S)
             await rec.wait_until_finished(timeout_s=30.0)

@@ -33,6 +33,8 @@ import sys
 import time
 from typing import Any
 
+import numpy as np
+
 from piezo_stage.core.errors import BackendFault, ConfigError
 from piezo_stage.core.loop.backend import StepResult
 from piezo_stage.core.params import Param, Schema
@@ -71,7 +73,7 @@ def parse_address(address: str) -> tuple[str, list]:
     return kind, parts
 
 
-def _link_errors():
+def _link_errors() -> tuple[type[BaseException], ...]:
     from pipython import GCSError
     return (GCSError, OSError)
 
@@ -142,7 +144,7 @@ class PiBackend:
         self.started = False
 
     @staticmethod
-    def _gateway(kind, args):
+    def _gateway(kind: str, args: Any) -> Any:
         if kind == "tcp":
             from pipython.pidevice.interfaces.pisocket import PISocket
             return PISocket(host=args[0], port=args[1] if len(args) > 1 else 50000)
@@ -173,7 +175,7 @@ class PiBackend:
         return StepResult({"x": float(pos[self.axes[0]]), "y": float(pos[self.axes[1]])},
                           dict(self.v))
 
-    def _fault_text(self, e) -> str:
+    def _fault_text(self, e: BaseException) -> str:
         from pipython import GCSError
         if isinstance(e, GCSError) and e.val > 0:
             return f"PI controller error {e.val}: {e}"
@@ -190,7 +192,8 @@ class PiBackend:
             t_next += 1.0 / self.rate_hz
             time.sleep(max(0.0, t_next - time.monotonic()))
 
-    def play(self, vx, vy, fs_hz: float, ramp_V_per_s: float):
+    def play(self, vx: np.ndarray, vy: np.ndarray, fs_hz: float,
+             ramp_V_per_s: float) -> tuple[PerAxis[np.ndarray], PerAxis[np.ndarray]]:
         """Play the waveform (V per axis at ``fs_hz``) on the controller's clock and
         record it: -> (applied {axis: V}, measured {axis: um}), one value per point.
         ``fs_hz`` must divide the controller's servo rate."""

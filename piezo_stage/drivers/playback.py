@@ -20,11 +20,16 @@ value at the safe ramp rate before it plays, and back after.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
 from piezo_stage.core.estimation.record import Record
 from piezo_stage.core.types import Params, PerAxis
+
+if TYPE_CHECKING:
+    from piezo_stage.core.model.plant import PlantConfig
 
 PLAY_BACKENDS = ("sim", "pi", "nv200", "daq")
 
@@ -49,7 +54,8 @@ def _check_slew(rec: Record, slew: PerAxis[float]) -> None:
                             f"beyond the slew limit {s:g} V/s at {rec.fs_hz:g} Hz")
 
 
-def play_record(kind: str, rec: Record, params: Params | None = None, plant_config=None,
+def play_record(kind: str, rec: Record, params: Params | None = None,
+                plant_config: PlantConfig | None = None,
                 safe_V: float = 0.0, ramp_V_per_s: float = 500.0) -> Record:
     """Play ``rec.v`` (both axes, V) on backend ``kind`` and return the record of it:
     the voltage each sample got and the displacement measured [um].

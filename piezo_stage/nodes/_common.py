@@ -4,7 +4,20 @@ the control loop's shared pieces in _loop.py."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
+from typing import Any, TypeAlias
+
+from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.timer import Timer
+
+from piezo_stage.core.types import Doc
+
+#: what rclpy hands a two-argument subscription callback beside the message: the
+#: publication's ``source_timestamp``, ``received_timestamp`` [ns] and sequence numbers
+MessageInfo: TypeAlias = Mapping[str, int]
+#: a node's health for its diagnostics: (level 0 OK / 1 WARN / 2 ERROR, message, values)
+Status: TypeAlias = tuple[int, str, Doc]
 
 # Loop and record topics: reliable with a deep queue, so a briefly slow subscriber (the
 # recorder) catches up instead of losing samples.
@@ -26,7 +39,7 @@ QOS_DIAG = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
 
 
-def steady_timer(node, period_s, callback):
+def steady_timer(node: Node, period_s: float, callback: Callable[[], Any]) -> Timer:
     """A housekeeping timer (polls, flushes, links, diagnostics cadence) on the steady
     clock: it runs while simulated time stands still (before the first sample, after the
     last), where a ROS-time timer under use_sim_time would never fire."""

@@ -25,8 +25,9 @@ import sys
 import time
 import weakref
 from collections import deque
+from collections.abc import Callable, Sequence
 from contextlib import ExitStack
-from typing import ClassVar, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, cast, runtime_checkable
 
 import rclpy
 from rclpy.callback_groups import CallbackGroup
@@ -42,6 +43,13 @@ from rclpy.signals import SignalHandlerOptions
 import piezo_stage.nodes._signals as signals
 from piezo_stage.core.errors import ConfigError, DataError
 from piezo_stage.nodes._params import check_overrides
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from rclpy.publisher import Publisher
+    from rclpy.qos import QoSProfile
+    from rclpy.subscription import Subscription
 
 SLOW_PERIOD_S = 0.05  # the base executor's turn (timers, services, other topics)
 IDLE_SLOW_MAX = 16    # callbacks the base executor may serve in a pass nothing came in
@@ -59,18 +67,18 @@ class LeanLoop(CallbackGroup):
         super().__init__()
         self.with_info = bool(with_info)
 
-    def can_execute(self, entity) -> bool:
+    def can_execute(self, entity: Any) -> bool:
         return False
 
-    def beginning_execution(self, entity) -> bool:
+    def beginning_execution(self, entity: Any) -> bool:
         return False
 
-    def ending_execution(self, entity) -> None:
+    def ending_execution(self, entity: Any) -> None:
         pass
 
 
-def hot_subscription(node, msg_type, topic, callback, qos, raw: bool = False,
-                     with_info: bool = False):
+def hot_subscription(node: Node, msg_type: type, topic: str, callback: Callable[..., None],
+                     qos: QoSProfile, raw: bool = False, with_info: bool = False) -> Subscription:
     """A per-sample subscription (loop inputs, the recorder's topics), dispatched by
     ``LeanExecutor``. With ``raw`` the callback gets the CDR bytes; with ``with_info``
     it also gets the middleware's message info (``received_timestamp`` [ns], ...)."""
@@ -103,7 +111,7 @@ class LocalLinks:
     def __init__(self) -> None:
         self.queue: deque = deque()  # (reader, message) in publish order
 
-    def link(self, nodes) -> int:
+    def link(self, nodes: Sequence[Node]) -> int:
         """Link every per-sample subscription of ``nodes`` that another of them
         publishes; the number linked."""
         from rclpy.qos import DurabilityPolicy, QoSCompatibility, qos_check_compatible
@@ -127,16 +135,16 @@ class LocalLinks:
                 linked += 1
         return linked
 
-    def _attach(self, pub, reader: LocalReader) -> None:
+    def _attach(self, pub: Publisher, reader: LocalReader) -> None:
         readers = LOCAL_READERS.setdefault(pub, [])
         if not readers:  # the publisher's own publish, then the queue
             send, queue = pub.publish, self.queue
 
-            def publish(msg) -> None:
+            def publish(msg: Any) -> None:
                 send(msg)
                 for r in readers:
                     queue.append((r, msg))
-            pub.publish = publish
+            pub.publish = publish  # type: ignore[method-assign]
         readers.append(reader)
 
     def deliver(self) -> int:
@@ -154,14 +162,14 @@ class LocalLinks:
 class LocalReader:
     """A linked subscription's callback and the form it takes its messages in."""
 
-    def __init__(self, sub) -> None:
+    def __init__(self, sub: Subscription) -> None:
         from rclpy.serialization import deserialize_message, serialize_message
         self.topic_name = sub.topic_name
         self.msg_type, self.raw, self.callback = sub.msg_type, sub.raw, sub.callback
-        self.with_info = sub.callback_group.with_info
+        self.with_info = cast(LeanLoop, sub.callback_group).with_info
         self._from_cdr, self._to_cdr = deserialize_message, serialize_message
 
-    def take(self, msg) -> None:
+    def take(self, msg: Any) -> None:
         if isinstance(msg, (bytes, bytearray, memoryview)):
             msg = bytes(msg) if self.raw else self._from_cdr(bytes(msg), self.msg_type)
         elif self.raw:
@@ -177,7 +185,7 @@ class LocalReader:
 LOCAL_READERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def subscriber_count(pub) -> int:
+def subscriber_count(pub: Publisher) -> int:
     """The publisher's matched subscriptions, its linked ones in the process too."""
     return pub.get_subscription_count() + len(LOCAL_READERS.get(pub, ()))
 
@@ -280,8 +288,8 @@ class LeanExecutor(Executor):
     (``lean_take_at_tick`` is a lone driver's) and batches nothing (``lean_batch_s``
     nodes run alone)."""
 
-    def __init__(self, node, *, context=None) -> None:
-        nodes = list(node) if isinstance(node, (list, tuple)) else [node]
+    def __init__(self, node: Node | Sequence[Node], *, context: Context | None = None) -> None:
+        nodes: list[Node] = list(node) if isinstance(node, (list, tuple)) else [node]  # type: ignore[list-item]
         super().__init__(context=context or nodes[0].context)
         for n in nodes:
             self.add_node(n)
@@ -444,7 +452,7 @@ class LeanExecutor(Executor):
         return True
 
 
-def end_run(node) -> None:
+def end_run(node: Node) -> None:
     """End the process's run from ``node`` (the driver: its run is the set's): every
     node spun with it gives its final report while the context still holds (composed,
     the driver's end shuts the context of all of them down), then the context goes."""
@@ -455,7 +463,7 @@ def end_run(node) -> None:
 
 
 # -- a node's main() ----------------------------------------------------------------------
-def run_node(factory, args=None) -> int:
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
     """Run one node the Jazzy way (init / spin / except / finally destroy, try_shutdown)
     with the stops of :mod:`piezo_stage.nodes._signals`: rclpy installs no signal
     handler of its own (``SignalHandlerOptions.NO``), ours work from the first import.
@@ -467,7 +475,8 @@ def run_node(factory, args=None) -> int:
         factory, LeanNode) and factory.USES_KERNELS)
 
 
-def run_nodes(factories, args=None, warm_kernels: bool = False) -> int:
+def run_nodes(factories: Sequence[Callable[[], Node]], args: Sequence[str] | None = None,
+              warm_kernels: bool = False) -> int:
     """``run_node`` for several nodes in one process on one executor (the loop
     composed: ``loop_container``): built in order, spun together, closed and
     destroyed in reverse order; one exit code, as ``run_node``'s. ``warm_kernels``:
@@ -484,7 +493,8 @@ def run_nodes(factories, args=None, warm_kernels: bool = False) -> int:
         gc.collect()  # what the imports left, collected and frozen before the gate: the
         gc.freeze()   # collection at the spin's start then scans the nodes alone
         await_start_gate()
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        rclpy.init(args=None if args is None else list(args),
+                   signal_handler_options=SignalHandlerOptions.NO)
         for factory in factories:
             # a node whose construction must not be cut short (DEFERS_STOPS: the
             # recorder, its bag open and its readers acknowledging before it returns)
@@ -613,7 +623,7 @@ def await_start_gate() -> None:
         time.sleep(0.01)
 
 
-def fatal(node, error: BaseException, args=None) -> int:
+def fatal(node: Node | None, error: BaseException, args: Sequence[str] | None = None) -> int:
     """A node that cannot run says why on one line of stderr; the exit code (2 for a
     configuration or data error, 1 otherwise, or 0 when the error only raced with a
     SIGINT's shutdown: rcl calls fail from then on)."""
@@ -624,7 +634,7 @@ def fatal(node, error: BaseException, args=None) -> int:
     return 2 if isinstance(error, (ConfigError, DataError)) else 1
 
 
-def _node_name(args) -> str:
+def _node_name(args: Sequence[str] | None) -> str:
     """The node's name for a start-up error (the node object may not exist yet)."""
     argv = list(args or sys.argv)
     name = sys.argv[0].rsplit("/", 1)[-1].removesuffix(".py").removesuffix("_node")

@@ -18,13 +18,15 @@ import os
 import queue
 import sys
 import threading
+from collections.abc import Callable
+from typing import Any
 
 from piezo_stage.core.types import Doc
 
 SWITCH_INTERVAL_S = 0.0005  # the GIL handed over this often while the worker runs
 
 
-def warm_up(decode, errors: tuple) -> None:
+def warm_up(decode: Callable[[bytes], Any], errors: tuple) -> None:
     """Run ``decode`` (CDR bytes -> trajectory) once on each of its paths now: a layout
     the fast decoder covers, and one it hands to rclpy's ordinary deserialization,
     whose first call loads the type support's shared library and imports with the GIL
@@ -101,7 +103,7 @@ class Intake:
                                            name="intake", daemon=True)
             self.thread.start()
 
-    def submit(self, kind: str, data) -> None:
+    def submit(self, kind: str, data: Any) -> None:
         self.start()
         self.inbox.put((kind, data))
 

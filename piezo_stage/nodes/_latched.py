@@ -27,17 +27,24 @@ again are another request.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import TYPE_CHECKING, Any
 
 from rclpy.qos import DurabilityPolicy
 
-from piezo_stage.nodes._common import QOS_LATCHED, UNKNOWN_NODE, steady_timer
+from piezo_stage.nodes._common import QOS_LATCHED, UNKNOWN_NODE, MessageInfo, steady_timer
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+    from rclpy.subscription import Subscription
 
 # our nodes (in the same namespace) whose latched publishers send their message again
 # to a consumer that lacks it: no fetch is needed from them
 RESENDING = ("trajectory",)
 
 
-def fetchable(infos, ns: str, resending=RESENDING) -> tuple[set, bool]:
+def fetchable(infos: Sequence[Any], ns: str, resending: Iterable[str] = RESENDING
+              ) -> tuple[set, bool]:
     """(the endpoint gids of the latched publishers in ``infos`` (a topic's publishers,
     as the graph gives them) a fetch is for, whether a volatile publisher is among
     them). Left out: our own nodes in namespace ``ns`` that resend (``resending``), and
@@ -55,17 +62,19 @@ class LatchedFetch:
     """See the module docstring. ``callback(data, info)`` gets the raw CDR bytes and
     rclpy's message info (the publication's source timestamp and sequence number)."""
 
-    def __init__(self, node, msg_type, topic: str, callback, poll_s: float = 0.25,
-                 open_s: float = 1.0, resending=RESENDING) -> None:
+    def __init__(self, node: Node, msg_type: type, topic: str,
+                 callback: Callable[[bytes, MessageInfo], None], poll_s: float = 0.25,
+                 open_s: float = 1.0, resending: Iterable[str] = RESENDING) -> None:
         self.node, self.msg_type, self.topic, self.callback = node, msg_type, topic, callback
         self.resending = frozenset(resending)
         self.open_s = open_s
         self.fetched: set[bytes] = set()   # gids of the latched publishers fetched from
-        self.sub, self.opened_at = None, 0.0
+        self.sub: Subscription | None = None
+        self.opened_at = 0.0
         self.fetches, self.expected, self.got = 0, 0, 0
         steady_timer(node, poll_s, self.poll)
 
-    def _take(self, data, info) -> None:
+    def _take(self, data: bytes, info: MessageInfo) -> None:
         self.got += 1
         self.callback(data, info)
         if self.got >= self.expected:  # the history it opened for: close at once
@@ -87,7 +96,8 @@ class LatchedFetch:
         if new and not volatile and self.sub is None:
             self.fetched |= new
             self.expected, self.got = len(new), 0
-            self.sub = self.node.create_subscription(self.msg_type, self.topic, self._take,
-                                                     QOS_LATCHED, raw=True)
+            # (rclpy's hints name only the one-argument callback; it takes both)
+            self.sub = self.node.create_subscription(
+                self.msg_type, self.topic, self._take, QOS_LATCHED, raw=True)  # type: ignore[arg-type]
             self.opened_at = time.monotonic()
             self.fetches += 1

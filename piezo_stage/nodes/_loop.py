@@ -5,15 +5,22 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.arming import ARMED
-from piezo_stage.nodes._common import QOS_DIAG, QOS_EVENTS, steady_timer
+from piezo_stage.nodes._common import QOS_DIAG, QOS_EVENTS, Status, steady_timer
 from piezo_stage.nodes._executor import hot_subscription, local_readers, subscriber_count
 from piezo_stage_msgs_adapters import diagnostic_array
 
+if TYPE_CHECKING:
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.node import Node
+    from rclpy.publisher import Publisher
 
-def set_realtime_priority(prio, logger, main_thread: bool = True) -> int:
+
+def set_realtime_priority(prio: int, logger: Any, main_thread: bool = True) -> int:
     """SCHED_FIFO at ``prio`` for every thread of this process (the loop's and the
     middleware's, so a publish never waits on a starved middleware thread: priority
     inversion), as ros2_control does for its control thread. Where the OS does not
@@ -47,7 +54,7 @@ PAGE, HEAP_CAP = 4096, 512 * 2**20
 M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)
 
 
-def reserve_heap(nbytes: int, logger) -> int:
+def reserve_heap(nbytes: int, logger: Any) -> int:
     """The real-time memory recipe (as the PREEMPT_RT wiki and ros2_realtime give it):
     no allocation of its own mmap, the heap never trimmed, and ``nbytes`` of it touched
     now, so later allocations up to that size reuse pages already faulted in. rclpy
@@ -75,7 +82,7 @@ def reserve_heap(nbytes: int, logger) -> int:
     return nbytes
 
 
-def _polls_a_mutex(tid) -> bool:
+def _polls_a_mutex(tid: int | str) -> bool:
     """Whether a thread is one of Fast DDS's asynchronous writer threads (``dds.asyn.*``),
     which poll a writer's mutex in a loop while another thread holds it (rmw_fastrtps
     issue 666). At the holder's own SCHED_FIFO priority two of them filled both cores of
@@ -90,7 +97,7 @@ def _polls_a_mutex(tid) -> bool:
         return False
 
 
-def missing_links(node) -> str:
+def missing_links(node: Node) -> str:
     """Which link of the control loop has no node, in words ('' when none is missing):
     for an arm request's refusal and the driver's diagnostics."""
     ns = node.get_namespace().rstrip("/")
@@ -111,7 +118,7 @@ class DriverState:
     ``heap_bytes`` of heap: ``reserve_heap``), the driver's voltage and slew limits. ``bad``
     counts malformed announcements."""
 
-    def __init__(self, node, dt_ns, prio, heap_bytes: int = 0) -> None:
+    def __init__(self, node: Node, dt_ns: int, prio: int, heap_bytes: int = 0) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
 
         from piezo_stage.core.loop.arming import StateTimeline
@@ -123,7 +130,7 @@ class DriverState:
         self.slew_V_per_s: float | None = None  # its slew limit (the slowest axis's)
         hot_subscription(node, DiagnosticArray, "state", self.on_state, QOS_EVENTS)
 
-    def on_state(self, msg) -> None:
+    def on_state(self, msg: DiagnosticArray) -> None:
         from piezo_stage_msgs_adapters import announcement_from_msg
         try:
             a = announcement_from_msg(msg)
@@ -150,7 +157,7 @@ class DriverState:
         self.timeline.add(a.since_ns, a.state)
         self.armed_once = self.armed_once or a.state == ARMED
 
-    def enabled(self, ns) -> bool:
+    def enabled(self, ns: int) -> bool:
         return self.timeline.enabled(ns)
 
 
@@ -160,7 +167,7 @@ class Gate:
     every consumer (the recorder included) listens, so a run loses nothing and is
     reproducible. ``needs``: list of (publisher, n)."""
 
-    def __init__(self, node, needs) -> None:
+    def __init__(self, node: Node, needs: Sequence[tuple[Publisher, int]]) -> None:
         self._node = node
         self.needs = [(p, int(n)) for p, n in needs]
         self.queue: list = []
@@ -180,7 +187,7 @@ class Gate:
                 pub.publish(m)
             self.queue.clear()
 
-    def publish(self, pub, msg) -> None:
+    def publish(self, pub: Publisher, msg: Any) -> None:
         if self.open:
             pub.publish(msg)
         else:  # the timer polls the graph: a query per message would cost ~1 ms each
@@ -199,11 +206,13 @@ class Diagnostics:
     last ``window_s``): levels come from what happened recently, so a warning clears
     once its cause stops; the cumulative counters stay in the values."""
 
-    def __init__(self, node, status, task, hardware_id=None, rates=(),
-                 window_s: float = 5.0) -> None:
+    def __init__(self, node: Node, status: Callable[[], Status], task: str,
+                 hardware_id: str | Callable[[], str] | None = None,
+                 rates: Sequence[tuple[str, str, float]] = (), window_s: float = 5.0) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         self.node, self.status, self.task, self.rates = node, status, task, tuple(rates)
-        self.hw, self.window_s = hardware_id, window_s
+        self.hw: str | Callable[[], str] = hardware_id or ""
+        self.window_s = window_s
         self.history: list = []
         self.pub = node.create_publisher(DiagnosticArray, "/diagnostics", QOS_DIAG)
         if hardware_id is None:  # the device is the driver's: from its announcements
@@ -212,7 +221,7 @@ class Diagnostics:
                                      QOS_EVENTS)
         steady_timer(node, 1.0, self.publish)
 
-    def _on_driver_state(self, msg) -> None:
+    def _on_driver_state(self, msg: DiagnosticArray) -> None:
         if msg.status and msg.status[0].hardware_id:
             self.hw = msg.status[0].hardware_id
 
@@ -230,7 +239,7 @@ class Diagnostics:
     def name(self) -> str:
         return f"{self.node.get_namespace().rstrip('/')}/{self.node.get_name()}: {self.task}"
 
-    def evaluate(self, now_s=None):
+    def evaluate(self, now_s: float | None = None) -> Status:
         """(level, message, values) with the recent-rate checks applied."""
         level, message, values = self.status()
         now_s = time.monotonic() if now_s is None else now_s
@@ -262,7 +271,7 @@ class Diagnostics:
         except Exception:  # noqa: BLE001 - the context already shut down: nothing to tell
             pass
 
-    def report(self):
+    def report(self) -> tuple[int, DiagnosticArray]:
         """(stamp [ns], the report now as a DiagnosticArray)."""
         level, message, values = self.evaluate()
         ns = self.node.get_clock().now().nanoseconds

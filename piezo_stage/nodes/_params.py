@@ -5,6 +5,9 @@ silently kept."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
+
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -16,8 +19,14 @@ from piezo_stage.core.errors import ConfigError
 from piezo_stage.core.params import Schema
 from piezo_stage.core.types import Doc
 
+if TYPE_CHECKING:
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
 
-def declare(node, name, default, description, lo=None, hi=None, choices=None, live=None):
+
+def declare(node: Any, name: str, default: Any, description: str, lo: float | None = None,
+            hi: float | None = None, choices: Sequence[str] | None = None,
+            live: bool | Callable[[Any], Any] | None = None) -> Any:
     """Declare a parameter with a descriptor (units in the description, ranges,
     read_only). Values outside ``choices`` are refused, at start (ConfigError) and when
     set at run time (the set call fails with the reason).
@@ -30,12 +39,16 @@ def declare(node, name, default, description, lo=None, hi=None, choices=None, li
     if callable(live):
         if "_live" not in node.__dict__:
             node._live = {}
-            node.add_post_set_parameters_callback(
-                lambda ps: [node._live[p.name](p.value) for p in ps if p.name in node._live])
+            def apply(ps: list[Parameter]) -> None:
+                for p in ps:
+                    if p.name in node._live:
+                        node._live[p.name](p.value)
+            node.add_post_set_parameters_callback(apply)
         node._live[name] = live
-    if lo is not None and isinstance(default, float):
+    if lo is not None and hi is not None and isinstance(default, float):
         d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi))]
-    elif lo is not None and isinstance(default, int) and not isinstance(default, bool):
+    elif lo is not None and hi is not None and isinstance(default, int) and \
+            not isinstance(default, bool):
         d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
     if choices:
         d.additional_constraints = "one of: " + ", ".join(choices)
@@ -55,7 +68,7 @@ def declare(node, name, default, description, lo=None, hi=None, choices=None, li
     return value
 
 
-def declare_schema(node, schema: Schema, live: Doc | None = None) -> Doc:
+def declare_schema(node: Any, schema: Schema, live: Doc | None = None) -> Doc:
     """Declare every parameter of ``schema`` (core/params.py) and return {name: value}.
     A live one is applied by ``live[name]`` (called with each new value) when given,
     else by the node's own on-set callback; the others are read-only."""
@@ -65,7 +78,7 @@ def declare_schema(node, schema: Schema, live: Doc | None = None) -> Doc:
             for p in schema}
 
 
-def _check_choices(node, params):
+def _check_choices(node: Any, params: Sequence[Parameter]) -> SetParametersResult:
     for p in params:
         ch = node._choices.get(p.name)
         if ch and p.value not in ch:
@@ -74,7 +87,7 @@ def _check_choices(node, params):
     return SetParametersResult(successful=True)
 
 
-def _float_override(node, name, default) -> None:
+def _float_override(node: Any, name: str, default: Any) -> None:
     """``kp: 1`` where a float is declared: taken as 1.0 (people write it so; rclpy
     would refuse the type and the node would not start). Lists of numbers alike."""
     from rclpy.parameter import Parameter
@@ -91,7 +104,7 @@ def _float_override(node, name, default) -> None:
                                                     [float(x) for x in over.value])
 
 
-def check_overrides(node) -> None:
+def check_overrides(node: Node) -> None:
     """Refuse a parameter the node was given but does not declare (a misspelling such as
     ``kP`` would otherwise be ignored without a word): ConfigError naming the key and
     the closest declared one."""

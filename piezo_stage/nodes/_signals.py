@@ -49,7 +49,10 @@ import faulthandler
 import os
 import signal
 import sys
+from collections.abc import Iterator
 from contextlib import contextmanager
+from types import FrameType
+from typing import Any
 
 from piezo_stage.stopping import again_soon, cannot_raise_here
 
@@ -92,7 +95,7 @@ def _name() -> str:
     return mod.rsplit(".", 1)[-1].removesuffix(".py").removesuffix("_node")
 
 
-def _on_signal(signum, frame):
+def _on_signal(signum: int, frame: FrameType | None) -> None:
     if STATE.again:  # the stop we sent again ourselves (below): counted already
         STATE.again, STATE.count = False, STATE.count - 1
     STATE.count += 1
@@ -196,7 +199,7 @@ _SIGEV_THREAD, _CLOCK_MONOTONIC = 2, 1
 _KEEP: list = []  # what the native timers point at lives as long as they do
 
 
-def _native_timer(libc, function, value, seconds: float):
+def _native_timer(libc: Any, function: Any, value: int, seconds: float) -> Any:
     """A one-shot timer whose expiry calls ``function(value)`` on a thread of its own
     (POSIX timer_create with SIGEV_THREAD): it runs while this thread holds the GIL."""
     import ctypes
@@ -223,7 +226,7 @@ def _native_timer(libc, function, value, seconds: float):
 
 
 @contextmanager
-def bounded_teardown(code: int, seconds: float = MIDDLEWARE_TEARDOWN_S):
+def bounded_teardown(code: int, seconds: float = MIDDLEWARE_TEARDOWN_S) -> Iterator[None]:
     """The middleware's part of a teardown (see the module docstring): if the block has
     not ended within ``seconds``, every thread's stack and one line go to stderr and the
     process exits with ``code``. Without POSIX timers (not Linux) only the stop watch
@@ -259,7 +262,7 @@ def bounded_teardown(code: int, seconds: float = MIDDLEWARE_TEARDOWN_S):
 
 
 @contextmanager
-def deferred(on: bool = True):
+def deferred(on: bool = True) -> Iterator[None]:
     """A node's construction that does not block and must not be cut short (the
     recorder's: its bag is open and its readers take messages before the constructor
     returns): a stop signal inside it is only noted, as while running, so the node is
@@ -274,7 +277,7 @@ def deferred(on: bool = True):
 
 
 @contextmanager
-def interruptible():
+def interruptible() -> Iterator[None]:
     """A long computation in a callback (an identification): a stop signal raises
     :class:`Stopped` inside it instead of waiting for it to end."""
     if STATE.signum is not None:

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import importlib
 import struct
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
@@ -29,9 +31,13 @@ from piezo_stage.nodes._common import (
     QOS_DIAG,
     QOS_EVENTS,
     QOS_LATCHED,
+    MessageInfo,
     steady_timer,
 )
 from piezo_stage.nodes._executor import hot_subscription
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag): what our
     # publishers offer
@@ -57,7 +63,7 @@ STAMPED = {t for t, _ in CONTRACT.values()} - {"std_msgs/msg/String",
                                                "trajectory_msgs/msg/JointTrajectory"}
 
 
-def msg_class(msgtype: str):
+def msg_class(msgtype: str) -> type:
     pkg, _, name = msgtype.split("/")
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
@@ -74,7 +80,9 @@ class TopicTap:
     (the live view: a slow viewer then costs the loop's publishers nothing; the
     recorder keeps reliable, it must lose nothing)."""
 
-    def __init__(self, node, on_topic, on_message, best_effort: bool = False,
+    def __init__(self, node: Node, on_topic: Callable[[str, str, str], None],
+                 on_message: Callable[[str, bytes, int | None, MessageInfo], None],
+                 best_effort: bool = False,
                  discover_s: float = 1.0) -> None:
         self.node, self.on_topic, self.on_message = node, on_topic, on_message
         self.best_effort = best_effort
@@ -89,7 +97,7 @@ class TopicTap:
         return rel if rel.startswith("/") else \
             f"{self.node.get_namespace().rstrip('/')}/{rel}"
 
-    def qos(self, topic: str, kind: str):
+    def qos(self, topic: str, kind: str) -> QoSProfile:
         if kind not in ("latched", "events", "diag"):
             if not self.best_effort:
                 return QOS_DATA
@@ -106,7 +114,7 @@ class TopicTap:
         stamped = msgtype in STAMPED
         on_message = self.on_message
 
-        def cb(data, info) -> None:
+        def cb(data: bytes, info: MessageInfo) -> None:
             on_message(topic, data, header_stamp_ns(data) if stamped else None, info)
         self.subs[topic] = hot_subscription(self.node, cls, topic, cb,
                                             self.qos(topic, kind), raw=True, with_info=True)

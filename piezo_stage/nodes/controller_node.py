@@ -15,12 +15,13 @@ autotuning experiment of ``piezo-stage tune --relay``).
 import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
-
 import time
+from typing import Any
 
 from geometry_msgs.msg import Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 
 from piezo_stage.core.errors import PiezoStageError
@@ -35,7 +36,7 @@ GAINS = ("kp", "ki", "kd")
 
 
 class Controller(LeanNode, Node):
-    def __init__(self, **node_options) -> None:
+    def __init__(self, **node_options: Any) -> None:
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("controller", **node_options)
         p = declare_schema(self, PARAMETERS)  # the gains live through on_set
@@ -56,7 +57,7 @@ class Controller(LeanNode, Node):
     def final_report(self) -> None:
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
-    def on_set(self, params):
+    def on_set(self, params: list[Parameter]) -> SetParametersResult:
         try:
             self.core.set_gains(**{p.name: p.value for p in params if p.name in GAINS})
         except PiezoStageError as e:
@@ -66,7 +67,7 @@ class Controller(LeanNode, Node):
                 self.core.set_feedback(bool(p.value))
         return SetParametersResult(successful=True)
 
-    def on_reference(self, msg) -> None:
+    def on_reference(self, msg: bytes) -> None:
         """One reference: decoded, its stamp checked, then the core's one call."""
         try:
             r = reference_from_msg(msg)
@@ -85,7 +86,7 @@ class Controller(LeanNode, Node):
             self.gate.publish(self.pub, voltage_cdr(ns, v))
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run the controller (the Jazzy form)."""
     return run_node(Controller, args)
 

@@ -8,6 +8,8 @@ are taken by every node. No rclpy here: the launcher reads it before any node ex
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from piezo_stage.core.loop.trajectory import KINDS
 from piezo_stage.core.params import Param, Schema, names
 from piezo_stage.core.types import Doc
@@ -116,7 +118,7 @@ def refusal(node: str, name: str, value: object) -> str | None:
     return found.refuses(value) if found is not None else None
 
 
-def unknown_parameter(key: str, declared) -> str:
+def unknown_parameter(key: str, declared: Iterable[str]) -> str:
     """"unknown parameter 'kP' (did you mean 'kp'?)"; the nearest by spelling, any case."""
     import difflib
     by_lower = {d.lower(): d for d in declared}

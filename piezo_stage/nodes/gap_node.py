@@ -10,7 +10,6 @@ twin on ``gap/residual`` (geometry_msgs/PointStamped, metres) and its rolling RM
 import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
-
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -19,7 +18,7 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.estimation.gap.monitor import ResidualMonitor
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir
-from piezo_stage.nodes._common import QOS_DATA
+from piezo_stage.nodes._common import QOS_DATA, Status
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare_schema
@@ -44,7 +43,7 @@ class Gap(LeanNode, Node):
                          raw=True)
         Diagnostics(self, self.status, "sim-to-real residual")
 
-    def on_state(self, msg) -> None:
+    def on_state(self, msg: bytes) -> None:
         try:
             ns, w, v = joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:
@@ -54,7 +53,7 @@ class Gap(LeanNode, Node):
         r = self.monitor.sample(w, v)
         self.gate.publish(self.pub, point_cdr(ns, r))  # raw CDR: no message object
 
-    def status(self):
+    def status(self) -> Status:
         vals = {f"rms_{a}_um": x for a, x in self.monitor.rms_um().items()}
         n = self.monitor.n
         msg = (f"residual rms x/y {vals['rms_x_um']:.4g}/{vals['rms_y_um']:.4g} um against "
@@ -62,7 +61,7 @@ class Gap(LeanNode, Node):
         return 0, msg, {**vals, "model": self.model_name, "samples": n}
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run the gap monitor (the Jazzy form)."""
     return run_node(Gap, args)
 

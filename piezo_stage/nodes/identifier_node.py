@@ -10,7 +10,6 @@ hands the model to the feedforward on ``model``
 import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
-
 from collections import deque
 from typing import Any
 
@@ -25,7 +24,7 @@ from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.estimation.identify.segmentation import segment
 from piezo_stage.core.estimation.record import Record, on_grid
 from piezo_stage.core.loop.stamps import StampGuard
-from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, steady_timer
+from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, Status, steady_timer
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare_schema
@@ -65,14 +64,14 @@ class Identifier(LeanNode, Node):
                     rates=[("bad_messages", "malformed joint_states", 0),
                            ("out_of_order", "out-of-order samples", 0)])
 
-    def status(self):
+    def status(self) -> Status:
         err = self.stats["last_error"]
         return ((1, f"last identification failed: {err}") if err else
                 (0, f"{len(self.buf)} samples buffered")) + ({
                     **self.stats, "buffered": len(self.buf), "method": self.method,
                     "structure": self.structure, "auto_cycles": self.auto_cycles},)
 
-    def on_state(self, msg) -> None:
+    def on_state(self, msg: bytes) -> None:
         try:
             ns, w, v = joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:  # a malformed or foreign JointState: count it, go on
@@ -85,7 +84,7 @@ class Identifier(LeanNode, Node):
             return
         self.buf.append((ns, w["x"], w["y"], v["x"], v["y"]))
 
-    def record(self, n=None) -> Record:
+    def record(self, n: int | None = None) -> Record:
         """The buffer as a Record (its first n samples when n is given)."""
         a = np.array(list(self.buf)[:n], dtype=float).reshape(-1, 5)
         stamps = a[:, 0].astype(np.int64) if len(a) else np.zeros(0, np.int64)
@@ -93,7 +92,7 @@ class Identifier(LeanNode, Node):
         return Record(t, {"x": a[:, 3], "y": a[:, 4]}, {"x": a[:, 1], "y": a[:, 2]},
                       source="live buffer", voltage_exact=True)
 
-    def identify(self, n=None) -> str:
+    def identify(self, n: int | None = None) -> str:
         # the identification's numerics at the first fit (the node starts sooner)
         from piezo_stage.core.estimation.identify import IdentifyOptions
         from piezo_stage.core.estimation.identify.api import identify_stage
@@ -129,7 +128,7 @@ class Identifier(LeanNode, Node):
             # whatever arrived by this timer tick: the same run gives the same model
             self.identify_and_report(int(tp[2 * self.auto_cycles - 1]) + 1)
 
-    def identify_and_report(self, n=None):
+    def identify_and_report(self, n: int | None = None) -> tuple[bool, str]:
         """-> (success, message); the outcome also goes to the log and diagnostics."""
         try:
             ok, message = True, self.identify(n)
@@ -140,12 +139,13 @@ class Identifier(LeanNode, Node):
         self.get_logger().info(message)
         return ok, message
 
-    def on_identify(self, request, response):
+    def on_identify(self, request: Trigger.Request, response: Trigger.Response
+                    ) -> Trigger.Response:
         response.success, response.message = self.identify_and_report()
         return response
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run the identifier (the Jazzy form)."""
     return run_node(Identifier, args)
 

@@ -16,7 +16,6 @@ clock in real time).
 import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
-
 import time
 from typing import Any
 
@@ -25,6 +24,7 @@ from foxglove.websocket import ServerListener
 from rclpy.node import Node
 
 from piezo_stage.io.bag import msgdef
+from piezo_stage.nodes._common import MessageInfo, Status
 from piezo_stage.nodes._executor import LeanNode, run_node
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare_schema
@@ -38,10 +38,10 @@ class _Subscriptions(ServerListener):
     def __init__(self) -> None:
         self.active: dict[tuple[int, int], str] = {}  # (client, channel) -> topic
 
-    def on_subscribe(self, client, channel) -> None:
+    def on_subscribe(self, client: Any, channel: Any) -> None:
         self.active[(client.id, channel.id)] = channel.topic
 
-    def on_unsubscribe(self, client, channel) -> None:
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
         self.active.pop((client.id, channel.id), None)
 
 
@@ -70,14 +70,14 @@ class LiveView(LeanNode, Node):
                                "Foxglove WebSocket)")
         Diagnostics(self, self.status, "live view")
 
-    def set_rate(self, hz) -> None:
+    def set_rate(self, hz: float) -> None:
         self.min_gap_ns = int(1e9 / hz) if hz > 0 else 0
 
-    def add_topic(self, topic, msgtype, kind) -> None:
+    def add_topic(self, topic: str, msgtype: str, kind: str) -> None:
         self.channels[topic] = Channel(topic, message_encoding="cdr", schema=Schema(
             name=msgtype, encoding="ros2msg", data=msgdef(msgtype).encode()))
 
-    def forward(self, topic, data, stamp_ns, info) -> None:
+    def forward(self, topic: str, data: bytes, stamp_ns: int | None, info: MessageInfo) -> None:
         ch = self.channels[topic]
         if not ch.has_sinks():
             return  # nobody watches this topic
@@ -91,7 +91,7 @@ class LiveView(LeanNode, Node):
         ch.log(bytes(data), log_time=t)
         self.sent += 1
 
-    def status(self):
+    def status(self) -> Status:
         watched = sorted(set(self.listener.active.values()))
         return 0, (f"serving {len(self.channels)} topics on {self.url}; "
                    f"{len(watched)} watched"), {
@@ -104,7 +104,7 @@ class LiveView(LeanNode, Node):
         self.server.stop()
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run the live view (the Jazzy form)."""
     return run_node(LiveView, args)
 

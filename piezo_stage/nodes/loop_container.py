@@ -24,9 +24,11 @@ name the nodes); ``--param`` sets one node's parameter, as ``-p`` sets a lone no
 import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
-
 import sys
+from collections.abc import Callable, Sequence
 from typing import Any
+
+from rclpy.node import Node
 
 from piezo_stage.nodes._executor import LeanNode, run_nodes
 
@@ -76,22 +78,22 @@ def node_class(name: str) -> type[LeanNode]:
     return Controller
 
 
-def factory(name: str, params: list[str]):
+def factory(name: str, params: list[str]) -> Callable[[], Node]:
     """A builder of node ``name`` with its own ``-p`` arguments over the shared ones."""
     cls: Any = node_class(name)  # a LeanNode that is an rclpy node: node options too
     cli = ["--ros-args"] + [x for p in params for x in ("-p", p)] if params else []
 
-    def build():
+    def build() -> Node:
         return cls(cli_args=cli) if cli else cls()
     build.__name__ = name
     return build
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """Build the named nodes and spin them together; the exit code as a node's."""
     argv = sys.argv[1:] if argv is None else argv
     try:
-        names, params, ros = parse(argv)
+        names, params, ros = parse(list(argv))
     except UsageError as e:
         sys.stderr.write(f"loop_container: {e}\n")
         return 2

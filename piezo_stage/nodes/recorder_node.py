@@ -12,7 +12,6 @@ model files go in as MCAP metadata.
 import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
-
 import os
 import sys
 
@@ -21,7 +20,7 @@ from rclpy.qos import DurabilityPolicy
 
 from piezo_stage.core.loop.stamps import MAX_STAMP_NS
 from piezo_stage.io.bag import BagWriter, new_bag_dir
-from piezo_stage.nodes._common import steady_timer
+from piezo_stage.nodes._common import MessageInfo, steady_timer
 from piezo_stage.nodes._executor import LeanNode, run_node
 from piezo_stage.nodes._loop import Diagnostics, set_realtime_priority
 from piezo_stage.nodes._params import declare_schema
@@ -69,10 +68,10 @@ class Recorder(LeanNode, Node):
             {"bag": out, "batch_period_s": self.lean_batch_s, "bad_stamps": self.bad_stamps,
              **self.bag.counts}), "recording")
 
-    def add_topic(self, topic, msgtype, kind) -> None:
+    def add_topic(self, topic: str, msgtype: str, kind: str) -> None:
         self.bag.add_topic(topic, msgtype, self.offered(topic, kind))
 
-    def offered(self, topic, kind):
+    def offered(self, topic: str, kind: str) -> str:
         """The QoS the topic's publishers offer (as ``ros2 bag record`` stores it): asked
         of the graph when a publisher is there (topics found by discovery), else what
         our nodes offer for that kind."""
@@ -87,7 +86,7 @@ class Recorder(LeanNode, Node):
             return "data"
         return kind
 
-    def write(self, topic, data, stamp_ns, info) -> None:
+    def write(self, topic: str, data: bytes, stamp_ns: int | None, info: MessageInfo) -> None:
         if stamp_ns is not None and not 0 <= stamp_ns <= MAX_STAMP_NS:
             # a negative stamp (sec = -1) cannot be an MCAP time: the message is kept,
             # logged at its arrival, and counted
@@ -133,7 +132,7 @@ class Recorder(LeanNode, Node):
             sys.stderr.write(f"[recorder] its last report was not recorded: {e}\n")
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run the recorder (the Jazzy form)."""
     return run_node(Recorder, args)
 

@@ -26,19 +26,20 @@ more tick).
 import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
-
 import time
 
 import numpy as np
 from diagnostic_msgs.msg import KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop.planner import HOLD
 from piezo_stage.core.loop.stamps import REQUEST_PREFIX
 from piezo_stage.core.loop.trajectory import generate
+from piezo_stage.core.types import Doc
 from piezo_stage.nodes._common import QOS_EVENTS, QOS_LATCHED, steady_timer
 from piezo_stage.nodes._executor import LeanNode, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
@@ -75,7 +76,7 @@ class Trajectory(LeanNode, Node):
     def final_report(self) -> None:
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
-    def build(self, p):
+    def build(self, p: Doc) -> JointTrajectory:
         table = None
         if p["kind"] == "csv":
             from piezo_stage.io.csv_table import read_table
@@ -98,19 +99,19 @@ class Trajectory(LeanNode, Node):
             w = {a: np.concatenate([we[a], wb[a], w[a]]) for a in w}
         return trajectory_msg(t, w)
 
-    def publish(self, msg) -> None:
+    def publish(self, msg: JointTrajectory) -> None:
         msg.header.frame_id = f"{self.request}#{self.published + 1}"
         self.gate.publish(self.pub, msg)
         self.published += 1
         self.last, self.sent_at, self.budget = msg, time.monotonic(), RESENDS
         self.accepted = False
 
-    def on_accepted(self, msg) -> None:
+    def on_accepted(self, msg: JointTrajectory) -> None:
         if self.last is not None and msg.header.frame_id == self.last.header.frame_id:
             # the feedforward took this request (its name: the bytes of a resend crossed)
             self.accepted = True
 
-    def on_phase(self, msg) -> None:
+    def on_phase(self, msg: KeyValue) -> None:
         was, self.ff_phase = self.ff_phase, phase_from_msg(msg)
         if self.ff_phase != (HOLD, ""):
             self.budget = RESENDS  # it has one: a later restart may ask again
@@ -133,7 +134,7 @@ class Trajectory(LeanNode, Node):
             self.budget -= 1
             self.sent_at = time.monotonic()
 
-    def on_set(self, params):
+    def on_set(self, params: list[Parameter]) -> SetParametersResult:
         p = dict(self.p)
         p.update({x.name: x.value for x in params if x.name in p})
         try:
@@ -145,7 +146,7 @@ class Trajectory(LeanNode, Node):
         return SetParametersResult(successful=True)
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run the trajectory node (the Jazzy form)."""
     return run_node(Trajectory, args)
 

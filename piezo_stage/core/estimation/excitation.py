@@ -39,11 +39,11 @@ def gap_protocol(fs_hz: float = 5000.0, lo: float = 0.0, hi: float = 150.0, seed
     span = hi - lo
     dt = 1.0 / fs_hz
 
-    def ramp_to(a, b, s: float = 0.1):
+    def ramp_to(a: float, b: float, s: float = 0.1) -> np.ndarray:
         n = max(2, int(s * fs_hz))
         return a + (b - a) * (1 - np.cos(np.linspace(0, np.pi, n))) / 2
 
-    def axis_block():
+    def axis_block() -> np.ndarray:
         parts = []
         for f, cyc, amp in SINES:
             a = amp * rng.uniform(0.85, 1.0)

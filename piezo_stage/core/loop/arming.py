@@ -52,7 +52,7 @@ class ArmingParams:
     tolerance_V: float = 0.01        # |command - applied| that counts as "holding"
     auto_arm: bool = False           # arm at start, and re-arm after a stale fault
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not (self.ramp_V_per_s > 0 and self.stale_s > 0 and self.confirm_ticks >= 1
                 and self.tolerance_V > 0 and math.isfinite(self.safe_V)):
             raise ConfigError("arming: ramp, stale timeout, confirm ticks and tolerance "

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 CREEP_TAUS_S = (0.05, 0.5, 5.0, 50.0)
 
 
-def _phi_gamma(A, B, tau):
+def _phi_gamma(A: np.ndarray, B: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
     """Phi(tau) = e^(A tau) and Gamma(tau) = int_0^tau e^(A s) ds B (one matrix exponential)."""
     from scipy.linalg import expm  # (at first use: a node without effects starts sooner)
     n = A.shape[0]

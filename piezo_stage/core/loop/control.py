@@ -58,7 +58,7 @@ class PIDGains:
     d_filter_hz: float = 200.0  # first-order filter on the derivative term
     i_limit_V: float = 30.0     # anti-windup: |integral contribution| <= this
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for k in ("kp", "ki", "kd", "i_limit_V"):
             if getattr(self, k) < 0:
                 raise ConfigError(f"PID {k} must be >= 0")

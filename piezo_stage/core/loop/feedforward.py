@@ -471,7 +471,7 @@ class InverseFeedforward:
         self.asked = dict(desired)
         return desired, h
 
-    def _voltages(self, ns, target, desired):
+    def _voltages(self, ns: int, target: int, desired: PerAxis[float]) -> PerAxis[float]:
         if self.inv is None:
             return {a: min(max(desired[a] / self.gain, self.limits[0]), self.limits[1])
                     for a in ("x", "y")}

@@ -31,7 +31,7 @@ class Approach:
     _t_acc: float = field(init=False)
     _dist: float = field(init=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not (self.speed_um_s > 0 and self.accel_um_s2 > 0):
             raise ConfigError("approach speed and acceleration must be > 0")
         d = math.sqrt(sum((self.end[a] - self.start[a]) ** 2 for a in self.start))

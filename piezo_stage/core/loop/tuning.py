@@ -122,7 +122,7 @@ def _double(x: float) -> str:
     return repr(float(f"{x:.6g}"))
 
 
-def _margins(Lw, w):
+def _margins(Lw: np.ndarray, w: np.ndarray) -> tuple[float, float, float] | None:
     """(phase margin deg, gain margin dB, crossover rad/sample) of a loop response on
     the grid w (ascending): the phase margin at every unity-gain crossing, the gain
     margin at every -180 deg crossing (so a resonance peak that crosses again counts);
@@ -189,8 +189,9 @@ def _shape(plants: PerAxis[np.ndarray], w: np.ndarray, T: float, phase_margin_de
     for ki in np.geomspace(1.0, 1e5, 161):
         for kp in np.concatenate([[0.0], np.geomspace(1e-3, 5.0, 56)]):
             C = kp + ki * integ
-            ms = [_margins(C * P, w) for P in plants.values()]
-            if any(m is None for m in ms):
+            got = [_margins(C * P, w) for P in plants.values()]
+            ms = [m for m in got if m is not None]
+            if len(ms) < len(got):
                 continue
             worst = tuple(min(m[i] for m in ms) for i in range(3))
             if worst[0] < phase_margin_deg or worst[1] < gain_margin_db:
@@ -304,14 +305,14 @@ def tune_relay(points: Doc, rate_hz: float = 1000.0, phase_margin_deg: float = 6
                   method, source, "\n".join(lines))
 
 
-def _noise_gain(Lw, w):
+def _noise_gain(Lw: np.ndarray, w: np.ndarray) -> float:
     """RMS of the white sensor noise the loop passes to the true position, per unit
     noise RMS: sqrt(mean |T|^2) over (0, pi) (the grid is log-spaced, so weighted)."""
     T2 = np.abs(Lw / (1 + Lw)) ** 2
     return math.sqrt(float(np.trapezoid(T2, w)) / math.pi)
 
 
-def _bandwidth(Lw, w):
+def _bandwidth(Lw: np.ndarray, w: np.ndarray) -> float:
     Tw = np.abs(Lw / (1 + Lw))
     below = np.nonzero(Tw < 1 / math.sqrt(2))[0]
     return w[below[0]] if below.size else w[-1]

@@ -38,7 +38,7 @@ from piezo_stage.core.model.play import PlayOperators
 from piezo_stage.core.types import Doc, Params, PerAxis
 
 
-def _coeffs(x, name):
+def _coeffs(x: ArrayLike, name: str) -> np.ndarray:
     a = np.atleast_1d(np.asarray(x, dtype=float))
     if a.ndim != 1 or a.size == 0:
         raise ModelError(f"{name} must be a non-empty list of numbers")
@@ -67,7 +67,7 @@ class DuhemBranch:
     g: np.ndarray
     reduced: bool = False
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not np.isfinite(self.alpha) or self.alpha <= 0:
             raise ModelError(f"alpha must be finite and > 0, got {self.alpha}")
         object.__setattr__(self, "alpha", float(self.alpha))
@@ -129,7 +129,7 @@ class DuhemModel:
     fit_range_V: tuple | None = None
     continuation: str = "straight"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.continuation not in CONTINUATIONS:
             raise ModelError(f"continuation {self.continuation!r}: one of "
                              f"{', '.join(CONTINUATIONS)}")
@@ -369,7 +369,7 @@ class StageModel:
     voltage_limits: tuple = (0.0, 150.0)
     plays: Doc = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for a in list(self.axes) + list(self.coupling) + list(self.plays):
             if a not in AXES:
                 raise ModelError(f"unknown axis {a!r} (axes are x and y)")

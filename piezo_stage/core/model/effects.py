@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -33,14 +34,14 @@ EFFECTS = ("creep", "dynamics", "delay", "drift")
 AXES_OF_EFFECTS = ("x", "y")  # an effect without ``axes`` acts on both
 
 
-def _positive(name, x):
+def _positive(name: str, x: float) -> float:
     x = float(x)
     if not np.isfinite(x) or x <= 0:
         raise ConfigError(f"{name} must be > 0, got {x}")
     return x
 
 
-def _signal():
+def _signal() -> Any:
     """scipy.signal, imported where a filter is first built: the import takes ~0.6 s
     (scipy.stats with it), and the nodes that load a model file without building one
     (the identifier, the gap node) start that much sooner."""
@@ -63,7 +64,7 @@ def from_rest(op: Callable[[np.ndarray], np.ndarray], X: np.ndarray) -> np.ndarr
 class _LinearFilter:
     """An IIR filter y = (b/a) x with carried state (scipy lfilter with zi)."""
 
-    def __init__(self, b, a) -> None:
+    def __init__(self, b: ArrayLike, a: ArrayLike) -> None:
         self.b = np.asarray(b, float)
         self.a = np.asarray(a, float)
         self._lfilter, self._lfilter_zi = _signal().lfilter, _signal().lfilter_zi
@@ -78,7 +79,7 @@ class _LinearFilter:
         return y
 
 
-def _lfilter_cols(b, a, X):
+def _lfilter_cols(b: np.ndarray, a: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Columns of X filtered from rest (compiled: scipy's lfilter along axis 0 of a
     row-major array is several times slower)."""
     from piezo_stage.core.model._kernels import iir_columns
@@ -138,7 +139,8 @@ class Creep:
         return (cols - slow).reshape(X.shape)
 
 
-def _sampled_late(num, den, dt, delta):
+def _sampled_late(num: ArrayLike, den: ArrayLike, dt: float,
+                  delta: float) -> tuple[np.ndarray, np.ndarray]:
     """(b, a) of continuous dynamics num/den driven by an input held over each period,
     its output read ``delta`` before the period's end (a transport delay's fraction of
     a period, the whole periods being a plain shift): with the state x_k at the end of
@@ -149,7 +151,7 @@ def _sampled_late(num, den, dt, delta):
     A, B, C, _ = signal.tf2ss(num, den)
     n = A.shape[0]
 
-    def phi_gamma(tau):
+    def phi_gamma(tau: float) -> tuple[np.ndarray, np.ndarray]:
         M = np.zeros((n + 1, n + 1))
         M[:n, :n], M[:n, n:] = A * tau, B * tau
         E = expm(M)
@@ -309,7 +311,7 @@ EFFECT_RANGES = {
 MAX_CREEP_TAUS = 8
 
 
-def _in_range(where: str, x, lo: float, hi: float) -> float:
+def _in_range(where: str, x: Any, lo: float, hi: float) -> float:
     if isinstance(x, bool) or not isinstance(x, (int, float, str)):
         raise ConfigError(f"{where}: expected a number, got {x!r}")
     try:

@@ -44,7 +44,11 @@ silently ignored.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.core.model.duhem import (
@@ -89,13 +93,13 @@ def as_number(x: object, where: str, error: type = ModelError) -> float:
 _number = as_number
 
 
-def _numbers(xs, where):
+def _numbers(xs: Any, where: str) -> list[float]:
     if not isinstance(xs, (list, tuple)) or not xs:
         raise ModelError(f"{where}: expected a list of numbers")
     return [_number(x, f"{where}[{i}]") for i, x in enumerate(xs)]
 
 
-def _check_keys(d, allowed, where):
+def _check_keys(d: Any, allowed: Sequence[str], where: str) -> None:
     if not isinstance(d, dict):
         raise ModelError(f"{where}: expected a mapping")
     extra = sorted(str(k) for k in set(d) - set(allowed))
@@ -107,7 +111,7 @@ def _check_keys(d, allowed, where):
         raise ModelError(f"{where}: unknown key(s) {extra}{hint}")
 
 
-def _branch(d, where):
+def _branch(d: Any, where: str) -> DuhemBranch:
     _check_keys(d, ("alpha", "f", "g", "h"), where)
     if "alpha" not in d:
         raise ModelError(f"{where}: missing alpha")
@@ -119,13 +123,13 @@ def _branch(d, where):
     try:
         if "h" in d:
             return DuhemBranch.from_h(alpha, _numbers(d["h"], f"{where}.h"))
-        return DuhemBranch(alpha, _numbers(d["f"], f"{where}.f"),
-                           _numbers(d["g"], f"{where}.g"))
+        return DuhemBranch(alpha, np.array(_numbers(d["f"], f"{where}.f")),
+                           np.array(_numbers(d["g"], f"{where}.g")))
     except (TypeError, ValueError) as e:  # ModelError is a ValueError
         raise ModelError(f"{where}: {e}") from None
 
 
-def _duhem(d, where) -> DuhemModel:
+def _duhem(d: Any, where: str) -> DuhemModel:
     if not isinstance(d, dict):
         raise ModelError(f"{where}: expected a mapping")
     structure = d.get("structure", "whole")
@@ -161,7 +165,7 @@ def _duhem(d, where) -> DuhemModel:
     raise ModelError(f"{where}: structure must be 'whole' or 'segmented', got {structure!r}")
 
 
-def _plays(d, v0, where) -> PlayOperators:
+def _plays(d: Any, v0: float, where: str) -> PlayOperators:
     _check_keys(d, ("thresholds_V", "weights_um_per_V", "initial_V", "rate_widening_s",
                     "bands_V"), where)
     for k in ("thresholds_V", "weights_um_per_V"):
@@ -302,17 +306,17 @@ def bounded_past_fit(model: StageModel) -> tuple[StageModel, list[str]]:
     return out, notes
 
 
-def _floats(a):
+def _floats(a: ArrayLike) -> list[float]:
     return [float(x) for x in np.asarray(a, float)]
 
 
-def _branch_doc(b: DuhemBranch, ascending: bool):
+def _branch_doc(b: DuhemBranch, ascending: bool) -> Doc:
     if b.reduced:
         return {"alpha": b.alpha, "h": _floats(b.h(ascending))}
     return {"alpha": b.alpha, "f": _floats(b.f), "g": _floats(b.g)}
 
 
-def _duhem_doc(m: DuhemModel):
+def _duhem_doc(m: DuhemModel) -> Doc:
     d: dict[str, object] = {"structure": m.structure,
                             "initial_state": {"v_V": float(m.initial.v),
                                               "w_um": float(m.initial.w)}}

@@ -81,7 +81,7 @@ class PlantConfig:
     hysteresis: Params = field(default_factory=dict)
     changes: list = field(default_factory=list)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not self.internal_rate_hz > 0:
             raise ConfigError("internal_rate_hz must be > 0")
         if not self.slew_V_per_s > 0:
@@ -269,7 +269,7 @@ class Plant:
         meas = self._advance(c[0], c[1])
         return float(meas[0, 0]), float(meas[1, 0])
 
-    def _advance(self, vx, vy):
+    def _advance(self, vx: np.ndarray, vy: np.ndarray) -> np.ndarray:
         """The plant over commands vx, vy (a scheduled change splits them where it
         comes): hysteresis path, effects, sensor; returns the measured (2, n) [um] and
         keeps the true and applied values of the call."""
@@ -294,7 +294,7 @@ class Plant:
             return np.concatenate(parts, axis=1)
         return self._advance_plain(vx, vy)
 
-    def _advance_plain(self, vx, vy):
+    def _advance_plain(self, vx: np.ndarray, vy: np.ndarray) -> np.ndarray:
         """``_advance`` with no change within the commands."""
         n, R = vx.size, self.substeps
         applied, w = np.empty((2, n * R)), np.empty((2, n * R))

@@ -73,7 +73,7 @@ class PlayOperators:
     bands_V: np.ndarray | None = None
     table: np.ndarray = field(init=False, repr=False, compare=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         arrays = []
         for name in ("thresholds_V", "weights_um_per_V", "initial_V"):
             a = np.atleast_1d(np.array(getattr(self, name), dtype=float))
@@ -258,7 +258,7 @@ class PlayHysteresis:
         if params.get("kind", "prandtl-ishlinskii") != "prandtl-ishlinskii":
             raise ConfigError(f"{where}.kind: only 'prandtl-ishlinskii' is known")
 
-        def num(d, key, default, lo, hi, w=where):
+        def num(d: Params, key: str, default: float, lo: float, hi: float, w: str = where) -> float:
             x = d.get(key, default)
             if isinstance(x, bool) or not isinstance(x, (int, float)) or \
                     not lo <= float(x) <= hi:

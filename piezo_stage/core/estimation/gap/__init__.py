@@ -110,7 +110,7 @@ def _holes_filled(fit: Record, axes: Sequence[str]) -> Record:
     return fill_unmeasured(fit, pred)
 
 
-def _axis_child(conn, fit, holdout, axis, args) -> None:
+def _axis_child(conn: Any, fit: Record, holdout: Record, axis: str, args: tuple) -> None:
     quiet_worker()  # the parent decides about stops (core/workers.py)
     effects, base_model, base_effects, limits_V, history = args
     try:
@@ -124,7 +124,8 @@ def _axis_child(conn, fit, holdout, axis, args) -> None:
         conn.close()
 
 
-def _axes_apart(fit, holdout, axes, args, progress):
+def _axes_apart(fit: Record, holdout: Record, axes: Sequence[str], args: tuple,
+                progress: Callable[[str], None]) -> PerAxis[AxisDiagnosis]:
     """Each axis's diagnosis in a process of its own (forked: the records are not
     copied), progress relayed from them. Processes, not threads: the many small steps
     of the parameter searches hold the GIL, and two axes in two threads took 19 s
@@ -209,7 +210,7 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:
-        def threadpool_limits(_n):
+        def threadpool_limits(_n: int | None) -> contextlib.AbstractContextManager:  # type: ignore[misc]
             return contextlib.nullcontext()
     args = (effects, base_model, base_effects, limits_V, history)
     with threadpool_limits(1 if len(axes) > 1 else None):

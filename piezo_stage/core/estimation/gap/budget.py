@@ -158,7 +158,7 @@ def input_period(v: np.ndarray, v_other: np.ndarray | None, fs: float,
         L1 += 1
     tol = 1e-3 * span + 5.0 * voltage_noise(v)
 
-    def mismatch(L):
+    def mismatch(L: int) -> float:
         worst = 0.0
         for u in (v, v_other):
             if u is None or np.ptp(u) <= 0:

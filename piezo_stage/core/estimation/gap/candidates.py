@@ -441,7 +441,8 @@ def fit_class_effect(rec: Record, axis: str, on: ClassCandidate, effect: str,
         if on.drift_tau_s is not None:
             extra.append(Drift.columns(len(h), rec.fs_hz, on.drift_tau_s))
 
-        def design_without(names, kept=kept):
+        def design_without(names: Sequence[str],
+                           kept: Sequence[tuple[str, Params]] = kept) -> np.ndarray:
             op = transform_ops([x for x in kept if x[0] not in names], rec.fs_hz)
             return op(B) if op is not None else B
         params, now = search_transform(effect, design_without, extra, rec.w[axis],

@@ -3,6 +3,8 @@ vibration), with the feedback bandwidth that rejects it."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy import signal
 
@@ -75,7 +77,8 @@ def disturbance(rec: Record, axis: str, resid: np.ndarray, nf: float) -> Doc | N
     return None
 
 
-def _joint_holds(rec: Record, axis: str, min_s: float = 0.25, total_s: float = 1.0):
+def _joint_holds(rec: Record, axis: str, min_s: float = 0.25,
+                 total_s: float = 1.0) -> list[tuple[int, int]]:
     """Sample ranges where both inputs are held (>= min_s each, >= total_s in all)."""
     mask = held(rec.v[axis], rec.fs_hz, min_s)
     vo = rec.v.get(OTHER[axis])
@@ -86,7 +89,7 @@ def _joint_holds(rec: Record, axis: str, min_s: float = 0.25, total_s: float = 1
     return segs if sum(b - a for a, b in segs) >= total_s * rec.fs_hz else []
 
 
-def _line_rms(r, fs, freq, segs):
+def _line_rms(r: np.ndarray, fs: float, freq: float, segs: Sequence[tuple[int, int]]) -> float:
     """RMS of the sinusoid at freq in r over the segments (each fitted on its own:
     the line's phase need not carry across)."""
     power, n = 0.0, 0

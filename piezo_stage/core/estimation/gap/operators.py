@@ -39,10 +39,10 @@ class _Chain:
     """Operators applied in turn (a class, not a closure: a diagnosis crosses a process
     boundary, see ``diagnose``)."""
 
-    def __init__(self, ops) -> None:
+    def __init__(self, ops: Sequence[Callable[[np.ndarray], np.ndarray]]) -> None:
         self.ops = ops
 
-    def __call__(self, X):
+    def __call__(self, X: np.ndarray) -> np.ndarray:
         for o in self.ops:
             X = o(X)
         return X
@@ -51,10 +51,10 @@ class _Chain:
 def compose(ops: Sequence[Callable[[np.ndarray], np.ndarray] | None]
             ) -> Callable[[np.ndarray], np.ndarray] | None:
     """The operators (None left out) applied in turn; None when there is none."""
-    ops = [o for o in ops if o is not None]
-    if not ops:
+    kept = [o for o in ops if o is not None]
+    if not kept:
         return None
-    return ops[0] if len(ops) == 1 else _Chain(ops)
+    return kept[0] if len(kept) == 1 else _Chain(kept)
 
 
 def identity(X: np.ndarray) -> np.ndarray:

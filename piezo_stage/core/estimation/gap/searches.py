@@ -26,6 +26,11 @@ from piezo_stage.core.model.effects import Creep, Delay, Drift, Dynamics
 from piezo_stage.core.model.play import MAX_RATE_WIDENING_S, play_columns
 from piezo_stage.core.types import EffectsBlock, Params
 
+Op = Callable[[np.ndarray], np.ndarray]  # a transform of a design's columns
+Cost = Callable[[Params], float]  # an effect's parameters -> the fit's RMS [um]
+# (cost, where to start or None) -> the parameters that minimise the cost
+Search = Callable[[Cost, Params | None], Params]
+
 
 def search_1d(f: Callable[[float], float], lo: float, hi: float, n_grid: int = 12,
               log: bool = False) -> tuple[float, float]:
@@ -55,7 +60,8 @@ def delay_rows(effects: Sequence[tuple[str, EffectsBlock]], fs: float) -> int:
 
 def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.ndarray],
                      extra: list, w: np.ndarray, fs: float,
-                     kept: Sequence[tuple[str, Params]], rows: int = 0) -> tuple[dict, list]:
+                     kept: Sequence[tuple[str, Params]], rows: int = 0
+                     ) -> tuple[Params, list[tuple[str, Params]]]:
     """A transform effect's parameters (creep, delay, dynamics) searched on FIT, the
     model's other coefficients refitted by least squares at each step over the rows
     from ``rows`` on (the columns run from the record's start; a delay's search over
@@ -72,7 +78,7 @@ def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.n
     wf = w[rows:]
     extra_f = [e[rows:] for e in extra]
 
-    def solve(cols):
+    def solve(cols: np.ndarray) -> float:
         return solve_gram(*gram_blocks([cols[rows:]] + extra_f, wf), len(wf)).rms
 
     if effect == "creep":
@@ -82,19 +88,19 @@ def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.n
     if effect == "delay":
         dmax = delay_max_s(fs)
 
-        def search_delay(cost, p0):
+        def search_delay(cost: Cost, p0: Params | None) -> Params:
             return {"delay_s": float(search_1d(lambda d: cost({"delay_s": d}), 0.0,
                                                 dmax, n_grid=15)[0])}
 
-        def delay_op(p):
+        def delay_op(p: Params) -> Op:
             return Delay(fs, delay_s=p["delay_s"]).apply
         B = KX
         if "dynamics" in dict(kept):  # the pair's exact sampled form
             dyn = dict(kept)["dynamics"]
             B = design_without(("delay", "dynamics"))
 
-            def delay_op(p):
-                return transform_ops([("dynamics", dyn), ("delay", p)], fs)
+            def delay_op(p: Params) -> Op:
+                return _chain([("dynamics", dyn), ("delay", p)], fs)
         # the alternation starts from the whole-sample delay whose exact refit fits best
         # (held coefficients fitted without a delay take the lag's phase in and lead a
         # one-column search to a small delay: a measured stack's 3-sample lag was found
@@ -108,10 +114,9 @@ def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.n
         # a resonance fitted before the delay took the delay's phase as well (a lag-like
         # resonance stood in for it): the two polished together, as where the
         # resonance comes second
-        def pair_op(p):
+        def pair_op(p: Params) -> Op:
             dyn_p = {k: v for k, v in p.items() if k != "delay_s"}
-            return transform_ops([("dynamics", dyn_p),
-                                  ("delay", {"delay_s": p["delay_s"]})], fs)
+            return _chain([("dynamics", dyn_p), ("delay", {"delay_s": p["delay_s"]})], fs)
         both = _alternate(B, extra, w, lambda cost, q0: _polish_pair(q0, fs, cost),
                           {**dyn0, **found}, pair_op, rows=rows)
         d = {"delay_s": float(both.pop("delay_s"))}
@@ -121,7 +126,7 @@ def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.n
         raise ValueError(f"{effect} is not a transform effect")
     seeds = _resonance_seeds(KX, w, fs, extra)
 
-    def search(cost, p0):  # from the data's peak and the last alternation's end
+    def search(cost: Cost, p0: Params | None) -> Params:  # from the data's peak and the last alternation's end
         last = [(p0["fn_hz"], p0["zeta"])] if p0 and p0["kind"] == "resonance" else []
         return _search_dynamics(fs, cost, seeds + last if seeds else seeds)
     if "delay" not in dict(kept):
@@ -130,17 +135,16 @@ def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.n
     d0 = dict(kept)["delay"]
     KB = design_without(("delay",))
 
-    def dyn_op(p):
-        return transform_ops([("dynamics", p), ("delay", d0)], fs)
+    def dyn_op(p: Params) -> Op:
+        return _chain([("dynamics", p), ("delay", d0)], fs)
     params = _alternate(KB, extra, w, search, None, dyn_op, start=Delay(fs, **d0).apply,
                         rows=rows)
     if seeds and params["kind"] == "resonance":
         # a delay fitted before the resonance took the resonance's phase as well (on a
         # record whose chirp excites it): the resonance and the delay polished together
-        def pair_op(p):
+        def pair_op(p: Params) -> Op:
             dyn_p = {k: v for k, v in p.items() if k != "delay_s"}
-            return transform_ops([("dynamics", dyn_p),
-                                  ("delay", {"delay_s": p["delay_s"]})], fs)
+            return _chain([("dynamics", dyn_p), ("delay", {"delay_s": p["delay_s"]})], fs)
         both = _alternate(KB, extra, w, lambda cost, p0: _polish_pair(p0, fs, cost),
                           {**params, "delay_s": float(d0["delay_s"])}, pair_op, rows=rows)
         d = both.pop("delay_s")
@@ -169,7 +173,7 @@ def rate_search(reg: DuhemRegression, alphas: ArrayLike, kept: Sequence[tuple[st
 
     s = reg.fit_from
 
-    def cost(beta):
+    def cost(beta: float) -> float:
         P, _ = play_start_columns(v, w, plays, reg.B, float(beta), fs)
         P = fixed_op(P) if fixed_op is not None else P  # (part of the hysteresis)
         return solve_gram(*gram_blocks([X[s:] for X in [KX, P] + drift], w[s:]),
@@ -209,16 +213,18 @@ def columns_without(reg: DuhemRegression, alphas: ArrayLike,
     return op(KX) if op is not None else KX
 
 
-def _polish_pair(p0, fs, cost, maxfev: int = 40):
+def _polish_pair(p0: Params | None, fs: float, cost: Cost, maxfev: int = 40) -> Params:
     """A resonance and a delay searched together (Nelder-Mead over log fn, log zeta and
     the delay, from ``p0`` {kind, fn_hz, zeta, delay_s}, where the separate searches
     ended): separately, each takes part of the other's phase (found 824 Hz and 0.62 ms
     for 800 Hz and 0.5 ms). Returns the better of p0 and the search's end."""
-    def params(x):
+    assert p0 is not None  # (the separate searches' end)
+
+    def params(x: np.ndarray) -> Params:
         return {"kind": "resonance", "fn_hz": float(np.exp(x[0])),
                 "zeta": float(np.exp(x[1])), "delay_s": float(x[2])}
 
-    def f(x):
+    def f(x: np.ndarray) -> float:
         p = params(x)
         return cost(p) if p["fn_hz"] < fs / 2.02 and 0 <= p["delay_s"] <= 0.02 else 1e300
     x0 = np.array([np.log(p0["fn_hz"]), np.log(p0["zeta"]), p0["delay_s"]])
@@ -237,7 +243,17 @@ ALTERNATIONS = 4  # profile searches per effect fit, at most
 ONE_COLUMN_SEARCH = True
 
 
-def _alternate(B, extra, w, search, p0, make_op, start=None, rows: int = 0):
+def _chain(effects: Sequence[tuple[str, Params]], fs: float) -> Op:
+    """The operator of these transform effects in turn (never none: ``effects`` holds
+    at least the one searched)."""
+    op = transform_ops(effects, fs)
+    assert op is not None
+    return op
+
+
+def _alternate(B: np.ndarray, extra: Sequence[np.ndarray], w: np.ndarray, search: Search,
+               p0: Params | None, make_op: Callable[[Params], Op], start: Op | None = None,
+               rows: int = 0) -> Params:
     """An effect's parameters searched with the Duhem coefficients held, alternating
     with their exact refit (block coordinate descent; each step lowers the exact cost,
     and its fixed point is where neither block can improve, the joint optimum's).
@@ -255,7 +271,7 @@ def _alternate(B, extra, w, search, p0, make_op, start=None, rows: int = 0):
     E = np.column_stack(extra)[rows:] if extra else None
     wf = w[rows:]
 
-    def refit(op):
+    def refit(op: Op) -> tuple[float, np.ndarray, np.ndarray]:
         fit = solve_gram(*gram_blocks([op(B)[rows:]] + [e[rows:] for e in extra], wf),
                          len(wf))
         p = B @ fit.theta[:k]
@@ -264,12 +280,15 @@ def _alternate(B, extra, w, search, p0, make_op, start=None, rows: int = 0):
 
     if not ONE_COLUMN_SEARCH:
         return search(lambda q: refit(make_op(q))[0], p0)
-    best, p, r = refit(start if start is not None else make_op(p0))
+    if start is None:
+        assert p0 is not None  # (a first operator, or the parameters to make it from)
+        start = make_op(p0)
+    best, p, r = refit(start)
     params = p0
     for _ in range(ALTERNATIONS):
         rr = float(r @ r)
 
-        def cost(q, p=p, r=r, rr=rr):
+        def cost(q: Params, p: np.ndarray = p, r: np.ndarray = r, rr: float = rr) -> float:
             y = make_op(q)(p)[rows:]
             yy = float(y @ y)
             c = float(y @ r) / yy if yy > 0 else 0.0
@@ -281,11 +300,13 @@ def _alternate(B, extra, w, search, p0, make_op, start=None, rows: int = 0):
                 params, best = new, rms_new
             break
         params, best, p, r = new, rms_new, p_new, r_new
+    assert params is not None  # (the first pass always takes its search's end)
     return params
 
 
-def _resonance_seeds(KX, w, fs, extra=(), min_coherence: float = 0.9, min_peak: float = 1.3,
-                     min_bins: int = 20):
+def _resonance_seeds(KX: np.ndarray, w: np.ndarray, fs: float, extra: Sequence[np.ndarray] = (),
+                     min_coherence: float = 0.9, min_peak: float = 1.3,
+                     min_bins: int = 20) -> list[tuple[float, float]]:
     """Where a resonance shows in the data, as starting points for its search: the
     frequency response from the model's prediction without dynamics (KX theta) to the
     measured position (Welch's H1 estimate), where the excitation has broadband content
@@ -316,12 +337,13 @@ def _resonance_seeds(KX, w, fs, extra=(), min_coherence: float = 0.9, min_peak: 
     return [(float(f[i]) * k, zeta) for k in (0.97, 1.0, 1.03)]
 
 
-def _search_dynamics(fs, cost, seeds=()):
+def _search_dynamics(fs: float, cost: Cost,
+                     seeds: Sequence[tuple[float, float]] = ()) -> Params:
     """A resonance (fn, zeta) or a first-order lag (tau), whichever fits better; the
     coarse grid plus ``seeds`` [(fn, zeta)] found in the data start the search."""
     nyq = fs / 2
 
-    def res_f(x):
+    def res_f(x: Sequence[float]) -> float:
         try:
             return cost({"kind": "resonance", "fn_hz": float(np.exp(x[0])),
                          "zeta": float(np.exp(x[1]))})

@@ -140,13 +140,14 @@ def further_need(g_left: float, floor: float) -> float:
     return FIRST_SHRINK_PCT if g_left < floor else STEP_SHRINK_PCT
 
 
-def _significant(rms_a, rms_b, nf, n):
+def _significant(rms_a: float, rms_b: float, nf: float, n: int) -> bool:
     """A held-out improvement counts when it is well above what chance gives on this
     many samples (the MSE of white noise fluctuates by nf^2 sqrt(2/N))."""
     return rms_a ** 2 - rms_b ** 2 > max(0.05 * nf ** 2, 10 * nf ** 2 * np.sqrt(2.0 / n))
 
 
-def _given_effects(base_model, base_effects, axis):
+def _given_effects(base_model: StageModel | None, base_effects: EffectsBlock | None,
+                   axis: str) -> list[tuple[str, Doc]]:
     """What the user's model already has on this axis: never a candidate, and part of
     every candidate's fit. -> [(name, params)]."""
     out: list[tuple[str, Doc]] = []
@@ -745,7 +746,8 @@ class AxisSearch:
         return own, name, r_own
 
 
-def _decide(ranking, steps, g_before, nf, fit, holdout, axis, told_apart: bool = False):
+def _decide(ranking: list[Doc], steps: list[Doc], g_before: float, nf: float, fit: Record,
+            holdout: Record, axis: str, told_apart: bool = False) -> tuple[str, str]:
     """The verdict: the first (dominant) effect forward selection kept, unless the
     excitation cannot tell it from another (``told_apart``: the effects kept beside it
     do: AxisSearch.told_apart)."""

@@ -48,7 +48,7 @@ DEFAULTS: dict[str, Any] = {"fish": 30, "iterations": 200, "visual": 0.3, "step"
                              "alpha_bounds": (1e-3, 0.3)}
 
 
-def _leg2pow_matrix(lo, hi, deg):
+def _leg2pow_matrix(lo: float, hi: float, deg: int) -> np.ndarray:
     """The basis change as a matrix: column i is Legendre P_i on [lo, hi] in powers."""
     T = np.zeros((deg + 1, deg + 1))
     for i, c in enumerate(np.eye(deg + 1)):
@@ -60,7 +60,8 @@ def _leg2pow_matrix(lo, hi, deg):
 class _Problem:
     """Maps unit-cube positions to model parameters and batches the objective."""
 
-    def __init__(self, lo_hi, n_coef_blocks, deg_list, B, alpha_bounds) -> None:
+    def __init__(self, lo_hi: tuple[float, float], n_coef_blocks: int, deg_list: list[int],
+                 B: float, alpha_bounds: tuple[float, float]) -> None:
         self.la = np.log(alpha_bounds)
         self.degs = deg_list
         self.B = B
@@ -68,7 +69,7 @@ class _Problem:
         self.T = [_leg2pow_matrix(lo_hi[0], lo_hi[1], d) for d in deg_list]
         self.evaluations = 0
 
-    def decode(self, X):
+    def decode(self, X: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         X = np.atleast_2d(X)
         alpha = np.exp(self.la[0] + X[:, 0] * (self.la[1] - self.la[0]))
         polys = []
@@ -81,7 +82,8 @@ class _Problem:
 
 
 class _BranchProblem(_Problem):
-    def __init__(self, v, w, seg, ascending, deg, B, alpha_bounds) -> None:
+    def __init__(self, v: np.ndarray, w: np.ndarray, seg: Segmentation, ascending: bool,
+                 deg: int, B: float, alpha_bounds: tuple[float, float]) -> None:
         super().__init__((v.min(), v.max()), 1, [deg], B, alpha_bounds)
         self.v, self.w = v, w
         sign = 1 if ascending else -1
@@ -98,7 +100,7 @@ class _BranchProblem(_Problem):
         self.stops = np.array(stops, np.int64)
         self.vi, self.wi = as_f64(vi), as_f64(wi)
 
-    def __call__(self, X):
+    def __call__(self, X: np.ndarray) -> np.ndarray:
         alpha, (H,) = self.decode(X)
         out = np.empty(alpha.size)
         self.evaluations += alpha.size
@@ -107,17 +109,18 @@ class _BranchProblem(_Problem):
 
 
 class _WholeProblem(_Problem):
-    def __init__(self, v, w, n, m, B, alpha_bounds) -> None:
+    def __init__(self, v: np.ndarray, w: np.ndarray, n: int, m: int, B: float,
+                 alpha_bounds: tuple[float, float]) -> None:
         super().__init__((v.min(), v.max()), 2, [n, m], B, alpha_bounds)
         self.v, self.w = v, w
         self.D = max(n, m) + 1
         self.w0 = float(np.mean(w[:3]))
 
-    def fg(self, X):
+    def fg(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         alpha, (F, G) = self.decode(X)
         return alpha, F, G
 
-    def __call__(self, X):
+    def __call__(self, X: np.ndarray) -> np.ndarray:
         alpha, F, G = self.fg(X)
         K = alpha.size
         Fp = np.zeros((K, self.D))
@@ -150,12 +153,12 @@ def swarm_minimize(J: Callable[[np.ndarray], np.ndarray], dim: int, rng: np.rand
     best_x, best_y = X[b].copy(), float(Y[b])
     hist: dict[str, list] = {"best": [best_y], "evaluations": [evals]}
 
-    def toward(xi, target, scale):
+    def toward(xi: np.ndarray, target: np.ndarray, scale: float) -> np.ndarray:
         d = target - xi
         nrm = np.linalg.norm(d)
         return xi if nrm == 0 else np.clip(xi + d / nrm * scale, 0.0, 1.0)
 
-    def prey(i):
+    def prey(i: int) -> np.ndarray:
         nonlocal evals
         cand = np.clip(X[i] + visual * rng.uniform(-1, 1, (tries, dim)), 0.0, 1.0)
         yc = J(cand)

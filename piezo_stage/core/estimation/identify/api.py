@@ -95,7 +95,7 @@ class AxisResult:
         }
 
 
-def _axis_data(rec: Record, axis: str):
+def _axis_data(rec: Record, axis: str) -> tuple[np.ndarray, np.ndarray]:
     if axis not in rec.v or axis not in rec.w:
         raise DataError(f"{rec.source}: no v{axis}/w{axis} columns for axis {axis}")
     return rec.v[axis], rec.w[axis]
@@ -414,7 +414,7 @@ def _later_cycles(rec: Record, axis: str) -> tuple[Record, Record]:
     lo, hi = (int(moves[0]), int(moves[-1]) + 2) if moves.size else (0, len(v))
     cut = lo + int((hi - lo) * (1 - HELD_OUT_FRACTION))
 
-    def part(sl, name):
+    def part(sl: slice, name: str) -> Record:
         piece = rec.slice(sl.start, sl.stop)
         piece.source = f"{rec.source} ({name})"
         return piece

@@ -48,7 +48,7 @@ def fit_fast(reg: DuhemRegression, budget: int | None = None,
         lows[-1] = LOG_COUPLING_ALPHA_MIN
     budget = budget or 400
 
-    def objective(log_alphas):
+    def objective(log_alphas: np.ndarray) -> float:
         la = np.clip(log_alphas, lows, hi)
         if reg.v_other is not None:  # the coupling forgets at least a third as fast
             la[-1] = max(la[-1], la[:-1].min() - COUPLING_ALPHA_SPAN)
@@ -121,7 +121,7 @@ def _search_monotone(reg: DuhemRegression, alphas: np.ndarray, fit: Fit | None,
                             "alphas": np.asarray(alphas, float), "fit": fit}
     k = len(best["alphas"])
 
-    def objective(log_alphas):
+    def objective(log_alphas: np.ndarray) -> float:
         la = np.clip(log_alphas, lows, hi)
         a = np.exp(la)
         f = reg.monotone(a, reg.solve(a))

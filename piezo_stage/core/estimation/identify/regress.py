@@ -169,7 +169,8 @@ class DuhemRegression:
         """How many alphas the regression's model has."""
         return (1 if self.structure == "whole" else 2) + (self.v_other is not None)
 
-    def _main_columns(self, a_asc, a_desc, v=None):
+    def _main_columns(self, a_asc: float, a_desc: float,
+                      v: np.ndarray | None = None) -> np.ndarray:
         if v is None:
             X = duhem_regressors(self.v, self.v[0], np.array([a_asc, a_desc]), self.B,
                                  self.B, self._X)
@@ -185,7 +186,7 @@ class DuhemRegression:
         return np.hstack([Xa[:, :self.n + 1] - Xd[:, :self.n + 1],
                           Xa[:, :self.m + 1] + Xd[:, :self.m + 1], free])
 
-    def _coupling_columns(self, a_c):
+    def _coupling_columns(self, a_c: float) -> np.ndarray:
         assert self.v_other is not None  # (only a regression with coupling has them)
         X = duhem_regressors(self.v_other, self.v_other[0], np.array([a_c, a_c]), self.Bo,
                              self.Bo, self._Xo)
