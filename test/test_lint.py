@@ -37,6 +37,17 @@ def test_the_type_checker_passes_on_the_layers_it_covers():
     assert "Success: no issues found" in r.stdout
 
 
+def test_the_core_the_nodes_and_the_drivers_annotate_every_function():
+    """setup.cfg holds the core, the nodes and the drivers to disallow_untyped_defs, so
+    the run above fails on any function of theirs that does not say what it takes and
+    gives."""
+    import configparser
+    cfg = configparser.ConfigParser()
+    cfg.read(os.path.join(ROOT, "setup.cfg"))
+    for layer in ("core", "nodes", "drivers"):
+        assert cfg.getboolean(f"mypy-piezo_stage.{layer}.*", "disallow_untyped_defs"), layer
+
+
 def _modules():
     for pkg in PACKAGES:
         for dirpath, _, files in os.walk(os.path.join(ROOT, pkg)):

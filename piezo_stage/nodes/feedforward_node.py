@@ -18,10 +18,10 @@ the inverse without a restart. Without any model the feedforward is a nominal ga
 import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
-
 import time
-from typing import TYPE_CHECKING
+from typing import Any
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
@@ -31,10 +31,6 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
-from piezo_stage.core.types import Params
-
-if TYPE_CHECKING:
-    from piezo_stage.core.model.duhem import StageModel
 from piezo_stage.core.loop import feedforward as core_ff
 from piezo_stage.core.loop.ontarget import REFUSED, TargetState
 from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
@@ -44,7 +40,9 @@ from piezo_stage.core.loop.stamps import (
     request_key,
 )
 from piezo_stage.core.metrics import LatencyHistogram
-from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED
+from piezo_stage.core.model.duhem import StageModel
+from piezo_stage.core.types import EffectsBlock, Params, PerAxis
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED, MessageInfo
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._intake import Intake, warm_up
 from piezo_stage.nodes._latched import LatchedFetch
@@ -73,6 +71,10 @@ class Refused(PiezoStageError):
     def __init__(self, reason: str, frame_id: str, stamp_ns: int) -> None:
         super().__init__(reason)
         self.frame_id, self.stamp_ns = frame_id, stamp_ns
+
+
+# a trajectory taken: (t [s], w {axis: um}, stamp, start, now [ns])
+Decoded = tuple[np.ndarray, PerAxis[np.ndarray], int, int | None, int]
 
 
 class Feedforward(LeanNode, Node):
@@ -108,7 +110,7 @@ class Feedforward(LeanNode, Node):
                                                  QOS_EVENTS)
         self.gate = Gate(self, [(self.pub, min_subscribers)])
 
-    def __init__(self, **node_options) -> None:
+    def __init__(self, **node_options: Any) -> None:
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("feedforward", **node_options)
         live = tuple(q for q in core_ff.PARAMETERS if q.live)
@@ -123,7 +125,8 @@ class Feedforward(LeanNode, Node):
             name, v) for q in live}))
         for q in live:
             self.core.set_live(q.name, p[q.name])
-        self.model_name, self.pending = "nominal", None
+        self.model_name = "nominal"
+        self.pending: bytes | None = None  # lockstep: the sample the loop waits at
         # a trajectory is its publication: the same bytes sent again run again, one
         # publication delivered twice (volatile and the latched fetch) runs once
         self.publications = Publications()
@@ -192,10 +195,11 @@ class Feedforward(LeanNode, Node):
     def final_report(self) -> None:
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
-    def set_model(self, model, effects, name) -> None:
+    def set_model(self, model: StageModel, effects: EffectsBlock | None, name: str) -> None:
         self.use_model(self.prepare_model((model, effects, name)))
 
-    def prepare_model(self, item):
+    def prepare_model(self, item: str | tuple[StageModel, EffectsBlock | None, str]
+                      ) -> tuple[core_ff.PreparedModel, str]:
         """(model, effects, name) or a model message's text -> (prepared, name), checked
         against the last model prepared. Any thread."""
         if isinstance(item, str):
@@ -209,7 +213,7 @@ class Feedforward(LeanNode, Node):
         self.model_base = prepared.model
         return prepared, name
 
-    def use_model(self, prepared_name) -> None:
+    def use_model(self, prepared_name: tuple[core_ff.PreparedModel, str]) -> None:
         prepared, name = prepared_name
         self.core.use_model(prepared, armed=self.core.inv is not None and
                             self.driver.enabled(self.last_ns))
@@ -219,13 +223,13 @@ class Feedforward(LeanNode, Node):
         self.get_logger().info(f"using model {name}")
         self.resume()
 
-    def reject_model(self, e) -> None:
+    def reject_model(self, e: BaseException) -> None:
         self.stats["rejected_models"] += 1
         self.last_rejection = str(e)
         self.get_logger().error(f"model rejected, keeping {self.model_name}: {e}")
         self.resume()
 
-    def on_model(self, msg) -> None:
+    def on_model(self, msg: String) -> None:
         """A model message: parsed, checked and its inverse built inline in lockstep,
         on the intake's thread in real time."""
         if self.driver.realtime:
@@ -242,7 +246,7 @@ class Feedforward(LeanNode, Node):
             msg, self.pending = self.pending, None
             self.on_state(msg, resumed=True)
 
-    def on_trajectory(self, msg, info) -> None:
+    def on_trajectory(self, msg: bytes, info: MessageInfo) -> None:
         """A trajectory's bytes and its publication (rclpy's message info): checked,
         decoded and republished as accepted inline in lockstep, on the intake's thread
         in real time (``_intake.py``)."""
@@ -255,7 +259,7 @@ class Feedforward(LeanNode, Node):
         except PiezoStageError as e:
             self.reject_trajectory(e)
 
-    def decode_trajectory(self, item):
+    def decode_trajectory(self, item: tuple[bytes, tuple | None]) -> Decoded | None:
         """(bytes, publication) -> (t, w, stamp, start, now) of a trajectory that is
         accepted (every check passed, its stamp's too), republished as accepted; None
         for a publication taken already, delivered again (volatile and latched), and for
@@ -275,7 +279,7 @@ class Feedforward(LeanNode, Node):
         self.accepted_pub.publish(msg)  # only what the stage will run
         return t, w, stamp, start, now
 
-    def take_trajectory(self, decoded) -> None:
+    def take_trajectory(self, decoded: Decoded | None) -> None:
         if decoded is not None:
             t, w, stamp, start, now = decoded
             self.stats["trajectories"] += 1
@@ -286,7 +290,7 @@ class Feedforward(LeanNode, Node):
             self.publish_phase()
         self.resume()
 
-    def reject_trajectory(self, e) -> None:
+    def reject_trajectory(self, e: BaseException) -> None:
         self.stats["rejected_trajectories"] += 1
         self.get_logger().warning(f"trajectory rejected: {e}")
         frame_id, stamp = (e.frame_id, e.stamp_ns) if isinstance(e, Refused) else ("", 0)
@@ -299,7 +303,7 @@ class Feedforward(LeanNode, Node):
         relays it on /stage/state, so an outside node can wait for the end."""
         self.phase_pub.publish(phase_msg(*self.core.phase()))
 
-    def on_setpoint(self, msg) -> None:
+    def on_setpoint(self, msg: PointStamped) -> None:
         try:
             self.planner.set_setpoint(setpoint_from_msg(msg, self.p["range_um"]))
             self.setpoint_arrival = time.time_ns()  # for its arrival-to-applied latency
@@ -307,7 +311,7 @@ class Feedforward(LeanNode, Node):
             self.stats["rejected_setpoints"] += 1
             self.get_logger().warning(f"setpoint rejected: {e}")
 
-    def on_move(self, msg) -> None:
+    def on_move(self, msg: PointStamped) -> None:
         """A move request: the move's profile to its target, judged on target."""
         try:
             move_id, target = move_from_msg(msg, self.p["range_um"])
@@ -325,7 +329,8 @@ class Feedforward(LeanNode, Node):
         self.publish_phase()
         self.resume()
 
-    def on_state(self, msg, info=None, resumed: bool = False) -> None:
+    def on_state(self, msg: bytes, info: MessageInfo | None = None,
+                 resumed: bool = False) -> None:
         if self.inputs_waiting and self.driver.armed_once:
             self.take_inputs()
             self.get_logger().info("armed: taking trajectories, setpoints and moves")
@@ -362,7 +367,8 @@ class Feedforward(LeanNode, Node):
             self.publish_answer(a, w, r.applied)
         self.stats["saturated"], self.stats["rejoins"] = self.core.saturated, self.core.rejoins
 
-    def publish_answer(self, a, w, applied) -> None:
+    def publish_answer(self, a: core_ff.Answer, w: PerAxis[float],
+                       applied: PerAxis[float] | None) -> None:
         """One target's reference (and the phase first, when it changed)."""
         if a.error is not None:
             self.stats["bad_messages"] += 1
@@ -377,10 +383,11 @@ class Feedforward(LeanNode, Node):
         if not self.guard.on_time(a.target, time.time_ns() if self.driver.realtime else None,
                                   a.late):
             return  # it could only reach the driver too late (counted)
+        assert a.desired is not None and applied is not None  # (an answer has both)
         self.gate.publish(self.pub, reference_cdr(a.target, a.desired, a.ff, w, applied))
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run the feedforward (the Jazzy form)."""
     return run_node(Feedforward, args)
 

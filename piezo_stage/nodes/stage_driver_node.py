@@ -1,29 +1,17 @@
 
 """stage_driver: the stage (sim, NI-DAQ, PI, NV200 or replay) on topics; the last line of
 defence. The sample loop itself (the sample clock, the command schedule, the arming
-supervisor, the voltage and slew clamp) is core/loop/sample_loop.py; this node gives it its
-parameters and topics: commands in, joint_states (and the simulated stage's true
-position) out, the latched ``state`` topic and /diagnostics; ``arm`` (std_srvs/SetBool)
-arms and disarms; ``estop`` (std_srvs/Trigger). In real time the executor calls
-``on_lean_tick`` at each tick (the DAQ's read blocks until its clock).
+supervisor, the voltage and slew clamp) is core/loop/sample_loop.py, and what a fault
+escalates to is core/loop/lifecycle.py's table; this node gives them its parameters and
+topics: commands in, joint_states (and the simulated stage's true position) out, the
+latched ``state`` topic and /diagnostics; ``arm`` (std_srvs/SetBool) arms and disarms;
+``estop`` (std_srvs/Trigger). In real time the executor calls ``on_lean_tick`` at each
+tick (the DAQ's read blocks until its clock).
 
-A managed (lifecycle) node, with the standard services (``change_state``,
-``get_state``, ``get_available_states``, ``get_available_transitions``) and
-``transition_event``:
-
-- configure: open the backend and read its limits (no voltage change); the sample loop
-  starts, disarmed at the safe voltage, publishing -> inactive;
-- activate: arm, through the approach, once the loop is closed -> active;
-- deactivate: disarm, ramping to the safe voltage, still publishing -> inactive;
-- cleanup: the backend closes (ramping to safe), the loop stops -> unconfigured;
-- shutdown: ramp to safe, close, and the node exits 0 -> finalized;
-- a fault while active (stale or late commands, an e-stop, a hardware error) ramps to
-  the safe voltage, then goes through the error transition: the backend closes and the
-  node waits unconfigured for configure and activate (the reason on ``state``, as ever).
-
-With ``managed: false`` (the launcher's default) the node configures and activates
-itself at start and keeps its own recovery: a stale fault re-arms through the approach
-within active (``auto_arm``), as a set without a manager always did.
+A managed (lifecycle) node with the standard services and ``transition_event``; what
+each transition does: docs/realtime.md#lifecycle-the-driver-as-a-managed-node. With
+``managed: false`` (the launcher's default) it configures and activates itself at start
+and keeps its own recovery (``auto_arm``).
 """
 
 # first, before the heavy imports: stop signals work from here on (see _signals)
@@ -31,7 +19,10 @@ import piezo_stage.nodes._signals  # noqa: F401, I001
 
 # isort: split
 
+import json
+import os
 import time
+from collections.abc import Callable
 from typing import Any
 
 import rclpy
@@ -50,6 +41,16 @@ import piezo_stage.io.plant_file  # noqa: F401
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
 from piezo_stage.core.loop.arming import ENABLED, ArmingParams
 from piezo_stage.core.loop.arming import PARAMETERS as ARMING
+from piezo_stage.core.loop.lifecycle import (
+    CLEANUP,
+    DEACTIVATE,
+    EXIT,
+    FAULTED_AT_SAFE,
+    HARDWARE_FAULT,
+    closed_status,
+    escalation,
+    settled,
+)
 from piezo_stage.core.loop.sample_loop import (
     PARAMETERS,
     RATES,
@@ -61,7 +62,8 @@ from piezo_stage.core.loop.sample_loop import (
 )
 from piezo_stage.core.types import Doc
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
-from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, steady_timer
+from piezo_stage.io.files import atomic_write
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, MessageInfo, Status, steady_timer
 from piezo_stage.nodes._executor import LeanNode, end_run, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage.nodes._params import declare_schema
@@ -83,17 +85,11 @@ SUCCESS, FAILURE, ERROR = (TransitionCallbackReturn.SUCCESS, TransitionCallbackR
                            TransitionCallbackReturn.ERROR)
 
 
-# a transition's state -> the state it leads to when it succeeds
-SETTLES_TO = {"configuring": "inactive", "activating": "active", "deactivating": "inactive",
-              "cleaningup": "unconfigured", "shuttingdown": "finalized",
-              "errorprocessing": "unconfigured"}
-
-
 class StageDriver(LeanNode, LifecycleNode):
     TICKS = True  # real time: the sample clock is its tick (LeanNode)
     USES_KERNELS = True  # the simulated stage's (LeanNode)
 
-    def __init__(self, **node_options) -> None:
+    def __init__(self, **node_options: Any) -> None:
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("stage_driver", **node_options)
         STOP_STATE.watch_s = 12.0  # its stop ramps and closes the backend (see below)
@@ -109,8 +105,9 @@ class StageDriver(LeanNode, LifecycleNode):
         self.rt_priority = 0
         self._exit_timer: Any = None  # lockstep, all steps done: the timer that ends it
         self.lock = p["mode"] == "lockstep"
-        self.failed: BaseException | None = None
-        self.link = ""  # the missing links (self.failed: the hardware's fault)
+        self.failed: BaseException | None = None  # the hardware's fault
+        self.transition_error: Exception | None = None
+        self.link = ""  # the missing links
         self.next_j = 0  # lockstep: the first sample of the next configure
         self.last_values: Doc = {}  # the last announcement's values (for unconfigured)
         self.why_error = ""  # a fault that takes the error transition
@@ -131,7 +128,7 @@ class StageDriver(LeanNode, LifecycleNode):
         steady_timer(self, 0.5, self.check_links)
         self.diag = Diagnostics(self, self.status, "sample loop", self.hardware_id,
                                 rates=RATES)
-        self.lean_deadline = None  # real time: no tick until configured
+        self.lean_deadline: float | None = None  # real time: no tick until configured
         if not self.lock:
             self.lean_take_at_tick = True  # commands are due at a later tick: no wake each
             self.rt_priority = set_realtime_priority(p["thread_priority"], self.get_logger())
@@ -145,13 +142,14 @@ class StageDriver(LeanNode, LifecycleNode):
             f"{self.p['backend']} stage (closed)"
 
     # -- lifecycle transitions ----------------------------------------------------------
-    def _transition(self, name, body):
+    def _transition(self, name: str, body: Callable[[], object]) -> TransitionCallbackReturn:
         """Run a transition's ``body``: SUCCESS, or FAILURE with the reason logged (a
         backend that cannot open, bad limits), ERROR for anything else; rclpy's own
         wrapper would turn an exception into ERROR without a word."""
         self.transition_error = None
         try:
-            return body()
+            body()
+            return SUCCESS
         except Exception as e:  # noqa: BLE001 - said, then the state machine decides
             self.transition_error = e
             self.get_logger().error(f"{name} failed: {e}")
@@ -160,80 +158,27 @@ class StageDriver(LeanNode, LifecycleNode):
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Open the backend and start the sample loop, disarmed at the safe voltage."""
-        def body():
-            p, arm = self.p, self.arm_params
-            self.backend = make_backend(p["backend"], p["control_rate_hz"], self.bp,
-                                        arm.safe_V)
-            self.failed, self.why_error = None, ""
-            try:
-                start(p, arm)
-            except Exception:
-                self.loop = None
-                self.close()  # nothing left open by a configure that failed
-                raise
-            return SUCCESS
-
-        def start(p, arm) -> None:
-            self.loop = SampleLoop(self.backend, arm, LoopOptions(
-                rate_hz=p["control_rate_hz"], lockstep=self.lock,
-                lookahead_s=p["lookahead_s"], max_steps=p["max_steps"],
-                clock_period_s=p["clock_period_s"], from_arming=p["max_steps_from_arming"],
-                first_j=self.next_j, min_margin=p["min_margin"],
-                capacity_window_s=p["capacity_window_s"],
-                arm_on_start=False), self.on_state_change)  # activate's (or the arm service's)
-            # lockstep: nothing is published before every consumer listens; real time:
-            # the sample clock starts then (the first publishes to new readers are slow)
-            self.gate = Gate(self, [(self.jpub, p["min_subscribers"]),
-                                    (self.tpub,
-                                     p["min_record_subscribers"] * (p["backend"] == "sim"))])
-            self.on_state_change(self.loop.state,
-                                 "configured: started disarmed at the safe voltage",
-                                 self.loop.stamp(self.loop.j + 1))
-            if self.lock:
-                self.follow(self.loop.on_start())  # the first sample: at rest
-            else:
-                self.lean_deadline = 0.0  # the first real-time tick: now
-        return self._transition("configure", body)
+        return self._transition("configure", self._configure)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Arm once the loop is closed (managed, or ``auto_arm``), then the approach."""
-        def body():
-            loop = self.running
-            state, reason = loop.activate(self.managed or self.arm_params.auto_arm)
-            self.on_state_change(state, reason, loop.stamp(loop.j), log=False)
-            return SUCCESS
-        return self._transition("activate", body)
+        return self._transition("activate", lambda: self._changed(
+            self.running.activate(self.managed or self.arm_params.auto_arm)))
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Disarm: ramp to the safe voltage, still publishing. A fault's own deactivate
         (``why_error``) is an error: the error transition follows."""
         if self.why_error:
             return ERROR
-        def body():
-            loop = self.running
-            state, reason = loop.deactivate()
-            self.on_state_change(state, reason, loop.stamp(loop.j), log=False)
-            return SUCCESS
-        return self._transition("deactivate", body)
+        return self._transition("deactivate", lambda: self._changed(self.running.deactivate()))
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Close the backend (ramping to safe) and stop the sample loop."""
-        def body():
-            self._close("cleaned up")
-            return SUCCESS
-        return self._transition("cleanup", body)
+        return self._transition("cleanup", lambda: self._close("cleaned up"))
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Ramp to safe and close (real time: over the next ticks), then exit 0."""
-        def body():
-            self.get_logger().info("shutdown: ramping to the safe voltage, then exiting")
-            if self.loop is None or self.lock:
-                self._close("shut down")
-                self._exit_timer = steady_timer(self, 0.2, rclpy.try_shutdown)
-            else:
-                self.request_shutdown()
-            return SUCCESS
-        return self._transition("shutdown", body)
+        return self._transition("shutdown", self._shutdown)
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
         """After a fault (at the safe voltage by then) or a failed transition: close the
@@ -244,6 +189,46 @@ class StageDriver(LeanNode, LifecycleNode):
         self._close(f"error: {reason}")
         self.why_error = ""
         return SUCCESS
+
+    def _configure(self) -> None:
+        p, arm = self.p, self.arm_params
+        self.backend = make_backend(p["backend"], p["control_rate_hz"], self.bp, arm.safe_V)
+        self.failed, self.why_error = None, ""
+        try:
+            self._start(p, arm)
+        except Exception:
+            self.loop = None
+            self.close()  # nothing left open by a configure that failed
+            raise
+
+    def _start(self, p: Doc, arm: ArmingParams) -> None:
+        # arming at the start: activate's (or the arm service's)
+        self.loop = SampleLoop(self.backend, arm, LoopOptions.from_params(
+            p, self.next_j, arm_on_start=False), self.on_state_change)
+        # lockstep: nothing is published before every consumer listens; real time: the
+        # sample clock starts then (the first publishes to new readers are slow)
+        self.gate = Gate(self, [(self.jpub, p["min_subscribers"]),
+                                (self.tpub,
+                                 p["min_record_subscribers"] * (p["backend"] == "sim"))])
+        self.on_state_change(self.loop.state, "configured: started disarmed at the safe "
+                             "voltage", self.loop.stamp(self.loop.j + 1))
+        if self.lock:
+            self.follow(self.loop.on_start())  # the first sample: at rest
+        else:
+            self.lean_deadline = 0.0  # the first real-time tick: now
+
+    def _changed(self, change: tuple[str, str]) -> None:
+        """A state the loop took at its present sample (activate, deactivate)."""
+        loop = self.running
+        self.on_state_change(*change, loop.stamp(loop.j), log=False)
+
+    def _shutdown(self) -> None:
+        self.get_logger().info("shutdown: ramping to the safe voltage, then exiting")
+        if self.loop is None or self.lock:
+            self._close("shut down")
+            self._exit_timer = steady_timer(self, 0.2, rclpy.try_shutdown)
+        else:
+            self.request_shutdown()
 
     def _close(self, why: str) -> None:
         """The backend ramps to the safe voltage and closes; no tick until configured
@@ -258,6 +243,15 @@ class StageDriver(LeanNode, LifecycleNode):
         if self.loop is not None:
             self.loop = None
             self._announce("disarmed", f"{why}: the backend is closed", log=True)
+
+    def escalate(self, event: str, why: str) -> str:
+        """Take the step core/loop/lifecycle.py's table gives ``event`` here: a fault
+        deactivates (the error transition reporting ``why`` follows) or cleans up."""
+        step = escalation(event, self.managed, self.lifecycle_label())
+        if step in (DEACTIVATE, CLEANUP):
+            self.why_error = why
+            (self.trigger_deactivate if step == DEACTIVATE else self.trigger_cleanup)()
+        return step
 
     # -- the sample loop ----------------------------------------------------------------
     def on_lean_tick(self) -> None:
@@ -283,7 +277,7 @@ class StageDriver(LeanNode, LifecycleNode):
         if self.loop is not None:  # (a hardware fault may have closed it)
             self.lean_deadline = out.deadline
 
-    def on_command(self, msg, info) -> None:
+    def on_command(self, msg: bytes, info: MessageInfo) -> None:
         if self.loop is None:  # unconfigured: no sample to answer
             return
         try:
@@ -305,7 +299,10 @@ class StageDriver(LeanNode, LifecycleNode):
         if out.next is Next.FAULT:
             return self.hardware_failed(out.error)
         if out.next is Next.REFUSE:  # the host cannot hold the rate: said once, it ends
-            self._report_refusal()
+            path, figures = os.environ.get(CAPACITY_FILE_ENV), self.running.refusal_figures()
+            if path and figures is not None:  # for the launcher's ``rate auto``
+                with atomic_write(path) as fh:
+                    json.dump(figures, fh)
             raise ConfigError(out.reason)
         s = out.sample
         if s is not None:
@@ -316,50 +313,22 @@ class StageDriver(LeanNode, LifecycleNode):
                 self.gate.publish(self.clock_pub, clock_msg(s.ns))
         if out.next is Next.SHUT_DOWN:
             end_run(self)  # at the safe voltage (or out of time): exit
-        elif out.next is Next.FAULTED_AT_SAFE and self.managed and \
-                self.lifecycle_label() == "active":
-            self.why_error = out.reason  # the error transition: a deactivate reporting it
-            self.trigger_deactivate()
+        elif out.next is Next.FAULTED_AT_SAFE:
+            self.escalate(FAULTED_AT_SAFE, out.reason)
         return None
-
-    def _report_refusal(self) -> None:
-        """The capacity figures of a refusal, as data, where the launcher asked for them
-        (its ``rate auto`` runs the set again at a rate the host holds)."""
-        import json
-        import os
-        path = os.environ.get(CAPACITY_FILE_ENV)
-        loop = self.running
-        cap = loop.refused_by or loop.last_capacity  # the figures its line names
-        if not path or cap is None:
-            return
-        doc = {"capacity_hz": cap.capacity_hz, "margin": cap.margin,
-               "rate_hz": cap.rate_hz, "min_margin": loop.min_margin,
-               "holdable_rate_hz": cap.holdable_rate_hz(loop.min_margin)}
-        tmp = path + ".tmp"
-        with open(tmp, "w") as fh:
-            json.dump(doc, fh)
-        os.replace(tmp, path)
 
     def hardware_failed(self, error: BaseException | None) -> None:
         """A lost link or a controller error: faulted, said on state and diagnostics,
         then the node exits 1 with the reason (the backend's close ramps to safe where
-        the link still allows it). No sample is taken after it. Managed: the error
-        transition instead (the backend closed where it can be), and the node waits
-        unconfigured for a manager to configure it again."""
+        the link still allows it). No sample is taken after it. Managed: the table's
+        transition instead, and the node waits unconfigured for a manager."""
         if self.failed is None:
             self.failed = error
             self.get_logger().error(f"faulted: hardware: {error}")
             self.final_report()
             self.spub.wait_for_all_acked(Duration(seconds=1))
-        if self.managed and self.lifecycle_label() == "active":
-            self.why_error = f"faulted: hardware: {error}"
-            self.trigger_deactivate()
-            return None
-        if self.managed and self.lifecycle_label() == "inactive":
-            self.why_error = f"faulted: hardware: {error}"  # inactive has no error edge:
-            self.trigger_cleanup()  # cleanup, closing what the link still allows
-            return None
-        raise error if error is not None else BackendFault("hardware: unknown")
+        if self.escalate(HARDWARE_FAULT, f"faulted: hardware: {error}") == EXIT:
+            raise error if error is not None else BackendFault("hardware: unknown")
 
     def done(self) -> None:
         if self.lock:
@@ -396,30 +365,29 @@ class StageDriver(LeanNode, LifecycleNode):
         """SIGINT/SIGTERM or max_steps: ramp to the safe voltage, still publishing, then
         exit. Lockstep (a simulation waiting for commands) and an unconfigured driver
         (nothing open) exit at once."""
-        if self.loop is None:
-            end_run(self)
+        if self.loop is not None and not self.lock:
+            # the ramp, then the backend's close (which may ramp again) and the teardown
+            watch_stop(max(STOP_STATE.watch_s, self.loop.begin_shutdown()))
             return
-        if self.lock:
+        if self.loop is not None:
             self.loop.end_now()
-            end_run(self)
-            return
-        # the ramp, then the backend's close (which may ramp again) and the teardown
-        watch_stop(max(STOP_STATE.watch_s, self.loop.begin_shutdown()))
+        end_run(self)
 
     # -- arming ---------------------------------------------------------------------------
-    def on_state_change(self, state, reason, since_ns, log: bool = True) -> None:
+    def on_state_change(self, state: str, reason: str, since_ns: int,
+                        log: bool = True) -> None:
         self.state_since = since_ns
         self.last_values = {**self.running.announced(), "mode": self.p["mode"]}
         self._announce(state, reason, log)
 
-    def _announce(self, state, reason, log: bool = True) -> None:
+    def _announce(self, state: str, reason: str, log: bool = True) -> None:
         """The state topic: the arming state, the driver's values and its lifecycle
         state. Announced a few samples ahead of when it applies, and before the next
         sample is published: the loop nodes take `state` before their data in every
         pass, so in lockstep each has it before the sample it must act on (reruns
         identical)."""
-        label = self.lifecycle_label()  # within a transition: the state it leads to
-        values = {**self.last_values, "lifecycle": SETTLES_TO.get(label, label)}
+        # within a transition: the state it leads to
+        values = {**self.last_values, "lifecycle": settled(self.lifecycle_label())}
         name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}: arming"
         self.spub.publish(arming_state_msg(self.state_since, name, state, reason, values,
                                            self.hardware_id()))
@@ -447,14 +415,15 @@ class StageDriver(LeanNode, LifecycleNode):
         if self.loop is not None and self.loop.state not in ENABLED:
             self.link = missing_links(self)
 
-    def on_phase(self, msg) -> None:
+    def on_phase(self, msg: KeyValue) -> None:
         """The feedforward's phase and what it follows: the arming state follows it,
         and /stage/state relays it."""
         if self.loop is not None and self.loop.feedforward_phase(*phase_from_msg(msg)):
             self.on_state_change(self.loop.state, self.loop.reason, self.state_since,
                                  log=False)  # the same state, from the same sample
 
-    def on_arm(self, request, response):
+    def on_arm(self, request: SetBool.Request, response: SetBool.Response
+               ) -> SetBool.Response:
         """Arm or disarm within active (the lifecycle's activate and deactivate do the
         same and move its state; this service is the finer switch a set without a
         manager has always had)."""
@@ -467,11 +436,10 @@ class StageDriver(LeanNode, LifecycleNode):
         response.success, response.message = self.running.arm(request.data, self.link)
         return response
 
-    def on_estop(self, request, response):
-        if self.loop is None:
-            response.success, response.message = True, "unconfigured: nothing is driven"
-            return response
-        response.success, response.message = True, self.loop.estop()
+    def on_estop(self, request: Trigger.Request, response: Trigger.Response
+                 ) -> Trigger.Response:
+        response.success, response.message = True, (
+            "unconfigured: nothing is driven" if self.loop is None else self.loop.estop())
         return response
 
     def lifecycle_label(self) -> str:
@@ -479,14 +447,11 @@ class StageDriver(LeanNode, LifecycleNode):
         transition's own label while it runs, such as deactivating)."""
         return self._state_machine.current_state[1]
 
-    def status(self):
-        if self.loop is None:
-            level, message = 0, f"{self.lifecycle_label()}: the backend is closed"
-            values: dict[str, Any] = {"state": "disarmed", "reason": message}
-        else:
-            level, message, values = self.loop.status()
-        values.update(backend=self.p["backend"], mode=self.p["mode"],
-                      lifecycle=self.lifecycle_label(),
+    def status(self) -> Status:
+        label = self.lifecycle_label()
+        level, message, values = closed_status(label) if self.loop is None else \
+            self.loop.status()
+        values.update(backend=self.p["backend"], mode=self.p["mode"], lifecycle=label,
                       thread_priority=self.rt_priority)
         return level, message, values
 
@@ -504,7 +469,7 @@ class StageDriver(LeanNode, LifecycleNode):
             backend.close(self.arm_params.safe_V, self.arm_params.ramp_V_per_s)
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run the stage driver (the Jazzy form). SIGINT or SIGTERM first ramps the stage to its
     safe voltage; a second one stops at once."""
     return run_node(StageDriver, args)

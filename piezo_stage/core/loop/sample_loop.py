@@ -190,6 +190,17 @@ class LoopOptions:
     capacity_window_s: float = 0.3
     arm_on_start: bool | None = None
 
+    @classmethod
+    def from_params(cls, p: Doc, first_j: int = 0,
+                    arm_on_start: bool | None = None) -> LoopOptions:
+        """The options the driver's parameters (``PARAMETERS``, by name) give, the
+        loop's first sample ``first_j``."""
+        return cls(rate_hz=p["control_rate_hz"], lockstep=p["mode"] == "lockstep",
+                   lookahead_s=p["lookahead_s"], max_steps=p["max_steps"],
+                   clock_period_s=p["clock_period_s"], from_arming=p["max_steps_from_arming"],
+                   first_j=first_j, min_margin=p["min_margin"],
+                   capacity_window_s=p["capacity_window_s"], arm_on_start=arm_on_start)
+
 
 class SampleLoop:
     """Commands in, samples out, for one backend.
@@ -552,6 +563,16 @@ class SampleLoop:
                           loop_thread_ms_per_sample=cap.thread_s_per_sample * 1e3,
                           host_busy_cpus=cap.host_busy_cores)
         return 2 if st == "faulted" else 0, f"{st}: {self.sup.reason}", values
+
+    def refusal_figures(self) -> Doc | None:
+        """The capacity figures a refusal names, as data (the launcher's ``rate auto``
+        runs the set again at a rate the host holds); None when nothing was measured."""
+        cap = self.refused_by or self.last_capacity
+        if cap is None:
+            return None
+        return {"capacity_hz": cap.capacity_hz, "margin": cap.margin,
+                "rate_hz": cap.rate_hz, "min_margin": self.min_margin,
+                "holdable_rate_hz": cap.holdable_rate_hz(self.min_margin)}
 
     def summary(self) -> str:
         """Where a stop left the stage."""

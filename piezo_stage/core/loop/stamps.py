@@ -21,7 +21,8 @@ in the core's own counters.
 
 from __future__ import annotations
 
-from piezo_stage.core.types import Doc
+from collections.abc import Mapping
+from typing import Any
 
 MAX_STAMP_NS = 2 ** 63 - 1
 
@@ -162,7 +163,7 @@ def request_key(frame_id: str) -> tuple | None:
     return None
 
 
-def publication_key(info: Doc | None) -> tuple | None:
+def publication_key(info: Mapping[str, Any] | None) -> tuple | None:
     """A publication's identity from the message info rclpy hands a two-argument
     subscription callback: (source timestamp [ns], publication sequence number);
     None where the middleware gives no source timestamp."""

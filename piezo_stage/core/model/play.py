@@ -258,7 +258,8 @@ class PlayHysteresis:
         if params.get("kind", "prandtl-ishlinskii") != "prandtl-ishlinskii":
             raise ConfigError(f"{where}.kind: only 'prandtl-ishlinskii' is known")
 
-        def num(d: Params, key: str, default: float, lo: float, hi: float, w: str = where) -> float:
+        def num(d: Params, key: str, default: float, lo: float, hi: float,
+                w: str = where) -> float:
             x = d.get(key, default)
             if isinstance(x, bool) or not isinstance(x, (int, float)) or \
                     not lo <= float(x) <= hi:

@@ -126,7 +126,8 @@ def search_transform(effect: str, design_without: Callable[[Sequence[str]], np.n
         raise ValueError(f"{effect} is not a transform effect")
     seeds = _resonance_seeds(KX, w, fs, extra)
 
-    def search(cost: Cost, p0: Params | None) -> Params:  # from the data's peak and the last alternation's end
+    # from the data's peak and the last alternation's end
+    def search(cost: Cost, p0: Params | None) -> Params:
         last = [(p0["fn_hz"], p0["zeta"])] if p0 and p0["kind"] == "resonance" else []
         return _search_dynamics(fs, cost, seeds + last if seeds else seeds)
     if "delay" not in dict(kept):
