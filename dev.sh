@@ -86,7 +86,7 @@ if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" 
   # numpy, scipy, numba and rclpy again at each start: 4.7 s of CPU a node where 1.8 s
   # do with the bytecode (a set starts six such processes on two cores). The tests'
   # environment is compiled whole (its tools too); the others get what the package's
-  # processes import, and the compiled kernels, from piezo_stage.warm below: about
+  # processes import, and the compiled kernels, from piezo_stage.process.warm below: about
   # half the time of compiling every module, and a first demo that does not compile
   # its kernels while it runs
   if [ "$extras" = ros,test ]; then uv_flags+=(--compile-bytecode); fi
@@ -95,7 +95,7 @@ if [ "${have%% *}" != "$want" ] || { [ "$extras" = ros,test ] && [ "${have#* }" 
       --index-strategy unsafe-best-match "${uv_flags[@]}" "$@"
   }
   warm() { ( export PYTHONDONTWRITEBYTECODE=
-             .venv/bin/python -m piezo_stage.warm "$1" >/dev/null 2>&1 ) || true; }
+             .venv/bin/python -m piezo_stage.process.warm "$1" >/dev/null 2>&1 ) || true; }
   if [ "$extras" = ros ] && lock_is_current && uv_install --no-deps -r "$lock" -e .; then
     :
   elif ! uv_install -e ".[$extras]"; then

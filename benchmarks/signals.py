@@ -95,14 +95,14 @@ def before_our_handlers(text: str) -> bool:
         if not (os.path.isabs(path) and path.startswith(_PACKAGE)):
             continue
         name = os.path.basename(path)
-        if name in ("_signals.py", "stopping.py") and func in ("<module>", "install"):
+        if name in ("signals.py", "stopping.py") and func in ("<module>", "install"):
             continue
         if func == "<module>" and name == "__init__.py":
             continue
         if name == "rosidl_runtime.py":  # what the package's __init__ runs at import
             continue
         src = linecache.getline(path, int(line))
-        if func in ("<module>", "main") and ("_signals" in src or "stopping" in src):
+        if func in ("<module>", "main") and ("process.signals" in src or "stopping" in src):
             continue
         return False
     return True

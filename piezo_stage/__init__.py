@@ -13,7 +13,7 @@ workbench beside the package (the checkout's ``benchmarks/``, not installed), wh
 
 __version__ = "0.1.0"
 
-from piezo_stage.rosidl_runtime import runtime_only as _runtime_only
+from piezo_stage.process.rosidl_runtime import runtime_only as _runtime_only
 
 _runtime_only()  # the message packages' import without their code generator
 del _runtime_only

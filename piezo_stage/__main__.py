@@ -3,12 +3,12 @@ are taken before the command's imports (see stopping.py), then the command runs.
 
 import sys
 
-from piezo_stage import stopping
+from piezo_stage.process import stopping
 
 
 def main():
     stopping.install()
-    from piezo_stage.blas import one_thread_unless_set
+    from piezo_stage.process.blas import one_thread_unless_set
     one_thread_unless_set()  # before numpy loads
     from piezo_stage.cli import main as command
     try:

@@ -435,7 +435,7 @@ def test_recorder_stopped_while_it_is_built_finishes_its_bag_with_what_arrived(t
     after a burst of 50 is acknowledged by the recorder's reader."""
     bag = tmp_path / "early"
     code = f"""
-import piezo_stage.nodes._signals
+import piezo_stage.process.signals
 import os, signal, sys, time
 import rclpy
 from rclpy.duration import Duration

@@ -154,7 +154,7 @@ def test_dev_sh_sets_up_a_fresh_checkout_for_the_demo_alone(tmp_path):
                                     capture_output=True).returncode == 0
     assert have("rclpy") and have("piezo_stage.core.model.duhem")
     assert not have("pytest")  # the demo's set-up leaves the test tools out
-    # what the package's processes use is compiled once here (piezo_stage.warm): the
+    # what the package's processes use is compiled once here (piezo_stage.process.warm): the
     # bytecode of what they import, the kernels of the demo's set and of identify
     site = next((venv / "lib").glob("python3*/site-packages"))
     assert list((site / "rclpy" / "__pycache__").glob("node.*.pyc"))
@@ -236,9 +236,9 @@ def test_the_lock_is_setup_py_s_and_pins_each_of_its_requirements():
 
 
 def test_warm_up_takes_one_known_part():
-    """``python -m piezo_stage.warm`` (run by dev.sh) refuses anything but its parts."""
+    """``python -m piezo_stage.process.warm`` (run by dev.sh) refuses anything but its parts."""
     import subprocess
     import sys
-    r = subprocess.run([sys.executable, "-m", "piezo_stage.warm", "everything"],
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.process.warm", "everything"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "modules, stage, inverse" in r.stderr, r

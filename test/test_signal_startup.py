@@ -26,13 +26,13 @@ NODE = traj.__file__
 
 
 def test_frames_before_the_handlers_are_python_s_own_and_any_later_one_is_not():
-    signals_line = _line(NODE, "import piezo_stage.nodes._signals")
+    signals_line = _line(NODE, "import piezo_stage.process.signals")
     numpy_line = _line(NODE, "import numpy as np")
     assert before_our_handlers(_traceback(RUNPY, ("<frozen importlib._bootstrap>", 1, "_find")))
     # the node module's line that imports the handlers, and that module's top level
+    handlers = os.path.join(os.path.dirname(os.path.dirname(NODE)), "process", "signals.py")
     assert before_our_handlers(_traceback(RUNPY, (NODE, signals_line, "<module>"),
-                                          (os.path.join(os.path.dirname(NODE), "_signals.py"),
-                                           40, "<module>")))
+                                          (handlers, 40, "<module>")))
     pkg_init = os.path.join(os.path.dirname(NODE), "__init__.py")
     assert before_our_handlers(_traceback(RUNPY, (pkg_init, 9, "<module>")))
     # past that line the handlers are in: a KeyboardInterrupt there is a miss

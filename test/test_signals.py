@@ -36,7 +36,7 @@ def test_every_node_and_the_launcher_stop_at_random_moments(ros_domains):
 
 ENDS_BY_ITSELF = r"""
 import signal, sys
-from piezo_stage.nodes import _signals as signals
+from piezo_stage.process import signals
 signals.install()
 import rclpy
 from rclpy.node import Node
@@ -75,7 +75,7 @@ def test_a_node_that_ended_by_itself_is_not_killed_by_a_late_stop(ros_env):
 
 STOP_IN_A_CALLBACK = r"""
 import os, signal, sys
-from piezo_stage.nodes import _signals as signals
+from piezo_stage.process import signals
 signals.set_phase("building", "/stage/builder")
 import llvmlite.binding.executionengine as ee
 find = ee.ExecutionEngine._find_module_ptr  # (what LLVM's callback into Python calls)
@@ -111,7 +111,7 @@ def test_a_nodes_stop_inside_a_compilers_callback_is_raised_once_back_in_python(
 
 COMMAND_STOP_IN_A_CALLBACK = r"""
 import os, signal, sys, time
-from piezo_stage import stopping
+from piezo_stage.process import stopping
 stopping.running()
 import llvmlite.binding.executionengine as ee
 find = ee.ExecutionEngine._find_module_ptr
@@ -146,7 +146,7 @@ def test_a_stop_caught_inside_code_run_by_exec_ends_the_command_with_its_own_cod
     """CPython keeps a KeyboardInterrupt that left ``exec``'d code marked unhandled and
     ends the interpreter by SIGINT at exit; the command's hold clears the mark (a stop
     during numba's dataclass import once exited -2 after saying it stopped)."""
-    code = ("from piezo_stage import stopping\n"
+    code = ("from piezo_stage.process import stopping\n"
             "try:\n    exec('raise KeyboardInterrupt')\n"
             "except KeyboardInterrupt:\n    stopping.hold()\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -157,7 +157,7 @@ def test_a_stop_caught_inside_code_run_by_exec_ends_the_command_with_its_own_cod
 def test_importlibs_own_frames_are_told_from_a_modules_top_level():
     """A stop landing in importlib's lock code is sent again (raised there it is
     dropped); one landing in a module's own top level is raised."""
-    from piezo_stage import stopping
+    from piezo_stage.process import stopping
     seen = {}
 
     def tracer(frame, event, arg):
@@ -184,7 +184,7 @@ def test_a_stop_landing_in_the_first_import_of_threading_is_sent_again(monkeypat
     AttributeError: no ``Timer``, a traceback instead of the stop's line)."""
     import types
 
-    from piezo_stage import stopping
+    from piezo_stage.process import stopping
     monkeypatch.setitem(sys.modules, "threading", types.ModuleType("threading"))
     stopping.again_soon(0)  # signal 0: only checks that this process may be signalled
 
@@ -195,7 +195,7 @@ def test_a_stop_landing_in_a_finalizer_is_not_lost():
     line and 130, nothing printed as "Exception ignored"."""
     code = (
         "import sys, os, signal, time, threading\n"
-        "from piezo_stage import stopping\n"
+        "from piezo_stage.process import stopping\n"
         "stopping.install(); stopping.running()\n"
         "class Slow:\n"
         "    def __del__(self):\n"

@@ -1,5 +1,5 @@
 """What a process pays to start: the message packages import without their generator's
-code-generation half (piezo_stage/rosidl_runtime.py), the launcher reads its
+code-generation half (piezo_stage/process/rosidl_runtime.py), the launcher reads its
 configuration without the model core, and a node's process maps its modules for rclpy's
 logger and freezes its imports' objects before its start gate (nodes/_executor.py)."""
 
@@ -38,7 +38,7 @@ def test_messages_import_without_the_generators_code_generation():
         "    pass\n"
         "print(sorted(k for k in ('lark', 'em', 'rosidl_parser.parser', "
         "'rosidl_generator_py.generate_py_impl') if k in sys.modules))\n"
-        "from piezo_stage.rosidl_runtime import runtime_only\n"
+        "from piezo_stage.process.rosidl_runtime import runtime_only\n"
         "print(runtime_only())\n")
     assert out.splitlines() == ["[]", "False"], out  # (once in place: a no-op)
 

@@ -1,6 +1,6 @@
 """A node whose stop hangs (the middleware's teardown once held a controller past the
 launcher's grace) prints every thread's stack and exits 1 within its watch: the real
-``piezo_stage.nodes._signals`` in a real process, held in a sleep as a hung call
+``piezo_stage.process.signals`` in a real process, held in a sleep as a hung call
 would hold it. The middleware's part of a teardown is bounded apart: a hang there, even
 one that holds the GIL in native code, ends the process with the code of its stop."""
 
@@ -11,7 +11,7 @@ import sys
 import time
 
 HUNG = """
-import piezo_stage.nodes._signals as s
+import piezo_stage.process.signals as s
 s.set_phase("running", "/stage/hung")
 s.STATE.watch_s = {watch}
 print("ready", flush=True)
@@ -42,7 +42,7 @@ def test_a_stop_that_hangs_prints_the_stacks_and_ends_within_its_watch():
 
 def test_a_node_that_stops_in_time_is_not_touched_by_its_watch():
     code = """
-import piezo_stage.nodes._signals as s, time
+import piezo_stage.process.signals as s, time
 s.set_phase("running", "/stage/quick")
 s.STATE.watch_s = 1.0
 print("ready", flush=True)
@@ -63,7 +63,7 @@ raise SystemExit(130)
 
 TEARDOWN = """
 import re, time
-import piezo_stage.nodes._signals as s
+import piezo_stage.process.signals as s
 s.set_phase("stopping", "/stage/probe")
 with s.bounded_teardown(130, 0.5):
     {block}

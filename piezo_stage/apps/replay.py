@@ -78,13 +78,13 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) 
     from rclpy.executors import ExternalShutdownException
     from rosgraph_msgs.msg import Clock
 
-    from piezo_stage import stopping
     from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED
     from piezo_stage.nodes._tap import msg_class
+    from piezo_stage.process import stopping
     from piezo_stage.progress import bar
     from piezo_stage_msgs_adapters import clock_msg
-    # the node modules' import took the stop signals for a node's start-up (nodes/
-    # _signals.py); this is a command: a stop unwinds it, and it says how far it got
+    # the node modules' import took the stop signals for a node's start-up
+    # (process/signals.py); this is a command: a stop unwinds it, and it says how far it got
     stopping.install()
     code = 0
     msgs = [m for m in iter_messages(bag) if not m[0].endswith(SKIP)]

@@ -10,7 +10,6 @@ from __future__ import annotations
 import importlib
 import sys
 
-from piezo_stage import stopping
 from piezo_stage.cli._common import EXIT_SOLVER, Parser, die
 from piezo_stage.core.errors import (
     BackendFault,
@@ -19,6 +18,7 @@ from piezo_stage.core.errors import (
     RunError,
     SolverError,
 )
+from piezo_stage.process import stopping
 
 COMMANDS = ("simulate", "invert", "excite", "gap", "launch", "demo", "experiment", "tune",
             "replay", "bag", "loop", "identify", "refit", "study", "bench", "raster", "play",

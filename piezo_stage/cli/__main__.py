@@ -2,10 +2,10 @@
 also takes stop signals during the command's imports)."""
 
 
-from piezo_stage import stopping
-from piezo_stage.blas import one_thread_unless_set
+from piezo_stage.process import stopping
+from piezo_stage.process.blas import one_thread_unless_set
 
-one_thread_unless_set()  # before numpy loads (see piezo_stage/blas.py)
+one_thread_unless_set()  # before numpy loads (see piezo_stage/process/blas.py)
 from piezo_stage.cli import main  # noqa: E402
 
 code = main()

@@ -143,7 +143,7 @@ def main(args):
     except KeyboardInterrupt as stop:  # the finished cases' report, then the stop
         from piezo_stage.apps.experiments import Interrupted
         if isinstance(stop, Interrupted) and stop.doc["cases"]:
-            from piezo_stage import stopping
+            from piezo_stage.process import stopping
             stopping.hold()  # (a second Ctrl-C does not cut the report short)
             from piezo_stage.io.plots import experiment_png
             done, total = stop.evals, stop.total

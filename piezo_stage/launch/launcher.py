@@ -8,7 +8,7 @@ published before everyone listens. SIGINT, SIGTERM and SIGHUP to the launcher st
 the set in a safe order: the driver first (it disarms, which is no fault, and ramps the
 stage to its safe voltage before it exits; the launcher waits for it), then the
 producers, the recorder last, so the bag holds everything, the ramp included. No node
-is left behind, even if the launcher is SIGKILLed (nodes/_signals.py). A node that exits
+is left behind, even if the launcher is SIGKILLed (process/signals.py). A node that exits
 0 by itself (the driver after max_steps) ends the run cleanly; one that dies, or that
 someone else stopped, ends it with exit 1. The set starts disarmed and the driver arms
 itself once the loop is closed (``auto_arm``), unless ``arm=False``.
@@ -44,7 +44,7 @@ LOOP = "loop"  # the process of the composed loop nodes (nodes/loop_container.py
 COMPOSE = {"loop": ("controller", "feedforward", "stage_driver"),
            "command": ("controller", "feedforward"), "none": ()}
 COMPOSE_DEFAULT = {"lockstep": "loop", "realtime": "command"}
-LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # nodes/_signals.py reads it
+LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # process/signals.py reads it
 RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"        # and this
 CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # where a driver's refusal puts its figures
 START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # a file: nodes wait for it before they join
@@ -468,7 +468,7 @@ class Launch:
         mask survives exec; the node unblocks them once its handlers are in place, so a
         stop sent at any moment is delivered, never lost or met by a traceback) and
         with the launcher's pid, so that it stops when the launcher dies (even by
-        SIGKILL: see nodes/_signals.py). A signal to the launcher while it starts them
+        SIGKILL: see process/signals.py). A signal to the launcher while it starts them
         ends the starting; the nodes started so far are stopped in order."""
         import tempfile
         run_dir = tempfile.mkdtemp(prefix="piezo-stage-run-")
@@ -740,8 +740,8 @@ def run_set(launch: Launch, what: str, duration: float | None = None) -> None:
     is the command's own stop (KeyboardInterrupt, with the signal noted, so it ends with
     one line and 128 + the signal, as a stop anywhere else in it); a set that failed is
     a RunError naming ``what`` and why (the command exits 1)."""
-    from piezo_stage import stopping
     from piezo_stage.core.errors import RunError
+    from piezo_stage.process import stopping
     launch.quiet_stop = True
     rc = launch.run(duration)
     if launch.stopped_by is not None and not launch.failed:

@@ -40,7 +40,7 @@ from rclpy.executors import (
 )
 from rclpy.signals import SignalHandlerOptions
 
-import piezo_stage.nodes._signals as signals
+import piezo_stage.process.signals as signals
 from piezo_stage.core.errors import ConfigError, DataError
 from piezo_stage.nodes._params import check_overrides
 
@@ -416,7 +416,7 @@ class LeanExecutor(Executor):
         try:
             seen = 0
             while self.context.ok() and not self._is_shutdown:
-                if signals.count() > seen:  # a stop signal came (see _signals)
+                if signals.count() > seen:  # a stop signal came (see process/signals.py)
                     seen = signals.count()
                     if not self._stop_requested(seen):
                         break
@@ -465,7 +465,7 @@ def end_run(node: Node) -> None:
 # -- a node's main() ----------------------------------------------------------------------
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
     """Run one node the Jazzy way (init / spin / except / finally destroy, try_shutdown)
-    with the stops of :mod:`piezo_stage.nodes._signals`: rclpy installs no signal
+    with the stops of :mod:`piezo_stage.process.signals`: rclpy installs no signal
     handler of its own (``SignalHandlerOptions.NO``), ours work from the first import.
 
     Returns the exit code: 0 when the node ended by itself, 128 + the signal's number
@@ -610,7 +610,7 @@ def await_start_gate() -> None:
     """Wait, imported but not yet on the graph, for the launcher's go (the file its
     ``START_GATE_ENV`` names): the launcher looks for a set already running in the
     namespace meanwhile, and kills the nodes instead where one does. Stops work while
-    waiting (the building phase: _signals); no gate asked for, no wait."""
+    waiting (the building phase: process/signals.py); no gate asked for, no wait."""
     import os
     path = os.environ.get(START_GATE_ENV)
     if not path:

@@ -14,8 +14,8 @@ commands still in flight before computing the next. A new model on ``model`` rep
 the inverse without a restart. Without any model the feedforward is a nominal gain.
 """
 
-# first, before the heavy imports: stop signals work from here on (see _signals)
-import piezo_stage.nodes._signals  # noqa: F401, I001
+# first, before the heavy imports: stop signals work from here on (see process/signals.py)
+import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
 import time
@@ -393,5 +393,5 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from piezo_stage.stopping import exit_now
+    from piezo_stage.process.stopping import exit_now
     exit_now(main())  # flushed, at-exit work done, no finalization (stopping.py)

@@ -6,8 +6,8 @@ twin on ``gap/residual`` (geometry_msgs/PointStamped, metres) and its rolling RM
 /diagnostics, so a lab user sees the sim-to-real gap while running.
 """
 
-# first, before the heavy imports: stop signals work from here on (see _signals)
-import piezo_stage.nodes._signals  # noqa: F401, I001
+# first, before the heavy imports: stop signals work from here on (see process/signals.py)
+import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
 from geometry_msgs.msg import PointStamped
@@ -67,5 +67,5 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from piezo_stage.stopping import exit_now
+    from piezo_stage.process.stopping import exit_now
     exit_now(main())  # flushed, at-exit work done, no finalization (stopping.py)

@@ -6,8 +6,8 @@ hands the model to the feedforward on ``model``
 (std_msgs/String holding the model file's YAML, transient local: late joiners get it).
 """
 
-# first, before the heavy imports: stop signals work from here on (see _signals)
-import piezo_stage.nodes._signals  # noqa: F401, I001
+# first, before the heavy imports: stop signals work from here on (see process/signals.py)
+import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
 from collections import deque
@@ -28,8 +28,8 @@ from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, Status, steady_time
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics
 from piezo_stage.nodes._params import declare_schema
-from piezo_stage.nodes._signals import interruptible
 from piezo_stage.nodes.declared import IDENTIFIER
+from piezo_stage.process.signals import interruptible
 from piezo_stage_msgs_adapters import joint_state_to_um, model_msg
 
 BATCH_S = 0.05
@@ -151,5 +151,5 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from piezo_stage.stopping import exit_now
+    from piezo_stage.process.stopping import exit_now
     exit_now(main())  # flushed, at-exit work done, no finalization (stopping.py)

@@ -20,8 +20,8 @@ The ``--ros-args`` are every node's (the namespace, the parameter file whose sec
 name the nodes); ``--param`` sets one node's parameter, as ``-p`` sets a lone node's.
 """
 
-# first, before the heavy imports: stop signals work from here on (see _signals)
-import piezo_stage.nodes._signals  # noqa: F401, I001
+# first, before the heavy imports: stop signals work from here on (see process/signals.py)
+import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
 import sys
@@ -103,5 +103,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from piezo_stage.stopping import exit_now
+    from piezo_stage.process.stopping import exit_now
     exit_now(main())  # flushed, at-exit work done, no finalization (stopping.py)

@@ -8,8 +8,8 @@ SIGKILL loses at most that much; SIGINT finalises a complete bag. The run's conf
 model files go in as MCAP metadata.
 """
 
-# first, before the heavy imports: stop signals work from here on (see _signals)
-import piezo_stage.nodes._signals  # noqa: F401, I001
+# first, before the heavy imports: stop signals work from here on (see process/signals.py)
+import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
 import os
@@ -138,5 +138,5 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from piezo_stage.stopping import exit_now
+    from piezo_stage.process.stopping import exit_now
     exit_now(main())  # flushed, at-exit work done, no finalization (stopping.py)

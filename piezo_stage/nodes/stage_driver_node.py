@@ -14,8 +14,8 @@ each transition does: docs/realtime.md#lifecycle-the-driver-as-a-managed-node. W
 and keeps its own recovery (``auto_arm``).
 """
 
-# first, before the heavy imports: stop signals work from here on (see _signals)
-import piezo_stage.nodes._signals  # noqa: F401, I001
+# first, before the heavy imports: stop signals work from here on (see process/signals.py)
+import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
 
@@ -67,8 +67,8 @@ from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, MessageInfo, Status,
 from piezo_stage.nodes._executor import LeanNode, end_run, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage.nodes._params import declare_schema
-from piezo_stage.nodes._signals import STATE as STOP_STATE
-from piezo_stage.nodes._signals import watch as watch_stop
+from piezo_stage.process.signals import STATE as STOP_STATE
+from piezo_stage.process.signals import watch as watch_stop
 from piezo_stage_msgs_adapters import (
     arming_state_msg,
     clock_msg,
@@ -476,5 +476,5 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from piezo_stage.stopping import exit_now
+    from piezo_stage.process.stopping import exit_now
     exit_now(main())  # flushed, at-exit work done, no finalization (stopping.py)

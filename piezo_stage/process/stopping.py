@@ -3,7 +3,7 @@ first moment. Imported before anything heavy (this package's ``__init__`` is lig
 before the command runs nothing is open, so a stop says so and exits at once, with no
 traceback from an import; while it runs the signal is raised as KeyboardInterrupt, so
 ``finally`` blocks run and a temporary output is removed (nothing half-written is
-left). The nodes have their own, nodes/_signals.py."""
+left). The nodes have their own, process/signals.py."""
 
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ def runtime_only() -> bool:
     if spec is None or not spec.submodule_search_locations:
         return False
     module = types.ModuleType(PACKAGE, "rosidl_generator_py's runtime import alone "
-                                       "(piezo_stage.rosidl_runtime)")
+                                       "(piezo_stage.process.rosidl_runtime)")
     module.__spec__, module.__file__ = spec, spec.origin
     module.__path__ = list(spec.submodule_search_locations)
     sys.modules[PACKAGE] = module

@@ -54,7 +54,7 @@ from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
-from piezo_stage.stopping import again_soon, cannot_raise_here
+from piezo_stage.process.stopping import again_soon, cannot_raise_here
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"

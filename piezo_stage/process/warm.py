@@ -8,9 +8,9 @@ the while (the feedforward's inverse of the identified model the largest part; `
 startup` measures it). ``dev.sh`` runs the parts below after an install, so that every
 later process finds the bytecode and the kernels it needs::
 
-    python -m piezo_stage.warm stage     # the kernels of the simulated stage and identify
-    python -m piezo_stage.warm inverse   # the kernels of the feedforward's inverse
-    python -m piezo_stage.warm modules   # bytecode of the package and what it imports
+    python -m piezo_stage.process.warm stage     # the kernels of the simulated stage and identify
+    python -m piezo_stage.process.warm inverse   # the kernels of the feedforward's inverse
+    python -m piezo_stage.process.warm modules   # bytecode of the package and what it imports
 
 dev.sh runs the three side by side (three processes on two cores take as long as the
 two kernel parts in one process beside ``modules``; installing the package's own
@@ -87,7 +87,7 @@ PARTS = {"modules": modules, "stage": stage, "inverse": inverse}
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1 or args[0] not in PARTS:
-        sys.stderr.write(f"piezo_stage.warm: give one of {', '.join(PARTS)}\n")
+        sys.stderr.write(f"piezo_stage.process.warm: give one of {', '.join(PARTS)}\n")
         return 2
     t0 = time.perf_counter()
     PARTS[args[0]]()
