@@ -37,8 +37,8 @@ setup(
     packages=find_packages(include=["piezo_stage", "piezo_stage.*",
                                     "piezo_stage_msgs_adapters",
                                     "piezo_stage_msgs_adapters.*"]),
-    # the real-time set's Fast DDS profile (piezo_stage/launch/launcher.py)
-    package_data={"piezo_stage.launch": ["*.xml"]},
+    # the real-time set's Fast DDS profile (piezo_stage/launcher/launcher.py)
+    package_data={"piezo_stage.launcher": ["*.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

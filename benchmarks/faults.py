@@ -222,13 +222,13 @@ def bench_faults(rep) -> int:
     """One fault at a time, then hostile inputs (``rep``: the report)."""
     from benchmarks.probe import Probe
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     slew = load_plant_config(default_plant_config_path()).slew_V_per_s
     d = random.randint(101, 200)
     env = dict(os.environ, ROS_DOMAIN_ID=str(d), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    from piezo_stage.launch.host_rate import host_rate
+    from piezo_stage.launcher.host_rate import host_rate
     rate, why = host_rate(env)  # where this host holds the set (it is judged there)
     if rate is None:
         rep.fail(f"this host holds no real-time rate with margin: {why}")

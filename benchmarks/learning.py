@@ -62,7 +62,7 @@ def bench_learning(rep, draws: int = 5) -> int:
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     tmp = tempfile.mkdtemp()
-    from piezo_stage.launch.host_rate import host_rate
+    from piezo_stage.launcher.host_rate import host_rate
     rate, why = host_rate(env, RATES_HZ)
     if rate is None:
         rep.fail(f"this host holds no real-time rate with margin: {why}")

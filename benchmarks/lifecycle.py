@@ -62,7 +62,7 @@ def _row(label: str, name: str, xs: list[float], base: float) -> tuple:
 def _against(mode: str, runs: int) -> dict[str, list[float]]:
     import tempfile
 
-    from piezo_stage.launch.launcher import Launch, LaunchOptions, read_parameters
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions, read_parameters
     from piezo_stage.paths import default_config
     domain = random.randint(101, 200)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain),

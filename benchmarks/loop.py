@@ -53,7 +53,7 @@ def loop_run(env, steps, foxglove_port=None, compose=None):
     import tempfile
 
     from piezo_stage.io.bag import iter_messages
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     bag = os.path.join(tempfile.mkdtemp(), "bench")
     o = {"stage_driver": {"max_steps": steps, "exit_after_max_steps": True},

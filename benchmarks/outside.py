@@ -50,7 +50,7 @@ def _send(kind: str, um: float, env: dict) -> int:
 def _mode(mode: str, runs: int, tmp: str) -> dict:
     """{kind: (sent levels, failed sends)} and the bag of one mode's set."""
     from benchmarks.probe import Probe
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     domain = random.randint(101, 200)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
@@ -58,7 +58,7 @@ def _mode(mode: str, runs: int, tmp: str) -> dict:
     bag = os.path.join(tmp, mode)
     rate = None
     if mode == "realtime":  # where this host holds the set (it is judged there)
-        from piezo_stage.launch.host_rate import host_rate
+        from piezo_stage.launcher.host_rate import host_rate
         rate, why = host_rate(env)
         if rate is None:
             raise RuntimeError(f"this host holds no real-time rate with margin: {why}")

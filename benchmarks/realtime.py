@@ -3,7 +3,7 @@
 The node set (driver on the simulated stage, feedforward with config/stage_model.yaml,
 controller, trajectory, recorder) tracks the paper's 10 Hz trajectory for ``track_s``
 seconds, first in real time (the sim paced by the wall clock at the highest standard
-rate this host holds with margin, launch/host_rate.py), then in
+rate this host holds with margin, launcher/host_rate.py), then in
 lockstep, in the same invocation. Every figure comes from the bags (and the driver's
 final diagnostics in them): tick jitter, missed ticks, stamp-to-arrival lag at the
 recorder, sample-to-command latency and late commands, the start-up error from launch
@@ -28,7 +28,7 @@ DT_NS = 1_000_000  # the sample period; set to the rate the host holds (bench_re
 def _run(mode: str, track_s: float, env: dict, bag: str, rate: float, compose=None):
     from benchmarks.host_pauses import HostPauseMonitor
     from benchmarks.procs import cpu_ticks
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     o: dict[str, dict] = {"stage_driver": {"mode": mode},
          "feedforward": {"model_file": default_config("stage_model.yaml")},
@@ -141,8 +141,8 @@ def bench_realtime(rep, track_s: float = 20.0, compose=None) -> int:
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)),
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     tmp = tempfile.mkdtemp()
-    from piezo_stage.launch.host_rate import host_rate
-    from piezo_stage.launch.launcher import COMPOSE_DEFAULT
+    from piezo_stage.launcher.host_rate import host_rate
+    from piezo_stage.launcher.launcher import COMPOSE_DEFAULT
     compose = compose or COMPOSE_DEFAULT["realtime"]
     rate, why = host_rate(env, compose=compose)  # where this host holds the set
     if rate is None:

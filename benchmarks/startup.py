@@ -9,7 +9,7 @@ as a user runs them.
   README's excitation (`excite`, then `simulate`).
 * ``launch to armed``: `piezo-stage launch --no-trajectory --duration 1` in lockstep,
   and with ``config/realtime.yaml`` at the rate this host holds with margin
-  (launch/host_rate.py), from the command's start to the driver's ``armed`` line.
+  (launcher/host_rate.py), from the command's start to the driver's ``armed`` line.
 
 Printed: min / median / max seconds; for identify the median pair's ratio.
 """
@@ -92,7 +92,7 @@ def bench_startup(rep, runs: int = 3) -> int:
     """Whole `identify` against a plain script, and launch to armed (``rep``: the
     report)."""
     from benchmarks.procs import own_domain_env, progress_runs
-    from piezo_stage.launch.host_rate import host_rate
+    from piezo_stage.launcher.host_rate import host_rate
     from piezo_stage.paths import default_config
     env = own_domain_env()
     rows, ratios = [], {}

@@ -16,7 +16,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from launch import LaunchDescription
-from piezo_stage.launch.launcher import Launch, LaunchOptions
+from piezo_stage.launcher.launcher import Launch, LaunchOptions
 
 
 def _nodes(context):

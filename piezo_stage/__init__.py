@@ -3,7 +3,7 @@
 From the bottom up: the numerical core (:mod:`piezo_stage.core`, pure numpy/scipy,
 never ROS); records and files (:mod:`piezo_stage.io`); the stage backends
 (:mod:`piezo_stage.drivers`); the ROS 2 nodes, thin shells over those
-(:mod:`piezo_stage.nodes`); the launcher (:mod:`piezo_stage.launch`); the
+(:mod:`piezo_stage.nodes`); the launcher (:mod:`piezo_stage.launcher`); the
 applications that run the node set and the offline studies (:mod:`piezo_stage.apps`);
 the ``piezo-stage`` command (:mod:`piezo_stage.cli`). The benchmarks are the
 workbench beside the package (the checkout's ``benchmarks/``, not installed), which

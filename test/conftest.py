@@ -229,7 +229,7 @@ class HostRates:
 
 
 def _host_rate(env):
-    from piezo_stage.launch.host_rate import host_rate
+    from piezo_stage.launcher.host_rate import host_rate
     return host_rate(env)
 
 
@@ -238,7 +238,7 @@ _REALTIME = HostRates(_host_rate)
 
 def realtime_rate_hz(env, fresh: bool = False) -> float:
     """The highest standard rate this host holds a real-time set at with the margin a
-    set needs and room for its spread (piezo_stage/launch/host_rate.py), measured at
+    set needs and room for its spread (piezo_stage/launcher/host_rate.py), measured at
     the first real-time test of this test process and again when that figure is older
     than REMEASURE_S (or ``fresh``: a test that runs again after a failure): the
     real-time tests run there and are judged there, never by a rate the host cannot

@@ -237,7 +237,7 @@ def test_a_capacity_run_that_faulted_says_nothing_of_its_rate_and_the_median_rea
     capacity run at 1 kHz faulted on stale commands, and its last report chose 1 kHz);
     a run that did not fault is judged by its median reading, repeats of one window left
     out, never by its last alone; a run short of the margin at every rate gives None."""
-    from piezo_stage.launch.host_rate import host_rate, rate_run
+    from piezo_stage.launcher.host_rate import host_rate, rate_run
     good = [_report(0.2, 0.3), _report(0.2, 0.3), _report(0.6, 1.8), _report(0.21, 0.35)]
     r = rate_run(_run(reports=good), 1000.0, cores=2)
     assert len(r.readings) == 3 and not r.faulted  # the repeated window once

@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 from conftest import CONFIG, realtime_twice  # noqa: E402
-from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
+from piezo_stage.launcher.launcher import Launch, LaunchOptions  # noqa: E402
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
 STAGE = os.path.join(CONFIG, "stage.yaml")

@@ -50,6 +50,6 @@ def test_core_sources_do_not_import_ros():
                 # layers point down: the core imports no io, cli, launch, drivers, nodes,
                 # messages or ROS
                 for bad in ("import rclpy", "from rclpy", "_msgs", "piezo_stage.nodes",
-                            "piezo_stage.io", "piezo_stage.cli", "piezo_stage.launch",
+                            "piezo_stage.io", "piezo_stage.cli", "piezo_stage.launcher",
                             "piezo_stage.drivers", "piezo_stage.apps.experiments"):
                     assert bad not in src, (f, bad)

@@ -182,7 +182,7 @@ def test_driver_node_on_the_daq_backend_arms_tracks_and_reports_late_samples(tmp
     made 4 misses in the 5 s of samples a 250 Hz set takes, where 5 are asked.)"""
     pytest.importorskip("rclpy")
     from piezo_stage.io.bag import deserialize, iter_messages
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     rate = realtime_rate_hz(ros_env)  # the host's (skips where it holds none)
     env = dict(ros_env, PYTHONPATH=os.pathsep.join([DOUBLE, ROOT]),
                PIEZO_STAGE_NI_DOUBLE=json.dumps({"clock": "wall",

@@ -64,7 +64,7 @@ def test_the_parameter_blocks_shown_are_declared_and_typed_as_declared(tmp_path)
     check, and every value has the declared default's shape (a list where it is one)."""
     from piezo_stage.core.params import defaults as declared
     from piezo_stage.drivers.daq import DAQ_PARAMS
-    from piezo_stage.launch.launcher import read_parameters
+    from piezo_stage.launcher.launcher import read_parameters
     block = re.search(r"```yaml\n(.*?)```", _text("docs/hardware.md"), flags=re.S).group(1)
     path = tmp_path / "daq.yaml"
     path.write_text(block)

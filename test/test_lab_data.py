@@ -416,7 +416,7 @@ def _twins(tmp_path, ros_env, rate):
     from piezo_stage.core.model.plant import Plant
     from piezo_stage.io.plant_file import default_plant_config_path, load_plant_config
     from piezo_stage.io.records import load_record
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     tmp_path.mkdir()
     traj = {"kind": "seed", "duration_s": 6.0, "excite_s": 8.0}
 

@@ -27,7 +27,7 @@ def test_lockstep_gates_count_the_live_view_as_a_subscriber(tmp_path, record):
     every lockstep publisher waits for one subscriber more, so its gate cannot open on
     the taps before a loop node listens (a lockstep run with the live view once hung:
     the driver's first sample went out before the feedforward had matched)."""
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     cfg = os.path.join(CONFIG, "stage.yaml")
     rec = None if record is None else str(tmp_path / record)
     plain = Launch(cfg, LaunchOptions(record=rec))._gates()
@@ -89,7 +89,7 @@ def test_a_misspelled_parameter_is_refused_by_name_and_an_integer_is_a_float(tmp
 
 def test_use_sim_time_on_a_real_time_set_is_refused(tmp_path):
     from piezo_stage.core.errors import ConfigError
-    from piezo_stage.launch.launcher import Launch
+    from piezo_stage.launcher.launcher import Launch
     cfg = tmp_path / "rt.yaml"
     cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n"
                    "/**/controller:\n  ros__parameters:\n    use_sim_time: true\n")
@@ -104,10 +104,10 @@ def test_real_time_sets_publish_synchronously_over_loopback_udp(tmp_path):
     asynchronous mode's writer threads cost the composed set a quarter of its
     capacity), off shared memory; lockstep keeps the transports its byte-identical
     reruns were measured with; a publication mode of the user's own is left alone."""
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     rt = tmp_path / "rt.yaml"
     rt.write_text("/**/stage_driver:\n  ros__parameters:\n    mode: realtime\n")
-    from piezo_stage.launch.launcher import LOCKSTEP_PROFILE, LOOPBACK_UDP_PROFILE
+    from piezo_stage.launcher.launcher import LOCKSTEP_PROFILE, LOOPBACK_UDP_PROFILE
     env = {k: v for k, v in os.environ.items() if k not in (
         "RMW_FASTRTPS_PUBLICATION_MODE", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
     real = Launch(str(rt), LaunchOptions(arm=False), env=env)  # the driver alone
@@ -156,7 +156,7 @@ def test_real_time_sets_publish_synchronously_over_loopback_udp(tmp_path):
 def test_a_real_time_set_leaves_out_shared_memory_unless_told_otherwise(given, wanted):
     """The real-time transport choice on each discovery range, and a configuration of
     the user's own (a profiles file, FASTDDS_BUILTIN_TRANSPORTS, another RMW) kept."""
-    from piezo_stage.launch.launcher import LOOPBACK_UDP_PROFILE, realtime_transport_env
+    from piezo_stage.launcher.launcher import LOOPBACK_UDP_PROFILE, realtime_transport_env
     if wanted == "profile":
         wanted = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET",
                   "FASTRTPS_DEFAULT_PROFILES_FILE": LOOPBACK_UDP_PROFILE}
@@ -191,7 +191,7 @@ def test_the_loopback_udp_profile_talks_and_opens_no_shared_memory(ros_env):
     the launcher applies it) creates no shared-memory segment or port, and still talks
     (its own subscription hears its publisher)."""
     pytest.importorskip("rclpy")
-    from piezo_stage.launch.launcher import realtime_transport_env
+    from piezo_stage.launcher.launcher import realtime_transport_env
     env = dict(ros_env, **realtime_transport_env(ros_env))
     r = subprocess.run([sys.executable, "-c", LOOPBACK_PROBE], env=env,
                        capture_output=True, text=True, timeout=60)
@@ -267,13 +267,13 @@ while time.monotonic() < end and not sys.stdin.closed:
 @pytest.mark.slow
 def test_the_look_for_a_running_set_begun_early_names_it_or_answers_none(ros_env):
     """The one-set-per-namespace look a command begins before it reads its config
-    (launch/running.py's Look): it names a set whose driver announced itself, answers
+    (launcher/running.py's Look): it names a set whose driver announced itself, answers
     None on an empty namespace, ends at once when cancelled, and is used by the
     launch it was begun for (another namespace's is cancelled and looked for anew);
     its answer is in before its node leaves the graph."""
     pytest.importorskip("rclpy")
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
-    from piezo_stage.launch.running import Look, begin_look, running_set
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.running import Look, begin_look, running_set
     d = int(ros_env["ROS_DOMAIN_ID"])
     p = subprocess.Popen([sys.executable, "-c", A_SET_RUNNING], env=ros_env, text=True,
                          stdin=subprocess.PIPE, stdout=subprocess.PIPE)
@@ -421,7 +421,7 @@ def test_a_short_runs_bag_ends_with_the_recorders_own_last_report(tmp_path, ros_
 
 def test_the_command_lines_compositions_are_the_launchers():
     from piezo_stage.cli._common import COMPOSITIONS
-    from piezo_stage.launch.launcher import COMPOSE
+    from piezo_stage.launcher.launcher import COMPOSE
     assert set(COMPOSITIONS) == set(COMPOSE)
 
 
@@ -463,7 +463,7 @@ def test_a_duration_counts_from_arming_managed_or_not(managed):
     """`launch --duration S` is S seconds of the stage's own samples from its first
     arming, whether the launcher or an outside manager (`--managed`) brings the driver
     up (with --managed it counted from the launch)."""
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     launch = Launch(os.path.join(CONFIG, "stage.yaml"), LaunchOptions(managed=managed, armed_s=5.0,
         exclusive=False))
     drv = launch.overrides["stage_driver"]

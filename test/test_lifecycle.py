@@ -16,8 +16,8 @@ from test_realtime import assert_never_beyond_slew  # noqa: E402
 
 from conftest import CONFIG, realtime_twice  # noqa: E402
 from piezo_stage.io.run_bag import read_run  # noqa: E402
-from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
-from piezo_stage.launch.lifecycle import GRAPH, plan  # noqa: E402
+from piezo_stage.launcher.launcher import Launch, LaunchOptions  # noqa: E402
+from piezo_stage.launcher.lifecycle import GRAPH, plan  # noqa: E402
 
 MODEL = os.path.join(CONFIG, "stage_model.yaml")
 NS = "/stage/stage_driver"

@@ -239,12 +239,12 @@ LAYERS = {
     "piezo_stage/drivers": {"piezo_stage/core", "piezo_stage/io"},
     "piezo_stage/nodes": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/drivers",
                           "piezo_stage_msgs_adapters"},
-    "piezo_stage/launch": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes"},
+    "piezo_stage/launcher": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes"},
     "piezo_stage/apps": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/nodes",
-                         "piezo_stage/launch", "piezo_stage_msgs_adapters"},
+                         "piezo_stage/launcher", "piezo_stage_msgs_adapters"},
     # the workbench beside the package (never installed with it)
     "benchmarks": {"piezo_stage/core", "piezo_stage/io", "piezo_stage/drivers",
-                   "piezo_stage/nodes", "piezo_stage/launch", "piezo_stage/apps",
+                   "piezo_stage/nodes", "piezo_stage/launcher", "piezo_stage/apps",
                    "piezo_stage_msgs_adapters", "piezo_stage/client"},
     # how a process starts, runs and ends (signals, BLAS threads, the first start's
     # compilation, which runs the simulated stage and the inverse to compile them)

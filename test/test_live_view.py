@@ -14,7 +14,7 @@ pytest.importorskip("foxglove")
 pytest.importorskip("websockets")
 from benchmarks.foxglove_probe import connect, decoder, receive  # noqa: E402
 from conftest import CONFIG, ROOT  # noqa: E402
-from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
+from piezo_stage.launcher.launcher import Launch, LaunchOptions  # noqa: E402
 
 # real node processes in real time: -m "not slow" leaves them out, and ./dev.sh test
 # runs them alone after the rest

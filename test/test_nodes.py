@@ -18,7 +18,7 @@ from lab_nodes import REQUEST_AGAIN, SAME_AGAIN, assert_ran_each  # noqa: E402
 
 from conftest import CONFIG, ROOT, on_a_terminal  # noqa: E402
 from piezo_stage.io.bag import deserialize, iter_messages, read_bag_record  # noqa: E402
-from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
+from piezo_stage.launcher.launcher import Launch, LaunchOptions  # noqa: E402
 
 pytestmark = pytest.mark.slow  # real node processes: -m "not slow" leaves them out
 
@@ -651,7 +651,7 @@ def test_launch_file_and_launcher_share_one_node_list_and_parameters(tmp_path):
     import ast
     src = open(os.path.join(ROOT, "launch", "piezo_stage_launch.py")).read()
     tree = ast.parse(src)
-    assert any(isinstance(n, ast.ImportFrom) and n.module == "piezo_stage.launch.launcher"
+    assert any(isinstance(n, ast.ImportFrom) and n.module == "piezo_stage.launcher.launcher"
                for n in tree.body)
     assert "launch.node_params(n)" in src and "for n in launch.nodes" in src
     cfg = tmp_path / "c.yaml"

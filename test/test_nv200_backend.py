@@ -238,7 +238,7 @@ def test_driver_node_on_the_nv200_double_arms_tracks_and_ramps_down(tmp_path, ro
     pytest.importorskip("rclpy")
     import warnings
 
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
 
     def run(folder):
         folder.mkdir()
@@ -283,7 +283,7 @@ def test_driver_node_on_the_nv200_double_faults_on_a_lost_link_or_an_error(
     import signal
     import threading
     pytest.importorskip("rclpy")
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     from ros_probe import Probe
     c = AmplifiersProcess(tmp_path)
     launch = Launch(_config(tmp_path, c.addresses), LaunchOptions(record=str(tmp_path / "bag"),

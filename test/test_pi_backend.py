@@ -370,7 +370,7 @@ def test_driver_node_on_the_pi_double_arms_tracks_and_ramps_down(tmp_path, ros_e
     over TCP; at _rt_rate): it arms and tracks, the controller is named, the outputs
     stay in their limits and end at the safe voltage."""
     pytest.importorskip("rclpy")
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     rate = _rt_rate(ros_env)
     c = ControllerProcess(tmp_path)
     try:
@@ -408,7 +408,7 @@ def test_driver_node_on_the_pi_double_faults_on_a_lost_link_or_a_controller_erro
     import signal
     import threading
     pytest.importorskip("rclpy")
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     from ros_probe import Probe
     rate = _rt_rate(ros_env)
     c = ControllerProcess(tmp_path)

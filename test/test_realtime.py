@@ -26,7 +26,7 @@ from piezo_stage.io.run_bag import (
     read_run,  # noqa: E402
     status_node,
 )
-from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
+from piezo_stage.launcher.launcher import Launch, LaunchOptions  # noqa: E402
 from ros_probe import Probe  # noqa: E402
 
 # real node processes in real time: -m "not slow" leaves them out, and ./dev.sh test
@@ -146,7 +146,7 @@ def test_a_capacity_run_that_faulted_is_not_the_hosts_rate(domain):
     run of its own: the rate chosen is never the one whose run faulted, and its figures
     name the fault. (The suite's capacity run at 1 kHz once faulted on stale commands on
     CI's host, and its last report chose 1 kHz for the four tests that then faulted.)"""
-    from piezo_stage.launch.host_rate import host_rate, measure
+    from piezo_stage.launcher.host_rate import host_rate, measure
     _, env = domain
     runs: list = []
     tight = {"stage_driver": {"stale_timeout_s": 0.001}}

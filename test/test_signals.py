@@ -15,7 +15,7 @@ import pytest
 pytest.importorskip("rclpy")
 from benchmarks import signals as bench_signals  # noqa: E402
 from conftest import CONFIG, ROOT  # noqa: E402
-from piezo_stage.launch.launcher import Launch, LaunchOptions  # noqa: E402
+from piezo_stage.launcher.launcher import Launch, LaunchOptions  # noqa: E402
 
 pytestmark = pytest.mark.slow
 STAGE = os.path.join(CONFIG, "stage.yaml")

@@ -53,7 +53,7 @@ def test_the_package_imported_after_the_generator_leaves_it_whole():
 
 def test_the_launcher_reads_its_configuration_without_the_model_core():
     out = _run("import sys\n"
-               "from piezo_stage.launch.launcher import read_parameters\n"
+               "from piezo_stage.launcher.launcher import read_parameters\n"
                "from piezo_stage.paths import default_config\n"
                "p = read_parameters(default_config('stage.yaml'))\n"
                "print(bool(p), [m for m in ('piezo_stage.io.model_file', "

@@ -29,13 +29,13 @@ def tracking_from_run(run, t_from_s):
 
 
 def run_demo(args):
-    from piezo_stage.launch.running import begin_look
+    from piezo_stage.launcher.running import begin_look
     with begin_look(args.namespace) as look:  # beside the imports
         return _run_demo(args, look)
 
 
 def _run_demo(args, look):
-    from piezo_stage.launch.launcher import Launch, LaunchOptions, run_set
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions, run_set
     from piezo_stage.paths import default_config
     bag = args.out or new_bag_dir("bags")
     rate = 1000.0

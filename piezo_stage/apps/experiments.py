@@ -166,7 +166,7 @@ def lockstep_margin_s(case, config, extra=None) -> float:
     from piezo_stage.core.loop.feedforward import PARAMETERS
     from piezo_stage.core.loop.planner import Approach
     from piezo_stage.core.params import defaults
-    from piezo_stage.launch.launcher import read_parameters
+    from piezo_stage.launcher.launcher import read_parameters
     p: Params = defaults(PARAMETERS)
     p.update(read_parameters(config).get("feedforward", {}))
     p.update({**(extra or {}).get("feedforward", {}), **case.params.get("feedforward", {})})
@@ -187,7 +187,7 @@ def run_case(case, bag, config, plant=None, model=None, mode="lockstep", extra=N
     The driver counts the run's samples from the one at which the stage first enabled
     (``max_steps_from_arming``): the approach, the trajectory and a little slack, in both
     modes, however long discovery and arming took before it."""
-    from piezo_stage.launch.launcher import Launch, LaunchOptions, run_set
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions, run_set
     os.makedirs(os.path.dirname(os.path.abspath(bag)) or ".", exist_ok=True)
     csv = os.path.abspath(bag) + ".trajectory.csv"
     _write_csv(csv, case.t, case.w)
@@ -299,7 +299,7 @@ def saturate(cases, range_um, warn):
 
 
 def _range(config, extra):
-    from piezo_stage.launch.launcher import read_parameters
+    from piezo_stage.launcher.launcher import read_parameters
     r = {**read_parameters(config).get("feedforward", {}),
          **(extra or {}).get("feedforward", {})}.get("range_um", [-10.0, 90.0])
     return float(r[0]), float(r[1])
@@ -308,7 +308,7 @@ def _range(config, extra):
 def control_rate(config, extra):
     """The driver's control rate [Hz] (``--params`` may raise it where the backend can
     run it): its step count ends the run."""
-    from piezo_stage.launch.launcher import read_parameters
+    from piezo_stage.launcher.launcher import read_parameters
     return float({**read_parameters(config).get("stage_driver", {}),
                   **(extra or {}).get("stage_driver", {})}.get("control_rate_hz", RATE_HZ))
 

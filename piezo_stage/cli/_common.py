@@ -139,7 +139,7 @@ def port(text):
 
 def param_overrides(paths) -> Doc:
     """Node parameters from parameter files (as `tune` writes), later files win."""
-    from piezo_stage.launch.launcher import read_parameters
+    from piezo_stage.launcher.launcher import read_parameters
     out: dict[str, Doc] = {}
     for p in paths or ():
         for node, params in read_parameters(p).items():
@@ -160,7 +160,7 @@ def pair(text):
     return [a, b]
 
 
-# which of the loop's nodes share a process (launch/launcher.py COMPOSE's keys, named
+# which of the loop's nodes share a process (launcher/launcher.py COMPOSE's keys, named
 # here so that parsing a command line does not import the launcher)
 COMPOSITIONS = ("loop", "command", "none")
 
@@ -168,13 +168,13 @@ COMPOSITIONS = ("loop", "command", "none")
 def client_transport() -> None:
     """A command that only talks to a running set (``lifecycle``, ``move``) keeps off
     Fast DDS's shared-memory transport, as the real-time set does
-    (launch/launcher.py ``realtime_transport_env``; a transport configuration of the
+    (launcher/launcher.py ``realtime_transport_env``; a transport configuration of the
     user's own is left as it is). Call before the command's participant is made: on a
     host with stale shared-memory ports from killed processes Fast DDS printed
     "RTPS_TRANSPORT_SHM Error ... open_and_lock_file failed" into the command's
     output, and its lines were no longer its own."""
     import os
 
-    from piezo_stage.launch.launcher import realtime_transport_env
+    from piezo_stage.launcher.launcher import realtime_transport_env
     for key, value in realtime_transport_env(os.environ).items():
         os.environ[key] = value

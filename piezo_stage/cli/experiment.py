@@ -80,7 +80,7 @@ def identify_first(out_dir, config, plant, mode, extra, namespace):
     from piezo_stage.core.errors import RunError
     from piezo_stage.io.bag import deserialize, iter_messages
     from piezo_stage.io.files import atomic_write
-    from piezo_stage.launch.launcher import Launch, LaunchOptions, run_set
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions, run_set
     bag = os.path.join(out_dir, "identification")
     drv = {"mode": mode}
     if plant:

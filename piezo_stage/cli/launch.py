@@ -50,14 +50,14 @@ def add_arguments(s):
 
 
 def main(args):
-    from piezo_stage.launch.running import begin_look
+    from piezo_stage.launcher.running import begin_look
     with begin_look(args.namespace) as look:  # beside the imports and the config's checks
         return _launch(args, look)
 
 
 def _launch(args, look):
     from piezo_stage.io.bag import new_bag_dir
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     record = args.record
     if record == "auto":

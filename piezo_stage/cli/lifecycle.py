@@ -25,7 +25,7 @@ def main(args):
 
     from piezo_stage.cli._common import client_transport
     from piezo_stage.core.errors import ConfigError
-    from piezo_stage.launch.lifecycle import STATES, TRANSITIONS, drive, full_name
+    from piezo_stage.launcher.lifecycle import STATES, TRANSITIONS, drive, full_name
     if args.target is not None and args.target not in TRANSITIONS + STATES:
         raise ConfigError(f"{args.target!r}: give a transition ({', '.join(TRANSITIONS)}) "
                           f"or a state ({', '.join(STATES)})")

@@ -602,7 +602,7 @@ def warm_caller_lookup() -> None:
     inspect.getframeinfo(sys._getframe())
 
 
-START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # launch/launcher.py's
+START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # launcher/launcher.py's
 START_GATE_MAX_S = 120.0
 
 

@@ -79,7 +79,7 @@ from piezo_stage_msgs_adapters import (
 )
 
 STATE_ACK_S = 1.0  # lockstep: the longest wait for the state's readers (see _announce)
-CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # the launcher's (launch/launcher.py)
+CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # the launcher's (launcher/launcher.py)
 
 SUCCESS, FAILURE, ERROR = (TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE,
                            TransitionCallbackReturn.ERROR)

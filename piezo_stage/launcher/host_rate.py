@@ -93,7 +93,7 @@ def measure(env: dict[str, str], rate_hz: float, compose=None, overrides=None) -
     """One capacity run of the set at ``rate_hz``, recorded and judged (``rate_run``).
     ``overrides``: more parameters per node (a test's, to make a run fault)."""
     from piezo_stage.io.run_bag import read_run
-    from piezo_stage.launch.launcher import Launch, LaunchOptions
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
     from piezo_stage.paths import default_config
     where = tempfile.mkdtemp(prefix="piezo-stage-host-rate-")
     bag = os.path.join(where, "capacity")

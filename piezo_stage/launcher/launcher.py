@@ -299,7 +299,7 @@ class Launch:
         record, namespace, overrides = o.record, o.namespace, o.overrides
         arm, foxglove_port, exclusive = o.arm, o.foxglove_port, o.exclusive
         managed, armed_s, compose, rate = o.managed, o.armed_s, o.compose, o.rate
-        self._look = look  # a running_set look begun before (launch/running.py's Look)
+        self._look = look  # a running_set look begun before (launcher/running.py's Look)
         self.config_path = os.path.abspath(config_path)
         params = read_parameters(self.config_path)
         self.nodes = self._nodes_to_start(params, o)
@@ -478,7 +478,7 @@ class Launch:
                                 RUN_ENDED_ENV: self._ended_file,
                                 START_GATE_ENV: gate if self.exclusive else ""})
         look = None
-        if self.exclusive:  # one set per namespace (launch/running.py), looked for while
+        if self.exclusive:  # one set per namespace (launcher/running.py), looked for while
             # the nodes import (they wait at the start gate before they join the graph:
             # _executor.run_nodes), so the look costs no start-up; begun by the command
             # before it read its config where it could (Look)
@@ -513,7 +513,7 @@ class Launch:
 
     def _look_for_this_set(self):
         """The look begun for this set's namespace and domain, else one begun now."""
-        from piezo_stage.launch.running import Look
+        from piezo_stage.launcher.running import Look
         domain = int(self.env.get("ROS_DOMAIN_ID") or 0)
         look = self._look
         if look is not None and (look.namespace.strip("/"), look.domain_id) == (
