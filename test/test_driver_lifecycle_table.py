@@ -48,3 +48,20 @@ def test_a_refusal_has_no_figures_before_a_measurement():
     s = SampleLoop(SimBackend("", 1000.0, 0), ArmingParams(), LoopOptions(
         rate_hz=1000.0, lockstep=True), lambda *a: None)
     assert s.refusal_figures() is None
+
+
+def test_a_backend_opened_for_a_block_is_closed_however_the_block_ends():
+    """``opened`` closes the backend with the block's safe voltage and ramp, on an
+    error too (as mcap's Writer finishes its file)."""
+    from piezo_stage.core.loop.backend import opened
+    closes = []
+
+    class Stage(SimBackend):
+        def close(self, safe_V=0.0, ramp_V_per_s=0.0):
+            closes.append((safe_V, ramp_V_per_s))
+
+    with opened(Stage("", 1000.0, 0), 5.0, 100.0) as b:
+        assert b.step(1.0, 1.0).applied["x"] == pytest.approx(1.0)
+    with pytest.raises(RuntimeError), opened(Stage("", 1000.0, 0), 2.0) as b:
+        raise RuntimeError("a lost link")
+    assert closes == [(5.0, 100.0), (2.0, 0.0)]

@@ -26,6 +26,7 @@ import numpy as np
 
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
 from piezo_stage.core.estimation.record import Record
+from piezo_stage.core.loop.backend import opened
 from piezo_stage.core.types import Params, PerAxis
 
 if TYPE_CHECKING:
@@ -85,20 +86,17 @@ def play_record(kind: str, rec: Record, params: Params | None = None,
     if kind in ("pi", "nv200"):
         from piezo_stage.drivers.nv200 import Nv200Backend
         from piezo_stage.drivers.pi import PiBackend
-        backend: PiBackend | Nv200Backend = (PiBackend if kind == "pi" else Nv200Backend)(
+        made: PiBackend | Nv200Backend = (PiBackend if kind == "pi" else Nv200Backend)(
             rec.fs_hz, p, safe_V)
-        try:
+        with opened(made, safe_V) as backend:  # (play ramped to safe already)
             _check_limits(rec, backend.limits)
             _check_slew(rec, backend.slew_V_per_s)
             applied, w = backend.play(rec.v["x"], rec.v["y"], rec.fs_hz, ramp_V_per_s)
-        finally:
-            backend.close(safe_V, 0.0)  # play ramped to safe already
         return Record(rec.t, applied, w, f"{rec.source} played on {backend.hardware_id}",
                       voltage_exact=True)
     if kind == "daq":
         from piezo_stage.drivers.daq import DaqBackend
-        daq = DaqBackend(rec.fs_hz, p, safe_V)
-        try:
+        with opened(DaqBackend(rec.fs_hz, p, safe_V), safe_V, ramp_V_per_s) as daq:
             _check_limits(rec, daq.limits)
             _check_slew(rec, daq.slew_V_per_s)
             step = ramp_V_per_s / rec.fs_hz
@@ -117,8 +115,6 @@ def play_record(kind: str, rec: Record, params: Params | None = None,
                 raise BackendFault(f"the host missed {daq.late - late0} sample clocks "
                                    f"of {n}: the record is not the waveform (play it at a "
                                    "lower rate)")
-        finally:
-            daq.close(safe_V, ramp_V_per_s)
         return Record(rec.t, dict(rec.v), w, f"{rec.source} played on {daq.hardware_id}",
                       voltage_exact=True)
     raise ConfigError(f"unknown backend {kind!r}; use {', '.join(PLAY_BACKENDS)}")

@@ -3,8 +3,12 @@ piezo_stage/drivers): the ``Backend`` protocol and each step's ``StepResult``.""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, TypeVar
+
+from piezo_stage.core.types import PerAxis
 
 
 @dataclass(frozen=True)
@@ -14,9 +18,9 @@ class StepResult:
     None); the hardware's own sample count where it keeps one (the DAQ: its missed
     clocks show in it), else None."""
 
-    measured: dict[str, float]
-    applied: dict[str, float]
-    true: dict[str, float] | None = None
+    measured: PerAxis[float]
+    applied: PerAxis[float]
+    true: PerAxis[float] | None = None
     sample_index: int | None = None
 
 
@@ -50,3 +54,17 @@ class Backend(Protocol):
 
     def close(self, safe_V: float = 0.0, ramp_V_per_s: float = 0.0) -> None:
         """Leave the outputs at ``safe_V``, ramped at ``ramp_V_per_s`` (0: at once)."""
+
+
+B = TypeVar("B", bound=Backend)
+
+
+@contextmanager
+def opened(backend: B, safe_V: float = 0.0, ramp_V_per_s: float = 0.0) -> Iterator[B]:
+    """A backend for a block, closed on the way out however the block ends (as mcap's
+    ``Writer`` finishes its file): ramped to ``safe_V`` at ``ramp_V_per_s``, released.
+    ``with opened(make_backend(...), safe_V) as b: ...``"""
+    try:
+        yield backend
+    finally:
+        backend.close(safe_V, ramp_V_per_s)
