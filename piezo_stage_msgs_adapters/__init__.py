@@ -12,7 +12,14 @@ with its types, and a name that is no adapter is an AttributeError.
 
 from typing import TYPE_CHECKING
 
-from piezo_stage_msgs_adapters.wire import JOINTS, MEASURED, UM, Announcement, Reference
+from piezo_stage_msgs_adapters.wire import (
+    JOINTS,
+    MEASURED,
+    UM,
+    Announcement,
+    Reference,
+    TrajectoryRefused,
+)
 
 if TYPE_CHECKING:  # at run time loaded on first use (__getattr__): no ROS to import us
     from piezo_stage_msgs_adapters.convert import (
@@ -58,7 +65,8 @@ if TYPE_CHECKING:  # at run time loaded on first use (__getattr__): no ROS to im
     )
 
 __all__ = [
-    "JOINTS", "MEASURED", "UM", "Announcement", "Reference", "ARM_LEVEL", "FRAME",
+    "JOINTS", "MEASURED", "UM", "Announcement", "Reference", "TrajectoryRefused",
+    "ARM_LEVEL", "FRAME",
     "announcement_from_msg", "arming_state_msg", "check_trajectory_size", "clock_msg",
     "diagnostic_array", "header", "joint_state", "joint_state_cdr", "joint_state_to_um",
     "model_from_msg", "model_msg", "move_from_msg", "move_msg", "ns_to_time",
@@ -70,7 +78,8 @@ __all__ = [
     "trajectory_take_bytes", "voltage_cdr", "voltage_from_msg", "voltage_msg",
 ]
 # what __getattr__ loads from convert (the TYPE_CHECKING list above)
-CONVERT = frozenset(__all__) - {"JOINTS", "MEASURED", "UM", "Announcement", "Reference"}
+CONVERT = frozenset(__all__) - {"JOINTS", "MEASURED", "UM", "Announcement", "Reference",
+                                "TrajectoryRefused"}
 
 
 def __getattr__(name: str) -> object:

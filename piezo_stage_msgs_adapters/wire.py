@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from piezo_stage.core.errors import DataError
+from piezo_stage.core.errors import DataError, PiezoStageError
 from piezo_stage.core.types import Doc
 from piezo_stage_msgs_adapters.cdr import CdrReader
 
@@ -138,3 +138,12 @@ def trajectory_header(data: bytes) -> tuple[str, int]:
         return r.string(), stamp
     except DataError:
         return "", 0
+
+
+class TrajectoryRefused(PiezoStageError):
+    """A trajectory refused: the reason, and what its sender names it by (its header's
+    frame_id and stamp [ns], ``trajectory_header``), for the refusal it is told."""
+
+    def __init__(self, reason: str, data: bytes) -> None:
+        super().__init__(reason)
+        self.frame_id, self.stamp_ns = trajectory_header(data)

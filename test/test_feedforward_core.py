@@ -259,3 +259,34 @@ def test_a_host_stall_rings_a_resonant_stage_no_more_than_tracking_does(model):
     assert 45.0 < calm < 46.5
     for at in (524, 532, 540):  # the flank before a peak
         assert _stalled_max_um(model, "sim_stage_600hz.yaml", at) <= calm + 0.1, at
+
+
+def test_lockstep_holds_a_sample_until_its_trajectory_and_counts_every_input():
+    """The core owns the lockstep wait and the counts: with wait_for_trajectory a
+    lockstep sample is held (no answer) and answered by ``resume`` once a trajectory is
+    taken; a duplicate stamp is dropped and counted; inputs refused are counted."""
+    import numpy as np
+
+    from piezo_stage.core.loop.feedforward import PARAMETERS
+    p = {q.name: q.default for q in PARAMETERS}
+    p.update(wait_for_trajectory=True, control_rate_hz=1000.0)
+    core = InverseFeedforward.from_params(p, DT)
+    w, v = {"x": 1.0, "y": 2.0}, {"x": 3.0, "y": 4.0}
+    on = lambda ns: False  # noqa: E731 - the driver applies nothing yet
+    assert core.take_sample(0, w, v, DT, on, realtime=False) is None
+    assert core.held is not None and core.resume(on) is None  # still no trajectory
+    assert core.take_sample(0, w, v, DT, on, realtime=False) is None  # a duplicate
+    core.take_trajectory(np.linspace(0, 1, 11), {"x": np.full(11, 5.0),
+                                                 "y": np.full(11, 6.0)}, 0, None)
+    r = core.resume(on)
+    assert r is not None and [a.target for a in r.answers] == [DT]
+    assert r.measured == w and r.applied == v and core.held is None
+    assert core.stats["trajectories"] == 1 and core.answered_ns == 0
+    core.refused("model", PiezoStageError("no axis y"))
+    core.refused("setpoint", PiezoStageError("outside"))
+    assert core.stats["rejected_models"] == core.stats["rejected_setpoints"] == 1
+    assert core.status(DT)[1].endswith("(last rejected: no axis y)")
+    refusal = core.refuse_move("m1", "outside the stage range")
+    assert refusal.state == "refused" and core.stats["rejected_moves"] == 1
+    assert core.move_request("", {"x": 1.0}).move_id == "move #1"
+    assert core.stats["moves"] == 1

@@ -2,16 +2,12 @@
 """feedforward: the inverse Duhem model turns desired positions into voltages.
 
 Clocked by joint_states: sample k (stamp t_k) is answered by the internal ``reference``
-(sensor_msgs/JointState: desired position [m] and feedforward [V] for x, y, plus the
-measurement of t_k and the voltage applied for it) stamped t_k + lookahead, the
-driver's look-ahead (one period in lockstep; in real time the loop's latency budget,
-announced on the driver's ``state``), so a command reaches the driver before the tick
-it is for. The planner (core/loop/planner.py) decides the desired position: while the driver
-does not apply commands it holds where the stage is (feedforward = the applied voltage,
-so enabling is bumpless); enabled, it approaches the goal and then runs the trajectory
-clock. The inverse is synced to the voltages really applied and steps through the
-commands still in flight before computing the next. A new model on ``model`` replaces
-the inverse without a restart. Without any model the feedforward is a nominal gain.
+(desired position [m] and feedforward [V] for x, y, with the measurement of t_k and the
+voltage applied for it) stamped t_k + the driver's announced look-ahead, so a command
+reaches the driver before its tick. What each sample takes (stamp guard, planner,
+learning, inverse, the lockstep wait) is core/loop/feedforward.py's; this node decodes,
+calls it and publishes. A new model on ``model`` replaces the inverse without a restart;
+without any model the feedforward is a nominal gain.
 """
 
 # first, before the heavy imports: stop signals work from here on (see process/signals.py)
@@ -19,6 +15,7 @@ import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -32,16 +29,10 @@ from trajectory_msgs.msg import JointTrajectory
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop import feedforward as core_ff
-from piezo_stage.core.loop.ontarget import REFUSED, TargetState
-from piezo_stage.core.loop.planner import HOLD, ReferencePlanner
-from piezo_stage.core.loop.stamps import (
-    Publications,
-    publication_key,
-    request_key,
-)
-from piezo_stage.core.metrics import LatencyHistogram
+from piezo_stage.core.loop.planner import HOLD
+from piezo_stage.core.loop.stamps import publication_key, request_key
 from piezo_stage.core.model.duhem import StageModel
-from piezo_stage.core.types import EffectsBlock, Params, PerAxis
+from piezo_stage.core.types import EffectsBlock, PerAxis
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED, MessageInfo
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._intake import Intake, warm_up
@@ -49,6 +40,7 @@ from piezo_stage.nodes._latched import LatchedFetch
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage_msgs_adapters import (
+    TrajectoryRefused,
     check_trajectory_size,
     joint_state_to_um,
     model_from_msg,
@@ -64,15 +56,8 @@ from piezo_stage_msgs_adapters import (
     trajectory_take_bytes,
 )
 
-
-class Refused(PiezoStageError):
-    """A trajectory refused: the reason, and its header's frame_id and stamp [ns]."""
-
-    def __init__(self, reason: str, frame_id: str, stamp_ns: int) -> None:
-        super().__init__(reason)
-        self.frame_id, self.stamp_ns = frame_id, stamp_ns
-
-
+# an input's decode (any thread), take and refuse (the loop's thread)
+Input = tuple[Callable[[Any], Any], Callable[[Any], None], Callable[[BaseException], None]]
 # a trajectory taken: (t [s], w {axis: um}, stamp, start, now [ns])
 Decoded = tuple[np.ndarray, PerAxis[np.ndarray], int, int | None, int]
 
@@ -80,18 +65,49 @@ Decoded = tuple[np.ndarray, PerAxis[np.ndarray], int, int | None, int]
 class Feedforward(LeanNode, Node):
     USES_KERNELS = True  # the model's inverse (LeanNode)
 
-    def _core(self, p: Params) -> tuple[ReferencePlanner, core_ff.InverseFeedforward]:
-        """The planner and the per-sample core of the node's parameters ``p``."""
-        planner = ReferencePlanner(p["approach_speed_um_per_s"],
-                                   p["approach_accel_um_per_s2"])
+    def __init__(self, **node_options: Any) -> None:
+        # node_options: a node of a composed loop gets its own arguments (loop_container)
+        super().__init__("feedforward", **node_options)
+        live = tuple(q for q in core_ff.PARAMETERS if q.live)
+        p = self.p = declare_schema(self, tuple(q for q in core_ff.PARAMETERS if not q.live))
+        self.max_points = p["max_trajectory_points"]
         # the per-sample work (core/loop/feedforward.py): reference, learning, inverse
-        opts = core_ff.FeedforwardOptions(
-            nominal_um_per_V=p["nominal_um_per_V"], use_coupling=p["use_coupling"],
-            inverse=p["inverse_feedforward"], max_resonance_hz=p["max_resonance_inverse_hz"],
-            wait_for_trajectory=p["wait_for_trajectory"],
-            model_required_after_s=p["model_required_after_s"],
-            move_profile=(p["move_speed_um_per_s"], p["move_accel_um_per_s2"]))
-        return planner, core_ff.InverseFeedforward(planner, self.dt_ns, opts)
+        self.core = core_ff.InverseFeedforward.from_params(
+            p, int(round(1e9 / p["control_rate_hz"])))
+        # the live ones once the core is there (a start-up override calls them at once):
+        # effect compensation and learning feedforward (core/loop/learning.py)
+        p.update(declare_schema(self, live, {q.name: lambda v, name=q.name: self.core.set_live(
+            name, v) for q in live}))
+        for q in live:
+            self.core.set_live(q.name, p[q.name])
+        # an input: decoded and checked, then taken, or refused (``take``); in real time
+        # taken apart on the intake's thread
+        self.inputs: dict[str, Input] = {
+            "trajectory": (self.decode_trajectory, self.take_trajectory, self.reject_trajectory),
+            "model": (self.prepare_model, self.use_model, self.reject_model)}
+        self.intake = Intake({k: v[0] for k, v in self.inputs.items()}, (PiezoStageError,))
+        warm_up(lambda data: trajectory_from_cdr(data, self.p["range_um"], self.max_points),
+                (PiezoStageError,))
+        # the driver's announcements: taken before the data in each lean-loop pass
+        # in real time: heap for taking the largest trajectory it admits (no page fault)
+        self.driver = DriverState(self, self.core.dt_ns, p["thread_priority"],
+                                  heap_bytes=trajectory_take_bytes(self.max_points))
+        if p["model_file"]:
+            from piezo_stage.io.model_file import load_model
+            model, effects = load_model(p["model_file"])
+            self.use_model(self.prepare_model((model, effects, p["model_file"])))
+        self._make_publishers(p["min_subscribers"])
+        hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
+                         with_info=True)
+        # the inputs from outside the loop: at once, or (inputs_once_armed) once the
+        # driver has armed, its capacity judged: what a refused attempt took would be lost
+        # with it, when the launcher's --rate auto runs the set again at a lower rate
+        self.inputs_waiting = p["inputs_once_armed"] and not p["wait_for_trajectory"]
+        if not self.inputs_waiting:
+            self.take_inputs()
+        self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
+        self.diag = Diagnostics(self, lambda: self.core.status(self.driver.lookahead_ns),
+                                "inverse feedforward", rates=core_ff.RATES)
 
     def _make_publishers(self, min_subscribers: int) -> None:
         """The node's publishers (the reference gated on ``min_subscribers`` readers)."""
@@ -109,70 +125,6 @@ class Feedforward(LeanNode, Node):
         self.refused_pub = self.create_publisher(DiagnosticArray, "trajectory/refused",
                                                  QOS_EVENTS)
         self.gate = Gate(self, [(self.pub, min_subscribers)])
-
-    def __init__(self, **node_options: Any) -> None:
-        # node_options: a node of a composed loop gets its own arguments (loop_container)
-        super().__init__("feedforward", **node_options)
-        live = tuple(q for q in core_ff.PARAMETERS if q.live)
-        p = self.p = declare_schema(self, tuple(q for q in core_ff.PARAMETERS if not q.live))
-        self.dt_ns = int(round(1e9 / p["control_rate_hz"]))
-        self.max_points = p["max_trajectory_points"]
-        self.planner, self.core = self._core(p)
-        self.ref, self.learning = self.core.ref, self.core.learning
-        # the live ones once the core is there (a start-up override calls them at once):
-        # effect compensation and learning feedforward (core/loop/learning.py)
-        p.update(declare_schema(self, live, {q.name: lambda v, name=q.name: self.core.set_live(
-            name, v) for q in live}))
-        for q in live:
-            self.core.set_live(q.name, p[q.name])
-        self.model_name = "nominal"
-        self.pending: bytes | None = None  # lockstep: the sample the loop waits at
-        # a trajectory is its publication: the same bytes sent again run again, one
-        # publication delivered twice (volatile and the latched fetch) runs once
-        self.publications = Publications()
-        # real time: trajectories and models are taken apart on the intake's thread
-        self.intake = Intake({"trajectory": self.decode_trajectory,
-                              "model": self.prepare_model}, (PiezoStageError,))
-        self.model_base: StageModel | None = None  # the model the next one is checked against
-        warm_up(lambda data: trajectory_from_cdr(data, self.p["range_um"], self.max_points),
-                (PiezoStageError,))
-        # the driver's announcements: taken before the data in each lean-loop pass
-        # in real time: heap for taking the largest trajectory it admits (no page fault)
-        self.driver = DriverState(self, self.dt_ns, p["thread_priority"],
-                                  heap_bytes=trajectory_take_bytes(self.max_points))
-        self.last_ns, self.last_rejection = -1, ""
-        # a stray stamp from the graph never poisons the loop
-        # the core's counters and its guard (stamps, late answers)
-        self.stats, self.guard = self.core.stats, self.core.guard
-        if p["model_file"]:
-            from piezo_stage.io.model_file import load_model
-            self.set_model(*load_model(p["model_file"]), p["model_file"])
-        self._make_publishers(p["min_subscribers"])
-        hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
-                         with_info=True)
-        self.lag = LatencyHistogram()  # sample stamp -> its arrival here
-        self.sp_latency = LatencyHistogram()
-        self.setpoint_arrival: int | None = None
-        # the inputs from outside the loop: at once, or (inputs_once_armed) once the
-        # driver has armed, its capacity judged: what a refused attempt took would be lost
-        # with it, when the launcher's --rate auto runs the set again at a lower rate
-        self.inputs_waiting = p["inputs_once_armed"] and not p["wait_for_trajectory"]
-        if not self.inputs_waiting:
-            self.take_inputs()
-        self.create_subscription(String, "model", self.on_model, QOS_LATCHED)
-        self.diag = Diagnostics(self, lambda: (
-            0, f"{self.planner.phase}, model {self.model_name}, {self.ref.describe()}" + (
-            f" (last rejected: {self.last_rejection})" if self.last_rejection else ""), {
-            **self.stats, "model": self.model_name, "phase": self.planner.phase,
-            "trajectories_taken_already": self.publications.repeated,
-            "effects": self.ref.describe(), "learning": self.learning.describe(),
-            "lookahead_ms": self.driver.lookahead_ns * 1e-6,
-            "joint_states_lag_median_ms": self.lag.percentile(50) * 1e3,
-            "joint_states_lag_p99_ms": self.lag.percentile(99) * 1e3,
-            "joint_states_lag_max_ms": self.lag.max_s * 1e3,
-            "setpoint_latency_median_ms": self.sp_latency.percentile(50) * 1e3,
-            "setpoint_latency_max_ms": self.sp_latency.max_s * 1e3}), "inverse feedforward",
-            rates=core_ff.RATES)
 
     def take_inputs(self) -> None:
         """Subscribe to the trajectories, setpoints and moves of other nodes."""
@@ -195,69 +147,50 @@ class Feedforward(LeanNode, Node):
     def final_report(self) -> None:
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
 
-    def set_model(self, model: StageModel, effects: EffectsBlock | None, name: str) -> None:
-        self.use_model(self.prepare_model((model, effects, name)))
-
+    # -- models ---------------------------------------------------------------------------
     def prepare_model(self, item: str | tuple[StageModel, EffectsBlock | None, str]
                       ) -> tuple[core_ff.PreparedModel, str]:
         """(model, effects, name) or a model message's text -> (prepared, name), checked
         against the last model prepared. Any thread."""
         if isinstance(item, str):
-            name = f"model message #{self.stats['models'] + 1}"
+            name = f"model message #{self.core.stats['models'] + 1}"
             model, effects = model_from_msg(String(data=item))
         else:
             model, effects, name = item
-        prepared = self.core.prepare_model(
+        return self.core.prepare_model(
             model, effects, name, self.driver.limits,
-            self.p["range_um"][1] - self.p["range_um"][0], base=self.model_base)
-        self.model_base = prepared.model
-        return prepared, name
+            self.p["range_um"][1] - self.p["range_um"][0], base=self.core.model_base), name
 
     def use_model(self, prepared_name: tuple[core_ff.PreparedModel, str]) -> None:
-        prepared, name = prepared_name
-        self.core.use_model(prepared, armed=self.core.inv is not None and
-                            self.driver.enabled(self.last_ns))
-        self.model_name = name
-        self.stats["models"] += 1
-        self.last_rejection = ""  # the warning clears with a good model
-        self.get_logger().info(f"using model {name}")
+        self.core.take_model(*prepared_name, armed=self.core.inv is not None and
+                             self.driver.enabled(self.core.answered_ns))
+        self.get_logger().info(f"using model {prepared_name[1]}")
         self.resume()
 
     def reject_model(self, e: BaseException) -> None:
-        self.stats["rejected_models"] += 1
-        self.last_rejection = str(e)
-        self.get_logger().error(f"model rejected, keeping {self.model_name}: {e}")
+        self.core.refused("model", e)
+        self.get_logger().error(f"model rejected, keeping {self.core.model_name}: {e}")
         self.resume()
 
     def on_model(self, msg: String) -> None:
-        """A model message: parsed, checked and its inverse built inline in lockstep,
-        on the intake's thread in real time."""
-        if self.driver.realtime:
-            self.intake.submit("model", msg.data)
-            return
-        try:
-            self.use_model(self.prepare_model(msg.data))
-        except PiezoStageError as e:  # the old model stays
-            self.reject_model(e)
+        self.take("model", msg.data)  # a model refused: the old one stays
 
-    def resume(self) -> None:
-        """Lockstep: answer the sample the loop was held at, once what it waited for is here."""
-        if self.pending is not None:
-            msg, self.pending = self.pending, None
-            self.on_state(msg, resumed=True)
-
+    # -- trajectories, setpoints, moves ---------------------------------------------------
     def on_trajectory(self, msg: bytes, info: MessageInfo) -> None:
-        """A trajectory's bytes and its publication (rclpy's message info): checked,
-        decoded and republished as accepted inline in lockstep, on the intake's thread
-        in real time (``_intake.py``)."""
-        item = (bytes(msg), publication_key(info))
+        """A trajectory's bytes and its publication (rclpy's message info)."""
+        self.take("trajectory", (bytes(msg), publication_key(info)))
+
+    def take(self, kind: str, item: Any) -> None:
+        """An input decoded and checked, then taken or refused: inline in lockstep, on
+        the intake's thread in real time (``_intake.py``; ``on_state`` takes it)."""
         if self.driver.realtime:
-            self.intake.submit("trajectory", item)
+            self.intake.submit(kind, item)
             return
+        decode, take, refuse = self.inputs[kind]
         try:
-            self.take_trajectory(self.decode_trajectory(item))
+            take(decode(item))
         except PiezoStageError as e:
-            self.reject_trajectory(e)
+            refuse(e)
 
     def decode_trajectory(self, item: tuple[bytes, tuple | None]) -> Decoded | None:
         """(bytes, publication) -> (t, w, stamp, start, now) of a trajectory that is
@@ -266,8 +199,7 @@ class Feedforward(LeanNode, Node):
         a request taken already, sent again (``request_key``: a resend that crossed the
         answer). Any thread (one at a time)."""
         msg, key = item
-        request = request_key(trajectory_header(msg)[0])
-        if not self.publications.admit(key, request):
+        if not self.core.publications.admit(key, request_key(trajectory_header(msg)[0])):
             return None
         try:
             check_trajectory_size(msg, self.max_points)  # before anything else
@@ -275,15 +207,14 @@ class Feedforward(LeanNode, Node):
             stamp, now = trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
             start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
         except PiezoStageError as e:  # what its sender names it by, with the reason
-            raise Refused(str(e), *trajectory_header(msg)) from None
+            raise TrajectoryRefused(str(e), msg) from None
         self.accepted_pub.publish(msg)  # only what the stage will run
         return t, w, stamp, start, now
 
     def take_trajectory(self, decoded: Decoded | None) -> None:
         if decoded is not None:
             t, w, stamp, start, now = decoded
-            self.stats["trajectories"] += 1
-            self.core.set_trajectory(t, w, stamp, start, self.driver.slew_V_per_s)
+            self.core.take_trajectory(t, w, stamp, start, self.driver.slew_V_per_s)
             self.get_logger().info(f"trajectory of {len(t)} points accepted" + (
                 f", stamped {stamp}: starts in {(stamp - now) * 1e-9:.3f} s"
                 if stamp > now else ""))
@@ -291,9 +222,10 @@ class Feedforward(LeanNode, Node):
         self.resume()
 
     def reject_trajectory(self, e: BaseException) -> None:
-        self.stats["rejected_trajectories"] += 1
+        self.core.refused("trajectory", e)
         self.get_logger().warning(f"trajectory rejected: {e}")
-        frame_id, stamp = (e.frame_id, e.stamp_ns) if isinstance(e, Refused) else ("", 0)
+        frame_id, stamp = (e.frame_id, e.stamp_ns) if isinstance(e, TrajectoryRefused) \
+            else ("", 0)
         self.refused_pub.publish(refusal_msg(self.get_clock().now().nanoseconds,
                                              frame_id, stamp, str(e)))
         self.resume()
@@ -305,10 +237,9 @@ class Feedforward(LeanNode, Node):
 
     def on_setpoint(self, msg: PointStamped) -> None:
         try:
-            self.planner.set_setpoint(setpoint_from_msg(msg, self.p["range_um"]))
-            self.setpoint_arrival = time.time_ns()  # for its arrival-to-applied latency
+            self.core.take_setpoint(setpoint_from_msg(msg, self.p["range_um"]), time.time_ns())
         except PiezoStageError as e:
-            self.stats["rejected_setpoints"] += 1
+            self.core.refused("setpoint", e)
             self.get_logger().warning(f"setpoint rejected: {e}")
 
     def on_move(self, msg: PointStamped) -> None:
@@ -316,21 +247,17 @@ class Feedforward(LeanNode, Node):
         try:
             move_id, target = move_from_msg(msg, self.p["range_um"])
         except PiezoStageError as e:  # said on on_target too: the asker waits no more
-            self.stats["rejected_moves"] += 1
             self.get_logger().warning(f"move rejected: {e}")
-            self.on_target_pub.publish(on_target_msg(TargetState(
-                msg.header.frame_id[:200], REFUSED, {}, None, {}, {}, self.last_ns,
-                self.last_ns, str(e))))
+            self.on_target_pub.publish(on_target_msg(self.core.refuse_move(
+                msg.header.frame_id, str(e))))
             return
-        self.stats["moves"] += 1
-        self.on_target_pub.publish(on_target_msg(self.core.move(
-            move_id or f"move #{self.stats['moves']}", target,
-            slew_V_per_s=self.driver.slew_V_per_s)))
+        self.on_target_pub.publish(on_target_msg(self.core.move_request(
+            move_id, target, self.driver.slew_V_per_s)))
         self.publish_phase()
         self.resume()
 
-    def on_state(self, msg: bytes, info: MessageInfo | None = None,
-                 resumed: bool = False) -> None:
+    # -- the samples ----------------------------------------------------------------------
+    def on_state(self, msg: bytes, info: MessageInfo | None = None) -> None:
         if self.inputs_waiting and self.driver.armed_once:
             self.take_inputs()
             self.get_logger().info("armed: taking trajectories, setpoints and moves")
@@ -338,53 +265,44 @@ class Feedforward(LeanNode, Node):
             # twice: the running trajectory and its latched copy live on meanwhile
             self.intake.start(2 * trajectory_take_bytes(self.max_points))
         for kind, done in self.intake.ready():  # real time: what the intake finished
+            _, take, refuse = self.inputs[kind]
             if isinstance(done, PiezoStageError):
-                (self.reject_trajectory if kind == "trajectory" else self.reject_model)(done)
+                refuse(done)
             else:
-                (self.take_trajectory if kind == "trajectory" else self.use_model)(done)
+                take(done)
         try:
             ns, w, v_applied = joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:
-            self.guard.malformed()
+            self.core.guard.malformed()
             return
-        if not resumed and not self.guard.admit(ns):
-            return  # a duplicate changes nothing; a stray stamp is counted
-        if self.driver.realtime and info:
-            self.lag.add((info["received_timestamp"] - ns) * 1e-9)
-        # the per-sample work, one call: reference, learning, inverse (core/loop)
-        r = self.core.on_sample(ns, w, v_applied, self.driver.lookahead_ns,
-                                self.driver.enabled, self.driver.realtime,
-                                time.time_ns() if self.driver.realtime else 0)
-        if r.wait:
-            self.pending = msg  # lockstep: the loop waits here
+        rt = self.driver.realtime
+        # the per-sample work, one call: stamp guard, reference, learning, inverse
+        self.publish(self.core.take_sample(
+            ns, w, v_applied, self.driver.lookahead_ns, self.driver.enabled, rt,
+            time.time_ns() if rt else 0, info["received_timestamp"] if rt and info else None))
+
+    def resume(self) -> None:
+        """Lockstep: answer the sample the loop was held at, once what it waited for is here."""
+        self.publish(self.core.resume(self.driver.enabled))
+
+    def publish(self, r: core_ff.SampleResult | None) -> None:
+        """A sample's answers (and a move's state, and the phase where it changed)."""
+        if r is None:
             return
-        if r.silent:
-            return
-        self.last_ns = ns
         if r.on_target is not None:
             self.on_target_pub.publish(on_target_msg(r.on_target))
+        rt = self.driver.realtime
         for a in r.answers:
-            self.publish_answer(a, w, r.applied)
-        self.stats["saturated"], self.stats["rejoins"] = self.core.saturated, self.core.rejoins
-
-    def publish_answer(self, a: core_ff.Answer, w: PerAxis[float],
-                       applied: PerAxis[float] | None) -> None:
-        """One target's reference (and the phase first, when it changed)."""
-        if a.error is not None:
-            self.stats["bad_messages"] += 1
-            self.get_logger().error(f"feedforward for {a.desired}: {a.error}",
-                                    throttle_duration_sec=1.0)
-        if a.phase_changed:
-            self.publish_phase()
-        if self.setpoint_arrival and self.driver.realtime and a.enabled:
-            # a streamed setpoint cannot be previewed: it starts at this target tick
-            self.sp_latency.add((a.target - self.setpoint_arrival) * 1e-9)
-            self.setpoint_arrival = None
-        if not self.guard.on_time(a.target, time.time_ns() if self.driver.realtime else None,
-                                  a.late):
-            return  # it could only reach the driver too late (counted)
-        assert a.desired is not None and applied is not None  # (an answer has both)
-        self.gate.publish(self.pub, reference_cdr(a.target, a.desired, a.ff, w, applied))
+            if a.error is not None:
+                self.get_logger().error(f"feedforward for {a.desired}: {a.error}",
+                                        throttle_duration_sec=1.0)
+            if a.phase_changed:
+                self.publish_phase()
+            if not self.core.sendable(a, time.time_ns() if rt else None):
+                continue  # it could only reach the driver too late (counted)
+            assert a.desired is not None and r.applied is not None and r.measured is not None
+            self.gate.publish(self.pub, reference_cdr(a.target, a.desired, a.ff, r.measured,
+                                                      r.applied))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -29,13 +29,14 @@ from piezo_stage.core.loop.compensation import EffectCompensator, PreviewedRefer
 from piezo_stage.core.loop.control import THREAD_PRIORITY
 from piezo_stage.core.loop.learning import LearnedFeedforward
 from piezo_stage.core.loop.ontarget import PARAMETERS as ON_TARGET
-from piezo_stage.core.loop.ontarget import OnTargetJudge, TargetState
+from piezo_stage.core.loop.ontarget import REFUSED, OnTargetJudge, TargetState
 from piezo_stage.core.loop.planner import ReferencePlanner
-from piezo_stage.core.loop.stamps import SampleGuard
+from piezo_stage.core.loop.stamps import Publications, SampleGuard
+from piezo_stage.core.metrics import LatencyHistogram
 from piezo_stage.core.model.duhem import StageModel, check_model_change, stroke_um
 from piezo_stage.core.model.inverse import StageInverse
 from piezo_stage.core.params import Param, Schema
-from piezo_stage.core.types import EffectsBlock, PerAxis
+from piezo_stage.core.types import Doc, EffectsBlock, Params, PerAxis
 
 HANDOVER_V_PER_TICK = 1.0  # a new model while armed: its jump eased out, 1 V a tick
 MAX_FILLED_TICKS = 20  # after a skipped sample, at most this many targets answered
@@ -140,6 +141,7 @@ class SampleResult:
     silent: bool = False
     applied: PerAxis[float] | None = None
     on_target: TargetState | None = None  # a move's state, when it changed here
+    measured: PerAxis[float] | None = None  # the sample's position [um] they answer
 
 
 @dataclass(frozen=True)
@@ -234,6 +236,30 @@ class InverseFeedforward:
         self.model_gain: float | None = None  # the model's steepest mean gain [um/V]
         self.move_text = ""  # what the phase follows in a move ("move M")
         self.last_ns = 0
+        # what the node takes in, as the core keeps it: the model's name and the last
+        # refusal's reason, the model a new one is checked against (the last prepared),
+        # the publications taken (each publication runs once, every publication runs)
+        self.model_name, self.last_rejection = "nominal", ""
+        self.model_base: StageModel | None = None
+        self.publications = Publications()
+        self.lag = LatencyHistogram()  # a sample's stamp -> its arrival (real time)
+        self.sp_latency = LatencyHistogram()  # a setpoint's arrival -> its target tick
+        self.setpoint_arrival: int | None = None
+        # lockstep: the sample held until what it waits for is here (``resume``)
+        self.held: tuple[int, PerAxis[float], PerAxis[float] | None, int] | None = None
+        self.answered_ns = -1  # the last sample answered
+
+    @classmethod
+    def from_params(cls, p: Params, dt_ns: int) -> InverseFeedforward:
+        """The feedforward the node's parameters (``PARAMETERS``, by name) give, with
+        its planner."""
+        planner = ReferencePlanner(p["approach_speed_um_per_s"], p["approach_accel_um_per_s2"])
+        return cls(planner, dt_ns, FeedforwardOptions(
+            nominal_um_per_V=p["nominal_um_per_V"], use_coupling=p["use_coupling"],
+            inverse=p["inverse_feedforward"], max_resonance_hz=p["max_resonance_inverse_hz"],
+            wait_for_trajectory=p["wait_for_trajectory"],
+            model_required_after_s=p["model_required_after_s"],
+            move_profile=(p["move_speed_um_per_s"], p["move_accel_um_per_s2"])))
 
     def set_model(self, model: StageModel, effects: EffectsBlock | None, name: str,
                   driver_limits: tuple | None = None, range_um: float = 100.0,
@@ -273,6 +299,7 @@ class InverseFeedforward:
         lo, hi = model.voltage_limits
         gain = max(abs(stroke_um(m, (lo, hi), plays=model.plays.get(a))) / (hi - lo)
                    for a, m in model.axes.items())
+        self.model_base = model  # the next one is checked against it
         return PreparedModel(model, effects, comp, inv, gain)
 
     def use_model(self, prepared: PreparedModel, armed: bool = False) -> None:
@@ -289,6 +316,105 @@ class InverseFeedforward:
         self.effects, self.comp = prepared.effects, prepared.compensator
         self.relearn()
         self.started = self.planner.desired is not None  # else: from the first sample
+
+    # -- the node's inputs, taken and counted -----------------------------------------
+    def take_model(self, prepared: PreparedModel, name: str, armed: bool = False) -> None:
+        """``use_model``, the model called ``name``: counted, the last refusal cleared."""
+        self.use_model(prepared, armed)
+        self.model_name, self.last_rejection = name, ""
+        self.stats["models"] += 1
+
+    def refused(self, kind: str, error: BaseException) -> None:
+        """An input refused (a model, trajectory, setpoint or move): counted; a model's
+        reason is kept for the diagnostics."""
+        self.stats[f"rejected_{kind}s"] += 1
+        if kind == "model":
+            self.last_rejection = str(error)
+
+    def take_trajectory(self, t: ArrayLike, w: PerAxis[np.ndarray], stamp_ns: int,
+                        start_ns: int | None, slew_V_per_s: float | None = None) -> None:
+        """``set_trajectory`` for a trajectory the node accepted: counted."""
+        self.stats["trajectories"] += 1
+        self.set_trajectory(t, w, stamp_ns, start_ns, slew_V_per_s)
+
+    def take_setpoint(self, target: PerAxis[float], now_ns: int) -> None:
+        """A streamed setpoint, arrived at ``now_ns`` (its latency is measured to the
+        target tick it first reaches)."""
+        self.planner.set_setpoint(target)
+        self.setpoint_arrival = now_ns
+
+    def move_request(self, move_id: str, target: PerAxis[float],
+                     slew_V_per_s: float | None = None) -> TargetState:
+        """A move request (``move``): counted, named ``move #N`` when it has no id."""
+        self.stats["moves"] += 1
+        return self.move(move_id or f"move #{self.stats['moves']}", target,
+                         slew_V_per_s=slew_V_per_s)
+
+    def refuse_move(self, move_id: str, reason: str) -> TargetState:
+        """A move request that could not be read: counted, its refusal as a state."""
+        self.stats["rejected_moves"] += 1
+        return TargetState(move_id[:200], REFUSED, {}, None, {}, {}, self.answered_ns,
+                           self.answered_ns, reason)
+
+    def take_sample(self, ns: int, w: PerAxis[float], v_applied: PerAxis[float] | None,
+                    lookahead_ns: int, enabled: Callable[[int], bool], realtime: bool,
+                    now_ns: int = 0, received_ns: int | None = None) -> SampleResult | None:
+        """A decoded sample: the guard's verdict on its stamp (None: a duplicate or a
+        stray stamp, counted), its arrival lag (``received_ns``), then ``on_sample``;
+        lockstep, a sample that must wait is held for ``resume``."""
+        if not self.guard.admit(ns):
+            return None
+        if received_ns is not None:
+            self.lag.add((received_ns - ns) * 1e-9)
+        return self._answer(ns, w, v_applied, lookahead_ns, enabled, realtime, now_ns)
+
+    def resume(self, enabled: Callable[[int], bool]) -> SampleResult | None:
+        """Lockstep: the held sample answered, once what it waited for is here (None:
+        none held, or it still waits)."""
+        if self.held is None:
+            return None
+        (ns, w, v_applied, lookahead_ns), self.held = self.held, None
+        return self._answer(ns, w, v_applied, lookahead_ns, enabled, False, 0)
+
+    def _answer(self, ns: int, w: PerAxis[float], v_applied: PerAxis[float] | None,
+                lookahead_ns: int, enabled: Callable[[int], bool], realtime: bool,
+                now_ns: int) -> SampleResult | None:
+        r = self.on_sample(ns, w, v_applied, lookahead_ns, enabled, realtime, now_ns)
+        if r.wait:
+            self.held = (ns, w, v_applied, lookahead_ns)
+            return None
+        if r.silent:
+            return None
+        self.answered_ns = ns
+        self.stats["bad_messages"] += sum(a.error is not None for a in r.answers)
+        self.stats["saturated"], self.stats["rejoins"] = self.saturated, self.rejoins
+        return r
+
+    def sendable(self, a: Answer, now_ns: int | None) -> bool:
+        """Whether answer ``a`` can still reach the driver in time (real time:
+        ``now_ns``; counted when not); a streamed setpoint's latency is taken at the
+        first enabled tick it reaches."""
+        if self.setpoint_arrival and now_ns is not None and a.enabled:
+            # a streamed setpoint cannot be previewed: it starts at this target tick
+            self.sp_latency.add((a.target - self.setpoint_arrival) * 1e-9)
+            self.setpoint_arrival = None
+        return self.guard.on_time(a.target, now_ns, a.late)
+
+    def status(self, lookahead_ns: int) -> tuple[int, str, Doc]:
+        """(level, message, values) for /diagnostics."""
+        ms = 1e3
+        message = f"{self.planner.phase}, model {self.model_name}, {self.ref.describe()}" + (
+            f" (last rejected: {self.last_rejection})" if self.last_rejection else "")
+        return 0, message, {
+            **self.stats, "model": self.model_name, "phase": self.planner.phase,
+            "trajectories_taken_already": self.publications.repeated,
+            "effects": self.ref.describe(), "learning": self.learning.describe(),
+            "lookahead_ms": lookahead_ns * 1e-6,
+            "joint_states_lag_median_ms": self.lag.percentile(50) * ms,
+            "joint_states_lag_p99_ms": self.lag.percentile(99) * ms,
+            "joint_states_lag_max_ms": self.lag.max_s * ms,
+            "setpoint_latency_median_ms": self.sp_latency.percentile(50) * ms,
+            "setpoint_latency_max_ms": self.sp_latency.max_s * ms}
 
     def relearn(self, period: float | None = None, gain: float | None = None) -> None:
         """A learner for the present period, gain, model effects and compensation."""
@@ -395,7 +521,8 @@ class InverseFeedforward:
             desired, error = self.answer(ns, t, w, applied, on, late)
             answers.append(Answer(t, desired, dict(self.ff), error,
                                   self.planner.phase != phase, on, late))
-        return SampleResult(tuple(answers), applied=applied, on_target=on_target)
+        return SampleResult(tuple(answers), applied=applied, on_target=on_target,
+                            measured=w)
 
     def measured(self, ns: int, w: PerAxis[float], applied: PerAxis[float]) -> None:
         """The sample at ``ns``: the stage at ``w`` with ``applied`` [V]. The inverse
