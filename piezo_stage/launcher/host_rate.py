@@ -14,10 +14,10 @@ from statistics import median_low
 from piezo_stage.core.types import Doc
 
 RATES_HZ = (1000.0, 500.0, 250.0)
-# a rate is chosen where the capacity run measured this much: the set's own check asks
-# 2 x, and one host's measurements of one rate spread by 1.5 x run to run (1.1-2.1 x at
-# 1 kHz on a 2-core VM), so a rate chosen at 2.0 x is refused by the next set as often,
-# and at 2.5 x a set can still fault on stale commands
+# a rate is chosen where the capacity run measured this much: more than the set's own
+# check asks, since one host's measurements of one rate spread run to run (the spread:
+# docs/benchmarks.md#realtime), and a rate chosen at the check's own margin is refused
+# by the next set as often as not
 CHOOSE_MARGIN = 3.0
 RUN_S = 3.0  # a capacity run's tracking: three of the driver's 1 s reports
 
@@ -33,9 +33,9 @@ class RateRun:
 
     @property
     def capacity(self):
-        """The median reading (by capacity), None: none. One reading of a run read
-        2.19 x where its others read 4.29 x at 1 kHz on one host: the last alone, as
-        the rate was chosen by before, is as likely the odd one."""
+        """The median reading (by capacity), None: none. One reading of a run can be
+        far from its others: the last alone, as the rate was chosen by before, is as
+        likely the odd one."""
         if not self.readings:
             return None
         mid = median_low([c.capacity_hz for c in self.readings])
@@ -119,12 +119,11 @@ def host_rate(env: dict[str, str], rates=RATES_HZ, margin: float = CHOOSE_MARGIN
               runs: list | None = None, measure_at=None) -> tuple[float | None, str]:
     """(the highest of ``rates`` this host holds with ``margin``, or None; the figures
     in words). A capacity run at the highest rate first: there the loop thread's CPU a
-    sample is the least diluted by its fixed work a second (timers, diagnostics: at
-    250 Hz it read 0.88 ms a sample where 1 kHz read 0.44 ms on one host), and a lower
-    rate is chosen by the samples a second measured there, which is generous:
-    ``Capacity.at`` judges a lower rate's samples dearer (1,091/s at 1 kHz chooses
-    250 Hz here at 3 x, where ``at`` gives it 2.35 x), so a chosen rate keeps the 2 x a
-    set's own check asks, not all of the 3 x. A run that faulted says the host did not
+    sample is the least diluted by its fixed work a second (timers, diagnostics: a
+    sample reads dearer at a lower rate), and a lower rate is chosen by the samples a
+    second measured there, which is generous: ``Capacity.at`` judges a lower rate's
+    samples dearer, so a chosen rate keeps the margin a set's own check asks, not all
+    of ``margin``. A run that faulted says the host did not
     hold its rate while it ran (taking its last report instead, a suite would run at a
     rate that faults): the next rate down gets a run of its own. The sets run at the rate chosen
     then take ``min_margin: 0`` (the host has been measured already). ``compose``: the

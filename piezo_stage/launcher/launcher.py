@@ -331,8 +331,8 @@ class Launch:
         if self.backend == "sim":  # keep a simulated run's discovery on this host
             self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         # real time: the set's participants leave out the shared-memory transport, whose
-        # health check on a joining participant's port held every publish of a node up
-        # to ~0.33 s (realtime_transport_env), and publish synchronously: on UDP a
+        # health check on a joining participant's port held every publish of a node
+        # (realtime_transport_env), and publish synchronously: on UDP a
         # send is the caller's sendto, where the asynchronous mode's hand-off to a
         # writer thread per participant costs more CPU than it saves (docs/realtime.md).
         # Lockstep keeps the transports its byte-identical reruns

@@ -68,7 +68,7 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
                     if (n, s) != ("launch_check", "/")]
             names = sorted(n for n, s in seen if s == ns)
             # a graph with other nodes in it is being discovered: give ours longer
-            # (right after ten nodes joined and left, the set's names took over 2 s)
+            # (right after many nodes joined and left, the set's names came late)
             limit = BUSY_WAIT_S if seen else wait_s
             if time.monotonic() - t0 >= limit:
                 break

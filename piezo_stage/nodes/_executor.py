@@ -392,8 +392,8 @@ class LeanExecutor(Executor):
         if now - self._last_slow > SLOW_PERIOD_S and (ticked or deadline is None) or \
                 not (busy or ticked or self.local.queue):
             # a pass with no sample in it (start-up, a lockstep set waiting) serves
-            # every callback ready, up to IDLE_SLOW_MAX: the start gates of composed
-            # nodes (a timer each) opened one every 50 ms, 0.3 s to arm
+            # every callback ready, up to IDLE_SLOW_MAX: one a pass, the start gates of
+            # composed nodes (a timer each) opened one slow period after another
             self._last_slow = now
             for _ in range(1 if busy or ticked else IDLE_SLOW_MAX):
                 if not self._slow_once(0.0):

@@ -139,8 +139,8 @@ class DriverState:
             return
         self.lookahead_ns = int(round(a.lookahead_s * 1e9)) or self.dt_ns
         if a.mode == "realtime" and not self.realtime:
-            # the heap first, at normal priority: touching 54 MB takes ~54 ms of a core
-            # here, which at SCHED_FIFO another set's loop on this host could not preempt
+            # the heap first, at normal priority: touching it holds a core for a while,
+            # which at SCHED_FIFO another set's loop on this host could not preempt
             reserved = reserve_heap(self.heap_bytes, self.node.get_logger())
             if reserved:
                 self.node.get_logger().info(
@@ -190,7 +190,7 @@ class Gate:
     def publish(self, pub: Publisher, msg: Any) -> None:
         if self.open:
             pub.publish(msg)
-        else:  # the timer polls the graph: a query per message would cost ~1 ms each
+        else:  # the timer polls the graph: a graph query per message costs the loop
             self.queue.append((pub, msg))
 
 

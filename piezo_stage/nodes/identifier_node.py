@@ -54,7 +54,7 @@ class Identifier(LeanNode, Node):
             "last_error": "", "bad_messages": 0, "out_of_order": 0}
         self.pub = self.create_publisher(String, "model", QOS_LATCHED)
         # off the loop's path: what arrived is taken every BATCH_S in one pass (a wake
-        # a sample cost a real-time set's host a tenth of a CPU at 500 Hz)
+        # a sample costs a real-time set's host CPU the loop needs)
         self.lean_batch_s = BATCH_S
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
                          raw=True)

@@ -35,7 +35,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
 # the simulated stage (the default backend) with the node's imports, before the start
-# gate: its backend imported them as it configured, 0.04 s after the node had joined
+# gate: its backend would import them as it configured, after the node had joined
 import piezo_stage.core.model.plant  # noqa: F401
 import piezo_stage.io.plant_file  # noqa: F401
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
@@ -119,8 +119,8 @@ class StageDriver(LeanNode, LifecycleNode):
             if self.lock and p["clock_period_s"] > 0 else None
         hot_subscription(self, Vector3Stamped, "command", self.on_command, QOS_DATA,
                          raw=True, with_info=True)
-        # taken with the samples: at the base executor's turn (one callback each 50 ms)
-        # a phase waited up to 0.5 s, and the state said "approaching" after the move's
+        # taken with the samples: at the base executor's turn (one callback each slow
+        # period) a phase waited, and the state said "approaching" after the move's
         # on-target verdict
         hot_subscription(self, KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
         self.create_service(SetBool, "arm", self.on_arm)
@@ -266,7 +266,7 @@ class StageDriver(LeanNode, LifecycleNode):
             # consumers still matching: the gate looks at each of these ticks, not only
             # when its own timer is served (a ticking node's executor serves one
             # callback each SLOW_PERIOD_S among the others ready: the subscribers were
-            # seen in 0.1 s steps, up to 0.3 s after they had matched)
+            # seen late, in steps of it)
             self.gate.poll()
             if not self.gate.open:
                 self.lean_deadline = time.monotonic() + 0.01

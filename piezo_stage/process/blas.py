@@ -2,9 +2,8 @@
 
 Our least-squares problems are tall and narrow (tens of thousands of samples by 10-40
 regressors, solved hundreds of times in a search): OpenBLAS's threads cost more than
-they bring there. With one thread here a one-axis gap diagnosis took 1.35 s instead of
-2.96 s and a fast identification 0.27 s instead of 0.36 s, and `refit`'s worker
-processes stopped fighting over the cores (docs/benchmarks.md). Set before numpy is
+they bring there: with one thread the gap diagnosis and the fast identification run
+faster, and `refit`'s worker processes stop fighting over the cores. Set before numpy is
 imported, so it holds for this process and the node processes a command starts.
 """
 

@@ -130,10 +130,9 @@ def exit_now(code) -> NoReturn:
     command or a node is done: its output flushed and its at-exit work done (atexit
     handlers, the temporary directories they remove, worker processes ended), then
     ``os._exit``, which leaves out the interpreter's finalization: tearing down every
-    module and numba's compiled kernels took 0.3 s of a 2-core host's CPU per process,
-    paid at every command's end and at every stop of a set, node after node (the demo's
-    stop took 1.4 s). A thread still running that is no daemon gets the ordinary exit,
-    which waits for it."""
+    module and numba's compiled kernels costs CPU per process, paid at every command's
+    end and at every stop of a set, node after node. A thread still running that is
+    no daemon gets the ordinary exit, which waits for it."""
     import atexit
     import threading
     code = 0 if code is None else code

@@ -137,7 +137,7 @@ class PreviewDynamicsInverse:
     """
 
     def __init__(self, inv: DynamicsInverse, tol: float = 1e-6, max_taps: int = 2000) -> None:
-        # here, not at the top: scipy.signal adds 0.7 s to every node's start-up
+        # here, not at the top: scipy.signal's import would lengthen every node's start-up
         from scipy.signal import lfilter, lfilter_zi, ss2tf
         self._lfilter = lfilter
         num, den = ss2tf(inv.Ad, inv.Bd, inv.Cs[None, :], np.array([[inv.Ds]]))
@@ -240,9 +240,8 @@ class EffectCompensator:
         fn = float(dyn.get("fn_hz", 0.0))
         if dyn.get("kind", "resonance") == "resonance" and fn > max_fn:
             # a resonance the user does not trust enough to invert (inverting one
-            # whose parameters are off amplifies their error: a diagnosis biased to
-            # 824 Hz / 0.62 ms for 800 Hz / 0.5 ms gave 10 Hz tracking 0.39 %,
-            # 0.13 % as a group delay, 0.06 % inverting the accurate one): its
+            # whose parameters are off amplifies their error, where its group delay
+            # alone errs far less): its
             # low-frequency part, the group delay 2 zeta / wn, joins the delay
             gd = 2.0 * float(dyn.get("zeta", 0.0)) / (2 * math.pi * fn)
             self.lead_ticks[a] = int(math.floor((d + gd) / T + 1e-9))

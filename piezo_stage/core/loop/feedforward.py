@@ -293,8 +293,8 @@ class InverseFeedforward:
         comp = (EffectCompensator(effects, 1e9 / self.dt_ns, tuple(model.axes),
                                   self.max_res_hz) if effects else None)
         inv = StageInverse(model, use_coupling=self.use_c, dt_s=self.dt_ns * 1e-9)
-        # the kernels now, not at a sample (at the first tracked one the look-ahead's
-        # was part of a 44 ms silence at the approach that faulted a real-time set)
+        # the kernels now, not at a sample (compiled at the first tracked one, the
+        # look-ahead's stalled the approach long enough to fault a real-time set)
         StageInverse(model, use_coupling=self.use_c, dt_s=self.dt_ns * 1e-9).warm_kernels()
         lo, hi = model.voltage_limits
         gain = max(abs(stroke_um(m, (lo, hi), plays=model.plays.get(a))) / (hi - lo)

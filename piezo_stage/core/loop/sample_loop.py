@@ -90,10 +90,9 @@ COMMAND_WINDOW_NS = 1_000_000_000
 CAPACITY_WINDOWS = 3  # windows measured before a refusal; the best judged
 # where the loop's own thread holds the margin and the host's other load is what falls
 # short, up to this many: a lab's node starting beside the set passes within a few
-# seconds (examples/publish_trajectory.py building and sending 60,001 points, 0.6 of a
-# CPU for about a second, as a 1 kHz set measured: refused at 1.52 x, the host 1.53 of
-# 2 CPUs busy, the loop's thread 3.3 x); a lasting load (another program) shows in
-# every window, and is refused after them
+# seconds (examples/publish_trajectory.py building and sending a long trajectory takes
+# part of a CPU for about a second: `bench outside`); a lasting load (another program)
+# shows in every window, and is refused after them
 CAPACITY_WINDOWS_HOST = 10
 
 

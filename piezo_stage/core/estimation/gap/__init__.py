@@ -128,9 +128,9 @@ def _axes_apart(fit: Record, holdout: Record, axes: Sequence[str], args: tuple,
                 progress: Callable[[str], None]) -> PerAxis[AxisDiagnosis]:
     """Each axis's diagnosis in a process of its own (forked: the records are not
     copied), progress relayed from them. Processes, not threads: the many small steps
-    of the parameter searches hold the GIL, and two axes in two threads took 19 s
-    where two processes take 12 s (the 35 s, 5 kHz record with four effects). One
-    axis, or no fork (not Linux): in this process / in threads."""
+    of the parameter searches hold the GIL, so two axes in two threads take longer than
+    in two processes (`bench gap`). One axis, or no fork (not Linux): in this process /
+    in threads."""
     import multiprocessing as mp
     import sys
     if len(axes) == 1 or not (AXES_IN_PROCESSES and sys.platform.startswith("linux")):
