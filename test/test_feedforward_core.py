@@ -284,8 +284,12 @@ def test_lockstep_holds_a_sample_until_its_trajectory_and_counts_every_input():
     assert core.stats["trajectories"] == 1 and core.answered_ns == 0
     core.refused("model", PiezoStageError("no axis y"))
     core.refused("setpoint", PiezoStageError("outside"))
-    assert core.stats["rejected_models"] == core.stats["rejected_setpoints"] == 1
+    core.refused("trajectory", PiezoStageError("ragged"))
+    assert core.stats["rejected_models"] == core.stats["rejected_setpoints"] == \
+        core.stats["rejected_trajectories"] == 1
     assert core.status(DT)[1].endswith("(last rejected: no axis y)")
+    with pytest.raises(KeyError):
+        core.refused("wish", PiezoStageError("no such input"))
     refusal = core.refuse_move("m1", "outside the stage range")
     assert refusal.state == "refused" and core.stats["rejected_moves"] == 1
     assert core.move_request("", {"x": 1.0}).move_id == "move #1"

@@ -97,6 +97,9 @@ PARAMETERS: Schema = (
 COUNTS = ("trajectories", "rejected_trajectories", "rejected_setpoints", "models",
           "rejected_models", "moves", "rejected_moves", "saturated", "bad_messages",
           "late_dropped", "stray_stamps", "rejoins")
+# an input refused -> its count
+REFUSED_COUNT = {"model": "rejected_models", "trajectory": "rejected_trajectories",
+                 "setpoint": "rejected_setpoints", "move": "rejected_moves"}
 RATES = tuple((k, k.replace("_", " "), 0) for k in (
     "rejected_models", "rejected_trajectories", "rejected_setpoints", "rejected_moves",
     "bad_messages", "late_dropped"))
@@ -327,7 +330,7 @@ class InverseFeedforward:
     def refused(self, kind: str, error: BaseException) -> None:
         """An input refused (a model, trajectory, setpoint or move): counted; a model's
         reason is kept for the diagnostics."""
-        self.stats[f"rejected_{kind}s"] += 1
+        self.stats[REFUSED_COUNT[kind]] += 1
         if kind == "model":
             self.last_rejection = str(error)
 
