@@ -71,3 +71,21 @@ def test_the_launcher_refuses_what_the_node_would(tmp_path, node, name, value, w
     r = cli("launch", cfg, "--duration", "5")
     one_line_exit_2(r)
     assert f"{cfg}: {node}: {why}" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("text, said", [
+    ("stage_driver:\n  thread_priority: 0\n",
+     "stage_driver: thread_priority outside 'ros__parameters:'"),
+    ("/**/feedforward: 3\n", "feedforward: expected 'ros__parameters:'"),
+])
+def test_a_parameter_outside_ros_parameters_is_refused_not_left_out(tmp_path, text, said):
+    """A node's section with its parameters straight under the node's name (a common
+    slip) would otherwise run the set without them, silently: refused in one line."""
+    from piezo_stage.core.errors import ConfigError
+    from piezo_stage.launcher.launcher import read_parameters
+    cfg = tmp_path / "params.yaml"
+    cfg.write_text(text)
+    with pytest.raises(ConfigError, match=said):
+        read_parameters(str(cfg))
+    cfg.write_text("/**/stage_driver:\n  ros__parameters:\n    thread_priority: 0\n")
+    assert read_parameters(str(cfg)) == {"stage_driver": {"thread_priority": 0}}

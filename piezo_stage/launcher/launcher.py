@@ -122,6 +122,12 @@ def read_parameters(config_path) -> Doc:
         node = str(key).rsplit("/", 1)[-1]  # '/**/stage_driver' or 'stage_driver'
         if node not in ORDER:
             raise ConfigError(f"{config_path}: unknown node {node!r}; known: {', '.join(ORDER)}")
+        if sec is not None and not isinstance(sec, dict):
+            raise ConfigError(f"{config_path}: {node}: expected 'ros__parameters:'")
+        stray = sorted(str(k) for k in (sec or {}) if k != "ros__parameters")
+        if stray:  # what ros2's own reader refuses too: never silently left out
+            raise ConfigError(f"{config_path}: {node}: {', '.join(stray)} outside "
+                              "'ros__parameters:' (a node's parameters go under it)")
         out[node] = (sec or {}).get("ros__parameters", {}) or {}
         if not isinstance(out[node], dict):
             raise ConfigError(f"{config_path}: {node}: ros__parameters must be a mapping")
