@@ -61,9 +61,11 @@ B = TypeVar("B", bound=Backend)
 
 @contextmanager
 def opened(backend: B, safe_V: float = 0.0, ramp_V_per_s: float = 0.0) -> Iterator[B]:
-    """A backend for a block, closed on the way out however the block ends (as mcap's
-    ``Writer`` finishes its file): ramped to ``safe_V`` at ``ramp_V_per_s``, released.
-    ``with opened(make_backend(...), safe_V) as b: ...``"""
+    """A backend for a block, closed on the way out however the block ends.
+
+    As mcap's ``Writer`` finishes its file: ramped to ``safe_V`` at ``ramp_V_per_s``,
+    released (``with opened(make_backend(...), safe_V) as b:``).
+    """
     try:
         yield backend
     finally:
