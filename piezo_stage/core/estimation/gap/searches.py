@@ -245,8 +245,8 @@ ONE_COLUMN_SEARCH = True
 
 
 def _chain(effects: Sequence[tuple[str, Params]], fs: float) -> Op:
-    """The operator of these transform effects in turn (never none: ``effects`` holds
-    at least the one searched)."""
+    """The operator of these transform effects one after another (never none:
+    ``effects`` holds at least the one searched)."""
     op = transform_ops(effects, fs)
     assert op is not None
     return op
