@@ -65,3 +65,74 @@ def test_a_backend_opened_for_a_block_is_closed_however_the_block_ends():
     with pytest.raises(RuntimeError), opened(Stage("", 1000.0, 0), 2.0) as b:
         raise RuntimeError("a lost link")
     assert closes == [(5.0, 100.0), (2.0, 0.0)]
+
+
+class ClosingSim(SimBackend):
+    """The simulated stage, counting its closes."""
+
+    closes: list = []
+
+    def close(self, safe_V=0.0, ramp_V_per_s=0.0):
+        ClosingSim.closes.append(safe_V)
+        super().close(safe_V, ramp_V_per_s)
+
+
+def _driver(announced, **params):
+    from piezo_stage.core.loop.driver import DriverCore
+    p = {q.name: q.default for q in PARAMETERS}
+    p.update({"mode": "lockstep", "backend": "sim", **params})
+    ClosingSim.closes = []
+    return DriverCore(p, ArmingParams(safe_V=5.0), lambda: ClosingSim("", 1000.0, 0),
+                      lambda *a: announced.append(a))
+
+
+def test_the_driver_core_keeps_its_state_across_configures():
+    """A configure opens a loop and announces it; a close announces disarmed, closes
+    the backend once and the next loop starts after the last sample; the arm service
+    answers only while active; a fault's reason is reported once by the error
+    transition."""
+    announced = []
+    d = _driver(announced)
+    d.configure(lambda loop: loop.on_start())
+    assert d.loop is not None and announced[-1][0] == d.loop.state
+    assert "configured" in announced[-1][1] and d.hardware_id() != "sim stage (closed)"
+    last_j = d.running.j
+    assert d.arm(True, "inactive") == (False, "inactive: the driver arms only when "
+                                       "active (lifecycle: configure, then activate)")
+    assert d.close("cleaned up") == ""
+    assert d.loop is None and d.next_j == last_j + 1 and ClosingSim.closes == [5.0]
+    assert announced[-1] == ("disarmed", "cleaned up: the backend is closed", True)
+    assert d.hardware_id() == "sim stage (closed)" and d.estop().startswith("unconfigured")
+    assert d.status("unconfigured", 0)[2]["lifecycle"] == "unconfigured"
+    with pytest.raises(RuntimeError, match="no sample loop"):
+        d.running  # noqa: B018 - the property raises
+    d.configure(lambda loop: None)
+    assert d.running.j == last_j  # counted on from the last loop (the sample before it)
+    assert d.escalate(lc.HARDWARE_FAULT, True, "active", "faulted: hardware: x") == \
+        lc.DEACTIVATE
+    assert d.error_reason("deactivating", None) == "faulted: hardware: x"
+    assert d.error_reason("configuring", ValueError("bad")) == "configuring: bad"
+
+
+def test_a_configure_that_fails_leaves_nothing_open():
+    from piezo_stage.core.errors import ConfigError
+    from piezo_stage.core.loop.driver import fixable
+    d = _driver([])
+
+    def start(loop):
+        raise ConfigError("the host cannot hold the rate")
+    with pytest.raises(ConfigError):
+        d.configure(start)
+    assert d.loop is None and d.backend is None and ClosingSim.closes == [5.0]
+    assert fixable(ConfigError("x")) and not fixable(RuntimeError("x"))
+
+
+def test_a_stop_ramps_in_real_time_and_ends_at_once_in_lockstep():
+    d = _driver([])
+    assert d.stop(realtime=True) is None  # nothing open: at once
+    d.configure(lambda loop: None)
+    assert d.stop(realtime=False) is None and d.running.shutdown_requested
+    d2 = _driver([], mode="realtime")
+    d2.configure(lambda loop: None)
+    ramp_s = d2.stop(realtime=True)
+    assert ramp_s is not None and ramp_s >= 0 and d2.shutdown_requested

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 from piezo_stage.core.errors import ConfigError, ModelError
 from piezo_stage.core.types import Doc, Params
+from piezo_stage.io.capacity_file import CAPACITY_FILE_ENV, read_refusal
 from piezo_stage.io.files import load_yaml
 from piezo_stage.nodes import NODES as ORDER  # the one list, in start order
 from piezo_stage.nodes.declared import (
@@ -46,7 +47,6 @@ COMPOSE = {"loop": ("controller", "feedforward", "stage_driver"),
 COMPOSE_DEFAULT = {"lockstep": "loop", "realtime": "command"}
 LAUNCHER_PID_ENV = "PIEZO_STAGE_LAUNCHER_PID"  # process/signals.py reads it
 RUN_ENDED_ENV = "PIEZO_STAGE_RUN_ENDED"        # and this
-CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # where a driver's refusal puts its figures
 START_GATE_ENV = "PIEZO_STAGE_START_GATE"  # a file: nodes wait for it before they join
 # rate auto: the runs a set may take in all, each at a lower rate than the last (the
 # standard rate a refusal names, core/loop/capacity.py: from 1 kHz, 500, 250, 200 Hz).
@@ -625,16 +625,6 @@ class Launch:
         except KeyboardInterrupt:  # wait() used without run(): Ctrl-C as usual
             return
 
-    def _refusal(self, cap_file) -> Doc | None:
-        """What the driver found when it refused to run for want of capacity (its
-        capacity file, core/loop/capacity.py's figures), else None."""
-        import json
-        try:
-            with open(cap_file) as fh:
-                return json.load(fh)
-        except (OSError, ValueError):
-            return None
-
     def stopped_cleanly(self, node) -> bool:
         """The node ended by itself (exit 0), or on this launcher's SIGINT (130)."""
         rc = self.procs[node].returncode
@@ -668,7 +658,7 @@ class Launch:
                 tried.append(self.rate_hz())
 
                 def again() -> bool:  # refused, and --rate auto runs it at a lower rate
-                    r = self._refusal(cap_file)
+                    r = read_refusal(cap_file)
                     return bool(self.auto_rate and attempt < AUTO_ATTEMPTS and r and
                                 r.get("holdable_rate_hz") and self.stopped_by is None and
                                 float(r["holdable_rate_hz"]) < self.rate_hz())
@@ -678,7 +668,7 @@ class Launch:
                     self.retrying = again()  # (its nodes then say nothing of a stop)
                 finally:
                     self.stop()
-                refused = self._refusal(cap_file)
+                refused = read_refusal(cap_file)
                 if not again():
                     break
                 assert refused is not None

@@ -187,6 +187,15 @@ class Gate:
                 pub.publish(m)
             self.queue.clear()
 
+    def holding(self) -> bool:
+        """Still closed, polled now: a node whose own clock ticks looks at each tick,
+        not only when the gate's timer is served (its executor serves one callback each
+        SLOW_PERIOD_S among the others ready: subscribers were seen late, in steps of
+        it)."""
+        if not self.open:
+            self.poll()
+        return not self.open
+
     def publish(self, pub: Publisher, msg: Any) -> None:
         if self.open:
             pub.publish(msg)

@@ -8,10 +8,8 @@ latched ``state`` topic and /diagnostics; ``arm`` (std_srvs/SetBool) arms and di
 ``estop`` (std_srvs/Trigger). In real time the executor calls ``on_lean_tick`` at each
 tick (the DAQ's read blocks until its clock).
 
-A managed (lifecycle) node with the standard services and ``transition_event``; what
-each transition does: docs/realtime.md#lifecycle-the-driver-as-a-managed-node. With
-``managed: false`` (the launcher's default) it configures and activates itself at start
-and keeps its own recovery (``auto_arm``).
+A managed (lifecycle) node (docs/realtime.md#lifecycle-the-driver-as-a-managed-node);
+with ``managed: false`` (the launcher's default) it configures and activates itself.
 """
 
 # first, before the heavy imports: stop signals work from here on (see process/signals.py)
@@ -19,8 +17,6 @@ import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
 
-import json
-import os
 import time
 from collections.abc import Callable
 from typing import Any
@@ -38,51 +34,25 @@ from std_srvs.srv import SetBool, Trigger
 # gate: its backend would import them as it configured, after the node had joined
 import piezo_stage.core.model.plant  # noqa: F401
 import piezo_stage.io.plant_file  # noqa: F401
+import piezo_stage_msgs_adapters as msgs
 from piezo_stage.core.errors import BackendFault, ConfigError, DataError
-from piezo_stage.core.loop.arming import ENABLED, ArmingParams
+from piezo_stage.core.loop import lifecycle as lc
+from piezo_stage.core.loop import sample_loop as sl
 from piezo_stage.core.loop.arming import PARAMETERS as ARMING
-from piezo_stage.core.loop.lifecycle import (
-    CLEANUP,
-    DEACTIVATE,
-    EXIT,
-    FAULTED_AT_SAFE,
-    HARDWARE_FAULT,
-    closed_status,
-    escalation,
-    settled,
-)
-from piezo_stage.core.loop.sample_loop import (
-    PARAMETERS,
-    RATES,
-    LoopOptions,
-    Next,
-    Outcome,
-    SampleLoop,
-    check_mode,
-)
-from piezo_stage.core.types import Doc
+from piezo_stage.core.loop.arming import ArmingParams
+from piezo_stage.core.loop.driver import DriverCore, fixable
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
-from piezo_stage.io.files import atomic_write
+from piezo_stage.io.capacity_file import write_refusal
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, MessageInfo, Status, steady_timer
 from piezo_stage.nodes._executor import LeanNode, end_run, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate, missing_links, set_realtime_priority
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.process.signals import STATE as STOP_STATE
 from piezo_stage.process.signals import watch as watch_stop
-from piezo_stage_msgs_adapters import (
-    arming_state_msg,
-    clock_msg,
-    joint_state_cdr,
-    phase_from_msg,
-    point_cdr,
-    voltage_from_msg,
-)
 
 STATE_ACK_S = 1.0  # lockstep: the longest wait for the state's readers (see _announce)
-CAPACITY_FILE_ENV = "PIEZO_STAGE_CAPACITY_FILE"  # the launcher's (launcher/launcher.py)
 
-SUCCESS, FAILURE, ERROR = (TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE,
-                           TransitionCallbackReturn.ERROR)
+SUCCESS, ERROR = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.ERROR
 
 
 class StageDriver(LeanNode, LifecycleNode):
@@ -93,24 +63,20 @@ class StageDriver(LeanNode, LifecycleNode):
         # node_options: a node of a composed loop gets its own arguments (loop_container)
         super().__init__("stage_driver", **node_options)
         STOP_STATE.watch_s = 12.0  # its stop ramps and closes the backend (see below)
-        p = self.p = declare_schema(self, PARAMETERS)
-        check_mode(p["backend"], p["mode"], self.get_parameter("use_sim_time").value)
+        p = self.p = declare_schema(self, sl.PARAMETERS)
+        sl.check_mode(p["backend"], p["mode"], self.get_parameter("use_sim_time").value)
         arm = declare_schema(self, ARMING)
-        self.arm_params = ArmingParams(**{q.field: arm[q.name] for q in ARMING})
-        self.bp = declare_schema(self, BACKEND_PARAMS)
+        arm_params = ArmingParams(**{q.field: arm[q.name] for q in ARMING})
+        bp = declare_schema(self, BACKEND_PARAMS)
+        # what the driver holds across its lifecycle: the backend and the sample loop
+        # over it (from configure to cleanup), its fault, its last announcement
+        self.d = DriverCore(p, arm_params, lambda: make_backend(
+            p["backend"], p["control_rate_hz"], bp, arm_params.safe_V), self._announce)
         self.managed = bool(p["managed"])
-        # open from configure to cleanup: the backend, and the sample loop over it
-        self.backend: Any = None
-        self.loop: SampleLoop | None = None
         self.rt_priority = 0
         self._exit_timer: Any = None  # lockstep, all steps done: the timer that ends it
         self.lock = p["mode"] == "lockstep"
-        self.failed: BaseException | None = None  # the hardware's fault
         self.transition_error: Exception | None = None
-        self.link = ""  # the missing links
-        self.next_j = 0  # lockstep: the first sample of the next configure
-        self.last_values: Doc = {}  # the last announcement's values (for unconfigured)
-        self.why_error = ""  # a fault that takes the error transition
         self.jpub = self.create_publisher(JointState, "joint_states", QOS_DATA)
         self.tpub = self.create_publisher(PointStamped, "sim/true_position", QOS_DATA)
         self.spub = self.create_publisher(DiagnosticArray, "state", QOS_EVENTS)
@@ -126,8 +92,8 @@ class StageDriver(LeanNode, LifecycleNode):
         self.create_service(SetBool, "arm", self.on_arm)
         self.create_service(Trigger, "estop", self.on_estop)
         steady_timer(self, 0.5, self.check_links)
-        self.diag = Diagnostics(self, self.status, "sample loop", self.hardware_id,
-                                rates=RATES)
+        self.diag = Diagnostics(self, self.status, "sample loop", self.d.hardware_id,
+                                rates=sl.RATES)
         self.lean_deadline: float | None = None  # real time: no tick until configured
         if not self.lock:
             self.lean_take_at_tick = True  # commands are due at a later tick: no wake each
@@ -136,10 +102,6 @@ class StageDriver(LeanNode, LifecycleNode):
             for step in (self.trigger_configure, self.trigger_activate):
                 if step() != SUCCESS:
                     raise self.transition_error or RuntimeError(f"{step.__name__} failed")
-
-    def hardware_id(self) -> str:
-        return self.backend.hardware_id if self.backend is not None else \
-            f"{self.p['backend']} stage (closed)"
 
     # -- lifecycle transitions ----------------------------------------------------------
     def _transition(self, name: str, body: Callable[[], object]) -> TransitionCallbackReturn:
@@ -153,8 +115,7 @@ class StageDriver(LeanNode, LifecycleNode):
         except Exception as e:  # noqa: BLE001 - said, then the state machine decides
             self.transition_error = e
             self.get_logger().error(f"{name} failed: {e}")
-            return FAILURE if isinstance(e, (ConfigError, DataError, BackendFault)) \
-                else ERROR
+            return TransitionCallbackReturn.FAILURE if fixable(e) else ERROR
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Open the backend and start the sample loop, disarmed at the safe voltage."""
@@ -162,15 +123,15 @@ class StageDriver(LeanNode, LifecycleNode):
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Arm once the loop is closed (managed, or ``auto_arm``), then the approach."""
-        return self._transition("activate", lambda: self._changed(
-            self.running.activate(self.managed or self.arm_params.auto_arm)))
+        return self._transition("activate", lambda: self.d.took(
+            self.d.running.activate(self.managed or self.d.arm_params.auto_arm)))
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Disarm: ramp to the safe voltage, still publishing. A fault's own deactivate
         (``why_error``) is an error: the error transition follows."""
-        if self.why_error:
+        if self.d.why_error:
             return ERROR
-        return self._transition("deactivate", lambda: self._changed(self.running.deactivate()))
+        return self._transition("deactivate", lambda: self.d.took(self.d.running.deactivate()))
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Close the backend (ramping to safe) and stop the sample loop."""
@@ -183,48 +144,29 @@ class StageDriver(LeanNode, LifecycleNode):
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
         """After a fault (at the safe voltage by then) or a failed transition: close the
         backend; unconfigured, from where configure can be tried again."""
-        reason = self.why_error or f"{state.label}: {self.transition_error}"
+        reason = self.d.error_reason(state.label, self.transition_error)
         self.get_logger().warning(f"error transition: {reason}; unconfigured, the "
                                   "backend closed: configure and activate to go on")
         self._close(f"error: {reason}")
-        self.why_error = ""
         return SUCCESS
 
     def _configure(self) -> None:
-        p, arm = self.p, self.arm_params
-        self.backend = make_backend(p["backend"], p["control_rate_hz"], self.bp, arm.safe_V)
-        self.failed, self.why_error = None, ""
-        try:
-            self._start(p, arm)
-        except Exception:
-            self.loop = None
-            self.close()  # nothing left open by a configure that failed
-            raise
+        self.d.configure(self._start)  # arming: activate's (or the arm service's)
 
-    def _start(self, p: Doc, arm: ArmingParams) -> None:
-        # arming at the start: activate's (or the arm service's)
-        self.loop = SampleLoop(self.backend, arm, LoopOptions.from_params(
-            p, self.next_j, arm_on_start=False), self.on_state_change)
+    def _start(self, loop: sl.SampleLoop) -> None:
         # lockstep: nothing is published before every consumer listens; real time: the
         # sample clock starts then (the first publishes to new readers are slow)
-        self.gate = Gate(self, [(self.jpub, p["min_subscribers"]),
-                                (self.tpub,
-                                 p["min_record_subscribers"] * (p["backend"] == "sim"))])
-        self.on_state_change(self.loop.state, "configured: started disarmed at the safe "
-                             "voltage", self.loop.stamp(self.loop.j + 1))
+        p = self.p
+        self.gate = Gate(self, [(self.jpub, p["min_subscribers"]), (
+            self.tpub, p["min_record_subscribers"] * (p["backend"] == "sim"))])
         if self.lock:
-            self.follow(self.loop.on_start())  # the first sample: at rest
+            self.follow(loop.on_start())  # the first sample: at rest
         else:
             self.lean_deadline = 0.0  # the first real-time tick: now
 
-    def _changed(self, change: tuple[str, str]) -> None:
-        """A state the loop took at its present sample (activate, deactivate)."""
-        loop = self.running
-        self.on_state_change(*change, loop.stamp(loop.j), log=False)
-
     def _shutdown(self) -> None:
         self.get_logger().info("shutdown: ramping to the safe voltage, then exiting")
-        if self.loop is None or self.lock:
+        if self.d.loop is None or self.lock:
             self._close("shut down")
             self._exit_timer = steady_timer(self, 0.2, rclpy.try_shutdown)
         else:
@@ -234,107 +176,90 @@ class StageDriver(LeanNode, LifecycleNode):
         """The backend ramps to the safe voltage and closes; no tick until configured
         again; ``state`` says so (disarmed, the last values, unconfigured)."""
         self.lean_deadline = None
-        if self.loop is not None:
-            self.next_j = self.loop.j + 1
-        try:
-            self.close()
-        except Exception as e:  # noqa: BLE001 - a link already lost cannot close
-            self.get_logger().error(f"{why}: the backend's close failed: {e}")
-        if self.loop is not None:
-            self.loop = None
-            self._announce("disarmed", f"{why}: the backend is closed", log=True)
+        error = self.d.close(why)
+        if error:
+            self.get_logger().error(f"{why}: the backend's close failed: {error}")
 
     def escalate(self, event: str, why: str) -> str:
-        """Take the step core/loop/lifecycle.py's table gives ``event`` here: a fault
-        deactivates (the error transition reporting ``why`` follows) or cleans up."""
-        step = escalation(event, self.managed, self.lifecycle_label())
-        if step in (DEACTIVATE, CLEANUP):
-            self.why_error = why
-            (self.trigger_deactivate if step == DEACTIVATE else self.trigger_cleanup)()
+        """Take the step lifecycle.py's table gives ``event`` here (a transition, or none)."""
+        step = self.d.escalate(event, self.managed, self.lifecycle_label(), why)
+        if step in (lc.DEACTIVATE, lc.CLEANUP):
+            (self.trigger_deactivate if step == lc.DEACTIVATE else self.trigger_cleanup)()
         return step
 
     # -- the sample loop ----------------------------------------------------------------
     def on_lean_tick(self) -> None:
         """Real time: the sample clock's tick."""
-        if self.loop is None:
+        loop = self.d.loop
+        if loop is None:
             self.lean_deadline = None
             return
-        if not self.gate.open:
-            if self.loop.shutdown_requested:  # stopped before any sample went out:
-                rclpy.try_shutdown()          # nothing to ramp down from
-                return
-            # consumers still matching: the gate looks at each of these ticks, not only
-            # when its own timer is served (a ticking node's executor serves one
-            # callback each SLOW_PERIOD_S among the others ready: the subscribers were
-            # seen late, in steps of it)
-            self.gate.poll()
-            if not self.gate.open:
-                self.lean_deadline = time.monotonic() + 0.01
-                return
-        out = self.loop.on_tick(time.monotonic(),
-                                lambda: self.get_clock().now().nanoseconds, self.link)
+        if not self.gate.open and loop.shutdown_requested:  # stopped before any sample
+            rclpy.try_shutdown()                              # went out: no ramp
+            return
+        if self.gate.holding():  # consumers still matching
+            self.lean_deadline = time.monotonic() + 0.01
+            return
+        out = loop.on_tick(time.monotonic(), lambda: self.get_clock().now().nanoseconds,
+                           self.d.link)
         self.follow(out)
-        if self.loop is not None:  # (a hardware fault may have closed it)
+        if self.d.loop is not None:  # (a hardware fault may have closed it)
             self.lean_deadline = out.deadline
 
     def on_command(self, msg: bytes, info: MessageInfo) -> None:
-        if self.loop is None:  # unconfigured: no sample to answer
+        loop = self.d.loop
+        if loop is None:  # unconfigured: no sample to answer
             return
         try:
-            ns, v = voltage_from_msg(msg)
+            ns, v = msgs.voltage_from_msg(msg)
         except DataError:  # NaN/inf or malformed: never counts as a fresh command
-            self.loop.reject_command()
+            loop.reject_command()
             return
         recv = 0 if self.lock else (info.get("received_timestamp")
                                     or self.get_clock().now().nanoseconds)
-        self.follow(self.loop.on_command(ns, v, recv, self.link))
+        self.follow(loop.on_command(ns, v, recv, self.d.link))
 
-    def follow(self, out: Outcome) -> None:
+    def follow(self, out: sl.Outcome) -> None:
         """What the sample loop decided (core/loop/sample_loop.py Outcome): publish the
         sample taken, then its next action."""
         if out.stop_began_s is not None:  # max_steps (real time): ramping to safe
             watch_stop(max(STOP_STATE.watch_s, out.stop_began_s))
-        if out.next is Next.DONE:
+        if out.next is sl.Next.DONE:
             return self.done()
-        if out.next is Next.FAULT:
+        if out.next is sl.Next.FAULT:
             return self.hardware_failed(out.error)
-        if out.next is Next.REFUSE:  # the host cannot hold the rate: said once, it ends
-            path, figures = os.environ.get(CAPACITY_FILE_ENV), self.running.refusal_figures()
-            if path and figures is not None:  # for the launcher's ``rate auto``
-                with atomic_write(path) as fh:
-                    json.dump(figures, fh)
+        if out.next is sl.Next.REFUSE:  # the host cannot hold the rate: said once, it ends
+            write_refusal(self.d.running.refusal_figures())  # for ``launch --rate auto``
             raise ConfigError(out.reason)
         s = out.sample
         if s is not None:
-            self.gate.publish(self.jpub, joint_state_cdr(s.ns, s.w, s.applied))
+            self.gate.publish(self.jpub, msgs.joint_state_cdr(s.ns, s.w, s.applied))
             if s.true is not None:
-                self.gate.publish(self.tpub, point_cdr(s.ns, s.true))
+                self.gate.publish(self.tpub, msgs.point_cdr(s.ns, s.true))
             if self.clock_pub is not None and out.clock_due:
-                self.gate.publish(self.clock_pub, clock_msg(s.ns))
-        if out.next is Next.SHUT_DOWN:
+                self.gate.publish(self.clock_pub, msgs.clock_msg(s.ns))
+        if out.next is sl.Next.SHUT_DOWN:
             end_run(self)  # at the safe voltage (or out of time): exit
-        elif out.next is Next.FAULTED_AT_SAFE:
-            self.escalate(FAULTED_AT_SAFE, out.reason)
+        elif out.next is sl.Next.FAULTED_AT_SAFE:
+            self.escalate(lc.FAULTED_AT_SAFE, out.reason)
         return None
 
     def hardware_failed(self, error: BaseException | None) -> None:
-        """A lost link or a controller error: faulted, said on state and diagnostics,
-        then the node exits 1 with the reason (the backend's close ramps to safe where
-        the link still allows it). No sample is taken after it. Managed: the table's
-        transition instead, and the node waits unconfigured for a manager."""
-        if self.failed is None:
-            self.failed = error
+        """A lost link or a controller error: faulted, said on state and diagnostics, no
+        sample after it; then the table's step (unmanaged: exit 1 with the reason)."""
+        # the backend's close ramps to safe where the link still allows it
+        if self.d.hardware_fault(error):
             self.get_logger().error(f"faulted: hardware: {error}")
             self.final_report()
             self.spub.wait_for_all_acked(Duration(seconds=1))
-        if self.escalate(HARDWARE_FAULT, f"faulted: hardware: {error}") == EXIT:
+        if self.escalate(lc.HARDWARE_FAULT, f"faulted: hardware: {error}") == lc.EXIT:
             raise error if error is not None else BackendFault("hardware: unknown")
 
     def done(self) -> None:
         if self.lock:
             if self.p["exit_after_max_steps"] and self._exit_timer is None:
                 self._exit_timer = steady_timer(self, 0.2, self.finish)
-        elif not self.running.shutdown_requested:
+        elif not self.d.running.shutdown_requested:
             self.request_shutdown()
 
     def finish(self) -> None:
@@ -342,7 +267,7 @@ class StageDriver(LeanNode, LifecycleNode):
         t0 = time.monotonic()
         if self.gate.open and all(pub.wait_for_all_acked(Duration(seconds=5))
                                   for pub in (self.jpub, self.tpub)):
-            self.get_logger().info(done_line(self.running, time.monotonic() - t0))
+            self.get_logger().info(done_line(self.d.running, time.monotonic() - t0))
             end_run(self)
 
     def final_report(self) -> None:
@@ -350,47 +275,31 @@ class StageDriver(LeanNode, LifecycleNode):
         self.diag.final()
 
     @property
-    def running(self) -> SampleLoop:
-        """The sample loop, where one runs (from configure to cleanup: every caller)."""
-        if self.loop is None:
-            raise RuntimeError("stage driver: no sample loop outside configure..cleanup")
-        return self.loop
-
-    @property
     def shutdown_requested(self) -> bool:
         """A stop is under way (the executor's StopsInOrder hook)."""
-        return self.loop is not None and self.loop.shutdown_requested
+        return self.d.shutdown_requested
 
     def request_shutdown(self) -> None:
         """SIGINT/SIGTERM or max_steps: ramp to the safe voltage, still publishing, then
-        exit. Lockstep (a simulation waiting for commands) and an unconfigured driver
-        (nothing open) exit at once."""
-        if self.loop is not None and not self.lock:
-            # the ramp, then the backend's close (which may ramp again) and the teardown
-            watch_stop(max(STOP_STATE.watch_s, self.loop.begin_shutdown()))
-            return
-        if self.loop is not None:
-            self.loop.end_now()
-        end_run(self)
+        exit; lockstep and an unconfigured driver (nothing open) exit at once."""
+        ramp_s = self.d.stop(realtime=not self.lock)
+        if ramp_s is None:
+            end_run(self)
+        else:  # the ramp, then the backend's close (which may ramp again), the teardown
+            watch_stop(max(STOP_STATE.watch_s, ramp_s))
 
     # -- arming ---------------------------------------------------------------------------
-    def on_state_change(self, state: str, reason: str, since_ns: int,
-                        log: bool = True) -> None:
-        self.state_since = since_ns
-        self.last_values = {**self.running.announced(), "mode": self.p["mode"]}
-        self._announce(state, reason, log)
 
     def _announce(self, state: str, reason: str, log: bool = True) -> None:
         """The state topic: the arming state, the driver's values and its lifecycle
-        state. Announced a few samples ahead of when it applies, and before the next
-        sample is published: the loop nodes take `state` before their data in every
-        pass, so in lockstep each has it before the sample it must act on (reruns
-        identical)."""
-        # within a transition: the state it leads to
-        values = {**self.last_values, "lifecycle": settled(self.lifecycle_label())}
+        state, announced a few samples ahead of when it applies."""
+        # before the next sample is published: the loop nodes take `state` before their
+        # data in every pass, so in lockstep each has it before the sample it must act
+        # on (reruns identical)
         name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}: arming"
-        self.spub.publish(arming_state_msg(self.state_since, name, state, reason, values,
-                                           self.hardware_id()))
+        self.spub.publish(msgs.arming_state_msg(
+            self.d.state_since, name, state, reason,
+            self.d.announcement(self.lifecycle_label()), self.d.hardware_id()))
         # lockstep, a change announced ahead of the sample it applies at (the enable):
         # no sample goes out before every reader holds it. Sent first is not received
         # first: a state lost on the way (a full shared-memory queue on a busy host) is
@@ -398,8 +307,7 @@ class StageDriver(LeanNode, LifecycleNode):
         # meanwhile started the approach a tick late, and reruns were no longer
         # identical. A change that applies at once (a disarm, a fault) cannot
         # be known ahead by anyone, and a lockstep run has none it did not ask for.
-        ahead = self.loop is not None and self.state_since > self.loop.stamp(self.loop.j)
-        if self.lock and ahead and not self.spub.wait_for_all_acked(
+        if self.lock and self.d.ahead() and not self.spub.wait_for_all_acked(
                 Duration(seconds=STATE_ACK_S)):
             self.get_logger().warning(f"{state}: a reader of state did not acknowledge it "
                                       f"within {STATE_ACK_S:g} s; going on",
@@ -412,34 +320,28 @@ class StageDriver(LeanNode, LifecycleNode):
     def check_links(self) -> None:
         """Graph queries cost the loop thread ~1 ms: only while not armed, where a
         refusal or the arming reason needs them."""
-        if self.loop is not None and self.loop.state not in ENABLED:
-            self.link = missing_links(self)
+        if self.d.needs_links():
+            self.d.link = missing_links(self)
 
     def on_phase(self, msg: KeyValue) -> None:
         """The feedforward's phase and what it follows: the arming state follows it,
         and /stage/state relays it."""
-        if self.loop is not None and self.loop.feedforward_phase(*phase_from_msg(msg)):
-            self.on_state_change(self.loop.state, self.loop.reason, self.state_since,
-                                 log=False)  # the same state, from the same sample
+        if self.d.loop is not None and self.d.loop.feedforward_phase(
+                *msgs.phase_from_msg(msg)):
+            self.d.restate()
 
     def on_arm(self, request: SetBool.Request, response: SetBool.Response
                ) -> SetBool.Response:
         """Arm or disarm within active (the lifecycle's activate and deactivate do the
         same and move its state; this service is the finer switch a set without a
         manager has always had)."""
-        if self.lifecycle_label() != "active":
-            response.success = False
-            response.message = (f"{self.lifecycle_label()}: the driver arms only when "
-                                "active (lifecycle: configure, then activate)")
-            return response
         self.check_links()
-        response.success, response.message = self.running.arm(request.data, self.link)
+        response.success, response.message = self.d.arm(request.data, self.lifecycle_label())
         return response
 
     def on_estop(self, request: Trigger.Request, response: Trigger.Response
                  ) -> Trigger.Response:
-        response.success, response.message = True, (
-            "unconfigured: nothing is driven" if self.loop is None else self.loop.estop())
+        response.success, response.message = True, self.d.estop()
         return response
 
     def lifecycle_label(self) -> str:
@@ -448,25 +350,16 @@ class StageDriver(LeanNode, LifecycleNode):
         return self._state_machine.current_state[1]
 
     def status(self) -> Status:
-        label = self.lifecycle_label()
-        level, message, values = closed_status(label) if self.loop is None else \
-            self.loop.status()
-        values.update(backend=self.p["backend"], mode=self.p["mode"], lifecycle=label,
-                      thread_priority=self.rt_priority)
-        return level, message, values
+        return self.d.status(self.lifecycle_label(), self.rt_priority)
 
     def stop_summary(self) -> str:
         """What a stop left the stage at (run_node prints it)."""
-        if self.loop is None:
-            return f"{self.lifecycle_label()}, the backend closed"
-        return f"{self.loop.summary()}; the backend then ramps to safe and closes"
+        return self.d.summary(self.lifecycle_label())
 
     def close(self) -> None:
         """The backend ramps to the safe voltage and closes before the node goes
         (run_node calls this, then destroys the node)."""
-        if self.backend is not None:
-            backend, self.backend = self.backend, None
-            backend.close(self.arm_params.safe_V, self.arm_params.ramp_V_per_s)
+        self.d.close_backend()
 
 
 def main(args: list[str] | None = None) -> int:
