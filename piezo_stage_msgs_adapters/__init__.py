@@ -57,6 +57,7 @@ if TYPE_CHECKING:  # at run time loaded on first use (__getattr__): no ROS to im
         trajectory_header,
         trajectory_max_bytes,
         trajectory_msg,
+        trajectory_refusal_msg,
         trajectory_stamp_ns,
         trajectory_take_bytes,
         voltage_cdr,
@@ -74,7 +75,7 @@ __all__ = [
     "point_cdr", "point_msg", "reference_cdr", "reference_from_msg", "reference_msg",
     "refusal_from_msg", "refusal_msg", "setpoint_from_msg", "time_to_ns",
     "trajectory_from_cdr", "trajectory_from_msg", "trajectory_header",
-    "trajectory_max_bytes", "trajectory_msg", "trajectory_stamp_ns",
+    "trajectory_max_bytes", "trajectory_msg", "trajectory_refusal_msg", "trajectory_stamp_ns",
     "trajectory_take_bytes", "voltage_cdr", "voltage_from_msg", "voltage_msg",
 ]
 # what __getattr__ loads from convert (the TYPE_CHECKING list above)

@@ -22,6 +22,7 @@ from piezo_stage_msgs_adapters.wire import (
     UM,
     Announcement,
     Reference,
+    TrajectoryRefused,
     announcement_of,
     joint_state_axes,
     reference_of,
@@ -37,7 +38,7 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "check_trajectory_size", "trajectory_max_bytes", "trajectory_take_bytes",
            "trajectory_stamp_ns", "phase_msg", "phase_from_msg", "move_msg",
            "move_from_msg", "on_target_msg", "on_target_from_msg", "trajectory_header",
-           "refusal_msg", "refusal_from_msg"]
+           "refusal_msg", "refusal_from_msg", "trajectory_refusal_msg"]
 
 FRAME = "stage"  # header.frame_id of everything the nodes publish
 
@@ -370,6 +371,14 @@ def refusal_msg(ns: int, frame_id: str, stamp_ns: int, reason: str) -> Diagnosti
     header.stamp) and ``reason``."""
     return diagnostic_array(ns, "trajectory", 2, reason, {
         "frame_id": frame_id, "stamp_ns": int(stamp_ns), "reason": reason}, frame_id)
+
+
+def trajectory_refusal_msg(ns: int, e: BaseException) -> DiagnosticArray:
+    """``refusal_msg`` for the error a trajectory was refused with: named as its sender
+    names it where the error knows (``TrajectoryRefused``), else by nothing."""
+    frame_id, stamp = (e.frame_id, e.stamp_ns) if isinstance(e, TrajectoryRefused) \
+        else ("", 0)
+    return refusal_msg(ns, frame_id, stamp, str(e))
 
 
 def refusal_from_msg(msg: DiagnosticArray) -> tuple[str, int, str]:

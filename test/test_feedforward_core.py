@@ -276,12 +276,18 @@ def test_lockstep_holds_a_sample_until_its_trajectory_and_counts_every_input():
     assert core.take_sample(0, w, v, DT, on, realtime=False) is None
     assert core.held is not None and core.resume(on) is None  # still no trajectory
     assert core.take_sample(0, w, v, DT, on, realtime=False) is None  # a duplicate
+    said = core.take_trajectory(np.linspace(0, 1, 11), {"x": np.full(11, 5.0),
+                                                        "y": np.full(11, 6.0)}, 0, None, 0)
+    assert said == "trajectory of 11 points accepted"
+    assert core.take_trajectory([0.0, 1.0], {"x": np.full(2, 5.0), "y": np.full(2, 6.0)},
+                                3_000_000_000, 3_000_000_000, 1_000_000_000) == \
+        "trajectory of 2 points accepted, stamped 3000000000: starts in 2.000 s"
     core.take_trajectory(np.linspace(0, 1, 11), {"x": np.full(11, 5.0),
-                                                 "y": np.full(11, 6.0)}, 0, None)
+                                                 "y": np.full(11, 6.0)}, 0, None, 0)
     r = core.resume(on)
     assert r is not None and [a.target for a in r.answers] == [DT]
     assert r.measured == w and r.applied == v and core.held is None
-    assert core.stats["trajectories"] == 1 and core.answered_ns == 0
+    assert core.stats["trajectories"] == 3 and core.answered_ns == 0
     core.refused("model", PiezoStageError("no axis y"))
     core.refused("setpoint", PiezoStageError("outside"))
     core.refused("trajectory", PiezoStageError("ragged"))

@@ -34,6 +34,9 @@ QOS_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 QOS_DIAG = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+# Inputs from other nodes (trajectories, setpoints, moves): reliable and volatile, so
+# every publisher matches and none warns.
+QOS_INPUTS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # the graph's name of an endpoint whose node it has not yet heard of: an endpoint is
 # discovered before its participant's node list names its node
 UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"

@@ -19,6 +19,7 @@ import queue
 import sys
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from piezo_stage.core.types import Doc
@@ -95,8 +96,8 @@ class Intake:
     def start(self, heap_bytes: int = 0) -> None:
         """Start the worker (once). ``heap_bytes``: touched first in the worker's own
         heap, so the largest item's allocations there (decoding, and the middleware's
-        copy when it republishes, made with the GIL held) cost no page faults: the
-        first 200,000-point trajectory held the loop 11 ticks without it."""
+        copy when it republishes, made with the GIL held) cost no page faults, which
+        would hold the loop's thread for ticks."""
         if self.thread is None:
             sys.setswitchinterval(SWITCH_INTERVAL_S)
             self.thread = threading.Thread(target=self._run, args=(int(heap_bytes),),
@@ -123,3 +124,43 @@ class Intake:
             except self.errors as e:
                 result = e
             self.done.put((kind, result))
+
+
+@dataclass(frozen=True)
+class Input:
+    """A kind of input: ``decode`` it and check it (any thread), then ``take`` what
+    that returned, or ``refuse`` the error it raised (the loop's thread)."""
+
+    decode: Callable[[Any], Any]
+    take: Callable[[Any], None]
+    refuse: Callable[[BaseException], None]
+
+
+class Inputs:
+    """A node's inputs by kind: each decoded, then taken or refused; inline (lockstep:
+    at once, in order with the samples) or decoded on an ``Intake``'s thread (real
+    time: the loop's thread only takes what it finished, ``apply_ready``)."""
+
+    def __init__(self, kinds: dict[str, Input], errors: tuple) -> None:
+        self.kinds, self.errors = kinds, errors
+        self.intake = Intake({k: v.decode for k, v in kinds.items()}, errors)
+
+    def take(self, kind: str, item: Any, inline: bool) -> None:
+        """An item of ``kind``: decoded and taken now (``inline``), else queued."""
+        if not inline:
+            self.intake.submit(kind, item)
+            return
+        k = self.kinds[kind]
+        try:
+            k.take(k.decode(item))
+        except self.errors as e:
+            k.refuse(e)
+
+    def apply_ready(self, realtime: bool, heap_bytes: int) -> None:
+        """Take or refuse what the intake finished; in real time its worker starts
+        first (once), with ``heap_bytes`` of its heap touched (``Intake.start``)."""
+        if realtime and self.intake.thread is None:
+            self.intake.start(heap_bytes)
+        for kind, done in self.intake.ready():
+            k = self.kinds[kind]
+            (k.refuse if isinstance(done, self.errors) else k.take)(done)

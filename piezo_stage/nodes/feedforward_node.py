@@ -1,13 +1,10 @@
 
 """feedforward: the inverse Duhem model turns desired positions into voltages.
 
-Clocked by joint_states: sample k (stamp t_k) is answered by the internal ``reference``
-(desired position [m] and feedforward [V] for x, y, with the measurement of t_k and the
-voltage applied for it) stamped t_k + the driver's announced look-ahead, so a command
-reaches the driver before its tick. What each sample takes (stamp guard, planner,
-learning, inverse, the lockstep wait) is core/loop/feedforward.py's; this node decodes,
-calls it and publishes. A new model on ``model`` replaces the inverse without a restart;
-without any model the feedforward is a nominal gain.
+Clocked by joint_states: sample k (stamp t_k) is answered by ``reference`` (desired
+position, feedforward voltage, the measurement and the voltage applied) stamped t_k plus
+the driver's look-ahead. The work is core/loop/feedforward.py's; this node decodes, calls
+it and publishes. A model on ``model`` replaces the inverse without a restart.
 """
 
 # first, before the heavy imports: stop signals work from here on (see process/signals.py)
@@ -15,49 +12,31 @@ import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
+import piezo_stage_msgs_adapters as msgs
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.loop import feedforward as core_ff
 from piezo_stage.core.loop.planner import HOLD
 from piezo_stage.core.loop.stamps import publication_key, request_key
 from piezo_stage.core.model.duhem import StageModel
 from piezo_stage.core.types import EffectsBlock, PerAxis
-from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED, MessageInfo
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_INPUTS, QOS_LATCHED, MessageInfo
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
-from piezo_stage.nodes._intake import Intake, warm_up
+from piezo_stage.nodes._intake import Input, Inputs, warm_up
 from piezo_stage.nodes._latched import LatchedFetch
 from piezo_stage.nodes._loop import Diagnostics, DriverState, Gate
 from piezo_stage.nodes._params import declare_schema
-from piezo_stage_msgs_adapters import (
-    TrajectoryRefused,
-    check_trajectory_size,
-    joint_state_to_um,
-    model_from_msg,
-    move_from_msg,
-    on_target_msg,
-    phase_msg,
-    reference_cdr,
-    refusal_msg,
-    setpoint_from_msg,
-    trajectory_from_cdr,
-    trajectory_header,
-    trajectory_stamp_ns,
-    trajectory_take_bytes,
-)
+from piezo_stage_msgs_adapters import TrajectoryRefused
 
-# an input's decode (any thread), take and refuse (the loop's thread)
-Input = tuple[Callable[[Any], Any], Callable[[Any], None], Callable[[BaseException], None]]
 # a trajectory taken: (t [s], w {axis: um}, stamp, start, now [ns])
 Decoded = tuple[np.ndarray, PerAxis[np.ndarray], int, int | None, int]
 
@@ -78,24 +57,23 @@ class Feedforward(LeanNode, Node):
         # effect compensation and learning feedforward (core/loop/learning.py)
         p.update(declare_schema(self, live, {q.name: lambda v, name=q.name: self.core.set_live(
             name, v) for q in live}))
-        for q in live:
-            self.core.set_live(q.name, p[q.name])
+        self.core.set_live_all({q.name: p[q.name] for q in live})
         # an input: decoded and checked, then taken, or refused (``take``); in real time
         # taken apart on the intake's thread
-        self.inputs: dict[str, Input] = {
-            "trajectory": (self.decode_trajectory, self.take_trajectory, self.reject_trajectory),
-            "model": (self.prepare_model, self.use_model, self.reject_model)}
-        self.intake = Intake({k: v[0] for k, v in self.inputs.items()}, (PiezoStageError,))
-        warm_up(lambda data: trajectory_from_cdr(data, self.p["range_um"], self.max_points),
-                (PiezoStageError,))
+        self.inputs = Inputs({
+            "trajectory": Input(self.decode_trajectory, self.take_trajectory,
+                                self.reject_trajectory),
+            "model": Input(self.prepare_model, self.use_model, self.reject_model)},
+            (PiezoStageError,))
+        warm_up(lambda data: msgs.trajectory_from_cdr(data, self.p["range_um"],
+                                                      self.max_points), (PiezoStageError,))
         # the driver's announcements: taken before the data in each lean-loop pass
         # in real time: heap for taking the largest trajectory it admits (no page fault)
         self.driver = DriverState(self, self.core.dt_ns, p["thread_priority"],
-                                  heap_bytes=trajectory_take_bytes(self.max_points))
+                                  heap_bytes=msgs.trajectory_take_bytes(self.max_points))
         if p["model_file"]:
             from piezo_stage.io.model_file import load_model
-            model, effects = load_model(p["model_file"])
-            self.use_model(self.prepare_model((model, effects, p["model_file"])))
+            self.use_model(self.prepare_model((*load_model(p["model_file"]), p["model_file"])))
         self._make_publishers(p["min_subscribers"])
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
@@ -111,25 +89,22 @@ class Feedforward(LeanNode, Node):
 
     def _make_publishers(self, min_subscribers: int) -> None:
         """The node's publishers (the reference gated on ``min_subscribers`` readers)."""
-        self.pub = self.create_publisher(JointState, "reference", QOS_DATA)
-        self.phase_pub = self.create_publisher(KeyValue, "feedforward/phase", QOS_EVENTS)
-        self.phase_pub.publish(phase_msg(HOLD))
+        publisher = self.create_publisher
+        self.pub = publisher(JointState, "reference", QOS_DATA)
+        self.phase_pub = publisher(KeyValue, "feedforward/phase", QOS_EVENTS)
+        self.phase_pub.publish(msgs.phase_msg(HOLD))
         # what the stage runs, byte for byte as it came, latched: the recorder takes it
         # from here whenever its own match with the sender came late or not at all
-        self.accepted_pub = self.create_publisher(JointTrajectory, "trajectory/accepted",
-                                                  QOS_LATCHED)
+        self.accepted_pub = publisher(JointTrajectory, "trajectory/accepted", QOS_LATCHED)
         # a move's state, judged on the sensor (core/loop/ontarget.py), latched
-        self.on_target_pub = self.create_publisher(DiagnosticArray, "on_target",
-                                                   QOS_LATCHED)
+        self.on_target_pub = publisher(DiagnosticArray, "on_target", QOS_LATCHED)
         # a trajectory refused, said to its sender (its frame_id and stamp, the reason)
-        self.refused_pub = self.create_publisher(DiagnosticArray, "trajectory/refused",
-                                                 QOS_EVENTS)
+        self.refused_pub = publisher(DiagnosticArray, "trajectory/refused", QOS_EVENTS)
         self.gate = Gate(self, [(self.pub, min_subscribers)])
 
     def take_inputs(self) -> None:
         """Subscribe to the trajectories, setpoints and moves of other nodes."""
         self.inputs_waiting = False
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         # volatile: every publisher matches, none warns; a latched publisher's trajectory
         # sent before we matched (a restarted feedforward) comes by a brief
         # transient-local fetch (_latched.py); one publication delivered twice is taken
@@ -138,11 +113,11 @@ class Feedforward(LeanNode, Node):
         # (a callback of two arguments gets the message info, the publication's
         # identity: rclpy's annotation names the one-argument form only)
         self.create_subscription(JointTrajectory, "trajectory",
-                                 self.on_trajectory, reliable, raw=True)  # type: ignore[arg-type]
+                                 self.on_trajectory, QOS_INPUTS, raw=True)  # type: ignore[arg-type]
         self.latched = LatchedFetch(self, JointTrajectory, "trajectory", self.on_trajectory)
-        self.create_subscription(PointStamped, "setpoint", self.on_setpoint, reliable)
+        self.create_subscription(PointStamped, "setpoint", self.on_setpoint, QOS_INPUTS)
         # a move is taken at once (with the samples), not at the base executor's turn
-        hot_subscription(self, PointStamped, "move", self.on_move, reliable)
+        hot_subscription(self, PointStamped, "move", self.on_move, QOS_INPUTS)
 
     def final_report(self) -> None:
         self.diag.final()  # (LeanNode) the final counts, before the recorder stops
@@ -154,7 +129,7 @@ class Feedforward(LeanNode, Node):
         against the last model prepared. Any thread."""
         if isinstance(item, str):
             name = f"model message #{self.core.stats['models'] + 1}"
-            model, effects = model_from_msg(String(data=item))
+            model, effects = msgs.model_from_msg(String(data=item))
         else:
             model, effects, name = item
         return self.core.prepare_model(
@@ -162,8 +137,7 @@ class Feedforward(LeanNode, Node):
             self.p["range_um"][1] - self.p["range_um"][0], base=self.core.model_base), name
 
     def use_model(self, prepared_name: tuple[core_ff.PreparedModel, str]) -> None:
-        self.core.take_model(*prepared_name, armed=self.core.inv is not None and
-                             self.driver.enabled(self.core.answered_ns))
+        self.core.take_model(*prepared_name, enabled=self.driver.enabled)
         self.get_logger().info(f"using model {prepared_name[1]}")
         self.resume()
 
@@ -181,30 +155,20 @@ class Feedforward(LeanNode, Node):
         self.take("trajectory", (bytes(msg), publication_key(info)))
 
     def take(self, kind: str, item: Any) -> None:
-        """An input decoded and checked, then taken or refused: inline in lockstep, on
-        the intake's thread in real time (``_intake.py``; ``on_state`` takes it)."""
-        if self.driver.realtime:
-            self.intake.submit(kind, item)
-            return
-        decode, take, refuse = self.inputs[kind]
-        try:
-            take(decode(item))
-        except PiezoStageError as e:
-            refuse(e)
+        """An input: inline in lockstep, decoded on the intake's thread in real time."""
+        self.inputs.take(kind, item, inline=not self.driver.realtime)
 
     def decode_trajectory(self, item: tuple[bytes, tuple | None]) -> Decoded | None:
-        """(bytes, publication) -> (t, w, stamp, start, now) of a trajectory that is
-        accepted (every check passed, its stamp's too), republished as accepted; None
-        for a publication taken already, delivered again (volatile and latched), and for
-        a request taken already, sent again (``request_key``: a resend that crossed the
-        answer). Any thread (one at a time)."""
+        """(bytes, publication) -> (t, w, stamp, start, now) of a trajectory accepted
+        and republished as accepted, else None (taken already). Any thread."""
+        # taken already: a publication delivered again (volatile and latched), or a
+        # request sent again (``request_key``: a resend that crossed the answer)
         msg, key = item
-        if not self.core.publications.admit(key, request_key(trajectory_header(msg)[0])):
+        if not self.core.publications.admit(key, request_key(msgs.trajectory_header(msg)[0])):
             return None
-        try:
-            check_trajectory_size(msg, self.max_points)  # before anything else
-            t, w = trajectory_from_cdr(msg, self.p["range_um"], self.max_points)
-            stamp, now = trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
+        try:  # (its size checked before anything is decoded)
+            t, w = msgs.trajectory_from_cdr(msg, self.p["range_um"], self.max_points)
+            stamp, now = msgs.trajectory_stamp_ns(msg), self.get_clock().now().nanoseconds
             start = core_ff.trajectory_start(stamp, now)  # (the clock: wall or simulated)
         except PiezoStageError as e:  # what its sender names it by, with the reason
             raise TrajectoryRefused(str(e), msg) from None
@@ -213,31 +177,25 @@ class Feedforward(LeanNode, Node):
 
     def take_trajectory(self, decoded: Decoded | None) -> None:
         if decoded is not None:
-            t, w, stamp, start, now = decoded
-            self.core.take_trajectory(t, w, stamp, start, self.driver.slew_V_per_s)
-            self.get_logger().info(f"trajectory of {len(t)} points accepted" + (
-                f", stamped {stamp}: starts in {(stamp - now) * 1e-9:.3f} s"
-                if stamp > now else ""))
+            self.get_logger().info(self.core.take_trajectory(*decoded, self.driver.slew_V_per_s))
             self.publish_phase()
         self.resume()
 
     def reject_trajectory(self, e: BaseException) -> None:
         self.core.refused("trajectory", e)
         self.get_logger().warning(f"trajectory rejected: {e}")
-        frame_id, stamp = (e.frame_id, e.stamp_ns) if isinstance(e, TrajectoryRefused) \
-            else ("", 0)
-        self.refused_pub.publish(refusal_msg(self.get_clock().now().nanoseconds,
-                                             frame_id, stamp, str(e)))
+        self.refused_pub.publish(msgs.trajectory_refusal_msg(
+            self.get_clock().now().nanoseconds, e))
         self.resume()
 
     def publish_phase(self) -> None:
-        """The planner's phase and what it follows, as data (core: ``phase``); the driver
-        relays it on /stage/state, so an outside node can wait for the end."""
-        self.phase_pub.publish(phase_msg(*self.core.phase()))
+        """The planner's phase and what it follows (the driver relays it on state)."""
+        self.phase_pub.publish(msgs.phase_msg(*self.core.phase()))
 
     def on_setpoint(self, msg: PointStamped) -> None:
         try:
-            self.core.take_setpoint(setpoint_from_msg(msg, self.p["range_um"]), time.time_ns())
+            self.core.take_setpoint(msgs.setpoint_from_msg(msg, self.p["range_um"]),
+                                    time.time_ns())
         except PiezoStageError as e:
             self.core.refused("setpoint", e)
             self.get_logger().warning(f"setpoint rejected: {e}")
@@ -245,14 +203,12 @@ class Feedforward(LeanNode, Node):
     def on_move(self, msg: PointStamped) -> None:
         """A move request: the move's profile to its target, judged on target."""
         try:
-            move_id, target = move_from_msg(msg, self.p["range_um"])
+            state = self.core.move_request(*msgs.move_from_msg(msg, self.p["range_um"]),
+                                           self.driver.slew_V_per_s)
         except PiezoStageError as e:  # said on on_target too: the asker waits no more
             self.get_logger().warning(f"move rejected: {e}")
-            self.on_target_pub.publish(on_target_msg(self.core.refuse_move(
-                msg.header.frame_id, str(e))))
-            return
-        self.on_target_pub.publish(on_target_msg(self.core.move_request(
-            move_id, target, self.driver.slew_V_per_s)))
+            state = self.core.refuse_move(msg.header.frame_id, str(e))
+        self.on_target_pub.publish(msgs.on_target_msg(state))
         self.publish_phase()
         self.resume()
 
@@ -261,17 +217,11 @@ class Feedforward(LeanNode, Node):
         if self.inputs_waiting and self.driver.armed_once:
             self.take_inputs()
             self.get_logger().info("armed: taking trajectories, setpoints and moves")
-        if self.driver.realtime and self.intake.thread is None:
-            # twice: the running trajectory and its latched copy live on meanwhile
-            self.intake.start(2 * trajectory_take_bytes(self.max_points))
-        for kind, done in self.intake.ready():  # real time: what the intake finished
-            _, take, refuse = self.inputs[kind]
-            if isinstance(done, PiezoStageError):
-                refuse(done)
-            else:
-                take(done)
+        # (heap: twice, the running trajectory and its latched copy live on meanwhile)
+        self.inputs.apply_ready(self.driver.realtime,
+                                2 * msgs.trajectory_take_bytes(self.max_points))
         try:
-            ns, w, v_applied = joint_state_to_um(msg, with_effort=True)
+            ns, w, v_applied = msgs.joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:
             self.core.guard.malformed()
             return
@@ -290,19 +240,18 @@ class Feedforward(LeanNode, Node):
         if r is None:
             return
         if r.on_target is not None:
-            self.on_target_pub.publish(on_target_msg(r.on_target))
-        rt = self.driver.realtime
+            self.on_target_pub.publish(msgs.on_target_msg(r.on_target))
+        now = time.time_ns() if self.driver.realtime else None
         for a in r.answers:
             if a.error is not None:
                 self.get_logger().error(f"feedforward for {a.desired}: {a.error}",
                                         throttle_duration_sec=1.0)
             if a.phase_changed:
                 self.publish_phase()
-            if not self.core.sendable(a, time.time_ns() if rt else None):
-                continue  # it could only reach the driver too late (counted)
-            assert a.desired is not None and r.applied is not None and r.measured is not None
-            self.gate.publish(self.pub, reference_cdr(a.target, a.desired, a.ff, r.measured,
-                                                      r.applied))
+            if self.core.sendable(a, now):  # else it could only reach the driver too late
+                assert a.desired is not None and r.applied is not None and r.measured is not None
+                self.gate.publish(self.pub, msgs.reference_cdr(a.target, a.desired, a.ff,
+                                                               r.measured, r.applied))
 
 
 def main(args: list[str] | None = None) -> int:

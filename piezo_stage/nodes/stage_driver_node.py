@@ -321,7 +321,7 @@ class StageDriver(LeanNode, LifecycleNode):
         """Graph queries cost the loop thread ~1 ms: only while not armed, where a
         refusal or the arming reason needs them."""
         if self.d.needs_links():
-            self.d.link = missing_links(self)
+            self.d.links(missing_links(self))
 
     def on_phase(self, msg: KeyValue) -> None:
         """The feedforward's phase and what it follows: the arming state follows it,

@@ -162,6 +162,10 @@ class DriverCore:
         """Not armed: an arming refusal or its reason names the missing links."""
         return self.loop is not None and self.loop.state not in ENABLED
 
+    def links(self, missing: str) -> None:
+        """The loop's missing links, in words ('' when none), as the graph shows them."""
+        self.link = missing
+
     @property
     def running(self) -> SampleLoop:
         """The sample loop, where one runs (from configure to cleanup: every caller)."""

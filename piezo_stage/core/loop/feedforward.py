@@ -321,9 +321,12 @@ class InverseFeedforward:
         self.started = self.planner.desired is not None  # else: from the first sample
 
     # -- the node's inputs, taken and counted -----------------------------------------
-    def take_model(self, prepared: PreparedModel, name: str, armed: bool = False) -> None:
-        """``use_model``, the model called ``name``: counted, the last refusal cleared."""
-        self.use_model(prepared, armed)
+    def take_model(self, prepared: PreparedModel, name: str,
+                   enabled: Callable[[int], bool] = lambda ns: False) -> None:
+        """``use_model``, the model called ``name``: counted, the last refusal cleared;
+        armed (a bumpless change) where a model runs and the driver applies commands at
+        the last sample answered (``enabled``)."""
+        self.use_model(prepared, self.inv is not None and enabled(self.answered_ns))
         self.model_name, self.last_rejection = name, ""
         self.stats["models"] += 1
 
@@ -335,10 +338,15 @@ class InverseFeedforward:
             self.last_rejection = str(error)
 
     def take_trajectory(self, t: ArrayLike, w: PerAxis[np.ndarray], stamp_ns: int,
-                        start_ns: int | None, slew_V_per_s: float | None = None) -> None:
-        """``set_trajectory`` for a trajectory the node accepted: counted."""
+                        start_ns: int | None, now_ns: int,
+                        slew_V_per_s: float | None = None) -> str:
+        """``set_trajectory`` for a trajectory the node accepted at ``now_ns``: counted;
+        returns what was taken, in words."""
         self.stats["trajectories"] += 1
         self.set_trajectory(t, w, stamp_ns, start_ns, slew_V_per_s)
+        return f"trajectory of {len(np.asarray(t))} points accepted" + (
+            f", stamped {stamp_ns}: starts in {(stamp_ns - now_ns) * 1e-9:.3f} s"
+            if stamp_ns > now_ns else "")
 
     def take_setpoint(self, target: PerAxis[float], now_ns: int) -> None:
         """A streamed setpoint, arrived at ``now_ns`` (its latency is measured to the
@@ -470,6 +478,11 @@ class InverseFeedforward:
             gain = self.model_gain or self.gain
             speed = min(speed, MOVE_SLEW_SHARE * slew_V_per_s * gain)
         return speed, accel
+
+    def set_live_all(self, values: Doc) -> None:
+        """``set_live`` for each of ``values`` (name: value)."""
+        for name, value in values.items():
+            self.set_live(name, value)
 
     def set_live(self, name: str, value: object) -> None:
         """A parameter that takes effect at once: ``compensate_effects`` (bool),
