@@ -233,5 +233,9 @@ def _bench_generated(rep, stages):
               f"{r['named']} (sizes {r['visible_um']}, noise "
               f"{r['params']['noise_um']:.3f} um)") for r in miss]
     rep.figures(figs, "the error rates, and each error")
+    rep.table(["footprint on HOLDOUT (x the noise)", "effects on an axis", "not named there"],
+              [list(b) for b in gap_blind.missed_by_footprint(rows)],
+              "where the misses lie: each effect on an axis by how far it moves that axis's "
+              "HOLDOUT (noise-free, the plant with it against without it, the mean removed)")
     rep.target("spurious effects <= 2 % of the generated stages", len(spur) <= 0.02 * n)
     rep.target("missed effects <= 5 % of the generated stages", len(miss) <= 0.05 * n)

@@ -672,3 +672,17 @@ def test_stages_generated_with_fresh_seeds_meet_the_rules_error_rates():
     missed = [r for r in rows if r["missed"]]
     said = [(r["seed"], r["truth"], r["named"], r["spurious"], r["missed"]) for r in rows]
     assert len(spurious) <= 1 and len(missed) <= 2, said
+
+
+def test_misses_are_counted_by_the_footprint_of_the_effect_left_out():
+    """Each effect on an axis falls in one footprint band (its HOLDOUT footprint over
+    the noise); a miss counts in its band and only where that axis left it out."""
+    from piezo_stage.apps.studies.gap_blind import missed_by_footprint, wilson
+    rows = [{"params": {"noise_um": 0.1}, "named": {"x": ["creep"], "y": []},
+             "visible_um": {"x": {"creep": 0.5, "drift": 0.12}, "y": {"creep": 0.45,
+                                                                    "drift": 0.05}}}]
+    bands = {b: (on, missed) for b, on, missed in missed_by_footprint(rows)}
+    assert bands == {"1-1.5 x": (1, 1), "1.5-2 x": (0, 0), "2-4 x": (0, 0),
+                     ">= 4 x": (2, 1)}
+    lo, hi = wilson(0, 200)
+    assert lo == 0.0 and 0.01 < hi < 0.03

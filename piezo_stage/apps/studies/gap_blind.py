@@ -395,6 +395,29 @@ def run_generated(seeds, progress=None) -> list[dict]:
     return rows
 
 
+FOOTPRINT_BANDS = (1.0, 1.5, 2.0, 4.0)  # an effect's HOLDOUT footprint, x the noise
+
+
+def missed_by_footprint(rows: list[dict]) -> list[tuple[str, int, int]]:
+    """Where the misses lie (``run_generated``'s rows): per band of an effect's
+    footprint on an axis's HOLDOUT (``FOOTPRINT_BANDS`` x the sensor's noise), the
+    (axis, effect) cases on and visible there, and how many of them that axis did not
+    name -> [(band, on, missed)]."""
+    edges = (*FOOTPRINT_BANDS, np.inf)
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        on = missed = 0
+        for r in rows:
+            noise = r["params"]["noise_um"]
+            for a, sizes in r["visible_um"].items():
+                for e, size in sizes.items():
+                    if lo <= size / noise < hi:
+                        on += 1
+                        missed += e not in r["named"][a]
+        out.append((f"{lo:g}-{hi:g} x" if np.isfinite(hi) else f">= {lo:g} x", on, missed))
+    return out
+
+
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """The Wilson score interval [0-1] of a rate seen ``k`` times in ``n`` (95 % at
     z = 1.96): an honest interval at 0 or n too."""
