@@ -127,12 +127,12 @@ def test_a_configure_that_fails_leaves_nothing_open():
     assert fixable(ConfigError("x")) and not fixable(RuntimeError("x"))
 
 
-def test_a_stop_ramps_in_real_time_and_ends_at_once_in_lockstep():
+def test_the_end_of_a_run_ramps_in_real_time_and_ends_at_once_in_lockstep():
     d = _driver([])
-    assert d.stop(realtime=True) is None  # nothing open: at once
+    assert d.ramp_down(realtime=True) is None  # nothing open: at once
     d.configure(lambda loop: None)
-    assert d.stop(realtime=False) is None and d.running.shutdown_requested
+    assert d.ramp_down(realtime=False) is None and d.running.shutdown_requested
     d2 = _driver([], mode="realtime")
     d2.configure(lambda loop: None)
-    ramp_s = d2.stop(realtime=True)
+    ramp_s = d2.ramp_down(realtime=True)
     assert ramp_s is not None and ramp_s >= 0 and d2.shutdown_requested

@@ -282,7 +282,7 @@ class StageDriver(LeanNode, LifecycleNode):
     def request_shutdown(self) -> None:
         """SIGINT/SIGTERM or max_steps: ramp to the safe voltage, still publishing, then
         exit; lockstep and an unconfigured driver (nothing open) exit at once."""
-        ramp_s = self.d.stop(realtime=not self.lock)
+        ramp_s = self.d.ramp_down(realtime=not self.lock)
         if ramp_s is None:
             end_run(self)
         else:  # the ramp, then the backend's close (which may ramp again), the teardown

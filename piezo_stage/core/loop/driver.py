@@ -124,9 +124,9 @@ class DriverCore:
                            "configure, then activate)")
         return self.running.arm(on, self.link)
 
-    def stop(self, realtime: bool) -> float | None:
-        """A stop: in real time a running loop ramps to the safe voltage (returns how
-        long that may take [s]); otherwise it ends at once (None)."""
+    def ramp_down(self, realtime: bool) -> float | None:
+        """The end of a run: in real time a running loop ramps to the safe voltage
+        (returns how long that may take [s]); otherwise it ends at once (None)."""
         if self.loop is not None and realtime:
             return self.loop.begin_shutdown()
         if self.loop is not None:
@@ -175,7 +175,7 @@ class DriverCore:
 
     @property
     def shutdown_requested(self) -> bool:
-        """A stop is under way."""
+        """The run is ending (a ramp to safe or an end under way)."""
         return self.loop is not None and self.loop.shutdown_requested
 
     def hardware_id(self) -> str:
