@@ -87,4 +87,6 @@ def __getattr__(name: str) -> object:
     if name not in CONVERT:
         raise AttributeError(f"module 'piezo_stage_msgs_adapters' has no attribute {name!r}")
     import importlib
-    return getattr(importlib.import_module("piezo_stage_msgs_adapters.convert"), name)
+    value = getattr(importlib.import_module("piezo_stage_msgs_adapters.convert"), name)
+    globals()[name] = value  # once: later look-ups (``msgs.name`` each sample) find it here
+    return value
