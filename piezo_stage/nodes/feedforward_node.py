@@ -69,8 +69,9 @@ class Feedforward(LeanNode, Node):
                                                       self.max_points), (PiezoStageError,))
         # the driver's announcements: taken before the data in each lean-loop pass
         # in real time: heap for taking the largest trajectory it admits (no page fault)
+        self.take_bytes = msgs.trajectory_take_bytes(self.max_points)  # (once, not per sample)
         self.driver = DriverState(self, self.core.dt_ns, p["thread_priority"],
-                                  heap_bytes=msgs.trajectory_take_bytes(self.max_points))
+                                  heap_bytes=self.take_bytes)
         if p["model_file"]:
             from piezo_stage.io.model_file import load_model
             self.use_model(self.prepare_model((*load_model(p["model_file"]), p["model_file"])))
@@ -218,8 +219,7 @@ class Feedforward(LeanNode, Node):
             self.take_inputs()
             self.get_logger().info("armed: taking trajectories, setpoints and moves")
         # (heap: twice, the running trajectory and its latched copy live on meanwhile)
-        self.inputs.apply_ready(self.driver.realtime,
-                                2 * msgs.trajectory_take_bytes(self.max_points))
+        self.inputs.apply_ready(self.driver.realtime, 2 * self.take_bytes)
         try:
             ns, w, v_applied = msgs.joint_state_to_um(msg, with_effort=True)
         except PiezoStageError:
