@@ -686,3 +686,32 @@ def test_misses_are_counted_by_the_footprint_of_the_effect_left_out():
                      ">= 4 x": (2, 1)}
     lo, hi = wilson(0, 200)
     assert lo == 0.0 and 0.01 < hi < 0.03
+
+
+def test_a_lag_kept_beside_a_delay_is_named_as_the_delays_shape():
+    """A delay seen through a held command and the amplifier's slew is no pure shift at
+    the samples: a resonance damped past LAG_ZETA kept beside a delay stays in the model
+    but is named as the delay (the verdict too, where it joined first); a ringing one,
+    or a lag with no delay kept, is named dynamics."""
+    from piezo_stage.apps.studies.gap_blind import named_effects
+    from piezo_stage.core.estimation.gap.selection import LAG_ZETA, _decide, delay_shape
+
+    def step(effect, params, rule="r", shrink=50.0):
+        return {"effect": effect, "params": params, "gap_after_um": 0.1, "rule": rule,
+                "shrink_pct": shrink, "equally_well": []}
+    lag = {"kind": "resonance", "fn_hz": 740.0, "zeta": 0.76}
+    ring = {"kind": "resonance", "fn_hz": 300.0, "zeta": 0.06}
+    steps = [step("dynamics", lag, "the first-effect rule"), step("coupling", {}),
+             step("delay", {"delay_s": 1.2e-3})]
+    note = delay_shape(steps)
+    assert steps[0]["shape_of"] == "delay" and "zeta 0.76" in note
+    assert named_effects({"effects": steps, "verdict": "delay"}) == {"coupling", "delay"}
+    ranking = [{"effect": "dynamics", "gap_after_um": 0.2, "shrink_pct": 51.0},
+               {"effect": "delay", "gap_after_um": 0.21, "shrink_pct": 47.0}]
+    rec = make_pair("none", "own", 1)[0]
+    verdict, reason = _decide(ranking, steps, 0.45, 0.07, rec, rec, "x")
+    assert verdict == "delay" and reason.startswith("delay shrinks the held-out gap by 47 %")
+    for kept in ([step("dynamics", ring), step("delay", {"delay_s": 1e-3})],
+                 [step("dynamics", {**lag, "zeta": LAG_ZETA - 0.01}), step("delay", {})],
+                 [step("dynamics", lag), step("coupling", {})]):
+        assert delay_shape(kept) == "" and not any("shape_of" in s for s in kept)

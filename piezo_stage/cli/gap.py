@@ -158,10 +158,11 @@ def _print_ranking(per):
 
 def _print_effects_and_budgets(per):
     """Each axis's kept effects in the order added, its budget and any disturbance."""
+    from piezo_stage.io.gap_report import step_label
     for a, d in per.items():
         if d.effects:
             print(f"effects {a} (in the order added): " + ", ".join(
-                f"{s['effect']} (gap {s['gap_after_um']:.4f} um, shrink {s['shrink_pct']:.0f} "
+                f"{step_label(s)} (gap {s['gap_after_um']:.4f} um, shrink {s['shrink_pct']:.0f} "
                 f"+- {s.get('shrink_pm_pct', float('nan')):.0f} %)" for s in d.effects))
         b = d.budget
         expl = ", ".join(f"{k} {v:.4f}" for k, v in b["explained_um"].items()) or "nothing"

@@ -50,7 +50,7 @@ def write_report(out_dir, result, holdout):
                 params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                    for k, v in st["params"].items())
                 pm = st.get("shrink_pm_pct", float("nan"))
-                lines.append(f"| {st['effect']} | {st['gap_after_um']:.4f} | "
+                lines.append(f"| {step_label(st)} | {st['gap_after_um']:.4f} | "
                              f"{st['shrink_pct']:.1f} +- {pm:.1f} | {st.get('rule', '')} | "
                              f"{params} |")
             lines.append("")
@@ -78,6 +78,11 @@ def write_report(out_dir, result, holdout):
     with atomic_write(os.path.join(out_dir, "report.md")) as fh:
         fh.write("\n".join(lines) + "\n")
     return os.path.join(out_dir, "report.md")
+
+
+def step_label(st) -> str:
+    """A kept effect as the diagnosis names it: a lag kept as a delay's shape says so."""
+    return st["effect"] + (f" (the {st['shape_of']}'s shape)" if st.get("shape_of") else "")
 
 
 def kept_label(d) -> str:

@@ -360,7 +360,7 @@ def short_case(seed: int, truth: tuple = (), seconds: float = 4.0,
 def named_effects(axis_json: Doc) -> set:
     """What a diagnosis names on an axis: its kept effects, and a disturbance where it
     says the residual is one."""
-    named = {s["effect"] for s in axis_json["effects"]}
+    named = {s["effect"] for s in axis_json["effects"] if not s.get("shape_of")}
     return named | ({"disturbance"} if axis_json["verdict"] == "disturbance" else set())
 
 
