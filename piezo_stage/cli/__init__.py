@@ -22,7 +22,7 @@ from piezo_stage.process import stopping
 
 COMMANDS = ("simulate", "invert", "excite", "gap", "launch", "demo", "experiment", "tune",
             "replay", "bag", "loop", "identify", "refit", "study", "bench", "raster", "play",
-            "lifecycle", "move", "scan")
+            "lifecycle", "move", "scan", "watch")
 
 
 def build_parser(argv=None):

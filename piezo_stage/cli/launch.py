@@ -44,6 +44,11 @@ def add_arguments(s):
                    "none, each its own (default: loop in lockstep, command in real "
                    "time, where it holds more samples a second on two cores; "
                    "docs/realtime.md)")
+    s.add_argument("--watch", action="store_true",
+                   help="the gap node watches the live gap against the model in use: where "
+                   "it rises clearly, it names the effect that grew and hands a refit "
+                   "with it to the feedforward when that shrinks the gap on the newest "
+                   "data (docs/watch.md)")
     s.add_argument("--seed", type=number(0, 2**31 - 1, integer=True), metavar="N",
                    help="the simulated stage's noise seed (default: its config's): a "
                    "second run to hold out must differ from the first")
@@ -68,7 +73,8 @@ def _launch(args, look):
     launch = Launch(args.config or default_config("stage.yaml"), LaunchOptions(record=record,
         namespace=args.namespace, arm=not args.no_arm, foxglove_port=args.foxglove,
         overrides=overrides, trajectory=not args.no_trajectory, managed=args.managed,
-        armed_s=args.duration, rate=args.rate, compose=args.compose), look=look)
+        armed_s=args.duration, rate=args.rate, compose=args.compose, watch=args.watch),
+        look=look)
     if args.foxglove is not None:
         print(f"live view: ws://127.0.0.1:{args.foxglove} (Foxglove: Open connection, "
               "Foxglove WebSocket)", flush=True)

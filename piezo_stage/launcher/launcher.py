@@ -256,6 +256,7 @@ class LaunchOptions:
     armed_s: float | None = None
     compose: str | None = None
     rate: float | str | None = None
+    watch: bool = False
 
 
 class Launch:
@@ -267,7 +268,7 @@ class Launch:
                 **(o.overrides or {}).get("trajectory", {})}.get("kind")
         self.outside_trajectories = not o.trajectory or kind == "none"
         # the recorder and the live view run when asked for (record, foxglove_port)
-        nodes = [n for n in ORDER if n in (o.nodes or params)
+        nodes = [n for n in ORDER if (n in (o.nodes or params) or (n == "gap" and o.watch))
                  and n not in ("recorder", "live_view")
                  and not (n == "trajectory" and self.outside_trajectories)]
         if o.foxglove_port is not None:
@@ -333,6 +334,8 @@ class Launch:
         if armed_s is not None and "stage_driver" in self.nodes:  # (managed or not)
             self.armed_s = float(armed_s)
             self._armed_steps()
+        if o.watch:
+            self._watched(params)
         self.env = dict(os.environ if env is None else env)
         if self.backend == "sim":  # keep a simulated run's discovery on this host
             self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -394,6 +397,20 @@ class Launch:
             g["stage_driver"]["managed"] = True
         return g
 
+    def _watched(self, params: Params) -> None:
+        """--watch: the gap node watches the model in use (the feedforward's file, else
+        the gap node's, else the package's), the feedforward starts with that model,
+        and the gap node runs at the loop's rate."""
+        from piezo_stage.paths import default_config
+
+        def given(node: str) -> str:
+            return str({**params.get(node, {}), **self.overrides.get(node, {})}.get(
+                "model_file") or "")
+        model = given("feedforward") or given("gap") or default_config("stage_model.yaml")
+        self.overrides.setdefault("gap", {}).update(watch=True, model_file=model,
+                                                    control_rate_hz=self.rate_hz())
+        self.overrides.setdefault("feedforward", {})["model_file"] = model
+
     def rate_hz(self) -> float:
         """The driver's control rate [Hz] as this set passes it."""
         return float(self.overrides.get("stage_driver", {}).get(
@@ -401,7 +418,7 @@ class Launch:
 
     def set_rate(self, rate_hz: float) -> None:
         """Run the loop's three nodes at ``rate_hz`` (their control_rate_hz)."""
-        for n in LOOP_NODES:
+        for n in LOOP_NODES + (("gap",) if "gap" in self.nodes else ()):
             self.overrides.setdefault(n, {})["control_rate_hz"] = float(rate_hz)
         if getattr(self, "armed_s", None) is not None:
             self._armed_steps()

@@ -60,6 +60,9 @@ GAP: Schema = (
     Param("model_file", "", "the twin's model ('' = config/stage_model.yaml)"),
     Param("window", 1000, "samples in the rolling RMS", lo=10, hi=10_000_000),
     Param("min_subscribers", 0, "residual subscribers to wait for"),
+    Param("watch", False, "diagnose the live gap when it rises, hand a refit that "
+          "shrinks it on as the model (docs/watch.md)"),
+    Param("watch_effects", ["creep", "drift"], "the effects the watch may name"),
 )
 
 RECORDER: Schema = (

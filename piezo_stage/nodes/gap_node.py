@@ -4,26 +4,43 @@ Runs the model file (hysteresis, coupling and any effects it lists) on the appli
 voltages carried by joint_states (effort, V) and publishes the residual measured -
 twin on ``gap/residual`` (geometry_msgs/PointStamped, metres) and its rolling RMS on
 /diagnostics, so a lab user sees the sim-to-real gap while running.
+
+With ``watch`` (``piezo-stage launch --watch``), the gap's level after arming is watched
+(core/estimation/gap/watch.py): where it rises clearly, the newest data are diagnosed as
+``gap`` diagnoses offline, in a process of its own (nodes/_watch.py); a refit with the
+effect named that shrinks the gap on the newest held-out data is published on ``model``
+(the feedforward takes it, bumplessly) and becomes the twin's. Each diagnosis is on
+/diagnostics (``watch_*`` values) at once; docs/watch.md.
 """
 
 # first, before the heavy imports: stop signals work from here on (see process/signals.py)
 import piezo_stage.process.signals  # noqa: F401, I001
 
 # isort: split
+import yaml
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.estimation.gap.monitor import ResidualMonitor
+from piezo_stage.core.estimation.gap.watch import (
+    LiveWatch,
+    WatchEvent,
+    WatchOptions,
+    effects_of,
+    model_in_use,
+)
+from piezo_stage.core.model.model_doc import model_from_dict
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir
-from piezo_stage.nodes._common import QOS_DATA, Status
+from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, Status, steady_timer
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes.declared import GAP
-from piezo_stage_msgs_adapters import joint_state_to_um, point_cdr
+from piezo_stage_msgs_adapters import joint_state_to_um, model_msg, point_cdr
 
 
 class Gap(LeanNode, Node):
@@ -39,9 +56,19 @@ class Gap(LeanNode, Node):
         self.model_name = path
         self.pub = self.create_publisher(PointStamped, "gap/residual", QOS_DATA)
         self.gate = Gate(self, [(self.pub, p["min_subscribers"])])
+        self.watch: LiveWatch | None = None
+        self.events: list[WatchEvent] = []
+        if p["watch"]:
+            from piezo_stage.nodes._watch import WatchWorker
+            self.watch = LiveWatch(p["control_rate_hz"], model_in_use(model, effects),
+                                   WatchOptions(effects=tuple(p["watch_effects"])),
+                                   have=effects_of(effects))
+            self.worker = WatchWorker()
+            self.model_pub = self.create_publisher(String, "model", QOS_LATCHED)
+            steady_timer(self, 0.1, self.on_watch)
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
                          raw=True)
-        Diagnostics(self, self.status, "sim-to-real residual")
+        self.diag = Diagnostics(self, self.status, "sim-to-real residual")
 
     def on_state(self, msg: bytes) -> None:
         try:
@@ -52,13 +79,56 @@ class Gap(LeanNode, Node):
             return
         r = self.monitor.sample(w, v)
         self.gate.publish(self.pub, point_cdr(ns, r))  # raw CDR: no message object
+        if self.watch is not None:
+            req = self.watch.sample(v, w, r)
+            if req is not None:
+                self.get_logger().info(
+                    f"the live gap rose on {', '.join(req.rising)} at "
+                    f"{req.start_index / self.watch.fs:.1f} s: diagnosing the window")
+                self.worker.submit(req)
+
+    def on_watch(self) -> None:
+        """A diagnosis that ended: its event said, its model handed on where it is."""
+        assert self.watch is not None
+        got = self.worker.done()
+        if got is None:
+            return
+        req, res = got
+        ev = self.watch.decide(req, res)
+        if ev.handed_on and ev.model_doc is not None:
+            history = self.watch.since(req.start_index)
+            if history is None:
+                ev.handed_on = False
+                ev.reason += "; not handed on: the diagnosis took longer than the samples kept"
+            else:
+                model, effects = model_from_dict(ev.model_doc, "the watch's model")
+                self.monitor.switch(model, effects, history)
+                self.watch.adopted(ev.model_doc, effects_of(effects))
+                self.model_pub.publish(model_msg(yaml.safe_dump(ev.model_doc,
+                                                                sort_keys=False)))
+                self.model_name = f"the watch's refit with {ev.effect} at {ev.at_s:.1f} s"
+        self.events.append(ev)
+        self.get_logger().info(f"watch: {ev.reason} (diagnosed in {res.seconds:.1f} s)")
+        self.diag.publish()  # each diagnosis a message of its own
 
     def status(self) -> Status:
-        vals = {f"rms_{a}_um": x for a, x in self.monitor.rms_um().items()}
+        vals: dict = {f"rms_{a}_um": x for a, x in self.monitor.rms_um().items()}
         n = self.monitor.n
         msg = (f"residual rms x/y {vals['rms_x_um']:.4g}/{vals['rms_y_um']:.4g} um against "
                f"{self.model_name}") if n else "waiting for samples"
+        if self.watch is not None:
+            vals["watch_diagnoses"] = len(self.events)
+            vals["watch_models"] = sum(e.handed_on for e in self.events)
+            vals["watch_level_um"] = ",".join(f"{self.watch.level.get(a, float('nan')):.4f}"
+                                              for a in ("x", "y"))
+            if self.events:
+                vals.update(self.events[-1].values())
         return 0, msg, {**vals, "model": self.model_name, "samples": n}
+
+    def close(self) -> None:
+        """The watch's worker ended before the node goes (run_node calls this)."""
+        if self.watch is not None:
+            self.worker.close()
 
 
 def main(args: list[str] | None = None) -> int:

@@ -112,11 +112,11 @@ def _holes_filled(fit: Record, axes: Sequence[str]) -> Record:
 
 def _axis_child(conn: Any, fit: Record, holdout: Record, axis: str, args: tuple) -> None:
     quiet_worker()  # the parent decides about stops (core/workers.py)
-    effects, base_model, base_effects, limits_V, history = args
+    effects, base_model, base_effects, limits_V, history, live = args
     try:
         d = diagnose_axis(fit, holdout, axis, effects, base_model,
                           lambda what: conn.send(("progress", what)), base_effects, limits_V,
-                          history)
+                          history, live)
         conn.send(("done", d))
     except BaseException as e:  # noqa: BLE001 -- re-raised in the parent
         conn.send(("error", e))
@@ -137,7 +137,8 @@ def _axes_apart(fit: Record, holdout: Record, axes: Sequence[str], args: tuple,
         from concurrent.futures import ThreadPoolExecutor
         with ThreadPoolExecutor(max_workers=min(2, len(axes))) as pool:
             futures = {a: pool.submit(diagnose_axis, fit, holdout, a, args[0], args[1],
-                                      progress, args[2], args[3], args[4]) for a in axes}
+                                      progress, args[2], args[3], args[4], args[5])
+                       for a in axes}
             return {a: f.result() for a, f in futures.items()}
     from multiprocessing.connection import wait
     ctx = mp.get_context("fork")
@@ -182,13 +183,16 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
              axes: Sequence[str] | None = None, base_model: StageModel | None = None,
              progress: Callable[[str], None] | None = None,
              base_effects: EffectsBlock | None = None, limits_V: tuple | None = None,
-             history: int = 0) -> Diagnosis:
+             history: int = 0, live: bool = False) -> Diagnosis:
     """Diagnose the gap on every axis (see the module docstring). ``progress(what)`` is
     called after each candidate fit (in this thread: relayed from the axes' processes);
     ``limits_V`` are the amplifier's, the written models' (None: 0-150 V widened to
     both records' voltages); HOLDOUT's first ``history`` samples are run
     but not scored (``diagnose_axis``: a record's later part held out with its
-    history, as ``refit`` holds out each bag's second half)."""
+    history, as ``refit`` holds out each bag's second half). ``live``: the live watch's reading (a
+    running trajectory that holds still nowhere): creep and drift told apart by HOLDOUT
+    alone, and of two effects that explain the gap alike the one forward selection kept
+    is named (the other said alike), not called inconclusive."""
     t0 = time.perf_counter()
     holdout = holdout or fit
     axes = axes or [a for a in ("x", "y") if a in fit.w and a in holdout.w]
@@ -212,7 +216,7 @@ def diagnose(fit: Record, holdout: Record | None = None, effects: Sequence[str] 
     except ImportError:
         def threadpool_limits(_n: int | None) -> contextlib.AbstractContextManager:  # type: ignore[misc]
             return contextlib.nullcontext()
-    args = (effects, base_model, base_effects, limits_V, history)
+    args = (effects, base_model, base_effects, limits_V, history, live)
     with threadpool_limits(1 if len(axes) > 1 else None):
         per = _axes_apart(fit, holdout, axes, args, progress or (lambda what: None))
     worst = max(per.values(), key=lambda d: d.ranking[0]["gap_before_um"])

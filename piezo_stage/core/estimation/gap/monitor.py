@@ -26,6 +26,7 @@ class ResidualMonitor:
     def __init__(self, model: StageModel, effects: EffectsBlock | None, rate_hz: float,
                  window: int) -> None:
         self.twin = Plant.of_model(model, effects, rate_hz)
+        self.rate_hz = float(rate_hz)
         self.res: dict[str, deque[float]] = {a: deque(maxlen=int(window)) for a in AXES}
         self.offset = dict.fromkeys(AXES, 0.0)
         self.n = 0
@@ -48,3 +49,16 @@ class ResidualMonitor:
         """The rolling RMS of the residual per axis [um] (NaN before any sample)."""
         return {a: float(np.sqrt(np.mean(np.square(x)))) if x else float("nan")
                 for a, x in self.res.items()}
+
+    def switch(self, model: StageModel, effects: EffectsBlock | None,
+               history: np.ndarray) -> None:
+        """The twin of another model from now on (a model handed on), brought to now by
+        running it over ``history`` ((n, 4): vx, vy, wx, wy from the sample its initial
+        state is that of, to the last one taken): its sensor zero is the mean residual
+        there (the one constant a written model's held-out figure removes)."""
+        twin = Plant.of_model(model, effects, self.rate_hz)
+        out = twin.run(history[:, 0], history[:, 1])
+        for i, a in enumerate(AXES):
+            self.offset[a] = float(np.mean(history[:, 2 + i] - out[a])) if len(history) \
+                else 0.0
+        self.twin = twin

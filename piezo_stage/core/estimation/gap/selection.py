@@ -183,9 +183,12 @@ def _given_effects(base_model: StageModel | None, base_effects: EffectsBlock | N
     if axis in base_model.coupling:
         out.append(("coupling", {}))
     for name, p in (base_effects or {}).items():
-        p = dict(p or {})
-        if axis in p.pop("axes", ["x", "y"]) and name in TRANSFORMS + ("drift",):
-            out.append((name, p))
+        # (one block for both axes, or a list of blocks with their axes: a written
+        # model's effects with each axis's own parameters)
+        for q in (p if isinstance(p, list) else [p]):
+            q = dict(q or {})
+            if axis in q.pop("axes", ["x", "y"]) and name in TRANSFORMS + ("drift",):
+                out.append((name, q))
     return out
 
 
@@ -209,19 +212,22 @@ class SearchOptions:
     ``effects`` it may add, the sim to compare with (``base_model`` with the
     ``base_effects`` of its file; None: the Duhem model identified on FIT), the written
     models' voltage ``limits_V`` (None: from the records) and HOLDOUT's first
-    ``history`` samples run but not scored."""
+    ``history`` samples run but not scored; ``live``: the live watch's reading (``diagnose``;
+    with a history, the sensor's zero is the history's)."""
     effects: tuple[str, ...] = tuple(EFFECTS)
     base_model: StageModel | None = None
     base_effects: EffectsBlock | None = None
     limits_V: tuple | None = None
     history: int = 0
+    live: bool = False
 
 
 def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str] = EFFECTS,
                   base_model: StageModel | None = None,
                   progress: Callable[[str], None] | None = None,
                   base_effects: EffectsBlock | None = None,
-                  limits_V: tuple | None = None, history: int = 0) -> AxisDiagnosis:
+                  limits_V: tuple | None = None, history: int = 0,
+                  live: bool = False) -> AxisDiagnosis:
     """Fit every candidate on FIT, score on HOLDOUT, then add effects one at a time
     (forward selection, each refitted jointly with the Duhem model and the effects
     kept before it) while the held-out gap keeps shrinking clearly. ``base_model`` (a
@@ -235,7 +241,7 @@ def diagnose_axis(fit: Record, holdout: Record, axis: str, effects: Sequence[str
     drift), and only the rest is scored. The stages are AxisSearch's."""
     search = AxisSearch(fit, holdout, axis, SearchOptions(
         effects=tuple(effects), base_model=base_model, base_effects=base_effects,
-        limits_V=limits_V, history=history), progress)
+        limits_V=limits_V, history=history, live=live), progress)
     cands = search.fit_candidates()
     ranking = search.rank(cands)
     steps, model = search.select(cands)
@@ -256,6 +262,7 @@ class AxisSearch:
         effects, base_model, base_effects = options.effects, options.base_model, \
             options.base_effects
         limits_V, history = options.limits_V, options.history
+        self.live = options.live
         self.progress = progress or _quiet
         for rec in (fit, holdout):
             if axis not in rec.v or axis not in rec.w:
@@ -329,7 +336,14 @@ class AxisSearch:
             return hit[1]
         try:
             pred = predicted(c.written(), self.axis, self.holdout, self.limits_V)
-            r = held_out(pred, self.holdout.w[self.axis], self.skip)
+            if self.live and self.history:
+                # the live watch: the sensor's zero is the one over the history (FIT,
+                # where the model was fitted), so a level that moves since is a gap (a
+                # drift), not an offset of the held-out part
+                full = np.asarray(pred, float) - np.asarray(self.holdout.w[self.axis], float)
+                r = full[self.skip:] - full[:self.skip].mean()
+            else:
+                r = held_out(pred, self.holdout.w[self.axis], self.skip)
         except ModelError as e:  # no model file would hold it (no stage): no candidate
             c.params = {**getattr(c, "params", {}), "not_writable": str(e)}
             r = np.full(len(self.scored.t), np.inf)
@@ -684,7 +698,8 @@ class AxisSearch:
         notes = self.notes
         loc = where(scored, axis, self.resid, nf)
         verdict, reason = _decide(ranking, steps, self.g_before, self.floor, fit, scored,
-                                  axis, self.told_apart(ranking, steps, model, cands))
+                                  axis, self.told_apart(ranking, steps, model, cands),
+                                  self.live)
         if verdict in ("none", "inconclusive"):
             steps, model = [], None
         if self.no_band and ({"delay", "dynamics"} & {st["effect"] for st in steps}
@@ -777,10 +792,13 @@ class AxisSearch:
 
 
 def _decide(ranking: list[Doc], steps: list[Doc], g_before: float, nf: float, fit: Record,
-            holdout: Record, axis: str, told_apart: bool = False) -> tuple[str, str]:
+            holdout: Record, axis: str, told_apart: bool = False, live: bool = False
+            ) -> tuple[str, str]:
     """The verdict: the first (dominant) effect forward selection kept, unless the
     excitation cannot tell it from another (``told_apart``: the effects kept beside it
-    do: AxisSearch.told_apart)."""
+    do: AxisSearch.told_apart), or it is creep or drift and the records hold still
+    nowhere; ``live`` (the watch's reading, ``diagnose``): neither makes it
+    inconclusive, an effect alike is said beside the one kept."""
     eff = [r for r in ranking if r["effect"] != "none"]
     if not eff:
         return "inconclusive", "no candidate effect could be tested"
@@ -793,16 +811,20 @@ def _decide(ranking: list[Doc], steps: list[Doc], g_before: float, nf: float, fi
                                 f"{best['effect']} shrinks it by {best['shrink_pct']:.0f} %")
     lead = steps[0]  # (a lag kept first as a delay's shape: the verdict is the delay)
     first = lead.get("shape_of") or lead["effect"]
-    if first in ("creep", "drift"):
+    if first in ("creep", "drift") and not live:
         if not holds(fit.v[axis], fit.fs_hz) or not holds(holdout.v[axis], holdout.fs_hz):
             return "inconclusive", (f"no holds longer than {MIN_HOLD_S:g} s: creep cannot be "
                                     "separated from drift")
     kept = [s["effect"] for s in steps]
+    alike = [e["effect"] for e in eff[:2] if e["effect"] not in kept]
     if len(eff) > 1 and eff[1]["gap_after_um"] <= eff[0]["gap_after_um"] * 1.02 + 1e-3 and \
             eff[1]["shrink_pct"] >= FIRST_SHRINK_PCT and eff[1]["effect"] not in kept \
             and not told_apart:
-        return "inconclusive", (f"{eff[0]['effect']} and {eff[1]['effect']} explain the gap "
-                                "equally well on this excitation")
+        if not live:
+            return "inconclusive", (f"{eff[0]['effect']} and {eff[1]['effect']} explain "
+                                    "the gap equally well on this excitation")
+    else:
+        alike = []
     said = ", then ".join(f"{s['effect']} to {s['gap_after_um']:.3g} um" + (
         f" ({' or '.join(s['equally_well'])} as well: not separable on this excitation)"
         if s["equally_well"] and i else "") for i, s in enumerate(steps))
@@ -814,4 +836,6 @@ def _decide(ranking: list[Doc], steps: list[Doc], g_before: float, nf: float, fi
     return first, (f"{first} shrinks the held-out gap by {alone:.0f} % "
                    f"(chosen by {lead['rule']})"
                    + (f"; with {said} ({joined}: {steps[-1]['shrink_pct']:.0f} % in all)"
-                      if len(steps) > 1 else ""))
+                      if len(steps) > 1 else "")
+                   + (f"; {' and '.join(alike)} explains it as well on this excitation "
+                      f"(alike: {first} is the one kept)" if alike else ""))

@@ -1,0 +1,50 @@
+"""The live watch's diagnoses off the loop: one at a time, in a process of their own.
+
+Spawned, not forked (the node's process holds the middleware's threads), its stops left
+to the node (``core/workers.quiet_worker``); the diagnosis itself is the core's
+``diagnose_window``, plain data in and out.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from concurrent.futures import Future, ProcessPoolExecutor
+
+from piezo_stage.core.estimation.gap.watch import WatchRequest, WatchResult, diagnose_window
+
+
+def _ready() -> None:
+    """The worker, first: quiet on stops, the diagnosis's modules imported."""
+    from piezo_stage.core.workers import quiet_worker
+    quiet_worker()
+    import piezo_stage.core.estimation.gap  # noqa: F401
+
+
+class WatchWorker:
+    """One diagnosis at a time (``submit``), its answer taken when done (``done``)."""
+
+    def __init__(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_ready)
+        self.running: tuple[WatchRequest, Future] | None = None
+
+    def submit(self, req: WatchRequest) -> None:
+        self.running = (req, self.pool.submit(diagnose_window, req))
+
+    def done(self) -> tuple[WatchRequest, WatchResult] | None:
+        """The request and its result once the diagnosis ended (a worker that died: a
+        result with its error), else None."""
+        if self.running is None or not self.running[1].done():
+            return None
+        req, fut = self.running
+        self.running = None
+        try:
+            return req, fut.result()
+        except Exception as e:  # noqa: BLE001 -- the worker died: said, the watch goes on
+            return req, WatchResult(error=f"the diagnosis failed: {e!r}")
+
+    def close(self) -> None:
+        """The worker ended, a diagnosis under way dropped."""
+        for p in list(getattr(self.pool, "_processes", {}).values()):
+            p.terminate()
+        self.pool.shutdown(wait=False, cancel_futures=True)
