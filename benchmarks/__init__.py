@@ -41,6 +41,7 @@ BENCHMARKS = {
     "doubles": ("doubles", "bench_doubles", ()),
     "scan": ("scan", "bench_scan", ()),
     "startup": ("startup", "bench_startup", ("runs",)),
+    "watch": ("watch", "bench_watch", ("minutes",)),
 }
 
 

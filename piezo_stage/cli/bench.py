@@ -66,6 +66,9 @@ def add_arguments(s):
     s.add_argument("--stages", type=number(1, 100_000, integer=True), default=200,
                    metavar="N", help="gap: stages generated with seeds drawn at the run, "
                    "for the rates of spurious and missed effects")
+    s.add_argument("--minutes", type=number(0.5, 600), default=10.0, metavar="M",
+                   help="watch: minutes of a stage that does not change, for the false "
+                   "alarms per hour")
 
 
 def _page(path):

@@ -118,11 +118,11 @@ class LiveWatch:
     watch over the new model (the level after arming kept)."""
 
     def __init__(self, fs_hz: float, model_doc: Doc, options: WatchOptions | None = None,
-                 have: Sequence[str] = ()) -> None:
+                 have: dict[str, list[str]] | Sequence[str] = ()) -> None:
         self.fs = float(fs_hz)
         self.opt = options or WatchOptions()
         self.model_doc = model_doc
-        self.have = set(have)  # effects the model in use has: no candidates
+        self.have = have_by_axis(have)  # effects the model in use has: no candidates
         o = self.opt
         self.block = max(1, int(round(o.block_s * self.fs)))
         self.n = 0
@@ -206,7 +206,8 @@ class LiveWatch:
         assert a is not None  # (the ring holds a window at least)
         return WatchRequest(self.fs, a[:, :2], a[:, 2:],
                             int(round(self.opt.fit_s * self.fs)), self.model_doc,
-                            tuple(e for e in self.opt.effects if e not in self.have),
+                            tuple(e for e in self.opt.effects
+                                  if not all(e in self.have.get(a, ()) for a in AXES)),
                             self.onset, self.rising, dict(self.level), dict(self.rose))
 
     # -- the answer -----------------------------------------------------------------------
@@ -247,15 +248,28 @@ class LiveWatch:
                               f" ({' and '.join(alike)} as well on this trajectory: not "
                               "told apart)" if alike else ""), res.model_doc)
 
-    def adopted(self, model_doc: Doc, have: Sequence[str]) -> None:
+    def adopted(self, model_doc: Doc, have: dict[str, list[str]] | Sequence[str]) -> None:
         """A handed-on model is now the one in use: later windows diagnose against it."""
-        self.model_doc, self.have = model_doc, set(have)
+        self.model_doc, self.have = model_doc, have_by_axis(have)
 
 
-def effects_of(effects: EffectsBlock | None) -> list[str]:
-    """The enabled effects of a model file's effects block."""
-    return [n for n, p in (effects or {}).items()
-            if isinstance(p, dict) and p.get("enabled", True)]
+def effects_of(effects: EffectsBlock | None) -> dict[str, list[str]]:
+    """The enabled effects of a model file's effects block, per axis (a block for both
+    axes, or a list of blocks with their own ``axes``)."""
+    out: dict[str, list[str]] = {a: [] for a in AXES}
+    for name, p in (effects or {}).items():
+        for q in (p if isinstance(p, list) else [p]):
+            if isinstance(q, dict) and q.get("enabled", True):
+                for a in q.get("axes", AXES):
+                    out.setdefault(a, []).append(name)
+    return out
+
+
+def have_by_axis(have: dict[str, list[str]] | Sequence[str]) -> dict[str, set[str]]:
+    """Effects a model has, per axis (a plain list: on every axis)."""
+    if isinstance(have, dict):
+        return {a: set(v) for a, v in have.items()}
+    return {a: set(have) for a in AXES}
 
 
 BOUNDED_FIRST = ("creep", "drift")  # of two alike, the first (its extrapolation is
