@@ -35,8 +35,8 @@ def main(args):
                    + [(t, "model") for t in story.models_s])
     print("live gap RMS x/y [um] by span:")
     t0 = 0.0
-    while t0 < end:
-        t1 = min(t0 + args.every, end + 1e-9)
+    while t0 < end - 0.5 * args.every or t0 == 0.0:
+        t1 = end + 1e-9 if t0 + 1.5 * args.every > end else t0 + args.every
         g = story.rms_um(t0, t1)
         here = [m for at, m in marks if t0 <= at < t1]
         print(f"  {t0:6.1f}-{t1:6.1f} s  {g['x']:.4f} / {g['y']:.4f}"

@@ -540,9 +540,7 @@ class AxisSearch:
             final = dict(model.effects)
             for st in steps:
                 st["params"] = final.get(st["effect"], st["params"])
-        note = delay_shape(steps)
-        if note:
-            self.notes.append(note)
+        self.notes.extend(filter(None, [delay_shape(steps)]))  # a delay's lag, said
         return steps, model
 
     def chain(self, names: Sequence[str], cache: dict[tuple[str, ...], Fitted]) -> list[Fitted]:
