@@ -715,3 +715,18 @@ def test_a_lag_kept_beside_a_delay_is_named_as_the_delays_shape():
                  [step("dynamics", {**lag, "zeta": LAG_ZETA - 0.01}), step("delay", {})],
                  [step("dynamics", lag), step("coupling", {})]):
         assert delay_shape(kept) == "" and not any("shape_of" in s for s in kept)
+
+
+def test_a_written_models_effects_per_axis_are_the_given_ones_of_each_axis(stage_model):
+    """A model `gap --out-model` wrote lists an effect per axis (a list of blocks with
+    their axes): given as `--model`, each axis has its own (the live watch diagnoses
+    against such a model); one block for both axes is each axis's too."""
+    from piezo_stage.core.estimation.gap.selection import _given_effects
+    per_axis = {"creep": [{"axes": ["x"], "gamma": 0.06, "tau_s": [0.05, 5.0]},
+                          {"axes": ["y"], "gamma": 0.03, "tau_s": [0.05, 5.0]}]}
+    assert _given_effects(stage_model, per_axis, "x") == [
+        ("coupling", {}), ("creep", {"gamma": 0.06, "tau_s": [0.05, 5.0]})]
+    assert ("creep", {"gamma": 0.03, "tau_s": [0.05, 5.0]}) in \
+        _given_effects(stage_model, per_axis, "y")
+    both = {"drift": {"rate_um_per_s": 0.01, "amplitude_um": 0.2, "tau_s": 60.0}}
+    assert ("drift", both["drift"]) in _given_effects(stage_model, both, "y")
