@@ -114,7 +114,7 @@ class LiveWatch:
 
     ``sample(v, w, r)`` per sample (voltages, displacement and residual per axis)
     returns a ``WatchRequest`` when a window is complete; ``decide(request, result)``
-    turns the diagnosis into a ``WatchEvent``; ``adopted()`` after a hand-on starts the
+    makes the diagnosis a ``WatchEvent``; ``adopted()`` after a hand-on starts the
     watch over the new model (the level after arming kept)."""
 
     def __init__(self, fs_hz: float, model_doc: Doc, options: WatchOptions | None = None,
