@@ -139,6 +139,8 @@ def test_a_stage_that_does_not_change_names_nothing():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # 80 s of a lockstep set's clock and a diagnosis: 3-6 min on a
+# 2-core host running the suite beside it (pytest-timeout's 300 s is for one test alone)
 def test_launch_watch_hands_a_creep_refit_to_the_feedforward_and_the_bag_tells_it(
         tmp_path, ros_env):
     """`launch --watch` on a simulated stage whose creep switches on at 20 s: the gap
