@@ -183,3 +183,53 @@ def test_watch_of_a_bag_without_a_gap_node_is_one_line_and_exit_2(tmp_path):
     from conftest import cli, one_line_exit_2
     r = cli("watch", str(tmp_path / "nothing"))
     one_line_exit_2(r)
+
+
+def _group(pgid: int) -> list[int]:
+    """The processes alive in process group ``pgid`` (Linux: /proc)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as fh:
+                    fields = fh.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == pgid and fields[0] != "Z":
+                out.append(int(d))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_run_that_ends_mid_diagnosis_ends_the_worker_and_its_axes_processes():
+    """The gap node's worker (nodes/_watch.py) closed while a two-axis diagnosis runs
+    (a process forked per axis): the worker and both axes' processes end, and the pool's
+    thread with them (an axis's process left behind held the worker's pipe open: the
+    node could not exit, CI's `launch --watch` hung)."""
+    import time
+
+    from piezo_stage.apps.studies.watch_cases import default_voltages
+    from piezo_stage.nodes._watch import WatchWorker
+    w = _watch()
+    v = np.stack([default_voltages(9.0, FS)] * 2, axis=1)
+    disp = 0.1 * v + 0.05 * np.random.default_rng(1).standard_normal(v.shape)
+    req = WatchRequest(FS, v, disp, 6000, w.model_doc, ("creep", "drift"), 20_000,
+                       ("x", "y"), {"x": 0.1, "y": 0.1}, {"x": 0.5, "y": 0.5})
+    worker = WatchWorker()
+    worker.submit(req)
+    end = time.monotonic() + 120
+    pid = None
+    while time.monotonic() < end:  # the worker up, its axes forked
+        procs = list((worker.pool._processes or {}).values())
+        pid = procs[0].pid if procs else None
+        if pid is not None and len(_group(pid)) >= 3:
+            break
+        assert worker.done() is None, "the diagnosis ended before its axes were seen"
+        time.sleep(0.05)
+    assert pid is not None and len(_group(pid)) >= 3, "no worker with two axes' processes"
+    manager = worker.pool._executor_manager_thread
+    worker.close()
+    end = time.monotonic() + 20
+    while (_group(pid) or manager.is_alive()) and time.monotonic() < end:
+        time.sleep(0.05)
+    assert _group(pid) == [] and not manager.is_alive()

@@ -2,12 +2,17 @@
 
 Spawned, not forked (the node's process holds the middleware's threads), its stops left
 to the node (``core/workers.quiet_worker``); the diagnosis itself is the core's
-``diagnose_window``, plain data in and out.
+``diagnose_window``, plain data in and out. The worker leads a process group of its own:
+the diagnosis forks a process per axis, and a run that ends mid-diagnosis ends the whole
+group (an axis's process left behind would hold the worker's pipes open, and the node
+could not exit).
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import os
+import signal
 from concurrent.futures import Future, ProcessPoolExecutor
 
 from piezo_stage.core.estimation.gap.watch import WatchRequest, WatchResult, diagnose_window
@@ -17,6 +22,7 @@ def _ready() -> None:
     """The worker, first: quiet on stops, the diagnosis's modules imported."""
     from piezo_stage.core.workers import quiet_worker
     quiet_worker()
+    os.setpgrp()  # its axes' processes join its group: ended with it (``close``)
     import piezo_stage.core.estimation.gap  # noqa: F401
 
 
@@ -44,7 +50,15 @@ class WatchWorker:
             return req, WatchResult(error=f"the diagnosis failed: {e!r}")
 
     def close(self) -> None:
-        """The worker ended, a diagnosis under way dropped."""
-        for p in list(getattr(self.pool, "_processes", {}).values()):
-            p.terminate()
+        """The worker and its axes' processes ended, a diagnosis under way dropped."""
+        for p in list((getattr(self.pool, "_processes", None) or {}).values()):
+            if p.pid is None:
+                continue
+            try:
+                if os.getpgid(p.pid) == p.pid:  # its group: the worker and its axes
+                    os.killpg(p.pid, signal.SIGKILL)
+                else:  # not yet its own group (still starting): no axes yet
+                    p.kill()
+            except ProcessLookupError:  # already gone
+                pass
         self.pool.shutdown(wait=False, cancel_futures=True)

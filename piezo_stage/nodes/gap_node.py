@@ -126,9 +126,11 @@ class Gap(LeanNode, Node):
         return 0, msg, {**vals, "model": self.model_name, "samples": n}
 
     def close(self) -> None:
-        """The watch's worker ended before the node goes (run_node calls this)."""
+        """The watch's worker ended before the node goes (run_node calls this), then
+        the node's last report."""
         if self.watch is not None:
             self.worker.close()
+        super().close()
 
 
 def main(args: list[str] | None = None) -> int:

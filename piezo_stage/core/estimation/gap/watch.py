@@ -244,7 +244,8 @@ class LiveWatch:
         alike = sorted({e for a in req.rising for e in res.alike.get(a, [])} - set(named))
         return WatchEvent(at, onset, req.rising, effect, shrink, g0, g1, True,
                           f"{effect} grew on {', '.join(req.rising)}: the held-out gap "
-                          f"{g0:.3g} -> {g1:.3g} um with it" + (
+                          f"{g0:.3g} um -> " + (f"{g1:.3g} um" if g1 > 0 else
+                                                "within the noise floor") + " with it" + (
                               f" ({' and '.join(alike)} as well on this trajectory: not "
                               "told apart)" if alike else ""), res.model_doc)
 
