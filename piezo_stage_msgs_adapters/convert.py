@@ -17,6 +17,8 @@ from piezo_stage.core.errors import DataError
 from piezo_stage.core.types import Doc, PerAxis
 from piezo_stage_msgs_adapters import cdr
 from piezo_stage_msgs_adapters.wire import (
+    HOLD_GO,
+    HOLD_WAIT,
     JOINTS,
     MEASURED,
     UM,
@@ -37,8 +39,9 @@ __all__ = ["JOINTS", "UM", "ns_to_time", "time_to_ns", "header", "joint_state",
            "arming_state_msg", "announcement_from_msg", "trajectory_from_cdr", "clock_msg",
            "check_trajectory_size", "trajectory_max_bytes", "trajectory_take_bytes",
            "trajectory_stamp_ns", "phase_msg", "phase_from_msg", "move_msg",
-           "move_from_msg", "on_target_msg", "on_target_from_msg", "trajectory_header",
-           "refusal_msg", "refusal_from_msg", "trajectory_refusal_msg"]
+           "move_from_msg", "hold_msg", "hold_from_msg", "on_target_msg",
+           "on_target_from_msg", "trajectory_header", "refusal_msg", "refusal_from_msg",
+           "trajectory_refusal_msg"]
 
 FRAME = "stage"  # header.frame_id of everything the nodes publish
 
@@ -401,6 +404,25 @@ def phase_msg(phase: str, follows: str = "") -> KeyValue:
 def phase_from_msg(msg: KeyValue) -> tuple[str, str]:
     """-> (phase, what it follows)."""
     return msg.key, msg.value
+
+
+def hold_msg(last_ns: int | None) -> Header:
+    """The live watch's hold of a lockstep set (std_msgs/Header on ``watch/hold``):
+    ``frame_id`` "wait" and ``stamp`` the last sample the set takes before it waits (the
+    window's last, while it is diagnosed); "go on" (stamp 0) when it may go on."""
+    if last_ns is None:
+        return Header(stamp=ns_to_time(0), frame_id=HOLD_GO)
+    return Header(stamp=ns_to_time(last_ns), frame_id=HOLD_WAIT)
+
+
+def hold_from_msg(msg: Header) -> int | None:
+    """-> the last sample's stamp before the wait [ns], or None: go on."""
+    if msg.frame_id == HOLD_WAIT:
+        return time_to_ns(msg.stamp)
+    if msg.frame_id == HOLD_GO:
+        return None
+    raise DataError(f"watch/hold: frame_id {msg.frame_id!r}: not {HOLD_WAIT!r} or "
+                    f"{HOLD_GO!r}")
 
 
 ARM_LEVEL = {"armed": 0, "approaching": 0, "arming": 1, "disarmed": 1, "faulted": 2}

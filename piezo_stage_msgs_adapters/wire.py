@@ -49,6 +49,7 @@ def point_um(data: bytes) -> tuple[int, Doc]:
     return ns, {"x": x / UM, "y": y / UM}
 
 
+HOLD_WAIT, HOLD_GO = "wait", "go on"  # a lockstep hold's header.frame_id (watch/hold)
 MEASURED = ("x_measured", "y_measured")  # the reference's joints after x, y
 
 

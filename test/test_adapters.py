@@ -231,3 +231,11 @@ def test_trajectory_from_cdr_agrees_with_the_message_path_and_bounds_size():
     assert len(A.trajectory_from_cdr(big)[0]) == 200_000
     with pytest.raises(DataError, match="bytes"):
         A.trajectory_from_cdr(big, max_points=1000)
+
+
+def test_the_watchs_hold_round_trip_and_a_foreign_frame_refused():
+    """watch/hold (std_msgs/Header): "wait" with the last sample's stamp, "go on"."""
+    assert A.hold_from_msg(A.hold_msg(29_000_000_000 - 1_000_000)) == 28_999_000_000
+    assert A.hold_from_msg(A.hold_msg(None)) is None
+    with pytest.raises(DataError, match="frame_id"):
+        A.hold_from_msg(A.header(5, "stage"))

@@ -50,6 +50,8 @@ def main(args):
               f"({d['watch_shrink_pct']} %), "
               + ("handed on" if d.get("watch_handed_on") == "true" else "not handed on")
               + f": {d.get('watch_reason', '')}")
+    for t in story.holds_s:
+        print(f"the set waited at {t:.3f} s while the window was diagnosed (lockstep)")
     for t in story.models_s:
         print(f"model on /model at {t:.1f} s")
     if not story.diagnoses:

@@ -1,6 +1,8 @@
 """The story of a watched run, read back from its bag: the live gap over the run, each
 diagnosis the gap node's watch made (its /diagnostics status, one per diagnosis), and
-each model handed on (``model``), on the stage's clock (seconds from the first sample).
+each model handed on (``model``), and in lockstep each sample the set waited at while a
+window was diagnosed (``watch/hold``), on the stage's clock (seconds from the first
+sample).
 """
 
 from __future__ import annotations
@@ -12,20 +14,22 @@ import numpy as np
 from piezo_stage.core.errors import DataError
 from piezo_stage.io.bag import deserialize, iter_messages
 from piezo_stage.io.run_bag import status_node
-from piezo_stage_msgs_adapters.wire import joint_state_um, point_um
+from piezo_stage_msgs_adapters.wire import HOLD_WAIT, joint_state_um, point_um
 
 
 @dataclass
 class WatchStory:
     """A watched run: the residual per sample ``t_s``/``r_um`` ((n, 2): x, y), the
     level after arming per axis, the diagnoses (each a dict of the ``watch_*`` values,
-    in order), and the stage times [s] at which models went out on ``model``."""
+    in order), the stage times [s] at which models went out on ``model``, and
+    (lockstep) the samples' stage times [s] the set waited at while it diagnosed."""
 
     t_s: np.ndarray
     r_um: np.ndarray
     level_um: dict[str, float] = field(default_factory=dict)
     diagnoses: list[dict[str, str]] = field(default_factory=list)
     models_s: list[float] = field(default_factory=list)
+    holds_s: list[float] = field(default_factory=list)
 
     def rms_um(self, t0: float, t1: float) -> dict[str, float]:
         """The residual's RMS per axis between stage times ``t0`` and ``t1`` [um]."""
@@ -41,6 +45,7 @@ def read_watch(bag: str) -> WatchStory:
     log_to_stage: list[tuple[int, int]] = []  # (log time, stamp) of the stage's samples
     diag_log: list[tuple[int, dict[str, str]]] = []
     model_log: list[int] = []
+    holds_ns: list[int] = []
     for topic, msgtype, log_ns, data in iter_messages(bag):
         if topic.endswith("/gap/residual"):
             ns, p = point_um(data)
@@ -60,6 +65,10 @@ def read_watch(bag: str) -> WatchStory:
                     diag_log.append((log_ns, {k.key: k.value for k in st.values}))
         elif topic.endswith("/model") and not topic.endswith("/gap/model"):
             model_log.append(log_ns)
+        elif topic.endswith("/watch/hold"):
+            h = deserialize(data, msgtype)
+            if h.frame_id == HOLD_WAIT:
+                holds_ns.append(h.stamp.sec * 1_000_000_000 + h.stamp.nanosec)
     if not t:
         raise DataError(f"{bag}: no gap/residual in it: the run had no gap node "
                         "(`piezo-stage launch --watch`)")
@@ -67,6 +76,7 @@ def read_watch(bag: str) -> WatchStory:
         first_ns = min(t)
     order = np.argsort(t)
     story = WatchStory((np.array(t)[order] - first_ns) * 1e-9, np.array(r)[order])
+    story.holds_s = [(ns - first_ns) * 1e-9 for ns in holds_ns]
     seen = set()
     for _, kv in diag_log:
         if "watch_level_um" in kv and not story.level_um:

@@ -400,7 +400,8 @@ class Launch:
     def _watched(self, params: Params) -> None:
         """--watch: the gap node watches the model in use (the feedforward's file, else
         the gap node's, else the package's), the feedforward starts with that model,
-        and the gap node runs at the loop's rate."""
+        and the gap node runs at the loop's rate; in lockstep the set waits at a
+        window's end while the watch diagnoses it (``watch_hold``)."""
         from piezo_stage.paths import default_config
 
         def given(node: str) -> str:
@@ -408,7 +409,8 @@ class Launch:
                 "model_file") or "")
         model = given("feedforward") or given("gap") or default_config("stage_model.yaml")
         self.overrides.setdefault("gap", {}).update(watch=True, model_file=model,
-                                                    control_rate_hz=self.rate_hz())
+                                                    control_rate_hz=self.rate_hz(),
+                                                    watch_hold=bool(self.lockstep))
         self.overrides.setdefault("feedforward", {})["model_file"] = model
 
     def rate_hz(self) -> float:

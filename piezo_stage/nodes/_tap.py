@@ -57,6 +57,8 @@ CONTRACT = {  # relative name: (type, QoS kind: data, latched, events, diag): wh
     # a trajectory refused: its sender's name for it, and why
     "trajectory/refused": ("diagnostic_msgs/msg/DiagnosticArray", "events"),
     "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", "diag"),
+    # lockstep with the live watch: where the set waits while a window is diagnosed
+    "watch/hold": ("std_msgs/msg/Header", "events"),
 }
 STAMPED = {t for t, _ in CONTRACT.values()} - {"std_msgs/msg/String",
                                                "diagnostic_msgs/msg/KeyValue",

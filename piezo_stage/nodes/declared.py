@@ -63,6 +63,8 @@ GAP: Schema = (
     Param("watch", False, "diagnose the live gap when it rises, hand a refit that "
           "shrinks it on as the model (docs/watch.md)"),
     Param("watch_effects", ["creep", "drift"], "the effects the watch may name"),
+    Param("watch_hold", False, "lockstep: the set waits at a window's last sample while "
+          "it is diagnosed (on watch/hold; launch --watch sets it in lockstep)"),
 )
 
 RECORDER: Schema = (

@@ -10,7 +10,10 @@ With ``watch`` (``piezo-stage launch --watch``), the gap's level after arming is
 ``gap`` diagnoses offline, in a process of its own (nodes/_watch.py); a refit with the
 effect named that shrinks the gap on the newest held-out data is published on ``model``
 (the feedforward takes it, bumplessly) and becomes the twin's. Each diagnosis is on
-/diagnostics (``watch_*`` values) at once; docs/watch.md.
+/diagnostics (``watch_*`` values) at once; docs/watch.md. With ``watch_hold`` (a lockstep
+set: ``launch --watch`` sets it there), the node tells the driver on ``watch/hold``, as soon
+as a rise is found, the last sample of the window, and the set waits there until the
+diagnosis is decided: the model comes at the window's end whatever the host's pace.
 """
 
 # first, before the heavy imports: stop signals work from here on (see process/signals.py)
@@ -21,7 +24,7 @@ import yaml
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
+from std_msgs.msg import Header, String
 
 from piezo_stage.core.errors import PiezoStageError
 from piezo_stage.core.estimation.gap.monitor import ResidualMonitor
@@ -31,16 +34,17 @@ from piezo_stage.core.estimation.gap.watch import (
     WatchOptions,
     effects_of,
     model_in_use,
+    settle_samples,
 )
 from piezo_stage.core.model.model_doc import model_from_dict
 from piezo_stage.io.model_file import load_model
 from piezo_stage.io.plant_file import default_config_dir
-from piezo_stage.nodes._common import QOS_DATA, QOS_LATCHED, Status, steady_timer
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, QOS_LATCHED, Status, steady_timer
 from piezo_stage.nodes._executor import LeanNode, hot_subscription, run_node
 from piezo_stage.nodes._loop import Diagnostics, Gate
 from piezo_stage.nodes._params import declare_schema
 from piezo_stage.nodes.declared import GAP
-from piezo_stage_msgs_adapters import joint_state_to_um, model_msg, point_cdr
+from piezo_stage_msgs_adapters import hold_msg, joint_state_to_um, model_msg, point_cdr
 
 
 class Gap(LeanNode, Node):
@@ -66,6 +70,11 @@ class Gap(LeanNode, Node):
             self.worker = WatchWorker()
             self.model_pub = self.create_publisher(String, "model", QOS_LATCHED)
             steady_timer(self, 0.1, self.on_watch)
+        # lockstep: the set waits at a window's last sample while it is diagnosed
+        self.hold_pub = self.create_publisher(Header, "watch/hold", QOS_EVENTS) \
+            if self.watch is not None and p["watch_hold"] else None
+        self.holding = False
+        self.period_ns = 1e9 / p["control_rate_hz"]
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA,
                          raw=True)
         self.diag = Diagnostics(self, self.status, "sim-to-real residual")
@@ -81,6 +90,13 @@ class Gap(LeanNode, Node):
         self.gate.publish(self.pub, point_cdr(ns, r))  # raw CDR: no message object
         if self.watch is not None:
             req = self.watch.sample(v, w, r)
+            end = self.watch.window_end()
+            if self.hold_pub is not None and end is not None and not self.holding:
+                # the window's last sample, 6 s of samples ahead of it: the set waits
+                # there (announced ahead, the wait's sample does not depend on the host)
+                self.holding = True
+                self.hold_pub.publish(hold_msg(ns + round((end - self.watch.n)
+                                                          * self.period_ns)))
             if req is not None:
                 self.get_logger().info(
                     f"the live gap rose on {', '.join(req.rising)} at "
@@ -102,7 +118,7 @@ class Gap(LeanNode, Node):
                 ev.reason += "; not handed on: the diagnosis took longer than the samples kept"
             else:
                 model, effects = model_from_dict(ev.model_doc, "the watch's model")
-                self.monitor.switch(model, effects, history)
+                self.monitor.switch(model, effects, history, settle=settle_samples(req))
                 self.watch.adopted(ev.model_doc, effects_of(effects))
                 self.model_pub.publish(model_msg(yaml.safe_dump(ev.model_doc,
                                                                 sort_keys=False)))
@@ -110,6 +126,13 @@ class Gap(LeanNode, Node):
         self.events.append(ev)
         self.get_logger().info(f"watch: {ev.reason} (diagnosed in {res.seconds:.1f} s)")
         self.diag.publish()  # each diagnosis a message of its own
+        self.go_on()
+
+    def go_on(self) -> None:
+        """A lockstep set held at a window's end goes on (the model, if any, sent)."""
+        if self.hold_pub is not None and self.holding:
+            self.holding = False
+            self.hold_pub.publish(hold_msg(None))
 
     def status(self) -> Status:
         vals: dict = {f"rms_{a}_um": x for a, x in self.monitor.rms_um().items()}
@@ -130,6 +153,7 @@ class Gap(LeanNode, Node):
         the node's last report."""
         if self.watch is not None:
             self.worker.close()
+            self.go_on()
         super().close()
 
 

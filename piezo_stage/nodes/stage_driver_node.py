@@ -28,6 +28,7 @@ from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Header
 from std_srvs.srv import SetBool, Trigger
 
 # the simulated stage (the default backend) with the node's imports, before the start
@@ -89,6 +90,12 @@ class StageDriver(LeanNode, LifecycleNode):
         # period) a phase waited, and the state said "approaching" after the move's
         # on-target verdict
         hot_subscription(self, KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
+        # lockstep: the gap node's live watch holds the set at a window's last sample
+        # while it diagnoses it (docs/watch.md); the command answering that sample waits
+        self.hold_ns: int | None = None
+        self.waiting: tuple[int, Any] | None = None
+        self.hold_sub = self.create_subscription(
+            Header, "watch/hold", self.on_hold, QOS_EVENTS) if self.lock else None
         self.create_service(SetBool, "arm", self.on_arm)
         self.create_service(Trigger, "estop", self.on_estop)
         steady_timer(self, 0.5, self.check_links)
@@ -215,9 +222,37 @@ class StageDriver(LeanNode, LifecycleNode):
         except DataError:  # NaN/inf or malformed: never counts as a fresh command
             loop.reject_command()
             return
+        # (lockstep only) a command is stamped for the tick it applies at: the one for
+        # the tick after the window's last sample waits
+        if self.hold_ns is not None and ns > self.hold_ns:
+            if self.waiting is None:
+                self.get_logger().info(f"waiting after {self.hold_ns / 1e9:.3f} s for the "
+                                       "watch's diagnosis of the window ending there")
+            self.waiting = (ns, v)
+            return
         recv = 0 if self.lock else (info.get("received_timestamp")
                                     or self.get_clock().now().nanoseconds)
         self.follow(loop.on_command(ns, v, recv, self.d.link))
+
+    def on_hold(self, msg: Header) -> None:
+        """Lockstep: the watch's hold (the last sample before the wait), or go on."""
+        try:
+            self.hold_ns = msgs.hold_from_msg(msg)
+        except DataError as e:
+            self.get_logger().warning(f"{e}: ignored", throttle_duration_sec=10.0)
+            return
+        if self.hold_ns is None:
+            self.go_on("the diagnosis is decided")
+
+    def go_on(self, why: str) -> None:
+        """The command that waited at the hold taken: the set goes on."""
+        self.hold_ns = None
+        if self.waiting is None:
+            return
+        (ns, v), self.waiting = self.waiting, None
+        self.get_logger().info(f"going on at {ns / 1e9:.3f} s: {why}")
+        if self.d.loop is not None:
+            self.follow(self.d.loop.on_command(ns, v, 0, self.d.link))
 
     def follow(self, out: sl.Outcome) -> None:
         """What the sample loop decided (core/loop/sample_loop.py Outcome): publish the
@@ -322,6 +357,9 @@ class StageDriver(LeanNode, LifecycleNode):
         refusal or the arming reason needs them."""
         if self.d.needs_links():
             self.d.links(missing_links(self))
+        if self.hold_ns is not None and self.hold_sub is not None and \
+                self.count_publishers(self.hold_sub.topic_name) == 0:
+            self.go_on("the watch that held the set is gone")
 
     def on_phase(self, msg: KeyValue) -> None:
         """The feedforward's phase and what it follows: the arming state follows it,

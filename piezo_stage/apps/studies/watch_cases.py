@@ -16,6 +16,7 @@ from piezo_stage.core.estimation.gap.watch import (
     diagnose_window,
     effects_of,
     model_in_use,
+    settle_samples,
 )
 from piezo_stage.paths import default_config
 
@@ -79,7 +80,7 @@ def watched_run(change: str | None, seconds: float, at_s: float = 20.0, fs: floa
             m2, e2 = model_from_dict(ev.model_doc, "the watch's model")
             history = watch.since(req.start_index)
             assert history is not None
-            mon.switch(m2, e2, history)
+            mon.switch(m2, e2, history, settle=settle_samples(req))
             watch.adopted(ev.model_doc, effects_of(e2))
     out.blocks, out.plain, out.level = watch.blocks, plain.blocks, watch.level
     return out

@@ -51,14 +51,16 @@ class ResidualMonitor:
                 for a, x in self.res.items()}
 
     def switch(self, model: StageModel, effects: EffectsBlock | None,
-               history: np.ndarray) -> None:
+               history: np.ndarray, settle: int = 0) -> None:
         """The twin of another model from now on (a model handed on), brought to now by
         running it over ``history`` ((n, 4): vx, vy, wx, wy from the sample its initial
         state is that of, to the last one taken): its sensor zero is the mean residual
-        there (the one constant a written model's held-out figure removes)."""
+        there after the first ``settle`` samples (the twin's start from its initial
+        state: the one constant a written model's held-out figure removes)."""
         twin = Plant.of_model(model, effects, self.rate_hz)
         out = twin.run(history[:, 0], history[:, 1])
+        k = settle if len(history) > settle else 0
         for i, a in enumerate(AXES):
-            self.offset[a] = float(np.mean(history[:, 2 + i] - out[a])) if len(history) \
-                else 0.0
+            self.offset[a] = float(np.mean(history[k:, 2 + i] - out[a][k:])) \
+                if len(history) else 0.0
         self.twin = twin
