@@ -327,3 +327,16 @@ def test_a_refit_that_changes_far_more_where_the_axes_move_apart_is_not_handed_o
     assert bad.apart_axes() == ["x", "y"]
     ev = w.decide(_req(w), bad)
     assert not ev.handed_on and "not told apart" in ev.reason
+
+
+def test_the_lockstep_hold_keeps_the_command_after_the_windows_last_sample():
+    """core/loop/hold.py: commands for ticks up to the window's last sample are taken;
+    the next one waits until go on, and is handed back then (once)."""
+    from piezo_stage.core.loop.hold import LockstepHold
+    h = LockstepHold()
+    assert h.take(5, "a") and not h.held
+    assert h.hold(28_999) is None and h.held
+    assert h.take(28_999, "b")            # answers the sample before the last: taken
+    assert not h.take(29_000, "c")        # after the last: waits
+    assert h.hold(None) == (29_000, "c")  # go on: the one that waited
+    assert not h.held and h.go_on() is None and h.take(29_001, "d")

@@ -42,6 +42,7 @@ from piezo_stage.core.loop import sample_loop as sl
 from piezo_stage.core.loop.arming import PARAMETERS as ARMING
 from piezo_stage.core.loop.arming import ArmingParams
 from piezo_stage.core.loop.driver import DriverCore, fixable
+from piezo_stage.core.loop.hold import LockstepHold
 from piezo_stage.drivers import BACKEND_PARAMS, done_line, make_backend
 from piezo_stage.io.capacity_file import write_refusal
 from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS, MessageInfo, Status, steady_timer
@@ -92,8 +93,7 @@ class StageDriver(LeanNode, LifecycleNode):
         hot_subscription(self, KeyValue, "feedforward/phase", self.on_phase, QOS_EVENTS)
         # lockstep: the gap node's live watch holds the set at a window's last sample
         # while it diagnoses it (docs/watch.md); the command answering that sample waits
-        self.hold_ns: int | None = None
-        self.waiting: tuple[int, Any] | None = None
+        self.hold = LockstepHold()
         self.hold_sub = self.create_subscription(
             Header, "watch/hold", self.on_hold, QOS_EVENTS) if self.lock else None
         self.create_service(SetBool, "arm", self.on_arm)
@@ -222,14 +222,17 @@ class StageDriver(LeanNode, LifecycleNode):
         except DataError:  # NaN/inf or malformed: never counts as a fresh command
             loop.reject_command()
             return
-        # (lockstep only) a command is stamped for the tick it applies at: the one for
-        # the tick after the window's last sample waits
-        if self.hold_ns is not None and ns > self.hold_ns:
-            if self.waiting is None:
-                self.get_logger().info(f"waiting after {self.hold_ns / 1e9:.3f} s for the "
-                                       "watch's diagnosis of the window ending there")
-            self.waiting = (ns, v)
-            return
+        # a command is stamped for the tick it applies at: the one for the tick after
+        # the window's last sample waits (core/loop/hold.py)
+        last = self.hold.last_ns
+        if last is not None:  # (lockstep only)
+            was = self.hold.waiting
+            if not self.hold.take(ns, v):
+                if was is None:
+                    self.get_logger().info(f"waiting after {last / 1e9:.3f} s "
+                                           "for the watch's diagnosis of the window ending "
+                                           "there")
+                return
         recv = 0 if self.lock else (info.get("received_timestamp")
                                     or self.get_clock().now().nanoseconds)
         self.follow(loop.on_command(ns, v, recv, self.d.link))
@@ -237,19 +240,17 @@ class StageDriver(LeanNode, LifecycleNode):
     def on_hold(self, msg: Header) -> None:
         """Lockstep: the watch's hold (the last sample before the wait), or go on."""
         try:
-            self.hold_ns = msgs.hold_from_msg(msg)
+            last = msgs.hold_from_msg(msg)
         except DataError as e:
             self.get_logger().warning(f"{e}: ignored", throttle_duration_sec=10.0)
             return
-        if self.hold_ns is None:
-            self.go_on("the diagnosis is decided")
+        self.go_on(self.hold.hold(last), "the diagnosis is decided")
 
-    def go_on(self, why: str) -> None:
+    def go_on(self, waited: tuple[int, Any] | None, why: str) -> None:
         """The command that waited at the hold taken: the set goes on."""
-        self.hold_ns = None
-        if self.waiting is None:
+        if waited is None:
             return
-        (ns, v), self.waiting = self.waiting, None
+        ns, v = waited
         self.get_logger().info(f"going on at {ns / 1e9:.3f} s: {why}")
         if self.d.loop is not None:
             self.follow(self.d.loop.on_command(ns, v, 0, self.d.link))
@@ -357,9 +358,9 @@ class StageDriver(LeanNode, LifecycleNode):
         refusal or the arming reason needs them."""
         if self.d.needs_links():
             self.d.links(missing_links(self))
-        if self.hold_ns is not None and self.hold_sub is not None and \
+        if self.hold.held and self.hold_sub is not None and \
                 self.count_publishers(self.hold_sub.topic_name) == 0:
-            self.go_on("the watch that held the set is gone")
+            self.go_on(self.hold.go_on(), "the watch that held the set is gone")
 
     def on_phase(self, msg: KeyValue) -> None:
         """The feedforward's phase and what it follows: the arming state follows it,
