@@ -564,7 +564,12 @@ class AxisSearch:
         point of a flat valley (a coupling term and the law trading their constants on
         a record that drives the axes in turn), extrapolated differently there: chance,
         not an effect (a coupling named after a creep, a memory on a stage with no
-        effect, on 3 of 134 generated stages)."""
+        effect, on 3 of 134 generated stages). Where HOLDOUT continues FIT (a history:
+        the live watch, a record's later part held out) it does not apply: an effect
+        that grows with time (a creep switching on in the window) shows mostly after
+        FIT, where a law refitted on FIT's few seconds of it fits FIT as closely."""
+        if self.history:
+            return True
         if not hasattr(self, "nf_fit"):
             self.nf_fit = noise_floor(self.fit.w[self.axis])
         b = (before or self.base).fit_rms_um
