@@ -135,11 +135,12 @@ def case_records(stage: str, case: str, seed: int = 0) -> tuple[Record, Record, 
     return fit, hold, true[k:]
 
 
-def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, str, float]:
+def _written_model_prediction(fit: Record, hold: Record
+                              ) -> tuple[np.ndarray, str, float, str]:
     """What `gap --out-model` writes for FIT, saved, loaded and run through our own
-    simulator (noise free) over HOLDOUT's voltages: (its output [um], the verdict, and
-    how far [V] our exact inverse of its hysteresis's output lands from HOLDOUT's
-    voltages)."""
+    simulator (noise free) over HOLDOUT's voltages: (its output [um], the verdict, how
+    far [V] our exact inverse of its hysteresis's output lands from HOLDOUT's voltages,
+    and the diagnosis's reason)."""
     from piezo_stage.core.estimation.gap import diagnose
     from piezo_stage.core.model.inverse import invert, invert_stage
     from piezo_stage.core.model.plant import Plant
@@ -165,7 +166,7 @@ def _written_model_prediction(fit: Record, hold: Record) -> tuple[np.ndarray, st
     else:
         inv = invert_stage(model, hyst["x"], hyst["y"], dt_s=1.0 / FS_HZ)["x"].v
     back = float(np.max(np.abs(inv - v))) if np.all(np.isfinite(inv)) else float("nan")
-    return pred, str(res["verdict"]), back
+    return pred, str(res["verdict"]), back, str(res["reason"])
 
 
 def run(pairs=PAIRS, seed: int = 0, progress=None) -> list[dict]:
@@ -181,9 +182,9 @@ def run(pairs=PAIRS, seed: int = 0, progress=None) -> list[dict]:
         ours = predict_axis(identify_axis(fit, "x"), hold)[2]
         own = predict_axis(identify_axis(hold, "x"), hold)[2]
         peer = fit_prandtl_ishlinskii(fit.v["x"], fit.w["x"]).predict(hold.v["x"])
-        written, verdict, back = _written_model_prediction(fit, hold)
+        written, verdict, back, reason = _written_model_prediction(fit, hold)
         rows.append({"stage": stage, "case": case, "ours_um": score(ours),
-                     "gap_model_um": score(written), "verdict": verdict,
+                     "gap_model_um": score(written), "verdict": verdict, "reason": reason,
                      "inverse_back_V": back,
                      "peer_um": score(peer), "own_fit_um": score(own),
                      "noise_um": score(true)})

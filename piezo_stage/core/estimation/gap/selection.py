@@ -299,6 +299,8 @@ class AxisSearch:
         # are not fitted again with the effects kept later (they cost more than any
         # other candidate)
         self.class_tried: list[float] = []
+        # the first effect, closer on HOLDOUT alone (it fits FIT no closer: shows_on_fit)
+        self.refused: Fitted | None = None
 
     def _given(self, base_effects: EffectsBlock | None) -> list[tuple[str, Doc]]:
         given = _given_effects(self.base_model, base_effects, self.axis)
@@ -510,6 +512,8 @@ class AxisSearch:
                 break
             if need > 0.0 and not self.shows_on_fit(c, model):
                 self.notes.append(self.fit_note(c, model, step))
+                if not steps:
+                    self.refused = c  # (not named; written where it is closest: written_choice)
                 break
             # a further effect's step, bootstrapped over HOLDOUT against the model before it
             step_pm = shrink_uncertainty(self.resid_of(model), self.resid_of(c), floor,
@@ -823,11 +827,20 @@ class AxisSearch:
                 rival_name = "identify's model of FIT"
             except (DataError, SolverError):
                 rival = None
+        best = (own, name, r_own)
         if rival is not None:
             r = rms(self.resid_of(rival))
             if r < r_own:
-                return rival, rival_name, r
-        return own, name, r_own
+                best = (rival, rival_name, r)
+        if model is None and self.refused is not None:
+            # a form that carries further past FIT (a larger stroke held out) but fits
+            # FIT no closer: not named, and written where it is the closest on HOLDOUT,
+            # said so (the figure is the file's, chosen on HOLDOUT as the rival is)
+            r = rms(self.resid_of(self.refused))
+            if r < best[2]:
+                best = (self.refused, f"{self.refused.effect}'s form (not named: it fits "
+                        "FIT no closer, an extrapolation, not an effect FIT shows)", r)
+        return best
 
 
 def _decide(ranking: list[Doc], steps: list[Doc], g_before: float, nf: float, fit: Record,
