@@ -474,25 +474,15 @@ class AxisSearch:
         steps: list[dict[str, Any]] = []
         model: Fitted | None = None
         r_cur = self.r_before
-        # (every candidate stays in: one that explains nothing on its own, as creep
-        # beside a larger coupling, can show once the larger one is modelled)
+        # (all stay in: creep that explains nothing alone shows once a coupling is in)
         pool = {e: cands[e] for e in self.testable}
         # (a, b): b fitted on top of a, and its held-out RMS (the pairs)
         tried: dict[tuple[str, str], tuple[Fitted, float]] = {}
         partner: str | None = None  # the second of a pair its first joined for: next
         while pool:
-            # (a step that fits FIT no closer than the model before it: not considered)
-            shown = {e2: c2 for e2, c2 in pool.items() if self.shows_on_fit(c2, model)}
-            if partner is not None and partner in pool:
-                e, c = partner, pool[partner]
-                if e not in shown:
-                    break  # the pair's second adds nothing on FIT to its first
-            elif shown:
-                e, c = min(shown.items(), key=lambda kv: scores[kv[0]])
-            elif steps:
+            if (nxt := self.next_try(pool, model, bool(steps), partner)) is None:
                 break
-            else:
-                e, c = min(pool.items(), key=lambda kv: scores[kv[0]])  # (a pair's, maybe)
+            e, c = nxt
             g_cur, g_new = gap_above_floor(r_cur, floor), gap_above_floor(scores[e], floor)
             need = (50.0 if g_before <= 0.5 * floor else FIRST_SHRINK_PCT) if not steps \
                 else further_need(g_cur, floor)
@@ -510,10 +500,7 @@ class AxisSearch:
                         f"for; it closes >= {need:.0f} % of what was left")
             if not (_significant(r_cur, scores[e], floor, self.n) and step >= need):
                 break
-            if need > 0.0 and not self.shows_on_fit(c, model):
-                self.notes.append(self.fit_note(c, model, step))
-                if not steps:
-                    self.refused = c  # (not named; written where it is closest: written_choice)
+            if need > 0.0 and self.unshown(c, model, step, first=not steps):
                 break
             # a further effect's step, bootstrapped over HOLDOUT against the model before it
             step_pm = shrink_uncertainty(self.resid_of(model), self.resid_of(c), floor,
@@ -560,6 +547,20 @@ class AxisSearch:
         self.notes.extend(filter(None, [delay_shape(steps)]))  # a delay's lag, said
         return steps, model
 
+    def next_try(self, pool: dict[str, Fitted], model: Fitted | None, kept: bool,
+                 partner: str | None) -> tuple[str, Fitted] | None:
+        """The candidate forward selection tries next: the partner a pair's first
+        joined for, else the closest on HOLDOUT of those that fit FIT closer than
+        ``model`` (``shows_on_fit``); with none kept yet and none such, the closest of
+        all (a pair may take it). None: nothing to try."""
+        shown = {e: c for e, c in pool.items() if self.shows_on_fit(c, model)}
+        if partner is not None and partner in pool:
+            # (the pair's second must add something on FIT to its first)
+            return (partner, pool[partner]) if partner in shown else None
+        if shown:
+            return min(shown.items(), key=lambda kv: self.scores[kv[0]])
+        return None if kept else min(pool.items(), key=lambda kv: self.scores[kv[0]])
+
     def shows_on_fit(self, c: Fitted, before: Fitted | None) -> bool:
         """Whether ``c`` fits FIT clearly closer than ``before`` (None: the sim fitted
         on FIT), by what ``_significant`` asks of a held-out step, judged with FIT's own
@@ -579,6 +580,17 @@ class AxisSearch:
         b = (before or self.base).fit_rms_um
         return bool(np.isfinite(c.fit_rms_um)) and _significant(
             b, c.fit_rms_um, self.nf_fit, len(self.fit.t))
+
+    def unshown(self, c: Fitted, before: Fitted | None, step: float, first: bool) -> bool:
+        """Whether ``c``, which passed the held-out rules with ``step`` %, fits FIT no
+        closer than ``before`` (``shows_on_fit``): then it is not kept, the reason says
+        why, and as the first effect it is the form ``written_choice`` weighs."""
+        if self.shows_on_fit(c, before):
+            return False
+        self.notes.append(self.fit_note(c, before, step))
+        if first:
+            self.refused = c
+        return True
 
     def fit_note(self, c: Fitted, before: Fitted | None, step: float) -> str:
         """Why ``c``, closer on HOLDOUT, was not kept (``shows_on_fit``)."""
