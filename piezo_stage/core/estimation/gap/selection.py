@@ -274,6 +274,7 @@ class AxisSearch:
         for rec in (fit, self.scored):
             check_identifiable(rec.v[axis], rec.source)
         self.fit, self.holdout, self.axis, self.history = fit, holdout, axis, history
+        self.nf_fit = noise_floor(fit.w[axis])  # FIT's own noise (shows_on_fit)
         self.base_model, self.base_effects = base_model, base_effects
         # the limits of the models written (diagnose gives those of every axis)
         self.limits_V = voltage_limits_for([fit.v[axis], holdout.v[axis]], limits_V)
@@ -575,8 +576,6 @@ class AxisSearch:
         FIT, where a law refitted on FIT's few seconds of it fits FIT as closely."""
         if self.history:
             return True
-        if not hasattr(self, "nf_fit"):
-            self.nf_fit = noise_floor(self.fit.w[self.axis])
         b = (before or self.base).fit_rms_um
         return bool(np.isfinite(c.fit_rms_um)) and _significant(
             b, c.fit_rms_um, self.nf_fit, len(self.fit.t))
