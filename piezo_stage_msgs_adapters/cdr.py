@@ -136,6 +136,7 @@ def _joint_state_layout(frame_id: str, names: tuple, counts: tuple):
 
 
 _STAMP_LE = struct.Struct("<iI")
+_XYZ_LE = struct.Struct("<3d")
 
 
 def encode_joint_state(ns: int, frame_id: str, names, position=(), velocity=(),
@@ -194,16 +195,28 @@ def decode_joint_state(data: bytes | bytearray | memoryview):
     return ns, frame, names, r.double_seq(), r.double_seq(), r.double_seq()
 
 
+@functools.lru_cache(maxsize=64)
+def _point_stamped_layout(frame_id: str) -> tuple[bytes, int]:
+    """Template bytes (zero stamp and values) of a PointStamped with this frame, and
+    the offset of its x, y, z: encoding is then a copy and two packs."""
+    w = _Writer()
+    w.header(0, frame_id)
+    w.doubles(0.0, 0.0, 0.0)
+    template = w.bytes()
+    return template, len(template) - 24
+
+
 def encode_point_stamped(ns: int, frame_id: str, x: float, y: float, z: float) -> bytes:
     """geometry_msgs/msg/PointStamped (also the layout of Vector3Stamped) as CDR bytes."""
-    w = _Writer()
-    w.header(ns, frame_id)
-    w.doubles(x, y, z)
-    return w.bytes()
+    template, at = _point_stamped_layout(frame_id)
+    buf = bytearray(template)
+    ns = int(ns)
+    _STAMP_LE.pack_into(buf, 4, ns // 1_000_000_000, ns % 1_000_000_000)
+    _XYZ_LE.pack_into(buf, at, x, y, z)
+    return bytes(buf)
 
 
 _STAMPED_HEAD = struct.Struct("<iII")  # stamp (sec, nanosec), the frame_id's length
-_XYZ_LE = struct.Struct("<3d")
 
 
 def decode_point_stamped(data: bytes):

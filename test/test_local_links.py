@@ -183,3 +183,76 @@ def test_the_type_support_a_node_needs_is_loaded_before_it_joins_the_graph(ros_e
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["before"] == [False] and out["after"] == [True, True, True], out
     assert out["n"] > 10, out
+
+
+ORDER_PROBE = r"""
+import json, time, rclpy
+from rclpy.node import Node
+from geometry_msgs.msg import Vector3Stamped
+from std_msgs.msg import String
+from piezo_stage.nodes._common import QOS_DATA, QOS_EVENTS
+from piezo_stage.nodes._executor import LeanExecutor, LeanNode, hot_subscription
+from piezo_stage_msgs_adapters import voltage_cdr
+
+rclpy.init()
+ROUNDS = 60
+
+
+class Announcer(LeanNode, Node):
+    # as the driver: each round an announcement on a latched topic (the middleware),
+    # then the data that follows it on a linked one
+    def __init__(self):
+        super().__init__("announcer", namespace="/order")
+        self.ev = self.create_publisher(String, "ev", QOS_EVENTS)
+        self.cmd = self.create_publisher(Vector3Stamped, "cmd", QOS_DATA)
+        self.k = 0
+        hot_subscription(self, String, "back", self.on_back, QOS_DATA)
+
+    def send(self):
+        self.ev.publish(String(data=str(self.k)))
+        self.cmd.publish(voltage_cdr(10**9 + self.k, {"x": 0.0, "y": 0.0}))
+
+    def on_back(self, msg):
+        if self.k < ROUNDS:
+            self.k += 1
+            self.send()
+
+
+class Follower(LeanNode, Node):
+    def __init__(self):
+        super().__init__("follower", namespace="/order")
+        self.last_ev, self.seen, self.rounds = None, [], 0
+        self.back = self.create_publisher(String, "back", QOS_DATA)
+        hot_subscription(self, String, "ev", self.on_ev, QOS_EVENTS)
+        hot_subscription(self, Vector3Stamped, "cmd", self.on_cmd, QOS_DATA, raw=True)
+
+    def on_ev(self, msg):
+        self.last_ev = int(msg.data)
+
+    def on_cmd(self, data):
+        self.seen.append(self.last_ev)  # the announcement this datum follows
+        self.back.publish(String(data="next"))
+
+
+a, b = Announcer(), Follower()
+ex = LeanExecutor([a, b])
+a.send()
+end = time.monotonic() + 30
+while len(b.seen) <= ROUNDS and time.monotonic() < end:
+    ex.spin_once(0.05)
+print(json.dumps({"seen": b.seen}))
+"""
+
+
+def test_an_announcement_on_the_middleware_reaches_its_composed_reader_before_the_data(
+        ros_env):
+    """Composed hops are handed over several to a pass, the middleware asked between
+    them only now and then; a composed node's message on a topic another composed node
+    reads from the middleware (a latched one: the driver's state) is taken before
+    the linked data published after it (``LocalLinks.sent_on_middleware``)."""
+    pytest.importorskip("rclpy")
+    r = subprocess.run([sys.executable, "-c", ORDER_PROBE], env=ros_env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    seen = json.loads(r.stdout.strip().splitlines()[-1])["seen"]
+    assert seen == list(range(61)), seen

@@ -55,6 +55,11 @@ SLOW_PERIOD_S = 0.05  # the base executor's turn (timers, services, other topics
 IDLE_SLOW_MAX = 16    # callbacks the base executor may serve in a pass nothing came in
 IDLE_WAKE_S = 0.02    # with nothing arriving, a node still wakes this often (its stops)
 TAKE_LIMIT = 256      # messages per subscription per pass
+# composed: while the composed nodes pass a sample along, the middleware's readers are
+# asked at least this often (what other processes send: moves, phases), and at once
+# after a composed node published where another composed node reads the middleware
+MIDDLEWARE_POLL_S = 0.0005
+LOCAL_HOPS = 3        # hops handed over in one pass (the loop's three)
 
 
 class LeanLoop(CallbackGroup):
@@ -99,7 +104,12 @@ class LocalLinks:
     order, as the bytes or the message object that was published (converted where the
     subscriber asked for the other form). On the middleware a message between two
     nodes of one process is a write into the reader's history, a wake of the wait set
-    and a take; here it is a call, in the pass that follows the one it was sent in.
+    and a take; here it is a call. A pass hands over up to ``LOCAL_HOPS`` hops (what a
+    callback publishes is handed over after the callbacks before it), and asks the
+    middleware between them at least every ``MIDDLEWARE_POLL_S`` and at once after a
+    composed node published where another composed node reads the middleware (a
+    latched topic: the driver's state comes before the data that follows it). Asking
+    each subscription at every hop cost a sixth of a lockstep loop's time.
 
     What a linked subscriber no longer hears is another process publishing on its
     topic: the loop's links (joint_states, reference, command) have one publisher each
@@ -110,6 +120,10 @@ class LocalLinks:
 
     def __init__(self) -> None:
         self.queue: deque = deque()  # (reader, message) in publish order
+        self._flagged: weakref.WeakSet = weakref.WeakSet()
+        # a composed node published on a topic that another composed node takes from
+        # the middleware (a latched one: the driver's state): take it before going on
+        self.sent_on_middleware = False
 
     def link(self, nodes: Sequence[Node]) -> int:
         """Link every per-sample subscription of ``nodes`` that another of them
@@ -133,7 +147,25 @@ class LocalLinks:
                     self._attach(p, reader)
                 node.destroy_subscription(sub)
                 linked += 1
+        for node in nodes:  # per-sample topics that stay on the middleware
+            for sub in node.subscriptions:
+                if isinstance(sub.callback_group, LeanLoop):
+                    for n, p in pubs:
+                        if n is not node and p.topic_name == sub.topic_name and \
+                                p not in self._flagged:
+                            self._flag(p)
         return linked
+
+    def _flag(self, pub: Publisher) -> None:
+        """``pub``'s messages reach a composed node through the middleware: after each,
+        the executor's next pass asks the middleware first (publish order kept)."""
+        send = pub.publish
+        self._flagged.add(pub)
+
+        def publish(msg: Any) -> None:
+            send(msg)
+            self.sent_on_middleware = True
+        pub.publish = publish  # type: ignore[method-assign]
 
     def _attach(self, pub: Publisher, reader: LocalReader) -> None:
         readers = LOCAL_READERS.setdefault(pub, [])
@@ -149,9 +181,9 @@ class LocalLinks:
 
     def deliver(self) -> int:
         """Hand over what was queued before this call (what those callbacks publish
-        waits for the next pass, after the middleware's messages have been taken: a
-        driver's state announcement still comes before the data that follows it);
-        the number handed over."""
+        waits for the next call: the executor asks the middleware first where a
+        composed node published to it, ``sent_on_middleware``); the number handed
+        over."""
         n = len(self.queue)
         for _ in range(n):
             reader, msg = self.queue.popleft()
@@ -284,7 +316,8 @@ class LeanExecutor(Executor):
     the driver, with no process woken and no middleware between them. Each pass takes
     what the middleware brought, each node's subscriptions in the order it made them
     (its driver's ``state`` before its data, as alone), then what the composed nodes
-    sent each other before it. A composed set wakes for every message
+    sent each other (``LocalLinks``: the middleware is asked between hops only now and
+    then, and whenever a composed node published to it). A composed set wakes for every message
     (``lean_take_at_tick`` is a lone driver's) and batches nothing (``lean_batch_s``
     nodes run alone)."""
 
@@ -306,6 +339,7 @@ class LeanExecutor(Executor):
         self._stack = ExitStack()
         self._ws = None
         self._last_slow = 0.0
+        self._last_take = 0.0
 
     # -- the base executor's turn -----------------------------------------------------
     def _slow_once(self, timeout_sec: float = 0.0) -> bool:
@@ -384,7 +418,18 @@ class LeanExecutor(Executor):
             self._ws.wait(int(timeout * 1e9))
         elif timeout > 0:
             time.sleep(timeout)
-        busy = self.take_all() + self.local.deliver()
+        local = self.local
+        if local.queue and not local.sent_on_middleware and \
+                time.monotonic() - self._last_take < MIDDLEWARE_POLL_S:
+            busy = 0  # the composed nodes' hops first; the middleware shortly
+        else:
+            local.sent_on_middleware = False
+            self._last_take = time.monotonic()
+            busy = self.take_all()
+        for _ in range(LOCAL_HOPS if local.queue else 0):
+            busy += local.deliver()
+            if not local.queue or local.sent_on_middleware:
+                break
         now = time.monotonic()
         ticked = deadline is not None and now >= deadline
         if ticked:

@@ -207,11 +207,16 @@ class StageDriver(LeanNode, LifecycleNode):
         if self.gate.holding():  # consumers still matching
             self.lean_deadline = time.monotonic() + 0.01
             return
-        out = loop.on_tick(time.monotonic(), lambda: self.get_clock().now().nanoseconds,
-                           self.d.link)
+        out = loop.on_tick(time.monotonic(), self.ros_now_ns, self.d.link)
         self.follow(out)
         if self.d.loop is not None:  # (a hardware fault may have closed it)
             self.lean_deadline = out.deadline
+
+    def ros_now_ns(self) -> int:
+        """The node's ROS time [ns]: the system clock's, read directly (rclpy's ``now()``
+        builds a Time: 4.5 us here, a tick's), unless simulated time is active."""
+        clock = self.get_clock()
+        return clock.now().nanoseconds if clock.ros_time_is_active else time.time_ns()
 
     def on_command(self, msg: bytes, info: MessageInfo) -> None:
         loop = self.d.loop
@@ -233,8 +238,7 @@ class StageDriver(LeanNode, LifecycleNode):
                                            "for the watch's diagnosis of the window ending "
                                            "there")
                 return
-        recv = 0 if self.lock else (info.get("received_timestamp")
-                                    or self.get_clock().now().nanoseconds)
+        recv = 0 if self.lock else (info.get("received_timestamp") or self.ros_now_ns())
         self.follow(loop.on_command(ns, v, recv, self.d.link))
 
     def on_hold(self, msg: Header) -> None:

@@ -190,7 +190,7 @@ def interp_axes(tau: float, t: np.ndarray, w: PerAxis[np.ndarray],
     ``held``: one search a sample for every axis (np.interp per axis and sample cost
     the real-time loop a tenth of its time)."""
     n = t.size
-    k = int(np.searchsorted(t, tau, side="right"))
+    k = int(t.searchsorted(tau, side="right"))  # (the method: no dispatch wrapper)
     if k <= 0 or k >= n:
         i = 0 if k <= 0 else n - 1
         return {a: float(w[a][i]) if a in w else held[a] for a in held}
