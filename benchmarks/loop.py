@@ -42,11 +42,12 @@ def events_ring_rate(env, steps=5000):
     return float(r.stdout.split()[0])
 
 
-def loop_run(env, steps, foxglove_port=None, compose=None):
+def loop_run(env, steps, foxglove_port=None, compose=None, hop_times=None):
     """One lockstep run with the recorder: (steps/s, median ms, p99 ms, lost per topic,
     steal fraction), or (None, log tail) when the run failed. With ``foxglove_port``
     the live view runs too (its client is the caller's); ``compose``: the loop's nodes
-    in one process ("loop", the default) or each alone ("none")."""
+    in one process ("loop", the default) or each alone ("none"); ``hop_times``: a file
+    the composed process writes its per-hop costs to (``_executor.HopTimes``)."""
     import contextlib
     import os
     import re
@@ -60,7 +61,8 @@ def loop_run(env, steps, foxglove_port=None, compose=None):
          "feedforward": {"model_file": default_config("stage_model.yaml")}}
     launch = Launch(default_config("stage.yaml"), LaunchOptions(record=bag, overrides=o,
         nodes=["stage_driver", "feedforward", "controller", "trajectory"],
-        foxglove_port=foxglove_port, compose=compose), env=env)
+        foxglove_port=foxglove_port, compose=compose),
+        env=dict(env, PIEZO_STAGE_HOP_TIMES=hop_times) if hop_times else env)
     log = tempfile.TemporaryFile("w+")
     c0 = cpu_ticks()
     with contextlib.redirect_stderr(log):
@@ -258,6 +260,7 @@ def _bench_loop(rep, rev, steps, runs):
          f"{vs[len(vs) // 2]:.2f} x ({vs[0]:.2f}-{vs[-1]:.2f})"),
         ("messages lost per loop topic, worst run (0: every message is in the bag)",
          str(lost)), *figures], "the medians")
+    hop_table(rep, env, steps, 1e6 / sorted(events)[len(events) // 2])
     rep.target(">= 1000 steps/s (median run)", med_rate >= 1000)
     rep.target("0 lost", not any(lost.values()))
     rep.target("composed >= 2 x apart (median pair)", vs[len(vs) // 2] >= 2)
@@ -267,3 +270,46 @@ def _bench_loop(rep, rev, steps, runs):
         rep.target(f"composed >= 2 x the code at {rev.label} (median pair)",
                    olds[len(olds) // 2] >= 2)
     return 0
+
+
+def hop_table(rep, env, steps, ring_us):
+    """One more composed run with the hops timed (``_executor.HopTimes``): per linked
+    topic, the subscriber's callback (its node's work and its own publishes) and the
+    publish that carries it (the middleware's send to the recorder and the other
+    processes), per step, beside the EventsExecutor ring's step (``ring_us``)."""
+    import json
+    import os
+    import tempfile
+    path = os.path.join(tempfile.mkdtemp(), "hops.json")
+    res, err = loop_run(env, steps, hop_times=path)
+    if res is None or not os.path.exists(path):
+        rep.fail("the timed loop run failed:\n" + str(err))
+        return
+    with open(path) as fh:
+        acc = json.load(fh)
+    step_us = 1e6 / res[0]
+    n = max(c for c, _ in acc.values())  # steps (the most frequent hop: one a step)
+    rows, work, sends = [], 0.0, 0.0
+    for key in sorted(acc):
+        kind, topic = key.split(" ", 1)
+        count, secs = acc[key]
+        us = 1e6 * secs / max(n, 1)
+        if kind == "callback":
+            work += us
+        else:
+            sends += us
+        rows.append((kind, topic, f"{count / max(n, 1):.2f}", f"{us:.1f} us"))
+    rep.table(("what", "topic", "a step", "time a step"), rows,
+              f"one composed run of {steps} steps with its hops timed: each linked "
+              "callback (its node's work and the publishes it makes) and each publish "
+              "(the middleware's send, and the queue of a linked reader)")
+    rep.figures([
+        ("step period of the timed run", f"{step_us:.1f} us"),
+        ("the three nodes' callbacks, a step (their publishes included)",
+         f"{work:.1f} us = {work / step_us:.0%} of the step"),
+        ("every publish, a step (the middleware's sends)",
+         f"{sends:.1f} us = {sends / step_us:.0%} of the step"),
+        ("the callbacks without their publishes (the nodes' own work)",
+         f"{work - sends:.1f} us"),
+        ("the EventsExecutor ring's step (3 hops, empty callbacks)", f"{ring_us:.1f} us"),
+    ], "where a composed step's time goes")

@@ -328,3 +328,36 @@ def _with_block(tmp_path, block: dict) -> str:
     path = tmp_path / "plant.yaml"
     path.write_text(yaml.safe_dump(doc))
     return str(path)
+
+
+WARM_PROBE = r"""
+import json, sys
+from piezo_stage.core.model import _kernels
+from piezo_stage.drivers import SimBackend
+backend = SimBackend(sys.argv[1], 1000.0)  # warms its plant (Plant.warm)
+def compiled():
+    return {n: len(k.signatures) for n, k in vars(_kernels).items()
+            if hasattr(k, "signatures")}
+before, modules = compiled(), set(sys.modules)
+for _ in range(600):  # past the change at 0.5 s
+    backend.step(10.0, 0.0)
+print(json.dumps({"compiled": {n: c for n, c in compiled().items() if c != before[n]},
+                  "imported": sorted(set(sys.modules) - modules)}))
+"""
+
+
+def test_a_simulated_stage_warms_its_scheduled_changes_before_the_first_sample(tmp_path):
+    """The stage driver's simulated stage compiles and imports what its scheduled
+    changes run before its first sample: a real-time run stalled 0.5 s at a change
+    (scipy.signal's import and the creep's kernels: the driver faulted on stale
+    commands). Stepping past the change compiles and imports nothing."""
+    import json
+    import subprocess
+    import sys
+    path = _with_block(tmp_path, {"changes": [
+        {"at_s": 0.5, "effects": {"creep": {"enabled": True, "gamma": 0.06}}}]})
+    r = subprocess.run([sys.executable, "-c", WARM_PROBE, path], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out == {"compiled": {}, "imported": []}, out

@@ -58,8 +58,8 @@ class SimBackend:
         if seed is not None and seed >= 0:
             cfg.seed = int(seed)
         self.config = cfg
-        Plant(cfg, rate_hz).step(0.0, 0.0)  # compile the kernels now, not at the 1st tick
         self.plant = Plant(cfg, rate_hz)
+        self.plant.warm()  # the kernels compiled now, not at the first tick or a change
         self.rate_hz = rate_hz
         self.limits = {a: tuple(cfg.model.voltage_limits) for a in ("x", "y")}
         self.slew_V_per_s = {a: cfg.slew_V_per_s for a in ("x", "y")}

@@ -20,6 +20,7 @@ rclpy lacks); the middleware still carries them to every other process.
 from __future__ import annotations
 
 import gc
+import os
 import signal
 import sys
 import time
@@ -60,6 +61,7 @@ TAKE_LIMIT = 256      # messages per subscription per pass
 # after a composed node published where another composed node reads the middleware
 MIDDLEWARE_POLL_S = 0.0005
 LOCAL_HOPS = 3        # hops handed over in one pass (the loop's three)
+HOP_TIMES_ENV = "PIEZO_STAGE_HOP_TIMES"  # a file: a composed process's per-hop costs
 
 
 class LeanLoop(CallbackGroup):
@@ -121,6 +123,8 @@ class LocalLinks:
     def __init__(self) -> None:
         self.queue: deque = deque()  # (reader, message) in publish order
         self._flagged: weakref.WeakSet = weakref.WeakSet()
+        path = os.environ.get(HOP_TIMES_ENV)
+        self.times = HopTimes(path) if path else None
         # a composed node published on a topic that another composed node takes from
         # the middleware (a latched one: the driver's state): take it before going on
         self.sent_on_middleware = False
@@ -143,6 +147,9 @@ class LocalLinks:
                 if not peers:
                     continue
                 reader = LocalReader(sub)
+                if self.times is not None:
+                    reader.callback = self.times.timed("callback", sub.topic_name,
+                                                       reader.callback)
                 for p in peers:
                     self._attach(p, reader)
                 node.destroy_subscription(sub)
@@ -154,6 +161,10 @@ class LocalLinks:
                         if n is not node and p.topic_name == sub.topic_name and \
                                 p not in self._flagged:
                             self._flag(p)
+        if self.times is not None:  # every publish of the composed nodes, timed
+            for _, p in pubs:
+                p.publish = self.times.timed(  # type: ignore[method-assign]
+                    "publish", p.topic_name, p.publish)
         return linked
 
     def _flag(self, pub: Publisher) -> None:
@@ -189,6 +200,36 @@ class LocalLinks:
             reader, msg = self.queue.popleft()
             reader.take(msg)
         return n
+
+
+class HopTimes:
+    """The composed nodes' per-hop costs, for ``bench loop`` (``HOP_TIMES_ENV`` names
+    the file the process writes them to at its end): each linked callback's time (the
+    node's work and its own publishes) and each publish's (the middleware's send, and
+    the queue for a linked reader), per topic: the count and the seconds in all."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.acc: dict[str, list] = {}  # "callback /stage/reference" -> [count, seconds]
+
+    def timed(self, kind: str, topic: str, fn: Callable[..., None]) -> Callable[..., None]:
+        acc = self.acc.setdefault(f"{kind} {topic}", [0, 0.0])
+        clock = time.perf_counter
+
+        def call(*args: Any) -> None:
+            t = clock()
+            fn(*args)
+            acc[1] += clock() - t
+            acc[0] += 1
+        return call
+
+    def write(self) -> None:
+        """The figures as JSON ({"callback TOPIC": [count, seconds], ...}), written whole."""
+        import json
+        tmp = f"{self.path}.tmp"
+        with open(tmp, "w") as fh:
+            json.dump(self.acc, fh)
+        os.replace(tmp, self.path)
 
 
 class LocalReader:
@@ -480,6 +521,8 @@ class LeanExecutor(Executor):
                 pass
         finally:
             self._stack.close()
+            if self.local.times is not None and self.local.times.acc:
+                self.local.times.write()  # (a composed process: one that timed hops)
             gc.unfreeze()  # teardown as usual: the middleware's objects are collected
         raise ExternalShutdownException()
 

@@ -200,6 +200,16 @@ class Plant:
             self._effects[a] = built
         self._has_effects = any(self._effects[a] for a in AXES)
 
+    def warm(self) -> None:
+        """Compile (or load from the cache) every kernel this plant will run, its
+        scheduled changes' too, on a copy: a change's first use otherwise stalls the
+        sample it comes at (0.5 s here: a real-time driver faulted on stale commands).
+        The plant itself is not stepped."""
+        import dataclasses
+        now = [dict(c, at_s=0.0) for c in self.config.changes]
+        Plant(dataclasses.replace(self.config, changes=now), self.command_rate_hz).step(
+            0.0, 0.0)
+
     def _apply_change(self, change: Params) -> None:
         """A scheduled change (PlantConfig.changes) from now on."""
         for name, p in change["effects"].items():
