@@ -219,9 +219,9 @@ def _group(pgid: int) -> list[int]:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_a_run_that_ends_mid_diagnosis_ends_the_worker_and_its_axes_processes():
     """The gap node's worker (nodes/_watch.py) closed while a two-axis diagnosis runs
-    (a process forked per axis): the worker and both axes' processes end, and the pool's
-    thread with them (an axis's process left behind held the worker's pipe open: the
-    node could not exit, CI's `launch --watch` hung)."""
+    (a process forked per axis, all at SCHED_IDLE): the worker and both axes' processes
+    end, and the pool's thread with them (an axis's process left behind held the
+    worker's pipe open: the node could not exit, CI's `launch --watch` hung)."""
     import time
 
     from piezo_stage.apps.studies.watch_cases import default_voltages
@@ -243,6 +243,15 @@ def test_a_run_that_ends_mid_diagnosis_ends_the_worker_and_its_axes_processes():
         assert worker.done() is None, "the diagnosis ended before its axes were seen"
         time.sleep(0.05)
     assert pid is not None and len(_group(pid)) >= 3, "no worker with two axes' processes"
+    # the worker and its axes run where a CPU would idle: never ahead of the set's
+    # own threads (nodes/_watch.py yield_to_the_loop)
+    policies = {}
+    for q in _group(pid):
+        try:
+            policies[q] = os.sched_getscheduler(q)
+        except ProcessLookupError:  # (ended meanwhile)
+            continue
+    assert policies and set(policies.values()) == {os.SCHED_IDLE}, policies
     manager = worker.pool._executor_manager_thread
     worker.close()
     end = time.monotonic() + 20

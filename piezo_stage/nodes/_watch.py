@@ -23,7 +23,22 @@ def _ready() -> None:
     from piezo_stage.core.workers import quiet_worker
     quiet_worker()
     os.setpgrp()  # its axes' processes join its group: ended with it (``close``)
+    yield_to_the_loop()
     import piezo_stage.core.estimation.gap  # noqa: F401
+
+
+def yield_to_the_loop() -> None:
+    """The worker (and the axes' processes it forks, which inherit it) runs only where a
+    CPU would otherwise idle (Linux's SCHED_IDLE; elsewhere the lowest nice): on a
+    2-core host a diagnosis at normal priority took the CPU the set's own threads
+    wanted (in real time at 500 Hz the command lag's p99 rose 0.96 -> 1.33 ms)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        try:
+            os.nice(19)
+        except OSError:
+            pass
 
 
 class WatchWorker:
