@@ -24,6 +24,7 @@ from typing import Any
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PointStamped, Vector3Stamped
+from rclpy.clock import ROSClock
 from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock
@@ -216,7 +217,9 @@ class StageDriver(LeanNode, LifecycleNode):
         """The node's ROS time [ns]: the system clock's, read directly (rclpy's ``now()``
         builds a Time: 4.5 us here, a tick's), unless simulated time is active."""
         clock = self.get_clock()
-        return clock.now().nanoseconds if clock.ros_time_is_active else time.time_ns()
+        if isinstance(clock, ROSClock) and clock.ros_time_is_active:
+            return clock.now().nanoseconds
+        return time.time_ns()
 
     def on_command(self, msg: bytes, info: MessageInfo) -> None:
         loop = self.d.loop
