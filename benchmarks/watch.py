@@ -134,24 +134,13 @@ def realtime_runs(rep, rate_hz: float = 500.0, seconds: float = 60.0,
 
 
 def driver_figures(bag: str) -> dict:
-    """The stage driver's last /diagnostics values in ``bag``: missed ticks, late
-    commands, the command lag's p99 [ms], and the lowest capacity margin it reported."""
-    from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.serialization import deserialize_message
-
-    from piezo_stage.io.bag import iter_messages
-    last: dict[str, str] = {}
-    margins = []
-    for topic, _, _, data in iter_messages(bag):
-        if topic != "/diagnostics":
-            continue
-        for st in deserialize_message(data, DiagnosticArray).status:
-            if "stage_driver" in st.name:
-                kv = {k.key: k.value for k in st.values}
-                if "missed_ticks" in kv:
-                    last = kv
-                if "capacity_margin" in kv:
-                    margins.append(float(kv["capacity_margin"]))
+    """The stage driver's last /diagnostics values in ``bag`` (``read_run``'s reports):
+    missed ticks, late commands, the command lag's p99 [ms], and the lowest capacity
+    margin it reported."""
+    from piezo_stage.io.run_bag import read_run
+    reports = read_run(bag).driver_reports
+    last = next((kv for kv in reversed(reports) if "missed_ticks" in kv), {})
+    margins = [float(kv["capacity_margin"]) for kv in reports if "capacity_margin" in kv]
     return {"missed_ticks": int(last.get("missed_ticks", -1)),
             "late_commands": int(last.get("late_commands", -1)),
             "lag_p99_ms": float(last.get("command_lag_p99_ms", "nan")),
