@@ -139,7 +139,7 @@ def driver_figures(bag: str) -> dict:
     margin it reported."""
     from piezo_stage.io.run_bag import read_run
     reports = read_run(bag).driver_reports
-    last = next((kv for kv in reversed(reports) if "missed_ticks" in kv), {})
+    last: dict[str, str] = next((kv for kv in reversed(reports) if "missed_ticks" in kv), {})
     margins = [float(kv["capacity_margin"]) for kv in reports if "capacity_margin" in kv]
     return {"missed_ticks": int(last.get("missed_ticks", -1)),
             "late_commands": int(last.get("late_commands", -1)),
