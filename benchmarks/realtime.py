@@ -20,6 +20,7 @@ import tempfile
 
 import numpy as np
 
+from benchmarks.set_cpu import SetCpu, describe
 from piezo_stage.io.run_bag import read_run
 
 DT_NS = 1_000_000  # the sample period; set to the rate the host holds (bench_realtime)
@@ -42,13 +43,44 @@ def _run(mode: str, track_s: float, env: dict, bag: str, rate: float, compose=No
         nodes=["stage_driver", "feedforward", "controller", "trajectory"], armed_s=track_s + 2.0,
         rate=rate, compose=compose if mode == "realtime" else None), env=env)
     c0 = cpu_ticks()
-    with HostPauseMonitor() as mon:
+    with HostPauseMonitor() as mon, SetCpu() as cpu:
         rc = launch.run(duration=900.0)
     c1 = cpu_ticks()
     if rc != 0:
         raise RuntimeError(f"the {mode} run failed: {launch.failed}")
     return (read_run(bag), (c1[1] - c0[1]) / max(1, c1[0] - c0[0]), mon.pauses,
-            launch.rate_hz())
+            launch.rate_hz(), cpu.per_sample(launch.rate_hz()))
+
+
+# the rates above the one chosen that the benchmark runs the set at anyway, without the
+# margin check, for BEYOND_S each: how far they are, and what holds them back
+BEYOND_HZ = (2000.0, 5000.0)
+BEYOND_S = 10.0
+
+
+def _beyond(rate: float, env: dict, bag: str) -> dict:
+    """The set of config/stage.yaml in real time (config/realtime.yaml: its trajectory,
+    recorded) at ``rate`` with no margin check, for BEYOND_S: what it held."""
+    from piezo_stage.launcher.launcher import Launch, LaunchOptions
+    from piezo_stage.paths import default_config
+    launch = Launch(default_config("stage.yaml"), LaunchOptions(
+        record=bag, rate=rate, overrides={"stage_driver": {"mode": "realtime",
+                                                           "min_margin": 0.0}}), env=env)
+    with SetCpu() as cpu:
+        rc = launch.run(duration=BEYOND_S)
+    run = read_run(bag)
+    d = run.driver
+    g = lambda k: float(d.get(k, "nan"))  # noqa: E731
+    # the driver's own counts: at a rate the host cannot hold the recorder falls behind
+    # and its bag lacks samples (its writers' history overwritten), so no gaps from it
+    samples, missed = g("samples"), g("missed_ticks")
+    us, whole, busy = cpu.per_sample(rate)
+    return {"rc": rc, "recorded_pct": 100 * len(run.t_ns) / max(samples, 1.0),
+            "missed_pct": 100 * missed / max(1.0, samples + missed),
+            "faults": len(run.state_times("faulted")), "lag_p99_ms": g("command_lag_p99_ms"),
+            "late": int(g("late_commands")) if d.get("late_commands") else 0,
+            "cpu_us": us, "whole_us": whole, "busy": busy,
+            "margin": g("capacity_margin")}
 
 
 # tracking samples this long after a host pause are set aside in the "in-guest" figure:
@@ -155,12 +187,15 @@ def bench_realtime(rep, track_s: float = 20.0, compose=None) -> int:
     out = {}
     from benchmarks.procs import progress_runs
     for mode in progress_runs(("realtime", "lockstep"), "bench realtime: runs"):
-        run, steal, pauses, rate = _run(mode, track_s, env, os.path.join(tmp, mode), rate,
-                                        compose)
+        run, steal, pauses, rate, cpu = _run(mode, track_s, env, os.path.join(tmp, mode),
+                                             rate, compose)
         global DT_NS
         DT_NS = int(round(1e9 / rate))
         out[mode] = figures(run, track_s, slew, pauses)
         out[mode]["steal"] = steal
+        out[mode]["cpu"] = cpu
+    beyond = {r: _beyond(r, env, os.path.join(tmp, f"beyond_{r:g}")) for r in BEYOND_HZ
+              if r > rate}
     rt, ls = out["realtime"], out["lockstep"]
     d = rt["driver"]
     g = lambda k: float(d.get(k, "nan"))  # noqa: E731
@@ -195,7 +230,22 @@ def bench_realtime(rep, track_s: float = 20.0, compose=None) -> int:
          f"{int(g('late_commands'))} = {late_pct:.3f} %; {rt['held']} = "
          f"{100 * rt['held'] / max(1, rt['samples']):.3f} %"),
         ("backlogs the reference rejoined the trajectory from (the feedforward's "
-         "rejoins: docs/realtime.md)", rt["rejoins"])], "real time")
+         "rejoins: docs/realtime.md)", rt["rejoins"]),
+        ("the set's CPU a sample, each process [us] (their CPU clocks, start-up left out)",
+         f"{rt['cpu'][1]:.0f} us: {describe(rt['cpu'][0])}; the host "
+         f"{rt['cpu'][2]:.2f} CPUs busy")], "real time")
+    if beyond:
+        rep.table(("rate", "missed ticks", "late commands", "faults", "sample -> command p99",
+                   "the set's measurement", "samples in the bag", "CPU a tick [us]",
+                   "host busy"),
+                  [(f"{r:g} Hz", f"{b['missed_pct']:.3f} %",
+                    b["late"], b["faults"], f"{b['lag_p99_ms']:.2f} ms",
+                    f"{b['margin']:.2f} x", f"{b['recorded_pct']:.1f} %",
+                    f"{b['whole_us']:.0f} ({describe(b['cpu_us'])})",
+                    f"{b['busy']:.2f} of {os.cpu_count()}")
+                   for r, b in beyond.items()],
+                  f"above it, with no margin check (config/realtime.yaml, recorded), "
+                  f"{BEYOND_S:g} s each")
     rep.table(("mode", "samples", "rms x / y", "max x / y", "start-up max error",
                "start-up motion", "largest step / slew limit", "lost"),
               [(name, f["samples"], f"{f['rms_um'][0]:.4f} / {f['rms_um'][1]:.4f} um",

@@ -205,3 +205,23 @@ def test_start_up_motion_is_the_fastest_move_before_arming_and_over_each_approac
     run.true_um = {}  # no true position (hardware): the measured one
     run.w_um[:, 0] = x
     assert startup_speed(run) == pytest.approx(4.0)
+
+
+def test_the_sets_cpu_a_sample_is_taken_over_the_stretch_its_processes_all_ran():
+    """bench realtime's CPU per process: the longest stretch with the same processes,
+    SETTLE_S in, over the samples it held; a process's command line names it."""
+    from benchmarks.set_cpu import SETTLE_S, SetCpu, _name
+    from piezo_stage.core.loop.capacity import HostCpu
+    c = SetCpu()
+    host = lambda t, ns: HostCpu({1: ns}, t, 2)  # noqa: E731
+    c.snaps = [(0.0, {"stage_driver": 0}, host(0.0, 0)),  # the container not yet up
+               (1.0, {"stage_driver": 10**8, "loop": 0}, host(1.0, 10**8)),
+               (1.0 + SETTLE_S, {"stage_driver": 3 * 10**8, "loop": 10**8}, host(4.0, 4 * 10**8)),
+               (3.0 + SETTLE_S, {"stage_driver": 7 * 10**8, "loop": 5 * 10**8},
+                host(6.0, 12 * 10**8))]
+    us, whole, busy = c.per_sample(1000.0)
+    # 2 s at 1 kHz: the driver 0.4 s of CPU, the container 0.4 s: 200 us a sample each
+    assert us == pytest.approx({"loop": 200.0, "stage_driver": 200.0})
+    assert whole == pytest.approx(400.0) and busy == pytest.approx(0.4)
+    import os
+    assert _name(os.getpid()) is None  # pytest is none of the set's
