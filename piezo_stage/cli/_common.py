@@ -126,6 +126,16 @@ def limits(text):
     return lo, hi
 
 
+def namespace(text):
+    """argparse type: a ROS namespace, fully qualified ("stage2" -> "/stage2")."""
+    from piezo_stage.core.errors import ConfigError
+    from piezo_stage.core.ros_names import fully_qualified_namespace
+    try:
+        return fully_qualified_namespace(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def port(text):
     """argparse type: a TCP port."""
     try:

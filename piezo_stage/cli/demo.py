@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from piezo_stage.cli._common import number
+from piezo_stage.cli._common import namespace, number
 
 HELP = "the main job: node set on the simulated stage"
 
@@ -14,7 +14,7 @@ def add_arguments(s):
     s.add_argument("--track", type=number(0, 600, lo_open=True), default=1.0,
                    help="tracking of the paper's 10 Hz "
                    "trajectory [s]")
-    s.add_argument("--namespace", default="/stage")
+    s.add_argument("--namespace", type=namespace, default="/stage")
 
 
 def main(args):

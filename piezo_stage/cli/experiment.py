@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 
-from piezo_stage.cli._common import number, param_overrides
+from piezo_stage.cli._common import namespace, number, param_overrides
 
 HELP = "the paper's control experiments through the node set"
 
@@ -34,7 +34,7 @@ def add_arguments(s):
     s.add_argument("--record", metavar="DIR", help="where the bags go (default "
                    "bags/<time>)")
     s.add_argument("--report", metavar="DIR", help="table, JSON and PNG figure")
-    s.add_argument("--namespace", default="/stage")
+    s.add_argument("--namespace", type=namespace, default="/stage")
     s.add_argument("--seed", type=number(0, 2**31 - 1, integer=True), metavar="N",
                    help="the simulated stage's noise seed of the first case (the next "
                    "cases N+1, N+2...): a repeat with another seed draws new noise "

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from piezo_stage.cli._common import COMPOSITIONS, number, param_overrides, port
+from piezo_stage.cli._common import COMPOSITIONS, namespace, number, param_overrides, port
 
 HELP = "start the ROS 2 node set"
 
@@ -14,7 +14,7 @@ def add_arguments(s):
                    help="run S seconds after the stage arms, on its own clock (lockstep: "
                    "sample time), then stop; the start-up is not counted (with "
                    "--managed, or without a driver: S seconds from the launch)")
-    s.add_argument("--namespace", default="/stage")
+    s.add_argument("--namespace", type=namespace, default="/stage")
     s.add_argument("--rate", type=_rate, metavar="HZ|auto",
                    help="the loop's control rate [Hz] (its three nodes' control_rate_hz), "
                    "or auto: real time at the configured rate where this host holds it "

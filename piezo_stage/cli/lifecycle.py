@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from piezo_stage.cli._common import number
+from piezo_stage.cli._common import namespace, number
 
 HELP = "read or set a managed node's lifecycle state (the stage driver's)"
 
@@ -15,7 +15,8 @@ def add_arguments(s):
                    "deactivate, cleanup, shutdown) or a state to reach (unconfigured, "
                    "inactive, active, finalized); none: print the state and the "
                    "transitions available")
-    s.add_argument("--namespace", default="/stage", help="for a relative node name")
+    s.add_argument("--namespace", type=namespace, default="/stage",
+                   help="for a relative node name")
     s.add_argument("--timeout", type=number(0, 600, lo_open=True), default=10.0,
                    metavar="S", help="how long to wait for the node's services [s]")
 

@@ -3,7 +3,7 @@ a vendor's ``MOV`` and ``ONT?`` would (piezo_stage.client underneath)."""
 
 from __future__ import annotations
 
-from piezo_stage.cli._common import number
+from piezo_stage.cli._common import namespace, number
 
 HELP = "move a running set's stage to X Y [um] and wait until it is on target"
 
@@ -22,7 +22,7 @@ def add_arguments(s):
                    "for [ms] (default: the stage's, on_target_window_ms)")
     s.add_argument("--timeout", type=number(0, 3600, lo_open=True), default=10.0,
                    metavar="S", help="seconds to wait for on target (exit 5 after)")
-    s.add_argument("--namespace", default="/stage", help="the set's namespace")
+    s.add_argument("--namespace", type=namespace, default="/stage", help="the set's namespace")
 
 
 def main(args):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from piezo_stage.cli._common import number
+from piezo_stage.cli._common import namespace, number
 from piezo_stage.core.errors import DataError
 
 HELP = "republish a recorded bag on its topics"
@@ -12,7 +12,8 @@ def add_arguments(s):
     s.add_argument("bag")
     s.add_argument("--rate", type=number(0, 1000), default=1.0,
                    help="playback speed (1: original timing; 0: as fast as possible)")
-    s.add_argument("--namespace", default=None, help="replace the recorded namespace")
+    s.add_argument("--namespace", type=namespace, default=None,
+                   help="replace the recorded namespace")
     s.add_argument("--duration", type=number(0, 10**7, lo_open=True), metavar="S",
                    help="replay the record's first S seconds (the record's time, "
                    "whatever --rate)")

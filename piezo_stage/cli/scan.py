@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-from piezo_stage.cli._common import number, pair
+from piezo_stage.cli._common import namespace, number, pair
 
 HELP = "a step scan on a running set: move, settle, dwell, next point (per-point CSV)"
 COLUMNS = ("point", "x_um", "y_um", "settle_ms", "x_mean_um", "y_mean_um", "x_std_um",
@@ -44,7 +44,7 @@ def add_arguments(s):
                    "BAG.points.csv)")
     s.add_argument("--out", default=None, metavar="CSV",
                    help="the per-point table (default: BAG.points.csv, or scan.csv)")
-    s.add_argument("--namespace", default="/stage", help="the set's namespace")
+    s.add_argument("--namespace", type=namespace, default="/stage", help="the set's namespace")
 
 
 def points(grid, size, center) -> list[tuple[float, float]]:

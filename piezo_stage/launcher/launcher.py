@@ -24,6 +24,7 @@ import time
 from dataclasses import dataclass
 
 from piezo_stage.core.errors import ConfigError, ModelError
+from piezo_stage.core.ros_names import fully_qualified_namespace
 from piezo_stage.core.types import Doc, Params
 from piezo_stage.io.capacity_file import CAPACITY_FILE_ENV, read_refusal
 from piezo_stage.io.files import load_yaml
@@ -311,7 +312,7 @@ class Launch:
         params = read_parameters(self.config_path)
         self.nodes = self._nodes_to_start(params, o)
         self.foxglove_port = foxglove_port
-        self.ns = namespace
+        self.ns = fully_qualified_namespace(namespace)  # "stage2": /stage2, as ROS launch
         self.record = record
         drv = {**params.get("stage_driver", {}), **(overrides or {}).get("stage_driver", {})}
         self.lockstep = self._checked_mode(config_path, params, drv, o)
