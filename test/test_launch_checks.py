@@ -304,6 +304,34 @@ def test_the_look_for_a_running_set_begun_early_names_it_or_answers_none(ros_env
         assert none is None
 
 
+def test_every_override_the_launcher_writes_is_the_value_rcl_reads():
+    """A node's overrides go on its command line as ``-p name:=VALUE`` rules, which rcl
+    reads as YAML: the empty string (``model_file: ""`` in config/stage.yaml) was
+    written ``model_file:=`` and refused, and "true" or "1.5" would have become a bool
+    or a float. Each value here goes through rcl's own parser and comes back as given."""
+    pytest.importorskip("rclpy")
+    import rclpy
+    from rclpy.context import Context
+
+    from piezo_stage.launcher.launcher import _fmt
+    values = {"empty": "", "word": "true", "number": "1.5", "quote": "it's",
+              "colon": "a: b", "comma": "x,y", "path": "/lab/model.yaml", "hash": "a #b",
+              "tilde": "~", "flag": False, "rate": 2000.0, "limits": [0.0, 150.0],
+              "names": ["a", ""]}
+    rules = [x for k, v in values.items() for x in ("-p", f"{k}:={_fmt(v)}")]
+    ctx = Context()
+    rclpy.init(args=["n", "--ros-args", *rules], context=ctx)
+    try:
+        node = rclpy.create_node("overrides", context=ctx, start_parameter_services=False,
+                                 automatically_declare_parameters_from_overrides=True)
+        got = {k: node.get_parameter(k).value for k in values}
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    assert {k: list(v) if isinstance(v, (list, tuple)) else v for k, v in got.items()} \
+        == values
+
+
 def test_compose_is_a_launch_option_refused_in_one_line_when_unknown():
     r = cli("launch", "--compose", "bogus", "--duration", "1")
     one_line_exit_2(r)
@@ -311,15 +339,18 @@ def test_compose_is_a_launch_option_refused_in_one_line_when_unknown():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("compose,says", [
-    (None, "controller + feedforward + stage_driver composed in one process"),
-    ("none", "each node in its own process")])
-def test_launch_compose_runs_the_loop_as_asked_and_says_so(tmp_path, ros_env, compose,
+@pytest.mark.parametrize("extra,says", [
+    ([], "controller + feedforward + stage_driver composed in one process"),
+    (["--compose", "none"], "each node in its own process"),
+    # the whole config as overrides: its empty strings (model_file, plant_config) went
+    # on the command line as '-p model_file:=', which rcl refused, and the set died
+    (["--params", os.path.join(CONFIG, "stage.yaml")],
+     "controller + feedforward + stage_driver composed in one process")])
+def test_launch_compose_runs_the_loop_as_asked_and_says_so(tmp_path, ros_env, extra,
                                                            says):
     """`launch --compose` chooses which of the loop's nodes share a process (the
     launcher's COMPOSE): the first line names it, and the set apart (none) arms, runs
     its samples and ends as the composed one does."""
-    extra = [] if compose is None else ["--compose", compose]
     bag = tmp_path / "bag"
     r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "launch", "--duration",
                         "0.5", "--record", str(bag), *extra], env=ros_env,

@@ -183,10 +183,20 @@ def check_files(params: Params) -> None:
 
 
 def _fmt(v):
+    """A parameter's value as a ``-p name:=VALUE`` rule: rcl reads VALUE as YAML, so
+    a string YAML would read as something else (``""``, ``true``, ``1.5``, ``[a]``,
+    ``a: b``) goes single-quoted (rcl refused ``model_file:=`` and the set died)."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (list, tuple)):
         return "[" + ",".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, str):
+        from piezo_stage.core.yaml_text import parse_yaml
+        try:
+            plain = parse_yaml(v, "parameter") == v and "," not in v and "\n" not in v
+        except Exception:  # noqa: BLE001 - anything YAML does not read back as v
+            plain = False
+        return v if plain else "'" + v.replace("'", "''") + "'"
     return str(v)
 
 
