@@ -332,6 +332,43 @@ def test_every_override_the_launcher_writes_is_the_value_rcl_reads():
         == values
 
 
+def test_a_look_whose_teardown_hangs_is_killed_and_the_launch_goes_on(tmp_path, ros_env):
+    """Fast DDS can deadlock while it destroys a participant that is discovering others
+    (launcher/running.py's Look): a look torn down in the launcher's own thread, while
+    the set's nodes joined the graph, once froze the launcher for good at a whole CPU.
+    The look is a process of its own: one that hangs after its answer (HANG_ENV, the
+    deadlock's stand-in) is killed ``LOOK_TEARDOWN_S`` after it, and a launch beside
+    it arms, runs and ends; no look process is left."""
+    pytest.importorskip("rclpy")
+    import time
+
+    from piezo_stage.launcher.running import HANG_ENV, LOOK_TEARDOWN_S, Look
+    d = int(ros_env["ROS_DOMAIN_ID"])
+    old = os.environ.get(HANG_ENV)
+    os.environ[HANG_ENV] = "1"
+    try:
+        look = Look("/hangs", d, wait_s=0.5)
+    finally:
+        if old is None:
+            del os.environ[HANG_ENV]
+    assert look.result() is None and look._proc.pid != os.getpid()
+    t0 = time.monotonic()
+    look.close()
+    assert time.monotonic() - t0 < LOOK_TEARDOWN_S + 2.0
+    assert look._proc.returncode == -signal.SIGKILL  # it hung: killed
+    fine = Look("/hangs", d, wait_s=0.5)  # without the stand-in: it ends by itself
+    assert fine.result() is None
+    fine.close()
+    assert fine._proc.returncode == 0
+    r = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "launch", "--duration",
+                        "0.3"], env=dict(ros_env, **{HANG_ENV: "1"}), capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-1500:]
+    left = subprocess.run(["pgrep", "-f", f"piezo_stage.launcher.running /stage {d} "],
+                          capture_output=True, text=True)
+    assert left.stdout.strip() == "", left.stdout
+
+
 def test_compose_is_a_launch_option_refused_in_one_line_when_unknown():
     r = cli("launch", "--compose", "bogus", "--duration", "1")
     one_line_exit_2(r)

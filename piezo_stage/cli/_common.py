@@ -178,13 +178,13 @@ COMPOSITIONS = ("loop", "command", "none")
 def client_transport() -> None:
     """A command that only talks to a running set (``lifecycle``, ``move``) keeps off
     Fast DDS's shared-memory transport, as the real-time set does
-    (launcher/launcher.py ``realtime_transport_env``; a transport configuration of the
+    (launcher/transport.py ``realtime_transport_env``; a transport configuration of the
     user's own is left as it is). Call before the command's participant is made: on a
     host with stale shared-memory ports from killed processes Fast DDS printed
     "RTPS_TRANSPORT_SHM Error ... open_and_lock_file failed" into the command's
     output, and its lines were no longer its own."""
     import os
 
-    from piezo_stage.launcher.launcher import realtime_transport_env
+    from piezo_stage.launcher.transport import realtime_transport_env
     for key, value in realtime_transport_env(os.environ).items():
         os.environ[key] = value

@@ -18,8 +18,7 @@ BUSY_WAIT_S = 6.0    # for its node names, when the domain shows other nodes
 
 
 def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
-                cancel: threading.Event | None = None, report=None,
-                looking: threading.Event | None = None) -> str | None:
+                cancel: threading.Event | None = None, report=None) -> str | None:
     """None when nothing runs in ``namespace`` on ``domain_id``; else who runs there
     ("host, pid N", or the node names when no driver announced itself). Up to
     ``wait_s`` for the graph to show the namespace's nodes (``BUSY_WAIT_S`` when it
@@ -29,8 +28,7 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
     clean start pays the whole wait once (on a lab's busy domain up to 6 s): ``Look``
     spends it beside the start-up. ``cancel`` set: it ends within 50 ms, with None.
     ``report``: called with the answer before the look's node is torn down (its
-    participant leaves the graph properly, a little after the answer is out).
-    ``looking``: set once the look's node is on the graph (its wait counts from then)."""
+    participant leaves the graph properly, a little after the answer is out)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.context import Context
@@ -53,8 +51,6 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
     node.create_subscription(DiagnosticArray, f"{ns}/state", on_state, QOS_EVENTS)
 
     def answer() -> str | None:
-        if looking is not None:
-            looking.set()
         t0 = time.monotonic()
         names: list = []
         limit = wait_s
@@ -96,51 +92,97 @@ def running_set(namespace: str, domain_id: int, wait_s: float = 2.0,
         rclpy.try_shutdown(context=ctx)
 
 
-# how long a command waits for its look's node to be on the graph before it goes on
-# with its own imports [s]: a bound, the node takes about 0.2 s
-LOOKING_WAIT_S = 1.0
+# the look's process: after its answer, what its middleware's teardown may take before
+# it is killed [s] (10-100 ms when nothing hangs; see Look)
+LOOK_TEARDOWN_S = 1.5
+# and before its answer, beyond its own waits [s]: interpreter, imports, participant
+LOOK_START_S = 30.0
+# set (to anything): the look's process hangs after its answer, as it does when Fast
+# DDS deadlocks in its teardown (the suite checks that the launcher goes on)
+HANG_ENV = "PIEZO_STAGE_LOOK_HANGS"
 
 
 class Look:
-    """``running_set`` in a thread of its own, begun as soon as the namespace and the
+    """``running_set`` in a process of its own, begun as soon as the namespace and the
     domain are known: its wait (2 s on a clean start) then runs while the command
     imports and reads its config, and while the nodes import, instead of after them
-    (launch to armed, `bench startup`). The command waits (``LOOKING_WAIT_S`` at most)
-    for the look's node to be on the graph first: the node's imports and creation would
-    otherwise share the interpreter with the command's, and the wait, which counts from
-    the node, would end later by as long as those took. ``result()`` waits
-    for the answer (raising what the look raised), which is in before the look's node
-    is torn down; ``cancel()`` ends a look whose answer is no longer wanted (a config
-    refused, a stop while starting): within 50 ms, with nothing left behind."""
+    (launch to armed, `bench startup`). ``result()`` waits for the answer (raising an
+    error the look met), which is in before the look's node is torn down; ``close()``
+    waits for that teardown, ``LOOK_TEARDOWN_S`` at most, and kills the process after
+    it; ``cancel()`` ends a look whose answer is no longer wanted (a config refused, a
+    stop while starting) the same way, with nothing left behind.
+
+    A process, not a thread: Fast DDS (2.14, Jazzy's) can deadlock while it destroys a
+    participant that is discovering another one's endpoints: its teardown waits, in a
+    spin, for a discovery callback that waits for a lock the teardown holds
+    (DomainParticipantImpl::set_listener; Fast-DDS issue 6513 is its spin). rclpy holds
+    the GIL through that call, so a look torn down in the launcher's thread while the
+    set's nodes joined the graph froze the launcher for good, at a whole CPU, before it
+    had started a node. The look's process keeps off shared memory (the real-time
+    set's transport), so a kill leaves no port file behind; it dies with its parent."""
 
     def __init__(self, namespace: str, domain_id: int, wait_s: float = 2.0) -> None:
+        import os
+        import subprocess
+        import sys
+        import tempfile
+
+        from piezo_stage.launcher.transport import realtime_transport_env
         self.namespace, self.domain_id, self.wait_s = namespace, int(domain_id), wait_s
         self._cancel = threading.Event()
         self._answered = threading.Event()
         self._answer: tuple[str | None, BaseException | None] = (None, None)
-        self._looking = threading.Event()
+        env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id))
+        env.update(realtime_transport_env(env))
+        self._err = tempfile.TemporaryFile()
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "piezo_stage.launcher.running", namespace,
+             str(self.domain_id), repr(float(wait_s))], env=env, stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, stderr=self._err, start_new_session=True)
         self._thread = threading.Thread(target=self._look, name="running-set look",
                                         daemon=True)
         self._thread.start()
-        # (or its answer, an error included)
-        end = time.monotonic() + LOOKING_WAIT_S
-        while not (self._looking.is_set() or self._answered.is_set()) and \
-                time.monotonic() < end:
-            self._looking.wait(0.01)
-
-    def _report(self, who: str | None) -> None:
-        self._answer = (who, None)
-        self._answered.set()
 
     def _look(self) -> None:
+        """The answer from the look's process, then its teardown, bounded."""
+        import json
+        import subprocess
+        bound = threading.Timer(LOOK_START_S + self.wait_s + BUSY_WAIT_S + STATE_WAIT_S,
+                                self._proc.kill)
+        bound.daemon = True
+        bound.start()
         try:
-            running_set(self.namespace, self.domain_id, self.wait_s, cancel=self._cancel,
-                        report=self._report, looking=self._looking)
-        except BaseException as e:  # noqa: BLE001 - raised in result(), in the caller
-            if not self._answered.is_set():
-                self._answer = (None, e)
+            assert self._proc.stdout is not None
+            line = self._proc.stdout.readline()
         finally:
-            self._answered.set()
+            bound.cancel()
+        try:
+            said = json.loads(line) if line.strip() else {}
+        except ValueError:
+            said = {}
+        if "who" in said:
+            self._answer = (said["who"], None)
+        elif not self._cancel.is_set():
+            self._answer = (None, RuntimeError(self._no_answer(said)))
+        self._answered.set()
+        try:
+            self._proc.wait(LOOK_TEARDOWN_S)
+        except subprocess.TimeoutExpired:  # its middleware's teardown hangs (above)
+            self._proc.kill()
+            self._proc.wait()
+
+    def _no_answer(self, said: dict) -> str:
+        if "error" in said:
+            return f"the look for a set running in {self.namespace}: {said['error']}"
+        try:
+            code = self._proc.wait(LOOK_TEARDOWN_S)
+        except Exception:  # noqa: BLE001 - still running: killed below
+            code = None
+        self._err.seek(0)
+        last = [x for x in self._err.read().decode(errors="replace").splitlines()
+                if x.strip()][-1:]
+        return (f"the look for a set running in {self.namespace} ended without an answer"
+                f" (exit {code})" + (f": {last[0].strip()}" if last else ""))
 
     def done(self) -> bool:
         return self._answered.is_set()
@@ -157,9 +199,64 @@ class Look:
             raise error
         return who
 
-    def cancel(self) -> None:
-        self._cancel.set()
+    def close(self) -> None:
+        """Wait for the look's process to end (its teardown, ``LOOK_TEARDOWN_S`` at
+        most after its answer, then it is killed)."""
         self._thread.join()
+        self._err.close()
+
+    def cancel(self) -> None:
+        """The answer is no longer wanted: the look's process ends within 50 ms and
+        tears down (killed after ``LOOK_TEARDOWN_S``)."""
+        self._cancel.set()
+        if self._proc.stdin is not None:
+            try:
+                self._proc.stdin.close()  # its end of input: it stops looking
+            except OSError:
+                pass
+        self._thread.join(LOOK_TEARDOWN_S + 0.5)
+        if self._thread.is_alive():  # not even an answer yet, and not ending
+            self._proc.kill()
+        self.close()
+        self._answered.set()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The look's process (``Look``): ``NAMESPACE DOMAIN WAIT_S``; one JSON line on
+    stdout, ``{"who": ...}`` or ``{"error": ...}``, before its node is torn down. The
+    end of its input cancels it."""
+    import json
+    import os
+    import signal
+    import sys
+    args = sys.argv[1:] if argv is None else argv
+    namespace, domain, wait_s = args[0], int(args[1]), float(args[2])
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # its parent says when it ends
+    try:
+        import ctypes
+        ctypes.CDLL(None).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    cancel = threading.Event()
+
+    def until_input_ends() -> None:
+        while os.read(0, 4096):  # the raw descriptor: no buffer's lock at exit
+            pass
+        cancel.set()
+    threading.Thread(target=until_input_ends, daemon=True).start()
+
+    def report(who: str | None) -> None:
+        sys.stdout.write(json.dumps({"who": who}) + "\n")
+        sys.stdout.flush()
+        if os.environ.get(HANG_ENV):  # the suite's stand-in for the deadlock (Look)
+            threading.Event().wait()
+    try:
+        running_set(namespace, domain, wait_s, cancel=cancel, report=report)
+    except Exception as e:  # noqa: BLE001 - said to the parent, in one line
+        sys.stdout.write(json.dumps({"error": f"{type(e).__name__}: {e}"}) + "\n")
+        sys.stdout.flush()
+        return 1
+    return 0
 
 
 @contextmanager
@@ -179,4 +276,12 @@ def begin_look(namespace: str, env=None):
         yield look
     finally:
         look.cancel()
+
+
+if __name__ == "__main__":
+    import os
+    import sys
+    code = main()
+    sys.stdout.flush()
+    os._exit(code)  # torn down already; its input's reader still blocks in read()
 
