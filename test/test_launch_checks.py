@@ -335,7 +335,7 @@ def test_every_override_the_launcher_writes_is_the_value_rcl_reads():
 def test_a_look_whose_teardown_hangs_is_killed_and_the_launch_goes_on(tmp_path, ros_env):
     """Fast DDS can deadlock while it destroys a participant that is discovering others
     (launcher/running.py's Look): a look torn down in the launcher's own thread, while
-    the set's nodes joined the graph, once froze the launcher for good at a whole CPU.
+    a set that had just ended left the domain, once froze the launcher at a whole CPU.
     The look is a process of its own: one that hangs after its answer (HANG_ENV, the
     deadlock's stand-in) is killed ``LOOK_TEARDOWN_S`` after it, and a launch beside
     it arms, runs and ends; no look process is left."""

@@ -116,9 +116,10 @@ class Look:
     participant that is discovering another one's endpoints: its teardown waits, in a
     spin, for a discovery callback that waits for a lock the teardown holds
     (DomainParticipantImpl::set_listener; Fast-DDS issue 6513 is its spin). rclpy holds
-    the GIL through that call, so a look torn down in the launcher's thread while the
-    set's nodes joined the graph froze the launcher for good, at a whole CPU, before it
-    had started a node. The look's process keeps off shared memory (the real-time
+    the GIL through that call, so a look torn down in the launcher's thread while a set
+    that had just ended left the domain froze the launcher for good, at a whole CPU,
+    before it had started a node. The set's own nodes join only once the look's
+    participant is gone (``close()`` before the start gate opens). The look's process keeps off shared memory (the real-time
     set's transport), so a kill leaves no port file behind; it dies with its parent."""
 
     def __init__(self, namespace: str, domain_id: int, wait_s: float = 2.0) -> None:
