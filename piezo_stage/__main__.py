@@ -11,17 +11,16 @@ def main():
     from piezo_stage.process.blas import one_thread_unless_set
     one_thread_unless_set()  # before numpy loads
     from piezo_stage.cli import main as command
+    from piezo_stage.process import teardown
     try:
         code = command()
     except KeyboardInterrupt:  # a stop that met the command's own end: said, exit 130
         stopping.hold()
         line, code = stopping.stopped_line()
         sys.stderr.write(line + "\n")
-    # done (or stopped, and said so): a stop arriving now would meet the interpreter's
-    # exit, which gives the default handlers back, and end a finished command by the
-    # signal with no word; it is ignored instead, and the command exits with its own code
-    stopping.hold()
-    stopping.exit_now(code)  # (the console script's sys.exit(main()) is never reached)
+    except SystemExit as e:  # its one line said (cli/_common.py die)
+        code = e.code
+    teardown.end(code)  # (the console script's sys.exit(main()) is never reached)
 
 
 if __name__ == "__main__":

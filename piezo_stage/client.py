@@ -480,13 +480,20 @@ class Stage:
             log.close()
 
     def close(self) -> None:
-        """Leave the set (the node and its context end)."""
+        """Leave the set (the node and its context end; in a ``piezo-stage`` command
+        that talks to a set, at the command's end, bounded: process/teardown.py)."""
         import rclpy
-        try:
-            self.ex.shutdown()  # the executor lets go of the node's entities first
-            self.node.destroy_node()
-        finally:
-            rclpy.try_shutdown(context=self.ctx)
+
+        from piezo_stage.process import teardown
+        ex, node, ctx = self.ex, self.node, self.ctx
+
+        def leave() -> None:
+            try:
+                ex.shutdown()  # the executor lets go of the node's entities first
+                node.destroy_node()
+            finally:
+                rclpy.try_shutdown(context=ctx)
+        teardown.leave(leave)
 
     def __enter__(self) -> Stage:
         return self

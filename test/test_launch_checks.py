@@ -369,6 +369,36 @@ def test_a_look_whose_teardown_hangs_is_killed_and_the_launch_goes_on(tmp_path, 
     assert left.stdout.strip() == "", left.stdout
 
 
+@pytest.mark.parametrize("argv,code", [(["lifecycle", "stage_driver", "--timeout", "1"], 2),
+                                       (["move", "1", "1", "--timeout", "1"], 4)])
+def test_a_commands_teardown_that_hangs_ends_with_the_commands_own_code(ros_env, argv,
+                                                                       code):
+    """A command that talks to a set tears its participant down after its outcome is
+    said, bounded (process/teardown.py): Fast DDS can deadlock there with the GIL held.
+    One whose teardown hangs (HANG_ENV, the deadlock's stand-in) has said its line, says
+    one more, and exits with its own code within the bound; one whose teardown ends
+    says nothing of it."""
+    import time
+
+    from piezo_stage.process.signals import MIDDLEWARE_TEARDOWN_S
+    from piezo_stage.process.teardown import HANG_ENV
+    plain = subprocess.run([sys.executable, "-m", "piezo_stage.cli", *argv], env=ros_env,
+                           capture_output=True, text=True, timeout=60)
+    assert plain.returncode == code and "teardown" not in plain.stderr, plain.stderr
+    t0 = time.monotonic()
+    hung = subprocess.run([sys.executable, "-m", "piezo_stage", *argv],
+                          env=dict(ros_env, **{HANG_ENV: "1"}), capture_output=True,
+                          text=True, timeout=60)
+    took = time.monotonic() - t0
+    lines = hung.stderr.strip().splitlines()
+    assert hung.returncode == code, hung.stderr
+    assert lines[0] == plain.stderr.strip().splitlines()[0]  # its outcome, said first
+    assert lines[-1].endswith(f"the middleware's teardown did not end within "
+                              f"{MIDDLEWARE_TEARDOWN_S:g} s (Fast DDS); exited without it, "
+                              f"with the command's code ({code})"), lines
+    assert took < 1.0 + MIDDLEWARE_TEARDOWN_S + 20.0  # its own wait, the bound, start-up
+
+
 def test_compose_is_a_launch_option_refused_in_one_line_when_unknown():
     r = cli("launch", "--compose", "bogus", "--duration", "1")
     one_line_exit_2(r)

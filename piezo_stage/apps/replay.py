@@ -137,8 +137,14 @@ def replay(bag, rate=1.0, namespace=None, clock_period_s=0.01, duration_s=None) 
         how = f"stopped by {signal.Signals(stopping.STATE.signum).name}"
         code = 128 + stopping.STATE.signum
     finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+        from piezo_stage.process import teardown
+
+        def leave() -> None:
+            try:
+                node.destroy_node()
+            finally:
+                rclpy.try_shutdown()
+        teardown.leave(leave)  # at the command's end, bounded (process/teardown.py)
     print(f"replayed {n} messages on {len(pubs)} topics: {(log_ns - t0_log) * 1e-9:.3f} s "
           f"of the record's {span_s:.3f} s in {time.monotonic() - t0_wall:.3f} s, {how}",
           flush=True)

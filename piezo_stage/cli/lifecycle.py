@@ -27,10 +27,12 @@ def main(args):
     from piezo_stage.cli._common import client_transport
     from piezo_stage.core.errors import ConfigError
     from piezo_stage.launcher.lifecycle import STATES, TRANSITIONS, drive, full_name
+    from piezo_stage.process import teardown
     if args.target is not None and args.target not in TRANSITIONS + STATES:
         raise ConfigError(f"{args.target!r}: give a transition ({', '.join(TRANSITIONS)}) "
                           f"or a state ({', '.join(STATES)})")
     client_transport()
+    teardown.at_end()  # its participant torn down after its outcome is said, bounded
     drive(full_name(args.node, args.namespace), args.target,
           int(os.environ.get("ROS_DOMAIN_ID") or 0), args.timeout)
     return 0

@@ -30,7 +30,9 @@ def main(args):
 
     from piezo_stage.cli._common import client_transport, die
     from piezo_stage.client import MoveRefused, MoveTimeout, NoStage, Stage, StageFault
+    from piezo_stage.process import teardown
     client_transport()
+    teardown.at_end()  # its participant torn down after its outcome is said, bounded
     try:
         with Stage(args.namespace, timeout=min(args.timeout, 30.0)) as stage:
             done = stage.move_to(args.x, args.y, args.tol_um, args.settle_ms, args.timeout)

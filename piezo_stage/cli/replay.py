@@ -23,6 +23,8 @@ def main(args):
     import math
 
     from piezo_stage.apps.replay import replay
+    from piezo_stage.process import teardown
+    teardown.at_end()  # its participant torn down after its outcome is said, bounded
     if not (math.isfinite(args.rate) and args.rate >= 0):
         raise DataError(f"--rate {args.rate}: must be a finite number >= 0 (0: as fast as "
                         "possible)")

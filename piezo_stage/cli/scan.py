@@ -66,6 +66,8 @@ def main(args):
     from piezo_stage.cli._common import die
     from piezo_stage.cli.move import EXIT_FAULT, EXIT_NO_STAGE, EXIT_TIMEOUT
     from piezo_stage.client import MoveTimeout, NoStage, Stage, StageError, StageFault
+    from piezo_stage.process import teardown
+    teardown.at_end()  # its participant torn down after its outcome is said, bounded
     out = args.out or (f"{args.record.rstrip(os.sep)}.points.csv" if args.record
                        else "scan.csv")
     from piezo_stage.io.files import check_output

@@ -80,9 +80,18 @@ class LifecycleClient:
         self.types = (GetState, GetAvailableTransitions, ChangeState)
 
     def close(self) -> None:
+        """Leave the graph (at the command's end, bounded: process/teardown.py)."""
         import rclpy
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.ctx)
+
+        from piezo_stage.process import teardown
+        node, ctx = self.node, self.ctx
+
+        def leave() -> None:
+            try:
+                node.destroy_node()
+            finally:
+                rclpy.try_shutdown(context=ctx)
+        teardown.leave(leave)
 
     def _ready(self, client, what: str, t_end: float, timeout: float) -> None:
         """Wait for ``client``'s service (the graph is kept by DDS's own threads: a

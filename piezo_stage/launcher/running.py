@@ -119,8 +119,9 @@ class Look:
     the GIL through that call, so a look torn down in the launcher's thread while a set
     that had just ended left the domain froze the launcher for good, at a whole CPU,
     before it had started a node. The set's own nodes join only once the look's
-    participant is gone (``close()`` before the start gate opens). The look's process keeps off shared memory (the real-time
-    set's transport), so a kill leaves no port file behind; it dies with its parent."""
+    participant is gone (``close()`` before the start gate opens). The look's process
+    keeps off shared memory (the real-time set's transport), so a kill leaves no port
+    file behind; it dies with its parent."""
 
     def __init__(self, namespace: str, domain_id: int, wait_s: float = 2.0) -> None:
         import os

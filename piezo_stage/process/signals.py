@@ -225,40 +225,64 @@ def _native_timer(libc: Any, function: Any, value: int, seconds: float) -> Any:
     return timer
 
 
+def _exit_timers(text: str, code: int, seconds: float) -> tuple[list, Any]:
+    """Native timers that, ``seconds`` from now, write ``text`` (one line, on stderr,
+    after the program's name) and exit with ``code``; ([], None) without POSIX timers
+    (not Linux)."""
+    timers: list = []
+    if not sys.platform.startswith("linux"):
+        return timers, None
+    libc = None
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        line = ctypes.create_string_buffer(text.replace("%", "%%").encode())
+        _KEEP.append(line)
+        timers.append(_native_timer(libc, libc.warnx, ctypes.addressof(line),
+                                    seconds + 0.05))
+        timers.append(_native_timer(libc, libc._exit, int(code) & 0xFF, seconds + 0.1))
+    except (OSError, AttributeError, ValueError):
+        for t in timers:
+            if libc is not None:
+                libc.timer_delete(t)
+        return [], None
+    return timers, libc
+
+
 @contextmanager
 def bounded_teardown(code: int, seconds: float = MIDDLEWARE_TEARDOWN_S) -> Iterator[None]:
     """The middleware's part of a teardown (see the module docstring): if the block has
     not ended within ``seconds``, every thread's stack and one line go to stderr and the
     process exits with ``code``. Without POSIX timers (not Linux) only the stop watch
     (:func:`watch`) applies."""
-    timers, libc = [], None
-    if sys.platform.startswith("linux"):
-        try:
-            import ctypes
-            libc = ctypes.CDLL(None, use_errno=True)
-            text = (f"{_name()}: the middleware's teardown did not end within {seconds:g} s;"
-                    f" exited without it, with the code of its stop ({code})")
-            line = ctypes.create_string_buffer(text.replace("%", "%%").encode())
-            _KEEP.append(line)
-            faulthandler.dump_traceback_later(seconds, exit=False, file=sys.stderr)
-            timers.append(_native_timer(libc, libc.warnx, ctypes.addressof(line),
-                                        seconds + 0.05))
-            timers.append(_native_timer(libc, libc._exit, int(code) & 0xFF, seconds + 0.1))
-        except (OSError, AttributeError, ValueError):
-            for t in timers:
-                if libc is not None:
-                    libc.timer_delete(t)
-            timers = []
+    timers, libc = _exit_timers(
+        f"{_name()}: the middleware's teardown did not end within {seconds:g} s; exited "
+        f"without it, with the code of its stop ({code})", code, seconds)
+    if timers:
+        faulthandler.dump_traceback_later(seconds, exit=False, file=sys.stderr)
     try:
         yield
     finally:
         for t in timers:
-            if libc is not None:
-                libc.timer_delete(t)
+            libc.timer_delete(t)
         if timers:  # the stop watch again, for what is left (the interpreter's exit)
             faulthandler.cancel_dump_traceback_later()
             STATE.watching = False
             watch()
+
+
+@contextmanager
+def exit_if_hung(code: int, text: str,
+                 seconds: float = MIDDLEWARE_TEARDOWN_S) -> Iterator[None]:
+    """A command's last teardown, its outcome said already: if the block has not ended
+    within ``seconds``, ``text`` goes to stderr as one line and the process exits with
+    ``code``, the command's own (no stacks, no stop watch after it)."""
+    timers, libc = _exit_timers(text, code, seconds)
+    try:
+        yield
+    finally:
+        for t in timers:
+            libc.timer_delete(t)
 
 
 @contextmanager
