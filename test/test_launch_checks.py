@@ -432,17 +432,35 @@ def test_launch_compose_runs_the_loop_as_asked_and_says_so(tmp_path, ros_env, ex
 
 @pytest.mark.slow
 @pytest.mark.parametrize("argv", [["lifecycle", "stage_driver", "--timeout", "4"],
-                                  ["move", "1", "1", "--timeout", "4"]])
-def test_commands_that_talk_to_a_set_open_no_shared_memory(ros_env, argv):
-    """`lifecycle` and `move` keep off Fast DDS's shared-memory transport (as a real-time
-    set does): with stale shared-memory ports on a host, Fast DDS wrote its port errors
-    into `lifecycle`'s output, whose lines a test compared (a CI-host flake). Here
-    no set runs, so each waits for one while its process's maps are read."""
+                                  ["move", "1", "1", "--timeout", "4"],
+                                  ["scan", "--grid", "2,2", "--timeout", "4", "--out", "OUT"],
+                                  ["look"]])
+def test_commands_that_talk_to_a_set_open_no_shared_memory(ros_env, argv, tmp_path):
+    """`lifecycle`, `move`, `scan` and a launch's look for a running set keep off Fast
+    DDS's shared-memory transport (as a real-time set does): with stale shared-memory
+    ports on a host, Fast DDS wrote its port errors into `lifecycle`'s output, whose
+    lines a test compared (a CI-host flake), and a participant opening a port whose
+    mutex a killed process left locked waited in create_node. Here no set runs, so each
+    waits for one while its process's maps are read."""
     pytest.importorskip("rclpy")
     env = {k: v for k, v in ros_env.items() if k not in (
         "FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_BUILTIN_TRANSPORTS")}
-    p = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", *argv], env=env,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    look = None
+    if argv == ["look"]:  # the launcher's, a process of its own (launcher/running.py)
+        from piezo_stage.launcher.running import Look
+        old = dict(os.environ)
+        os.environ.clear()
+        os.environ.update(env)
+        try:
+            look = Look("/noset", int(env["ROS_DOMAIN_ID"]), wait_s=3.0)
+        finally:
+            os.environ.clear()
+            os.environ.update(old)
+        p = look._proc
+    else:
+        argv = [str(tmp_path / "scan.csv") if a == "OUT" else a for a in argv]
+        p = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", *argv], env=env,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     import time
     seen, t0 = set(), time.monotonic()
     try:
@@ -456,8 +474,11 @@ def test_commands_that_talk_to_a_set_open_no_shared_memory(ros_env, argv):
             time.sleep(0.05)
         assert "librmw_fastrtps" in libs or "rmw_fastrtps" in libs, "no participant yet"
     finally:
-        p.kill()
-        p.communicate()
+        if look is not None:
+            look.cancel()
+        else:
+            p.kill()
+            p.communicate()
     assert not seen, seen
 
 

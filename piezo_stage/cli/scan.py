@@ -63,10 +63,11 @@ def main(args):
     import sys
     import time
 
-    from piezo_stage.cli._common import die
+    from piezo_stage.cli._common import client_transport, die
     from piezo_stage.cli.move import EXIT_FAULT, EXIT_NO_STAGE, EXIT_TIMEOUT
     from piezo_stage.client import MoveTimeout, NoStage, Stage, StageError, StageFault
     from piezo_stage.process import teardown
+    client_transport()  # off shared memory, as move (its recorder, if it starts one, too)
     teardown.at_end()  # its participant torn down after its outcome is said, bounded
     out = args.out or (f"{args.record.rstrip(os.sep)}.points.csv" if args.record
                        else "scan.csv")
