@@ -1157,30 +1157,54 @@ def _rate_auto_outside(tmp_path, domain):
     assert int(run.diagnostics["feedforward"]["trajectories"]) == 1
 
 
-def test_a_margin_no_rate_holds_ends_the_launch_in_one_line_never_armed(tmp_path, domain):
-    """`launch --rate auto` with a min_margin no host holds (100 x, the highest it
-    takes): the driver refuses at start, no standard rate would have it, so the
-    launcher runs no second set and ends with one line naming the rate refused, the
-    capacity and the runs (exit 1); the stage never armed and stayed at the safe
-    voltage."""
+@pytest.mark.parametrize("rate", ["auto", "fixed"])
+def test_a_margin_no_rate_holds_ends_the_launch_in_one_line_never_armed(tmp_path, domain,
+                                                                       rate):
+    """A real-time launch with a min_margin no host holds (100 x, the highest it
+    takes), with an outside publisher (examples/publish_trajectory.py) started at the
+    same moment: the driver refuses at start (under `--rate auto` no standard rate
+    would have it, so the launcher runs no second set) and the launch ends with one
+    line naming the rate refused, the capacity and the runs (exit 1); the stage never
+    armed and stayed at the safe voltage. The refusal comes before the set took any
+    input, at a rate of the user's as under `--rate auto`: the feedforward takes
+    outside inputs once the driver has armed, so no trajectory was accepted and the
+    publisher, which waits for the feedforward's subscription, never met it."""
     import re
     d, env = domain
     cfg = realtime_config(tmp_path)
     text = open(cfg).read().replace("min_margin: 0.0", "min_margin: 100.0")
     open(cfg, "w").write(text)
     bag = str(tmp_path / "refused")
-    r = subprocess.run(
-        [sys.executable, "-m", "piezo_stage.cli", "launch", "--params", cfg, "--rate",
-         "auto", "--record", bag, "--duration", "60"],
-        env=env, capture_output=True, text=True, timeout=120)
+    rate_args = ["--rate", "auto"] if rate == "auto" else []
+    pub = subprocess.Popen(
+        [sys.executable, os.path.join(CONFIG, "..", "examples", "publish_trajectory.py"),
+         "--timeout", "60"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, start_new_session=True)
+    try:
+        r = subprocess.run(
+            [sys.executable, "-m", "piezo_stage.cli", "launch", "--params", cfg, *rate_args,
+             "--no-trajectory", "--record", bag, "--duration", "60"],
+            env=env, capture_output=True, text=True, timeout=120)
+    finally:
+        pub.send_signal(signal.SIGINT)
+        pub_out, pub_err = pub.communicate(timeout=30)
     assert r.returncode == 1, (r.returncode, r.stderr[-3000:])
     assert "running again" not in r.stderr, r.stderr[-3000:]
     last = r.stderr.strip().splitlines()[-1]
+    runs = f"; rate auto ran it once, at {RATE:g} Hz" if rate == "auto" else ""
     assert re.fullmatch(
         rf"piezo-stage launch: stage_driver refused to arm at {RATE:g} Hz: this host holds "
-        rf"the loop at [\d,]+ samples/s, \d+\.\d\d x, under min_margin 100; rate auto ran "
-        rf"it once, at {RATE:g} Hz", last), last
+        rf"the loop at [\d,]+ samples/s, \d+\.\d\d x, under min_margin 100{re.escape(runs)}",
+        last), last
     assert "died with exit code" not in r.stderr, r.stderr[-3000:]
+    assert "taking trajectories, setpoints and moves" not in r.stderr, r.stderr[-3000:]
     run = read_run(bag)
     assert "armed" not in [s for _, s in run.states], run.states
     assert np.all(run.v_V == 0.0)
+    # nothing taken: the bag holds no accepted trajectory, the feedforward counted none,
+    # and the publisher, stopped by this test, never had its trajectory run
+    from piezo_stage.io.bag import iter_messages
+    assert not [t for t, _, _, _ in iter_messages(bag) if t.endswith("trajectory/accepted")]
+    assert int(run.diagnostics["feedforward"]["trajectories"]) == 0, run.diagnostics
+    assert pub.returncode != 0 and "final error" not in pub_out, (pub.returncode, pub_out,
+                                                                    pub_err)

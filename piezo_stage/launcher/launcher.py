@@ -448,10 +448,12 @@ class Launch:
             extra["port"] = int(self.foxglove_port or 0)
         if self.lockstep:  # one clock: the driver's samples (/clock), bags included
             extra["use_sim_time"] = True
-        elif node == "feedforward" and self.auto_rate:
-            # an attempt the driver refuses is run again at a lower rate (run()): what
-            # it took from outside would be lost with it, so it takes nothing before
-            # it has armed, and an outside publisher waits for the set that runs
+        elif node == "feedforward":
+            # a real-time set's driver may refuse to arm (its capacity judged while it
+            # runs disarmed), and --rate auto runs the set again at a lower rate
+            # (run()): what it took from outside would be lost with it, so it takes
+            # nothing before it has armed, and an outside publisher waits for the set
+            # that runs (a refusal never comes after the set took an input)
             extra["inputs_once_armed"] = True
         extra.update(self.overrides.get(node, {}))
         return extra

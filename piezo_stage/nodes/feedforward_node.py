@@ -79,8 +79,8 @@ class Feedforward(LeanNode, Node):
         hot_subscription(self, JointState, "joint_states", self.on_state, QOS_DATA, raw=True,
                          with_info=True)
         # the inputs from outside the loop: at once, or (inputs_once_armed) once the
-        # driver has armed, its capacity judged: what a refused attempt took would be lost
-        # with it, when the launcher's --rate auto runs the set again at a lower rate
+        # driver has armed, its capacity judged (the launcher's real-time sets): a set
+        # refused took nothing, and one --rate auto runs again at a lower rate lost nothing
         self.inputs_waiting = p["inputs_once_armed"] and not p["wait_for_trajectory"]
         if not self.inputs_waiting:
             self.take_inputs()

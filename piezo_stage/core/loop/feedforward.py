@@ -65,9 +65,9 @@ PARAMETERS: Schema = (
           " time: the loop does not close, so the set does not arm)"),
     Param("inputs_once_armed", False,
           "take trajectories, setpoints and moves only once the driver has armed (the "
-          "launcher's --rate auto: an attempt refused for want of capacity, and run again "
-          "at a lower rate, never takes what it would lose); with wait_for_trajectory the "
-          "trajectory is taken from the start"),
+          "launcher sets it on every real-time set: a set refused for want of capacity "
+          "took no input, and one --rate auto runs again at a lower rate lost none); with "
+          "wait_for_trajectory the trajectory is taken from the start"),
     Param("approach_speed_um_per_s", 200.0, "approach speed [um/s]", lo=0.1, hi=1e6),
     Param("approach_accel_um_per_s2", 20000.0,
           "approach acceleration [um/s^2]",
