@@ -207,6 +207,25 @@ def test_start_up_motion_is_the_fastest_move_before_arming_and_over_each_approac
     assert startup_speed(run) == pytest.approx(4.0)
 
 
+def test_the_2_khz_run_is_judged_by_every_target_and_a_missing_figure_fails():
+    """bench realtime's run above the chosen rate, at 2 kHz with no margin check, is
+    judged by the issue's targets: tracking against lockstep at that rate, the loop
+    subscriber's lag p99, start-up motion, missed ticks, faults (and the launch's exit);
+    a figure the run could not give (NaN: never armed) or no run at all is not met."""
+    from benchmarks.realtime import beyond_targets
+    good = {"tracking_ratio": 1.2, "ff_lag_p99_ms": 0.9, "startup_um_per_ms": 0.01,
+            "missed_pct": 0.05, "faults": 0, "rc": 0}
+    rows = beyond_targets(2000.0, good)
+    assert len(rows) == 5 and all(ok for _, ok in rows), rows
+    assert all(what.startswith("2000 Hz with no margin check: ") for what, _ in rows)
+    for key, bad in [("tracking_ratio", 1.6), ("ff_lag_p99_ms", 2.5),
+                     ("startup_um_per_ms", 2.1), ("missed_pct", 0.2), ("faults", 1),
+                     ("rc", 1), ("tracking_ratio", float("nan"))]:
+        rows = beyond_targets(2000.0, dict(good, **{key: bad}))
+        assert [ok for _, ok in rows].count(False) == 1, (key, bad, rows)
+    assert not any(ok for _, ok in beyond_targets(2000.0, None))
+
+
 def test_the_sets_cpu_a_sample_is_taken_over_the_stretch_its_processes_all_ran():
     """bench realtime's CPU per process: the longest stretch with the same processes,
     SETTLE_S in, over the samples it held; a process's command line names it."""
