@@ -106,8 +106,9 @@ def _beyond(rate: float, env: dict, bag: str, slew_V_per_s: float) -> dict:
          "tracking_ratio": float("nan")}
     try:  # (a run that never armed, or whose recorder lost most samples, has none)
         f = figures(run, BEYOND_S, slew_V_per_s, (), int(round(1e9 / rate)))
-        b.update(ff_lag_p99_ms=f["ff_lag_ms"][1], startup_um_per_ms=f["startup_um_per_ms"])
-    except (RuntimeError, ValueError, IndexError, KeyError):
+        b.update(ff_lag_p99_ms=f["ff_lag_ms"][1],
+                 startup_um_per_ms=f["startup_speed_um_per_ms"])
+    except (RuntimeError, ValueError):  # never armed; no sample in the window
         f = None
     if rate == TARGET_HZ and f is not None:
         ls = _run("lockstep", BEYOND_S, env, bag + "_lockstep", rate)[0]
